@@ -1,0 +1,54 @@
+# Two commands do everything on a fresh machine:  make demo  |  make test
+# Python 3.11 exactly: pybullet ships binary wheels only for cp311 (a source build takes 7+ minutes).
+
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+DEMO   := demo_out
+export TERGODIC_CACHE_DIR ?= $(CURDIR)/.cache/tergodic
+
+.PHONY: setup test demo bench sysdeps data clean
+
+# open3d needs libusb, libGL and libgomp at import time; install them from apt when missing.
+sysdeps:
+	@missing=""; \
+	for pair in libusb-1.0.so.0:libusb-1.0-0 libGL.so.1:libgl1 libgomp.so.1:libgomp1; do \
+	  lib=$${pair%%:*}; pkg=$${pair##*:}; \
+	  ldconfig -p 2>/dev/null | grep -q "$$lib" || missing="$$missing $$pkg"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing system libraries for open3d:$$missing"; \
+	  SUDO=""; [ "$$(id -u)" -ne 0 ] && SUDO=sudo; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing >/dev/null; \
+	fi
+
+$(STAMP): pyproject.toml
+	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), "tergodic needs Python 3.11 (pybullet wheels are cp311-only); found " + sys.version.split()[0]'
+	$(MAKE) sysdeps
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q -e '.[test]'
+	@touch $(STAMP)
+
+setup: $(STAMP)
+
+test: setup
+	$(BIN)/python -m pytest
+
+# The main job on built-in data: capture the procedurally built bowl with an X,
+# precompute its basis, explore it, and replay the log into plots.
+demo: setup
+	$(BIN)/tergodic capture --synthetic bowl --marking X --seed 0 --out $(DEMO)/capture
+	$(BIN)/tergodic precompute $(DEMO)/capture
+	$(BIN)/tergodic precompute $(DEMO)/capture
+
+bench: setup
+	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/precompute.py
+
+# Regenerate the project's own built-in clouds in data/.
+data: setup
+	for obj in bowl plate mug; do $(BIN)/tergodic capture --synthetic $$obj --marking X --seed 0 --out data/$$obj; done
+
+clean:
+	rm -rf $(DEMO) .cache .pytest_cache

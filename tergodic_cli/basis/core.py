@@ -1,0 +1,126 @@
+"""Computing the basis: robust Laplacian and generalised eigenpairs."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+import scipy.sparse as sp
+
+from tergodic_cli.errors import TergodicError, require
+
+
+@dataclass
+class Basis:
+    """Spectral basis of a point cloud.
+
+    Attributes
+    ----------
+    points : (n, 3) float64, metres, in the capture's order and frame.
+    L : (n, n) sparse CSR, the weak (stiffness) Laplacian, symmetric positive semi-definite.
+    mass : (n,) float64, the diagonal of the lumped mass matrix M (areas, m²).
+    evals : (nK,) float64, ascending eigenvalues λ of L φ = λ M φ (1/m²).
+    evecs : (n, nK) float64, M-orthonormal eigenvectors Φ (Φᵀ M Φ = I).
+    h : mean spacing (metres), mean distance to the 3 nearest neighbours.
+    """
+
+    points: np.ndarray
+    L: sp.csr_matrix
+    mass: np.ndarray
+    evals: np.ndarray
+    evecs: np.ndarray
+    h: float
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def nk(self) -> int:
+        return len(self.evals)
+
+    @cached_property
+    def kdtree(self):
+        """A scipy cKDTree over ``points`` (built on first use)."""
+        from scipy.spatial import cKDTree
+
+        return cKDTree(self.points)
+
+    def truncated(self, nk: int) -> "Basis":
+        """The first ``nk`` eigenpairs of this basis (a view, no copy of L)."""
+        require(nk <= self.nk, f"nK = {nk} is larger than the basis ({self.nk} eigenpairs)",
+                f"run 'tergodic precompute CAPTURE --nk {nk}' or use --nk <= {self.nk}")
+        return Basis(self.points, self.L, self.mass, self.evals[:nk], self.evecs[:, :nk], self.h, dict(self.meta))
+
+
+def check_geometry(points: np.ndarray) -> None:
+    """Refuse clouds robust_laplacian cannot handle: collinear/coplanar-degenerate or duplicate points."""
+    centred = points - points.mean(axis=0)
+    sv = np.linalg.svd(centred, compute_uv=False)
+    require(sv[0] > 0, "all points are identical", "give a cloud that spans a surface")
+    require(sv[1] > 1e-6 * sv[0], "the points are (nearly) collinear, so they span no surface",
+            "give a cloud that samples a 2-D surface")
+    n_unique = len(np.unique(points, axis=0))
+    require(n_unique == len(points), f"the cloud has {len(points) - n_unique} duplicate points",
+            "re-capture with a voxel filter (--voxel 0.003)")
+
+
+def compute_laplacian(points: np.ndarray, n_neighbors: int) -> tuple[sp.csr_matrix, np.ndarray]:
+    """Robust point-cloud Laplacian (Sharp & Crane 2020): L (n, n) CSR and lumped mass (n,)."""
+    import robust_laplacian
+
+    check_geometry(points)
+    require(n_neighbors >= 3, f"--neighbors {n_neighbors} is too small", "use at least 3 (default 30)")
+    require(n_neighbors < len(points), f"--neighbors {n_neighbors} is not below the {len(points)} points", "use fewer neighbours")
+    try:
+        L, M = robust_laplacian.point_cloud_laplacian(points, n_neighbors=n_neighbors)
+    except (RuntimeError, ValueError, AssertionError) as exc:
+        raise TergodicError(f"robust_laplacian failed on this cloud ({str(exc).splitlines()[0][:80]})",
+                            "the points may be degenerate; check the capture or change --neighbors") from None
+    mass = np.asarray(M.diagonal(), dtype=np.float64)
+    require(np.all(np.isfinite(mass)) and np.all(mass > 0), "the Laplacian has zero-area points (degenerate sampling)",
+            "re-capture with a voxel filter, or change --neighbors")
+    return sp.csr_matrix(L, dtype=np.float64), mass
+
+
+def solve_eigenpairs(L: sp.csr_matrix, mass: np.ndarray, nk: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``nk`` smallest eigenpairs of L φ = λ M φ, ascending and M-orthonormal.
+
+    Shift-invert Lanczos (ARPACK) about a small negative shift: L + σM is then
+    positive definite, so its factorisation is stable even though L is singular.
+    """
+    from scipy.sparse.linalg import eigsh
+
+    n = L.shape[0]
+    require(nk >= 1, f"--nk {nk} must be positive", "e.g. --nk 200")
+    require(nk < n, f"--nk {nk} is not below the number of points ({n})", f"use --nk < {n}, or a finer --voxel")
+    M = sp.diags(mass)
+    scale = float(np.median(L.diagonal() / mass))  # ~ 1/h², the largest eigenvalue scale
+    sigma = -1e-8 * scale
+    rng = np.random.default_rng(0)  # ARPACK start vector: seeded for bit-identical bases
+    v0 = rng.standard_normal(n)
+    evals, evecs = eigsh(L, k=nk, M=M, sigma=sigma, which="LM", v0=v0)
+    order = np.argsort(evals)
+    evals, evecs = evals[order], evecs[:, order]
+    evals[0] = max(evals[0], 0.0) if abs(evals[0]) < 1e-9 * scale else evals[0]
+    # Fix each eigenvector's sign (largest-magnitude entry positive) so caches are reproducible.
+    flip = np.sign(evecs[np.abs(evecs).argmax(axis=0), np.arange(nk)])
+    evecs *= np.where(flip == 0, 1.0, flip)
+    return evals, evecs
+
+
+def compute_basis(points: np.ndarray, nk: int, n_neighbors: int, timings: dict | None = None) -> Basis:
+    """Laplacian, eigenpairs and spacing for ``points`` (n, 3) metres."""
+    from tergodic_cli.capture.filters import mean_spacing
+
+    timings = {} if timings is None else timings
+    require(nk < len(points), f"--nk {nk} is not below the number of points ({len(points)})", f"use --nk < {len(points)}")
+    t = time.perf_counter()
+    L, mass = compute_laplacian(points, n_neighbors)
+    timings["laplacian_ms"] = 1e3 * (time.perf_counter() - t)
+    t = time.perf_counter()
+    evals, evecs = solve_eigenpairs(L, mass, nk)
+    timings["eigensolver_ms"] = 1e3 * (time.perf_counter() - t)
+    t = time.perf_counter()
+    h = mean_spacing(points)
+    timings["spacing_ms"] = 1e3 * (time.perf_counter() - t)
+    return Basis(points, L, mass, evals, evecs, h)

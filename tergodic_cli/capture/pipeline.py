@@ -1,0 +1,203 @@
+"""The capture pipeline: read -> units -> validity -> passthrough -> outliers -> segment -> voxel.
+
+Segmentation runs on the raw points, before the voxel grid, so that the default
+voxel rule can give p as the share of target-coloured points in each voxel.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from tergodic_cli.capture.artefact import Capture
+from tergodic_cli.capture.filters import VOXEL_RULES, crop_box, mean_spacing, remove_statistical_outliers, voxel_downsample
+from tergodic_cli.capture.segment import parse_target, segment_target
+from tergodic_cli.errors import TergodicError, require
+
+MIN_POINTS = 10
+#: A tabletop object larger than this many metres was almost surely given in millimetres.
+MAX_EXTENT_M = 5.0
+#: ... and one smaller than this was almost surely metres read as millimetres.
+MIN_EXTENT_M = 0.005
+
+
+@dataclass
+class CaptureConfig:
+    """Everything that determines a capture; saved in ``capture.json``."""
+
+    source: str = "synthetic"  # "file" | "synthetic"
+    path: str | None = None
+    synthetic: str = "bowl"
+    marking: str = "X"
+    seed: int = 0
+    units: str = "m"  # units of the input coordinates: "m" or "mm"
+    voxel: float = 0.003  # metres; 0 disables the voxel grid
+    voxel_rule: str = "fraction"
+    crop: tuple[float, float, float, float, float, float] | None = None  # xmin,ymin,zmin,xmax,ymax,zmax (m)
+    outliers: tuple[int, float] | None = None  # (nb_neighbors, std_ratio)
+    target: str = "red"
+    drop_invalid: bool = False
+
+
+@dataclass
+class CaptureReport:
+    """Counts after each stage, for the printed summary."""
+
+    stages: list[tuple[str, int]] = field(default_factory=list)
+
+    def add(self, name: str, n: int) -> None:
+        self.stages.append((name, int(n)))
+
+
+def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] | None = None) -> Capture:
+    """Run the capture pipeline for ``cfg``.
+
+    ``raw`` bypasses the source (points, colours) for sources that produce arrays
+    themselves (simulated or real cameras).
+    """
+    _validate_config(cfg)
+    t0 = time.perf_counter()
+    target_range = parse_target(cfg.target)
+    report = CaptureReport()
+    provenance: dict = {"source": cfg.source}
+    truth = None
+    if raw is not None:
+        points, colors = raw
+    elif cfg.source == "file":
+        from tergodic_cli.capture.readers import read_cloud
+
+        points, colors = read_cloud(cfg.path)
+        provenance["path"] = str(cfg.path)
+    elif cfg.source == "synthetic":
+        from tergodic_cli.capture.synthetic import generate_synthetic
+
+        syn = generate_synthetic(cfg.synthetic, cfg.marking, cfg.seed)
+        points, colors, truth = syn.points, syn.colors, syn.mask
+        provenance.update(object=cfg.synthetic, marking=cfg.marking, seed=cfg.seed)
+    else:
+        raise TergodicError(f"unknown capture source '{cfg.source}'", "use --from FILE or --synthetic OBJECT")
+    report.add("input", len(points))
+    require(len(points) > 0, "the cloud is empty", "check the input file or the crop box")
+
+    if cfg.units == "mm":
+        points = points * 1e-3
+    finite = np.all(np.isfinite(points), axis=1)
+    if not finite.all():
+        bad = int((~finite).sum())
+        require(cfg.drop_invalid, f"the cloud has {bad} points with NaN or inf coordinates",
+                "remove them, or pass --drop-invalid to drop them")
+        points, colors = points[finite], (colors[finite] if colors is not None else None)
+        truth = truth[finite] if truth is not None else None
+        report.add("drop invalid", len(points))
+    require(len(points) >= MIN_POINTS, f"the cloud has only {len(points)} points",
+            f"give at least {MIN_POINTS} points (check the file or the filters)")
+    _check_extent(points, cfg.units)
+
+    keep = np.ones(len(points), bool)
+    if cfg.crop is not None:
+        box = np.asarray(cfg.crop, dtype=float)
+        keep &= crop_box(points, box[:3], box[3:])
+        report.add("crop", keep.sum())
+        require(keep.sum() >= MIN_POINTS, f"only {int(keep.sum())} points are inside the crop box",
+                "widen --crop xmin,ymin,zmin,xmax,ymax,zmax (metres)")
+    if cfg.outliers is not None:
+        idx = np.flatnonzero(keep)
+        inl = remove_statistical_outliers(points[idx], int(cfg.outliers[0]), float(cfg.outliers[1]))
+        keep[idx[~inl]] = False
+        report.add("outliers", keep.sum())
+    points = points[keep]
+    colors = colors[keep] if colors is not None else None
+    truth = truth[keep] if truth is not None else None
+
+    is_target = segment_target(colors, target_range, len(points))
+    if cfg.voxel > 0:
+        points, colors, p = voxel_downsample(points, colors, is_target, cfg.voxel, cfg.voxel_rule)
+        report.add(f"voxel {cfg.voxel * 1e3:g} mm", len(points))
+    else:
+        p = is_target.astype(np.float64)
+        n_unique = len(np.unique(points, axis=0))
+        require(n_unique == len(points), f"the cloud has {len(points) - n_unique} duplicate points",
+                "merge them with a voxel filter (--voxel 0.003) or remove them from the file")
+    require(len(points) >= MIN_POINTS, f"only {len(points)} points remain after filtering",
+            "use a smaller --voxel or a wider --crop")
+    n_target = int((p > 0).sum())
+    require(n_target > 0, f"no points match the target colour '{cfg.target}'",
+            "check --target (e.g. --target red, hsv:H1-H2,SMIN,VMIN) or use --target all")
+
+    h = mean_spacing(points)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    meta = {
+        "kind": "tergodic.capture",
+        "format_version": 1,
+        "units": "m",
+        "input_units": cfg.units,
+        "provenance": provenance,
+        "config": _config_dict(cfg),
+        "filters": [{"stage": name, "points": n} for name, n in report.stages],
+        "counts": {"input": report.stages[0][1], "output": len(points), "target": n_target},
+        "target": {
+            "spec": cfg.target,
+            "voxel_rule": cfg.voxel_rule if cfg.voxel > 0 else "per-point",
+            "share": n_target / len(points),
+            "mass": float(p.sum()),
+        },
+        "spacing_h_m": h,
+        "extent_m": (hi - lo).tolist(),
+        "bbox_m": [lo.tolist(), hi.tolist()],
+        "seed": cfg.seed,
+        "seconds": time.perf_counter() - t0,
+    }
+    from tergodic_cli.provenance import library_versions
+
+    meta["versions"] = library_versions()
+    cap = Capture(points, colors, p, meta)
+    cap.truth = truth  # type: ignore[attr-defined]  # generator mask before voxel, for tests
+    return cap
+
+
+def _validate_config(cfg: CaptureConfig) -> None:
+    require(cfg.units in ("m", "mm"), f"unknown --units '{cfg.units}'", "use m or mm")
+    require(cfg.voxel >= 0 and np.isfinite(cfg.voxel), f"--voxel {cfg.voxel} is not a size", "give the voxel edge in metres, e.g. 0.003")
+    require(cfg.voxel < 1.0, f"--voxel {cfg.voxel} m is larger than any tabletop object",
+            "give the voxel edge in metres, e.g. 0.003 (not millimetres)")
+    require(cfg.voxel_rule in VOXEL_RULES, f"unknown --voxel-rule '{cfg.voxel_rule}'", f"use one of {', '.join(VOXEL_RULES)}")
+    if cfg.crop is not None:
+        box = np.asarray(cfg.crop, dtype=float)
+        require(box.shape == (6,) and np.all(box[:3] < box[3:]), "--crop needs xmin,ymin,zmin,xmax,ymax,zmax with min < max",
+                "e.g. --crop -0.2,-0.2,0,0.2,0.2,0.3 (metres)")
+    if cfg.outliers is not None:
+        require(cfg.outliers[0] >= 1 and cfg.outliers[1] > 0, "--outliers needs NB,STD with NB >= 1 and STD > 0", "e.g. --outliers 20,2.0")
+
+
+def _check_extent(points: np.ndarray, units: str) -> None:
+    extent = float(np.ptp(points, axis=0).max())
+    if extent > MAX_EXTENT_M:
+        raise TergodicError(f"the cloud spans {extent:.3g} m, which looks like millimetres read as metres",
+                            "pass --units mm" if units == "m" else "check the file's units")
+    if extent < MIN_EXTENT_M:
+        raise TergodicError(f"the cloud spans only {extent * 1e3:.3g} mm, which looks like metres read as millimetres",
+                            "pass --units m" if units == "mm" else "check the file's units")
+
+
+def _config_dict(cfg: CaptureConfig) -> dict:
+    d = asdict(cfg)
+    for key in ("crop", "outliers"):
+        if d[key] is not None:
+            d[key] = list(d[key])
+    return d
+
+
+def format_report(cap: Capture) -> str:
+    """A readable multi-line summary of a capture."""
+    m = cap.meta
+    lines = ["stage               points"]
+    lines += [f"  {f['stage']:<17} {f['points']:>7}" for f in m["filters"]]
+    t = m["target"]
+    ext = " x ".join(f"{e * 1e3:.1f}" for e in m["extent_m"])
+    lines += [
+        f"target '{t['spec']}' ({t['voxel_rule']}): {m['counts']['target']} of {m['counts']['output']} points ({100 * t['share']:.1f}%)",
+        f"mean spacing h: {m['spacing_h_m'] * 1e3:.3f} mm    extent: {ext} mm",
+    ]
+    return "\n".join(lines)

@@ -1,0 +1,95 @@
+"""Target segmentation by colour, in HSV with tolerances.
+
+A target spec is a named colour (``red``, ``green``, ``blue``, ``yellow``,
+``orange``, ``magenta``, ``cyan``, ``black``, ``white``), ``all`` for uniform
+coverage, or an explicit range ``hsv:H1-H2,SMIN,VMIN`` (hue in degrees, wrapping
+when H1 > H2; saturation and value in [0, 1]).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from tergodic_cli.errors import TergodicError
+
+
+@dataclass(frozen=True)
+class HsvRange:
+    """An HSV box: hue interval in degrees (may wrap through 0), lower/upper s and v bounds."""
+
+    hue_lo: float
+    hue_hi: float
+    s_min: float = 0.0
+    s_max: float = 1.0
+    v_min: float = 0.0
+    v_max: float = 1.0
+    any_hue: bool = False
+
+    def contains(self, hsv: np.ndarray) -> np.ndarray:
+        h, s, v = hsv[:, 0], hsv[:, 1], hsv[:, 2]
+        if self.any_hue:
+            hue_ok = np.ones(len(h), dtype=bool)
+        elif self.hue_lo <= self.hue_hi:
+            hue_ok = (h >= self.hue_lo) & (h <= self.hue_hi)
+        else:  # wraps through 0/360, e.g. red
+            hue_ok = (h >= self.hue_lo) | (h <= self.hue_hi)
+        return hue_ok & (s >= self.s_min) & (s <= self.s_max) & (v >= self.v_min) & (v <= self.v_max)
+
+
+_CHROMATIC = {"red": 0.0, "orange": 30.0, "yellow": 60.0, "green": 120.0, "cyan": 180.0, "blue": 240.0, "magenta": 300.0}
+HUE_TOLERANCE_DEG = 20.0
+NAMED = {name: HsvRange((c - HUE_TOLERANCE_DEG) % 360.0, (c + HUE_TOLERANCE_DEG) % 360.0, s_min=0.5, v_min=0.25)
+         for name, c in _CHROMATIC.items()}
+NAMED["black"] = HsvRange(0.0, 360.0, v_max=0.2, any_hue=True)
+NAMED["white"] = HsvRange(0.0, 360.0, s_max=0.2, v_min=0.8, any_hue=True)
+
+
+def parse_target(spec: str) -> HsvRange | None:
+    """Parse a ``--target`` spec; ``None`` means ``all`` (uniform target)."""
+    spec = spec.strip().lower()
+    if spec == "all":
+        return None
+    if spec in NAMED:
+        return NAMED[spec]
+    if spec.startswith("hsv:"):
+        try:
+            hue, s_min, v_min = spec[4:].split(",")
+            lo, hi = (float(x) for x in hue.split("-"))
+            rng = HsvRange(lo % 360.0, hi % 360.0, s_min=float(s_min), v_min=float(v_min))
+        except ValueError:
+            raise TergodicError(f"bad HSV target '{spec}'", "write it as hsv:H1-H2,SMIN,VMIN, e.g. hsv:340-20,0.5,0.3") from None
+        return rng
+    raise TergodicError(
+        f"unknown target colour '{spec}'",
+        f"use one of {', '.join(sorted(NAMED))}, 'all', or hsv:H1-H2,SMIN,VMIN",
+    )
+
+
+def rgb_to_hsv(rgb: np.ndarray) -> np.ndarray:
+    """Vectorised RGB in [0, 1] (n, 3) -> HSV (n, 3) with hue in degrees [0, 360)."""
+    r, g, b = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    cmax = rgb.max(axis=1)
+    cmin = rgb.min(axis=1)
+    delta = cmax - cmin
+    hue = np.zeros(len(rgb))
+    nz = delta > 0
+    rmax = nz & (cmax == r)
+    gmax = nz & (cmax == g) & ~rmax
+    bmax = nz & ~rmax & ~gmax
+    hue[rmax] = ((g[rmax] - b[rmax]) / delta[rmax]) % 6.0
+    hue[gmax] = (b[gmax] - r[gmax]) / delta[gmax] + 2.0
+    hue[bmax] = (r[bmax] - g[bmax]) / delta[bmax] + 4.0
+    sat = np.where(cmax > 0, delta / np.where(cmax > 0, cmax, 1.0), 0.0)
+    return np.column_stack([hue * 60.0, sat, cmax])
+
+
+def segment_target(colors: np.ndarray | None, target: HsvRange | None, n: int) -> np.ndarray:
+    """Boolean mask (n,) of target-coloured points; every point when ``target`` is None (``all``)."""
+    if target is None:
+        return np.ones(n, dtype=bool)
+    if colors is None:
+        raise TergodicError("the cloud has no colours, so no target can be segmented",
+                            "give a coloured cloud, or pass --target all for uniform coverage")
+    return target.contains(rgb_to_hsv(colors))
