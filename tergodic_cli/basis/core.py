@@ -64,11 +64,15 @@ def check_geometry(points: np.ndarray) -> None:
             "re-capture with a voxel filter (--voxel 0.003)")
 
 
-def compute_laplacian(points: np.ndarray, n_neighbors: int) -> tuple[sp.csr_matrix, np.ndarray]:
-    """Robust point-cloud Laplacian (Sharp & Crane 2020): L (n, n) CSR and lumped mass (n,)."""
+def compute_laplacian(points: np.ndarray, n_neighbors: int, validate: bool = True) -> tuple[sp.csr_matrix, np.ndarray]:
+    """Robust point-cloud Laplacian (Sharp & Crane 2020): L (n, n) CSR and lumped mass (n,).
+
+    ``validate=False`` skips :func:`check_geometry` when the caller already ran it.
+    """
     import robust_laplacian
 
-    check_geometry(points)
+    if validate:
+        check_geometry(points)
     require(n_neighbors >= 3, f"--neighbors {n_neighbors} is too small", "use at least 3 (default 30)")
     require(n_neighbors < len(points), f"--neighbors {n_neighbors} is not below the {len(points)} points", "use fewer neighbours")
     try:
@@ -113,9 +117,10 @@ def compute_basis(points: np.ndarray, nk: int, n_neighbors: int, timings: dict |
     from tergodic_cli.capture.filters import mean_spacing
 
     timings = {} if timings is None else timings
+    check_geometry(points)
     require(nk < len(points), f"--nk {nk} is not below the number of points ({len(points)})", f"use --nk < {len(points)}")
     t = time.perf_counter()
-    L, mass = compute_laplacian(points, n_neighbors)
+    L, mass = compute_laplacian(points, n_neighbors, validate=False)
     timings["laplacian_ms"] = 1e3 * (time.perf_counter() - t)
     t = time.perf_counter()
     evals, evecs = solve_eigenpairs(L, mass, nk)

@@ -60,21 +60,40 @@ def _read_open3d(path: Path, head: bytes) -> tuple[np.ndarray, np.ndarray | None
     return points, colors
 
 
+_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+              "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
 def _check_truncated_ply(path: Path, head: bytes, n_read: int) -> None:
-    """open3d silently reads a prefix of a truncated PLY; compare with the header's count."""
+    """open3d reads a truncated PLY without failing; compare the header's promise with the file."""
     if path.suffix.lower() != ".ply":
         return
     with open(path, "rb") as fh:
-        header = fh.read(4096).split(b"end_header", 1)[0].decode("ascii", "replace")
-    for line in header.splitlines():
+        blob = fh.read(8192)
+    end = blob.find(b"end_header")
+    if end < 0:
+        raise TergodicError(f"{path.name} has no PLY end_header line (corrupt?)", "re-export it as PLY")
+    header_len = blob.index(b"\n", end) + 1
+    lines = blob[:end].decode("ascii", "replace").splitlines()
+    fmt, elements = "", []  # [(count, row_bytes or None when rows vary)]
+    for line in lines:
         parts = line.split()
-        if len(parts) == 3 and parts[0] == "element" and parts[1] == "vertex":
-            declared = int(parts[2])
-            if declared != n_read:
-                raise TergodicError(
-                    f"{path.name} declares {declared} vertices but only {n_read} could be read (truncated?)",
-                    "re-export the cloud",
-                )
+        if parts[:1] == ["format"] and len(parts) > 1:
+            fmt = parts[1]
+        elif parts[:1] == ["element"] and len(parts) == 3:
+            elements.append([int(parts[2]), 0])
+        elif parts[:1] == ["property"] and elements:
+            size = _PLY_SIZES.get(parts[1]) if parts[1] != "list" else None
+            elements[-1][1] = None if size is None or elements[-1][1] is None else elements[-1][1] + size
+    declared = elements[0][0] if elements else n_read
+    if fmt.startswith("binary") and all(row is not None for _, row in elements):
+        expected = header_len + sum(count * row for count, row in elements)
+        actual = path.stat().st_size
+        if actual < expected:
+            raise TergodicError(f"{path.name} is truncated: {actual} of {expected} bytes", "re-export the cloud")
+    elif declared != n_read:
+        raise TergodicError(f"{path.name} declares {declared} vertices but {n_read} could be read (truncated?)",
+                            "re-export the cloud")
 
 
 def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray | None]:

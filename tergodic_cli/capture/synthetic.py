@@ -105,13 +105,17 @@ def _mark_ring(chart, size, rng):
 
 
 def _mark_dots(chart, size, rng):
-    centres = []
-    while len(centres) < 5:  # five non-overlapping dots
-        c = rng.uniform(-0.65 * size, 0.65 * size, 2)
-        if np.hypot(*c) < 0.65 * size and all(np.hypot(*(c - d)) > 0.035 for d in centres):
+    # Five dots of radius 10 mm, centres at least 2.5 radii apart (best of a bounded number of draws).
+    radius, reach = 0.010, 0.65 * size
+    centres: list[np.ndarray] = []
+    for _ in range(10_000):
+        if len(centres) == 5:
+            break
+        c = rng.uniform(-reach, reach, 2)
+        if np.hypot(*c) < reach and all(np.hypot(*(c - d)) > 2.5 * radius for d in centres):
             centres.append(c)
     d = np.min([np.hypot(chart[:, 0] - c[0], chart[:, 1] - c[1]) for c in centres], axis=0)
-    return d < 0.010
+    return d < radius
 
 
 _SHAPES = {"bowl": _bowl, "plate": _plate, "mug": _mug, "sphere": _sphere}

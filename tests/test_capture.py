@@ -1,0 +1,238 @@
+"""Capture: formats round-trip, the voxel rules, segmentation, and every bad-input case of the CLI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from conftest import assert_one_line_error, run_cli, run_cli_subprocess
+
+from tergodic_cli.capture import CaptureConfig, capture_cloud, load_capture
+from tergodic_cli.capture.filters import voxel_downsample
+from tergodic_cli.capture.readers import read_cloud, write_ply
+from tergodic_cli.capture.segment import parse_target, rgb_to_hsv, segment_target
+from tergodic_cli.capture.synthetic import MARKINGS, OBJECTS, generate_synthetic
+
+
+@pytest.fixture(scope="module")
+def bowl():
+    return generate_synthetic("bowl", "X", seed=0, spacing=0.003)
+
+
+def _write(fmt: str, path, points, colors):
+    if fmt == "ply":
+        write_ply(path, points, colors)
+    elif fmt == "pcd":
+        import open3d as o3d
+
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        pcd.colors = o3d.utility.Vector3dVector(colors)
+        o3d.io.write_point_cloud(str(path), pcd, write_ascii=False)
+    elif fmt == "xyzrgb":
+        np.savetxt(path, np.column_stack([points, np.rint(colors * 255)]), fmt="%.9f")
+    elif fmt == "npz":
+        np.savez(path, points=points, colors=colors)
+
+
+@pytest.mark.parametrize("fmt", ["ply", "pcd", "xyzrgb", "npz"])
+def test_capture_round_trips_every_format(fmt, tmp_path, bowl):
+    src = tmp_path / f"cloud.{fmt}"
+    _write(fmt, src, bowl.points, bowl.colors)
+    res = run_cli("capture", "--from", src, "--voxel", "0", "--out", tmp_path / "cap")
+    assert res.code == 0, res.err
+    cap = load_capture(tmp_path / "cap")
+    np.testing.assert_allclose(cap.points, bowl.points, atol=1e-6 if fmt == "pcd" else 1e-9)
+    np.testing.assert_allclose(cap.colors, bowl.colors, atol=0.5 / 255 + 1e-6)
+    # The written PLY reads back to the same cloud too.
+    pts, cols = read_cloud(tmp_path / "cap" / "cloud.ply")
+    np.testing.assert_array_equal(pts, cap.points)
+    side = json.loads((tmp_path / "cap" / "capture.json").read_text())
+    assert side["units"] == "m" and side["counts"]["output"] == len(bowl.points)
+    assert side["filters"][0] == {"stage": "input", "points": len(bowl.points)}
+
+
+@pytest.mark.parametrize("kind", OBJECTS)
+@pytest.mark.parametrize("marking", MARKINGS)
+def test_segmentation_recovers_generator_marking(kind, marking):
+    cloud = generate_synthetic(kind, marking, seed=5, spacing=0.003)
+    mask = segment_target(cloud.colors, parse_target("red"), len(cloud.colors))
+    iou = (mask & cloud.mask).sum() / (mask | cloud.mask).sum()
+    assert iou >= 0.95
+
+
+def test_voxel_rules_fraction_and_all():
+    # Two voxels of 0.01 m: one with 3 red + 1 black point, one all red.
+    pts = np.array([[0.001, 0.001, 0.001], [0.002, 0.001, 0.001], [0.001, 0.002, 0.001], [0.002, 0.002, 0.002],
+                    [0.021, 0.001, 0.001], [0.022, 0.002, 0.001]])
+    red = np.array([True, True, True, False, True, True])
+    cols = np.where(red[:, None], [1.0, 0, 0], [0.0, 0, 0])
+    p_pts, p_cols, p = voxel_downsample(pts, cols, red, 0.01, "fraction")
+    np.testing.assert_allclose(sorted(p), [0.75, 1.0])
+    _, _, p_all = voxel_downsample(pts, cols, red, 0.01, "all")
+    np.testing.assert_allclose(sorted(p_all), [0.0, 1.0])
+    np.testing.assert_allclose(p_pts[np.argmin(p_pts[:, 0])], pts[:4].mean(axis=0))
+
+
+def test_voxel_grid_matches_open3d_counts(bowl):
+    import open3d as o3d
+
+    for voxel in (0.004, 0.0061, 0.009):
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(bowl.points)).voxel_down_sample(voxel)
+        ours, _, _ = voxel_downsample(bowl.points, None, np.zeros(len(bowl.points), bool), voxel)
+        assert len(ours) == len(pcd.points)
+
+
+def test_reference_voxel_rule_all_counts(reference, tmp_path):
+    for name, n, n_target in (("bun270_X.ply", 2996, 210), ("plate_shapes.ply", 6228, 1216)):
+        cap = capture_cloud(CaptureConfig(source="file", path=str(reference / name), voxel=0.003, voxel_rule="all"))
+        assert cap.n_points == n and int((cap.target > 0).sum()) == n_target
+        frac = capture_cloud(CaptureConfig(source="file", path=str(reference / name), voxel=0.003))
+        assert int((frac.target >= 1).sum()) == n_target  # 'all' is the p == 1 subset of 'fraction'
+
+
+def test_hsv_conversion_and_targets():
+    hsv = rgb_to_hsv(np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [1.0, 1.0, 1.0], [0.5, 0.25, 0.25]]))
+    np.testing.assert_allclose(hsv[:, 0], [0, 120, 240, 0, 0])
+    np.testing.assert_allclose(hsv[:, 1], [1, 1, 1, 0, 0.5])
+    custom = parse_target("hsv:350-10,0.4,0.2")  # wraps through 0
+    assert custom.contains(rgb_to_hsv(np.array([[1.0, 0.05, 0.1]])))[0]
+    assert not custom.contains(rgb_to_hsv(np.array([[0.1, 1.0, 0.1]])))[0]
+    assert parse_target("all") is None
+
+
+def test_target_all_gives_uniform_weight_without_colours(tmp_path, bowl):
+    np.savez(tmp_path / "c.npz", points=bowl.points)
+    res = run_cli("capture", "--from", tmp_path / "c.npz", "--target", "all", "--out", tmp_path / "cap")
+    assert res.code == 0, res.err
+    cap = load_capture(tmp_path / "cap")
+    assert cap.colors is None and np.all(cap.target == 1.0)
+
+
+def test_summary_reports_stages_share_spacing_and_extent(tmp_path, bowl):
+    write_ply(tmp_path / "b.ply", bowl.points, bowl.colors)
+    res = run_cli("capture", "--from", tmp_path / "b.ply", "--crop", "-1,-1,-1,1,1,1", "--outliers", "20,2",
+                  "--out", tmp_path / "cap")
+    assert res.code == 0, res.err
+    for word in ("input", "crop", "outliers", "voxel 3 mm", "target 'red'", "mean spacing h", "extent"):
+        assert word in res.out
+    side = json.loads((tmp_path / "cap" / "capture.json").read_text())
+    assert [f["stage"] for f in side["filters"]] == ["input", "crop", "outliers", "voxel 3 mm"]
+    assert side["spacing_h_m"] == pytest.approx(load_capture(tmp_path / "cap").meta["spacing_h_m"])
+    assert 0 < side["target"]["share"] < 0.5
+
+
+# ---- bad input: one line, exit 2, no traceback, nothing partial written -------------------------
+
+def _bad(tmp_path, *args, needles=()):
+    out = tmp_path / "out"
+    res = run_cli("capture", *args, "--out", out)
+    assert_one_line_error(res, *needles)
+    assert not out.exists() or not (out / "capture.json").exists()
+    return res
+
+
+def test_missing_file(tmp_path):
+    _bad(tmp_path, "--from", tmp_path / "nope.ply", needles=("no such file",))
+
+
+def test_unknown_extension(tmp_path):
+    (tmp_path / "c.obj").write_text("v 0 0 0\n")
+    _bad(tmp_path, "--from", tmp_path / "c.obj", needles=("extension", ".ply"))
+
+
+def test_corrupt_ply(tmp_path, bowl):
+    (tmp_path / "junk.ply").write_bytes(b"\x00\x01garbage" * 50)
+    _bad(tmp_path, "--from", tmp_path / "junk.ply", needles=("PLY",))
+    write_ply(tmp_path / "t.ply", bowl.points, bowl.colors)
+    data = (tmp_path / "t.ply").read_bytes()
+    (tmp_path / "trunc.ply").write_bytes(data[: len(data) // 2])
+    _bad(tmp_path, "--from", tmp_path / "trunc.ply", needles=("truncated",))
+
+
+def test_empty_and_tiny_clouds(tmp_path):
+    (tmp_path / "empty.xyz").write_text("")
+    _bad(tmp_path, "--from", tmp_path / "empty.xyz", needles=("empty",))
+    np.savez(tmp_path / "tiny.npz", points=np.random.default_rng(0).uniform(0, 0.1, (5, 3)), colors=np.ones((5, 3)))
+    _bad(tmp_path, "--from", tmp_path / "tiny.npz", "--target", "all", needles=("only 5 points",))
+
+
+def test_nan_coordinates(tmp_path, bowl):
+    pts = bowl.points.copy()
+    pts[3, 1] = np.nan
+    pts[9, 0] = np.inf
+    np.savez(tmp_path / "nan.npz", points=pts, colors=bowl.colors)
+    _bad(tmp_path, "--from", tmp_path / "nan.npz", needles=("2 points with nan", "--drop-invalid"))
+    res = run_cli("capture", "--from", tmp_path / "nan.npz", "--drop-invalid", "--out", tmp_path / "ok")
+    assert res.code == 0 and "drop invalid" in res.out
+
+
+def test_no_colours_and_no_target(tmp_path, bowl):
+    np.savez(tmp_path / "grey.npz", points=bowl.points)
+    _bad(tmp_path, "--from", tmp_path / "grey.npz", needles=("no colours", "--target all"))
+    np.savez(tmp_path / "plain.npz", points=bowl.points, colors=np.full_like(bowl.points, 0.8))
+    _bad(tmp_path, "--from", tmp_path / "plain.npz", needles=("no points match", "--target"))
+
+
+def test_duplicate_points(tmp_path, bowl):
+    pts = np.vstack([bowl.points, bowl.points[:50]])
+    np.savez(tmp_path / "dup.npz", points=pts, colors=np.vstack([bowl.colors, bowl.colors[:50]]))
+    _bad(tmp_path, "--from", tmp_path / "dup.npz", "--voxel", "0", needles=("50 duplicate", "--voxel"))
+
+
+def test_units_mistakes(tmp_path, bowl):
+    np.savez(tmp_path / "mm.npz", points=bowl.points * 1000, colors=bowl.colors)
+    _bad(tmp_path, "--from", tmp_path / "mm.npz", needles=("millimetres", "--units mm"))
+    res = run_cli("capture", "--from", tmp_path / "mm.npz", "--units", "mm", "--out", tmp_path / "ok")
+    assert res.code == 0, res.err
+    np.savez(tmp_path / "m.npz", points=bowl.points, colors=bowl.colors)
+    _bad(tmp_path, "--from", tmp_path / "m.npz", "--units", "mm", needles=("--units m",))
+    _bad(tmp_path, "--synthetic", "bowl", "--voxel", "3", needles=("metres",))
+
+
+def test_bad_options(tmp_path):
+    _bad(tmp_path, "--synthetic", "teapot", needles=("unknown synthetic object",))
+    _bad(tmp_path, "--synthetic", "bowl", "--target", "chartreuse", needles=("unknown target colour",))
+    _bad(tmp_path, "--synthetic", "bowl", "--crop", "1,2,3", needles=("--crop",))
+    _bad(tmp_path, "--synthetic", "bowl", "--voxel-rule", "most", needles=("--voxel-rule",))
+
+
+# ---- precompute bad input -------------------------------------------------------------------------
+
+def test_precompute_refuses_collinear_points(tmp_path):
+    t = np.linspace(0, 0.1, 200)
+    np.savez(tmp_path / "line.npz", points=np.column_stack([t, 2 * t, -t]))
+    assert run_cli("capture", "--from", tmp_path / "line.npz", "--target", "all", "--voxel", "0",
+                   "--out", tmp_path / "cap").code == 0
+    assert_one_line_error(run_cli("precompute", tmp_path / "cap"), "collinear")
+
+
+def test_precompute_refuses_nk_not_below_points(tmp_path):
+    assert run_cli("capture", "--synthetic", "sphere", "--voxel", "0.02", "--target", "all", "--out", tmp_path / "cap").code == 0
+    n = load_capture(tmp_path / "cap").n_points
+    assert_one_line_error(run_cli("precompute", tmp_path / "cap", "--nk", n), "--nk")
+
+
+def test_precompute_refuses_non_capture(tmp_path):
+    assert_one_line_error(run_cli("precompute", tmp_path), "not a capture")
+
+
+def test_precompute_twice_is_a_cache_hit_and_target_change_reuses_it(tmp_path):
+    assert run_cli("capture", "--synthetic", "plate", "--voxel", "0.006", "--out", tmp_path / "a").code == 0
+    first = run_cli("precompute", tmp_path / "a", "--nk", "30")
+    assert first.code == 0 and "computed basis" in first.out and "laplacian" in first.out
+    second = run_cli("precompute", tmp_path / "a", "--nk", "30")
+    assert second.code == 0 and "cache hit" in second.out and "nothing recomputed" in second.out
+    # Same geometry, another target colour rule -> same basis.
+    assert run_cli("capture", "--synthetic", "plate", "--voxel", "0.006", "--target", "all", "--out", tmp_path / "b").code == 0
+    assert "cache hit" in run_cli("precompute", tmp_path / "b", "--nk", "30").out
+    assert "computed basis" in run_cli("precompute", tmp_path / "b", "--nk", "30", "--force").out
+
+
+def test_cli_process_errors_have_no_traceback(tmp_path):
+    res = run_cli_subprocess("capture", "--from", tmp_path / "missing.pcd", "--out", tmp_path / "o")
+    assert_one_line_error(res, "no such file")
+    help_res = run_cli_subprocess("--help")
+    assert help_res.code == 0
+    for verb in ("capture", "precompute"):
+        assert verb in help_res.out
