@@ -1,0 +1,1 @@
+"""Real-hardware backends (Franka, F/T sensors, RealSense) behind the robot Protocols; each an optional extra."""
