@@ -1,4 +1,4 @@
-"""``tergodic capture``: a coloured cloud and its target weight p, from a file or a generator."""
+"""``tergodic capture``: a coloured cloud and its target weight p, from a file, a generator or a simulated camera."""
 
 from __future__ import annotations
 
@@ -9,23 +9,33 @@ import typer
 
 from tergodic_cli.commands._common import parse_floats
 
+SOURCES = ("file", "synthetic", "sim", "realsense")
+
 
 def register(app: typer.Typer) -> None:
     app.command("capture", no_args_is_help=True)(capture)
 
 
 def capture(
-    from_file: Optional[Path] = typer.Option(None, "--from", help="Point-cloud file: .ply, .pcd, .xyz/.xyzrgb/.txt (x y z [r g b]) or .npz (points, colors)."),
+    from_file: Optional[Path] = typer.Option(None, "--from", help="Point-cloud file: .ply, .pcd, .xyz/.xyzrgb/.txt (x y z \\[r g b]) or .npz (points, colors)."),
     synthetic: Optional[str] = typer.Option(None, "--synthetic", help="Generate an object instead: bowl, plate, mug or sphere."),
-    marking: str = typer.Option("X", "--marking", help="Marking painted on a synthetic object: X, ring or dots."),
-    seed: int = typer.Option(0, "--seed", help="Seed for synthetic sampling and colour noise."),
+    source: Optional[str] = typer.Option(None, "--source", help="file, synthetic, sim or realsense; inferred from --from / --synthetic / --object when omitted."),
+    sim_object: Optional[str] = typer.Option(None, "--object", help="Simulated camera (--source sim): bowl, plate, mug, or FILE.obj (metres; --units mm for millimetres)."),
+    marking: str = typer.Option("X", "--marking", help="Marking: X, ring or dots; with --source sim also IMAGE.png (alpha = intensity, else non-white = marking)."),
+    object_pose: Optional[str] = typer.Option(None, "--object-pose", help="Sim: object pose in the robot base frame x,y,z[,roll,pitch,yaw] (m, deg) or x,y,z,qx,qy,qz,qw. Default 0.5,0,0 (the mug turned 180 deg so its marking faces the camera)."),
+    camera_pose: Optional[str] = typer.Option(None, "--camera-pose", help="Sim: eye and target ex,ey,ez,tx,ty,tz (m), or the optical frame x,y,z,qx,qy,qz,qw (z forward). Default: eye 0.30,0,0.60 looking at the object."),
+    width: int = typer.Option(640, "--width", help="Sim: image width, pixels."),
+    height: int = typer.Option(480, "--height", help="Sim: image height, pixels."),
+    fov: float = typer.Option(42.0, "--fov", help="Sim: vertical field of view, degrees."),
+    renderer: str = typer.Option("auto", "--renderer", help="Sim: auto (EGL when it loads, else TinyRenderer), egl or tiny."),
+    seed: int = typer.Option(0, "--seed", help="Seed for synthetic sampling, colour noise and the dots marking."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder for the capture (cloud.npz, cloud.ply, capture.json)."),
     voxel: float = typer.Option(0.003, "--voxel", help="Voxel edge in METRES (0 disables). The paper uses 0.003."),
     voxel_rule: str = typer.Option("fraction", "--voxel-rule", help="p per voxel: 'fraction' of target points (default), or 'all' (target only if every point is; the authors' code)."),
     crop: Optional[str] = typer.Option(None, "--crop", help="Passthrough box xmin,ymin,zmin,xmax,ymax,zmax in metres."),
     outliers: Optional[str] = typer.Option(None, "--outliers", help="Statistical outlier removal NB,STD, e.g. 20,2.0."),
     target: str = typer.Option("red", "--target", help="Target colour: red, green, blue, yellow, orange, magenta, cyan, black, white; hsv:H1-H2,SMIN,VMIN; or 'all' for uniform coverage."),
-    units: str = typer.Option("m", "--units", help="Units of the input coordinates: m or mm."),
+    units: str = typer.Option("m", "--units", help="Units of the input coordinates (the cloud file, or the sim .obj): m or mm."),
     drop_invalid: bool = typer.Option(False, "--drop-invalid", help="Drop NaN/inf points instead of refusing the cloud."),
     json_out: bool = typer.Option(False, "--json", help="Print the sidecar as JSON instead of the table."),
 ) -> None:
@@ -35,6 +45,10 @@ def capture(
 
       tergodic capture --synthetic bowl --marking X --out cap/
 
+      tergodic capture --source sim --object bowl --marking X --out cap/
+
+      tergodic capture --source sim --object scan.obj --marking stain.png --camera-pose 0.3,0,0.6,0.5,0,0 --out cap/
+
       tergodic capture --from scan.ply --voxel 0.003 --target red --out cap/
 
       tergodic capture --from scan.pcd --units mm --crop -0.2,-0.2,0,0.2,0.2,0.3 --outliers 20,2 --out cap/
@@ -43,17 +57,15 @@ def capture(
 
     from tergodic_cli.capture import CaptureConfig, capture_cloud, save_capture
     from tergodic_cli.capture.pipeline import format_report
-    from tergodic_cli.errors import TergodicError
 
-    if (from_file is None) == (synthetic is None):
-        raise TergodicError("give exactly one source", "use --from FILE or --synthetic bowl|plate|mug|sphere")
+    kind = _resolve_source(source, from_file, synthetic, sim_object)
     cfg = CaptureConfig(
-        source="file" if from_file is not None else "synthetic",
-        path=str(from_file) if from_file is not None else None,
-        synthetic=synthetic or "bowl",
+        source=kind,
+        path=str(from_file) if from_file is not None else (sim_object if kind == "sim" and sim_object not in _BUILTIN else None),
+        synthetic=(synthetic or "bowl") if kind != "sim" else (sim_object or "bowl"),
         marking=marking,
         seed=seed,
-        units=units,
+        units=units if kind != "sim" else "m",  # a sim cloud is in metres; --units applies to the .obj
         voxel=voxel,
         voxel_rule=voxel_rule,
         crop=parse_floats(crop, 6, "--crop", "-0.2,-0.2,0,0.2,0.2,0.3") if crop else None,
@@ -61,13 +73,84 @@ def capture(
         target=target,
         drop_invalid=drop_invalid,
     )
-    cap = capture_cloud(cfg)
+    frame = None
+    if kind == "sim":
+        from tergodic_cli.capture.sim_camera import SimCameraConfig, SimCaptureConfig, capture_sim
+        from tergodic_cli.capture.textured import SimObjectConfig
+
+        sim = SimCaptureConfig(
+            object=SimObjectConfig(object=sim_object or "bowl", marking=marking, units=units, seed=seed,
+                                   pose=_floats(object_pose, "--object-pose", "0.5,0,0")),
+            camera=SimCameraConfig(pose=_floats(camera_pose, "--camera-pose", "0.3,0,0.6,0.5,0,0.03"), width=width, height=height,
+                                   fov_deg=fov, renderer=renderer, seed=seed),
+            pipeline=cfg,
+        )
+        cap = capture_sim(sim)
+        frame = getattr(cap, "frame", None)
+    else:
+        cap = capture_cloud(cfg)
     sidecar = save_capture(cap, out)
+    if frame is not None:  # what the camera saw, beside the artefact (not part of it)
+        _write_image(sidecar.parent / "camera_rgb.png", frame.rgb)
     if json_out:
         typer.echo(json.dumps(cap.meta, indent=2))
-    else:
-        typer.echo(format_report(cap))
-        typer.echo(f"wrote {sidecar.parent}/ (cloud.npz, cloud.ply, capture.json)")
+        return
+    typer.echo(format_report(cap))
+    if kind == "sim":
+        s = cap.meta["sim"]
+        t = s["timing_ms"]
+        typer.echo(f"sim camera ({s['camera']['renderer']}): render {t['render_ms']:.0f} ms, back-projection {t['back_project_ms']:.0f} ms, "
+                   f"filters+segmentation {t['pipeline_ms']:.0f} ms; marking remaining {100 * s['marking_remaining']:.0f}%")
+    typer.echo(f"wrote {sidecar.parent}/ (cloud.npz, cloud.ply, capture.json{', camera_rgb.png' if frame is not None else ''})")
+
+
+_BUILTIN = ("bowl", "plate", "mug")
+
+
+def _resolve_source(source: Optional[str], from_file, synthetic, sim_object) -> str:
+    """The capture source, from --source or from whichever of --from / --synthetic / --object is given."""
+    from tergodic_cli.errors import TergodicError
+
+    given = [name for name, value in (("file", from_file), ("synthetic", synthetic), ("sim", sim_object)) if value is not None]
+    usage = "use --from FILE, --synthetic bowl|plate|mug|sphere or --source sim --object bowl|plate|mug|FILE.obj"
+    if source is None:
+        if len(given) != 1:
+            raise TergodicError("give exactly one source", usage)
+        return given[0]
+    if source not in SOURCES:
+        raise TergodicError(f"unknown --source '{source}'", f"use one of {', '.join(SOURCES)}")
+    if source == "realsense":
+        raise TergodicError("--source realsense is not available in this build", "capture with the RealSense tools and pass --from FILE")
+    if any(g != source for g in given):
+        raise TergodicError(f"--source {source} does not go with {', '.join('--' + ('from' if g == 'file' else 'object' if g == 'sim' else g) for g in given if g != source)}", usage)
+    if source == "file" and from_file is None:
+        raise TergodicError("--source file needs --from FILE", usage)
+    if source == "synthetic" and synthetic is None:
+        raise TergodicError("--source synthetic needs --synthetic OBJECT", usage)
+    return source
+
+
+def _floats(text: Optional[str], option: str, example: str) -> Optional[tuple[float, ...]]:
+    """Comma-separated numbers (any count; the stage checks how many it needs), or None."""
+    from tergodic_cli.errors import TergodicError
+
+    if text is None:
+        return None
+    try:
+        return tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise TergodicError(f"{option} '{text}' is not comma-separated numbers", f"e.g. {option} {example}") from None
+
+
+def _write_image(path: Path, rgb) -> None:
+    """The camera's RGB image (h, w, 3) in [0, 1] as a PNG, atomically."""
+    import numpy as np
+    from PIL import Image
+
+    from tergodic_cli.atomic import atomic_path
+
+    with atomic_path(path, suffix=".png") as tmp:
+        Image.fromarray(np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)).save(tmp, format="PNG")
 
 
 def _parse_outliers(text: str) -> tuple[int, float]:

@@ -49,7 +49,9 @@ def voxel_downsample(points: np.ndarray, colors: np.ndarray | None, target: np.n
     """
     origin = points.min(axis=0) - 0.5 * voxel
     idx = np.floor((points - origin) / voxel).astype(np.int64)
-    _, inverse, counts = np.unique(idx, axis=0, return_inverse=True, return_counts=True)
+    dims = idx.max(axis=0) + 1
+    key = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]  # 1-D key: much faster than unique(axis=0)
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
     inverse = inverse.ravel()
     m = len(counts)
 

@@ -27,7 +27,7 @@ MIN_EXTENT_M = 0.005
 class CaptureConfig:
     """Everything that determines a capture; saved in ``capture.json``."""
 
-    source: str = "synthetic"  # "file" | "synthetic"
+    source: str = "synthetic"  # "file" | "synthetic" | "sim" | "realsense" (the last two pass raw arrays)
     path: str | None = None
     synthetic: str = "bowl"
     marking: str = "X"
@@ -39,6 +39,7 @@ class CaptureConfig:
     outliers: tuple[int, float] | None = None  # (nb_neighbors, std_ratio)
     target: str = "red"
     drop_invalid: bool = False
+    allow_empty_target: bool = False  # re-captures of a cleaned object may have no marking left
 
 
 @dataclass
@@ -123,7 +124,7 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     require(len(points) >= MIN_POINTS, f"only {len(points)} points remain after filtering",
             "use a smaller --voxel or a wider --crop")
     n_target = int((p > 0).sum())
-    require(n_target > 0, f"no points match the target colour '{cfg.target}'",
+    require(n_target > 0 or cfg.allow_empty_target, f"no points match the target colour '{cfg.target}'",
             "check --target (e.g. --target red, hsv:H1-H2,SMIN,VMIN) or use --target all")
 
     h = mean_spacing(points)

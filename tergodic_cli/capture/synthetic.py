@@ -20,6 +20,12 @@ SURFACE_RGB = np.array([0.88, 0.86, 0.82])  # glazed ceramic
 MARKING_RGB = np.array([0.80, 0.08, 0.08])  # red marker
 STROKE_WIDTH = 0.012  # metres
 
+# Shapes (metres): bowl = inner spherical cap; plate = flat well + quadratic rim; mug = cylinder wall.
+BOWL_RADIUS, BOWL_MAX_POLAR_DEG = 0.08, 70.0
+PLATE_FLAT, PLATE_RIM, PLATE_LIFT = 0.08, 0.04, 0.015
+MUG_RADIUS, MUG_HEIGHT = 0.04, 0.10
+SPHERE_RADIUS = 0.06
+
 
 @dataclass
 class SyntheticCloud:
@@ -51,7 +57,7 @@ def _count(area: float, spacing: float) -> int:
 
 def _bowl(rng, spacing):
     # Inner surface of a spherical cap: steep, nearly vertical walls near the rim.
-    radius, max_polar = 0.08, np.deg2rad(70.0)
+    radius, max_polar = BOWL_RADIUS, np.deg2rad(BOWL_MAX_POLAR_DEG)
     n = _count(2 * np.pi * radius**2 * (1 - np.cos(max_polar)), spacing)
     cos_phi = rng.uniform(np.cos(max_polar), 1.0, n)
     sin_phi = np.sqrt(1 - cos_phi**2)
@@ -62,7 +68,7 @@ def _bowl(rng, spacing):
 
 def _plate(rng, spacing):
     # Flat well of radius 8 cm and a 4 cm rim rising 1.5 cm.
-    flat, rim, lift = 0.08, 0.04, 0.015
+    flat, rim, lift = PLATE_FLAT, PLATE_RIM, PLATE_LIFT
     outer = flat + rim
     n = _count(np.pi * outer**2, spacing)
     r = outer * np.sqrt(rng.uniform(0, 1, n))
@@ -74,7 +80,7 @@ def _plate(rng, spacing):
 
 def _mug(rng, spacing):
     # Outer wall of a cylinder: vertical everywhere, closed around.
-    radius, height = 0.04, 0.10
+    radius, height = MUG_RADIUS, MUG_HEIGHT
     n = _count(2 * np.pi * radius * height, spacing)
     theta = rng.uniform(-np.pi, np.pi, n)
     z = rng.uniform(0, height, n)
@@ -84,7 +90,7 @@ def _mug(rng, spacing):
 
 
 def _sphere(rng, spacing):
-    radius = 0.06
+    radius = SPHERE_RADIUS
     n = _count(4 * np.pi * radius**2, spacing)
     v = rng.normal(size=(n, 3))
     v /= np.linalg.norm(v, axis=1, keepdims=True)
