@@ -1,0 +1,264 @@
+"""Cost of the MCAP run log per explorer step, against the kinematic step itself.
+
+Three measurements, each printed as medians:
+
+A. RunLog alone, on synthetic step data of the reference bunny's size (2996 points after
+   the 3 mm voxel grid, 1 agent, a cloud every 50 steps): microseconds per step, for
+   both writer backends.
+B. The kinematic explorer on the reference bunny (nK = 200, α = 10, 1000 steps): two
+   explorers stepped in lockstep in one process, one of them logged (clouds included,
+   open and close included); the ratio is the logging overhead the issue bounds at 10 %. Skipped when the reference data or the
+   explorer is absent.
+C. End to end, ``tergodic explore CAP --robot kinematic`` with and without ``--no-log``:
+   CPU time of the child process (robust to other load on a shared machine) and wall time.
+   This includes the fixed cost of the logging stack (imports, opening and closing the file).
+
+Run:  OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/logging.py [--quick]
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+# This file is named like the standard library's ``logging``: take its folder off the
+# import path first, or every library that does ``import logging`` would import this script.
+if sys.path and os.path.abspath(sys.path[0]) == os.path.dirname(os.path.abspath(__file__)):
+    sys.path.pop(0)
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_var] = "1"  # before numpy: BLAS pinned to one thread
+os.environ.setdefault("TERGODIC_NO_PROGRESS", "1")
+
+import argparse  # noqa: E402
+import shutil  # noqa: E402
+import subprocess  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+REFERENCE = REPO.parent / "shared" / "data" / "reference"
+
+
+def _synthetic_step_data(n_points: int, steps: int, n_agents: int, seed: int = 0) -> dict:
+    rng = np.random.default_rng(seed)
+    return {"points": rng.standard_normal((n_points, 3)) * 0.04, "target": (rng.random(n_points) > 0.93) * 1.0,
+            "P": rng.standard_normal((steps, n_agents, 3)) * 0.04, "V": rng.standard_normal((steps, n_agents, 3)) * 3e-3,
+            "N": rng.standard_normal((steps, n_agents, 3)), "field": rng.random((3, n_points))}
+
+
+def bench_runlog(n_points: int = 2996, steps: int = 1000, n_agents: int = 1, repeats: int = 5,
+                 backend: str = "auto", cloud_every: int = 50) -> dict:
+    """A: RunLog cost per step (µs): the step loop alone, and including open and close."""
+    from tergodic_cli.runlog import RunLog
+
+    d = _synthetic_step_data(n_points, steps, n_agents)
+    caller, total, cpu_loop = [], [], []
+    for _ in range(repeats):
+        tmp = Path(tempfile.mkdtemp(prefix="tergodic-bench-"))
+        try:
+            t0 = time.perf_counter()
+            log = RunLog(tmp / "run.mcap", config={"steps": steps}, seed=0, versions={}, points=d["points"],
+                         target=d["target"], cloud_every=cloud_every, backend=backend)
+            t_open, c_open = time.perf_counter(), time.process_time()
+            for k in range(steps):
+                log.log_step(k + 1, float(k + 1), positions=d["P"][k], velocities=d["V"][k], normals=d["N"][k],
+                             metrics={"ergodicity": 0.1 + k * 1e-5, "ergodicity_ref": 0.2, "touched_fraction": k / steps},
+                             step_ms=0.9)
+                if (k + 1) % cloud_every == 0:
+                    log.log_cloud(k + 1, coverage=d["field"][0], heat=d["field"][1], source=d["field"][2])
+            t_loop, c_loop = time.perf_counter(), time.process_time()
+            log.close({"steps": steps})
+            t_close = time.perf_counter()
+            caller.append((t_loop - t_open) / steps * 1e6)
+            cpu_loop.append((c_loop - c_open) / steps * 1e6)
+            total.append((t_close - t0) / steps * 1e6)
+            size = (tmp / "run.mcap").stat().st_size
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return {"caller_us": float(np.median(caller)), "cpu_us": float(np.median(cpu_loop)), "total_us": float(np.median(total)),
+            "file_bytes": size}
+
+
+def _bunny_explorer_factory(steps: int):
+    """Capture, basis and a factory of fresh Explorers on the reference bunny (None when unavailable)."""
+    try:
+        from tergodic_cli.explore import ExploreConfig, Explorer
+    except ImportError:
+        return None
+    if not (REFERENCE / "bun270_X.ply").exists():
+        return None
+    from tergodic_cli.basis import BasisConfig, get_basis
+    from tergodic_cli.capture import CaptureConfig, capture_cloud
+
+    cap = capture_cloud(CaptureConfig(source="file", path=str(REFERENCE / "bun270_X.ply"), voxel=0.003))
+    cache = Path(tempfile.mkdtemp(prefix="tergodic-bench-cache-"))
+    basis, _ = get_basis(cap.points, BasisConfig(nk=200, neighbors=40), cache)
+    starts = np.load(REFERENCE / "starts" / "bun270_X.npz", allow_pickle=False)["x0_arr"][:1]
+    cfg = ExploreConfig(steps=steps, alpha="10", nk=200, agent_radius=0.0075, n_agents=1, seed=0)
+
+    def make():
+        return Explorer(basis, cap.target, cfg, starts, on_event=lambda msg: None)
+
+    return cap, basis, cfg, make, cache
+
+
+def bench_explorer(steps: int = 1000, repeats: int = 3, cloud_every: int = 50,
+                   compressions: tuple[str, ...] = ("zstd", "lz4")) -> dict | None:
+    """B: two identical explorers stepped in lockstep, one of them logged; ms per step and overhead.
+
+    Lockstep (plain step k, then logged step k, then k + 1 ...) exposes both sides to the
+    same machine load at the same moment, which a shared 2-core machine needs.
+    """
+    made = _bunny_explorer_factory(steps)
+    if made is None:
+        return None
+    cap, basis, cfg, make, cache = made
+    out: dict = {"n_points": len(basis.points)}
+    try:
+        for comp in compressions:
+            runs = np.array([_lockstep(make, cap, basis, cfg, steps, cloud_every, comp) for _ in range(repeats)])
+            cp, cl, wp, wl = np.median(runs, axis=0)
+            out[comp] = {"cpu_plain_ms": cp, "cpu_logged_ms": cl, "cpu_overhead": float(np.median(runs[:, 1] / runs[:, 0])) - 1,
+                         "wall_plain_ms": wp, "wall_logged_ms": wl, "wall_overhead": float(np.median(runs[:, 3] / runs[:, 2])) - 1}
+    finally:
+        shutil.rmtree(cache, ignore_errors=True)
+    return out
+
+
+def _lockstep(make, cap, basis, cfg, steps: int, cloud_every: int, compression: str) -> tuple[float, float, float, float]:
+    """(plain, logged) ms per step of CPU time, then of wall time; the logged side as the explore command logs.
+
+    CPU time (all threads of this process) is what the log costs; wall time is what a
+    user waits, but on a shared machine it also counts the time other processes run.
+    """
+    from tergodic_cli.provenance import library_versions
+    from tergodic_cli.runlog import RunLog
+
+    plain_ex, log_ex = make(), make()
+    tmp = Path(tempfile.mkdtemp(prefix="tergodic-bench-"))
+    cpu, wall = time.process_time, time.perf_counter
+    c_plain = c_log = w_plain = w_log = 0.0
+    try:
+        c0, w0 = cpu(), wall()
+        log = RunLog(tmp / "run.mcap", config=cfg.to_dict(), seed=cfg.seed, versions=library_versions(),
+                     capture_sidecar=cap.meta, points=basis.points, target=cap.target, cloud_every=cloud_every,
+                     compression=compression)
+        c_log += cpu() - c0
+        w_log += wall() - w0
+        for k in range(steps):
+            c0, w0 = cpu(), wall()
+            plain_ex.step()
+            plain_ex.metrics()
+            c1, w1 = cpu(), wall()
+            log_ex.step()
+            m = log_ex.metrics()
+            step_ms = (wall() - w1) * 1e3
+            log.log_step(k + 1, (k + 1) * cfg.dt, positions=log_ex.positions, velocities=log_ex.velocities,
+                         normals=log_ex.normals, metrics=m, step_ms=step_ms)
+            if (k + 1) % cloud_every == 0 or k + 1 == steps:
+                log.log_cloud(k + 1, coverage=log_ex.coverage, heat=log_ex.heat, source=log_ex.source)
+            c2, w2 = cpu(), wall()
+            c_plain += c1 - c0
+            c_log += c2 - c1
+            w_plain += w1 - w0
+            w_log += w2 - w1
+        c0, w0 = cpu(), wall()
+        log.close({"steps": steps})
+        c_log += cpu() - c0
+        w_log += wall() - w0
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    k = 1e3 / steps
+    return c_plain * k, c_log * k, w_plain * k, w_log * k
+
+
+def bench_cli(steps: int = 1000, repeats: int = 3) -> dict | None:
+    """C: the explore verb end to end, with and without --no-log: CPU seconds of the child process
+    (robust to other load on the machine) and wall seconds, medians."""
+    import resource
+
+    if not (REPO / "commands" / "explore.py").exists() or not (REFERENCE / "bun270_X.ply").exists():
+        return None
+    exe = str(Path(sys.executable).with_name("tergodic"))
+    work = Path(tempfile.mkdtemp(prefix="tergodic-bench-cli-"))
+    env = {**os.environ, "TERGODIC_CACHE_DIR": str(work / "cache")}
+
+    def child_cpu() -> float:
+        ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+        return ru.ru_utime + ru.ru_stime
+
+    try:
+        cap = work / "cap"
+        subprocess.run([exe, "capture", "--from", str(REFERENCE / "bun270_X.ply"), "--voxel", "0.003", "--out", str(cap)],
+                       check=True, capture_output=True, env=env)
+        subprocess.run([exe, "precompute", str(cap), "--nk", "200", "--neighbors", "40"], check=True,
+                       capture_output=True, env=env)
+        base = [exe, "explore", str(cap), "--robot", "kinematic", "--steps", str(steps), "--neighbors", "40"]
+        cpu: dict[str, list[float]] = {"no_log": [], "log": []}
+        wall: dict[str, list[float]] = {"no_log": [], "log": []}
+        for r in range(repeats):
+            for key, extra in (("no_log", ["--no-log"]), ("log", [])):
+                out = work / f"run_{key}_{r}"
+                c0, t0 = child_cpu(), time.perf_counter()
+                proc = subprocess.run(base + ["--out", str(out)] + extra, capture_output=True, text=True, env=env)
+                wall[key].append(time.perf_counter() - t0)
+                cpu[key].append(child_cpu() - c0)
+                if proc.returncode != 0:
+                    return {"error": (proc.stderr or proc.stdout).strip().splitlines()[-1:]}
+        m = {k: float(np.median(v)) for k, v in cpu.items()}
+        w = {k: float(np.median(v)) for k, v in wall.items()}
+        return {"cpu_no_log_s": m["no_log"], "cpu_log_s": m["log"], "cpu_overhead": m["log"] / m["no_log"] - 1.0,
+                "wall_no_log_s": w["no_log"], "wall_log_s": w["log"], "wall_overhead": w["log"] / w["no_log"] - 1.0}
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer repeats (development)")
+    ap.add_argument("--skip-cli", action="store_true", help="skip the end-to-end CLI measurement")
+    args = ap.parse_args()
+    reps = 2 if args.quick else 5
+
+    print("A. RunLog alone (2996 points, 1 agent, cloud every 50 steps, 1000 steps)")
+    for backend in ("foxglove-sdk", "mcap-python"):
+        r = bench_runlog(repeats=reps, backend=backend)
+        print(f"   {backend:<13}: {r['cpu_us']:6.1f} µs/step CPU, {r['caller_us']:6.1f} µs/step wall in the loop, "
+              f"{r['total_us']:6.1f} µs/step wall incl. open+close; "
+              f"file {r['file_bytes'] / 1e6:.2f} MB")
+    r = bench_runlog(repeats=reps, n_agents=10)
+    print(f"   10 agents    : {r['cpu_us']:6.1f} µs/step CPU, {r['caller_us']:6.1f} µs/step wall in the loop")
+
+    r = bench_explorer(repeats=max(1, reps // 2 + 1))
+    if r is None:
+        print("B. skipped (no reference bunny or no explorer)")
+    else:
+        print(f"B. kinematic explorer on the reference bunny ({r['n_points']} points, nK 200, 1000 steps, lockstep)")
+        for comp in ("zstd", "lz4"):
+            c = r[comp]
+            print(f"   {comp:<4} CPU : {c['cpu_plain_ms']:.3f} ms/step without log, {c['cpu_logged_ms']:.3f} with it "
+                  f"-> overhead {100 * c['cpu_overhead']:+.1f} % (budget 10 %)")
+            print(f"   {comp:<4} wall: {c['wall_plain_ms']:.3f} ms/step without log, {c['wall_logged_ms']:.3f} with it "
+                  f"-> overhead {100 * c['wall_overhead']:+.1f} %")
+    if args.skip_cli:
+        return
+    r = bench_cli(repeats=max(1, reps // 2 + 1))
+    if r is None:
+        print("C. skipped (no explore verb yet, or no reference bunny)")
+    elif "error" in r:
+        print(f"C. explore failed: {r['error']}")
+    else:
+        print(f"C. tergodic explore on the reference bunny, 1000 steps, whole process (imports, basis load, "
+              f"trajectory.npz included):")
+        print(f"   CPU : {r['cpu_no_log_s']:.2f} s with --no-log, {r['cpu_log_s']:.2f} s with the log "
+              f"-> overhead {100 * r['cpu_overhead']:+.1f} %")
+        print(f"   wall: {r['wall_no_log_s']:.2f} s with --no-log, {r['wall_log_s']:.2f} s with the log "
+              f"-> overhead {100 * r['wall_overhead']:+.1f} %")
+
+
+if __name__ == "__main__":
+    main()

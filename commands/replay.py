@@ -1,0 +1,175 @@
+"""``tergodic replay``: numbers and pictures from a run's MCAP log alone."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    app.command("replay", no_args_is_help=True)(replay)
+
+
+def replay(
+    run: Path = typer.Argument(..., help="Run folder written by 'tergodic explore' (holding run.mcap), or the .mcap file."),
+    json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON: the keys of summary.json plus 'truncated'."),
+    plot: Optional[Path] = typer.Option(None, "--plot", help="Write PNG figures into this folder (ε(t), touched(t), force(t), cloud views)."),
+    export: Optional[str] = typer.Option(None, "--export", help="Export the time series: npz or csv."),
+    export_out: Optional[Path] = typer.Option(None, "--export-out", help="Where --export writes (default: series.npz or series.csv beside run.mcap)."),
+    step: Optional[int] = typer.Option(None, "--step", help="Print the state at explorer step N instead of the summary."),
+    gui: bool = typer.Option(False, "--gui", help="Replay the logged joint states in the PyBullet GUI (robot runs; needs a display, else exit 2)."),
+    speed: float = typer.Option(1.0, "--speed", help="--gui playback speed, times real time."),
+    rerun: Optional[Path] = typer.Option(None, "--rerun", help="Write a Rerun recording (.rrd); needs rerun-sdk."),
+) -> None:
+    """Recompute a run's summary from its log, and plot, export or re-drive it.
+
+    The summary is recomputed from the logged series alone and equals summary.json;
+    a log cut short by a crash is read up to its last complete chunk and reported
+    as truncated.
+
+    Examples:
+
+      tergodic replay run/
+
+      tergodic replay run/run.mcap --json
+
+      tergodic replay run/ --plot run/plots --export csv
+
+      tergodic replay run/ --step 500
+    """
+    import json
+    import sys
+
+    from tergodic_cli.errors import TergodicError
+    from tergodic_cli.progress import Spinner
+    from tergodic_cli.runlog import read_run_log, resolve_log_path
+    from tergodic_cli.runlog.summary import compare_with_file, format_table, recompute_summary
+
+    if export is not None and export not in ("npz", "csv"):
+        raise TergodicError(f"--export '{export}' is not a format", "use --export npz or --export csv")
+    if rerun is not None and rerun.suffix != ".rrd":
+        raise TergodicError(f"--rerun {rerun} does not end in .rrd", "e.g. --rerun run.rrd")
+    if speed <= 0:
+        raise TergodicError(f"--speed must be > 0, got {speed}", "e.g. --speed 2")
+    if rerun is not None:  # fail before the (long) read when the extra is missing
+        from tergodic_cli.runlog.viewers import rerun_available
+
+        if not rerun_available():
+            raise TergodicError("rerun-sdk is not installed", "pip install rerun-sdk  (or: pip install 'tergodic[rerun]')")
+    if gui:
+        from tergodic_cli.runlog.viewers import display_available
+
+        if not display_available():
+            raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)",
+                                "run it on a desktop, or use --plot OUT_DIR / open run.mcap in Foxglove")
+
+    path = resolve_log_path(run)
+    need_clouds = plot is not None or rerun is not None or step is not None or gui
+    with Spinner(f"reading {path.name}"):
+        data = read_run_log(path, clouds=need_clouds)
+    # "wrote ..." notes go to stderr when stdout carries JSON
+    say = (lambda msg: typer.echo(msg, err=True)) if json_out else typer.echo
+    if data.truncated:
+        typer.echo(f"tergodic: warning: {path} is truncated (the run was cut short); "
+                   f"read {data.steps} steps up to the last complete chunk", err=True)
+
+    if step is not None:
+        state = _state_at(data, step)
+        typer.echo(json.dumps(state, indent=2, default=_jsonable) if json_out else _format_state(state))
+    else:
+        summary = recompute_summary(data)
+        if json_out:
+            typer.echo(json.dumps({**summary, "truncated": data.truncated}, indent=2, default=_jsonable))
+        else:
+            typer.echo(format_table(summary, data, compare_with_file(summary, path.parent / "summary.json")))
+
+    if export is not None:
+        from tergodic_cli.runlog.export import export_series
+
+        dest = export_out or path.parent / f"series.{export}"
+        export_series(data, export, dest)
+        say(f"wrote {dest} ({data.steps} rows)")
+    if plot is not None:
+        from tergodic_cli.runlog.plots import plot_run
+
+        for p in plot_run(data, plot):
+            say(f"wrote {p}")
+    if rerun is not None:
+        from tergodic_cli.runlog.viewers import write_rerun
+
+        say(f"wrote {write_rerun(data, rerun)}")
+    if gui:
+        from tergodic_cli.runlog.viewers import replay_gui
+
+        replay_gui(data, speed=speed)
+    sys.stdout.flush()
+
+
+def _jsonable(obj):
+    import numpy as np
+
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    raise TypeError(type(obj).__name__)
+
+
+def _state_at(data, step: int) -> dict:
+    """The logged state after explorer step ``step``."""
+    import numpy as np
+
+    i = data.index_of(step)
+    s = data.series
+    state: dict = {"step": int(s["step"][i]), "t": float(s["t"][i])}
+    for k, v in s.items():
+        if k in ("step", "t"):
+            continue
+        state[k] = v[i].tolist() if isinstance(v[i], np.ndarray) else float(v[i])
+    if data.robot and i < len(data.robot):
+        state["robot"] = {k: v for k, v in data.robot[i].items() if k != "step"}
+    cloud = data.cloud_at(step)
+    if cloud is not None:
+        cov = cloud.fields.get("coverage")
+        tgt = cloud.fields.get("target")
+        info = {"step": cloud.step, "n_points": len(cloud.points)}
+        for name, values in cloud.fields.items():
+            info[f"{name}_min"], info[f"{name}_max"] = float(values.min()), float(values.max())
+        if cov is not None and tgt is not None:
+            info["coverage_on_target_sum"] = float(cov[tgt > 0].sum())
+        state["cloud"] = info
+    state["events_so_far"] = [{"step": e[0], "text": e[2]} for e in data.events if e[0] <= step]
+    return state
+
+
+def _format_state(state: dict) -> str:
+    import numpy as np
+
+    lines = [f"step {state['step']}  (t = {state['t']:.6g} s)"]
+    for k, v in state.items():
+        if k in ("step", "t", "robot", "cloud", "events_so_far"):
+            continue
+        if isinstance(v, list):
+            arr = np.asarray(v)
+            lines.append(f"  {k:<18} " + "; ".join(np.array2string(r, precision=6, separator=", ", max_line_width=200) for r in arr.reshape(-1, 3)))
+        else:
+            lines.append(f"  {k:<18} {v:.9g}")
+    if "robot" in state:
+        lines.append("  robot:")
+        for k, v in state["robot"].items():
+            if k == "link_poses":
+                lines.append(f"    {k:<16} {len(v)} links")
+            elif isinstance(v, np.ndarray):
+                lines.append(f"    {k:<16} {np.array2string(v, precision=5, separator=', ', max_line_width=200)}")
+            else:
+                lines.append(f"    {k:<16} {v}")
+    if "cloud" in state:
+        c = state["cloud"]
+        extra = ", ".join(f"{k} {v:.4g}" for k, v in c.items() if k not in ("step", "n_points"))
+        lines.append(f"  cloud (logged at step {c['step']}, {c['n_points']} points): {extra}")
+    ev = state["events_so_far"]
+    if ev:
+        lines.append(f"  last event: step {ev[-1]['step']}: {ev[-1]['text']}")
+    return "\n".join(lines)

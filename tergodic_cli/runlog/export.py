@@ -1,0 +1,74 @@
+"""Export a run's time series as ``.npz`` or ``.csv`` (one row per step).
+
+Columns/keys: ``step``, ``t`` (s), every logged metric, ``step_ms``, the agents'
+``positions``/``velocities``/``normals`` (object frame; (T, N, 3) in npz, flattened
+``positions_<agent>_<x|y|z>`` in csv), and for robot runs every numeric field of
+the robot sample prefixed ``robot_`` (e.g. ``robot_force_normal``,
+``robot_wrench_measured`` (T, 6)). Values are float64 exactly as logged.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+from pathlib import Path
+
+import numpy as np
+
+from tergodic_cli.atomic import atomic_path, write_npz
+from tergodic_cli.errors import TergodicError
+from tergodic_cli.runlog.reader import RunLogData
+
+FORMATS = ("npz", "csv")
+
+
+def series_table(data: RunLogData) -> dict[str, np.ndarray]:
+    """All exportable arrays, first axis = step."""
+    out: dict[str, np.ndarray] = {}
+    for k, v in data.series.items():
+        if v.dtype != object:
+            out[k] = v
+    T = data.steps
+    for k, v in data.robot_series().items():
+        if len(v) == T and v.dtype != object:
+            out[f"robot_{k}"] = v.astype(np.float64) if v.dtype == bool else v
+    return out
+
+
+def export_series(data: RunLogData, fmt: str, dest: str | os.PathLike) -> Path:
+    """Write the series to ``dest`` in ``fmt`` (npz or csv), atomically; returns ``dest``."""
+    if fmt not in FORMATS:
+        raise TergodicError(f"--export '{fmt}' is not a format", "use --export npz or --export csv")
+    dest = Path(dest)
+    table = series_table(data)
+    if fmt == "npz":
+        write_npz(dest, **table)
+        return dest
+    header: list[str] = []
+    cols: list[np.ndarray] = []
+    for k, v in table.items():
+        if v.ndim == 1:
+            header.append(k)
+            cols.append(v)
+        elif v.ndim == 2:
+            header += [f"{k}_{j}" for j in range(v.shape[1])]
+            cols += [v[:, j] for j in range(v.shape[1])]
+        elif v.ndim == 3 and v.shape[2] == 3:
+            for a in range(v.shape[1]):
+                header += [f"{k}_{a}_{c}" for c in "xyz"]
+                cols += [v[:, a, c] for c in range(3)]
+    with atomic_path(dest, suffix=".csv") as tmp:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(header)
+            for i in range(data.steps):
+                w.writerow([_cell(c[i]) for c in cols])
+    return dest
+
+
+def _cell(x) -> str:
+    if isinstance(x, (np.floating, float)):
+        return repr(float(x))  # shortest exact form: the csv round-trips float64
+    if isinstance(x, (np.integer, int)):
+        return str(int(x))
+    return str(x)

@@ -1,0 +1,164 @@
+"""PNG figures of a run, from its log alone (matplotlib, Agg backend: no display needed).
+
+- ``ergodicity.png``: ε(t) and the reference residual;
+- ``touched.png``: fraction of the target touched, over time;
+- ``force.png`` (robot runs): measured normal force against the desired one;
+- ``cloud_target.png``, ``cloud_coverage.png``, ``cloud_heat.png``: the last cloud from
+  three orthographic views, coloured by p, final coverage c and heat u, with the agents'
+  trajectories drawn on top.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from tergodic_cli.atomic import atomic_path
+from tergodic_cli.runlog.reader import RunLogData
+
+#: (name, horizontal axis, vertical axis, depth axis towards the viewer, sign of depth)
+_VIEWS = (("front (x-z)", 0, 2, 1, -1), ("side (y-z)", 1, 2, 0, 1), ("top (x-y)", 0, 1, 2, 1))
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> Path:
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    return path
+
+
+def _time_axis(data: RunLogData) -> tuple[np.ndarray, str]:
+    return data.series["t"], "simulated time t (s)"
+
+
+def plot_run(data: RunLogData, out_dir: str | os.PathLike) -> list[Path]:
+    """Write the figures into ``out_dir`` (created); returns the paths written."""
+    plt = _pyplot()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    s = data.series
+    t, tlabel = _time_axis(data)
+    note = " (truncated log)" if data.truncated else ""
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.plot(t, s["ergodicity"], label="ε (ergodicity)", color="C0")
+    if "ergodicity_ref" in s:
+        ax.plot(t, s["ergodicity_ref"], label="ergodicity_ref", color="C1", ls="--")
+    if np.all(s["ergodicity"][np.isfinite(s["ergodicity"])] > 0):
+        ax.set_yscale("log")
+    ax.set_xlabel(tlabel)
+    ax.set_ylabel("ε")
+    ax.set_title(f"Ergodicity over time{note}")
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    written.append(_save(fig, out / "ergodicity.png"))
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.plot(t, 100 * s["touched_fraction"], color="C2")
+    ax.set_ylim(0, 100)
+    ax.set_xlabel(tlabel)
+    ax.set_ylabel("target touched (%)")
+    ax.set_title(f"Target touched over time{note}")
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    written.append(_save(fig, out / "touched.png"))
+    plt.close(fig)
+
+    rs = data.robot_series()
+    if rs:
+        written += _plot_force(plt, data, rs, out)
+
+    cloud = data.clouds[-1] if data.clouds else None
+    if cloud is not None:
+        traj = data.series.get("positions")
+        for field, cmap, label, line in (("target", "cividis", "target p", "red"),
+                                         ("coverage", "viridis", "coverage c (final)", "white"),
+                                         ("heat", "inferno", "heat u (final)", "cyan")):
+            if field in cloud.fields:
+                written.append(_plot_cloud(plt, cloud, field, cmap, label, traj, out / f"cloud_{field}.png", note, line))
+    return written
+
+
+def _plot_force(plt, data: RunLogData, rs: dict[str, np.ndarray], out: Path) -> list[Path]:
+    """Measured normal force against the desired one (wrench_desired's z, the tool axis), per explorer step."""
+    if "force_normal" not in rs and "wrench_measured" not in rs:
+        return []
+    T = len(data.robot)
+    t = rs["t_sim"] if "t_sim" in rs else data.series["t"][:T]
+    fig, ax = plt.subplots(figsize=(7, 4))
+    measured = rs["force_normal"] if "force_normal" in rs else np.linalg.norm(rs["wrench_measured"][:, :3], axis=1)
+    ax.plot(t, measured, label="measured normal force", color="C3", lw=1)
+    if "wrench_desired" in rs and rs["wrench_desired"].ndim == 2:
+        ax.plot(t, rs["wrench_desired"][:, 2], label="desired normal force", color="k", ls="--", lw=1)
+    if "in_contact" in rs:
+        off = ~rs["in_contact"].astype(bool)
+        if off.any():
+            ax.fill_between(t, 0, 1, where=off, transform=ax.get_xaxis_transform(), color="0.85", lw=0,
+                            label="not in contact")
+    ax.set_ylim(bottom=0)
+    ax.set_xlabel("simulated time (s)")
+    ax.set_ylabel("force (N)")
+    ax.set_title("Contact force against desired" + (" (truncated log)" if data.truncated else ""))
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    path = _save(fig, out / "force.png")
+    plt.close(fig)
+    return [path]
+
+
+def _color_range(vals: np.ndarray) -> tuple[float, float]:
+    """Colour limits: the minimum, and the 98th percentile of the values above it, so that a few
+    heavily covered points do not wash out the rest."""
+    finite = vals[np.isfinite(vals)]
+    if finite.size == 0:
+        return 0.0, 1.0
+    vmin = float(finite.min())
+    above = finite[finite > vmin]
+    vmax = float(np.percentile(above, 98)) if above.size else vmin + 1.0
+    return vmin, (vmax if vmax > vmin else vmin + 1.0)
+
+
+def _plot_cloud(plt, cloud, field: str, cmap: str, label: str, traj, path: Path, note: str, line: str) -> Path:
+    pts = cloud.points
+    vals = cloud.fields[field]
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4.8))
+    fig.subplots_adjust(left=0.05, right=0.9, bottom=0.12, top=0.86, wspace=0.28)
+    vmin, vmax = _color_range(vals)
+    sc = None
+    span = float(np.max(pts.max(0) - pts.min(0))) or 1.0
+    size = max(0.5, min(12.0, 2.0e4 / max(len(pts), 1)))
+    for ax, (name, h, v, d, sign) in zip(axes, _VIEWS):
+        order = np.argsort(sign * pts[:, d])  # painter's order: far points first, near ones on top
+        sc = ax.scatter(pts[order, h], pts[order, v], c=vals[order], cmap=cmap, vmin=vmin, vmax=vmax,
+                        s=size, linewidths=0)
+        if traj is not None and traj.dtype != object and traj.ndim == 3 and len(traj):
+            for k in range(traj.shape[1]):
+                ax.plot(traj[:, k, h], traj[:, k, v], color=line, lw=0.6, alpha=0.6)
+                ax.plot(traj[-1, k, h], traj[-1, k, v], "o", color=line, ms=4, mec="k", mew=0.5)
+        ax.set_aspect("equal")
+        ax.set_title(name)
+        ax.set_xlabel("xyz"[h] + " (m)")
+        ax.set_ylabel("xyz"[v] + " (m)")
+        pad = 0.03 * span
+        ax.set_xlim(pts[:, h].min() - pad, pts[:, h].max() + pad)
+        ax.set_ylim(pts[:, v].min() - pad, pts[:, v].max() + pad)
+    cax = fig.add_axes((0.92, 0.15, 0.012, 0.68))
+    fig.colorbar(sc, cax=cax, label=label, extend="max" if vmax < np.nanmax(vals) else "neither")
+    fig.suptitle(f"{label} at step {cloud.step}; agent trajectory drawn in {line}, dot = last position{note}")
+    path = _save(fig, path)
+    plt.close(fig)
+    return path

@@ -1,0 +1,78 @@
+"""``tergodic.StepRecord``: the exact per-step record, as a protobuf message built at import.
+
+Binary float64 (protobuf ``double``) is exact and costs no text formatting, which
+matters at one record per explorer step. The message is described in code (no
+generated ``_pb2`` module, no protoc); its FileDescriptorSet travels in the MCAP
+schema record, so any protobuf-aware viewer (Foxglove's Plot panel, Rerun, the
+``mcap`` tools) decodes it without tergodic.
+
+    syntax = "proto2";  package tergodic;
+    message StepRecord {
+      optional fixed64 step = 1;            // explorer step index (fixed width: see wire.py)
+      optional double t = 2;                // simulated time, s
+      optional double ergodicity = 3;       // ε after the step
+      optional double ergodicity_ref = 4;   // residual against the reference heat
+      optional double touched_fraction = 5; // share of target points touched
+      optional double step_ms = 6;          // wall time of the explorer step, ms
+      optional uint32 n_agents = 7;
+      repeated double positions = 8 [packed = true];   // (N, 3) row-major, object frame, m
+      repeated double velocities = 9 [packed = true];  // (N, 3) m/s
+      repeated double normals = 10 [packed = true];    // (N, 3) unit
+      repeated string extra_names = 11;                // any further metrics ...
+      repeated double extra_values = 12 [packed = true];  // ... and their values
+    }
+
+proto2 keeps explicit presence: a metric that was never set reads as absent, not 0.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import Any
+
+PACKAGE = "tergodic"
+NAME = "StepRecord"
+FULL_NAME = f"{PACKAGE}.{NAME}"
+#: Named metric fields; any other metric goes to extra_names / extra_values.
+METRIC_FIELDS = ("ergodicity", "ergodicity_ref", "touched_fraction")
+VECTOR_FIELDS = ("positions", "velocities", "normals")
+
+
+def _file_descriptor_proto() -> Any:
+    from google.protobuf import descriptor_pb2 as d
+
+    F = d.FieldDescriptorProto
+    fdp = d.FileDescriptorProto(name="tergodic/StepRecord.proto", package=PACKAGE, syntax="proto2")
+    msg = fdp.message_type.add(name=NAME)
+    fields = [("step", 1, F.TYPE_FIXED64, F.LABEL_OPTIONAL), ("t", 2, F.TYPE_DOUBLE, F.LABEL_OPTIONAL),
+              ("ergodicity", 3, F.TYPE_DOUBLE, F.LABEL_OPTIONAL), ("ergodicity_ref", 4, F.TYPE_DOUBLE, F.LABEL_OPTIONAL),
+              ("touched_fraction", 5, F.TYPE_DOUBLE, F.LABEL_OPTIONAL), ("step_ms", 6, F.TYPE_DOUBLE, F.LABEL_OPTIONAL),
+              ("n_agents", 7, F.TYPE_UINT32, F.LABEL_OPTIONAL),
+              ("positions", 8, F.TYPE_DOUBLE, F.LABEL_REPEATED), ("velocities", 9, F.TYPE_DOUBLE, F.LABEL_REPEATED),
+              ("normals", 10, F.TYPE_DOUBLE, F.LABEL_REPEATED), ("extra_names", 11, F.TYPE_STRING, F.LABEL_REPEATED),
+              ("extra_values", 12, F.TYPE_DOUBLE, F.LABEL_REPEATED)]
+    for name, number, ftype, label in fields:
+        f = msg.field.add(name=name, number=number, type=ftype, label=label)
+        if label == F.LABEL_REPEATED and ftype == F.TYPE_DOUBLE:
+            f.options.packed = True
+    return fdp
+
+
+@lru_cache(maxsize=1)
+def step_record_class() -> type:
+    """The generated message class (its own descriptor pool: never clashes with another definition)."""
+    from google.protobuf import descriptor_pool, message_factory
+
+    pool = descriptor_pool.DescriptorPool()
+    pool.Add(_file_descriptor_proto())
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(FULL_NAME))
+
+
+@lru_cache(maxsize=1)
+def step_record_schema() -> bytes:
+    """The serialized FileDescriptorSet stored in the MCAP schema record."""
+    from google.protobuf import descriptor_pb2
+
+    fds = descriptor_pb2.FileDescriptorSet()
+    fds.file.append(_file_descriptor_proto())
+    return fds.SerializeToString()

@@ -1,0 +1,364 @@
+"""Read a run log back: series, robot samples, clouds, events, metadata.
+
+The reader walks the file record by record, so it reads a complete log and a log
+cut short by a crash alike: a killed run yields every step up to the last complete
+chunk and ``truncated = True``. Chunk CRCs are checked, so a half-written chunk is
+dropped, never half-read.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tergodic_cli.errors import TergodicError
+from tergodic_cli.runlog import schema as S
+
+_MAGIC = b"\x89MCAP0\r\n"
+_EVENT_RE = re.compile(r"^step (\d+): (.*)$", re.S)
+_RUN_FIX = "pass a run folder written by 'tergodic explore' or its run.mcap"
+
+
+@dataclass
+class CloudFrame:
+    """One logged point cloud: points (n, 3) m and per-point fields (n,), as float64."""
+
+    step: int
+    t: float
+    points: np.ndarray
+    fields: dict[str, np.ndarray]
+    t_ns: int = 0
+
+    def __getattr__(self, name: str) -> np.ndarray:  # cloud.target, cloud.coverage, ...
+        fields = self.__dict__.get("fields", {})
+        if name in fields:
+            return fields[name]
+        raise AttributeError(name)
+
+
+@dataclass
+class RunLogData:
+    """Everything a run log holds.
+
+    Attributes
+    ----------
+    series : dict of arrays, one row per logged step
+        ``step`` (T,) int64, ``t`` (T,) s, every metric (``ergodicity``, ``ergodicity_ref``,
+        ``touched_fraction``, ...) (T,), ``step_ms`` (T,), and ``positions``,
+        ``velocities``, ``normals`` (T, N, 3) in the object frame (m, m/s).
+    robot : list of dict or None
+        The robot samples as logged (lists turned into float arrays), one per step.
+    clouds : list of CloudFrame
+        The point clouds in log order.
+    truncated : bool
+        True when the file ends before its footer (a killed run).
+    """
+
+    path: Path
+    version: str
+    info: dict[str, str]
+    config: dict[str, Any]
+    seed: int | None
+    versions: dict[str, str]
+    capture_sidecar: dict[str, Any] | None
+    stored_summary: dict[str, Any] | None
+    end: dict[str, str] | None
+    series: dict[str, np.ndarray]
+    robot: list[dict[str, Any]] | None
+    clouds: list[CloudFrame]
+    events: list[tuple[int, float, str]]
+    topics: dict[str, dict[str, Any]]
+    truncated: bool
+    truncation_note: str = ""
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+
+    @property
+    def steps(self) -> int:
+        """Number of logged steps."""
+        return len(self.series["step"])
+
+    def index_of(self, step: int) -> int:
+        """Row of explorer step ``step`` in the series (one-line error when it is not logged)."""
+        hits = np.flatnonzero(self.series["step"] == step)
+        if len(hits) == 0:
+            lo, hi = int(self.series["step"][0]), int(self.series["step"][-1])
+            raise TergodicError(f"step {step} is not in this log (steps {lo}..{hi})", f"use --step between {lo} and {hi}")
+        return int(hits[-1])
+
+    def cloud_at(self, step: int) -> CloudFrame | None:
+        """The last cloud logged at or before ``step`` (None if there is none)."""
+        best = None
+        for c in self.clouds:
+            if c.step <= step and (best is None or c.step >= best.step):
+                best = c
+        return best
+
+    def robot_series(self) -> dict[str, np.ndarray]:
+        """Robot samples stacked per key: numbers and equal-length vectors as (T,) / (T, k) arrays."""
+        if not self.robot:
+            return {}
+        out: dict[str, np.ndarray] = {}
+        keys = [k for k in self.robot[0] if k != "link_poses"]
+        for k in keys:
+            vals = [s.get(k) for s in self.robot]
+            if any(v is None for v in vals):
+                if k == "contact_point":  # None when not in contact
+                    out[k] = np.array([np.full(3, np.nan) if v is None else np.asarray(v, float) for v in vals])
+                continue
+            if isinstance(vals[0], str):
+                out[k] = np.array(vals)
+                continue
+            try:
+                arr = np.array(vals, dtype=np.float64)
+            except (TypeError, ValueError):
+                continue
+            out[k] = arr
+        return out
+
+
+def resolve_log_path(path: str | os.PathLike) -> Path:
+    """``RUN_DIR`` -> ``RUN_DIR/run.mcap``; a file path is returned as it is."""
+    p = Path(path)
+    if not p.exists():
+        raise TergodicError(f"{p} does not exist", _RUN_FIX)
+    if p.is_dir():
+        f = p / "run.mcap"
+        if not f.exists():
+            raise TergodicError(f"{p} has no run.mcap", _RUN_FIX)
+        return f
+    return p
+
+
+def _check_head(path: Path) -> None:
+    """Tell 'not an MCAP file' from 'truncated header' before parsing."""
+    with open(path, "rb") as fh:
+        head = fh.read(len(_MAGIC) + 9)
+    if len(head) == 0:
+        raise TergodicError(f"{path} is empty (0 bytes)", "the run wrote nothing; re-run 'tergodic explore'")
+    n = min(len(head), len(_MAGIC))
+    if head[:n] != _MAGIC[:n]:
+        raise TergodicError(f"{path} is not an MCAP file (bad magic bytes)", _RUN_FIX)
+    if len(head) < len(_MAGIC) + 9:
+        raise TergodicError(f"{path} has a truncated header ({len(head)} bytes)", "the run died at start; re-run it")
+    if head[len(_MAGIC)] != 0x01:  # the first record of an MCAP file is its Header (opcode 0x01)
+        raise TergodicError(f"{path} is not an MCAP file (no header record)", _RUN_FIX)
+
+
+def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
+    """Read a run log (a ``run.mcap`` or a run folder holding one).
+
+    Parameters
+    ----------
+    path : path-like
+        ``RUN_DIR`` or ``RUN_DIR/run.mcap``.
+    clouds : bool
+        Decode the point clouds (skip for speed when only the numbers are needed).
+
+    Raises
+    ------
+    TergodicError
+        Not an MCAP file, a truncated header, an unknown log schema version, not a
+        tergodic log, or no step at all (one line, exit 2 in the CLI).
+    """
+    from mcap.records import Attachment, Channel, Footer, Header, Message, Metadata, Schema
+    from mcap.stream_reader import StreamReader
+
+    path = resolve_log_path(path)
+    _check_head(path)
+
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    counts: dict[int, int] = {}
+    metadata: dict[str, dict[str, str]] = {}
+    attachments: dict[str, bytes] = {}
+    rows: list[dict] = []
+    robot: list[dict] = []
+    cloud_frames: list[CloudFrame] = []
+    events: list[tuple[int, float, str]] = []
+    truncated, note, have_header, complete = False, "", False, False
+    version: str | None = None
+    topic_of: dict[int, str] = {}
+    PointCloud = Log = step_decoder = None
+
+    with open(path, "rb") as fh:
+        records = iter(StreamReader(fh, validate_crcs=True).records)
+        while True:
+            try:
+                rec = next(records)
+            except StopIteration:
+                break
+            except Exception as exc:  # a cut: EndOfFile, short record, bad CRC, broken compression
+                if not have_header:
+                    raise TergodicError(f"{path} has a truncated header ({type(exc).__name__})",
+                                        "the run died at start; re-run it") from None
+                truncated, note = True, f"{type(exc).__name__}: {exc}".strip().rstrip(":")
+                break
+            if isinstance(rec, Message):
+                topic = topic_of.get(rec.channel_id)
+                counts[rec.channel_id] = counts.get(rec.channel_id, 0) + 1
+                if topic == S.TOPIC_METRICS:
+                    if step_decoder is None:
+                        step_decoder = _step_decoder(schemas[channels[rec.channel_id].schema_id])
+                    rows.append(step_decoder(rec.data))
+                elif topic == S.TOPIC_ROBOT_SAMPLE:
+                    robot.append(json.loads(rec.data))
+                elif topic == S.TOPIC_CLOUD and clouds:
+                    if PointCloud is None:
+                        from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+                    cloud_frames.append(_decode_cloud(PointCloud.FromString(rec.data), rec))
+                elif topic == S.TOPIC_EVENTS:
+                    if Log is None:
+                        from foxglove_schemas_protobuf.Log_pb2 import Log
+                    msg = Log.FromString(rec.data)
+                    m = _EVENT_RE.match(msg.message)
+                    step, text = (int(m.group(1)), m.group(2)) if m else (int(rec.sequence), msg.message)
+                    events.append((step, rec.log_time / 1e9, text))
+            elif isinstance(rec, Channel):
+                channels[rec.id] = rec
+                topic_of[rec.id] = rec.topic
+            elif isinstance(rec, Schema):
+                schemas[rec.id] = rec
+            elif isinstance(rec, Metadata):
+                metadata[rec.name] = dict(rec.metadata)
+                if rec.name == S.META_TERGODIC:
+                    version = rec.metadata.get("log_schema_version")
+                    if version not in S.SUPPORTED_VERSIONS:
+                        raise TergodicError(
+                            f"{path} uses log schema version {version!r}; this tergodic reads {', '.join(S.SUPPORTED_VERSIONS)}",
+                            "replay it with the tergodic version that wrote it (see its 'tergodic' metadata)")
+            elif isinstance(rec, Attachment):
+                attachments[rec.name] = rec.data
+            elif isinstance(rec, Header):
+                have_header = True
+            elif isinstance(rec, Footer):
+                complete = True
+    if not have_header:
+        raise TergodicError(f"{path} has a truncated header", "the run died at start; re-run it")
+    if not complete and not truncated:
+        truncated, note = True, "no footer"
+    if version is None:
+        if truncated:
+            raise TergodicError(f"{path} is cut off before its metadata (the run died at start)", "re-run it")
+        raise TergodicError(f"{path} is not a tergodic run log (no '{S.META_TERGODIC}' metadata)", _RUN_FIX)
+    if not rows:
+        if events:
+            raise TergodicError(f"{path} is an empty log: no step recorded; its last event says: {events[-1][2]}",
+                                "fix that and re-run 'tergodic explore'")
+        why = " (the run was cut before its first chunk)" if truncated else ""
+        raise TergodicError(f"{path} is an empty log: no step recorded{why}", "re-run 'tergodic explore' with --steps >= 1")
+
+    topics = {}
+    for cid, ch in channels.items():
+        sc = schemas.get(ch.schema_id)
+        topics[ch.topic] = {"schema": sc.name if sc else "", "schema_encoding": sc.encoding if sc else "",
+                            "message_encoding": ch.message_encoding, "count": counts.get(cid, 0)}
+
+    def _meta_json(name: str) -> Any:
+        raw = metadata.get(name, {}).get("json")
+        return None if raw is None else json.loads(raw)
+
+    seed_txt = metadata.get(S.META_SEED, {}).get("seed", "")
+    series = _stack_rows(rows)
+    _assign_cloud_steps(cloud_frames, series)
+    sidecar = attachments.get(S.ATTACHMENT_SIDECAR)
+    return RunLogData(
+        path=path, version=version, info=metadata.get(S.META_TERGODIC, {}),
+        config=_meta_json(S.META_CONFIG) or {}, seed=int(seed_txt) if seed_txt.strip().lstrip("-").isdigit() else None,
+        versions=metadata.get(S.META_VERSIONS, {}), capture_sidecar=json.loads(sidecar) if sidecar else None,
+        stored_summary=_meta_json(S.META_SUMMARY), end=metadata.get(S.META_END),
+        series=series, robot=[_arrays(s) for s in robot] or None, clouds=cloud_frames, events=events,
+        topics=topics, truncated=truncated, truncation_note=note, metadata=metadata)
+
+
+def _step_decoder(schema: Any):
+    """bytes -> row dict for the step records, decoded with the schema stored in the file."""
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from tergodic_cli.runlog.proto import FULL_NAME, METRIC_FIELDS, VECTOR_FIELDS
+
+    if schema.encoding != "protobuf" or schema.name != FULL_NAME:
+        raise TergodicError(f"step records have schema {schema.name!r} ({schema.encoding})",
+                            "this log was not written by a tergodic that this version reads")
+    decode = DecoderFactory().decoder_for("protobuf", schema)
+
+    def row(data: bytes) -> dict:
+        m = decode(data)
+        out: dict[str, Any] = {"step": m.step, "t": m.t}
+        for k in METRIC_FIELDS:
+            out[k] = getattr(m, k) if m.HasField(k) else None
+        out["step_ms"] = m.step_ms
+        for k, v in zip(m.extra_names, m.extra_values):
+            out[k] = v
+        n = m.n_agents
+        for k in VECTOR_FIELDS:
+            out[k] = np.asarray(getattr(m, k), dtype=np.float64).reshape(n, 3)
+        return out
+
+    return row
+
+
+def _stack_rows(rows: list[dict]) -> dict[str, np.ndarray]:
+    out: dict[str, np.ndarray] = {"step": np.array([r["step"] for r in rows], dtype=np.int64),
+                                  "t": np.array([r["t"] for r in rows], dtype=np.float64)}
+    skip = {"step", "t"}
+    keys = dict.fromkeys(k for r in rows for k in r)  # every name any step had, first-seen order
+    for key in keys:
+        if key in skip:
+            continue
+        vals = [r.get(key) for r in rows]
+        if key in ("positions", "velocities", "normals"):
+            try:
+                out[key] = np.array(vals, dtype=np.float64)
+            except ValueError:  # the agent count changed mid-run: keep per-step arrays
+                out[key] = np.array([np.asarray(v, dtype=np.float64) for v in vals], dtype=object)
+            continue
+        out[key] = np.array([np.nan if v is None else v for v in vals], dtype=np.float64)
+    return out
+
+
+def _assign_cloud_steps(clouds: list[CloudFrame], series: dict[str, np.ndarray]) -> None:
+    """A cloud belongs to the last step logged at or before its log time (writers number messages differently)."""
+    if not clouds:
+        return
+    t_ns = np.rint(series["t"] * 1e9).astype(np.int64)
+    order = np.argsort(t_ns, kind="stable")
+    for c in clouds:
+        k = np.searchsorted(t_ns[order], c.t_ns, side="right") - 1
+        if k >= 0:
+            c.step = int(series["step"][order[k]])
+
+
+def _arrays(sample: dict) -> dict:
+    out = {}
+    for k, v in sample.items():
+        if isinstance(v, list) and v and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
+            out[k] = np.asarray(v, dtype=np.float64)
+        elif k == "link_poses" and isinstance(v, dict):
+            out[k] = {name: np.asarray(p, dtype=np.float64) for name, p in v.items()}
+        else:
+            out[k] = v
+    return out
+
+
+_NUMPY_OF = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}  # foxglove NumericType
+
+
+def _decode_cloud(msg: Any, rec: Any) -> CloudFrame:
+    stride = msg.point_stride
+    n = len(msg.data) // stride if stride else 0
+    dtype = np.dtype({"names": [f.name for f in msg.fields],
+                      "formats": ["<" + _NUMPY_OF[f.type] for f in msg.fields],
+                      "offsets": [f.offset for f in msg.fields], "itemsize": stride})
+    arr = np.frombuffer(msg.data, dtype=dtype, count=n)
+    pts = np.column_stack([arr["x"], arr["y"], arr["z"]]).astype(np.float64)
+    fields = {f.name: arr[f.name].astype(np.float64) for f in msg.fields if f.name not in ("x", "y", "z")}
+    return CloudFrame(step=int(rec.sequence), t=rec.log_time / 1e9, points=pts, fields=fields, t_ns=int(rec.log_time))
+
+
+__all__ = ["CloudFrame", "RunLogData", "read_run_log", "resolve_log_path"]

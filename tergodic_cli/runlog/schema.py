@@ -1,0 +1,93 @@
+"""The layout of a tergodic run log: topics, schema names, metadata names, version.
+
+One place names everything the writer emits and the reader expects, so the two
+cannot drift apart. Bump :data:`LOG_SCHEMA_VERSION` whenever a topic changes
+meaning or a field the reader relies on changes shape; the reader refuses logs
+of any version it does not list in :data:`SUPPORTED_VERSIONS`.
+"""
+
+from __future__ import annotations
+
+#: Version of the log layout, stored in metadata ``tergodic`` as ``log_schema_version``.
+LOG_SCHEMA_VERSION = "1"
+SUPPORTED_VERSIONS = ("1",)
+
+#: MCAP profile string in the header ("" = no ROS profile; messages are protobuf and JSON).
+PROFILE = ""
+
+# Frames. Agent positions, normals and the cloud are in the capture's frame; the
+# robot quantities are in the robot base frame (CONTRACTS.md, robot_sample_dict).
+FRAME_OBJECT = "object"
+FRAME_BASE = "base"
+FRAME_EE = "ee"
+
+# --- topics --------------------------------------------------------------------------------
+# Every step.
+TOPIC_METRICS = "/explorer/metrics"          # tergodic.StepRecord (protobuf, proto.py): step, t, ergodicity,
+                                             #   ergodicity_ref, touched_fraction, step_ms, positions, velocities,
+                                             #   normals, as float64 (exact)
+TOPIC_AGENT_POSES = "/explorer/agent_poses"  # foxglove.PosesInFrame, one pose per agent (z = surface normal, x = heading)
+TOPIC_AGENT_SCENE = "/explorer/agent_scene"  # foxglove.SceneUpdate: normal line L_a⊥ and velocity arrow per agent
+# Every step, robot runs only.
+TOPIC_ROBOT_SAMPLE = "/robot/sample"         # JSON: the robot sample dict exactly as the robot produced it
+TOPIC_EE_POSE = "/robot/ee_pose"             # foxglove.PoseInFrame in the base frame
+TOPIC_TF = "/tf"                             # foxglove.FrameTransform, one message per link (+ ee, + object when known)
+TOPIC_JOINTS = "/robot/joint_states"         # foxglove.JointStates: q, dq, tau
+TOPIC_WRENCH = "/robot/wrench"               # JSON: measured and desired wrench with named components
+TOPIC_WRENCH_SCENE = "/robot/wrench_scene"   # foxglove.SceneUpdate: measured and desired force arrows at the tool
+# Every K steps and at the end.
+TOPIC_CLOUD = "/cloud"                       # foxglove.PointCloud: x y z + target coverage heat source (float32)
+# Whenever something happens.
+TOPIC_EVENTS = "/events"                     # foxglove.Log: "step N: text"
+
+# --- metadata records (MCAP metadata is a map<string, string>) --------------------------------
+META_TERGODIC = "tergodic"    # log_schema_version, writer, frames, cloud_every, n_points, n_agents
+META_CONFIG = "config"        # {"json": <the run config as JSON>}
+META_SEED = "seed"            # {"seed": "<int>"}
+META_VERSIONS = "versions"    # library versions, one key per library
+META_SUMMARY = "summary"      # written by close(summary): {"json": <summary.json as JSON>}
+META_END = "end"              # written by close(): steps, clouds, status
+ATTACHMENT_SIDECAR = "capture.json"
+
+#: Float fields of every PointCloud point after x, y, z, in order (all float32).
+CLOUD_FIELDS = ("target", "coverage", "heat", "source")
+
+#: Metric keys that form summarize_run's series, besides step_ms.
+SERIES_METRICS = ("ergodicity", "ergodicity_ref", "touched_fraction")
+
+_NUM = {"type": "number"}
+
+JSON_SCHEMAS: dict[str, dict] = {
+    "tergodic.RobotSample": {
+        "title": "tergodic.RobotSample",
+        "description": "The robot sample after one explorer step (SI units, robot base frame; wrenches in the ee frame).",
+        "type": "object",
+        "properties": {
+            "step": {"type": "integer"},
+            "t_sim": _NUM,
+            "state": {"type": "string"},
+            "ee_pose": {"type": "array", "items": _NUM},
+            "q": {"type": "array", "items": _NUM},
+            "dq": {"type": "array", "items": _NUM},
+            "tau": {"type": "array", "items": _NUM},
+            "wrench_measured": {"type": "array", "items": _NUM},
+            "wrench_desired": {"type": "array", "items": _NUM},
+            "force_normal": _NUM,
+            "in_contact": {"type": "boolean"},
+            "tilt_deg": _NUM,
+            "track_mm": _NUM,
+        },
+    },
+    "tergodic.Wrench": {
+        "title": "tergodic.Wrench",
+        "description": "Measured and desired wrench in the end-effector frame, N and N m.",
+        "type": "object",
+        "properties": {
+            "step": {"type": "integer"},
+            "measured": {"type": "object", "properties": {k: _NUM for k in ("fx", "fy", "fz", "tx", "ty", "tz")}},
+            "desired": {"type": "object", "properties": {k: _NUM for k in ("fx", "fy", "fz", "tx", "ty", "tz")}},
+            "force_normal": _NUM,
+            "in_contact": {"type": "boolean"},
+        },
+    },
+}

@@ -1,0 +1,154 @@
+"""Recompute a run's summary from its log alone, and print it.
+
+The numbers come from the logged series through the explorer's own
+``summarize_run`` (and the robot's ``summarize_robot`` when robot samples are
+present), so the replayed summary is the summary, not a re-implementation of it.
+Keys that no series determines (provenance the explore command adds, e.g.
+versions or paths) are taken from the copy of the summary stored in the log at
+close; a truncated log has none and gets only the recomputed keys.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from tergodic_cli.errors import TergodicError
+from tergodic_cli.runlog import schema as S
+from tergodic_cli.runlog.reader import RunLogData
+
+#: summarize_run's series keys.
+SERIES_KEYS = S.SERIES_METRICS + ("step_ms",)
+
+
+def _summarize_run():
+    try:
+        from tergodic_cli.explore import summarize_run
+    except ImportError as exc:
+        raise TergodicError(f"cannot recompute the summary: tergodic_cli.explore.summarize_run is unavailable ({exc})",
+                            "reinstall tergodic (pip install -e .)") from None
+    return summarize_run
+
+
+def robot_extras(data: RunLogData) -> dict[str, Any]:
+    """``summarize_robot`` over the logged robot samples ({} for kinematic runs or when unavailable)."""
+    if not data.robot:
+        return {}
+    try:
+        from tergodic_cli.robot import summarize_robot
+    except ImportError:
+        return {}
+    # a fault outside the explore phase leaves no sample behind: the run's own stop reason is in its summary
+    stop = (data.stored_summary or {}).get("stop_reason")
+    return dict(summarize_robot(data.robot, stop_reason=stop) if stop else summarize_robot(data.robot))
+
+
+def recompute_summary(data: RunLogData) -> dict[str, Any]:
+    """The summary.json dict, recomputed from the log (without the ``truncated`` flag)."""
+    summarize_run = _summarize_run()
+    missing = [k for k in SERIES_KEYS if k not in data.series]
+    if missing:
+        raise TergodicError(f"{data.path} has no series {', '.join(missing)}", "the log was not written by 'tergodic explore'")
+    series = {k: data.series[k] for k in SERIES_KEYS}
+    robot = robot_extras(data)
+    own = set(summarize_run(series, data.config, None))
+    static = {k: v for k, v in (data.stored_summary or {}).items() if k not in own and k not in robot}
+    return summarize_run(series, data.config, {**static, **robot})
+
+
+def canonical(obj: Any) -> str:
+    """A JSON text for comparing summaries (key order ignored, NaN equal to NaN)."""
+    from tergodic_cli.atomic import _json_default
+
+    return json.dumps(obj, sort_keys=True, default=_json_default)
+
+
+def compare_with_file(summary: dict[str, Any], summary_path: Path) -> tuple[str, list[str]]:
+    """Compare with a ``summary.json``: ("identical" | "differs" | "absent" | "unreadable", differing keys)."""
+    if not summary_path.exists():
+        return "absent", []
+    try:
+        stored = json.loads(summary_path.read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        return "unreadable", []
+    mine = json.loads(canonical(summary))
+    keys = sorted(k for k in set(mine) | set(stored) if canonical(mine.get(k)) != canonical(stored.get(k)))
+    return ("identical" if not keys else "differs"), keys
+
+
+def _fmt(x: Any, spec: str = ".6g") -> str:
+    if x is None:
+        return "n/a"
+    if isinstance(x, bool):
+        return str(x).lower()
+    if isinstance(x, (int, float)):
+        return "nan" if isinstance(x, float) and math.isnan(x) else format(x, spec)
+    return str(x)
+
+
+def _pct(x: Any) -> str:
+    return "n/a" if x is None else f"{100 * x:.1f} %"
+
+
+def _robot_rows(summary: dict[str, Any]) -> list[tuple[str, str]]:
+    """Rows for the robot's summary keys that are present (summarize_robot's names)."""
+    g = summary.get
+    rows = []
+    if "force_rms_error_rel" in summary:
+        rows.append(("force (steady contact)", f"mean {_fmt(g('force_mean_N'), '.3g')} N against "
+                     f"{_fmt(g('force_desired_N'), '.3g')} N desired, RMS error {_pct(g('force_rms_error_rel'))}, "
+                     f"max {_fmt(g('force_max_N'), '.3g')} N"))
+    if "contact_fraction" in summary:
+        rows.append(("in contact", f"{_pct(g('contact_fraction'))} of explore steps"))
+    for key, label, unit in (("tilt_deg", "tool tilt", "deg"), ("track_mm", "line tracking", "mm")):
+        if f"{key}_median" in summary:
+            rows.append((label, f"median {_fmt(g(f'{key}_median'), '.3g')} {unit}, p95 {_fmt(g(f'{key}_p95'), '.3g')} {unit}"))
+    if "contact_ergodicity" in summary:
+        rows.append(("contact ε / touched", f"{_fmt(g('contact_ergodicity'))} / {_pct(g('contact_touched_fraction'))}"))
+    if "realtime_factor" in summary:
+        rows.append(("real-time factor", f"{_fmt(g('realtime_factor'), '.3g')} x"))
+    if "stop_reason" in summary:
+        rows.append(("stop reason", str(g("stop_reason"))))
+    return rows
+
+
+def format_table(summary: dict[str, Any], data: RunLogData, comparison: tuple[str, list[str]] | None) -> str:
+    """The human summary: steps, duration, ε at 200/500/end, touched, force statistics."""
+    s = data.series
+    lines = [f"{data.path}  (log schema {data.version}, {'TRUNCATED' if data.truncated else 'complete'})"]
+    rows: list[tuple[str, str]] = []
+    rows.append(("steps", _fmt(summary.get("steps", data.steps), "d")))
+    t0, t1 = float(s["t"][0]), float(s["t"][-1])
+    wall = float(s["step_ms"].sum()) / 1e3
+    rows.append(("duration", f"{t1:.6g} s simulated (t = {t0:.6g} .. {t1:.6g}), {wall:.3g} s of explorer steps"))
+    at = summary.get("ergodicity_at") or {}
+    for key in ("200", "500"):
+        rows.append((f"ε at step {key}", _fmt(at.get(key))))
+    rows.append(("ε at end", _fmt(summary.get("ergodicity"))))
+    rows.append(("ε reference at end", _fmt(summary.get("ergodicity_ref"))))
+    tf = summary.get("touched_fraction")
+    rows.append(("target touched", "n/a" if tf is None else f"{100 * tf:.2f} %"))
+    if summary.get("step_ms_median") is not None:
+        rows.append(("step time median", f"{summary['step_ms_median']:.3g} ms"))
+    if data.robot:
+        rows += _robot_rows(summary)
+        rs = data.robot_series()
+        if "force_normal" in rs:
+            f = rs["force_normal"]
+            contact = rs.get("in_contact")
+            fc = f[contact.astype(bool)] if contact is not None and contact.any() else f
+            rows.append(("normal force", f"mean {fc.mean():.3g} N, std {fc.std():.3g} N, max {f.max():.3g} N"
+                         + (" (samples in contact)" if contact is not None and contact.any() else "")))
+    if data.events:
+        rows.append(("events", str(len(data.events))))
+    rows.append(("clouds logged", str(data.topics.get(S.TOPIC_CLOUD, {}).get("count", 0))))
+    if comparison is not None:
+        state, keys = comparison
+        rows.append(("summary.json", state if not keys else f"{state} in {', '.join(keys)}"))
+    width = max(len(r[0]) for r in rows)
+    lines += [f"  {k:<{width}}  {v}" for k, v in rows]
+    if data.truncated:
+        lines.append(f"  note: the log is truncated ({data.truncation_note}); read up to the last complete chunk")
+    return "\n".join(lines)

@@ -1,0 +1,158 @@
+"""Re-drive viewers from a log: the PyBullet GUI from logged joint states, and a Rerun recording.
+
+Both are optional paths: without a display, or without ``rerun-sdk``, they raise a
+one-line :class:`TergodicError` saying so (exit 2 in the CLI).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from tergodic_cli.errors import TergodicError
+from tergodic_cli.runlog.reader import RunLogData
+
+
+def display_available() -> bool:
+    """True when a GUI window can open (an X or Wayland display on Linux; always on macOS/Windows)."""
+    if sys.platform.startswith("linux"):
+        return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    return True
+
+
+def joint_series(data: RunLogData) -> tuple[np.ndarray, list[str] | None]:
+    """Logged joint positions (T, J) and their names (None when the log does not name them)."""
+    if not data.robot or data.robot[0].get("q") is None:
+        raise TergodicError(f"{data.path} has no joint states (a kinematic run)", "--gui replays robot runs; use --plot")
+    q = np.array([np.asarray(s["q"], dtype=np.float64) for s in data.robot])
+    names = data.robot[0].get("joint_names")
+    return q, (list(names) if names else None)
+
+
+def load_arm(client: int) -> tuple[int, list[int]]:
+    """Load the Franka Panda from pybullet_data; returns (body id, its movable joint indices in order)."""
+    import pybullet as p
+    import pybullet_data
+
+    p.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=client)
+    body = p.loadURDF("franka_panda/panda.urdf", useFixedBase=True, physicsClientId=client)
+    movable = [j for j in range(p.getNumJoints(body, physicsClientId=client))
+               if p.getJointInfo(body, j, physicsClientId=client)[2] in (p.JOINT_REVOLUTE, p.JOINT_PRISMATIC)]
+    return body, movable
+
+
+def joint_indices(client: int, body: int, movable: list[int], names: list[str] | None, n: int) -> list[int]:
+    """Indices of the logged joints in the body: by name when the log names them, else the first ``n`` movable."""
+    import pybullet as p
+
+    if names:
+        by_name = {p.getJointInfo(body, j, physicsClientId=client)[1].decode(): j for j in movable}
+        if all(name in by_name for name in names):
+            return [by_name[name] for name in names]
+    if len(movable) < n:
+        raise TergodicError(f"the log has {n} joints but the arm model has {len(movable)}", "replay with a matching arm")
+    return movable[:n]
+
+
+def set_joints(client: int, body: int, indices: list[int], q: np.ndarray) -> None:
+    """Put the arm in configuration ``q`` (kinematically; no physics step)."""
+    import pybullet as p
+
+    for j, value in zip(indices, q):
+        p.resetJointState(body, j, float(value), physicsClientId=client)
+
+
+def replay_gui(data: RunLogData, speed: float = 1.0) -> int:
+    """Open the PyBullet GUI and replay the logged joint states at ``speed`` times real time."""
+    q, names = joint_series(data)
+    if not display_available():
+        raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)",
+                            "run it on a desktop, or use --plot OUT_DIR / open run.mcap in Foxglove")
+    import pybullet as p
+
+    try:
+        client = p.connect(p.GUI)
+    except Exception as exc:  # pybullet.error: no X server behind DISPLAY, no OpenGL
+        raise TergodicError(f"PyBullet could not open its GUI window ({exc})", "check the display, or use --plot OUT_DIR") from None
+    if client < 0:
+        raise TergodicError("PyBullet could not open its GUI window", "check the display, or use --plot OUT_DIR")
+    try:
+        body, movable = load_arm(client)
+        idx = joint_indices(client, body, movable, names, q.shape[1])
+        cloud = data.clouds[-1] if data.clouds else None
+        obj = data.robot[0].get("object_pose")
+        if cloud is not None and obj is not None:  # show the object where the robot saw it
+            from scipy.spatial.transform import Rotation
+
+            obj = np.asarray(obj, dtype=np.float64)
+            pts = Rotation.from_quat(obj[3:7]).apply(cloud.points) + obj[:3]
+            cov = cloud.fields.get("coverage", np.zeros(len(pts)))
+            c = np.clip(cov / (cov.max() or 1.0), 0, 1)
+            p.addUserDebugPoints(pts.tolist(), np.column_stack([c, 0.3 * np.ones_like(c), 1 - c]).tolist(),
+                                 pointSize=2, physicsClientId=client)
+        t = np.array([s.get("t_sim", i) for i, s in enumerate(data.robot)], dtype=np.float64)
+        start = time.monotonic()
+        for i in range(len(q)):
+            set_joints(client, body, idx, q[i])
+            wait = (t[i] - t[0]) / max(speed, 1e-6) - (time.monotonic() - start)
+            if wait > 0:
+                time.sleep(wait)
+    finally:
+        p.disconnect(client)
+    return 0
+
+
+def rerun_available() -> bool:
+    return importlib.util.find_spec("rerun") is not None
+
+
+def write_rerun(data: RunLogData, dest: str | os.PathLike) -> Path:
+    """Write a Rerun recording (``.rrd``): the metrics over steps, the agents, and every cloud."""
+    if not rerun_available():
+        raise TergodicError("rerun-sdk is not installed", "pip install rerun-sdk  (or: pip install 'tergodic[rerun]')")
+    import rerun as rr
+
+    dest = Path(dest)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    rec = rr.RecordingStream("tergodic_replay")
+    tmp = dest.with_name(f".{dest.name}.tmp")
+    rec.save(str(tmp))
+
+    def at_step(step: int) -> None:
+        if hasattr(rec, "set_time"):
+            try:
+                rec.set_time("step", sequence=int(step))
+                return
+            except TypeError:
+                pass
+        rec.set_time_sequence("step", int(step))
+
+    scalar = getattr(rr, "Scalars", None) or rr.Scalar
+    s = data.series
+    keys = [k for k in ("ergodicity", "ergodicity_ref", "touched_fraction", "step_ms") if k in s]
+    clouds = {c.step: c for c in data.clouds}
+    rs = data.robot_series()
+    for i, step in enumerate(s["step"].tolist()):
+        at_step(step)
+        for k in keys:
+            rec.log(f"metrics/{k}", scalar(float(s[k][i])))
+        if "positions" in s and s["positions"].dtype != object:
+            rec.log("object/agents", rr.Points3D(s["positions"][i], radii=0.002, colors=[0, 180, 255]))
+        if "force_normal" in rs:
+            rec.log("robot/force_normal", scalar(float(rs["force_normal"][i])))
+        if step in clouds:
+            c = clouds[step]
+            cov = c.fields.get("coverage", np.zeros(len(c.points)))
+            tgt = c.fields.get("target", np.zeros(len(c.points)))
+            g = np.clip(cov / (cov.max() or 1.0), 0, 1)
+            colors = np.column_stack([tgt, g, 1 - g]) * 255
+            rec.log("object/cloud", rr.Points3D(c.points, colors=colors.astype(np.uint8), radii=0.0008))
+    rec.flush()  # blocks until everything is in the file
+    rec.disconnect()
+    os.replace(tmp, dest)
+    return dest
