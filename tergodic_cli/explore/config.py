@@ -1,0 +1,128 @@
+"""The exploration stage's configuration and its validation."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+from tergodic_cli.errors import TergodicError, require
+
+DIFFUSIONS = ("carry", "source")
+INTEGRATORS = ("resolvent", "spectral", "implicit")
+#: The paper's n_N (Table II, "M = 20"): neighbours for the tangent fit and the gradient fit.
+DEFAULT_NEIGHBORS = 20
+#: Default footprint shape: ε r_a = 2, so the disc of radius r_a holds 1 - e^-4 = 98 % of the
+#: Gaussian's mass (truncating it at r_a changes almost nothing) and φ(r_a) = e^-4 ≈ 0.02.
+FOOTPRINT_EPS_RA = 2.0
+#: A cubic in two variables has 10 coefficients; fewer neighbours cannot determine it.
+MIN_NEIGHBORS = 10
+
+
+@dataclass
+class ExploreConfig:
+    """Everything that determines an exploration run; saved in ``summary.json["config"]``.
+
+    Attributes
+    ----------
+    steps : number of explorer steps (one step = ``dt`` seconds).
+    alpha : diffusion scalar α of δt = α h² (eq. 21): a number ("10"), or a schedule
+        "A0:A1@S1[:A2@S2...]": α = A0 for the first S1 steps, then A1, then A2 from step S2 on
+        (e.g. "50:10@200", high first for reach, low later for local detail; paper VI-E).
+    nk : eigenpairs used by the spectral diffusion (the basis is truncated to this).
+    agent_radius : footprint radius r_a, metres.
+    n_agents : agents sharing one coverage field (eq. 3).
+    v_max, a_max : speed (m/s) and acceleration (m/s²) limits (paper Table II: 3 mm/s, 3 mm/s²).
+    dt : seconds per step (paper: 1 s).
+    diffusion : "carry" (u <- D u + s, heat carried over between steps, as the published code; the
+        default) or "source" (u = D s, the current source only). See docs/explore.md for the measurements.
+    integrator : the one-step operator D: "resolvent" (Φ (1 + λδt)⁻¹ Φᵀ M: the stationary HEDAC
+        equation 4 in the eigenbasis; the default: its potential has no maxima away from the
+        source, so agents do not get stuck in a region they have cleared), "spectral" (eq. 19,
+        Φ e^{-λδt} Φᵀ M) or "implicit" ((M + δt L)⁻¹ M, sparse, factorised once per α: the
+        exact baseline).
+    seed : seed of everything random in the run (random starts).
+    n_neighbors : n_N, neighbours of the agent for the CGA tangent fit and the gradient cubic.
+    epsilon : footprint shape ε of φ(r) = exp(-ε² r²), 1/m; None means 2/agent_radius (the
+        disc r <= r_a holds 98 % of the Gaussian's mass, so the cut at r_a changes almost nothing).
+    basis_neighbors : neighbours of the robust Laplacian (recorded; chosen by the command).
+    max_start_distance : a start farther than this (metres) from the cloud is refused; one
+        farther than the spacing h is projected onto the surface with a warning.
+    normal_hint : initial orientation of the surface normals (they then stay continuous).
+    """
+
+    steps: int = 1000
+    alpha: str = "10"
+    nk: int = 200
+    agent_radius: float = 0.0075
+    n_agents: int = 1
+    v_max: float = 0.003
+    a_max: float = 0.003
+    dt: float = 1.0
+    diffusion: str = "carry"
+    integrator: str = "resolvent"
+    seed: int = 0
+    n_neighbors: int = DEFAULT_NEIGHBORS
+    epsilon: float | None = None
+    basis_neighbors: int = 30
+    max_start_distance: float = 0.02
+    normal_hint: tuple[float, float, float] = field(default=(0.0, 0.0, 1.0))
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["normal_hint"] = list(self.normal_hint)
+        return d
+
+    @property
+    def footprint_epsilon(self) -> float:
+        """ε in 1/m actually used."""
+        return float(self.epsilon) if self.epsilon is not None else FOOTPRINT_EPS_RA / self.agent_radius
+
+
+def parse_alpha(text: str | float) -> list[tuple[int, float]]:
+    """Parse an α value or schedule into [(first_step, alpha), ...], first_step ascending from 0.
+
+    "10" -> [(0, 10.0)]; "50:10@200" -> [(0, 50.0), (200, 10.0)];
+    "100:50@100:10@300" -> [(0, 100.0), (100, 50.0), (300, 10.0)].
+    Steps count from 0, so "@200" takes effect for the 201st step.
+    """
+    fix = "use a positive number, or a schedule like 50:10@200 (α = 50 for 200 steps, then 10)"
+    parts = str(text).strip().split(":")
+    stages: list[tuple[int, float]] = []
+    for i, part in enumerate(parts):
+        value, _, at = part.partition("@")
+        try:
+            alpha = float(value)
+            start = 0 if i == 0 else int(at)
+        except ValueError:
+            raise TergodicError(f"--alpha '{text}' is not a number or schedule", fix) from None
+        if i == 0 and at:
+            raise TergodicError(f"--alpha '{text}': the first α applies from step 0 and takes no @STEP", fix)
+        require(math.isfinite(alpha) and alpha > 0, f"--alpha must be > 0, got {value!r}", fix)
+        if stages:
+            require(start > stages[-1][0], f"--alpha '{text}': switch steps must increase and be > 0", fix)
+        stages.append((start, alpha))
+    return stages
+
+
+def validate_config(cfg: ExploreConfig) -> None:
+    """Refuse impossible settings with a one-line problem; fix message."""
+    require(int(cfg.steps) >= 1, f"--steps must be >= 1, got {cfg.steps}", "e.g. --steps 1000")
+    parse_alpha(cfg.alpha)
+    require(int(cfg.nk) >= 1, f"--nk must be >= 1, got {cfg.nk}", "e.g. --nk 200")
+    require(math.isfinite(cfg.agent_radius) and cfg.agent_radius > 0,
+            f"--agent-radius must be > 0 metres, got {cfg.agent_radius}", "e.g. --agent-radius 0.0075 (7.5 mm)")
+    require(int(cfg.n_agents) >= 1, f"--agents must be >= 1, got {cfg.n_agents}", "e.g. --agents 1")
+    require(cfg.v_max > 0 and math.isfinite(cfg.v_max), f"--v-max must be > 0 m/s, got {cfg.v_max}", "e.g. --v-max 0.003")
+    require(cfg.a_max > 0 and math.isfinite(cfg.a_max), f"--a-max must be > 0 m/s², got {cfg.a_max}", "e.g. --a-max 0.003")
+    require(cfg.dt > 0 and math.isfinite(cfg.dt), f"--dt must be > 0 s, got {cfg.dt}", "e.g. --dt 1")
+    require(cfg.diffusion in DIFFUSIONS, f"--diffusion '{cfg.diffusion}' is unknown", f"use one of {', '.join(DIFFUSIONS)}")
+    require(cfg.integrator in INTEGRATORS, f"--integrator '{cfg.integrator}' is unknown",
+            f"use one of {', '.join(INTEGRATORS)}")
+    require(int(cfg.n_neighbors) >= MIN_NEIGHBORS, f"--fit-neighbors {cfg.n_neighbors} is too few for a cubic fit",
+            f"use at least {MIN_NEIGHBORS} (paper: {DEFAULT_NEIGHBORS})")
+    if cfg.epsilon is not None:
+        require(math.isfinite(cfg.epsilon) and cfg.epsilon > 0, f"--epsilon must be > 0 (1/m), got {cfg.epsilon}",
+                "omit it for the default 1/agent-radius")
+    require(cfg.max_start_distance > 0, "max_start_distance must be > 0 metres", "e.g. 0.02")
+    require(len(cfg.normal_hint) == 3 and any(abs(float(x)) > 0 for x in cfg.normal_hint),
+            "normal_hint must be a non-zero 3-vector", "e.g. (0, 0, 1)")

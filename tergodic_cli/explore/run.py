@@ -1,0 +1,308 @@
+"""A whole ``tergodic explore`` run: capture -> basis -> starts -> explorer loop -> artefacts.
+
+Artefacts in RUN_DIR (written atomically at the end; nothing partial on error):
+
+- ``trajectory.npz``: per step (T steps, N agents) ``positions`` (T, N, 3) m, ``velocities``
+  (T, N, 3) m/s, ``accelerations`` (T, N, 3) m/s², ``normals`` (T, N, 3) (the normal line of
+  eq. 28 at step k is positions[k] + s·normals[k]), ``time`` (T,) s, the metric series
+  ``ergodicity``, ``ergodicity_ref``, ``touched_fraction``, ``step_ms`` (T,), the ``start``
+  (N, 3), and per point the final ``coverage``, ``heat``, ``source``, ``target`` (n,) and ``points`` (n, 3);
+- ``summary.json``: :func:`summarize_run` of the series plus provenance (versions, seed, basis);
+- ``run.mcap``: the per-step log (unless ``log=False``), written by :mod:`tergodic_cli.runlog`.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_config
+from tergodic_cli.explore.explorer import Explorer
+from tergodic_cli.explore.summary import summarize_run
+
+ROBOTS = ("kinematic", "pybullet")
+
+
+@dataclass
+class StartSpec:
+    """Where the agents start: ``start`` is "random", a point index, or "x,y,z" (metres);
+    or ``starts_file`` (npz with key ``x0_arr`` (m, 3) metres) from ``start_index`` on."""
+
+    start: str | None = None
+    starts_file: str | None = None
+    start_index: int | None = None
+
+
+def resolve_starts(spec: StartSpec, points: np.ndarray, n_agents: int, seed: int) -> np.ndarray:
+    """Start positions (n_agents, 3), metres.
+
+    Agent 0 starts where ``spec`` says; further agents take the next rows of the starts file
+    (wrapping), or, for other specs, distinct cloud points drawn with ``seed``.
+    """
+    n = len(points)
+    rng = np.random.default_rng(seed)
+    if spec.starts_file is not None:
+        require(spec.start is None, "--start and --starts are both given", "use one of them")
+        path = Path(spec.starts_file)
+        require(path.is_file(), f"--starts {path} does not exist", "give an .npz with key x0_arr (n, 3) in metres")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                require("x0_arr" in data.files, f"--starts {path} has no key x0_arr (keys: {', '.join(data.files)})",
+                        "give an .npz with key x0_arr (n, 3) in metres")
+                x0 = np.asarray(data["x0_arr"], dtype=np.float64)
+        except TergodicError:
+            raise
+        except Exception as exc:
+            raise TergodicError(f"--starts {path} is unreadable ({type(exc).__name__})",
+                                "give an .npz with key x0_arr (n, 3) in metres") from None
+        require(x0.ndim == 2 and x0.shape[1] == 3 and len(x0) > 0, f"--starts x0_arr has shape {x0.shape}, not (n, 3)",
+                "give start positions as rows x, y, z in metres")
+        i = 0 if spec.start_index is None else int(spec.start_index)
+        require(0 <= i < len(x0), f"--start-index {i} is outside 0..{len(x0) - 1}", f"use 0 <= i < {len(x0)}")
+        return x0[(i + np.arange(n_agents)) % len(x0)]
+    require(spec.start_index is None, "--start-index needs --starts FILE.npz", "add --starts, or use --start INDEX")
+    text = (spec.start or "random").strip()
+    if text == "random":
+        require(n_agents <= n, f"{n_agents} agents but only {n} points", "use fewer agents")
+        return points[rng.choice(n, size=n_agents, replace=False)]
+    if "," in text:
+        try:
+            first = np.array([float(v) for v in text.split(",")])
+        except ValueError:
+            first = np.zeros(0)
+        require(first.shape == (3,) and bool(np.all(np.isfinite(first))), f"--start '{text}' is not x,y,z",
+                "e.g. --start 0.01,0.02,0.05 (metres)")
+    else:
+        try:
+            idx = int(text)
+        except ValueError:
+            raise TergodicError(f"--start '{text}' is not x,y,z, a point index or 'random'",
+                                "e.g. --start 0.01,0.02,0.05 (metres), --start 120, or --start random") from None
+        require(0 <= idx < n, f"--start index {idx} is outside 0..{n - 1}", f"use an index below {n}")
+        first = points[idx]
+    if n_agents == 1:
+        return first[None, :]
+    others = points[rng.choice(n, size=n_agents - 1, replace=False)]
+    return np.vstack([first[None, :], others])
+
+
+def find_basis(points: np.ndarray, nk: int, neighbors: int, cache_dir=None,
+               on_event: Callable[[str], None] | None = None):
+    """The cached basis of ``points`` with at least ``nk`` eigenpairs (truncated to ``nk``), or a
+    freshly computed (and cached) one with ``nk``. Returns (basis, cache_hit)."""
+    from tergodic_cli.basis import BasisConfig, get_basis
+    from tergodic_cli.basis.cache import default_cache_dir, geometry_key
+
+    root = Path(cache_dir or default_cache_dir()) / "basis"
+    candidates: set[tuple[int, str, str]] = set()
+    if root.is_dir():
+        for meta_path in root.glob("*/basis.json"):
+            try:
+                meta = json.loads(meta_path.read_text())
+                bcfg = meta["config"]
+                if (int(meta["n_points"]) == len(points) and int(bcfg["neighbors"]) == neighbors
+                        and int(bcfg["nk"]) >= nk):
+                    candidates.add((int(bcfg["nk"]), str(bcfg.get("solver", BasisConfig.solver)), meta_path.parent.name))
+            except (OSError, ValueError, KeyError, TypeError):
+                continue  # unreadable entries are get_basis' business
+    for cand_nk, solver, key in sorted(candidates):
+        bcfg = BasisConfig(nk=cand_nk, neighbors=neighbors, solver=solver)
+        if geometry_key(points, bcfg)[0] == key:
+            basis, hit = get_basis(points, bcfg, cache_dir, on_event=on_event)
+            return (basis.truncated(nk) if basis.nk > nk else basis), hit
+    return get_basis(points, BasisConfig(nk=nk, neighbors=neighbors), cache_dir, on_event=on_event)
+
+
+def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path, starts: StartSpec | None = None,
+                robot: str = "kinematic", log: bool = True, log_cloud_every: int = 50, cache_dir=None,
+                on_event: Callable[[str], None] | None = None) -> dict:
+    """Run one exploration and write its artefacts; returns the summary dict."""
+    from tergodic_cli.capture import load_capture
+
+    say = on_event or (lambda msg: None)
+    events: list[str] = []
+
+    def event(msg: str) -> None:
+        events.append(msg)
+        say(msg)
+
+    validate_config(cfg)
+    require(robot in ROBOTS, f"--robot '{robot}' is unknown", f"use one of {', '.join(ROBOTS)}")
+    require(log_cloud_every >= 1, f"--log-cloud-every must be >= 1, got {log_cloud_every}", "e.g. 50")
+    out = Path(out_dir)
+    require(not out.exists() or out.is_dir(), f"--out {out} exists and is not a folder", "give a folder path for the run")
+    capture = load_capture(capture_dir)
+    require(bool(np.any(capture.target > 0)), f"the target of {capture_dir} is empty (no point has p > 0)",
+            "re-capture with the right --target colour, or --target all for uniform coverage")
+    require(cfg.nk < capture.n_points, f"--nk {cfg.nk} is not below the number of points ({capture.n_points})",
+            f"use --nk < {capture.n_points}")
+    start_xyz = resolve_starts(starts or StartSpec(), capture.points, cfg.n_agents, cfg.seed)
+
+    robot_api = _robot_backend() if robot == "pybullet" else None
+    user_cfg = cfg
+    if robot_api is not None:
+        # The robot runs the explorer at its own step period with the same path per step.
+        robot_cfg = robot_api[1]()
+        scale = robot_api[2]
+        cfg = scale(cfg, robot_cfg.explore_dt) if scale is not None else cfg
+    basis, hit = find_basis(capture.points, cfg.nk, cfg.basis_neighbors, cache_dir, on_event=event)
+    require(basis.points.shape == capture.points.shape and np.array_equal(basis.points, capture.points),
+            "the basis does not match the capture's points", "recompute it: tergodic precompute CAPTURE --force")
+    explorer = Explorer(basis, capture.target, cfg, start_xyz, on_event=event)
+
+    recorder = _Recorder(explorer, cfg.steps)
+    runlog = _open_log(out, cfg, basis, capture, log_cloud_every) if log else None
+    try:
+        if runlog is not None:
+            for msg in events:
+                runlog.log_event(0, 0.0, msg)
+        event_hook = (lambda step, msg: (say(msg), runlog.log_event(step, step * cfg.dt, msg))) if runlog else \
+            (lambda step, msg: say(msg))
+        if runlog is not None:
+            explorer._say = lambda msg: event_hook(explorer.step_index, msg)
+
+        def after_step(step: int, robot_sample: dict | None) -> None:
+            recorder.record(step, robot_sample)
+            if runlog is not None:
+                runlog.log_step(step, step * cfg.dt, positions=explorer.positions, velocities=explorer.velocities,
+                                normals=explorer.normals, metrics=explorer.metrics(), step_ms=explorer.last_step_ms,
+                                robot=robot_sample)
+                if step % log_cloud_every == 0 or step == cfg.steps:
+                    _log_cloud(runlog, explorer, step)
+
+        robot_extra = {}
+        if robot_api is None:
+            from tergodic_cli.progress import track
+
+            for k in track(range(cfg.steps), total=cfg.steps, description="exploring"):
+                explorer.step()
+                after_step(k + 1, None)
+        else:
+            robot_extra = robot_api[0](capture, explorer, robot_cfg, cfg.steps,
+                                             on_step=lambda step, sample: after_step(step, sample),
+                                             on_event=event_hook) or {}
+        require(recorder.count > 0, "the run made no explorer step", "check the robot backend's log")
+        if runlog is not None and recorder.count % log_cloud_every and recorder.count != cfg.steps:
+            _log_cloud(runlog, explorer, recorder.count)  # a robot run that stopped early
+
+        extra = _provenance(capture_dir, capture, basis, hit, explorer, cfg, start_xyz, robot, starts, robot_extra,
+                            logged=runlog is not None)
+        if cfg is not user_cfg:
+            extra["requested_config"] = user_cfg.to_dict()  # before the robot's time scaling
+        summary = summarize_run(recorder.series(), cfg.to_dict(), extra)
+        recorder.write(out / "trajectory.npz", start_xyz)
+        from tergodic_cli.atomic import write_json
+
+        write_json(out / "summary.json", summary)
+        if runlog is not None:
+            runlog.close(summary)
+            runlog = None
+        return summary
+    finally:
+        if runlog is not None:
+            runlog.__exit__(None, None, None)
+
+
+def _robot_backend():
+    """(explore_with_robot, RobotConfig, robot_explore_config or None), imported on demand."""
+    try:
+        import tergodic_cli.robot as robot_pkg
+
+        explore_with_robot = robot_pkg.explore_with_robot
+        robot_config = robot_pkg.RobotConfig
+    except (ImportError, AttributeError) as exc:
+        raise TergodicError(f"the robot backend is not available ({str(exc).splitlines()[0][:80]})",
+                            "use --robot kinematic, or install tergodic with its robot dependencies") from None
+    try:
+        scale = robot_pkg.robot_explore_config
+    except (ImportError, AttributeError):
+        scale = None
+    return explore_with_robot, robot_config, scale
+
+
+def _open_log(out: Path, cfg: ExploreConfig, basis, capture, cloud_every: int):
+    try:
+        from tergodic_cli.runlog import RunLog
+    except ImportError as exc:
+        raise TergodicError(f"run logging is not available ({str(exc).splitlines()[0][:80]})",
+                            "use --no-log, or install tergodic with its logging dependencies (mcap)") from None
+    from tergodic_cli.provenance import library_versions
+
+    out.mkdir(parents=True, exist_ok=True)
+    log = RunLog(out / "run.mcap", config=cfg.to_dict(), seed=cfg.seed, versions=library_versions(),
+                 capture_sidecar=capture.meta, points=basis.points, target=capture.target, cloud_every=cloud_every)
+    return log.__enter__()
+
+
+def _log_cloud(runlog, explorer: Explorer, step: int) -> None:
+    runlog.log_cloud(step, coverage=explorer.coverage, heat=explorer.heat, source=explorer.source, target=explorer.p)
+
+
+class _Recorder:
+    """Per-step arrays, preallocated for the planned steps (grown if a backend runs longer)."""
+
+    def __init__(self, explorer: Explorer, steps: int):
+        self.ex = explorer
+        N = len(explorer.positions)
+        self.count = 0
+        self.vec = {k: np.zeros((steps, N, 3)) for k in ("positions", "velocities", "accelerations", "normals")}
+        self.sca = {k: np.zeros(steps) for k in ("ergodicity", "ergodicity_ref", "touched_fraction", "step_ms", "time")}
+
+    def record(self, step: int, robot_sample: dict | None) -> None:
+        k = self.count
+        if k >= len(self.sca["time"]):
+            grow = max(k, 16)
+            self.vec = {n: np.concatenate([a, np.zeros((grow,) + a.shape[1:])]) for n, a in self.vec.items()}
+            self.sca = {n: np.concatenate([a, np.zeros(grow)]) for n, a in self.sca.items()}
+        ex = self.ex
+        self.vec["positions"][k] = ex.positions
+        self.vec["velocities"][k] = ex.velocities
+        self.vec["accelerations"][k] = ex.accelerations
+        self.vec["normals"][k] = ex.normals
+        m = ex.metrics()
+        for name in ("ergodicity", "ergodicity_ref", "touched_fraction"):
+            self.sca[name][k] = m[name]
+        self.sca["step_ms"][k] = ex.last_step_ms
+        self.sca["time"][k] = step * ex.cfg.dt
+        self.count = k + 1
+
+    def series(self) -> dict[str, np.ndarray]:
+        return {k: self.sca[k][: self.count] for k in ("ergodicity", "ergodicity_ref", "touched_fraction", "step_ms")}
+
+    def write(self, path: Path, start: np.ndarray) -> None:
+        from tergodic_cli.atomic import write_npz
+
+        ex, c = self.ex, self.count
+        write_npz(path, **{k: a[:c] for k, a in self.vec.items()}, **{k: a[:c] for k, a in self.sca.items()},
+                  start=np.asarray(start, dtype=np.float64), coverage=ex.coverage, heat=ex.heat, source=ex.source,
+                  target=ex.p, points=ex.points)
+
+
+def _provenance(capture_dir, capture, basis, hit, explorer: Explorer, cfg: ExploreConfig, start_xyz, robot,
+                starts: StartSpec | None, robot_extra: dict, logged: bool) -> dict:
+    from tergodic_cli.provenance import library_versions
+
+    starts = starts or StartSpec()
+    extra = {
+        "robot": robot,
+        "capture": {"path": str(Path(capture_dir)), "n_points": int(capture.n_points),
+                    "n_target": int(np.count_nonzero(capture.target > 0)),
+                    "sha256": capture.meta.get("arrays", {}).get("sha256")},
+        "basis": {"key": basis.meta.get("key"), "path": basis.meta.get("path"), "cache_hit": bool(hit),
+                  "nk_used": int(cfg.nk), "neighbors": int(cfg.basis_neighbors), "h_m": float(basis.h)},
+        "explorer": {"alpha_schedule": [[s, a] for s, a in parse_alpha(cfg.alpha)],
+                     "epsilon_per_m": cfg.footprint_epsilon, "edge_events": int(explorer.edge_events),
+                     "diffusion": cfg.diffusion, "integrator": cfg.integrator},
+        "starts": {"start": starts.start, "starts_file": starts.starts_file, "start_index": starts.start_index,
+                   "xyz": np.asarray(start_xyz).tolist()},
+        "files": ["trajectory.npz", "summary.json"] + (["run.mcap"] if logged else []),
+        "versions": library_versions(),
+    }
+    for key, value in (robot_extra or {}).items():  # the robot's summary extras, merged in (CONTRACTS.md)
+        extra.setdefault(key, value)
+    return extra

@@ -1,0 +1,194 @@
+"""``tergodic explore`` end to end: artefacts, basis lookup, starts, determinism, bad input."""
+
+from __future__ import annotations
+
+import json
+import sys
+import types
+
+import numpy as np
+import pytest
+from conftest import assert_one_line_error, run_cli
+
+from tergodic_cli.explore import summarize_run
+
+SUMMARY_KEYS = {"steps", "ergodicity", "ergodicity_ref", "touched_fraction", "ergodicity_at", "step_ms_median",
+                "config", "seed", "versions"}
+
+
+@pytest.fixture(scope="module")
+def cap(tmp_path_factory):
+    """A small synthetic plate with dots (≈ 1200 points at a 6 mm voxel)."""
+    out = tmp_path_factory.mktemp("cap") / "plate"
+    res = run_cli("capture", "--synthetic", "plate", "--marking", "dots", "--voxel", "0.006", "--out", out)
+    assert res.code == 0, res.err
+    return out
+
+
+def _explore(cap, out, *extra):
+    return run_cli("explore", cap, "--out", out, "--nk", "40", "--agent-radius", "0.012", "--no-log", *extra)
+
+
+def _cache_entries(cache) -> int:
+    return len(list((cache / "basis").glob("*/basis.json"))) if (cache / "basis").exists() else 0
+
+
+def test_explore_from_a_fresh_capture_writes_trajectory_and_summary(cap, tmp_path, isolated_cache):
+    run = tmp_path / "run"
+    res = _explore(cap, run, "--steps", "60", "--start", "random", "--seed", "3")
+    assert res.code == 0, res.err
+    summary = json.loads((run / "summary.json").read_text())
+    assert SUMMARY_KEYS <= set(summary)
+    assert summary["steps"] == 60 and summary["seed"] == 3 and summary["config"]["seed"] == 3
+    assert summary["ergodicity_at"] == {"200": None, "500": None}
+    assert summary["basis"]["cache_hit"] is False and _cache_entries(isolated_cache) == 1
+    with np.load(run / "trajectory.npz", allow_pickle=False) as t:
+        n = len(t["points"])
+        assert t["positions"].shape == (60, 1, 3) and t["velocities"].shape == (60, 1, 3)
+        assert t["normals"].shape == (60, 1, 3)
+        np.testing.assert_allclose(np.linalg.norm(t["normals"], axis=2), 1.0, atol=1e-12)
+        assert t["coverage"].shape == t["heat"].shape == t["target"].shape == (n,)
+        assert t["ergodicity"].shape == (60,)
+        # The summary is a pure function of the stored series.
+        again = summarize_run({k: t[k] for k in ("ergodicity", "ergodicity_ref", "touched_fraction", "step_ms")},
+                              summary["config"], {k: summary[k] for k in summary if k not in (
+                                  "steps", "ergodicity", "ergodicity_ref", "touched_fraction", "ergodicity_at",
+                                  "ergodicity_ref_at", "touched_fraction_at", "step_ms_median", "seed", "config")})
+        assert again == summary
+    assert "explored 60 steps" in res.out
+
+
+def test_json_output_equals_summary_file(cap, tmp_path):
+    run = tmp_path / "run"
+    res = _explore(cap, run, "--steps", "20", "--json")
+    assert res.code == 0, res.err
+    assert json.loads(res.out) == json.loads((run / "summary.json").read_text())
+
+
+def test_logged_run_writes_an_mcap_log(cap, tmp_path):
+    pytest.importorskip("tergodic_cli.runlog")
+    run = tmp_path / "run"
+    res = run_cli("explore", cap, "--out", run, "--nk", "40", "--agent-radius", "0.012", "--steps", "30",
+                  "--log-cloud-every", "10")
+    assert res.code == 0, res.err
+    assert (run / "run.mcap").stat().st_size > 0
+    assert "run.mcap" in json.loads((run / "summary.json").read_text())["files"]
+
+
+def test_a_larger_cached_basis_is_reused_and_a_smaller_one_is_not(cap, tmp_path, isolated_cache):
+    assert run_cli("precompute", cap, "--nk", "60").code == 0
+    res = _explore(cap, tmp_path / "a", "--steps", "5", "--json")
+    assert res.code == 0, res.err
+    assert json.loads(res.out)["basis"]["cache_hit"] is True
+    assert json.loads(res.out)["config"]["nk"] == 40
+    assert _cache_entries(isolated_cache) == 1  # nothing new computed
+    res = run_cli("explore", cap, "--out", tmp_path / "b", "--nk", "80", "--agent-radius", "0.012", "--steps", "5",
+                  "--no-log", "--json")
+    assert res.code == 0, res.err
+    assert json.loads(res.out)["basis"]["cache_hit"] is False  # 60 < 80: computed
+    assert _cache_entries(isolated_cache) == 2
+
+
+def test_seeded_cli_runs_are_bit_identical(cap, tmp_path):
+    arrays = []
+    for name, seed in (("a", "7"), ("b", "7"), ("c", "8")):
+        assert _explore(cap, tmp_path / name, "--steps", "40", "--seed", seed).code == 0
+        with np.load(tmp_path / name / "trajectory.npz", allow_pickle=False) as t:
+            arrays.append({k: t[k] for k in ("positions", "velocities", "coverage", "heat", "ergodicity")})
+    for k in arrays[0]:
+        assert np.array_equal(arrays[0][k], arrays[1][k]), k
+    assert not np.array_equal(arrays[0]["positions"], arrays[2]["positions"])
+
+
+def test_starts_file_and_index_and_several_agents(cap, tmp_path):
+    with np.load(cap / "cloud.npz", allow_pickle=False) as c:
+        pts = c["points"]
+    starts = tmp_path / "x0.npz"
+    np.savez(starts, x0_arr=pts[[10, 200, 400]] + np.array([0, 0, 0.001]))
+    res = _explore(cap, tmp_path / "run", "--steps", "10", "--starts", starts, "--start-index", "1", "--agents", "2")
+    assert res.code == 0, res.err
+    with np.load(tmp_path / "run" / "trajectory.npz", allow_pickle=False) as t:
+        np.testing.assert_allclose(t["start"], pts[[200, 400]] + [0, 0, 0.001])
+        assert t["positions"].shape == (10, 2, 3)
+
+
+def test_start_slightly_off_is_projected_with_a_warning(cap, tmp_path):
+    with np.load(cap / "cloud.npz", allow_pickle=False) as c:
+        p = c["points"][100] + np.array([0.0, 0.0, 0.008])
+    res = _explore(cap, tmp_path / "run", "--steps", "3", "--start", ",".join(f"{v:.6f}" for v in p))
+    assert res.code == 0, res.err
+    assert "projected" in res.err
+
+
+def test_small_agent_radius_warns(cap, tmp_path):
+    res = run_cli("explore", cap, "--out", tmp_path / "run", "--nk", "40", "--agent-radius", "0.002", "--steps", "3",
+                  "--no-log")
+    assert res.code == 0, res.err
+    assert "below the point spacing" in res.err
+
+
+@pytest.mark.parametrize("args, needle", [
+    (("--alpha", "0"), "alpha"),
+    (("--alpha", "-3"), "alpha"),
+    (("--alpha", "ten"), "alpha"),
+    (("--alpha", "50:10@0"), "alpha"),
+    (("--start", "5,5,5"), "from the cloud"),
+    (("--start", "999999"), "index"),
+    (("--start", "1,2"), "--start"),
+    (("--agent-radius", "0"), "agent-radius"),
+    (("--steps", "0"), "steps"),
+    (("--diffusion", "magic"), "diffusion"),
+    (("--integrator", "magic"), "integrator"),
+    (("--robot", "hovercraft"), "robot"),
+    (("--nk", "100000"), "nk"),
+    (("--start-index", "2"), "--starts"),
+])
+def test_bad_input_is_one_line_and_exit_2_with_nothing_written(cap, tmp_path, args, needle):
+    run = tmp_path / "run"
+    res = run_cli("explore", cap, "--out", run, "--nk", "40", "--agent-radius", "0.012", "--steps", "5", "--no-log",
+                  *args)
+    assert_one_line_error(res, needle)
+    assert not (run / "summary.json").exists() and not (run / "trajectory.npz").exists()
+
+
+def test_bad_starts_files(cap, tmp_path):
+    assert_one_line_error(_explore(cap, tmp_path / "r", "--starts", tmp_path / "missing.npz"), "does not exist")
+    wrong = tmp_path / "wrong.npz"
+    np.savez(wrong, points=np.zeros((2, 3)))
+    assert_one_line_error(_explore(cap, tmp_path / "r", "--starts", wrong), "x0_arr")
+    good = tmp_path / "good.npz"
+    np.savez(good, x0_arr=np.zeros((2, 3)))
+    assert_one_line_error(_explore(cap, tmp_path / "r", "--starts", good, "--start-index", "5"), "start-index")
+    assert_one_line_error(_explore(cap, tmp_path / "r", "--starts", good, "--start", "random"), "both")
+
+
+def test_empty_target_is_refused(tmp_path):
+    from tergodic_cli.capture import Capture, save_capture
+    from tergodic_cli.capture.synthetic import generate_synthetic
+
+    cloud = generate_synthetic("plate", "dots", seed=0, spacing=0.006)
+    save_capture(Capture(cloud.points, cloud.colors, np.zeros(len(cloud.points)), {"kind": "test"}), tmp_path / "cap")
+    assert_one_line_error(_explore(tmp_path / "cap", tmp_path / "run"), "empty")
+
+
+def test_missing_robot_backend_is_one_line(cap, tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "tergodic_cli.robot", types.ModuleType("tergodic_cli.robot"))
+    res = _explore(cap, tmp_path / "run", "--robot", "pybullet")
+    assert_one_line_error(res, "robot backend is not available")
+
+
+@pytest.mark.slow
+def test_reference_bunny_start_0(reference, tmp_path):
+    capture = tmp_path / "bunny"
+    res = run_cli("capture", "--from", reference / "bun270_X.ply", "--voxel", "0.003", "--voxel-rule", "all",
+                  "--out", capture)
+    assert res.code == 0, res.err
+    res = run_cli("explore", capture, "--out", tmp_path / "run", "--starts", reference / "starts" / "bun270_X.npz",
+                  "--start-index", "0", "--neighbors", "40", "--steps", "1000", "--no-log", "--json")
+    assert res.code == 0, res.err
+    summary = json.loads(res.out)
+    assert SUMMARY_KEYS <= set(summary)
+    assert summary["capture"]["n_target"] == 210
+    # 206 of the 210 target points; the other 4 are two stray pairs 3-6 cm off the X (docs/explore.md).
+    assert summary["touched_fraction"] >= 0.98
+    assert summary["ergodicity_ref"] < 0.16
