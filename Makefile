@@ -36,12 +36,13 @@ setup: $(STAMP)
 test: setup
 	$(BIN)/python -m pytest
 
-# The main job on built-in data: capture the procedurally built bowl with an X,
-# precompute its basis, explore it, and replay the log into plots.
+# The main job on the built-in data: the procedurally built bowl with an X in data/bowl.
+# Basis (cached), 1000 kinematic exploration steps logged to MCAP, then the replay's plots.
 demo: setup
-	$(BIN)/tergodic capture --synthetic bowl --marking X --seed 0 --out $(DEMO)/capture
-	$(BIN)/tergodic precompute $(DEMO)/capture
-	$(BIN)/tergodic precompute $(DEMO)/capture
+	$(BIN)/tergodic precompute data/bowl
+	$(BIN)/tergodic explore data/bowl --robot kinematic --steps 1000 --start random --seed 0 --out $(DEMO)/kinematic
+	$(BIN)/tergodic replay $(DEMO)/kinematic --plot $(DEMO)/kinematic/plots
+	@echo "demo: see $(DEMO)/kinematic/summary.json and the PNGs in $(DEMO)/kinematic/plots/"
 
 bench: setup
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/precompute.py
