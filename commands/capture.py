@@ -23,9 +23,10 @@ def capture(
     sim_object: Optional[str] = typer.Option(None, "--object", help="Simulated camera (--source sim): bowl, plate, mug, or FILE.obj (metres; --units mm for millimetres)."),
     marking: str = typer.Option("X", "--marking", help="Marking: X, ring or dots; with --source sim also IMAGE.png (alpha = intensity, else non-white = marking)."),
     object_pose: Optional[str] = typer.Option(None, "--object-pose", help="Sim: object pose in the robot base frame x,y,z[,roll,pitch,yaw] (m, deg) or x,y,z,qx,qy,qz,qw. Default 0.5,0,0 (the mug turned 180 deg so its marking faces the camera)."),
-    camera_pose: Optional[str] = typer.Option(None, "--camera-pose", help="Sim: eye and target ex,ey,ez,tx,ty,tz (m), or the optical frame x,y,z,qx,qy,qz,qw (z forward). Default: eye 0.30,0,0.60 looking at the object."),
-    width: int = typer.Option(640, "--width", help="Sim: image width, pixels."),
-    height: int = typer.Option(480, "--height", help="Sim: image height, pixels."),
+    camera_pose: Optional[str] = typer.Option(None, "--camera-pose", help="Sim: eye and target ex,ey,ez,tx,ty,tz (m), or the optical frame x,y,z,qx,qy,qz,qw (z forward). Default: eye 0.30,0,0.60 looking at the object. RealSense: the optical frame x,y,z,qx,qy,qz,qw in the robot base frame (hand-eye calibration); default: the camera frame."),
+    serial: Optional[str] = typer.Option(None, "--serial", help="RealSense: the camera's serial number (needed when several are connected)."),
+    width: int = typer.Option(640, "--width", help="Sim/RealSense: image width, pixels."),
+    height: int = typer.Option(480, "--height", help="Sim/RealSense: image height, pixels."),
     fov: float = typer.Option(42.0, "--fov", help="Sim: vertical field of view, degrees."),
     renderer: str = typer.Option("auto", "--renderer", help="Sim: auto (EGL when it loads, else TinyRenderer), egl or tiny."),
     seed: int = typer.Option(0, "--seed", help="Seed for synthetic sampling, colour noise and the dots marking."),
@@ -48,6 +49,8 @@ def capture(
       tergodic capture --source sim --object bowl --marking X --out cap/
 
       tergodic capture --source sim --object scan.obj --marking stain.png --camera-pose 0.3,0,0.6,0.5,0,0 --out cap/
+
+      tergodic capture --source realsense --serial 123456789012 --camera-pose 0.3,0,0.6,1,0,0,0 --out cap/
 
       tergodic capture --from scan.ply --voxel 0.003 --target red --out cap/
 
@@ -87,6 +90,11 @@ def capture(
         )
         cap = capture_sim(sim)
         frame = getattr(cap, "frame", None)
+    elif kind == "realsense":
+        from tergodic_cli.hardware.realsense.capture import capture_realsense
+
+        cap = capture_realsense(cfg, serial=serial, width=width, height=height,
+                                camera_pose=_floats(camera_pose, "--camera-pose", "0.3,0,0.6,1,0,0,0"))
     else:
         cap = capture_cloud(cfg)
     sidecar = save_capture(cap, out)
@@ -96,6 +104,10 @@ def capture(
         typer.echo(json.dumps(cap.meta, indent=2))
         return
     typer.echo(format_report(cap))
+    if kind == "realsense":
+        r = cap.meta["realsense"]
+        typer.echo(f"realsense {r['name']} ({r['serial']}): {r['intrinsics']['width']}x{r['intrinsics']['height']}, "
+                   f"cloud in the {cap.meta['frame'].replace('_', ' ')} frame")
     if kind == "sim":
         s = cap.meta["sim"]
         t = s["timing_ms"]
@@ -119,8 +131,6 @@ def _resolve_source(source: Optional[str], from_file, synthetic, sim_object) -> 
         return given[0]
     if source not in SOURCES:
         raise TergodicError(f"unknown --source '{source}'", f"use one of {', '.join(SOURCES)}")
-    if source == "realsense":
-        raise TergodicError("--source realsense is not available in this build", "capture with the RealSense tools and pass --from FILE")
     if any(g != source for g in given):
         raise TergodicError(f"--source {source} does not go with {', '.join('--' + ('from' if g == 'file' else 'object' if g == 'sim' else g) for g in given if g != source)}", usage)
     if source == "file" and from_file is None:

@@ -1,0 +1,150 @@
+"""Bota Systems F/T sensors through Bota's driver (``pip install 'tergodic[bota]'``, module ``bota_driver``).
+
+API used (bota-driver 1.1.16, checked against the installed package and its 'Bota_Dummy' interface):
+``BotaDriver(config_path)`` or ``BotaDriver(BotaDriverConfig)``, then the lifecycle
+``configure() -> activate() -> read_frame_blocking() ... -> deactivate() -> shutdown()``, each
+returning a bool. A ``BotaFrame`` carries ``force`` and ``torque`` (3 floats each, N and N m, sensor
+frame), ``timestamp`` (an unsigned 32-bit microsecond counter: it wraps every 71.6 minutes),
+``status`` (``DataStatus`` with ``invalid``, ``overrange``, ``throttled``, ``raw``, ``val``) and
+``temperature``.
+
+Two behaviours of the driver shape this backend:
+
+- ``read_frame()`` (non-blocking) returns an *empty* frame, all zeros with timestamp 0, when no new
+  sample has arrived; a zero wrench would look like "no contact". We read with
+  ``read_frame_blocking()`` only.
+- ``BotaDriver.tare()`` works only in the INACTIVE state (it returns False while streaming), so
+  :meth:`BotaSensor.tare` zeroes in software: the mean of ``tare_samples`` frames is subtracted from
+  every later reading.
+
+A frame flagged invalid or over-range reads as NaN, which the safety guard's sensor check turns
+into a hold.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.hardware.extras import import_sdk
+from tergodic_cli.robot.interfaces import WrenchReading
+
+WRAP_US = 2**32
+
+
+@dataclass
+class BotaConfig:
+    """address : path of the sensor's JSON driver configuration (Bota's documented set-up), or
+    "dummy" for the driver's built-in simulated sensor. frame_in_ee : (4, 4) sensor frame in the TCP
+    frame (measure it on your mounting). tare_samples : frames averaged by :meth:`BotaSensor.tare`."""
+
+    address: str
+    frame_in_ee: np.ndarray | None = None
+    tare_samples: int = 50
+
+    def validate(self) -> None:
+        a = str(self.address or "")
+        require(a == "dummy" or a.lower().endswith(".json"),
+                f"--ft-address '{a}' is not a Bota driver configuration",
+                "give the path of the sensor's JSON configuration file (see Bota's driver documentation), or 'dummy'")
+        if a != "dummy":
+            require(Path(a).is_file(), f"the Bota configuration {a} does not exist", "check the path given to --ft-address")
+        require(int(self.tare_samples) >= 1, "tare_samples must be >= 1", "e.g. 50")
+
+
+class BotaSensor:
+    """A Bota sensor behind :class:`~tergodic_cli.robot.interfaces.WrenchSensor`.
+
+    ``read()`` returns the latest frame's wrench minus the tare offset, with t = the sensor's
+    timestamp in seconds (unwrapped).
+    """
+
+    def __init__(self, cfg: BotaConfig):
+        cfg.validate()
+        self.cfg = cfg
+        self.frame_in_ee = np.eye(4) if cfg.frame_in_ee is None else np.asarray(cfg.frame_in_ee, dtype=float)
+        require(self.frame_in_ee.shape == (4, 4), "frame_in_ee must be a (4, 4) transform", "give the sensor pose in the TCP frame")
+        self.offset = np.zeros(6)
+        self.driver = None
+        self._bd = None
+        self._last_us: int | None = None
+        self._wraps = 0
+        self.last_status: dict | None = None
+        self.expected_dt = None
+
+    @property
+    def is_connected(self) -> bool:
+        return self.driver is not None
+
+    def connect(self) -> None:
+        if self.driver is not None:
+            return
+        bd = import_sdk("bota_driver")
+        self._bd = bd
+        try:
+            driver = bd.BotaDriver(self._driver_config(bd))
+        except Exception as exc:
+            raise TergodicError(f"the Bota driver rejected its configuration: {_one_line(exc)}",
+                                "check the JSON configuration (interface, port, serial number)") from None
+        if not driver.configure():
+            raise TergodicError("the Bota sensor could not be configured", "check the cable, the port in the configuration and its permissions")
+        if not driver.activate():
+            driver.shutdown()
+            raise TergodicError("the Bota sensor did not start streaming", "power-cycle the sensor and retry")
+        self.driver = driver
+        self.expected_dt = 1e-6 * float(driver.get_expected_timestep_us())
+
+    def _driver_config(self, bd):
+        if self.cfg.address != "dummy":
+            return str(self.cfg.address)
+        cfg = bd.BotaDriverConfig()
+        cfg.product_name, cfg.serial_number = "PRT-SENS-IND-PS", "DUMMY"  # the driver refuses empty names
+        cfg.communication_interface_name = "Bota_Dummy"
+        cfg.dummy_communication_interface_params = bd.BotaDummyCommunicationInterfaceConfig()
+        op = bd.GenASensorOperationConfig()
+        op.app_mode, op.app_submode = 2, 7  # the driver's documented example values
+        cfg.genA_sensor_operation_params = op
+        return cfg
+
+    def _frame(self) -> tuple[float, np.ndarray]:
+        if self.driver is None:
+            raise TergodicError("the Bota sensor is not connected", "call connect() first")
+        fr = self.driver.read_frame_blocking()
+        us = int(fr.timestamp)
+        if self._last_us is not None and us < self._last_us and self._last_us - us > WRAP_US // 2:
+            self._wraps += 1
+        self._last_us = us
+        st = fr.status
+        self.last_status = {"invalid": int(st.invalid), "overrange": int(st.overrange), "throttled": int(st.throttled),
+                            "temperature": float(fr.temperature)}
+        w = np.array(list(fr.force) + list(fr.torque), dtype=float)
+        if int(st.invalid) or int(st.overrange) or w.shape != (6,):
+            w = np.full(6, np.nan)
+        return 1e-6 * (us + self._wraps * WRAP_US), w
+
+    def read(self) -> WrenchReading:
+        t, w = self._frame()
+        return WrenchReading(t, w - self.offset)
+
+    def tare(self) -> None:
+        """Zero in software: the mean of ``tare_samples`` frames (the tool at rest, free) becomes the offset."""
+        ws = np.array([self._frame()[1] for _ in range(int(self.cfg.tare_samples))])
+        require(bool(np.all(np.isfinite(ws))), "the Bota sensor flagged samples invalid or over range while taring",
+                "keep the tool free and still, check the sensor, and retry")
+        self.offset = ws.mean(axis=0)
+
+    def disconnect(self) -> None:
+        if self.driver is None:
+            return
+        try:
+            self.driver.deactivate()
+            self.driver.shutdown()
+        finally:
+            self.driver = None
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())[:200] or type(exc).__name__

@@ -1,0 +1,206 @@
+"""What a real arm is commanded with: a Cartesian impedance target on the agent's line.
+
+Why not joint torques
+---------------------
+The :class:`~tergodic_cli.robot.interfaces.Arm` protocol speaks joint torques, which the PyBullet
+backend applies every 1 ms. A Python process on a real robot cannot close that loop: libfranka
+needs a torque every 1 ms with hard real-time guarantees, and Python's garbage collector and
+scheduler jitter alone exceed that. The real backend therefore runs the stiffness and damping of
+the line controller inside the SDK's 1 kHz loop (franky's client-side Cartesian impedance, C++,
+real-time thread) and streams only *references* from Python, at ``stream_hz`` (100 Hz by default).
+
+The mapping
+-----------
+For the agent's line L = {a + s d} (d, unit, points into the surface) and a normal force f along d,
+the reference is
+
+- orientation R = [x, y, d]: the tool axis along the line, x a spin reference kept perpendicular to d
+  (parallel transport, as in the simulation);
+- position  x_t = a + ((p - a)·d + f / k_n) d, p the present TCP: the TCP's own point on the line,
+  pushed f / k_n further along d;
+- stiffness K = blockdiag(R diag(k_l, k_l, k_n) Rᵀ, R diag(k_r, k_r, k_spin) Rᵀ) (base frame, full 6×6),
+  damping D the same with the damping gains;
+- twist feed-forward: the line point's velocity, so the damping acts on the tracking error only.
+
+Across the line the spring holds the tool on it (k_l, the paper's K_L); along the line the target
+rides with the TCP, so the spring's force along d is exactly k_n · (f / k_n) = f wherever the surface
+is. The feed-forward wrench W_ff = (f d, 0) is thus realised *through* the spring offset K⁻¹ W_ff:
+franky 2.0's ``CartesianReference`` carries a pose, a twist and an acceleration, but no wrench. A slow
+integrator in Python on the measured F/T force (:class:`ForceLoop`) trims f so the pressed force
+matches F_d despite joint friction and model error; it runs at the stream rate, well below the
+bandwidth of the 1 kHz inner loop, so latency cannot destabilise it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from tergodic_cli.robot.interfaces import Arm
+
+
+@dataclass
+class ImpedanceTarget:
+    """One impedance reference, base frame, SI units.
+
+    pose : (4, 4) target TCP pose.
+    stiffness, damping : (6, 6) on (x, y, z, rx, ry, rz) errors, N/m, N m/rad; N s/m, N m s/rad.
+    twist : (6,) target TCP twist (v, ω), m/s and rad/s.
+    wrench_ff : (6,) the feed-forward wrench (f, m) the reference realises, N and N m (for the log).
+    """
+
+    pose: np.ndarray
+    stiffness: np.ndarray
+    damping: np.ndarray
+    twist: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    wrench_ff: np.ndarray = field(default_factory=lambda: np.zeros(6))
+
+
+@runtime_checkable
+class ImpedanceArm(Arm, Protocol):
+    """An :class:`Arm` whose real-time loop runs in the SDK: references instead of torques.
+
+    ``command(tau)`` still works (a torque hold between Python updates), but the exploration loop
+    on hardware uses :meth:`command_impedance`, which the SDK tracks at 1 kHz.
+    """
+
+    #: rate (Hz) at which the host streams references to the SDK
+    stream_hz: float
+
+    def move_joints(self, q: np.ndarray, speed: float | None = None) -> None:
+        """Blocking joint-space move to q (rad), planned by the SDK; speed in (0, 1] of its limits (None = default)."""
+
+    def command_impedance(self, target: ImpedanceTarget) -> None:
+        """Start, or update, the Cartesian impedance controller with a new reference."""
+
+    def stop(self) -> None:
+        """Bring the arm to rest and end any running controller (blocking)."""
+
+    def fault(self) -> str | None:
+        """A one-line reason if the SDK reports an error (reflex, lost connection), else None."""
+
+
+@dataclass
+class LineImpedanceGains:
+    """The line controller's stiffness and damping for an SDK impedance loop (defaults = the simulation's).
+
+    k_lateral, k_normal : N/m across the line and along it (the normal value sets the spring offset
+        f / k_normal that realises the force). k_tilt, k_spin : N m/rad about the tool's x/y axes and
+        about its own axis (a line leaves the spin free: a weak spring holds it). Damping the same.
+    force_ki : 1/s, integral gain of the force trim; force_trim_max : the trim stays within
+        ± force_trim_max × F_d.
+    """
+
+    k_lateral: float = 1500.0
+    k_normal: float = 300.0
+    k_tilt: float = 30.0
+    k_spin: float = 5.0
+    d_lateral: float = 60.0
+    d_normal: float = 50.0
+    d_tilt: float = 4.0
+    d_spin: float = 1.0
+    force_ki: float = 2.0
+    force_trim_max: float = 1.0
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+def tool_rotation(d: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation [x, y, z] with z = d and x the part of x_ref perpendicular to d.
+
+    Falls back to base +z, then +y, when x_ref is (nearly) parallel to d.
+    """
+    z = np.asarray(d, dtype=float)
+    z = z / np.linalg.norm(z)
+    for c in (np.asarray(x_ref, dtype=float), np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0])):
+        x = c - (c @ z) * z
+        n = float(np.linalg.norm(x))
+        if n > 1e-3:
+            x = x / n
+            return np.column_stack([x, np.cross(z, x), z])
+    raise ValueError("no spin reference perpendicular to the tool axis")
+
+
+def rotated_gains(R: np.ndarray, trans: tuple[float, float, float], rot: tuple[float, float, float]) -> np.ndarray:
+    """(6, 6) blockdiag(R diag(trans) Rᵀ, R diag(rot) Rᵀ): gains given in the tool frame, expressed in the base frame."""
+    G = np.zeros((6, 6))
+    G[:3, :3] = R @ np.diag(trans) @ R.T
+    G[3:, 3:] = R @ np.diag(rot) @ R.T
+    return G
+
+
+def line_impedance_target(p_tcp: np.ndarray, a: np.ndarray, d: np.ndarray, x_ref: np.ndarray, force: float,
+                          gains: LineImpedanceGains, line_velocity: np.ndarray | None = None,
+                          axial: float | None = None, axial_speed: float = 0.0) -> ImpedanceTarget:
+    """The impedance reference that holds the tool on the line (a, d) and presses with ``force`` N along d.
+
+    Parameters
+    ----------
+    p_tcp : (3,) present TCP position, m, base frame.
+    a, d : (3,) a point of the agent's line and its unit direction into the surface.
+    x_ref : (3,) spin reference for the tool's x-axis.
+    force : N along d the spring offset realises (0 = just hold the line).
+    line_velocity : (3,) velocity of the line point a, m/s (feed-forward twist across the line); None = 0.
+    axial : position along the line (m from a, along d) for the target instead of riding with the TCP
+        (approach and retreat: a target that advances at ``axial_speed`` m/s finds the surface whatever
+        the joint friction, the spring force building up k_n · overshoot); ``force`` is then ignored.
+    """
+    g = gains
+    R = tool_rotation(d, x_ref)
+    z = R[:, 2]
+    a = np.asarray(a, dtype=float)
+    s = float((np.asarray(p_tcp, dtype=float) - a) @ z)
+    pose = np.eye(4)
+    pose[:3, :3] = R
+    pose[:3, 3] = a + (s + force / g.k_normal) * z if axial is None else a + float(axial) * z
+    K = rotated_gains(R, (g.k_lateral, g.k_lateral, g.k_normal), (g.k_tilt, g.k_tilt, g.k_spin))
+    D = rotated_gains(R, (g.d_lateral, g.d_lateral, g.d_normal), (g.d_tilt, g.d_tilt, g.d_spin))
+    twist = np.zeros(6)
+    if line_velocity is not None:
+        v = np.asarray(line_velocity, dtype=float)
+        twist[:3] = v - (v @ z) * z  # along the line the target rides with the TCP: no feed-forward there
+    twist[:3] += axial_speed * z
+    wrench = np.zeros(6)
+    wrench[:3] = (force if axial is None else 0.0) * z
+    return ImpedanceTarget(pose, K, D, twist, wrench)
+
+
+def hold_target(pose: np.ndarray, gains: LineImpedanceGains) -> ImpedanceTarget:
+    """Hold ``pose`` (4, 4) with the line gains in every direction (k_normal along the tool axis)."""
+    R = np.asarray(pose, dtype=float)[:3, :3]
+    K = rotated_gains(R, (gains.k_lateral, gains.k_lateral, gains.k_normal), (gains.k_tilt, gains.k_tilt, gains.k_spin))
+    D = rotated_gains(R, (gains.d_lateral, gains.d_lateral, gains.d_normal), (gains.d_tilt, gains.d_tilt, gains.d_spin))
+    return ImpedanceTarget(np.array(pose, dtype=float), K, D)
+
+
+class ForceLoop:
+    """The commanded normal force: F_d plus a slow integral trim on the measured force (clamped).
+
+    f_cmd = F_d + ki ∫ (F_d - f_meas) dt, |trim| <= trim_max · F_d.
+    """
+
+    def __init__(self, gains: LineImpedanceGains, force_desired: float):
+        self.g = gains
+        self.F_d = float(force_desired)
+        self.trim = 0.0
+
+    def start_from(self, f_now: float) -> None:
+        """Bumpless start: the command continues from the force pressed now (e.g. at first contact).
+
+        Without an integrator (force_ki = 0) there is nothing to ramp the trim back: the command is F_d.
+        """
+        if self.g.force_ki <= 0:
+            self.trim = 0.0
+            return
+        lim = self.g.force_trim_max * self.F_d
+        self.trim = min(max(float(f_now) - self.F_d, -lim), lim)
+
+    def track(self, f_meas: float, dt: float) -> float:
+        if math.isfinite(f_meas):
+            lim = self.g.force_trim_max * self.F_d
+            self.trim = min(max(self.trim + self.g.force_ki * (self.F_d - f_meas) * dt, -lim), lim)
+        return max(self.F_d + self.trim, 0.0)

@@ -1,0 +1,113 @@
+"""The robot stage's configuration (saved in summary.json beside the explorer's)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, replace
+
+from tergodic_cli.errors import require
+from tergodic_cli.robot.controller import ControllerGains
+from tergodic_cli.robot.pybullet_backend.scene import SpongeSpec
+from tergodic_cli.robot.safety import SafetyConfig
+
+BACKENDS = ("pybullet",)
+#: The Panda's "ready" pose, from which a wrist camera sees the table in front of the robot.
+PICTURE_Q = (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785)
+
+
+@dataclass
+class RobotConfig:
+    """Everything that determines a robot run.
+
+    backend : "pybullet" (real backends come later behind the same Arm/WrenchSensor protocols).
+    force : desired contact force F_d along the tool axis, N.
+    gui : open the PyBullet GUI (DIRECT otherwise); realtime : pace the GUI to wall-clock time.
+    object_pose : the capture frame's pose in the robot base frame: x,y,z[,roll,pitch,yaw] (m, deg)
+        or x,y,z,qx,qy,qz,qw; None = the cloud's footprint centre 0.5 m in front of the base, on the table.
+    explore_dt : simulated seconds per explorer step; the explorer must run with this dt
+        (see :func:`~tergodic_cli.robot.run.robot_explore_config`). One explorer step is
+        explore_dt / physics_dt control steps.
+    physics_dt : control and physics period, s (1 kHz).
+    hover_height : m above the start point (along the normal) where the approach begins.
+    approach_speed, retreat_speed : m/s along the tool axis; retreat_distance : m.
+    contact_force : N of contact normal force that counts as touching (coverage is deposited
+        only above it); None = 20 % of ``force``.
+    normal_side : which side of the sheet the tool works on: auto, up, out.
+    mesh_edge : target triangle edge of the collision mesh, m.
+    move_speed : peak joint speed of the picture -> hover move, rad/s.
+    solver_iterations : PyBullet constraint-solver iterations.
+    jacobian_every : control steps per Jacobian refresh (4: 250 Hz; pose, twist, wrench, gravity
+        and the torque command stay at 1 kHz). At the exploration's joint speeds (< 0.3 rad/s) a
+        4 ms old Jacobian is off by < 0.1 %.
+    velocity_feedforward : damp the tool's velocity relative to the moving target line (its
+        glide between explorer steps) instead of its absolute velocity (eq. 46): no damping lag.
+    max_tool_tilt_deg : the commanded tool axis is kept within this angle of straight down; on
+        steeper surface the sponge works tilted (the Panda's wrist cannot follow further).
+    """
+
+    backend: str = "pybullet"
+    force: float = 5.0
+    gui: bool = False
+    realtime: bool = False
+    object_pose: tuple[float, ...] | None = None
+    explore_dt: float = 0.2
+    physics_dt: float = 0.001
+    hover_height: float = 0.04
+    approach_speed: float = 0.02
+    retreat_speed: float = 0.05
+    retreat_distance: float = 0.05
+    contact_force: float | None = None
+    normal_side: str = "auto"
+    mesh_edge: float = 0.01
+    move_speed: float = 0.8
+    solver_iterations: int = 10
+    jacobian_every: int = 4
+    velocity_feedforward: bool = True
+    max_tool_tilt_deg: float = 60.0
+    picture_q: tuple[float, ...] = PICTURE_Q
+    sponge: SpongeSpec = field(default_factory=SpongeSpec)
+    gains: ControllerGains = field(default_factory=ControllerGains)
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+
+    @property
+    def contact_threshold(self) -> float:
+        return float(self.contact_force) if self.contact_force is not None else 0.2 * self.force
+
+    @property
+    def substeps(self) -> int:
+        """Control steps per explorer step."""
+        return int(round(self.explore_dt / self.physics_dt))
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["gains"] = self.gains.to_dict()
+        d["safety"] = self.safety.to_dict()
+        d["object_pose"] = list(self.object_pose) if self.object_pose is not None else None
+        d["picture_q"] = list(self.picture_q)
+        d["contact_threshold"] = self.contact_threshold
+        d["substeps"] = self.substeps
+        return d
+
+    def with_(self, **changes) -> "RobotConfig":
+        return replace(self, **changes)
+
+
+def validate_robot_config(cfg: RobotConfig) -> None:
+    """Refuse impossible settings with a one-line problem; fix."""
+    require(cfg.backend in BACKENDS, f"unknown robot backend '{cfg.backend}'", f"use one of {', '.join(BACKENDS)}")
+    require(math.isfinite(cfg.force) and cfg.force > 0, f"--force must be > 0 N, got {cfg.force}", "e.g. --force 5")
+    require(cfg.force <= 40, f"--force {cfg.force} N is more than a sponge should press", "use a force up to 40 N (paper: 5 N)")
+    require(0.0001 <= cfg.physics_dt <= 0.005, f"physics_dt {cfg.physics_dt} s is outside 0.1-5 ms", "use 0.001 (1 kHz)")
+    ratio = cfg.explore_dt / cfg.physics_dt
+    require(cfg.explore_dt > 0 and abs(ratio - round(ratio)) < 1e-6 and round(ratio) >= 1,
+            f"the explorer step {cfg.explore_dt} s is not a whole number of {cfg.physics_dt * 1e3:g} ms control steps",
+            "use e.g. --explore-dt 0.1")
+    require(cfg.hover_height > 0.005, "hover_height must be > 5 mm", "e.g. 0.04")
+    require(cfg.approach_speed > 0 and cfg.retreat_speed > 0, "approach and retreat speeds must be > 0", "e.g. 0.03 m/s")
+    require(cfg.contact_threshold < cfg.force, f"the contact threshold {cfg.contact_threshold:g} N is not below --force",
+            "lower --contact-force")
+    require(cfg.sponge.radius > 0.002, "the sponge radius must be > 2 mm", "e.g. 0.012")
+    require(cfg.mesh_edge >= 0, "mesh_edge must be >= 0 m", "e.g. 0.006")
+    require(len(cfg.picture_q) == 7, "picture_q needs 7 joint angles", "give the Panda's 7 joint angles in rad")
+    require(1 <= int(cfg.jacobian_every) <= 10, "jacobian_every must be 1..10 control steps", "use 4 (250 Hz)")
+    require(0 < cfg.max_tool_tilt_deg <= 90, "max_tool_tilt_deg must be in (0, 90]", "e.g. 60")

@@ -1,0 +1,298 @@
+"""Conformal geometric algebra of the line-tracking controller (paper eqs. 13-17, 35-47), in matrix form.
+
+The paper writes the controller with CGA motors, lines, twists and wrenches. At 1 kHz in
+Python, one pygafro call costs 2-25 µs, so the control loop evaluates the same products in
+their matrix form, as the paper itself notes (V-A3): a motor is a rigid transform (R, t), a
+line is a Plücker pair (d, m), twists and wrenches are 6-vectors transformed by 6×6
+adjoints. The functions ``*_to_gafro`` / ``*_from_gafro`` map each quantity to pygafro's
+coefficient vectors, and the tests check every matrix product against pygafro.
+
+Conventions (all SI, right-handed)
+----------------------------------
+- twist   V = (v, ω): v the velocity of the frame origin, ω the angular velocity.
+- wrench  W = (f, m): f the force, m the moment about the frame origin
+  (``fx fy fz tx ty tz``, the order of CONTRACTS.md).
+- power   V·W = v·f + ω·m. In CGA the inner product of a twist and a wrench is -p (III-B).
+- motor   M ≅ (R, t): x ↦ R x + t. gafro's exponential and logarithm use the decoupled chart
+  M = T(t) R(φ): ``log M = (t, φ)`` with φ the rotation vector of R (this is what
+  ``pygafro.MotorLogarithm`` returns; it is not the screw logarithm).
+- line    L ≅ (d, m): unit direction d and moment m = a × d for any point a on the line;
+  L = P1 ∧ P2 ∧ e∞ is oriented from P1 to P2.
+
+pygafro coefficient orders (checked in tests/test_robot_ga.py):
+- Twist / MotorGenerator blades [e12, e13, e23, e1∞, e2∞, e3∞] = [ωz, -ωy, ωx, vx, vy, vz];
+- Wrench blades [e01, e02, e12, e03, e13, e23] = [fx, fy, mz, fz, -my, mx];
+- Line blades [e01∞, e02∞, e12∞, e03∞, e13∞, e23∞] = [dx, dy, mz, dz, -my, mx].
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+# ---------------------------------------------------------------------------------- rotations
+
+
+def rotvec_to_matrix(phi: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) of the rotation vector ``phi`` (3,) in radians (Rodrigues)."""
+    phi = np.asarray(phi, dtype=float)
+    theta = float(np.linalg.norm(phi))
+    if theta < 1e-12:
+        return np.eye(3) + skew(phi)
+    k = phi / theta
+    K = skew(k)
+    return np.eye(3) + math.sin(theta) * K + (1.0 - math.cos(theta)) * (K @ K)
+
+
+def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (3,) of the rotation matrix ``R`` (3, 3); angle in [0, π]."""
+    R = np.asarray(R, dtype=float)
+    c = max(-1.0, min(1.0, 0.5 * (float(np.trace(R)) - 1.0)))
+    theta = math.acos(c)
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if theta < 1e-7:
+        return 0.5 * w
+    if math.pi - theta < 1e-5:  # near π the antisymmetric part vanishes; use the symmetric part
+        B = 0.5 * (R + np.eye(3))
+        axis = np.sqrt(np.maximum(np.diag(B), 0.0))
+        i = int(np.argmax(axis))
+        axis = B[i] / axis[i]
+        axis /= np.linalg.norm(axis)
+        if w @ axis < 0:
+            axis = -axis
+        return theta * axis
+    return theta / (2.0 * math.sin(theta)) * w
+
+
+def quat_to_matrix(q) -> np.ndarray:
+    """Rotation matrix (3, 3) of the unit quaternion ``q`` = (x, y, z, w) (pybullet order)."""
+    x, y, z, w = (float(c) for c in q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w) of the rotation matrix ``R`` (3, 3), w >= 0."""
+    R = np.asarray(R, dtype=float)
+    tr = float(np.trace(R))
+    if tr > 0:
+        s = 2.0 * math.sqrt(tr + 1.0)
+        q = np.array([(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s])
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * math.sqrt(max(1.0 + R[i, i] - R[j, j] - R[k, k], 1e-300))
+        q = np.zeros(4)
+        q[i] = 0.25 * s
+        q[j] = (R[j, i] + R[i, j]) / s
+        q[k] = (R[k, i] + R[i, k]) / s
+        q[3] = (R[k, j] - R[j, k]) / s
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def skew(a: np.ndarray) -> np.ndarray:
+    """The (3, 3) matrix [a]× with [a]× b = a × b."""
+    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+
+
+# ---------------------------------------------------------------------------------- motors
+
+
+def pose_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Homogeneous (4, 4) transform of the motor (R, t)."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def motor_inverse(T: np.ndarray) -> np.ndarray:
+    """The reverse motor M̃ as a (4, 4) transform: (Rᵀ, -Rᵀ t)."""
+    R, t = T[:3, :3], T[:3, 3]
+    return pose_matrix(R.T, -R.T @ t)
+
+
+def motor_log(T: np.ndarray) -> np.ndarray:
+    """gafro's motor logarithm in the decoupled chart: (t, φ) as a twist (6,) = (v, ω)."""
+    return np.concatenate([T[:3, 3], matrix_to_rotvec(T[:3, :3])])
+
+
+def motor_exp(V: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`motor_log`: the (4, 4) transform T(v) R(ω) of the twist (6,) = (v, ω)."""
+    V = np.asarray(V, dtype=float)
+    return pose_matrix(rotvec_to_matrix(V[3:]), V[:3])
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """6×6 adjoint of the motor T acting on twists (v, ω): the matrix of M V M̃."""
+    R, t = T[:3, :3], T[:3, 3]
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[:3, 3:] = skew(t) @ R
+    A[3:, 3:] = R
+    return A
+
+
+def coadjoint(T: np.ndarray) -> np.ndarray:
+    """6×6 matrix of M W M̃ on wrenches (f, m): f' = R f, m' = R m + t × R f.
+
+    In CGA twists and wrenches are both transformed by the sandwich M X M̃ (eq. 13, no dual
+    adjoint needed); in matrix form the two sandwiches are these two 6×6 matrices.
+    """
+    R, t = T[:3, :3], T[:3, 3]
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[3:, :3] = skew(t) @ R
+    A[3:, 3:] = R
+    return A
+
+
+# ---------------------------------------------------------------------------------- lines
+
+
+def line_from_point_dir(a: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Plücker pair (d, m) of the line through ``a`` with direction ``d`` (normalised)."""
+    d = np.asarray(d, dtype=float)
+    d = d / np.linalg.norm(d)
+    return d, np.cross(np.asarray(a, dtype=float), d)
+
+
+def line_transform(T: np.ndarray, d: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The line (d, m) moved by the motor T (M L M̃): d' = R d, m' = R m + t × R d."""
+    R, t = T[:3, :3], T[:3, 3]
+    d2 = R @ d
+    return d2, R @ m + np.cross(t, d2)
+
+
+def line_point(d: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """The point of the line (d, m) nearest the origin: d × m (|d| = 1)."""
+    return np.cross(d, m)
+
+
+def point_line_distance(x: np.ndarray, a: np.ndarray, d: np.ndarray) -> float:
+    """Distance (m) from the point ``x`` to the line through ``a`` with unit direction ``d``."""
+    r = np.asarray(x, dtype=float) - a
+    return float(np.linalg.norm(r - (r @ d) * d))
+
+
+#: Lines closer to parallel than this (sin of the angle) are treated as parallel.
+PARALLEL_SIN = 1e-9
+
+
+def line_motor_z(a: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The motor M_{L_ee L_a⊥} (eq. 36) in the end-effector frame, where L_ee is the z-axis.
+
+    It is the smallest screw taking the z-axis onto the line through ``a`` with unit direction
+    ``d`` (both in the ee frame): a rotation by the angle between the directions about their
+    common perpendicular, and a slide along it by the lines' distance, as (1 + L_a L_ee)/C
+    of ref. [54] (checked against ``pygafro.Line.getMotor`` in the tests).
+
+    Parameters
+    ----------
+    a : (3,) a point on the target line, metres, ee frame.
+    d : (3,) its unit direction, ee frame.
+
+    Returns
+    -------
+    (t, phi) : the motor in gafro's decoupled chart, t (3,) metres and the rotation vector
+        phi (3,) radians; ``motor_log`` of it is the twist (t, phi) of eq. 37.
+    """
+    tx, ty, tz, px, py, pz = line_motor_z_scalar(float(a[0]), float(a[1]), float(a[2]),
+                                                 float(d[0]), float(d[1]), float(d[2]))
+    return np.array((tx, ty, tz)), np.array((px, py, pz))
+
+
+def line_motor_z_scalar(ax: float, ay: float, az: float, dx: float, dy: float, dz: float) -> tuple:
+    """:func:`line_motor_z` on plain floats, returning (tx, ty, tz, φx, φy, φz): the 1 kHz form."""
+    # c = e_z × d; sθ = |c|, cθ = e_z · d.
+    cx, cy = -dy, dx
+    s = math.sqrt(cx * cx + cy * cy)
+    if s < PARALLEL_SIN:
+        # Parallel lines: the motor is the translation between them, perpendicular to z.
+        # (Anti-parallel lines have no unique smallest motor; the caller keeps d near +z.)
+        return ax, ay, 0.0, 0.0, 0.0, 0.0
+    ux, uy = cx / s, cy / s  # rotation axis direction, perpendicular to z
+    c = dz
+    theta = math.atan2(s, c)
+    # Closest points: P(σ) = σ e_z on L_ee, Q(τ) = a + τ d on L_a.
+    w_d = -(ax * dx + ay * dy + az * dz)  # d · (P(0) - Q(0))
+    w_z = -az  # e_z · (P(0) - Q(0))
+    denom = s * s
+    sigma = (c * w_d - w_z) / denom
+    tau = (w_d - c * w_z) / denom
+    qx, qy = ax + tau * dx, ay + tau * dy
+    delta = qx * ux + qy * uy  # signed distance along u (u has no z component; P(σ) has no x, y)
+    # Rotation by θ about u through c1 = σ e_z, then slide δ along u: t = c1 - R c1 + δ u,
+    # and R e_z = d (the rotation maps the ee axis onto the target direction), so R c1 = σ d.
+    return (-sigma * dx + delta * ux, -sigma * dy + delta * uy, sigma - sigma * dz, theta * ux, theta * uy, 0.0)
+
+
+def line_error_twist(a: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """The twist V_{L_a⊥} = log(M_{L_ee L_a⊥}) (eq. 37) in the ee frame, (6,) = (v, ω)."""
+    t, phi = line_motor_z(a, d)
+    return np.concatenate([t, phi])
+
+
+# ---------------------------------------------------------------------------------- pygafro bridges
+# Used by the tests and by setup code (inverse kinematics); never in the 1 kHz loop.
+
+
+def twist_to_gafro(V: np.ndarray) -> np.ndarray:
+    """(v, ω) -> pygafro Twist coefficients [e12, e13, e23, e1∞, e2∞, e3∞]."""
+    v, w = V[:3], V[3:]
+    return np.array([w[2], -w[1], w[0], v[0], v[1], v[2]])
+
+
+def twist_from_gafro(c: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`twist_to_gafro`."""
+    return np.array([c[3], c[4], c[5], c[2], -c[1], c[0]])
+
+
+def wrench_to_gafro(W: np.ndarray) -> np.ndarray:
+    """(f, m) -> pygafro Wrench coefficients [e01, e02, e12, e03, e13, e23]."""
+    f, m = W[:3], W[3:]
+    return np.array([f[0], f[1], m[2], f[2], -m[1], m[0]])
+
+
+def wrench_from_gafro(c: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`wrench_to_gafro`."""
+    return np.array([c[0], c[1], c[3], c[5], -c[4], c[2]])
+
+
+def line_to_gafro(d: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """Plücker (d, m) -> pygafro Line coefficients [e01∞, e02∞, e12∞, e03∞, e13∞, e23∞]."""
+    return np.array([d[0], d[1], m[2], d[2], -m[1], m[0]])
+
+
+def line_from_gafro(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of :func:`line_to_gafro`, normalised to |d| = 1."""
+    d = np.array([c[0], c[1], c[3]])
+    m = np.array([c[5], -c[4], c[2]])
+    n = float(np.linalg.norm(d))
+    return d / n, m / n
+
+
+def gafro_motor(T: np.ndarray):
+    """The pygafro Motor of the (4, 4) transform T (via its decoupled logarithm)."""
+    import pygafro
+
+    return pygafro.Motor(pygafro.MotorGenerator(twist_to_gafro(motor_log(T))))
+
+
+def gafro_motor_matrix(M) -> np.ndarray:
+    """The (4, 4) transform of a pygafro Motor."""
+    return np.asarray(M.toTransformationMatrix(), dtype=float)
+
+
+def gafro_line(a: np.ndarray, d: np.ndarray):
+    """The pygafro Line P(a) ∧ P(a + d) ∧ e∞ (oriented along d)."""
+    import pygafro
+
+    a = np.asarray(a, dtype=float)
+    b = a + np.asarray(d, dtype=float)
+    return pygafro.Line(pygafro.Point(*a), pygafro.Point(*b))

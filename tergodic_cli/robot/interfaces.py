@@ -1,0 +1,190 @@
+"""Hardware-shaped interfaces: an :class:`Arm` and a :class:`WrenchSensor`.
+
+Small Protocols in the style of lerobot's ``robots/robot.py``: a backend connects, is read,
+is commanded, disconnects. The controller, the safety guard and the state machine speak
+only these, so a real Franka (libfranka/franky) or a real F/T sensor (Bota) can replace the
+PyBullet backend without touching them.
+
+Conventions every backend honours
+---------------------------------
+- Frames: "base" is the robot base; "ee" is the tool centre point (TCP), z along the tool
+  axis pointing out of the flange; the sensor frame is fixed in the ee frame
+  (:attr:`WrenchSensor.frame_in_ee`).
+- Torques given to :meth:`Arm.command` are *on top of* gravity and Coriolis compensation,
+  which the backend adds itself (libfranka compensates gravity in firmware; the PyBullet
+  backend adds ``calculateInverseDynamics``).
+- :meth:`WrenchSensor.read` returns the wrench the arm applies to the tool through the
+  sensor, in the sensor frame, moment about the sensor origin, minus the tare offset. With
+  the tool at rest and free it is the tool's weight; pressing on a surface adds the force
+  the tool exerts on it. :class:`ToolLoad` removes the weight.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+GRAVITY = 9.81
+
+
+class ArmState:
+    """One sample of the arm.
+
+    Attributes
+    ----------
+    t : sample time, s (backend clock; simulated time in simulation).
+    q, dq : (dof,) joint positions (rad) and velocities (rad/s).
+    ee_pose : (4, 4) pose of the TCP in the base frame (the motor M(q) of eq. 14 with the tool).
+    jacobian : (6, dof) geometric Jacobian of the TCP in the base frame, rows (v, ω):
+        v the TCP velocity, ω the angular velocity (libfranka's "zero Jacobian").
+    rot, pos : the same pose as 9 row-major floats and 3 floats, for scalar code at 1 kHz.
+
+    A backend gives either ``ee_pose`` or ``rot`` and ``pos``; the other form is made on first use.
+    """
+
+    __slots__ = ("t", "q", "dq", "jacobian", "_T", "_rot", "_pos")
+
+    def __init__(self, t: float, q: np.ndarray, dq: np.ndarray, ee_pose: np.ndarray | None = None,
+                 jacobian: np.ndarray | None = None, rot: tuple | None = None, pos: tuple | None = None):
+        self.t, self.q, self.dq, self.jacobian = t, q, dq, jacobian
+        self._T, self._rot, self._pos = ee_pose, rot, pos
+
+    @property
+    def ee_pose(self) -> np.ndarray:
+        if self._T is None:
+            r, x = self._rot, self._pos
+            self._T = np.array(((r[0], r[1], r[2], x[0]), (r[3], r[4], r[5], x[1]), (r[6], r[7], r[8], x[2]),
+                                (0.0, 0.0, 0.0, 1.0)))
+        return self._T
+
+    @property
+    def rot(self) -> tuple:
+        if self._rot is None:
+            self._rot = tuple(self._T[:3, :3].ravel().tolist())
+        return self._rot
+
+    @property
+    def pos(self) -> tuple:
+        if self._pos is None:
+            self._pos = tuple(self._T[:3, 3].tolist())
+        return self._pos
+
+
+@dataclass
+class WrenchReading:
+    """One F/T sample: time (s) and wrench (6,) ``fx fy fz tx ty tz`` in the sensor frame (N, N m).
+
+    ``wrench`` is array-like: a (6,) array or a 6-tuple (the PyBullet backend's, cheaper at 1 kHz).
+    """
+
+    t: float
+    wrench: np.ndarray | tuple
+
+
+@runtime_checkable
+class Arm(Protocol):
+    """A torque-controlled arm."""
+
+    name: str
+    dof: int
+    joint_names: list[str]
+    #: (dof,) lower/upper joint position limits, rad; (dof,) velocity limits, rad/s; (dof,) torque limits, N m.
+    q_min: np.ndarray
+    q_max: np.ndarray
+    dq_max: np.ndarray
+    tau_max: np.ndarray
+
+    @property
+    def is_connected(self) -> bool: ...
+
+    def connect(self) -> None:
+        """Open the connection (idempotent)."""
+
+    def read_state(self) -> ArmState:
+        """The current :class:`ArmState`."""
+
+    def command(self, tau: np.ndarray) -> None:
+        """Send joint torques (dof,) N m, on top of the backend's gravity/Coriolis compensation."""
+
+    def disconnect(self) -> None:
+        """Close the connection; the arm is left holding still (brakes, or zero velocity)."""
+
+
+@runtime_checkable
+class WrenchSensor(Protocol):
+    """A 6-axis force/torque sensor."""
+
+    #: (4, 4) pose of the sensor frame in the ee (TCP) frame.
+    frame_in_ee: np.ndarray
+
+    def read(self) -> WrenchReading:
+        """The latest sample, tare offset removed (see the module docstring for the sign)."""
+
+    def tare(self) -> None:
+        """Zero the reading: subtract the present wrench from every later sample."""
+
+
+@dataclass
+class ToolLoad:
+    """Mass (kg) and centre of mass (3,) in the sensor frame of everything beyond the sensor."""
+
+    mass: float
+    com: np.ndarray
+
+    def wrench(self, R_base_sensor: np.ndarray) -> np.ndarray:
+        """The wrench (6,) the arm must apply to hold the tool still against gravity, sensor frame."""
+        f = R_base_sensor[2, :] * (self.mass * GRAVITY)  # Rᵀ (0, 0, m g)
+        return np.concatenate([f, np.cross(self.com, f)])
+
+
+class ContactWrench:
+    """Turns sensor readings into the wrench the tool exerts on its surroundings, in the ee frame.
+
+    ``tare_at(R)`` records the sensor orientation of the last tare (the tool load then is part
+    of the zeroed reading); ``__call__`` removes the change of tool load since, then moves the
+    wrench from the sensor frame to the TCP: W'_m of eq. 39. Scalar code: it runs at 1 kHz.
+    """
+
+    def __init__(self, load: ToolLoad, frame_in_ee: np.ndarray):
+        self.load = load
+        self.R_se = tuple(np.asarray(frame_in_ee[:3, :3], dtype=float).ravel().tolist())  # sensor -> ee
+        self.p_se = tuple(np.asarray(frame_in_ee[:3, 3], dtype=float).tolist())  # sensor origin in the ee frame
+        self._mg = load.mass * GRAVITY
+        self._com = tuple(float(c) for c in load.com)
+        self._tare_load = (0.0,) * 6
+
+    def _load(self, rot: tuple) -> tuple:
+        # Rᵀ_base_sensor (0, 0, m g) = (R_base_ee R_ee_sensor)ᵀ e_z m g = R_seᵀ (row 3 of R_base_ee) m g ... in the sensor frame.
+        s = self.R_se
+        z0, z1, z2 = rot[6] * self._mg, rot[7] * self._mg, rot[8] * self._mg  # (R_base_ee)ᵀ e_z m g in the ee frame
+        f0 = s[0] * z0 + s[3] * z1 + s[6] * z2
+        f1 = s[1] * z0 + s[4] * z1 + s[7] * z2
+        f2 = s[2] * z0 + s[5] * z1 + s[8] * z2
+        c0, c1, c2 = self._com
+        return (f0, f1, f2, c1 * f2 - c2 * f1, c2 * f0 - c0 * f2, c0 * f1 - c1 * f0)
+
+    def tare_at(self, R_base_ee: np.ndarray) -> None:
+        """Call right after :meth:`WrenchSensor.tare` with the tool at rest and free."""
+        self._tare_load = self._load(tuple(np.asarray(R_base_ee, dtype=float).ravel().tolist()))
+
+    def __call__(self, reading: np.ndarray, R_base_ee) -> np.ndarray:
+        """(6,) wrench (f, m) the tool applies to the environment, ee frame, moment about the TCP.
+
+        ``R_base_ee`` is the (3, 3) TCP rotation, or the same as 9 row-major floats.
+        """
+        rot = R_base_ee if isinstance(R_base_ee, tuple) else tuple(np.asarray(R_base_ee).ravel().tolist())
+        ld = self._load(rot)
+        tl = self._tare_load
+        r = reading.tolist() if isinstance(reading, np.ndarray) else reading  # ndarray or 6-tuple
+        w = [r[i] + tl[i] - ld[i] for i in range(6)]
+        s = self.R_se
+        f0 = s[0] * w[0] + s[1] * w[1] + s[2] * w[2]
+        f1 = s[3] * w[0] + s[4] * w[1] + s[5] * w[2]
+        f2 = s[6] * w[0] + s[7] * w[1] + s[8] * w[2]
+        m0 = s[0] * w[3] + s[1] * w[4] + s[2] * w[5]
+        m1 = s[3] * w[3] + s[4] * w[4] + s[5] * w[5]
+        m2 = s[6] * w[3] + s[7] * w[4] + s[8] * w[5]
+        p0, p1, p2 = self.p_se  # moment about the TCP: m_B = m_A + (A - B) × f
+        return np.array((f0, f1, f2, m0 + p1 * f2 - p2 * f1, m1 + p2 * f0 - p0 * f2, m2 + p0 * f1 - p1 * f0))

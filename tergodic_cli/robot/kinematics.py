@@ -1,0 +1,104 @@
+"""Franka kinematics with pygafro: motor forward kinematics (eq. 14), the geometric Jacobian
+(eqs. 15-16), the ee-frame Jacobian (eqs. 42-45), and inverse kinematics for the set-up moves.
+
+pygafro's ``FrankaEmikaRobot`` ends at the Franka hand's TCP (flange + 0.1034 m, rotated -45°
+about z). Our TCP is the sponge tip, a fixed motor further along the same z-axis; the offset
+is measured once against the backend (:func:`tool_offset`) and checked to be a pure z shift.
+
+These run at set-up (inverse kinematics) and in tests (against PyBullet's calculateJacobian),
+never in the 1 kHz loop, where one pygafro Jacobian with its coefficient conversions costs
+~25 µs (see docs/robot.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tergodic_cli.errors import TergodicError
+from tergodic_cli.robot.ga import (adjoint, gafro_motor_matrix, matrix_to_rotvec, motor_inverse, twist_from_gafro)
+
+
+class FrankaModel:
+    """pygafro's Franka Emika model with a fixed tool motor appended."""
+
+    def __init__(self, tool: np.ndarray | None = None):
+        import pygafro
+
+        self.robot = pygafro.FrankaEmikaRobot()
+        self.tool = np.eye(4) if tool is None else np.asarray(tool, dtype=float)
+        self.q_min = np.asarray(self.robot.getJointLimitsMin(), dtype=float)
+        self.q_max = np.asarray(self.robot.getJointLimitsMax(), dtype=float)
+
+    def flange_motor(self, q: np.ndarray) -> np.ndarray:
+        """(4, 4) pose of gafro's end-effector (the Franka hand TCP) in the base frame: M(q), eq. 14."""
+        return gafro_motor_matrix(self.robot.getEEMotor(np.asarray(q, dtype=float)))
+
+    def fk(self, q: np.ndarray) -> np.ndarray:
+        """(4, 4) pose of our TCP in the base frame."""
+        return self.flange_motor(q) @ self.tool
+
+    def jacobian_spatial(self, q: np.ndarray) -> np.ndarray:
+        """(6, 7) geometric Jacobian J_G (eqs. 15-16): columns are the joint screws B'_i as base-frame
+        twists (v at the base origin, ω)."""
+        cols = self.robot.getEEGeometricJacobian(np.asarray(q, dtype=float))
+        return np.column_stack([twist_from_gafro(np.asarray(c.vector())) for c in cols])
+
+    def jacobian_ee(self, q: np.ndarray) -> np.ndarray:
+        """(6, 7) ee-frame Jacobian J_G^ee = M̃ J_G M (eq. 45) at our TCP, rows (v, ω) in the TCP frame."""
+        return adjoint(motor_inverse(self.fk(q))) @ self.jacobian_spatial(q)
+
+    def jacobian_base(self, q: np.ndarray) -> np.ndarray:
+        """(6, 7) base-frame Jacobian at the TCP point (v of the TCP, ω), like PyBullet's calculateJacobian."""
+        T = self.fk(q)
+        R = T[:3, :3]
+        Je = self.jacobian_ee(q)
+        return np.vstack([R @ Je[:3], R @ Je[3:]])
+
+    def ik(self, target: np.ndarray, q0: np.ndarray, q_rest: np.ndarray | None = None, iters: int = 300,
+           tol: float = 1e-5, margin: float = 0.05) -> tuple[np.ndarray, float, float]:
+        """Damped least squares inverse kinematics for a TCP pose.
+
+        Parameters
+        ----------
+        target : (4, 4) desired TCP pose, base frame.
+        q0 : (7,) start configuration. q_rest : (7,) posture favoured in the null space.
+        margin : radians kept from the joint limits.
+
+        Returns
+        -------
+        (q, position error m, orientation error rad).
+        """
+        q = np.clip(np.asarray(q0, dtype=float), self.q_min + margin, self.q_max - margin)
+        q_rest = q if q_rest is None else np.asarray(q_rest, dtype=float)
+        lam2 = 1e-4
+        pe = oe = np.inf
+        for _ in range(iters):
+            T = self.fk(q)
+            e_p = target[:3, 3] - T[:3, 3]
+            e_o = matrix_to_rotvec(target[:3, :3] @ T[:3, :3].T)
+            pe, oe = float(np.linalg.norm(e_p)), float(np.linalg.norm(e_o))
+            if pe < tol and oe < 10 * tol:
+                break
+            J = self.jacobian_base(q)
+            e = np.concatenate([e_p, e_o])
+            JJt = J @ J.T + lam2 * np.eye(6)
+            Jpinv = J.T @ np.linalg.inv(JJt)
+            dq = Jpinv @ e + (np.eye(7) - Jpinv @ J) @ (0.2 * (q_rest - q))
+            step = float(np.max(np.abs(dq)))
+            if step > 0.2:
+                dq *= 0.2 / step
+            q = np.clip(q + dq, self.q_min + margin, self.q_max - margin)
+        return q, pe, oe
+
+
+def tool_offset(model: FrankaModel, q: np.ndarray, T_tcp: np.ndarray) -> np.ndarray:
+    """The fixed motor from gafro's end-effector to the backend's TCP, measured at ``q``.
+
+    Refuses anything but a shift along the hand's z-axis: another offset means gafro's Franka
+    and the backend's URDF disagree.
+    """
+    off = motor_inverse(model.flange_motor(q)) @ T_tcp
+    if not (np.allclose(off[:3, :3], np.eye(3), atol=1e-4) and np.allclose(off[:2, 3], 0.0, atol=1e-4)):
+        raise TergodicError("pygafro's Franka model does not match the simulated Panda's kinematics",
+                            "check the pybullet and pygafro versions (pybullet 3.2.7, pygafro 1.3)")
+    return off

@@ -1,0 +1,326 @@
+"""The PyBullet world: a Franka Panda with a sponge tool and a wrist F/T sensor, a table, an object.
+
+Known PyBullet traps handled here:
+
+- every joint starts with a velocity motor that fights torque control: the arm's are turned
+  off with ``force=0`` once; TORQUE_CONTROL is then re-sent every step (it is not sticky);
+- links get a default linear/angular damping that no model knows about: set to zero;
+- ``calculateJacobian`` and ``calculateInverseDynamics`` need numDoF-sized inputs (every
+  non-fixed joint, fingers included when a gripper is loaded; here the sponge replaces it);
+- the hand joint's reaction (the F/T sensor) is reported in the hand's *inertial* frame,
+  moment about the hand's centre of mass, not about the joint.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+from dataclasses import dataclass
+
+import numpy as np
+
+from tergodic_cli.errors import TergodicError
+from tergodic_cli.robot.ga import pose_matrix, quat_to_matrix
+
+ARM_JOINTS = tuple(f"panda_joint{i}" for i in range(1, 8))
+SENSOR_JOINT = "panda_hand_joint"  # fixed joint flange -> hand: the wrist F/T sensor
+SPONGE_LINK = "sponge"
+
+#: Franka Emika datasheet limits (stricter than the pybullet URDF's).
+Q_MIN = np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973])
+Q_MAX = np.array([2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973])
+DQ_MAX = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])
+TAU_MAX = np.array([87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0])
+
+
+@dataclass
+class SpongeSpec:
+    """The sponge: a compliant ball on a stiff holder beyond the hand.
+
+    offset : hand origin -> ball centre along the hand's z, metres (beyond the closed fingertips).
+    radius : ball radius, metres; the TCP is the ball's tip, offset + radius from the hand.
+    stiffness, damping : contact stiffness (N/m) and damping (N s/m) of the ball.
+    friction : Coulomb friction coefficient sponge/object.
+    mass : kg.
+    """
+
+    offset: float = 0.13
+    radius: float = 0.012
+    stiffness: float = 5000.0
+    damping: float = 500.0
+    friction: float = 0.3
+    mass: float = 0.03
+
+
+def _sponge_urdf(spec: SpongeSpec) -> str:
+    i = 1e-6
+    return f"""
+  <joint name="sponge_joint" type="fixed"><parent link="panda_hand"/><child link="{SPONGE_LINK}"/>
+    <origin rpy="0 0 0" xyz="0 0 {spec.offset}"/></joint>
+  <link name="{SPONGE_LINK}">
+    <inertial><origin rpy="0 0 0" xyz="0 0 0"/><mass value="{spec.mass}"/>
+      <inertia ixx="{i}" ixy="0" ixz="0" iyy="{i}" iyz="0" izz="{i}"/></inertial>
+    <visual><geometry><sphere radius="{spec.radius}"/></geometry>
+      <material name="sponge_yellow"><color rgba="0.95 0.8 0.2 1"/></material></visual>
+    <collision><geometry><sphere radius="{spec.radius}"/></geometry></collision>
+  </link>
+</robot>"""
+
+
+_FINGER_VISUALS = """
+    <visual><origin rpy="0 0 0" xyz="0 0 0.0584"/><geometry><mesh filename="{m}/visual/finger.obj"/></geometry>
+      <material name="panda_white"/></visual>
+    <visual><origin rpy="0 0 3.14159265359" xyz="0 0 0.0584"/><geometry><mesh filename="{m}/visual/finger.obj"/></geometry>
+      <material name="panda_white"/></visual>
+"""
+
+
+def panda_sponge_urdf(data: str, sponge: SpongeSpec) -> str:
+    """The stock ``franka_panda/panda.urdf`` with the gripper replaced by the sponge tool.
+
+    The paper's sponge sits on the F/T sensor at the flange (V): the fingers become visuals of
+    the hand, and the massless helper links (panda_link8, panda_grasptarget) are folded into the
+    fixed hand joint, which stays as the F/T sensor (flange -> hand, rotated -45° about z). Five
+    fewer links make each physics step ~15 % cheaper; the kinematics to the flange are untouched.
+    """
+    meshes = os.path.join(data, "franka_panda", "meshes")
+    with open(os.path.join(data, "franka_panda", "panda.urdf")) as fh:
+        text = fh.read()
+    text = text.replace("package://meshes/", meshes + "/")
+    for pattern in (r'<link name="panda_leftfinger">.*?</link>', r'<link name="panda_rightfinger">.*?</link>',
+                    r'<joint name="panda_finger_joint1".*?</joint>', r'<joint name="panda_finger_joint2".*?</joint>',
+                    r'<link name="panda_grasptarget">.*?</link>', r'<joint name="panda_grasptarget_hand".*?</joint>',
+                    r'<joint name="panda_joint8".*?</joint>', r'<link name="panda_link8"\s*/>',
+                    r'<link name="panda_link8">.*?</link>'):
+        text, n = re.subn(pattern, "", text, flags=re.S)
+    hand = ('<parent link="panda_link8"/>\n    <child link="panda_hand"/>\n'
+            '    <origin rpy="0 0 -0.785398163397" xyz="0 0 0"/>')
+    if hand not in text or "panda_leftfinger" in text:
+        raise TergodicError("pybullet_data's panda.urdf is not the expected file", "use pybullet 3.2.7")
+    text = text.replace(hand, '<parent link="panda_link7"/>\n    <child link="panda_hand"/>\n'
+                              '    <origin rpy="0 0 -0.785398163397" xyz="0 0 0.107"/>')
+    text = re.sub(r'(<link name="panda_hand">.*?</visual>)', lambda m: m.group(1) + _FINGER_VISUALS.format(m=meshes),
+                  text, count=1, flags=re.S)
+    return text.replace("</robot>", _sponge_urdf(sponge))
+
+
+class PyBulletScene:
+    """One PyBullet client holding the Panda, an optional table and an optional object.
+
+    Parameters
+    ----------
+    sponge : :class:`SpongeSpec`.
+    gui : open the PyBullet GUI instead of DIRECT.
+    dt : physics step, s (1 kHz by default).
+    solver_iterations : constraint solver iterations per step.
+    table : add a ground plane at z = 0 (the table the robot stands on; the object is static, so
+        it only matters for looks and for links that sink below the table).
+    """
+
+    def __init__(self, sponge: SpongeSpec | None = None, gui: bool = False, dt: float = 1e-3,
+                 solver_iterations: int = 10, table: bool | None = None):
+        import pybullet as p
+        import pybullet_data
+
+        self.p = p
+        self.sponge = sponge or SpongeSpec()
+        self.dt = float(dt)
+        self.gui = bool(gui)
+        if self.gui:
+            try:
+                self.cid = p.connect(p.GUI)
+            except p.error as exc:
+                raise TergodicError(f"cannot open the PyBullet GUI ({exc})",
+                                    "run without --gui (DIRECT mode) or set DISPLAY") from None
+        else:
+            self.cid = p.connect(p.DIRECT)
+        if self.cid < 0:
+            raise TergodicError("cannot start a PyBullet client", "check the pybullet installation")
+        cid = self.cid
+        p.resetSimulation(physicsClientId=cid)
+        p.setGravity(0, 0, -9.81, physicsClientId=cid)
+        p.setTimeStep(self.dt, physicsClientId=cid)
+        p.setPhysicsEngineParameter(numSolverIterations=int(solver_iterations), physicsClientId=cid)
+        data = pybullet_data.getDataPath()
+        table = self.gui if table is None else table
+        self.table = p.loadURDF(os.path.join(data, "plane.urdf"), physicsClientId=cid) if table else None
+        self.robot = self._load_robot(data)
+        self.object: int | None = None
+        #: Robot links checked for contact with the object.
+        self.object_colliders = [SPONGE_LINK]
+        self.t = 0.0
+        self.steps = 0
+        self.teleports = 0  # counts set_arm calls (cached kinematics are stale after one)
+
+    # ------------------------------------------------------------------ robot
+    def _load_robot(self, data: str) -> int:
+        p, cid = self.p, self.cid
+        fd, path = tempfile.mkstemp(suffix=".urdf", prefix="tergodic_panda_")
+        try:
+            with os.fdopen(fd, "w") as fh:
+                fh.write(panda_sponge_urdf(data, self.sponge))
+            robot = p.loadURDF(path, useFixedBase=True, flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=cid)
+        finally:
+            os.unlink(path)
+        names = {}
+        links = {}
+        for j in range(p.getNumJoints(robot, physicsClientId=cid)):
+            info = p.getJointInfo(robot, j, physicsClientId=cid)
+            names[info[1].decode()] = j
+            links[info[12].decode()] = j
+            p.changeDynamics(robot, j, linearDamping=0.0, angularDamping=0.0, physicsClientId=cid)
+        self.joint_index = names
+        self.link_index = links
+        self.link_names = [n for n, _ in sorted(links.items(), key=lambda kv: kv[1])]
+        self.arm_joints = [names[n] for n in ARM_JOINTS]
+        # Every non-fixed joint, in index order: the numDoF-sized inputs of calculateJacobian and
+        # calculateInverseDynamics (the arm's 7 here; 9 with a working gripper).
+        self.movable = [j for j in range(p.getNumJoints(robot, physicsClientId=cid))
+                        if p.getJointInfo(robot, j, physicsClientId=cid)[2] != p.JOINT_FIXED]
+        assert self.movable[:7] == self.arm_joints
+        self.sensor_joint = names[SENSOR_JOINT]
+        self.sponge_link = links[SPONGE_LINK]
+        #: The TCP is the sponge's tip, a point on the sponge link (no link of its own: one fewer body).
+        self.tcp_link = self.sponge_link
+        self.tcp_offset = (0.0, 0.0, float(self.sponge.radius))
+        # Torque control: switch the arm's default velocity motors off (force = 0).
+        p.setJointMotorControlArray(robot, self.arm_joints, p.VELOCITY_CONTROL, forces=[0.0] * 7, physicsClientId=cid)
+        extra = self.movable[7:]  # a working gripper: hold it closed
+        if extra:
+            p.setJointMotorControlArray(robot, extra, p.POSITION_CONTROL, targetPositions=[0.0] * len(extra),
+                                        forces=[50.0] * len(extra), physicsClientId=cid)
+        p.enableJointForceTorqueSensor(robot, self.sensor_joint, True, physicsClientId=cid)
+        s = self.sponge
+        p.changeDynamics(robot, self.sponge_link, contactStiffness=s.stiffness, contactDamping=s.damping,
+                         lateralFriction=s.friction, spinningFriction=0.0, rollingFriction=0.0, physicsClientId=cid)
+        return robot
+
+    def set_arm(self, q: np.ndarray) -> None:
+        """Teleport the arm to ``q`` (7,) at rest (set-up only, never mid-run)."""
+        p = self.p
+        self.teleports += 1
+        for j, qi in zip(self.arm_joints, q):
+            p.resetJointState(self.robot, j, float(qi), 0.0, physicsClientId=self.cid)
+        for j in self.movable[7:]:
+            p.resetJointState(self.robot, j, 0.0, 0.0, physicsClientId=self.cid)
+
+    def link_pose(self, link: int) -> np.ndarray:
+        """(4, 4) world pose of a link frame (forward kinematics recomputed)."""
+        s = self.p.getLinkState(self.robot, link, computeForwardKinematics=True, physicsClientId=self.cid)
+        return pose_matrix(quat_to_matrix(s[5]), np.array(s[4]))
+
+    def tcp_pose(self) -> np.ndarray:
+        """(4, 4) world pose of the TCP (the sponge's tip)."""
+        T = self.link_pose(self.tcp_link)
+        T[:3, 3] += T[:3, :3] @ np.array(self.tcp_offset)
+        return T
+
+    def link_poses(self) -> dict[str, np.ndarray]:
+        """{link name: (7,) xyz + quaternion xyzw} of every robot link, base frame, for logging."""
+        p = self.p
+        idx = list(range(len(self.link_names)))
+        states = p.getLinkStates(self.robot, idx, computeForwardKinematics=True, physicsClientId=self.cid)
+        out = {"panda_link0": np.array([0, 0, 0, 0, 0, 0, 1.0])}
+        for name, s in zip(self.link_names, states):
+            out[name] = np.array(tuple(s[4]) + tuple(s[5]))
+        return out
+
+    def tool_load(self):
+        """:class:`ToolLoad` of everything beyond the sensor joint, in the sensor frame."""
+        from tergodic_cli.robot.interfaces import ToolLoad
+
+        p, cid, rob = self.p, self.cid, self.robot
+        T_sensor = self.sensor_frame_world()
+        total, mc = 0.0, np.zeros(3)
+        for j in range(p.getNumJoints(rob, physicsClientId=cid)):
+            if j == self.sensor_joint or self._is_beyond(j, self.sensor_joint):
+                m = p.getDynamicsInfo(rob, j, physicsClientId=cid)[0]
+                com = np.array(p.getLinkState(rob, j, computeForwardKinematics=True, physicsClientId=cid)[0])
+                total += m
+                mc += m * com
+        com_world = mc / total
+        com_sensor = T_sensor[:3, :3].T @ (com_world - T_sensor[:3, 3])
+        return ToolLoad(total, com_sensor)
+
+    def _is_beyond(self, j: int, ancestor: int) -> bool:
+        p = self.p
+        while j >= 0:
+            parent = p.getJointInfo(self.robot, j, physicsClientId=self.cid)[16]
+            if parent == ancestor:
+                return True
+            j = parent
+        return False
+
+    def sensor_frame_world(self) -> np.ndarray:
+        """(4, 4) world pose of the F/T frame: the hand's inertial frame (where PyBullet reports the reaction)."""
+        p = self.p
+        T_hand = self.link_pose(self.link_index["panda_hand"])
+        info = p.getDynamicsInfo(self.robot, self.link_index["panda_hand"], physicsClientId=self.cid)
+        return T_hand @ pose_matrix(quat_to_matrix(info[4]), np.array(info[3]))
+
+    # ------------------------------------------------------------------ object
+    def add_object(self, vertices: np.ndarray, triangles: np.ndarray, pose: np.ndarray,
+                   color=(0.85, 0.83, 0.8, 1.0)) -> int:
+        """A static concave triangle mesh (vertices (n, 3) m, triangles (k, 3)) at ``pose`` (4, 4)."""
+        from tergodic_cli.robot.ga import matrix_to_quat
+
+        p, cid = self.p, self.cid
+        kw = dict(vertices=np.asarray(vertices, float).tolist(), indices=np.asarray(triangles, np.int64).ravel().tolist())
+        # Internal-edge correction: without it the sponge bumps on every triangle edge it slides over.
+        col = p.createCollisionShape(p.GEOM_MESH, flags=p.GEOM_FORCE_CONCAVE_TRIMESH | p.GEOM_CONCAVE_INTERNAL_EDGE,
+                                     physicsClientId=cid, **kw)
+        vis = p.createVisualShape(p.GEOM_MESH, rgbaColor=list(color), physicsClientId=cid, **kw) if self.gui else -1
+        body = p.createMultiBody(0.0, col, vis, basePosition=pose[:3, 3].tolist(),
+                                 baseOrientation=matrix_to_quat(pose[:3, :3]).tolist(), physicsClientId=cid)
+        p.changeDynamics(body, -1, lateralFriction=self.sponge.friction, physicsClientId=cid)
+        # Only the sponge touches the object: a hand or finger hull against the concave mesh costs
+        # 5-10× a physics step (docs/robot.md). Collision groups: object 2, sponge 1|2, other links 1.
+        p.setCollisionFilterGroupMask(body, -1, 2, 2, physicsClientId=cid)
+        colliders = {self.link_index[n] for n in self.object_colliders}
+        for link in range(-1, len(self.link_names)):
+            bits = 3 if link in colliders else 1
+            p.setCollisionFilterGroupMask(self.robot, link, bits, bits, physicsClientId=cid)
+        self.object = body
+        self.object_pose = np.array(pose, dtype=float)
+        return body
+
+    def move_object(self, pose: np.ndarray) -> None:
+        """Teleport the object (fault injection: the object is bumped)."""
+        from tergodic_cli.robot.ga import matrix_to_quat
+
+        self.p.resetBasePositionAndOrientation(self.object, pose[:3, 3].tolist(), matrix_to_quat(pose[:3, :3]).tolist(),
+                                               physicsClientId=self.cid)
+        self.object_pose = np.array(pose, dtype=float)
+
+    def sponge_contacts(self) -> list[tuple[np.ndarray, np.ndarray, float]]:
+        """Contacts between the sponge and the object: [(point on object (3,), normal on the sponge (3,), normal force N)]."""
+        if self.object is None:
+            return []
+        cps = self.p.getContactPoints(self.robot, self.object, self.sponge_link, -1, physicsClientId=self.cid)
+        return [(np.array(c[6]), np.array(c[7]), float(c[9])) for c in cps]
+
+    def robot_object_contacts(self) -> int:
+        """Number of contact points between any robot link other than the sponge and the object or table."""
+        n = 0
+        for body in (self.object, self.table):
+            if body is None:
+                continue
+            for c in self.p.getContactPoints(self.robot, body, physicsClientId=self.cid):
+                if c[3] != self.sponge_link:
+                    n += 1
+        return n
+
+    # ------------------------------------------------------------------ time
+    def step(self) -> None:
+        self.p.stepSimulation(physicsClientId=self.cid)
+        self.steps += 1
+        self.t = self.steps * self.dt
+
+    def close(self) -> None:
+        if self.cid is not None and self.cid >= 0:
+            try:
+                self.p.disconnect(physicsClientId=self.cid)
+            except self.p.error:
+                pass
+            self.cid = -1

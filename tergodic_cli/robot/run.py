@@ -1,0 +1,589 @@
+"""``tergodic explore --robot pybullet``: the explorer drives a force-controlled arm.
+
+Timing. The control loop (controller, safety checks, physics) runs at 1/physics_dt (1 kHz).
+The explorer runs once every ``explore_dt`` simulated seconds (0.2 s: 200 control steps).
+Between two explorer steps the line target glides linearly from the previous agent line to
+the new one, so the arm follows a continuous path. The explorer is time-scaled for this
+(:func:`robot_explore_config`): the paper's 3 mm/s agent with 1 s steps becomes a 15 mm/s
+agent with 0.2 s steps, the same 3 mm path per step and the same diffusion per step, five
+times faster in simulated time.
+
+Coverage comes from the real contact: at each explorer step the sponge's contact point with
+the object (force-weighted mean of PyBullet's contact points) is deposited when the contact
+normal force exceeds ``contact_threshold``; the agent is reset to the measured tool tip
+(paper eq. 22) before its gradient step.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import replace
+from typing import Callable
+
+import numpy as np
+
+from tergodic_cli.errors import TergodicError
+from tergodic_cli.robot import statemachine as S
+from tergodic_cli.robot.config import RobotConfig, validate_robot_config
+from tergodic_cli.robot.controller import JointImpedance, LineForceController, min_jerk
+from tergodic_cli.robot.ga import matrix_to_quat, point_line_distance, pose_matrix
+from tergodic_cli.robot.interfaces import ContactWrench
+from tergodic_cli.robot.safety import Fault, SafetyGuard
+from tergodic_cli.robot.summary import summarize_robot
+from tergodic_cli.robot.surface import (check_reachable, default_object_pose, oriented_normals, parse_object_pose,
+                                        reconstruct_mesh, resolve_side, transform_points)
+
+#: Seconds of joint-impedance holding after a stop, so the arm ends at rest.
+HOLD_S = 0.5
+SETTLE_S = 0.3
+PRESS_TIMEOUT_S = 2.0
+PRESS_RAMP_S = 0.5
+RETREAT_TIMEOUT_S = 3.0
+
+
+def robot_explore_config(cfg, explore_dt: float):
+    """The explorer config time-scaled to ``explore_dt`` s per step, with the same path per step.
+
+    dt -> explore_dt, v_max -> v_max·k, a_max -> a_max·k² with k = dt / explore_dt: each step
+    still moves the agent by at most v_max·dt metres and the diffusion per step is unchanged.
+    """
+    k = cfg.dt / explore_dt
+    return replace(cfg, dt=explore_dt, v_max=cfg.v_max * k, a_max=cfg.a_max * k * k)
+
+
+class _Stop(Exception):
+    """Raised inside a phase when a fault ended it (the robot has been made safe)."""
+
+
+class RobotRun:
+    """One robot run: the scene built from the capture, the devices, the controller, the guard.
+
+    Tests and benchmarks reach in for fault injection (``run.sensor``, ``run.scene``); the CLI
+    goes through :func:`explore_with_robot`.
+    """
+
+    def __init__(self, capture, explorer, cfg: RobotConfig, on_event: Callable[[int, str], None] | None = None):
+        from scipy.spatial import cKDTree
+
+        from tergodic_cli.robot.kinematics import FrankaModel, tool_offset
+        from tergodic_cli.robot.pybullet_backend import PyBulletArm, PyBulletScene, PyBulletWrenchSensor
+
+        validate_robot_config(cfg)
+        t_setup = time.perf_counter()
+        self.cfg = cfg
+        self.explorer = explorer
+        self.on_event = on_event or (lambda step, msg: None)
+        self.F_d = float(cfg.force)
+        self.threshold = cfg.contact_threshold
+        edt = float(getattr(getattr(explorer, "cfg", None), "dt", cfg.explore_dt))
+        if abs(edt - cfg.explore_dt) > 1e-9:
+            raise TergodicError(f"the explorer steps {edt:g} s but the robot expects {cfg.explore_dt:g} s per explorer step",
+                                "build the explorer with robot_explore_config(cfg, robot_cfg.explore_dt)")
+        points = np.asarray(capture.points, dtype=float)
+        self.points = points
+        meta = getattr(capture, "meta", {}) or {}
+        if cfg.object_pose is not None:
+            self.T_obj = parse_object_pose(cfg.object_pose)
+        elif meta.get("frame") == "robot_base":  # a calibrated (or simulated) camera: the cloud is in the base frame
+            self.T_obj = np.eye(4)
+        else:
+            self.T_obj = default_object_pose(points)
+            self.on_event(0, "robot: no --object-pose given; the cloud's footprint centre is placed 0.5 m in front "
+                             f"of the base on a 0.2 m stand (object pose {_fmt(self.T_obj[:3, 3])} m)")
+        self.points_base = transform_points(self.T_obj, points)
+        check_reachable(self.points_base)
+        side = resolve_side(cfg.normal_side, getattr(capture, "meta", {}) or {})
+        self.normals = oriented_normals(points, side)
+        h = float((getattr(capture, "meta", {}) or {}).get("spacing_h_m") or _spacing(points))
+        self.mesh = reconstruct_mesh(points, self.normals, h, cfg.mesh_edge)
+        self.kdtree = cKDTree(points)
+
+        self.scene = PyBulletScene(cfg.sponge, gui=cfg.gui, dt=cfg.physics_dt, solver_iterations=cfg.solver_iterations)
+        try:
+            self.scene.add_object(self.mesh.vertices, self.mesh.triangles, self.T_obj)
+            self.arm = PyBulletArm(self.scene)
+            self.arm.jacobian_every = int(cfg.jacobian_every)
+            self.arm.connect()
+            self.scene.set_arm(np.array(cfg.picture_q))
+            self.sensor = PyBulletWrenchSensor(self.scene, self.arm)
+            self.contact = ContactWrench(self.scene.tool_load(), self.sensor.frame_in_ee)
+            st = self.arm.read_state()
+            self.model = FrankaModel()
+            self.model.tool = tool_offset(self.model, st.q, st.ee_pose)
+        except BaseException:
+            self.scene.close()
+            raise
+        self.guard = SafetyGuard(cfg.safety, self.arm.q_min, self.arm.q_max, self.arm.dq_max, self.F_d)
+        self.sm = S.StateMachine(on_event=self.on_event)
+        self.joint = JointImpedance()
+        self.samples: list[dict] = []
+        self.stop_reason: str | None = None
+        self.fault: Fault | None = None
+        self.setup_s = time.perf_counter() - t_setup
+        self._shadow = _AgentCoverage(explorer)
+        self._x_ref = st.ee_pose[:3, 0].copy()
+        self._cb_s = 0.0
+
+    # ------------------------------------------------------------------ frames
+    def _to_base(self, x: np.ndarray) -> np.ndarray:
+        return transform_points(self.T_obj, x)
+
+    def _to_obj(self, x: np.ndarray) -> np.ndarray:
+        return (np.asarray(x, dtype=float) - self.T_obj[:3, 3]) @ self.T_obj[:3, :3]
+
+    def _surface_normal(self, x_base: np.ndarray, k: int = 6) -> np.ndarray:
+        """Oriented unit surface normal (base frame) near ``x_base``: mean of the k nearest cloud normals."""
+        _, idx = self.kdtree.query(self._to_obj(x_base), k=k)
+        n = self.normals[np.atleast_1d(idx)].mean(axis=0)
+        return self.T_obj[:3, :3] @ (n / np.linalg.norm(n))
+
+    def _agent_line(self) -> tuple[np.ndarray, np.ndarray]:
+        """The explorer's line L_a⊥ in the base frame: point and unit direction into the surface."""
+        x = np.asarray(self.explorer.positions[0], dtype=float)
+        n = np.asarray(self.explorer.normals[0], dtype=float)
+        a = self._to_base(x)
+        n_b = self.T_obj[:3, :3] @ n
+        if n_b @ self._surface_normal(a) < 0:  # the explorer's normal sign is arbitrary; ours faces the tool
+            n_b = -n_b
+        return a, _clamp_tilt(-n_b / np.linalg.norm(n_b), self.cfg.max_tool_tilt_deg)
+
+    def _update_spin_ref(self, d: np.ndarray) -> None:
+        # Parallel-transport the spin reference so it stays perpendicular to the tool axis.
+        x = self._x_ref - (self._x_ref @ d) * d
+        nx = float(np.linalg.norm(x))
+        if nx > 1e-3:
+            self._x_ref = x / nx
+        self.ctrl.x_ref = self._x_ref
+
+    # ------------------------------------------------------------------ one control step
+    def _tick(self, mode: str, a=None, d=None, q_d=None, dq_d=None, speed: float = 0.0, checks: bool = True,
+              force: float | None = None):
+        """Read, check, command, step. Returns (state, ee wrench, controller output or None, fault or None)."""
+        st = self.arm.read_state()
+        rd = self.sensor.read()
+        w = self.contact(rd.wrench, st.rot)
+        fault = None
+        out = None
+        if mode == "joint":
+            tau = self.joint(st.q, st.dq, q_d, dq_d)
+        else:
+            out = self.ctrl.step(st, a, d, w, mode, self.F_d if force is None else force, speed)
+            tau = out.tau
+        if checks:
+            g = self.guard
+            fault = g.check_sensor(st.t, rd.t, rd.wrench) or g.check_force(st.t, w)
+            if fault is None:
+                v = out.v_ee if out is not None else (st.jacobian[:3] @ st.dq).tolist()
+                fault = g.check_state(st.t, st.q, st.dq, st.pos, math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]))
+            if fault is None and self.sm.state == S.EXPLORE:
+                fault = g.check_explorer(st.t)
+        if fault is None:
+            self.arm.command(tau)
+            self.scene.step()
+            if self.cfg.realtime:
+                lag = self.scene.t - (time.perf_counter() - self._t0)
+                if lag > 0:
+                    time.sleep(lag)
+        return st, w, out, fault
+
+    def _track(self, A: list, D: list, v_ref=None):
+        """The 1 kHz loop of one explorer interval: :meth:`_tick` ("track", with every check)
+        unrolled with local names, the hot path of a run. Yields (state, wrench, a, d, fault)
+        after the last step or at the first fault (the fault's step is not commanded)."""
+        read, sread, contact = self.arm.read_state, self.sensor.read, self.contact
+        ctrl, command, physics = self.ctrl.step, self.arm.command, self.scene.step
+        g = self.guard
+        check_sensor, check_force, check_state, check_explorer = g.check_sensor, g.check_force, g.check_state, g.check_explorer
+        F_d, sqrt, realtime = self.F_d, math.sqrt, self.cfg.realtime
+        st = w = a = d = None
+        for a, d in zip(A, D):
+            st = read()
+            rd = sread()
+            t = st.t
+            w = contact(rd.wrench, st.rot)
+            out = ctrl(st, a, d, w, "track", F_d, 0.0, v_ref)
+            v = out.v_ee
+            fault = (check_sensor(t, rd.t, rd.wrench) or check_force(t, w)
+                     or check_state(t, st.q, st.dq, st.pos, sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]))
+                     or check_explorer(t))
+            if fault is not None:
+                yield st, w, a, d, fault
+                return
+            command(out.tau)
+            physics()
+            if realtime:
+                lag = self.scene.t - (time.perf_counter() - self._t0)
+                if lag > 0:
+                    time.sleep(lag)
+        yield st, w, a, d, None
+
+    # ------------------------------------------------------------------ faults and stops
+    def _stop(self, fault: Fault, step: int) -> None:
+        """Make the robot safe after ``fault`` and end the run (raises :class:`_Stop`)."""
+        self.fault = fault
+        self.stop_reason = fault.reason
+        if fault.action == "retreat" and self.sm.state not in (S.RETREAT,):
+            self.sm.go(S.RETREAT, self.scene.t, step, fault.reason)
+            T = self.arm.read_state().ee_pose
+            self._retreat(T[:3, 3], T[:3, 2], step, checks=False)
+            self._hold(HOLD_S)
+            self.sm.go(S.STOPPED, self.scene.t, step, "retreated after a fault; holding still")
+        else:
+            self.sm.go(S.HOLD, self.scene.t, step, fault.reason)
+            self._hold(HOLD_S)
+            self.sm.go(S.STOPPED, self.scene.t, step, "held position after a fault; holding still")
+        raise _Stop(fault.reason)
+
+    def _hold(self, seconds: float) -> None:
+        q = self.arm.read_state().q.copy()
+        for _ in range(int(round(seconds / self.cfg.physics_dt))):
+            self._tick("joint", q_d=q, checks=False)
+
+    def _retreat(self, a: np.ndarray, d: np.ndarray, step: int, checks: bool = True) -> None:
+        """Back the tool off along its axis by ``retreat_distance`` (line fixed on (a, d))."""
+        cfg = self.cfg
+        start = self.arm.read_state().ee_pose[:3, 3].copy()
+        for _ in range(int(round(RETREAT_TIMEOUT_S / cfg.physics_dt))):
+            st, w, out, fault = self._tick("retreat", a, d, speed=cfg.retreat_speed, checks=checks)
+            if fault is not None:
+                self._stop(fault, step)
+            if float((start - st.ee_pose[:3, 3]) @ d) >= cfg.retreat_distance:
+                break
+
+    # ------------------------------------------------------------------ phases
+    def _move_to_hover(self) -> None:
+        cfg = self.cfg
+        a, d = self._agent_line()
+        self._start_line = (a, d)
+        z = d
+        x = None
+        for c in (self._x_ref, np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0])):
+            if abs(float(c @ z)) < 0.9:
+                x = c - (c @ z) * z
+                x /= np.linalg.norm(x)
+                break
+        R = np.column_stack([x, np.cross(z, x), z])
+        T_hover = pose_matrix(R, a - cfg.hover_height * d)
+        if not self.guard.inside(T_hover[:3, 3]) or not self.guard.inside(a):
+            raise TergodicError(f"the start point {_fmt(a)} m or its hover pose is outside the workspace box",
+                                "move the object with --object-pose, or choose another start")
+        q0 = self.arm.read_state().q
+        q_h, pe, oe = self.model.ik(T_hover, q0, q_rest=np.array(cfg.picture_q))
+        if pe > 1e-3 or oe > 1e-2:
+            raise TergodicError(f"the robot cannot reach the hover pose above the start point {_fmt(a)} m "
+                                f"(inverse kinematics off by {pe * 1e3:.1f} mm, {math.degrees(oe):.1f} deg)",
+                                "move the object closer with --object-pose, or choose another start")
+        self.q_hover = q_h
+        self._x_ref = x
+        self.ctrl = LineForceController(cfg.gains, cfg.physics_dt, q_rest=q_h, x_ref=x)
+        self.sm.go(S.HOVER, self.scene.t, 0, f"moving to the hover pose {cfg.hover_height * 1e3:.0f} mm above the start {_fmt(a)} m")
+        # Min-jerk peaks at 1.875 × the mean speed: keep the joints under move_speed and the TCP
+        # under half the guard's speed limit.
+        dist = float(np.max(np.abs(q_h - q0)))
+        path = np.array([self.model.fk(q0 + s * (q_h - q0))[:3, 3] for s in np.linspace(0, 1, 21)])
+        length = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
+        duration = max(1.0, 1.875 * dist / cfg.move_speed, 1.875 * length / (0.5 * cfg.safety.tcp_speed_max))
+        n = int(round(duration / cfg.physics_dt))
+        for i in range(n + int(round(SETTLE_S / cfg.physics_dt))):
+            qd, dqd = min_jerk(q0, q_h, duration, (i + 1) * cfg.physics_dt)
+            st, w, out, fault = self._tick("joint", q_d=qd, dq_d=dqd)
+            if fault is not None:
+                self._stop(fault, 0)
+        # Tare in free space, at rest: the tool's weight at this orientation becomes the zero.
+        self.sensor.tare()
+        st = self.arm.read_state()
+        self.contact.tare_at(st.ee_pose[:3, :3])
+        err = float(np.linalg.norm(st.ee_pose[:3, 3] - T_hover[:3, 3]))
+        self.on_event(0, f"robot: at hover ({err * 1e3:.1f} mm from the planned pose); F/T sensor tared")
+
+    def _approach(self) -> None:
+        cfg = self.cfg
+        a, d = self._start_line
+        self.sm.go(S.APPROACH, self.scene.t, 0, f"approaching along the normal at {cfg.approach_speed * 1e3:.0f} mm/s")
+        self.ctrl.reset()
+        timeout = (cfg.hover_height + 0.03) / cfg.approach_speed + 0.5
+        n = int(round(timeout / cfg.physics_dt))
+        contact_at = None
+        settled = 0
+        t0 = self.scene.t
+        f_ref = self.F_d
+        for i in range(n + int(round(PRESS_TIMEOUT_S / cfg.physics_dt))):
+            mode = "approach" if contact_at is None else "track"
+            if contact_at is not None:  # ramp the set-point from the contact force to F_d: no overshoot
+                f_ref = min(self.F_d, f0 + (self.F_d - f0) * (self.scene.t - contact_at) / PRESS_RAMP_S)
+            st, w, out, fault = self._tick(mode, a, d, speed=cfg.approach_speed, force=f_ref)
+            if fault is not None:
+                self._stop(fault, 0)
+            f = out.force_filtered
+            if contact_at is None:
+                if f >= self.threshold:
+                    contact_at = self.scene.t
+                    f0 = f
+                    self.ctrl.start_tracking(f0, self.ctrl.D[2] * cfg.approach_speed)
+                    self.on_event(0, f"robot: contact at {f:.2f} N after {contact_at - t0:.2f} s; pressing to {self.F_d:g} N")
+                elif i >= n:
+                    self._stop(Fault("approach", "hold", f"no contact within {(cfg.hover_height + 0.03) * 1e3:.0f} mm below the "
+                                     "hover pose; check --object-pose; holding position", self.scene.t), 0)
+            elif f_ref >= self.F_d:
+                settled = settled + 1 if abs(f - self.F_d) <= 0.1 * self.F_d else 0
+                if settled >= 50:
+                    break
+        else:
+            self.on_event(0, f"robot: the force did not settle within {PRESS_TIMEOUT_S:.0f} s (now {out.force_filtered:.2f} N); exploring anyway")
+        self.sm.go(S.EXPLORE, self.scene.t, 0, f"in contact at {out.force_filtered:.2f} N; exploring")
+
+    def _explore(self, steps: int, on_step) -> None:
+        from tergodic_cli.progress import track
+
+        cfg = self.cfg
+        ex = self.explorer
+        n_sub = cfg.substeps
+        a_cur, d_cur = self._start_line
+        st = self.arm.read_state()
+        w = self.contact(self.sensor.read().wrench, st.ee_pose[:3, :3])
+        self.guard.feed_target(self.scene.t)
+        step = int(getattr(ex, "step_index", 0))
+        for _ in track(range(steps), total=steps, description="explore (pybullet)"):
+            meas = self._measure(st)
+            deposit = self._to_obj(meas["contact_point"])[None, :] if meas["in_contact"] else np.zeros((0, 3))
+            before = int(getattr(ex, "step_index", step))
+            try:
+                ex.step(deposit_at=deposit, agent_at=self._to_obj(st.ee_pose[:3, 3])[None, :])
+            except TergodicError as exc:
+                fault = Fault("explorer", "hold", f"the explorer failed ({exc}); holding position", self.scene.t)
+                self._fault_sample(fault, before + 1, st, w, a_cur, d_cur, on_step, record=True)
+            step = int(getattr(ex, "step_index", before + 1))
+            a_next, d_next = a_cur, d_cur
+            if step == before + 1:
+                a_new = self._to_base(np.asarray(ex.positions[0], dtype=float))
+                fault = self.guard.check_target(self.scene.t, a_new)
+                if fault is not None:
+                    self._fault_sample(fault, step, st, w, a_cur, d_cur, on_step, record=True)
+                a_new, d_new = self._agent_line()
+                a_next, d_next = a_new, d_new
+                self.guard.feed_target(self.scene.t)
+                self._update_spin_ref(d_next)
+            self._shadow.deposit()
+            # The line target glides from the previous agent line to the new one over the interval.
+            s = (np.arange(1, n_sub + 1) / n_sub)[:, None]
+            A = a_cur + s * (a_next - a_cur)
+            Dd = d_cur + s * (d_next - d_cur)
+            Dd /= np.linalg.norm(Dd, axis=1, keepdims=True)
+            v_ref = ((a_next - a_cur) / cfg.explore_dt).tolist() if cfg.velocity_feedforward else None
+            for st, w, a, d, fault in self._track(A.tolist(), Dd.tolist(), v_ref):
+                if fault is not None:
+                    # A stalled explorer produced no new step: its last sample is out already.
+                    fresh = fault.kind != "explorer" and step > (self.samples[-1]["step"] if self.samples else 0)
+                    self._fault_sample(fault, step, st, w, np.array(a), np.array(d), on_step, record=fresh)
+            a_cur, d_cur = a_next, d_next
+            self.samples.append(self._sample(step, st, w, a_cur, d_cur))
+            self._emit(on_step, step)
+        self._last_line = (a_cur, d_cur)
+
+    def _fault_sample(self, fault: Fault, step: int, st, w, a, d, on_step, record: bool) -> None:
+        """Record and emit the sample of the step a fault interrupted, then make the robot safe."""
+        if record:
+            self.samples.append(self._sample(step, st, w, a, d, stop_reason=fault.reason))
+            self._emit(on_step, step)
+        self._stop(fault, step)
+
+    def _emit(self, on_step, step: int) -> None:
+        if on_step is not None:
+            t = time.perf_counter()
+            on_step(step, self.samples[-1])
+            self._cb_s += time.perf_counter() - t
+
+    # ------------------------------------------------------------------ measurements
+    def _measure(self, st) -> dict:
+        """Contact point (force-weighted mean of the sponge/object contacts), contact force, surface normal."""
+        contacts = self.scene.sponge_contacts()
+        fsum = float(sum(c[2] for c in contacts))
+        tcp = st.ee_pose[:3, 3]
+        cp = sum(c[2] * c[0] for c in contacts) / fsum if fsum > 0 else None
+        x = cp if cp is not None else tcp
+        return {"contact_point": cp, "force_contact": fsum, "in_contact": bool(cp is not None and fsum >= self.threshold),
+                "normal": self._surface_normal(x), "at": x}
+
+    def _sample(self, step: int, st, w: np.ndarray, a: np.ndarray, d: np.ndarray, stop_reason: str | None = None) -> dict:
+        """The robot_sample_dict of CONTRACTS.md (plus extras) at the end of an explorer interval."""
+        meas = self._measure(st)
+        T = st.ee_pose
+        R = T[:3, :3]
+        n = meas["normal"]
+        z = R[:, 2]
+        tilt = math.degrees(math.acos(max(-1.0, min(1.0, float(-z @ n)))))
+        track_mm = 1e3 * point_line_distance(meas["at"], a, d)
+        f_base = R @ w[:3]
+        metrics = self.explorer.metrics() if hasattr(self.explorer, "metrics") else {}
+        shadow = self._shadow.metrics()
+        obj_q = matrix_to_quat(self.T_obj[:3, :3])
+        sample = {
+            "t_sim": float(st.t),
+            "t_wall": time.perf_counter() - self._t0 - self._cb_s,
+            "state": self.sm.state,
+            "ee_pose": np.concatenate([T[:3, 3], matrix_to_quat(R)]),
+            "q": st.q.copy(),
+            "dq": st.dq.copy(),
+            "tau": np.asarray(self.arm.last_tau, dtype=float).copy(),
+            "joint_names": list(self.arm.joint_names),
+            "link_poses": self.scene.link_poses(),
+            "object_pose": np.concatenate([self.T_obj[:3, 3], obj_q]),
+            "wrench_measured": np.asarray(w, dtype=float).copy(),
+            "wrench_desired": np.array([0.0, 0.0, self.F_d, 0.0, 0.0, 0.0]),
+            "force_normal": float(-(f_base @ n)) if meas["in_contact"] or abs(w[2]) > 0 else 0.0,
+            "force_contact": meas["force_contact"],
+            "force_filtered": float(self.ctrl.f_filt),
+            "in_contact": meas["in_contact"],
+            "contact_point": meas["contact_point"],
+            "tilt_deg": tilt,
+            "track_mm": track_mm,
+            "agent_line_point": np.asarray(a, dtype=float).copy(),
+            "agent_line_dir": np.asarray(d, dtype=float).copy(),
+            "contact_ergodicity": metrics.get("ergodicity"),
+            "contact_touched_fraction": metrics.get("touched_fraction"),
+            "agent_ergodicity": shadow.get("ergodicity"),
+            "agent_touched_fraction": shadow.get("touched_fraction"),
+            "step": int(step),
+        }
+        if stop_reason:
+            sample["stop_reason"] = stop_reason
+        return sample
+
+    # ------------------------------------------------------------------ the run
+    def run(self, steps: int, on_step: Callable[[int, dict], None] | None = None) -> dict:
+        """Picture -> hover -> approach -> explore ``steps`` explorer steps -> retreat. Returns the summary extras."""
+        from tergodic_cli.progress import Spinner
+
+        if int(steps) < 1:
+            raise TergodicError(f"--steps must be >= 1, got {steps}", "e.g. --steps 300")
+        self._t0 = time.perf_counter()
+        cpu0 = time.process_time()
+        self._cb_s = 0.0
+        self.on_event(0, f"robot {S.PICTURE}: at the picture pose (cloud of {len(self.points)} points captured; "
+                         f"collision mesh {len(self.mesh.triangles)} triangles)")
+        try:
+            with Spinner("robot: moving to the start and approaching"):
+                self._move_to_hover()
+                self._approach()
+            self._explore(int(steps), on_step)
+            self.sm.go(S.RETREAT, self.scene.t, self._step(), f"{steps} explorer steps done; retreating")
+            a, d = self._last_line
+            self._retreat(a, d, self._step())
+            self.sm.go(S.DONE, self.scene.t, self._step(), "retreated; done")
+            self._hold(SETTLE_S)
+        except _Stop:
+            pass
+        wall = time.perf_counter() - self._t0 - self._cb_s
+        cpu = time.process_time() - cpu0 - self._cb_s  # (the callback's wall time, a fair proxy for its CPU)
+        out = summarize_robot(self.samples, stop_reason=self.stop_reason)
+        out.update({
+            "final_state": self.sm.state,
+            "sim_seconds": self.scene.t,
+            "wall_seconds": wall,
+            "realtime_factor_run": self.scene.t / wall if wall > 0 else None,
+            "cpu_seconds": cpu,
+            "setup_seconds": self.setup_s,
+            "transitions": [{"t": round(tr.t, 4), "step": tr.step, "from": tr.source, "to": tr.target, "reason": tr.reason}
+                            for tr in self.sm.history],
+            "object_pose": [float(x) for x in np.concatenate([self.T_obj[:3, 3], matrix_to_quat(self.T_obj[:3, :3])])],
+            "mesh_triangles": int(len(self.mesh.triangles)),
+            "control_hz": 1.0 / self.cfg.physics_dt,
+            "explorer_hz": 1.0 / self.cfg.explore_dt,
+            "robot_config": self.cfg.to_dict(),
+        })
+        return out
+
+    def _step(self) -> int:
+        return int(getattr(self.explorer, "step_index", 0))
+
+    def close(self) -> None:
+        try:
+            if getattr(self, "arm", None) is not None:
+                self.arm.disconnect()
+        finally:
+            self.scene.close()
+
+    def __enter__(self) -> "RobotRun":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def explore_with_robot(capture, explorer, robot_cfg: RobotConfig, steps: int,
+                       on_step: Callable[[int, dict], None] | None = None,
+                       on_event: Callable[[int, str], None] | None = None) -> dict:
+    """Run ``steps`` explorer steps on the simulated robot (see the module docstring).
+
+    Parameters
+    ----------
+    capture : the :class:`~tergodic_cli.capture.Capture` (its cloud becomes the collision mesh).
+    explorer : an :class:`~tergodic_cli.explore.Explorer` built with ``robot_explore_config``.
+    robot_cfg : :class:`RobotConfig`.
+    steps : explorer steps in contact.
+    on_step : called as on_step(step, robot_sample_dict) after each explorer step.
+    on_event : called as on_event(step, text) at every state transition and warning.
+
+    Returns
+    -------
+    The robot summary extras (see :func:`~tergodic_cli.robot.summary.summarize_robot`) plus
+    final_state, stop_reason, transitions, timings and the robot config.
+    """
+    with RobotRun(capture, explorer, robot_cfg, on_event=on_event) as run:
+        return run.run(steps, on_step)
+
+
+class _AgentCoverage:
+    """Coverage the virtual agent's own path would have left (the kinematic agent's), for comparison."""
+
+    def __init__(self, explorer):
+        need = ("points", "mass", "p", "kdtree", "r_a", "eps", "positions", "normals")
+        self.ok = all(hasattr(explorer, k) for k in need)
+        self.ex = explorer
+        if self.ok:
+            self.cov = np.zeros(len(explorer.points))
+
+    def deposit(self) -> None:
+        if not self.ok:
+            return
+        ex = self.ex
+        for x, n in zip(ex.positions, ex.normals):
+            idx = np.asarray(ex.kdtree.query_ball_point(x, ex.r_a), dtype=np.intp)
+            if len(idx):
+                dd = ex.points[idx] - x
+                off = dd @ n
+                r2 = np.maximum(np.einsum("ij,ij->i", dd, dd) - off * off, 0.0)
+                self.cov[idx] += np.exp(-(ex.eps * ex.eps) * r2)
+
+    def metrics(self) -> dict:
+        if not self.ok:
+            return {}
+        from tergodic_cli.explore.metrics import ergodicity, touched_fraction
+
+        return {"ergodicity": ergodicity(self.ex.p, self.cov, self.ex.mass), "touched_fraction": touched_fraction(self.ex.p, self.cov)}
+
+
+def _clamp_tilt(d: np.ndarray, max_deg: float) -> np.ndarray:
+    """``d`` rotated towards straight down (-z) until it is within ``max_deg`` of it."""
+    down = np.array([0.0, 0.0, -1.0])
+    c = float(d @ down)
+    lim = math.cos(math.radians(max_deg))
+    if c >= lim:
+        return d
+    side = d - c * down
+    n = float(np.linalg.norm(side))
+    if n < 1e-12:
+        return down.copy()
+    return lim * down + math.sin(math.radians(max_deg)) * side / n
+
+
+def _spacing(points: np.ndarray) -> float:
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(points).query(points, k=4)
+    return float(d[:, 1:].mean())
+
+
+def _fmt(x) -> str:
+    return "(" + ", ".join(f"{float(v):.3f}" for v in x) + ")"

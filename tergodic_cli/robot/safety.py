@@ -1,0 +1,159 @@
+"""One safety guard for every backend: force limit, joint limits, workspace box, watchdogs.
+
+The guard only judges; the state machine acts. Each check returns a :class:`Fault` with a
+one-line reason and the action that makes the robot safe:
+
+- "retreat": pull the tool back along its axis, then stop (excess contact force: backing
+  off is what reduces it);
+- "hold": hold the present joint position, then stop (limits, workspace, a stalled
+  explorer, a silent sensor: moving anywhere would act on bad information).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tergodic_cli.errors import require
+
+
+@dataclass
+class SafetyConfig:
+    """Limits, SI units.
+
+    force_limit : |F| of the contact force that triggers a retreat, N; None = force_limit_factor × F_d.
+    joint_margin : rad kept inside the joint position limits.
+    velocity_factor : share of the joint velocity limits allowed.
+    tcp_speed_max : m/s allowed at the TCP.
+    workspace_min, workspace_max : corners of the box (base frame, m) the TCP and every target must stay in.
+    sensor_timeout : s without a new F/T sample before holding.
+    explorer_timeout : s (robot clock) without a fresh explorer target before holding.
+    """
+
+    force_limit: float | None = None
+    force_limit_factor: float = 3.0
+    joint_margin: float = 0.02
+    velocity_factor: float = 0.9
+    tcp_speed_max: float = 0.5
+    workspace_min: tuple[float, float, float] = (0.15, -0.6, -0.01)
+    workspace_max: tuple[float, float, float] = (0.85, 0.6, 0.9)
+    sensor_timeout: float = 0.02
+    explorer_timeout: float = 0.5
+
+    def to_dict(self) -> dict:
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
+
+
+@dataclass
+class Fault:
+    """A safety fault: kind ("force", "joint_position", ...), action ("retreat" | "hold"), one-line reason."""
+
+    kind: str
+    action: str
+    reason: str
+    t: float = 0.0
+    data: dict = field(default_factory=dict)
+
+
+class SafetyGuard:
+    """Checks states, sensor samples and targets against :class:`SafetyConfig`.
+
+    Parameters
+    ----------
+    cfg : the limits.
+    q_min, q_max, dq_max : (dof,) the arm's joint limits (rad, rad/s).
+    force_desired : F_d, N (sets the default force limit).
+    """
+
+    def __init__(self, cfg: SafetyConfig, q_min: np.ndarray, q_max: np.ndarray, dq_max: np.ndarray,
+                 force_desired: float):
+        self.cfg = cfg
+        lo, hi = np.asarray(cfg.workspace_min, float), np.asarray(cfg.workspace_max, float)
+        require(lo.shape == (3,) and hi.shape == (3,) and bool(np.all(lo < hi)),
+                "the workspace box needs min < max on every axis", "e.g. min 0.15,-0.6,0 and max 0.85,0.6,0.9 (metres)")
+        self.ws_lo, self.ws_hi = lo, hi
+        self.force_limit = float(cfg.force_limit) if cfg.force_limit is not None else cfg.force_limit_factor * force_desired
+        require(self.force_limit > max(force_desired, 0.0),
+                f"the force limit {self.force_limit:g} N is not above the desired force {force_desired:g} N",
+                "raise --force-limit or lower --force")
+        self.q_lo = np.asarray(q_min, float) + cfg.joint_margin
+        self.q_hi = np.asarray(q_max, float) - cfg.joint_margin
+        self.dq_hi = np.asarray(dq_max, float) * cfg.velocity_factor
+        self._q_lo, self._q_hi, self._dq_hi = self.q_lo.tolist(), self.q_hi.tolist(), self.dq_hi.tolist()
+        self._ws_lo, self._ws_hi = self.ws_lo.tolist(), self.ws_hi.tolist()
+        self._sensor_t: float | None = None
+        self._sensor_seen_at = 0.0
+        self._target_t: float | None = None
+
+    # ------------------------------------------------------------------ per control step
+    def check_state(self, t: float, q: np.ndarray, dq: np.ndarray, tcp, tcp_speed: float) -> Fault | None:
+        """Joint position/velocity limits, TCP speed and the workspace box (scalar code: runs at 1 kHz)."""
+        ql, dql = q.tolist(), dq.tolist()
+        for j, (qj, lo, hi) in enumerate(zip(ql, self._q_lo, self._q_hi)):
+            if not lo <= qj <= hi:
+                return Fault("joint_position", "hold",
+                             f"joint {j + 1} at {qj:+.3f} rad is outside its limits [{lo:+.3f}, {hi:+.3f}] rad; "
+                             "holding position", t)
+        for j, (vj, vmax) in enumerate(zip(dql, self._dq_hi)):
+            if not -vmax <= vj <= vmax:
+                return Fault("joint_velocity", "hold",
+                             f"joint {j + 1} moves at {vj:+.2f} rad/s, over its {vmax:.2f} rad/s limit; holding position", t)
+        if not tcp_speed <= self.cfg.tcp_speed_max:
+            return Fault("tcp_speed", "hold", f"the tool moves at {tcp_speed:.2f} m/s, over {self.cfg.tcp_speed_max:.2f} m/s; "
+                         "holding position", t)
+        lo, hi = self._ws_lo, self._ws_hi
+        if not (lo[0] <= tcp[0] <= hi[0] and lo[1] <= tcp[1] <= hi[1] and lo[2] <= tcp[2] <= hi[2]):
+            return Fault("workspace", "hold", f"the tool at {_fmt(tcp)} m left the workspace box {_fmt(self.ws_lo)}..{_fmt(self.ws_hi)} m; "
+                         "holding position", t)
+        return None
+
+    def check_force(self, t: float, wrench_ee) -> Fault | None:
+        """|F| of the contact force against the limit."""
+        f = math.sqrt(float(wrench_ee[0]) ** 2 + float(wrench_ee[1]) ** 2 + float(wrench_ee[2]) ** 2)
+        if not f <= self.force_limit:  # also catches NaN
+            return Fault("force", "retreat", f"contact force {f:.1f} N over the {self.force_limit:.1f} N limit; retreating", t,
+                         {"force": f})
+        return None
+
+    def check_sensor(self, t: float, sample_t: float, wrench) -> Fault | None:
+        """Watchdog on the F/T stream: a sample time that stops advancing, or non-finite values."""
+        w = wrench.tolist() if isinstance(wrench, np.ndarray) else wrench
+        if not math.isfinite(w[0] + w[1] + w[2] + w[3] + w[4] + w[5]):
+            return Fault("sensor", "hold", "the force/torque sensor returned non-finite values; holding position", t)
+        if sample_t != self._sensor_t:
+            self._sensor_t = sample_t
+            self._sensor_seen_at = t
+        elif t - self._sensor_seen_at > self.cfg.sensor_timeout:
+            return Fault("sensor", "hold", f"the force/torque sensor stopped updating (no new sample for "
+                         f"{(t - self._sensor_seen_at) * 1e3:.0f} ms); holding position", t)
+        return None
+
+    # ------------------------------------------------------------------ targets and the explorer
+    def inside(self, x: np.ndarray) -> bool:
+        return bool(np.all(x >= self.ws_lo) and np.all(x <= self.ws_hi))
+
+    def check_target(self, t: float, point: np.ndarray) -> Fault | None:
+        """A new explorer target must be finite and inside the workspace box."""
+        if not np.all(np.isfinite(point)):
+            return Fault("target", "hold", "the explorer produced a non-finite target; holding position", t)
+        if not self.inside(point):
+            return Fault("workspace", "hold", f"target {_fmt(point)} m is outside the workspace box "
+                         f"{_fmt(self.ws_lo)}..{_fmt(self.ws_hi)} m; holding position", t)
+        return None
+
+    def feed_target(self, t: float) -> None:
+        """Record that a fresh explorer target arrived at time ``t``."""
+        self._target_t = t
+
+    def check_explorer(self, t: float) -> Fault | None:
+        """Watchdog on the explorer: no fresh target for ``explorer_timeout`` seconds."""
+        if self._target_t is not None and t - self._target_t > self.cfg.explorer_timeout:
+            return Fault("explorer", "hold", f"the explorer stalled (no new target for {t - self._target_t:.2f} s); "
+                         "holding position", t)
+        return None
+
+
+def _fmt(x) -> str:
+    return "(" + ", ".join(f"{float(v):.3f}" for v in x) + ")"

@@ -1,0 +1,164 @@
+"""The object's collision surface, its normals, and where it stands in front of the robot.
+
+A capture is a single open sheet (what a depth camera sees: the inside of a bowl, a plate,
+a mug's wall). Ball pivoting (open3d) turns it into a triangle mesh that follows the sheet
+without closing it (Poisson would inflate a sheet into a blob); quadric decimation then
+keeps the sag error far below the sampling noise while cutting the triangles the sponge
+overlaps, which sets PyBullet's per-step contact cost (docs/robot.md has the measurements).
+The mesh becomes one static concave PyBullet body (GEOM_MESH, FORCE_CONCAVE_TRIMESH): on
+curved sheets this gives steadier contact than a convex decomposition, which cannot
+represent a thin concave shell.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.robot.ga import pose_matrix, rotvec_to_matrix
+
+#: Default object placement for clouds that do not say where they were captured: the cloud's
+#: footprint centre DEFAULT_REACH in front of the robot base, its lowest point DEFAULT_HEIGHT
+#: above the base (a 20 cm stand). There the Panda can tilt the sponge 45° in every direction
+#: (on the base plane, tilting it away from the robot runs joint 6 into its limit at ~30°).
+DEFAULT_REACH = 0.5
+DEFAULT_HEIGHT = 0.2
+NORMAL_SIDES = ("auto", "up", "out")
+
+
+@dataclass
+class SurfaceMesh:
+    """A triangle mesh of the captured sheet: vertices (n, 3) m and triangles (k, 3), object frame."""
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    seconds: float = 0.0
+
+    @property
+    def area(self) -> float:
+        v = self.vertices[self.triangles]
+        return float(0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1).sum())
+
+
+def oriented_normals(points: np.ndarray, side: str, neighbors: int = 20) -> np.ndarray:
+    """Unit normals (n, 3) of the cloud, oriented to the side the robot works on.
+
+    side : "up" (n·z >= 0: bowls, plates, anything seen and reached from above) or "out"
+        (away from the cloud's centroid: the outside of mugs and spheres).
+    """
+    import open3d as o3d
+
+    require(side in ("up", "out"), f"unknown normal side '{side}'", "use up or out")
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=float)))
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(min(neighbors, len(points) - 1)))
+    n = np.asarray(pc.normals).copy()
+    ref = np.array([0.0, 0.0, 1.0])[None, :] if side == "up" else points - points.mean(axis=0)
+    flip = np.einsum("ij,ij->i", n, np.broadcast_to(ref, n.shape)) < 0
+    n[flip] *= -1.0
+    return n
+
+
+def resolve_side(side: str, capture_meta: dict) -> str:
+    """"auto" -> "out" for the built-in mug and sphere, else "up"."""
+    require(side in NORMAL_SIDES, f"unknown --normal-side '{side}'", f"use one of {', '.join(NORMAL_SIDES)}")
+    if side != "auto":
+        return side
+    obj = (capture_meta.get("provenance") or {}).get("object")
+    return "out" if obj in ("mug", "sphere") else "up"
+
+
+def reconstruct_mesh(points: np.ndarray, normals: np.ndarray, spacing: float, edge: float = 0.006) -> SurfaceMesh:
+    """Ball-pivoting mesh of an open sheet, decimated to triangles of about ``edge`` metres.
+
+    Parameters
+    ----------
+    points : (n, 3) cloud, metres. normals : (n, 3) oriented unit normals.
+    spacing : mean point spacing h, metres (ball radii 1.5h, 3h, 6h).
+    edge : target mean triangle edge after decimation, metres (0 keeps every triangle).
+    """
+    import time
+
+    import open3d as o3d
+
+    t0 = time.perf_counter()
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=float)))
+    pc.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=float))
+    radii = o3d.utility.DoubleVector([1.5 * spacing, 3.0 * spacing, 6.0 * spacing])
+    mesh = o3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting(pc, radii)
+    mesh.remove_duplicated_triangles()
+    mesh.remove_degenerate_triangles()
+    mesh.remove_unreferenced_vertices()
+    n_tri = len(mesh.triangles)
+    require(n_tri >= 10, f"could not build a surface from the cloud ({n_tri} triangles)",
+            "check the capture: the robot needs a cloud that samples one connected sheet")
+    if edge > 0:
+        area = mesh.get_surface_area()
+        target = int(area / (0.433 * edge * edge))  # equilateral triangles of side `edge`
+        if target < n_tri:
+            mesh = mesh.simplify_quadric_decimation(max(target, 50))
+            mesh.remove_degenerate_triangles()
+            mesh.remove_unreferenced_vertices()
+    return SurfaceMesh(np.asarray(mesh.vertices).copy(), np.asarray(mesh.triangles, dtype=np.int64).copy(),
+                       time.perf_counter() - t0)
+
+
+def mesh_distance(mesh: SurfaceMesh, points: np.ndarray) -> np.ndarray:
+    """Unsigned distance (m) from ``points`` (k, 3) to the mesh (open3d raycasting scene)."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)), o3d.core.Tensor(mesh.triangles.astype(np.uint32)))
+    return scene.compute_distance(o3d.core.Tensor(np.asarray(points, dtype=np.float32))).numpy().astype(float)
+
+
+def parse_object_pose(values) -> np.ndarray:
+    """The capture frame's pose in the robot base frame as a (4, 4) transform.
+
+    values : 3 numbers x,y,z (m); 6 numbers x,y,z,roll,pitch,yaw (m, degrees, fixed-axis XYZ);
+        or 7 numbers x,y,z,qx,qy,qz,qw.
+    """
+    v = [float(x) for x in values]
+    fix = "give --object-pose x,y,z[,roll,pitch,yaw] in metres and degrees, e.g. 0.5,0,0 or 0.5,0,0,0,0,90"
+    require(len(v) in (3, 6, 7), f"--object-pose needs 3, 6 or 7 numbers, got {len(v)}", fix)
+    require(all(math.isfinite(x) for x in v), "--object-pose has a non-finite number", fix)
+    require(max(abs(x) for x in v[:3]) < 3.0, f"--object-pose position {v[:3]} is metres beyond any robot's reach",
+            "give the position in metres (not millimetres), e.g. 0.5,0,0")
+    if len(v) == 3:
+        R = np.eye(3)
+    elif len(v) == 6:
+        r, p, y = (math.radians(a) for a in v[3:])
+        R = rotvec_to_matrix(np.array([0, 0, y])) @ rotvec_to_matrix(np.array([0, p, 0])) @ rotvec_to_matrix(np.array([r, 0, 0]))
+    else:
+        from tergodic_cli.robot.ga import quat_to_matrix
+
+        q = np.array(v[3:])
+        require(abs(np.linalg.norm(q) - 1.0) < 1e-3, "--object-pose quaternion is not unit length", fix)
+        R = quat_to_matrix(q / np.linalg.norm(q))
+    return pose_matrix(R, np.array(v[:3]))
+
+
+def default_object_pose(points: np.ndarray) -> np.ndarray:
+    """Translation putting the cloud's footprint centre at (DEFAULT_REACH, 0) and its lowest point at DEFAULT_HEIGHT."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    centre = 0.5 * (lo + hi)
+    return pose_matrix(np.eye(3), np.array([DEFAULT_REACH - centre[0], -centre[1], DEFAULT_HEIGHT - lo[2]]))
+
+
+def transform_points(T: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Points (..., 3) mapped by the (4, 4) transform T."""
+    return np.asarray(x, dtype=float) @ T[:3, :3].T + T[:3, 3]
+
+
+def check_reachable(points_base: np.ndarray, reach: float = 0.8, ws=None) -> None:
+    """Refuse objects the Panda cannot reach from its base (distance from the shoulder)."""
+    shoulder = np.array([0.0, 0.0, 0.333])
+    d = np.linalg.norm(points_base - shoulder, axis=1)
+    far = float(d.max())
+    if far > reach:
+        raise TergodicError(f"part of the object is {far:.2f} m from the robot's shoulder, beyond the {reach:.2f} m the tool can reach",
+                            "move it closer with --object-pose x,y,z (e.g. 0.5,0,0)")
+    if float(points_base[:, 0].min()) < 0.2 and float(np.abs(points_base[:, 1]).min()) < 0.15:
+        raise TergodicError("the object overlaps the robot's base", "move it in front of the robot with --object-pose (e.g. 0.5,0,0)")

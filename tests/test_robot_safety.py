@@ -1,0 +1,157 @@
+"""The safety guard, the state machine, the robot config and summarize_robot: pure logic, no simulator."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tergodic_cli.errors import TergodicError
+from tergodic_cli.robot import RobotConfig, SafetyConfig, SafetyGuard, summarize_robot, validate_robot_config
+from tergodic_cli.robot import statemachine as S
+from tergodic_cli.robot.pybullet_backend.scene import DQ_MAX, Q_MAX, Q_MIN
+from tergodic_cli.robot.surface import default_object_pose, parse_object_pose
+
+Q_OK = np.array([0.0, 0.2, 0.0, -2.2, 0.0, 2.4, 0.785])
+
+
+def _guard(**kw) -> SafetyGuard:
+    return SafetyGuard(SafetyConfig(**kw), Q_MIN, Q_MAX, DQ_MAX, force_desired=5.0)
+
+
+def test_guard_passes_a_normal_state():
+    g = _guard()
+    assert g.check_state(0.0, Q_OK, np.zeros(7), (0.5, 0.0, 0.3), 0.01) is None
+    assert g.check_force(0.0, np.array([0.5, 0.2, 5.0, 0, 0, 0])) is None
+    assert g.check_target(0.0, np.array([0.5, 0.0, 0.2])) is None
+
+
+def test_force_limit_defaults_to_three_times_desired_and_retreats():
+    g = _guard()
+    assert g.force_limit == pytest.approx(15.0)
+    f = g.check_force(1.0, np.array([0.0, 0.0, 15.06, 0, 0, 0]))
+    assert f.kind == "force" and f.action == "retreat" and "15.1 N" in f.reason and "\n" not in f.reason
+    assert g.check_force(1.0, np.array([np.nan, 0, 0, 0, 0, 0])).kind == "force"
+    assert _guard(force_limit=30.0).check_force(0.0, np.array([0, 0, 20.0, 0, 0, 0])) is None
+
+
+def test_joint_limits_and_speeds_hold():
+    g = _guard()
+    q = Q_OK.copy()
+    q[3] = Q_MAX[3] - 0.01  # inside the 0.02 rad margin
+    f = g.check_state(0.0, q, np.zeros(7), (0.5, 0, 0.3), 0.0)
+    assert f.kind == "joint_position" and f.action == "hold" and "joint 4" in f.reason
+    dq = np.zeros(7)
+    dq[5] = -0.95 * DQ_MAX[5]
+    f = g.check_state(0.0, Q_OK, dq, (0.5, 0, 0.3), 0.0)
+    assert f.kind == "joint_velocity" and "joint 6" in f.reason
+    assert g.check_state(0.0, Q_OK, np.zeros(7), (0.5, 0, 0.3), 0.8).kind == "tcp_speed"
+
+
+def test_workspace_box_for_tool_and_targets():
+    g = _guard(workspace_min=(0.2, -0.3, 0.0), workspace_max=(0.7, 0.3, 0.6))
+    assert g.check_state(0.0, Q_OK, np.zeros(7), (0.75, 0, 0.3), 0.0).kind == "workspace"
+    f = g.check_target(0.0, np.array([0.5, 0.5, 0.2]))
+    assert f.kind == "workspace" and f.action == "hold" and "outside the workspace box" in f.reason
+    assert g.check_target(0.0, np.array([0.5, np.inf, 0.2])).kind == "target"
+    with pytest.raises(TergodicError):
+        _guard(workspace_min=(0.5, 0, 0), workspace_max=(0.4, 1, 1))
+
+
+def test_sensor_watchdog_needs_fresh_samples():
+    g = _guard(sensor_timeout=0.02)
+    w = np.zeros(6)
+    for i in range(30):  # a healthy 1 kHz stream
+        assert g.check_sensor(i * 1e-3, i * 1e-3, w) is None
+    faults = [g.check_sensor(i * 1e-3, 0.029, w) for i in range(30, 60)]  # the driver repeats the t = 0.029 sample
+    assert all(f is None for f in faults[:19])  # up to 20 ms late is tolerated
+    f = faults[-1]
+    assert f is not None and f.kind == "sensor" and f.action == "hold" and "stopped updating" in f.reason
+    assert _guard().check_sensor(0.0, 0.0, np.array([0, 0, np.nan, 0, 0, 0])).kind == "sensor"
+
+
+def test_explorer_watchdog():
+    g = _guard(explorer_timeout=0.5)
+    assert g.check_explorer(10.0) is None  # no target yet: nothing to be late
+    g.feed_target(1.0)
+    assert g.check_explorer(1.4) is None
+    f = g.check_explorer(1.6)
+    assert f.kind == "explorer" and "stalled" in f.reason
+
+
+def test_state_machine_logs_and_refuses_illegal_transitions():
+    events = []
+    sm = S.StateMachine(on_event=lambda step, msg: events.append((step, msg)))
+    sm.go(S.HOVER, 0.0, 0, "moving")
+    sm.go(S.APPROACH, 1.0, 0, "down")
+    with pytest.raises(RuntimeError):
+        sm.go(S.DONE, 1.5, 0, "skipping the exploration")
+    sm.go(S.EXPLORE, 2.0, 0, "contact")
+    sm.go(S.HOLD, 3.0, 7, "fault")
+    sm.go(S.STOPPED, 3.5, 7, "held")
+    assert sm.finished and [t.target for t in sm.history] == ["hover", "approach", "explore", "hold", "stopped"]
+    assert events[-2] == (7, "robot explore -> hold at t=3.000 s: fault")
+
+
+def test_robot_config_validation():
+    validate_robot_config(RobotConfig())
+    for bad, needle in [(dict(force=-1.0), "--force"), (dict(force=100.0), "sponge"),
+                        (dict(explore_dt=0.0015), "whole number"), (dict(backend="ros"), "backend"),
+                        (dict(contact_force=6.0), "contact threshold")]:
+        with pytest.raises(TergodicError, match=needle):
+            validate_robot_config(RobotConfig(**bad))
+    assert RobotConfig().substeps == 200
+    assert RobotConfig(contact_force=None, force=5.0).contact_threshold == pytest.approx(1.0)
+
+
+def test_object_pose_parsing():
+    np.testing.assert_allclose(parse_object_pose([0.5, 0.1, 0.0])[:3, 3], [0.5, 0.1, 0.0])
+    T = parse_object_pose([0.5, 0, 0, 0, 0, 90])
+    np.testing.assert_allclose(T[:3, :3] @ [1, 0, 0], [0, 1, 0], atol=1e-12)
+    T = parse_object_pose([0.5, 0, 0, 0, 0, math.sin(math.pi / 4), math.cos(math.pi / 4)])
+    np.testing.assert_allclose(T[:3, :3] @ [1, 0, 0], [0, 1, 0], atol=1e-12)
+    for bad in ([0.5, 0], [500, 0, 0], [0.5, 0, 0, 0, 0, 0, 2.0]):
+        with pytest.raises(TergodicError):
+            parse_object_pose(bad)
+    pts = np.array([[-0.1, -0.1, 0.0], [0.1, 0.1, 0.05]])
+    moved = pts + default_object_pose(pts)[:3, 3]
+    np.testing.assert_allclose(moved.mean(axis=0)[:2], [0.5, 0.0])
+    assert moved[:, 2].min() == pytest.approx(0.2)
+
+
+def _sample(t, f, contact=True, state="explore", tilt=1.0, track=2.0, **extra):
+    return {"t_sim": t, "t_wall": t / 4.0, "state": state, "in_contact": contact, "force_normal": f,
+            "wrench_desired": [0, 0, 5.0, 0, 0, 0], "tilt_deg": tilt, "track_mm": track, **extra}
+
+
+def test_summarize_robot_against_hand_computation():
+    # 0.2 s per sample; contact from t = 0; the first 0.5 s (samples at 0.0, 0.2, 0.4) are transient.
+    forces = [9.0, 9.0, 9.0, 5.5, 4.5, 5.0, 6.0]
+    samples = [_sample(0.2 * i, f, tilt=i, track=10 - i) for i, f in enumerate(forces)]
+    samples.append(_sample(1.4, 0.0, contact=False, tilt=50.0, track=50.0))
+    samples[-1]["contact_touched_fraction"] = 0.4
+    samples[-1]["agent_touched_fraction"] = 0.5
+    out = summarize_robot(samples)
+    steady = np.array([5.5, 4.5, 5.0, 6.0])
+    assert out["force_rms_error_rel"] == pytest.approx(math.sqrt(np.mean(((steady - 5) / 5) ** 2)))
+    assert out["contact_fraction"] == pytest.approx(7 / 8)
+    assert out["tilt_deg_median"] == pytest.approx(3.0)  # median of 0..6, the no-contact sample excluded
+    assert out["track_mm_median"] == pytest.approx(7.0)
+    assert out["realtime_factor"] == pytest.approx(4.0)
+    assert out["contact_touched_fraction"] == 0.4 and out["agent_touched_fraction"] == 0.5
+    assert out["stop_reason"] == "completed" and out["steady_samples"] == 4
+    # columns give the same answer (the replay verb may pass columns)
+    cols = {k: [s.get(k) for s in samples] for k in samples[0]}
+    cols["contact_touched_fraction"] = [s.get("contact_touched_fraction") for s in samples]
+    assert summarize_robot(cols)["force_rms_error_rel"] == out["force_rms_error_rel"]
+
+
+def test_summarize_robot_restarts_settling_after_lost_contact():
+    samples = [_sample(0.2 * i, 5.0) for i in range(5)]
+    samples.append(_sample(1.0, 0.0, contact=False))
+    samples += [_sample(1.2 + 0.2 * i, 9.0 if i < 3 else 5.0) for i in range(5)]  # re-contact transient
+    out = summarize_robot(samples)
+    assert out["force_rms_error_rel"] == pytest.approx(0.0)
+    assert summarize_robot([], stop_reason="x")["stop_reason"] == "x"
+    assert summarize_robot(samples + [dict(_sample(3.0, 5.0), stop_reason="boom")])["stop_reason"] == "boom"
