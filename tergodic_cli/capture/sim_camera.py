@@ -27,7 +27,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tergodic_cli.capture.textured import SimObjectConfig, TexturedObject, matrix_quat_xyzw, quat_xyzw_matrix
+from tergodic_cli.capture.textured import SimObjectConfig, TexturedObject
+from tergodic_cli.rotations import matrix_to_quat, quat_to_matrix
 from tergodic_cli.errors import TergodicError, require
 
 if TYPE_CHECKING:
@@ -180,7 +181,7 @@ def camera_pose(pose, target_default: np.ndarray) -> np.ndarray:
     q = np.array(v[3:])
     require(abs(np.linalg.norm(q) - 1.0) < 1e-3, "--camera-pose quaternion is not unit length", fix)
     T = np.eye(4)
-    T[:3, :3] = quat_xyzw_matrix(q / np.linalg.norm(q))
+    T[:3, :3] = quat_to_matrix(q / np.linalg.norm(q))
     T[:3, 3] = v[:3]
     return T
 
@@ -344,7 +345,7 @@ class SimCamera:
                 "near": self.cfg.near, "far": self.cfg.far, "fx": fx, "fy": fy, "cx": cx, "cy": cy,
                 "pixel_sample": list(PIXEL_SAMPLE[self.renderer]),
                 "T_base_camera": self.T_base_cam.tolist(),
-                "pose_xyz_qxyzw": [*self.T_base_cam[:3, 3].tolist(), *matrix_quat_xyzw(self.T_base_cam[:3, :3]).tolist()],
+                "pose_xyz_qxyzw": [*self.T_base_cam[:3, 3].tolist(), *matrix_to_quat(self.T_base_cam[:3, :3]).tolist()],
                 "frame": "optical (x right, y down, z forward)"}
 
     def close(self) -> None:

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.rotations import euler_xyz_matrix, matrix_to_quat, quat_to_matrix
 
 BUILTIN_OBJECTS = ("bowl", "plate", "mug")
 PATTERN_MARKINGS = ("X", "ring", "dots")
@@ -574,7 +575,7 @@ class TexturedObject:
             col = p.createCollisionShape(p.GEOM_MESH, vertices=self.vertices.tolist(), indices=self.triangles.ravel().tolist(),
                                          flags=p.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=client)
         body = p.createMultiBody(0.0, col, vis, basePosition=self.pose[:3, 3].tolist(),
-                                 baseOrientation=matrix_quat_xyzw(self.pose[:3, :3]).tolist(), physicsClientId=client)
+                                 baseOrientation=matrix_to_quat(self.pose[:3, :3]).tolist(), physicsClientId=client)
         self.update_texture(client, body, folder)
         return body
 
@@ -619,41 +620,7 @@ def parse_pose(values, option: str) -> np.ndarray:
     elif len(v) == 7:
         q = np.array(v[3:])
         require(abs(np.linalg.norm(q) - 1.0) < 1e-3, f"{option} quaternion is not unit length", fix)
-        T[:3, :3] = quat_xyzw_matrix(q / np.linalg.norm(q))
+        T[:3, :3] = quat_to_matrix(q / np.linalg.norm(q))
     return T
 
 
-def euler_xyz_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """R = Rz(yaw) Ry(pitch) Rx(roll) (fixed axes X, then Y, then Z; radians)."""
-    cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
-    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    return Rz @ Ry @ Rx
-
-
-def quat_xyzw_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit quaternion (x, y, z, w)."""
-    x, y, z, w = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
-def matrix_quat_xyzw(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method, w >= 0)."""
-    tr = np.trace(R)
-    if tr > 0:
-        s = 2.0 * np.sqrt(1.0 + tr)
-        q = np.array([(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s])
-    else:
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
-        q = np.zeros(4)
-        q[i] = 0.25 * s
-        q[j] = (R[j, i] + R[i, j]) / s
-        q[k] = (R[k, i] + R[i, k]) / s
-        q[3] = (R[k, j] - R[j, k]) / s
-    q /= np.linalg.norm(q)
-    return q if q[3] >= 0 else -q

@@ -30,6 +30,7 @@ from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.hardware.impedance import ForceLoop, LineImpedanceGains, hold_target, line_impedance_target, tool_rotation
 from tergodic_cli.robot import statemachine as S
 from tergodic_cli.robot.interfaces import ContactWrench, ToolLoad
+from tergodic_cli.robot.run import clamp_tilt
 from tergodic_cli.robot.safety import Fault, SafetyGuard
 
 SETTLE_S = 0.3
@@ -165,7 +166,7 @@ class HardwareRun:
         n_b = self.T_obj[:3, :3] @ np.asarray(self.explorer.normals[0], dtype=float)
         if n_b @ self._surface_normal(a) < 0:
             n_b = -n_b
-        return a, _clamp_tilt(-n_b / np.linalg.norm(n_b), self.cfg.max_tool_tilt_deg)
+        return a, clamp_tilt(-n_b / np.linalg.norm(n_b), self.cfg.max_tool_tilt_deg)
 
     def plan(self, x_ref: np.ndarray | None = None) -> HardwarePlan:
         """The start line, the hover pose and the first pressing reference, from the present state."""
@@ -617,20 +618,6 @@ class _StartAgent:
             dt = robot_cfg.explore_dt
 
         self.cfg = _Cfg()
-
-
-def _clamp_tilt(d: np.ndarray, max_deg: float) -> np.ndarray:
-    """``d`` turned towards straight down (-z) until it is within ``max_deg`` of it (the wrist's reach)."""
-    down = np.array([0.0, 0.0, -1.0])
-    c = float(d @ down)
-    lim = math.cos(math.radians(max_deg))
-    if c >= lim:
-        return d
-    side = d - c * down
-    n = float(np.linalg.norm(side))
-    if n < 1e-12:
-        return down.copy()
-    return lim * down + math.sin(math.radians(max_deg)) * side / n
 
 
 def _fmt(x) -> str:

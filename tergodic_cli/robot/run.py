@@ -23,6 +23,8 @@ from typing import Callable
 
 import numpy as np
 
+from tergodic_cli.capture.filters import mean_spacing
+
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.robot import statemachine as S
 from tergodic_cli.robot.config import RobotConfig, validate_robot_config
@@ -95,7 +97,7 @@ class RobotRun:
         check_reachable(self.points_base)
         side = resolve_side(cfg.normal_side, getattr(capture, "meta", {}) or {})
         self.normals = oriented_normals(points, side)
-        h = float((getattr(capture, "meta", {}) or {}).get("spacing_h_m") or _spacing(points))
+        h = float((getattr(capture, "meta", {}) or {}).get("spacing_h_m") or mean_spacing(points))
         self.mesh = reconstruct_mesh(points, self.normals, h, cfg.mesh_edge)
         self.kdtree = cKDTree(points)
 
@@ -146,7 +148,7 @@ class RobotRun:
         n_b = self.T_obj[:3, :3] @ n
         if n_b @ self._surface_normal(a) < 0:  # the explorer's normal sign is arbitrary; ours faces the tool
             n_b = -n_b
-        return a, _clamp_tilt(-n_b / np.linalg.norm(n_b), self.cfg.max_tool_tilt_deg)
+        return a, clamp_tilt(-n_b / np.linalg.norm(n_b), self.cfg.max_tool_tilt_deg)
 
     def _update_spin_ref(self, d: np.ndarray) -> None:
         # Parallel-transport the spin reference so it stays perpendicular to the tool axis.
@@ -564,7 +566,7 @@ class _AgentCoverage:
         return {"ergodicity": ergodicity(self.ex.p, self.cov, self.ex.mass), "touched_fraction": touched_fraction(self.ex.p, self.cov)}
 
 
-def _clamp_tilt(d: np.ndarray, max_deg: float) -> np.ndarray:
+def clamp_tilt(d: np.ndarray, max_deg: float) -> np.ndarray:
     """``d`` rotated towards straight down (-z) until it is within ``max_deg`` of it."""
     down = np.array([0.0, 0.0, -1.0])
     c = float(d @ down)
@@ -576,13 +578,6 @@ def _clamp_tilt(d: np.ndarray, max_deg: float) -> np.ndarray:
     if n < 1e-12:
         return down.copy()
     return lim * down + math.sin(math.radians(max_deg)) * side / n
-
-
-def _spacing(points: np.ndarray) -> float:
-    from scipy.spatial import cKDTree
-
-    d, _ = cKDTree(points).query(points, k=4)
-    return float(d[:, 1:].mean())
 
 
 def _fmt(x) -> str:
