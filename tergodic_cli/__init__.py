@@ -7,5 +7,5 @@ the functions that need them, so ``import tergodic_cli`` stays cheap.
 
 __version__ = "0.1.0"
 
-#: Bumped whenever an on-disk artefact layout changes; part of every cache key.
-FORMAT_VERSION = 1
+#: Version of the basis-cache layout and solver; part of every cache key, bumped when either changes.
+FORMAT_VERSION = 2

@@ -86,17 +86,21 @@ def test_tampered_cache_is_detected_and_recomputed(isolated_cache):
     cfg = BasisConfig(nk=10, neighbors=20)
     basis, _ = get_basis(pts, cfg)
     entry = isolated_cache / "basis" / basis.meta["key"]
-    with np.load(entry / "basis.npz") as data:
-        arrays = {k: data[k].copy() for k in data.files}
-    arrays["evecs"][0, 0] += 1e-3
-    with open(entry / "basis.npz", "wb") as fh:
-        np.savez(fh, **arrays)
+    evecs = np.load(entry / "evecs.npy")
+    evecs[0, 0] += 1e-3
+    np.save(entry / "evecs.npy", evecs)
     messages = []
     again, hit = get_basis(pts, cfg, on_event=messages.append)
     assert not hit and any("checksum" in m for m in messages)
     np.testing.assert_allclose(again.evecs, basis.evecs)
 
-    (entry / "basis.npz").write_bytes(b"not a zip file")
+    (entry / "mass.npy").write_bytes(b"not an npy file")
+    messages.clear()
+    _, hit = get_basis(pts, cfg, on_event=messages.append)
+    assert not hit and any("unreadable" in m for m in messages)
+
+    # An object array smuggled in is refused, never unpickled.
+    np.save(entry / "h.npy", np.array([{"evil": 1}], dtype=object), allow_pickle=True)
     messages.clear()
     _, hit = get_basis(pts, cfg, on_event=messages.append)
     assert not hit and any("unreadable" in m for m in messages)

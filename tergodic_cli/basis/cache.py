@@ -10,15 +10,18 @@ When the canonical frame is ambiguous (an exactly symmetric point set: equal
 principal variances or zero third moments), the key falls back to the points as
 given, which still hits for a changed target but not across a rigid motion.
 
-Files: ``<cache>/basis/<key>/basis.npz`` (no pickles) and ``basis.json`` (config,
-timings, versions and a blake2b checksum of the arrays). A missing, corrupt or
-tampered entry is reported, discarded and recomputed.
+Files: ``<cache>/basis/<key>/<array>.npy`` (plain ``.npy``, never pickles, loaded
+with ``allow_pickle=False``) and ``basis.json`` (config, timings, versions and a
+CRC-32 of every array). A missing, corrupt or edited entry is reported, discarded
+and recomputed. (CRC-32 detects corruption and edits; it is not a cryptographic seal,
+and it keeps a warm load within a few tens of milliseconds.)
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import zlib
 import os
 import shutil
 import tempfile
@@ -43,7 +46,7 @@ class BasisConfig:
 
     nk: int = 200
     neighbors: int = 30
-    solver: str = "arpack-shift-invert"
+    solver: str = "lanczos-interior-shift"
 
 
 def default_cache_dir() -> Path:
@@ -76,6 +79,12 @@ def canonical_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
 
 def geometry_key(points: np.ndarray, cfg: BasisConfig) -> tuple[str, np.ndarray, bool]:
     """Cache key, the permutation that puts ``points`` into canonical order, and rigid invariance."""
+    key, order, invariant, _ = _geometry(points, cfg)
+    return key, order, invariant
+
+
+def _geometry(points: np.ndarray, cfg: BasisConfig) -> tuple[str, np.ndarray, bool, np.ndarray]:
+    """Key, canonical order, invariance and the canonical coordinates (n, 3) in canonical order."""
     centroid, R, invariant = canonical_frame(points)
     canon = (points - centroid) @ R.T if invariant else points
     q = np.rint(canon / QUANTUM_M).astype(np.int64)
@@ -83,23 +92,23 @@ def geometry_key(points: np.ndarray, cfg: BasisConfig) -> tuple[str, np.ndarray,
     h = hashlib.sha256()
     h.update(json.dumps({"format": FORMAT_VERSION, "invariant": invariant, **asdict(cfg)}, sort_keys=True).encode())
     h.update(np.ascontiguousarray(q[order]).tobytes())
-    return h.hexdigest()[:32], order, invariant
+    return h.hexdigest()[:32], order, invariant, canon[order]
 
 
-def _checksum(arrays: dict[str, np.ndarray]) -> str:
-    h = hashlib.blake2b(digest_size=20)
-    for name in sorted(arrays):
-        a = np.ascontiguousarray(arrays[name])
-        h.update(name.encode())
-        h.update(str(a.dtype).encode() + str(a.shape).encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
+def _checksums(arrays: dict[str, np.ndarray]) -> dict[str, str]:
+    """CRC-32 of each array's dtype, shape and bytes (read through a memoryview: no copy)."""
+    out = {}
+    for name, a in arrays.items():
+        a = np.require(a, requirements="C")  # (ascontiguousarray would turn 0-d into 1-d)
+        crc = zlib.crc32(f"{a.dtype.str}{a.shape}".encode())
+        out[name] = f"{zlib.crc32(memoryview(a).cast('B'), crc):08x}"
+    return out
 
 
-def _to_arrays(basis: Basis, order: np.ndarray) -> dict[str, np.ndarray]:
+def _to_arrays(basis: Basis, order: np.ndarray, canon: np.ndarray) -> dict[str, np.ndarray]:
     L = basis.L[order][:, order].tocsr()
     return {
-        "points": basis.points[order],
+        "canonical_points": canon,
         "evals": basis.evals,
         "evecs": basis.evecs[order],
         "mass": basis.mass[order],
@@ -112,9 +121,11 @@ def _to_arrays(basis: Basis, order: np.ndarray) -> dict[str, np.ndarray]:
 
 def _from_arrays(arrays: dict[str, np.ndarray], points: np.ndarray, order: np.ndarray, meta: dict) -> Basis:
     n = len(points)
+    L = sp.csr_matrix((arrays["L_data"], arrays["L_indices"], arrays["L_indptr"]), shape=(n, n))
+    if np.array_equal(order, np.arange(n)):  # the caller's order is the canonical one: no copies
+        return Basis(points, L, arrays["mass"], arrays["evals"], arrays["evecs"], float(arrays["h"]), meta)
     inv = np.empty_like(order)
     inv[order] = np.arange(n)
-    L = sp.csr_matrix((arrays["L_data"], arrays["L_indices"], arrays["L_indptr"]), shape=(n, n))
     return Basis(points, L[inv][:, inv].tocsr(), arrays["mass"][inv], arrays["evals"], arrays["evecs"][inv],
                  float(arrays["h"]), meta)
 
@@ -123,24 +134,23 @@ class CacheMiss(Exception):
     """The entry is absent; the message says why when it was present but unusable."""
 
 
-def _load_entry(entry: Path, points: np.ndarray, order: np.ndarray, invariant: bool) -> Basis:
-    meta_path, npz_path = entry / "basis.json", entry / "basis.npz"
-    if not meta_path.exists() or not npz_path.exists():
+_ARRAY_NAMES = ("canonical_points", "evals", "evecs", "mass", "L_data", "L_indices", "L_indptr", "h")
+
+
+def _load_entry(entry: Path, points: np.ndarray, order: np.ndarray, canon: np.ndarray) -> Basis:
+    meta_path = entry / "basis.json"
+    if not meta_path.exists():
         raise CacheMiss("")
     try:
         meta = json.loads(meta_path.read_text())
-        with np.load(npz_path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
+        arrays = {name: np.load(entry / f"{name}.npy", allow_pickle=False) for name in _ARRAY_NAMES}
     except Exception as exc:
         raise CacheMiss(f"unreadable ({type(exc).__name__})") from None
-    if _checksum(arrays) != meta.get("checksum"):
+    if _checksums(arrays) != meta.get("checksums"):
         raise CacheMiss("checksum mismatch (corrupt or modified)")
     # Guard against key collisions: the cached geometry must be this geometry.
-    centroid, R, _ = canonical_frame(points)
-    canon = ((points - centroid) @ R.T if invariant else points)[order]
-    cached = arrays["points"]
-    cached_canon = (cached - cached.mean(axis=0)) @ canonical_frame(cached)[1].T if invariant else cached
-    if cached.shape != canon.shape or np.abs(cached_canon - canon).max() > 10 * QUANTUM_M:
+    cached = arrays["canonical_points"]
+    if cached.shape != canon.shape or np.abs(cached - canon).max() > 10 * QUANTUM_M:
         raise CacheMiss("geometry does not match its key")
     return _from_arrays(arrays, points, order, meta)
 
@@ -163,13 +173,13 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
     """
     say = on_event or (lambda msg: warnings.warn(msg, stacklevel=2))
     t0 = time.perf_counter()
-    key, order, invariant = geometry_key(points, cfg)
+    key, order, invariant, canon = _geometry(points, cfg)
     entry = Path(cache_dir or default_cache_dir()) / "basis" / key
     timings = {"key_ms": 1e3 * (time.perf_counter() - t0)}
     if not force:
         try:
             t = time.perf_counter()
-            basis = _load_entry(entry, points, order, invariant)
+            basis = _load_entry(entry, points, order, canon)
             basis.meta["timings_load"] = {**timings, "load_ms": 1e3 * (time.perf_counter() - t)}
             basis.meta["path"] = str(entry)
             return basis, True
@@ -183,7 +193,7 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
     from tergodic_cli.provenance import library_versions
 
     t = time.perf_counter()
-    arrays = _to_arrays(basis, order)
+    arrays = _to_arrays(basis, order, canon)
     meta = {
         "kind": "tergodic.basis",
         "format_version": FORMAT_VERSION,
@@ -195,7 +205,7 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
         "lambda_range": [float(basis.evals[0]), float(basis.evals[-1])],
         "timings": timings,
         "versions": library_versions(),
-        "checksum": _checksum(arrays),
+        "checksums": _checksums(arrays),
     }
     _write_entry(entry, arrays, meta)
     timings["write_ms"] = 1e3 * (time.perf_counter() - t)
@@ -209,8 +219,8 @@ def _write_entry(entry: Path, arrays: dict[str, np.ndarray], meta: dict) -> None
     entry.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{entry.name}.", dir=entry.parent))
     try:
-        with open(tmp / "basis.npz", "wb") as fh:
-            np.savez(fh, **arrays)
+        for name, array in arrays.items():
+            np.save(tmp / f"{name}.npy", np.require(array, requirements="C"), allow_pickle=False)
         (tmp / "basis.json").write_text(json.dumps(meta, indent=2) + "\n")
         if entry.exists():
             shutil.rmtree(entry)
