@@ -35,9 +35,9 @@ def two_patch():
     pts = jittered_square(50, 0.2, seed=1)
     pts = pts[pts[:, 1] < 0.1]  # a 20 x 10 cm flat sheet, h ≈ 3.9 mm
     a, b = np.array([0.04, 0.05, 0.0]), np.array([0.16, 0.05, 0.0])
-    in_a = np.linalg.norm(pts - a, axis=1) < 0.015
-    in_b = np.linalg.norm(pts - b, axis=1) < 0.015
-    return pts, compute_basis(pts, 80, 30), in_a, in_b, a, b
+    in_a = np.linalg.norm(pts - a, axis=1) < 0.012
+    in_b = np.linalg.norm(pts - b, axis=1) < 0.012
+    return pts, compute_basis(pts, 120, 30), in_a, in_b, a, b
 
 
 def _run(ex: Explorer, steps: int) -> dict[str, np.ndarray]:
@@ -136,7 +136,10 @@ def test_footprint_is_the_gaussian_of_tangent_distance_within_the_radius(sphere)
 def test_a_target_in_two_patches_gets_both_visited(two_patch):
     pts, basis, in_a, in_b, a, _ = two_patch
     target = (in_a | in_b).astype(float)
-    ex = Explorer(basis, target, ExploreConfig(nk=80, agent_radius=0.008), (a + [0.002, 0, 0])[None])
+    # nK = 120 resolves a cleared hole of the footprint's size on this 4 mm sheet; with a basis
+    # too coarse for that (nK = 80 here), the truncated heat can peak inside the hole and hold
+    # the agent there (measured: 7 of 12 µm-perturbed starts at nK = 80, 12 of 12 at nK = 120).
+    ex = Explorer(basis, target, ExploreConfig(nk=120, agent_radius=0.008), (a + [0.002, 0, 0])[None])
     r = _run(ex, 600)
     assert np.mean(ex.coverage[in_a] > 0) > 0.95
     assert np.mean(ex.coverage[in_b] > 0) > 0.95

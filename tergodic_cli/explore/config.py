@@ -41,6 +41,9 @@ class ExploreConfig:
         Φ e^{-λδt} Φᵀ M) or "implicit" ((M + δt L)⁻¹ M, sparse, factorised once per α: the
         exact baseline).
     seed : seed of everything random in the run (random starts).
+    resync_every : K: the incrementally kept spectral source (docs/speed.md) is recomputed in
+        full every K steps to bound round-off; 1 recomputes every step (the O(n_target nK)
+        reference), 0 never.
     n_neighbors : n_N, neighbours of the agent for the CGA tangent fit and the gradient cubic.
     epsilon : footprint shape ε of φ(r) = exp(-ε² r²), 1/m; None means 2/agent_radius (the
         disc r <= r_a holds 98 % of the Gaussian's mass, so the cut at r_a changes almost nothing).
@@ -61,6 +64,7 @@ class ExploreConfig:
     diffusion: str = "carry"
     integrator: str = "resolvent"
     seed: int = 0
+    resync_every: int = 1000
     n_neighbors: int = DEFAULT_NEIGHBORS
     epsilon: float | None = None
     basis_neighbors: int = 30
@@ -118,6 +122,8 @@ def validate_config(cfg: ExploreConfig) -> None:
     require(cfg.diffusion in DIFFUSIONS, f"--diffusion '{cfg.diffusion}' is unknown", f"use one of {', '.join(DIFFUSIONS)}")
     require(cfg.integrator in INTEGRATORS, f"--integrator '{cfg.integrator}' is unknown",
             f"use one of {', '.join(INTEGRATORS)}")
+    require(int(cfg.resync_every) >= 0, f"resync_every must be >= 0 steps, got {cfg.resync_every}",
+            "e.g. 1000 (0: never, 1: a full recompute every step)")
     require(int(cfg.n_neighbors) >= MIN_NEIGHBORS, f"--fit-neighbors {cfg.n_neighbors} is too few for a cubic fit",
             f"use at least {MIN_NEIGHBORS} (paper: {DEFAULT_NEIGHBORS})")
     if cfg.epsilon is not None:

@@ -19,10 +19,13 @@ One :meth:`Explorer.step`:
    that slid off the object (farther from its nearest point than r_a or that point's longest
    Laplacian edge) is put back at that distance and its velocity reflected.
 
-Per-step cost is independent of the number of cloud points except through the target:
-the source and its spectral projection live on the target points only, the heat is
-evaluated only at the agents' neighbours, and the metrics are updated incrementally.
-(The ``implicit`` integrator solves with the sparse factor: O(n) or so per step.)
+Cost: with the spectral integrators a step does work proportional to the points under the
+footprint and to nK, not to the number of cloud points: the spectral coefficients of the
+source are kept up to date incrementally (exactly; see :mod:`tergodic_cli.explore.kernels`
+and docs/speed.md), the heat is evaluated only at the agents' n_N neighbours, and the metrics
+are updated incrementally. A full recompute every ``resync_every`` steps bounds round-off.
+The whole step is one compiled call (:func:`kernels.step_kernel`). The ``implicit``
+integrator solves with the sparse factor on the whole cloud: O(n) per step.
 """
 
 from __future__ import annotations
@@ -30,18 +33,76 @@ from __future__ import annotations
 import math
 import time
 import warnings
+import weakref
 from typing import Callable
 
 import numpy as np
 
 from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.explore import kernels as K
 from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_config
 from tergodic_cli.explore.diffusion import ImplicitDiffusion, time_step
-from tergodic_cli.explore.geometry import fit_primitive, orient, project_onto, tangent_basis
-from tergodic_cli.explore.gradient import fit_cubic
 
-#: Iterations of "fit, project, re-query" that bring a start point onto the surface.
-START_ITERATIONS = 8
+# Static per-cloud data, shared by every explorer of the same arrays (a sweep builds hundreds).
+_TREES: dict[int, tuple] = {}
+_REACH: dict[int, tuple] = {}
+_PHI: dict[int, tuple] = {}
+
+
+def _cached(store: dict, owner, build):
+    key = id(owner)
+    hit = store.get(key)
+    if hit is not None and hit[0]() is owner:
+        return hit[1]
+    value = build()
+    store[key] = (weakref.ref(owner, lambda _ref, key=key: store.pop(key, None)), value)
+    return value
+
+
+class CloudIndex:
+    """The compiled KD-tree of a cloud and the internal point order it defines.
+
+    The explorer keeps every per-point array, and the rows of Φ, in the tree's leaf order
+    (``order``: internal i is cloud point order[i]; ``rank`` is the inverse), so that the
+    points under a footprint, and their rows of Φ, are close in memory: on a 100k-point cloud
+    this halves the step (cache and TLB misses). ``tree`` is the kernels' (perm, nodes, boxes,
+    points) in internal indices, ``points`` the cloud in internal order.
+    """
+
+    def __init__(self, points: np.ndarray):
+        perm, nodes, boxes, tpts = K.tree_build(points)
+        self.order = perm
+        self.rank = np.empty_like(perm)
+        self.rank[perm] = np.arange(len(perm))
+        self.points = tpts
+        self.tree = (np.arange(len(perm)), nodes, boxes, tpts)
+
+
+def cloud_index(points: np.ndarray) -> CloudIndex:
+    """The :class:`CloudIndex` of ``points`` (n, 3), built once per array."""
+    return _cached(_TREES, points, lambda: CloudIndex(points))
+
+
+def _internal_phi(evecs: np.ndarray, nk: int, order: np.ndarray) -> np.ndarray:
+    """Φ[:, :nk] with its rows in internal order, C-contiguous (built once per array and nK)."""
+    per_nk = _cached(_PHI, evecs, dict)
+    if nk not in per_nk:
+        per_nk[nk] = np.ascontiguousarray(evecs[order, :nk], dtype=np.float64)
+    return per_nk[nk]
+
+
+def edge_lengths(points: np.ndarray, L) -> np.ndarray:
+    """(n,) longest Laplacian edge at each point, metres (built once per L)."""
+
+    def build():
+        Lc = L.tocoo()
+        off = Lc.row != Lc.col
+        lengths = np.linalg.norm(points[Lc.row[off]] - points[Lc.col[off]], axis=1)
+        out = np.zeros(len(points))
+        np.maximum.at(out, Lc.row[off], lengths)
+        return out
+
+    return _cached(_REACH, L, build)
 
 
 class Explorer:
@@ -61,12 +122,15 @@ class Explorer:
     velocities : (N, 3) m/s, tangent to the surface.
     accelerations : (N, 3) commanded accelerations of the last step, m/s².
     normals : (N, 3) unit surface normals at ``positions``; the line L_a⊥ is positions + s·normals.
+    neighbours : (N, n_N) indices of each agent's n_N nearest cloud points (its fit patch).
     coverage : (n,) raw accumulated footprint c̃.
-    heat : (n,) the potential u (evaluated on access).
-    source : (n,) s = max(p̄ - c̄, 0)² (eq. 1), 1/m⁴.
+    heat : (n,) the potential u (reconstructed on access, O(n nK)).
+    source : (n,) s = max(p̄ - c̄, 0)² (eq. 1), 1/m⁴ (computed on access).
     step_index : steps done.
     last_step_ms : wall time of the last :meth:`step`, metrics included.
     edge_events : how many times an agent was pulled back onto the cloud.
+    resync_drift : largest relative correction a periodic full recompute has made to the
+        incrementally kept ∫s and Φᵀ M s (round-off; 0 before the second recompute).
     """
 
     def __init__(self, basis, target: np.ndarray, cfg: ExploreConfig, starts: np.ndarray,
@@ -79,38 +143,55 @@ class Explorer:
                 f"compute a basis with --nk {cfg.nk} or use --nk <= {basis.nk}")
         require(int(cfg.n_neighbors) <= n, f"--fit-neighbors {cfg.n_neighbors} exceeds the {n} cloud points",
                 "use fewer neighbours")
-        self.points = basis.points
+        self._basis = basis
+        self.points = np.ascontiguousarray(basis.points, dtype=np.float64)
         self.mass = basis.mass
         self.h = float(basis.h)
-        self.kdtree = basis.kdtree
-        self.evecs = np.ascontiguousarray(basis.evecs[:, : cfg.nk])
         self.evals = basis.evals[: cfg.nk]
         self._L = basis.L
         self.eps = cfg.footprint_epsilon
         self.r_a = float(cfg.agent_radius)
-        # Off-cloud guard: the fitted plane of an open sheet extends past its last points, so an
-        # agent may slide off the object. It may stray from its nearest point j by at most
-        # max(r_a, ℓ_j), ℓ_j the longest Laplacian edge at j: gaps the Laplacian bridges (and
-        # the heat flows across) stay crossable, as in the paper's bunny ear; beyond, it is pulled back.
-        Lc = basis.L.tocoo()
-        off = Lc.row != Lc.col
-        lengths = np.linalg.norm(self.points[Lc.row[off]] - self.points[Lc.col[off]], axis=1)
-        self._reach = np.full(len(self.points), self.r_a)
-        np.maximum.at(self._reach, Lc.row[off], lengths)
+        self._k = int(cfg.n_neighbors)
+        index = cloud_index(self.points)
+        self._order, self._rank, self._P, self._tree = index.order, index.rank, index.points, index.tree
+        self._phi = _internal_phi(basis.evecs, cfg.nk, self._order)
         if self.r_a < self.h:
             self._say(f"warning: agent radius {self.r_a * 1e3:.2f} mm is below the point spacing h = "
                       f"{self.h * 1e3:.2f} mm; the footprint may miss points (use --agent-radius >= h)")
         self._spectral = cfg.integrator in ("spectral", "resolvent")
+        self._mode = (K.HEAT_FULL if not self._spectral else
+                      K.HEAT_CARRY if cfg.diffusion == "carry" else K.HEAT_SOURCE)
         self._schedule = parse_alpha(cfg.alpha)
+        self._multi_alpha = len(self._schedule) > 1
         self._alpha = None
         self._implicit: dict[float, ImplicitDiffusion] = {}
 
-        self.coverage = np.zeros(n)
-        self._cov_mass = 0.0  # ∫c̃ = Σ M c̃
+        # Per-point state, packed for the compiled step (kernels.PF_*, PB_*, PI_* rows).
+        self._pf = np.zeros((K.N_PF, n))
+        self._pf[K.PF_MASS] = basis.mass[self._order]
+        # Off-cloud guard: the fitted plane of an open sheet extends past its last points, so an
+        # agent may slide off the object. It may stray from its nearest point j by at most
+        # max(r_a, ℓ_j), ℓ_j the longest Laplacian edge at j: gaps the Laplacian bridges (and
+        # the heat flows across) stay crossable, as in the paper's bunny ear; beyond, it is pulled back.
+        self._pf[K.PF_REACH] = np.maximum(edge_lengths(self.points, basis.L)[self._order], self.r_a)
+        self._pb = np.zeros((K.N_PB, n), dtype=np.int8)
+        self._pi = np.zeros((K.N_PI, n), dtype=np.int64)
+        self._sp = np.zeros((K.N_SP, cfg.nk))
+        self._fs = np.zeros(K.N_FS)
+        self._is = np.zeros(K.N_IS, dtype=np.int64)
+        self._prm = np.zeros(K.N_PR)
+        self._prm[K.PR_EPS2] = self.eps * self.eps
+        self._prm[K.PR_RA] = self.r_a
+        self._prm[K.PR_H2] = self.h * self.h
+        self._prm[K.PR_AMAX] = cfg.a_max
+        self._prm[K.PR_VMAX] = cfg.v_max
+        self._prm[K.PR_DT] = cfg.dt
+        self._prm[K.PR_MAXSTART] = cfg.max_start_distance
+        self._cov = self._pf[K.PF_COV]
+        self._u_full = np.zeros(n if not self._spectral else 0)  # implicit: u in internal order
+        self._u_orig = np.zeros(n if not self._spectral else 0)  # ... and in the cloud's order
         self.step_index = 0
         self.last_step_ms = 0.0
-        self.edge_events = 0
-        self._heat_cache: tuple[int, np.ndarray] | None = None
         self.set_target(target)
 
         starts = np.asarray(starts, dtype=np.float64)
@@ -120,16 +201,29 @@ class Explorer:
                 "give one start per agent")
         require(bool(np.all(np.isfinite(starts))), "a start position is not finite", "give finite x,y,z in metres")
         N = cfg.n_agents
-        self.positions = np.zeros((N, 3))
-        self.velocities = np.zeros((N, 3))
-        self.accelerations = np.zeros((N, 3))
-        self.normals = np.zeros((N, 3))
-        self._nbrs: list[np.ndarray] = [np.zeros(0, dtype=np.intp)] * N
-        self._frames: list[np.ndarray] = [np.zeros((3, 2))] * N
+        self._ag = np.zeros((N, K.N_AG))
+        self._nbrs = np.zeros((N, self._k), dtype=np.int64)
+        self.positions = self._ag[:, K.AG_POS:K.AG_POS + 3]
+        self.velocities = self._ag[:, K.AG_VEL:K.AG_VEL + 3]
+        self.accelerations = self._ag[:, K.AG_ACC:K.AG_ACC + 3]
+        self.normals = self._ag[:, K.AG_NRM:K.AG_NRM + 3]
+        self._resets = np.zeros((N, 3))
+        self._reset_status = np.full(N, -1, dtype=np.int64)
+        self._no_deposits = np.zeros((0, 3))
+        self._resync = int(cfg.resync_every)
+        self._bind()
         hint = np.asarray(cfg.normal_hint, dtype=float)
         hint = hint / np.linalg.norm(hint)
         for i, x0 in enumerate(starts):
-            self._place(i, x0, hint)
+            d0 = K.nearest_distance(*self._tree, x0)
+            require(d0 <= cfg.max_start_distance,
+                    f"start {np.array2string(x0, precision=4)} is {d0 * 1e3:.1f} mm from the cloud "
+                    f"(limit {cfg.max_start_distance * 1e3:.0f} mm)",
+                    "give a start on the object (x,y,z in metres, a point index, or 'random')")
+            K.place_agent(self._P, *self._tree, self._ag, self._nbrs, i, x0, hint, self._k)
+            if d0 > self.h:
+                self._say(f"warning: start {np.array2string(x0, precision=4)} is {d0 * 1e3:.1f} mm off the cloud; "
+                          f"projected onto the surface at {np.array2string(self.positions[i], precision=4)}")
 
     # ------------------------------------------------------------------ target and state
     def set_target(self, target: np.ndarray, reset_coverage: bool = False) -> None:
@@ -148,50 +242,114 @@ class Explorer:
         require(total > 0, "the target is empty (no point has p > 0)",
                 "check the capture's --target colour, or use --target all for uniform coverage")
         if reset_coverage:
-            self.coverage[:] = 0.0
-            self._cov_mass = 0.0
+            self._cov[:] = 0.0
         self.p = p
-        self._T = np.flatnonzero(p > 0)
-        self._is_target = p > 0
-        self._pT = p[self._T] / total  # p̄ on the target points
-        self._mT = self.mass[self._T]
-        # Φᵀ M restricted to the target columns: the source lives there only.
-        self._PhiTM_T = np.ascontiguousarray((self.evecs[self._T] * self._mT[:, None]).T)
-        self._touched_T = int(np.count_nonzero(self.coverage[self._T] > 0))
-        self._s = np.zeros(len(self._T))  # s = max(p̄ - c̄, 0)² on the target
-        self._sbar_full = np.zeros(n)  # s / ∫s, the injected source, on all points
-        self._residual_mass = float(self._mT @ (self._pT * self._pT))
-        self._phat = None  # set after the next step
-        self._ref_untouched = 0.0
+        pbar = (p / total)[self._order]  # internal order from here on
+        T = np.flatnonzero(pbar > 0)
+        self._T = T
+        self._n_target = len(T)
+        self._pf[K.PF_PBAR] = pbar
+        self._pf[K.PF_PHAT] = 0.0
+        self._pb[:] = 0
+        self._pb[K.PB_TARGET, T] = 1
+        self._pi[K.PI_TARGET, : len(T)] = T
+        self._heap_keys = np.zeros(len(T))
+        self._heap_idx = np.zeros(len(T), dtype=np.int64)
+        keep = self._is[[K.IS_EDGE, K.IS_FOOTPRINT, K.IS_ROWS, K.IS_POPS]]  # run diagnostics survive a new target
+        drift = self._fs[K.FS_DRIFT]
+        self._is[:] = 0
+        self._is[[K.IS_EDGE, K.IS_FOOTPRINT, K.IS_ROWS, K.IS_POPS]] = keep
+        self._is[K.IS_NTARGET] = len(T)
+        self._is[K.IS_TOUCHED] = int(np.count_nonzero(self._cov[T] > 0))
+        self._fs[:] = 0.0
+        self._fs[K.FS_DRIFT] = drift
+        K.resync(self._phi, self._pf, self._pb, self._pi, self._sp, self._heap_keys, self._heap_idx, self._fs,
+                 self._is)
         self._ref_norm2 = 1.0
-        if self._spectral:
-            self._a = np.zeros(len(self.evals))  # spectral part of u
-            self._b = self._PhiTM_T @ self._pT  # Φᵀ M of u's non-spectral part (u₀ = p̄)
-        else:
-            self._u = np.zeros(n)
-            self._u[self._T] = self._pT
-        self._heat_cache = None
-        self._metrics = {"ergodicity": float(math.sqrt(self._residual_mass)), "ergodicity_ref": float("nan"),
-                         "touched_fraction": self._touched_T / len(self._T)}
+        # Φᵀ M p̄: the spectral part of u₀ = p̄ (eq. 5) and of the reference heat p̂.
+        pbar_coef = K.project_rows(self._phi, self._pf[K.PF_MASS] * pbar)
+        self._sp[K.SP_PBARCOEF] = pbar_coef
+        self._sp[K.SP_A] = 0.0
+        self._sp[K.SP_B] = pbar_coef  # u₀ = Φ a + r with Φᵀ M r = b: a = 0, r = p̄
+        if not self._spectral:
+            self._u_full[:] = pbar
+            self._u_orig[:] = pbar[self._rank]
+        self._metrics = {"ergodicity": math.sqrt(max(self._fs[K.FS_MASS_S], 0.0)), "ergodicity_ref": float("nan"),
+                         "touched_fraction": int(self._is[K.IS_TOUCHED]) / len(T)}
+        if hasattr(self, "_state"):
+            self._bind()
+
+    def _bind(self) -> None:
+        """The step kernel's state arguments, bound once (the heap arrays change with the target)."""
+        self._state = (self._P, *self._tree, self._phi, self._pf, self._pb, self._pi, self._sp, self._heap_keys,
+                       self._heap_idx, self._fs, self._is, self._prm, self._ag, self._nbrs, self._k)
+
+    @property
+    def edge_events(self) -> int:
+        return int(self._is[K.IS_EDGE])
+
+    @property
+    def resync_drift(self) -> float:
+        return float(self._fs[K.FS_DRIFT])
+
+    @property
+    def work(self) -> dict:
+        """Work counters since the start: footprint points visited, rows of Φ added into the
+        source accumulators (deposits and threshold crossings), full recomputes."""
+        return {"footprint_points": int(self._is[K.IS_FOOTPRINT]), "spectral_rows": int(self._is[K.IS_ROWS]),
+                "heap_pops": int(self._is[K.IS_POPS]), "resyncs": int(self._is[K.IS_RESYNCS])}
+
+    @property
+    def kdtree(self):
+        """scipy cKDTree of the cloud (the basis'; built on first use)."""
+        return self._basis.kdtree
+
+    @property
+    def coverage(self) -> np.ndarray:
+        """(n,) raw coverage c̃ in the cloud's order (a copy)."""
+        return self._cov[self._rank]
+
+    @property
+    def neighbours(self) -> np.ndarray:
+        """(N, n_N) each agent's fit patch: cloud point indices, nearest first (a copy)."""
+        return self._order[self._nbrs]
+
+    @property
+    def evecs(self) -> np.ndarray:
+        """(n, nK) the eigenvectors in use, in the cloud's order."""
+        return self._basis.evecs[:, : self.cfg.nk]
 
     @property
     def source(self) -> np.ndarray:
-        s = np.zeros(len(self.points))
-        s[self._T] = self._s
-        return s
+        from tergodic_cli.explore.metrics import source_term
+
+        return source_term(self.p, self.coverage, self.mass)
+
+    def _sbar(self) -> np.ndarray:
+        """(n,) the injected source s/∫s as the step used it (running Z and ∫s), internal order."""
+        out = np.zeros(len(self.points))
+        Z, ms = self._fs[K.FS_Z], self._fs[K.FS_MASS_S]
+        if ms > 0:
+            T = self._T
+            e = self._pf[K.PF_PBAR, T] - (self._cov[T] / Z if Z > 0 else 0.0)
+            out[T] = np.maximum(e, 0.0) ** 2 / ms
+        return out
 
     @property
     def heat(self) -> np.ndarray:
-        if self._heat_cache is not None and self._heat_cache[0] == self.step_index:
-            return self._heat_cache[1]
-        if self._spectral:
-            u = self.evecs @ self._a
-            if self.cfg.diffusion == "carry":
-                u += self._sbar_full
-        else:
-            u = self._u.copy()
-        self._heat_cache = (self.step_index, u)
-        return u
+        """(n,) the potential u in the cloud's order (reconstructed: O(n nK))."""
+        if not self._spectral:
+            return self._u_orig.copy()
+        u = K.expand_rows(self._phi, self._sp[K.SP_A])
+        if self._mode == K.HEAT_CARRY:
+            u += self._sbar()
+        return u[self._rank]
+
+    def heat_at(self, idx: np.ndarray) -> np.ndarray:
+        """u at the cloud points ``idx`` (m,) exactly as the agents' gradient fits see it, O(m nK)."""
+        idx = self._rank[np.asarray(idx, dtype=np.int64).ravel()]
+        return np.array([K.heat_at(self._phi, self._pf, self._sp, self._fs, j, self._mode, self._u_full)
+                         for j in idx])
 
     def metrics(self) -> dict:
         """{"ergodicity", "ergodicity_ref", "touched_fraction"} after the last step (see docs/explore.md)."""
@@ -202,167 +360,21 @@ class Explorer:
         """α in effect for the next step."""
         return [a for s, a in self._schedule if s <= self.step_index][-1]
 
-    # ------------------------------------------------------------------ geometry
-    def _locate(self, x: np.ndarray, ref_normal: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Project ``x`` onto the surface fitted to its n_N nearest points.
+    @property
+    def _decay(self) -> np.ndarray:
+        return self._sp[K.SP_DECAY]
 
-        Returns the projected point, its unit normal (oriented like ``ref_normal``), and the
-        neighbour indices (sorted by distance to ``x``).
-        """
-        _, nb = self.kdtree.query(x, k=self.cfg.n_neighbors)
-        nbp = self.points[nb]
-        try:
-            prim = fit_primitive(nbp)
-            xp, n = project_onto(prim, x)
-        except ValueError:  # degenerate patch or sphere centre: fall back to the nearest point's plane
-            xp, n = nbp[0].copy(), ref_normal.copy()
-        return xp, orient(n, ref_normal), nb
-
-    def _place(self, i: int, x0: np.ndarray, hint: np.ndarray, start: bool = True) -> None:
-        """Project a start (or, with ``start=False``, a reset position) onto the surface.
-
-        A start farther than ``max_start_distance`` from the cloud is refused; a reset that
-        far is ignored (the agent keeps its state) and reported.
-        """
-        d0, _ = self.kdtree.query(x0)
-        if not start and d0 > self.cfg.max_start_distance:
-            self._say(f"warning: step {self.step_index}: agent {i} reset point is {d0 * 1e3:.1f} mm off the cloud; ignored")
-            return
-        require(d0 <= self.cfg.max_start_distance,
-                f"start {np.array2string(x0, precision=4)} is {d0 * 1e3:.1f} mm from the cloud "
-                f"(limit {self.cfg.max_start_distance * 1e3:.0f} mm)",
-                "give a start on the object (x,y,z in metres, a point index, or 'random')")
-        x, ref = np.asarray(x0, dtype=float), hint
-        for _ in range(START_ITERATIONS):
-            xp, n, nb = self._locate(x, ref)
-            moved = float(np.linalg.norm(xp - x))
-            x, ref = xp, n
-            if moved < 1e-9:
-                break
-        if start and d0 > self.h:
-            self._say(f"warning: start {np.array2string(x0, precision=4)} is {d0 * 1e3:.1f} mm off the cloud; "
-                      f"projected onto the surface at {np.array2string(x, precision=4)}")
-        self.positions[i] = x
-        self.normals[i] = ref
-        self._nbrs[i] = nb
-        self._frames[i] = np.column_stack(tangent_basis(ref))
-        v = self.velocities[i]
-        self.velocities[i] = self._tangential(v, ref)
-
-    @staticmethod
-    def _tangential(v: np.ndarray, n: np.ndarray) -> np.ndarray:
-        """``v`` turned into the plane normal to ``n`` with its speed kept."""
-        speed = math.sqrt(float(v @ v))
-        vt = v - (v @ n) * n
-        norm = math.sqrt(float(vt @ vt))
-        return vt * (speed / norm) if norm > 0 else np.zeros(3)
-
-    # ------------------------------------------------------------------ coverage
-    def _deposit(self, x: np.ndarray, n: np.ndarray) -> None:
-        idx = np.asarray(self.kdtree.query_ball_point(x, self.r_a), dtype=np.intp)
-        if len(idx) == 0:
-            return
-        d = self.points[idx] - x
-        off = d @ n
-        r2 = np.maximum(np.einsum("ij,ij->i", d, d) - off * off, 0.0)  # tangent-plane distance² (eq. 31)
-        phi = np.exp(-(self.eps * self.eps) * r2)
-        fresh = idx[self.coverage[idx] == 0]
-        self.coverage[idx] += phi
-        self._cov_mass += float(self.mass[idx] @ phi)
-        if len(fresh):
-            self._touched_T += int(np.count_nonzero(self._is_target[fresh]))
-            if self._phat is not None:
-                ph = self._phat[fresh]
-                self._ref_untouched -= float(ph @ ph)
-
-    # ------------------------------------------------------------------ diffusion
-    def _update_source(self) -> None:
-        T = self._T
-        e = self._pT - self.coverage[T] / self._cov_mass if self._cov_mass > 0 else self._pT.copy()
-        np.maximum(e, 0.0, out=e)
-        s = e * e
-        self._s = s
-        z = float(self._mT @ s)  # ∫s = ‖max(p̄ - c̄, 0)‖² in L2(M)
-        self._residual_mass = z
-        self._sbar_full[T] = s / z if z > 0 else 0.0
-
-    def _set_alpha(self) -> float:
+    def _set_alpha(self) -> None:
         alpha = self.alpha
         if alpha != self._alpha:
             self._alpha = alpha
             dt = time_step(alpha, self.h)
             if self.cfg.integrator == "spectral":
-                self._decay = np.exp(-self.evals * dt)  # eq. 19
+                self._sp[K.SP_DECAY] = np.exp(-self.evals * dt)  # eq. 19
             elif self.cfg.integrator == "resolvent":
-                self._decay = 1.0 / (1.0 + self.evals * dt)  # eq. 4: (M + δt L)⁻¹ M in the eigenbasis
+                self._sp[K.SP_DECAY] = 1.0 / (1.0 + self.evals * dt)  # eq. 4: (M + δt L)⁻¹ M in the eigenbasis
             elif alpha not in self._implicit:
                 self._implicit[alpha] = ImplicitDiffusion(self._L, self.mass, dt)
-        return alpha
-
-    def _diffuse(self) -> None:
-        alpha = self._set_alpha()
-        carry = self.cfg.diffusion == "carry"
-        if self._spectral:
-            sbar_coef = self._PhiTM_T @ self._sbar_full[self._T]
-            if carry:
-                # u_{t-1} = Φ a + r with Φᵀ M r = b, so Φᵀ M u_{t-1} = a + b; then u_t = Φ a' + s̄.
-                self._a = self._decay * (self._a + self._b)
-                self._b = sbar_coef
-            else:
-                self._a = self._decay * sbar_coef
-        else:
-            op = self._implicit[alpha]
-            self._u = op.apply(self._u) + self._sbar_full if carry else op.apply(self._sbar_full)
-
-    def _heat_at(self, idx: np.ndarray) -> np.ndarray:
-        if self._spectral:
-            u = self.evecs[idx] @ self._a
-            return u + self._sbar_full[idx] if self.cfg.diffusion == "carry" else u
-        return self._u[idx]
-
-    # ------------------------------------------------------------------ agents
-    def _gradient(self, i: int) -> np.ndarray:
-        """∇u (3,) at agent i's projected position, in its tangent plane (eqs. 32-33)."""
-        nb = self._nbrs[i]
-        frame = self._frames[i]  # (3, 2): t1, t2 as columns
-        uv = (self.points[nb] - self.positions[i]) @ frame
-        r2 = np.einsum("ij,ij->i", uv, uv)
-        w = np.exp(-(self.eps * self.eps) * r2)
-        # Off the sampled surface (past an open edge, across a gap) the neighbours lie on one
-        # side and a cubic would be extrapolated: fit a plane there.
-        degree = 3 if float(r2.min()) <= self.h * self.h else 1
-        coef = fit_cubic(uv, self._heat_at(nb), w, degree)
-        return frame @ coef[1:3]
-
-    def _move(self, i: int) -> None:
-        cfg = self.cfg
-        g = self._gradient(i)
-        gn = math.sqrt(float(g @ g))
-        a = g * (cfg.a_max / gn) if gn > 0 and math.isfinite(gn) else np.zeros(3)
-        # Semi-implicit Euler: the step's displacement is v_new δt, so |Δx| <= v_max δt exactly.
-        v = self.velocities[i] + a * cfg.dt
-        speed = math.sqrt(float(v @ v))
-        if speed > cfg.v_max:
-            v *= cfg.v_max / speed
-        x_new = self.positions[i] + v * cfg.dt
-        xp, n, nb = self._locate(x_new, self.normals[i])
-        # Edge guard: an open sheet's fitted plane extends past its last points.
-        diff = self.points[nb] - xp
-        d2 = np.einsum("ij,ij->i", diff, diff)
-        j = int(np.argmin(d2))
-        reach = self._reach[nb[j]]
-        if d2[j] > reach * reach:
-            self.edge_events += 1
-            q = self.points[nb[j]]
-            out = (xp - q) / math.sqrt(float(d2[j]))
-            xp, n, nb = self._locate(q + out * reach, n)
-            v = v - 2.0 * max(float(v @ out), 0.0) * out  # reflect off the edge: keep moving, never stall
-        self.accelerations[i] = a
-        self.positions[i] = xp
-        self.normals[i] = n
-        self.velocities[i] = self._tangential(v, n)
-        self._nbrs[i] = nb
-        self._frames[i] = np.column_stack(tangent_basis(n))
 
     # ------------------------------------------------------------------ the step
     def step(self, deposit_at: np.ndarray | None = None, agent_at: np.ndarray | None = None) -> None:
@@ -376,48 +388,74 @@ class Explorer:
             gradient step, e.g. the measured tool tip (eq. 22).
         """
         t0 = time.perf_counter()
+        if self._alpha is None or self._multi_alpha:
+            self._set_alpha()
         if deposit_at is None:
-            for i in range(len(self.positions)):
-                self._deposit(self.positions[i], self.normals[i])
+            deposits, n_dep = self._no_deposits, -1
         else:
-            pts = np.asarray(deposit_at, dtype=np.float64).reshape(-1, 3)
-            ref = self.normals[0]
-            for q in pts:
-                if self.kdtree.query(q)[0] > self.r_a:
-                    continue  # a contact off the cloud covers no cloud point
-                xp, n, _ = self._locate(q, ref)
-                self._deposit(xp, n)
-        self._update_source()
-        self._diffuse()
+            deposits = np.ascontiguousarray(deposit_at, dtype=np.float64).reshape(-1, 3)
+            n_dep = len(deposits)
+        status = self._reset_status
         if agent_at is not None:
             at = np.asarray(agent_at, dtype=np.float64).reshape(-1, 3)
             require(len(at) == len(self.positions), f"agent_at has {len(at)} rows for {len(self.positions)} agents",
                     "give one position per agent")
-            for i, x in enumerate(at):
-                self._place(i, x, self.normals[i], start=False)
-        for i in range(len(self.positions)):
-            self._move(i)
+            self._resets[:] = at
+            status[:] = 0
+        else:
+            status[:] = -1
+        if self._spectral:
+            K.step_kernel(*self._state, deposits, n_dep, self._resets, status, self._mode, self._resync, self._u_full, 0)
+        else:
+            K.step_kernel(*self._state, deposits, n_dep, self._resets, status, self._mode, self._resync, self._u_full, 1)
+            self._diffuse_full()
+            K.step_kernel(*self._state, deposits, n_dep, self._resets, status, self._mode, self._resync, self._u_full, 2)
+        if agent_at is not None:
+            for i in np.flatnonzero(status == -2):
+                self._say(f"warning: step {self.step_index}: agent {i} reset point is "
+                          f"{self._resets[i, 0] * 1e3:.1f} mm off the cloud; ignored")
         self.step_index += 1
-        if self._phat is None:
+        if self._is[K.IS_PHAT] == 0:
             self._take_reference_heat()
+        fs = self._fs
         self._metrics = {
-            "ergodicity": math.sqrt(self._residual_mass),
-            "ergodicity_ref": math.sqrt(max(self._ref_untouched, 0.0) / self._ref_norm2),
-            "touched_fraction": self._touched_T / len(self._T),
+            "ergodicity": math.sqrt(max(float(fs[K.FS_MASS_S]), 0.0)),
+            "ergodicity_ref": math.sqrt(max(float(fs[K.FS_REF_UNTOUCHED]), 0.0) / self._ref_norm2),
+            "touched_fraction": int(self._is[K.IS_TOUCHED]) / self._n_target,
         }
         self.last_step_ms = 1e3 * (time.perf_counter() - t0)
+
+    def _diffuse_full(self) -> None:
+        """The implicit integrator on the whole field: u <- (M + δt L)⁻¹ M u + s̄ (carry) or u = ... s̄."""
+        T = self._T
+        Z = self._fs[K.FS_Z]
+        e = self._pf[K.PF_PBAR, T] - (self._cov[T] / Z if Z > 0 else 0.0)
+        s = np.maximum(e, 0.0) ** 2
+        total = float(self._pf[K.PF_MASS, T] @ s)
+        sbar = np.zeros(len(self.points))
+        if total > 0:
+            sbar[T] = s / total
+        sbar = sbar[self._rank]  # the sparse operator works in the cloud's order
+        op = self._implicit[self._alpha]
+        if self.cfg.diffusion == "carry":
+            self._u_orig[:] = op.apply(self._u_orig) + sbar
+        else:
+            self._u_orig[:] = op.apply(sbar)
+        self._u_full[:] = self._u_orig[self._order]
 
     def _take_reference_heat(self) -> None:
         """p̂ of ``ergodicity_ref``: the heat after the first step of the carry-over scheme,
         e^{-δtL} p̄ + s̄₁ (the published code's), whichever diffusion drives the agents, so
-        that the metric compares runs and variants on the same footing."""
+        that the metric compares runs and variants on the same footing. O(n nK), once."""
         decay = np.exp(-self.evals * time_step(self._alpha, self.h))
-        u = self.evecs @ (decay * (self._PhiTM_T @ self._pT)) + self._sbar_full
+        u = K.expand_rows(self._phi, decay * self._sp[K.SP_PBARCOEF]) + self._sbar()  # internal order
         total = float(u.sum())
         if not (total > 0 and math.isfinite(total)):
             raise TergodicError("the heat after the first step has no positive mass",
                                 "check the target and the basis (non-finite eigenvectors?)")
-        self._phat = u / total
-        self._ref_norm2 = float(self._phat @ self._phat)
-        untouched = self._phat[self.coverage == 0]
-        self._ref_untouched = float(untouched @ untouched)
+        phat = u / total
+        self._pf[K.PF_PHAT] = phat
+        self._ref_norm2 = float(phat @ phat)
+        untouched = phat[self._cov == 0]
+        self._fs[K.FS_REF_UNTOUCHED] = float(untouched @ untouched)
+        self._is[K.IS_PHAT] = 1

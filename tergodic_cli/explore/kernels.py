@@ -1,0 +1,1101 @@
+"""Compiled kernels of one explorer step (numba, cached on disk).
+
+The reference forms of these computations are the numpy functions of ``geometry.py`` (CGA
+fit, projection, tangent frame), ``gradient.py`` (weighted cubic) and ``metrics.py`` (source
+and metrics); ``tests/test_incremental_kernels.py`` checks that the two agree. A step is one
+call of :func:`step_kernel`: numba's call overhead is paid once, not per small operation.
+
+Incremental source (the exact reformulation; docs/speed.md)
+-----------------------------------------------------------
+On a target point i (p̄_i > 0) with raw coverage c̃_i and Z = ∫c̃ = Σ M c̃, the residual is
+e_i = p̄_i - c̃_i / Z and the source s_i = max(e_i, 0)². On the active set A = {e_i > 0}
+
+    s_i = p̄_i² - 2 p̄_i c̃_i / Z + c̃_i² / Z²,
+
+so with the accumulators (nK-vectors F_k and scalars G_k, φ_i the i-th row of Φ)
+
+    F0 = Σ_A m_i p̄_i² φ_i,   F1 = Σ_A m_i p̄_i c̃_i φ_i,   F2 = Σ_A m_i c̃_i² φ_i,   G_k likewise without φ_i,
+
+Φᵀ M s = F0 - 2 F1 / Z + F2 / Z² and ∫s = G0 - 2 G1 / Z + G2 / Z². On A every term is at most
+m p̄² (c̃/Z < p̄ there), so the expansion loses no precision to cancellation. A step changes c̃
+only at the footprint's points: their terms are swapped (one row of Φ each). Z changes
+everywhere, but it only grows, so a point can only *enter* A through Z: it does when Z exceeds
+its threshold t_i = c̃_i / p̄_i. Inactive points wait in a min-heap keyed by t_i (lazily: a key
+may be stale-low, since c̃ only grows, and is then re-pushed), so each entry costs one row.
+The spectral coefficients of the injected source s/∫s follow in O(nK); the heat u = Φ a + s̄
+is evaluated only at the agents' n_N neighbours. A full recompute (:func:`resync`) every K
+steps bounds the round-off of the running sums.
+
+Without numba the same functions run as plain Python: correct, but about 100x slower.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+try:  # numba is a declared dependency; the fallback keeps the library importable without it
+    import numba
+
+    def njit(fn):
+        return numba.njit(cache=True, nogil=True)(fn)
+
+    HAVE_NUMBA = True
+except ImportError:  # pragma: no cover - exercised only where numba is missing
+    def njit(fn):
+        return fn
+
+    HAVE_NUMBA = False
+
+#: Points per KD-tree leaf.
+LEAF_SIZE = 8
+
+# Rows of the per-point float array ``pf`` (n columns).
+PF_MASS, PF_PBAR, PF_REACH, PF_PHAT, PF_COV, PF_OLDC = 0, 1, 2, 3, 4, 5
+PF_W0, PF_W1, PF_W2 = 6, 7, 8  # scratch: weights of the rows a source update adds
+N_PF = 9
+# Rows of the per-point int8 array ``pb`` (n columns).
+PB_TARGET, PB_ACTIVE, PB_INHEAP, PB_MARK = 0, 1, 2, 3
+N_PB = 4
+# Rows of the per-point index array ``pi`` (n columns): changed list, ball buffer, target list.
+PI_CHG, PI_BALL, PI_TARGET = 0, 1, 2
+N_PI = 3
+# Rows of the spectral array ``sp`` (nK columns).
+SP_DECAY, SP_A, SP_B, SP_F0, SP_F1, SP_F2, SP_EXPDECAY, SP_PBARCOEF = 0, 1, 2, 3, 4, 5, 6, 7
+N_SP = 8
+# Columns of the agent array ``ag`` (N rows).
+AG_POS, AG_VEL, AG_ACC, AG_NRM, AG_T1, AG_T2 = 0, 3, 6, 9, 12, 15
+N_AG = 18
+# Float state ``fs``.
+FS_Z, FS_MASS_S, FS_G0, FS_G1, FS_G2, FS_REF_UNTOUCHED, FS_DRIFT = 0, 1, 2, 3, 4, 5, 6
+N_FS = 8
+# Int state ``is_``.
+IS_HEAP, IS_TOUCHED, IS_EDGE, IS_NCHG, IS_SINCE_RESYNC, IS_PHAT, IS_NTARGET, IS_RESYNCS = 0, 1, 2, 3, 4, 5, 6, 7
+# Work counters (benchmarks/step.py): footprint points visited, rows of Φ added into F.
+IS_FOOTPRINT, IS_ROWS, IS_POPS = 8, 9, 10
+N_IS = 11
+# Float parameters ``prm``.
+PR_EPS2, PR_RA, PR_H2, PR_AMAX, PR_VMAX, PR_DT, PR_MAXSTART = 0, 1, 2, 3, 4, 5, 6
+N_PR = 8
+# Heat modes of :func:`step_kernel`: spectral carry-over, spectral current source, a full field.
+HEAT_CARRY, HEAT_SOURCE, HEAT_FULL = 0, 1, 2
+
+#: A sphere fit larger than this many rms patch radii is its tangent plane (as geometry.py).
+PLANE_RADIUS_RATIO = 1e4
+#: A sphere smaller than this share of the rms patch radius is noise (as geometry.py).
+MIN_RADIUS_RATIO = 0.5
+#: Fit-project-requery iterations that bring a start onto the surface (as the explorer).
+START_ITERATIONS = 8
+
+
+# ---------------------------------------------------------------------------------- KD-tree
+@njit
+def tree_build(points):
+    """A static KD-tree over ``points`` (n, 3): median splits on the widest axis.
+
+    Returns (perm (n,) int64, nodes (m, 4) int64 [lo, hi, left, right] with -1 children for
+    leaves, boxes (m, 6) float64 [min xyz, max xyz], tree_points (n, 3) = points[perm]).
+    """
+    n = points.shape[0]
+    perm = np.arange(n)
+    cap = 4 * (n // LEAF_SIZE) + 8
+    nodes = np.full((cap, 4), -1, np.int64)
+    boxes = np.empty((cap, 6))
+    stack = np.empty((256, 3), np.int64)
+    stack[0, 0], stack[0, 1], stack[0, 2] = 0, 0, n
+    sp = 1
+    count = 1
+    while sp > 0:
+        sp -= 1
+        node, lo, hi = stack[sp, 0], stack[sp, 1], stack[sp, 2]
+        for d in range(3):
+            boxes[node, d] = np.inf
+            boxes[node, 3 + d] = -np.inf
+        for t in range(lo, hi):
+            j = perm[t]
+            for d in range(3):
+                v = points[j, d]
+                if v < boxes[node, d]:
+                    boxes[node, d] = v
+                if v > boxes[node, 3 + d]:
+                    boxes[node, 3 + d] = v
+        nodes[node, 0] = lo
+        nodes[node, 1] = hi
+        if hi - lo <= LEAF_SIZE:
+            continue
+        axis = 0
+        widest = -1.0
+        for d in range(3):
+            w = boxes[node, 3 + d] - boxes[node, d]
+            if w > widest:
+                widest = w
+                axis = d
+        seg = perm[lo:hi].copy()
+        keys = np.empty(hi - lo)
+        for t in range(hi - lo):
+            keys[t] = points[seg[t], axis]
+        order = np.argsort(keys, kind="mergesort")
+        for t in range(hi - lo):
+            perm[lo + t] = seg[order[t]]
+        mid = (lo + hi) // 2
+        left, right = count, count + 1
+        count += 2
+        nodes[node, 2] = left
+        nodes[node, 3] = right
+        stack[sp, 0], stack[sp, 1], stack[sp, 2] = right, mid, hi
+        stack[sp + 1, 0], stack[sp + 1, 1], stack[sp + 1, 2] = left, lo, mid
+        sp += 2
+    tree_points = np.empty((n, 3))
+    for t in range(n):
+        for d in range(3):
+            tree_points[t, d] = points[perm[t], d]
+    return perm, nodes[:count].copy(), boxes[:count].copy(), tree_points
+
+
+@njit
+def _box_dist2(boxes, node, x0, x1, x2):
+    d2 = 0.0
+    v = boxes[node, 0] - x0
+    if v > 0.0:
+        d2 += v * v
+    else:
+        v = x0 - boxes[node, 3]
+        if v > 0.0:
+            d2 += v * v
+    v = boxes[node, 1] - x1
+    if v > 0.0:
+        d2 += v * v
+    else:
+        v = x1 - boxes[node, 4]
+        if v > 0.0:
+            d2 += v * v
+    v = boxes[node, 2] - x2
+    if v > 0.0:
+        d2 += v * v
+    else:
+        v = x2 - boxes[node, 5]
+        if v > 0.0:
+            d2 += v * v
+    return d2
+
+
+@njit
+def tree_knn(perm, nodes, boxes, tpts, x, k, out_idx, out_d2):
+    """The ``k`` nearest points of ``x`` (3,): indices into out_idx[:k], squared distances
+    (m²) into out_d2[:k], ascending."""
+    x0, x1, x2 = x[0], x[1], x[2]
+    for t in range(k):
+        out_d2[t] = np.inf
+        out_idx[t] = -1
+    stack = np.empty(128, np.int64)
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        node = stack[sp]
+        if _box_dist2(boxes, node, x0, x1, x2) > out_d2[k - 1]:
+            continue
+        left = nodes[node, 2]
+        if left < 0:
+            for j in range(nodes[node, 0], nodes[node, 1]):
+                a = tpts[j, 0] - x0
+                b = tpts[j, 1] - x1
+                c = tpts[j, 2] - x2
+                d2 = a * a + b * b + c * c
+                if d2 < out_d2[k - 1]:
+                    t = k - 1
+                    while t > 0 and out_d2[t - 1] > d2:
+                        out_d2[t] = out_d2[t - 1]
+                        out_idx[t] = out_idx[t - 1]
+                        t -= 1
+                    out_d2[t] = d2
+                    out_idx[t] = perm[j]
+        else:
+            right = nodes[node, 3]
+            if _box_dist2(boxes, left, x0, x1, x2) <= _box_dist2(boxes, right, x0, x1, x2):
+                stack[sp] = right
+                stack[sp + 1] = left
+            else:
+                stack[sp] = left
+                stack[sp + 1] = right
+            sp += 2
+
+
+@njit
+def tree_ball(perm, nodes, boxes, tpts, x, r, out):
+    """Indices of the points within distance ``r`` (metres) of ``x`` into ``out``; returns their count."""
+    x0, x1, x2 = x[0], x[1], x[2]
+    r2 = r * r
+    stack = np.empty(128, np.int64)
+    stack[0] = 0
+    sp = 1
+    cnt = 0
+    while sp > 0:
+        sp -= 1
+        node = stack[sp]
+        if _box_dist2(boxes, node, x0, x1, x2) > r2:
+            continue
+        left = nodes[node, 2]
+        if left < 0:
+            for j in range(nodes[node, 0], nodes[node, 1]):
+                a = tpts[j, 0] - x0
+                b = tpts[j, 1] - x1
+                c = tpts[j, 2] - x2
+                if a * a + b * b + c * c <= r2:
+                    out[cnt] = perm[j]
+                    cnt += 1
+        else:
+            stack[sp] = nodes[node, 3]
+            stack[sp + 1] = left
+            sp += 2
+    return cnt
+
+
+@njit
+def nearest_distance(perm, nodes, boxes, tpts, x):
+    """Distance (metres) from ``x`` (3,) to its nearest cloud point."""
+    idx = np.empty(1, np.int64)
+    d2 = np.empty(1)
+    tree_knn(perm, nodes, boxes, tpts, x, 1, idx, d2)
+    return math.sqrt(d2[0])
+
+
+# ---------------------------------------------------------------------------------- geometry
+@njit
+def sym_eig_min(A, n, V, W):
+    """Eigenvector of the smallest eigenvalue of the symmetric ``A[:n, :n]`` by cyclic Jacobi.
+
+    ``V`` (n, n) receives the eigenvectors (columns), ``W`` (n, n) is scratch; returns the
+    column index of the smallest eigenvalue.
+    """
+    for i in range(n):
+        for j in range(n):
+            W[i, j] = A[i, j]
+            V[i, j] = 1.0 if i == j else 0.0
+    for _ in range(60):
+        off = 0.0
+        diag = 0.0
+        for i in range(n):
+            diag += W[i, i] * W[i, i]
+            for j in range(i + 1, n):
+                off += W[i, j] * W[i, j]
+        if off <= 1e-40 * diag or off == 0.0:
+            break
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                apq = W[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (W[q, q] - W[p, p]) / (2.0 * apq)
+                if abs(theta) > 1e150:
+                    t = 0.5 / theta
+                else:
+                    t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                    if theta < 0.0:
+                        t = -t
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for r in range(n):
+                    if r != p and r != q:
+                        arp, arq = W[r, p], W[r, q]
+                        W[r, p] = c * arp - s * arq
+                        W[p, r] = W[r, p]
+                        W[r, q] = s * arp + c * arq
+                        W[q, r] = W[r, q]
+                W[p, p] -= t * apq
+                W[q, q] += t * apq
+                W[p, q] = 0.0
+                W[q, p] = 0.0
+                for r in range(n):
+                    vrp, vrq = V[r, p], V[r, q]
+                    V[r, p] = c * vrp - s * vrq
+                    V[r, q] = s * vrp + c * vrq
+    best = 0
+    for i in range(1, n):
+        if W[i, i] < W[best, best]:
+            best = i
+    return best
+
+
+@njit
+def fit_project(P, nb, k, x, ref, out_xp, out_n):
+    """CGA plane/sphere fit to the points ``P[nb[:k]]`` (eqs. 23-26) and the projection of
+    ``x`` onto it (eq. 27), as :func:`geometry.fit_primitive` + :func:`geometry.project_onto`.
+
+    Writes the projected point and its unit normal (oriented like ``ref``); returns 0, or 1
+    when the fit is degenerate (then the nearest point and ``ref`` are used, as the explorer does).
+    """
+    c0 = 0.0
+    c1 = 0.0
+    c2 = 0.0
+    for t in range(k):
+        j = nb[t]
+        c0 += P[j, 0]
+        c1 += P[j, 1]
+        c2 += P[j, 2]
+    c0 /= k
+    c1 /= k
+    c2 /= k
+    y = np.empty((k, 3))
+    ss = 0.0
+    for t in range(k):
+        j = nb[t]
+        y[t, 0] = P[j, 0] - c0
+        y[t, 1] = P[j, 1] - c1
+        y[t, 2] = P[j, 2] - c2
+        ss += y[t, 0] * y[t, 0] + y[t, 1] * y[t, 1] + y[t, 2] * y[t, 2]
+    scale = math.sqrt(ss / k)
+    status = 0
+    kind = 0  # 0 plane, 1 sphere, 2 least-squares plane
+    n0 = 0.0
+    n1 = 0.0
+    n2 = 0.0
+    offset = 0.0
+    cx = 0.0
+    cy = 0.0
+    cz = 0.0
+    radius = 0.0
+    # Coincident points (their spread is rounding of the centroid): no surface to fit.
+    if scale <= 1e-12 * (abs(c0) + abs(c1) + abs(c2)) or scale == 0.0:
+        status = 1
+    else:
+        inv = 1.0 / scale
+        B = np.zeros((5, 5))
+        w = np.empty(5)
+        for t in range(k):
+            y[t, 0] *= inv
+            y[t, 1] *= inv
+            y[t, 2] *= inv
+            w[0], w[1], w[2] = y[t, 0], y[t, 1], y[t, 2]
+            w[3] = -1.0
+            w[4] = -0.5 * (y[t, 0] * y[t, 0] + y[t, 1] * y[t, 1] + y[t, 2] * y[t, 2])
+            for a in range(5):
+                wa = w[a]
+                for b in range(a, 5):
+                    B[a, b] += wa * w[b]
+        for a in range(5):
+            for b in range(a):
+                B[a, b] = B[b, a]
+        V = np.empty((5, 5))
+        Wk = np.empty((5, 5))
+        col = sym_eig_min(B, 5, V, Wk)
+        r0, r1, r2 = V[0, col], V[1, col], V[2, col]
+        v_inf, v0 = V[3, col], V[4, col]
+        n_norm = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+        if abs(v0) * PLANE_RADIUS_RATIO > n_norm:
+            s0, s1, s2 = r0 / v0, r1 / v0, r2 / v0
+            rr = s0 * s0 + s1 * s1 + s2 * s2 - 2.0 * v_inf / v0
+            if rr > MIN_RADIUS_RATIO * MIN_RADIUS_RATIO:
+                kind = 1
+                cx, cy, cz = c0 + scale * s0, c1 + scale * s1, c2 + scale * s2
+                radius = scale * math.sqrt(rr)
+            else:
+                kind = 2
+        elif n_norm == 0.0:
+            kind = 2
+        else:
+            n0, n1, n2 = r0 / n_norm, r1 / n_norm, r2 / n_norm
+            offset = n0 * c0 + n1 * c1 + n2 * c2 + scale * v_inf / n_norm
+        if kind == 2:  # the direction of least variance of the (scaled) patch
+            G = np.zeros((5, 5))
+            for t in range(k):
+                for a in range(3):
+                    for b in range(3):
+                        G[a, b] += y[t, a] * y[t, b]
+            col = sym_eig_min(G, 3, V, Wk)
+            n0, n1, n2 = V[0, col], V[1, col], V[2, col]
+            nn = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+            n0, n1, n2 = n0 / nn, n1 / nn, n2 / nn
+            offset = n0 * c0 + n1 * c1 + n2 * c2
+            kind = 0
+        if kind == 0:
+            dd = n0 * x[0] + n1 * x[1] + n2 * x[2] - offset
+            out_xp[0] = x[0] - dd * n0
+            out_xp[1] = x[1] - dd * n1
+            out_xp[2] = x[2] - dd * n2
+        else:
+            q0, q1, q2 = x[0] - cx, x[1] - cy, x[2] - cz
+            dist = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2)
+            if dist < 1e-12 * max(radius, 1e-300):
+                status = 1
+            else:
+                n0, n1, n2 = q0 / dist, q1 / dist, q2 / dist
+                out_xp[0] = cx + radius * n0
+                out_xp[1] = cy + radius * n1
+                out_xp[2] = cz + radius * n2
+    if status == 1:
+        j = nb[0]
+        out_xp[0], out_xp[1], out_xp[2] = P[j, 0], P[j, 1], P[j, 2]
+        n0, n1, n2 = ref[0], ref[1], ref[2]
+    if n0 * ref[0] + n1 * ref[1] + n2 * ref[2] < 0.0:
+        n0, n1, n2 = -n0, -n1, -n2
+    out_n[0], out_n[1], out_n[2] = n0, n1, n2
+    return status
+
+
+@njit
+def tangent_frame(n, out_t1, out_t2):
+    """t1, t2 with (t1, t2, n) right-handed orthonormal, as :func:`geometry.tangent_basis`."""
+    nx, ny, nz = n[0], n[1], n[2]
+    ax, ay, az = abs(nx), abs(ny), abs(nz)
+    if ax <= ay and ax <= az:
+        a, b, c = 0.0, nz, -ny
+    elif ay <= az:
+        a, b, c = -nz, 0.0, nx
+    else:
+        a, b, c = ny, -nx, 0.0
+    inv = 1.0 / math.sqrt(a * a + b * b + c * c)
+    a, b, c = a * inv, b * inv, c * inv
+    out_t1[0], out_t1[1], out_t1[2] = a, b, c
+    out_t2[0] = ny * c - nz * b
+    out_t2[1] = nz * a - nx * c
+    out_t2[2] = nx * b - ny * a
+
+
+@njit
+def tangential(v, n):
+    """``v`` (3,) turned into the plane normal to ``n`` keeping its speed (in place)."""
+    speed = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    vn = v[0] * n[0] + v[1] * n[1] + v[2] * n[2]
+    t0, t1, t2 = v[0] - vn * n[0], v[1] - vn * n[1], v[2] - vn * n[2]
+    norm = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+    if norm > 0.0:
+        f = speed / norm
+        v[0], v[1], v[2] = t0 * f, t1 * f, t2 * f
+    else:
+        v[0], v[1], v[2] = 0.0, 0.0, 0.0
+
+
+# ---------------------------------------------------------------------------------- gradient
+@njit
+def cubic_slope(uv, values, weights, k, degree):
+    """(∂f/∂u, ∂f/∂v) at the origin of the weighted least-squares cubic (``degree`` 3) or plane
+    (``degree`` 1) through ``values[:k]`` at ``uv[:k]`` (metres), as :func:`gradient.fit_cubic`."""
+    rho2 = 0.0
+    for t in range(k):
+        r2 = uv[t, 0] * uv[t, 0] + uv[t, 1] * uv[t, 1]
+        if r2 > rho2:
+            rho2 = r2
+    if rho2 == 0.0:
+        return 0.0, 0.0
+    rho = math.sqrt(rho2)
+    m = 10 if degree == 3 else 3
+    X = np.empty((k, m))
+    for t in range(k):
+        u = uv[t, 0] / rho
+        v = uv[t, 1] / rho
+        X[t, 0] = 1.0
+        X[t, 1] = u
+        X[t, 2] = v
+        if m == 10:
+            uu, vv = u * u, v * v
+            X[t, 3] = uu
+            X[t, 4] = u * v
+            X[t, 5] = vv
+            X[t, 6] = uu * u
+            X[t, 7] = uu * v
+            X[t, 8] = u * vv
+            X[t, 9] = vv * v
+    A = np.zeros((m, m))
+    rhs = np.zeros(m)
+    for t in range(k):
+        wt = weights[t]
+        for a in range(m):
+            xa = X[t, a] * wt
+            rhs[a] += xa * values[t]
+            for b in range(a, m):
+                A[a, b] += xa * X[t, b]
+    # Cholesky A = L Lᵀ; a singular or badly conditioned layout falls back to SVD least squares.
+    L = np.zeros((m, m))
+    ok = True
+    dmin = np.inf
+    dmax = 0.0
+    for j in range(m):
+        s = A[j, j]
+        for t in range(j):
+            s -= L[j, t] * L[j, t]
+        if not (s > 0.0) or not math.isfinite(s):
+            ok = False
+            break
+        d = math.sqrt(s)
+        L[j, j] = d
+        dmin = min(dmin, d)
+        dmax = max(dmax, d)
+        for i in range(j + 1, m):
+            s = A[j, i]
+            for t in range(j):
+                s -= L[i, t] * L[j, t]
+            L[i, j] = s / d
+    coef = np.zeros(m)
+    if ok and dmin * 1e6 >= dmax:
+        z = np.empty(m)
+        for i in range(m):
+            s = rhs[i]
+            for t in range(i):
+                s -= L[i, t] * z[t]
+            z[i] = s / L[i, i]
+        for i in range(m - 1, -1, -1):
+            s = z[i]
+            for t in range(i + 1, m):
+                s -= L[t, i] * coef[t]
+            coef[i] = s / L[i, i]
+        for i in range(m):
+            if not math.isfinite(coef[i]):
+                ok = False
+    else:
+        ok = False
+    if not ok:
+        Xw = np.empty((k, m))
+        fw = np.empty(k)
+        for t in range(k):
+            sw = math.sqrt(weights[t])
+            fw[t] = values[t] * sw
+            for a in range(m):
+                Xw[t, a] = X[t, a] * sw
+        sol = np.linalg.lstsq(Xw, fw, 1e-10)[0]
+        for a in range(m):
+            coef[a] = sol[a]
+    return coef[1] / rho, coef[2] / rho
+
+
+# ---------------------------------------------------------------------------------- heap
+@njit
+def heap_push(hk, hi, size, key, idx):
+    i = size
+    hk[i] = key
+    hi[i] = idx
+    while i > 0:
+        parent = (i - 1) // 2
+        if hk[parent] <= hk[i]:
+            break
+        hk[parent], hk[i] = hk[i], hk[parent]
+        hi[parent], hi[i] = hi[i], hi[parent]
+        i = parent
+    return size + 1
+
+
+@njit
+def heap_pop(hk, hi, size):
+    key, idx = hk[0], hi[0]
+    size -= 1
+    if size > 0:
+        hk[0] = hk[size]
+        hi[0] = hi[size]
+        i = 0
+        while True:
+            left = 2 * i + 1
+            if left >= size:
+                break
+            child = left
+            if left + 1 < size and hk[left + 1] < hk[left]:
+                child = left + 1
+            if hk[i] <= hk[child]:
+                break
+            hk[child], hk[i] = hk[i], hk[child]
+            hi[child], hi[i] = hi[i], hi[child]
+            i = child
+    return key, idx, size
+
+
+# ---------------------------------------------------------------------------------- source
+@njit
+def _add_row(sp, Phi, j, w0, w1, w2):
+    """F_k += w_k φ_j (one row of Φ)."""
+    row = Phi[j]
+    f0 = sp[SP_F0]
+    f1 = sp[SP_F1]
+    f2 = sp[SP_F2]
+    if w0 == 0.0:  # a point that stays active: p̄² does not change (the step is store-bound)
+        for q in range(row.shape[0]):
+            r = row[q]
+            f1[q] += w1 * r
+            f2[q] += w2 * r
+    else:
+        for q in range(row.shape[0]):
+            r = row[q]
+            f0[q] += w0 * r
+            f1[q] += w1 * r
+            f2[q] += w2 * r
+
+
+@njit
+def _add_rows(sp, Phi, rows, W0, W1, W2, m):
+    """F_k += Σ_t W_k[t] φ_rows[t] for t < m, four rows per pass: the accumulators are read and
+    written once per four rows (the loop is bound by memory traffic, not arithmetic), and the
+    four rows' loads overlap (rows at the footprint's leading edge are not in cache)."""
+    f0 = sp[SP_F0]
+    f1 = sp[SP_F1]
+    f2 = sp[SP_F2]
+    nK = Phi.shape[1]
+    t = 0
+    while t + 4 <= m:
+        ra, rb, rc, rd = Phi[rows[t]], Phi[rows[t + 1]], Phi[rows[t + 2]], Phi[rows[t + 3]]
+        a0, a1, a2 = W0[t], W1[t], W2[t]
+        b0, b1, b2 = W0[t + 1], W1[t + 1], W2[t + 1]
+        c0, c1, c2 = W0[t + 2], W1[t + 2], W2[t + 2]
+        d0, d1, d2 = W0[t + 3], W1[t + 3], W2[t + 3]
+        for q in range(nK):
+            x, y, z, w = ra[q], rb[q], rc[q], rd[q]
+            f0[q] += (a0 * x + b0 * y) + (c0 * z + d0 * w)
+            f1[q] += (a1 * x + b1 * y) + (c1 * z + d1 * w)
+            f2[q] += (a2 * x + b2 * y) + (c2 * z + d2 * w)
+        t += 4
+    while t < m:
+        _add_row(sp, Phi, rows[t], W0[t], W1[t], W2[t])
+        t += 1
+
+
+@njit
+def _is_active(c, pbar, Z):
+    # e = p̄ - c̃/Z > 0, written without the division (c̃ = 0 is active even at Z = 0).
+    return c == 0.0 or c < pbar * Z
+
+
+@njit
+def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
+    """Full recompute of Z, the active set, the heap and the accumulators F, G (O(|T| nK)).
+
+    Records in fs[FS_DRIFT] the largest relative change of ∫s and of Φᵀ M s that it made
+    (the round-off the incremental updates had accumulated).
+    """
+    n = pf.shape[1]
+    mass, pbar, cov = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV]
+    active, inheap = pb[PB_ACTIVE], pb[PB_INHEAP]
+    targets = pi[PI_TARGET]
+    nt = is_[IS_NTARGET]
+    old_ms = fs[FS_MASS_S]
+    Zold = fs[FS_Z]
+    nK = sp.shape[1]
+    old_coef = np.empty(nK)
+    inv = 1.0 / Zold if Zold > 0.0 else 0.0
+    for q in range(nK):
+        old_coef[q] = sp[SP_F0, q] - 2.0 * inv * sp[SP_F1, q] + inv * inv * sp[SP_F2, q]
+    Z = 0.0
+    for j in range(n):
+        Z += mass[j] * cov[j]
+    fs[FS_Z] = Z
+    for q in range(nK):
+        sp[SP_F0, q] = 0.0
+        sp[SP_F1, q] = 0.0
+        sp[SP_F2, q] = 0.0
+    g0 = 0.0
+    g1 = 0.0
+    g2 = 0.0
+    size = 0
+    for t in range(nt):
+        j = targets[t]
+        c = cov[j]
+        p = pbar[j]
+        if _is_active(c, p, Z):
+            active[j] = 1
+            inheap[j] = 0
+            m = mass[j]
+            w0, w1, w2 = m * p * p, m * p * c, m * c * c
+            g0 += w0
+            g1 += w1
+            g2 += w2
+            _add_row(sp, Phi, j, w0, w1, w2)
+        else:
+            active[j] = 0
+            inheap[j] = 1
+            size = heap_push(hk, hi, size, max(c / p, Z), j)
+    is_[IS_HEAP] = size
+    fs[FS_G0], fs[FS_G1], fs[FS_G2] = g0, g1, g2
+    inv = 1.0 / Z if Z > 0.0 else 0.0
+    ms = g0 - 2.0 * inv * g1 + inv * inv * g2
+    fs[FS_MASS_S] = ms
+    is_[IS_SINCE_RESYNC] = 0
+    is_[IS_RESYNCS] += 1
+    if is_[IS_RESYNCS] > 1 and ms > 0.0:  # the first resync initialises; later ones measure drift
+        drift = abs(old_ms - ms) / ms
+        big = 0.0
+        dev = 0.0
+        for q in range(nK):
+            new = sp[SP_F0, q] - 2.0 * inv * sp[SP_F1, q] + inv * inv * sp[SP_F2, q]
+            big = max(big, abs(new))
+            dev = max(dev, abs(new - old_coef[q]))
+        if big > 0.0:
+            drift = max(drift, dev / big)
+        fs[FS_DRIFT] = max(fs[FS_DRIFT], drift)
+
+
+@njit
+def update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
+    """Bring the accumulators up to date after this step's deposits (points in the changed
+    list) and the growth of Z (points whose threshold c̃/p̄ it passed enter the active set)."""
+    mass, pbar, cov, oldc = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV], pf[PF_OLDC]
+    W0, W1, W2 = pf[PF_W0], pf[PF_W1], pf[PF_W2]
+    active, inheap, mark = pb[PB_ACTIVE], pb[PB_INHEAP], pb[PB_MARK]
+    chg = pi[PI_CHG]
+    rows = pi[PI_BALL]  # free after the deposits: the rows to add
+    nrows = 0
+    Z = fs[FS_Z]
+    g0, g1, g2 = fs[FS_G0], fs[FS_G1], fs[FS_G2]
+    size = is_[IS_HEAP]
+    for t in range(is_[IS_NCHG]):
+        j = chg[t]
+        mark[j] = 0
+        c0 = oldc[j]
+        c1 = cov[j]
+        p = pbar[j]
+        m = mass[j]
+        was = active[j] == 1
+        now = _is_active(c1, p, Z)
+        if was or now:
+            is_[IS_ROWS] += 1
+            fw = 1.0 if was else 0.0
+            fn = 1.0 if now else 0.0
+            w0 = (fn - fw) * m * p * p
+            w1 = m * p * (fn * c1 - fw * c0)
+            w2 = m * (fn * c1 * c1 - fw * c0 * c0)
+            g0 += w0
+            g1 += w1
+            g2 += w2
+            rows[nrows] = j
+            W0[nrows], W1[nrows], W2[nrows] = w0, w1, w2
+            nrows += 1
+        active[j] = 1 if now else 0
+        if not now and inheap[j] == 0:
+            size = heap_push(hk, hi, size, c1 / p, j)
+            inheap[j] = 1
+    is_[IS_NCHG] = 0
+    while size > 0 and hk[0] < Z:
+        key, j, size = heap_pop(hk, hi, size)
+        is_[IS_POPS] += 1
+        inheap[j] = 0
+        if active[j] == 1:
+            continue  # a stale entry of a point that re-entered through its own deposit step
+        c = cov[j]
+        p = pbar[j]
+        if _is_active(c, p, Z):
+            is_[IS_ROWS] += 1
+            m = mass[j]
+            w0, w1, w2 = m * p * p, m * p * c, m * c * c
+            g0 += w0
+            g1 += w1
+            g2 += w2
+            rows[nrows] = j
+            W0[nrows], W1[nrows], W2[nrows] = w0, w1, w2
+            nrows += 1
+            active[j] = 1
+        else:  # its key was stale (c̃ has grown since): wait for the true threshold
+            size = heap_push(hk, hi, size, max(c / p, Z), j)
+            inheap[j] = 1
+    _add_rows(sp, Phi, rows, W0, W1, W2, nrows)
+    is_[IS_HEAP] = size
+    fs[FS_G0], fs[FS_G1], fs[FS_G2] = g0, g1, g2
+    inv = 1.0 / Z if Z > 0.0 else 0.0
+    fs[FS_MASS_S] = g0 - 2.0 * inv * g1 + inv * inv * g2
+
+
+@njit
+def diffuse(sp, fs, carry):
+    """One diffusion step in the eigenbasis: carry u <- D u + s̄ (a <- d ⊙ (a + b), b <- Φᵀ M s̄),
+    or source u = D s̄ (a <- d ⊙ Φᵀ M s̄), with s̄ = s / ∫s."""
+    Z = fs[FS_Z]
+    inv = 1.0 / Z if Z > 0.0 else 0.0
+    ms = fs[FS_MASS_S]
+    scale = 1.0 / ms if ms > 0.0 else 0.0
+    d, a, b = sp[SP_DECAY], sp[SP_A], sp[SP_B]
+    f0, f1, f2 = sp[SP_F0], sp[SP_F1], sp[SP_F2]
+    c1 = -2.0 * inv
+    c2 = inv * inv
+    for q in range(sp.shape[1]):
+        coef = (f0[q] + c1 * f1[q] + c2 * f2[q]) * scale
+        if carry:
+            a[q] = d[q] * (a[q] + b[q])
+            b[q] = coef
+        else:
+            a[q] = d[q] * coef
+
+
+@njit
+def sbar_at(pf, fs, j):
+    """The injected source s̄ = max(p̄ - c̃/Z, 0)² / ∫s at point ``j``."""
+    Z = fs[FS_Z]
+    ms = fs[FS_MASS_S]
+    if not (ms > 0.0):
+        return 0.0
+    p = pf[PF_PBAR, j]
+    if p == 0.0:
+        return 0.0
+    e = p - pf[PF_COV, j] / Z if Z > 0.0 else p
+    return e * e / ms if e > 0.0 else 0.0
+
+
+@njit
+def row_dot(x, y):
+    """x · y with four independent partial sums: a single running sum is bound by the
+    latency of the floating-point add (the compiler may not reorder it)."""
+    n = x.shape[0]
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    s3 = 0.0
+    m = n - n % 4
+    for q in range(0, m, 4):
+        s0 += x[q] * y[q]
+        s1 += x[q + 1] * y[q + 1]
+        s2 += x[q + 2] * y[q + 2]
+        s3 += x[q + 3] * y[q + 3]
+    for q in range(m, n):
+        s0 += x[q] * y[q]
+    return (s0 + s1) + (s2 + s3)
+
+
+@njit
+def project_rows(Phi, w):
+    """Φᵀ w (nK,) for Φ (n, nK), w (n,), summed in a fixed order (no BLAS: a sweep's results
+    must not depend on how many threads a worker's BLAS uses)."""
+    out = np.zeros(Phi.shape[1])
+    for j in range(Phi.shape[0]):
+        wj = w[j]
+        if wj != 0.0:
+            row = Phi[j]
+            for q in range(row.shape[0]):
+                out[q] += wj * row[q]
+    return out
+
+
+@njit
+def expand_rows(Phi, c):
+    """Φ c (n,) for Φ (n, nK), c (nK,), in a fixed order (see :func:`project_rows`)."""
+    out = np.empty(Phi.shape[0])
+    for j in range(Phi.shape[0]):
+        out[j] = row_dot(Phi[j], c)
+    return out
+
+
+@njit
+def heat_at(Phi, pf, sp, fs, j, mode, u_full):
+    """u at point ``j`` as the agents see it: Φ_j · a (+ s̄_j for carry-over), or u_full[j]."""
+    if mode == HEAT_FULL:
+        return u_full[j]
+    u = row_dot(Phi[j], sp[SP_A])
+    if mode == HEAT_CARRY:
+        u += sbar_at(pf, fs, j)
+    return u
+
+
+# ---------------------------------------------------------------------------------- coverage
+@njit
+def deposit(P, perm, nodes, boxes, tpts, pf, pb, pi, fs, is_, prm, x, n):
+    """Add the footprint φ(r) = exp(-ε² r²) (eq. 30), r the tangent-plane distance to ``x``
+    with normal ``n`` (eq. 31), to every point within r_a of ``x``; note changed target points."""
+    ball = pi[PI_BALL]
+    cnt = tree_ball(perm, nodes, boxes, tpts, x, prm[PR_RA], ball)
+    mass, cov, oldc, phat = pf[PF_MASS], pf[PF_COV], pf[PF_OLDC], pf[PF_PHAT]
+    target, mark = pb[PB_TARGET], pb[PB_MARK]
+    chg = pi[PI_CHG]
+    eps2 = prm[PR_EPS2]
+    have_phat = is_[IS_PHAT] == 1
+    nchg = is_[IS_NCHG]
+    touched = is_[IS_TOUCHED]
+    untouched = fs[FS_REF_UNTOUCHED]
+    dz = 0.0
+    for t in range(cnt):
+        j = ball[t]
+        d0 = P[j, 0] - x[0]
+        d1 = P[j, 1] - x[1]
+        d2 = P[j, 2] - x[2]
+        off = d0 * n[0] + d1 * n[1] + d2 * n[2]
+        r2 = max(d0 * d0 + d1 * d1 + d2 * d2 - off * off, 0.0)
+        phi = math.exp(-eps2 * r2)
+        c = cov[j]
+        if target[j] == 1 and mark[j] == 0:
+            mark[j] = 1
+            oldc[j] = c
+            chg[nchg] = j
+            nchg += 1
+        if c == 0.0 and phi > 0.0:
+            if target[j] == 1:
+                touched += 1
+            if have_phat:
+                untouched -= phat[j] * phat[j]
+        cov[j] = c + phi
+        dz += mass[j] * phi
+    fs[FS_Z] += dz
+    fs[FS_REF_UNTOUCHED] = untouched
+    is_[IS_NCHG] = nchg
+    is_[IS_TOUCHED] = touched
+    is_[IS_FOOTPRINT] += cnt
+    return cnt
+
+
+# ---------------------------------------------------------------------------------- agents
+@njit
+def locate(P, perm, nodes, boxes, tpts, x, ref, k, out_xp, out_n, out_nb, d2buf):
+    """Project ``x`` onto the surface fitted to its ``k`` nearest points; writes the point,
+    its normal (oriented like ``ref``) and the neighbours (by distance to ``x``)."""
+    tree_knn(perm, nodes, boxes, tpts, x, k, out_nb, d2buf)
+    return fit_project(P, out_nb, k, x, ref, out_xp, out_n)
+
+
+@njit
+def place_agent(P, perm, nodes, boxes, tpts, ag, nbrs, i, x0, ref, k):
+    """Project a start or reset position onto the surface (fit, project, re-query up to
+    START_ITERATIONS times) and set agent ``i``'s position, normal, frame, tangent velocity."""
+    x = x0.copy()
+    r = ref.copy()
+    xp = np.empty(3)
+    nn = np.empty(3)
+    nb = np.empty(k, np.int64)
+    d2 = np.empty(k)
+    for _ in range(START_ITERATIONS):
+        locate(P, perm, nodes, boxes, tpts, x, r, k, xp, nn, nb, d2)
+        m0, m1, m2 = xp[0] - x[0], xp[1] - x[1], xp[2] - x[2]
+        moved = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+        x[:] = xp
+        r[:] = nn
+        if moved < 1e-9:
+            break
+    ag[i, AG_POS:AG_POS + 3] = x
+    ag[i, AG_NRM:AG_NRM + 3] = r
+    nbrs[i, :] = nb
+    tangent_frame(r, ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3])
+    tangential(ag[i, AG_VEL:AG_VEL + 3], r)
+
+
+@njit
+def agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full):
+    """∇u (3,) at agent i's projected position in its tangent plane (eqs. 32-33)."""
+    uv = np.empty((k, 2))
+    vals = np.empty(k)
+    w = np.empty(k)
+    eps2 = prm[PR_EPS2]
+    r2min = np.inf
+    for t in range(k):
+        j = nbrs[i, t]
+        d0 = P[j, 0] - ag[i, AG_POS]
+        d1 = P[j, 1] - ag[i, AG_POS + 1]
+        d2 = P[j, 2] - ag[i, AG_POS + 2]
+        u = d0 * ag[i, AG_T1] + d1 * ag[i, AG_T1 + 1] + d2 * ag[i, AG_T1 + 2]
+        v = d0 * ag[i, AG_T2] + d1 * ag[i, AG_T2 + 1] + d2 * ag[i, AG_T2 + 2]
+        uv[t, 0] = u
+        uv[t, 1] = v
+        r2 = u * u + v * v
+        r2min = min(r2min, r2)
+        w[t] = math.exp(-eps2 * r2)
+        vals[t] = heat_at(Phi, pf, sp, fs, j, mode, u_full)
+    # Off the sampled surface the neighbours lie on one side: a plane, not an extrapolated cubic.
+    degree = 3 if r2min <= prm[PR_H2] else 1
+    gu, gv = cubic_slope(uv, vals, w, k, degree)
+    g = np.empty(3)
+    for d in range(3):
+        g[d] = ag[i, AG_T1 + d] * gu + ag[i, AG_T2 + d] * gv
+    return g
+
+
+@njit
+def move_agent(P, perm, nodes, boxes, tpts, Phi, pf, sp, fs, is_, ag, nbrs, i, k, prm, mode, u_full):
+    """Gradient step of agent i (eq. 6, saturated), semi-implicit Euler within v_max, projection
+    onto the surface, and the off-cloud guard (see explorer.py)."""
+    g = agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full)
+    gn = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+    a_max, v_max, dt = prm[PR_AMAX], prm[PR_VMAX], prm[PR_DT]
+    acc = np.zeros(3)
+    if gn > 0.0 and math.isfinite(gn):
+        for d in range(3):
+            acc[d] = g[d] * (a_max / gn)
+    v = np.empty(3)
+    for d in range(3):
+        v[d] = ag[i, AG_VEL + d] + acc[d] * dt
+    speed = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    if speed > v_max:
+        f = v_max / speed
+        for d in range(3):
+            v[d] *= f
+    x_new = np.empty(3)
+    for d in range(3):
+        x_new[d] = ag[i, AG_POS + d] + v[d] * dt
+    xp = np.empty(3)
+    nn = np.empty(3)
+    nb = nbrs[i]
+    d2 = np.empty(k)
+    ref = ag[i, AG_NRM:AG_NRM + 3].copy()
+    locate(P, perm, nodes, boxes, tpts, x_new, ref, k, xp, nn, nb, d2)
+    # Edge guard: an open sheet's fitted plane extends past its last points.
+    best = -1
+    bd = np.inf
+    for t in range(k):
+        j = nb[t]
+        e0, e1, e2 = P[j, 0] - xp[0], P[j, 1] - xp[1], P[j, 2] - xp[2]
+        dd = e0 * e0 + e1 * e1 + e2 * e2
+        if dd < bd:
+            bd = dd
+            best = j
+    reach = pf[PF_REACH, best]
+    if bd > reach * reach:
+        is_[IS_EDGE] += 1
+        dist = math.sqrt(bd)
+        out = np.empty(3)
+        q = np.empty(3)
+        for d in range(3):
+            out[d] = (xp[d] - P[best, d]) / dist
+            q[d] = P[best, d] + out[d] * reach
+        ref2 = nn.copy()
+        locate(P, perm, nodes, boxes, tpts, q, ref2, k, xp, nn, nb, d2)
+        vo = v[0] * out[0] + v[1] * out[1] + v[2] * out[2]
+        vo = max(vo, 0.0)
+        for d in range(3):
+            v[d] -= 2.0 * vo * out[d]  # reflect off the edge: keep moving, never stall
+    for d in range(3):
+        ag[i, AG_ACC + d] = acc[d]
+        ag[i, AG_POS + d] = xp[d]
+        ag[i, AG_NRM + d] = nn[d]
+    tangential(v, nn)
+    for d in range(3):
+        ag[i, AG_VEL + d] = v[d]
+    tangent_frame(nn, ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3])
+
+
+# ---------------------------------------------------------------------------------- the step
+@njit
+def step_kernel(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, sp, hk, hi, fs, is_, prm, ag, nbrs, k,
+                deposits, n_deposits, resets, reset_status, mode, resync_every, u_full, phase):
+    """One explorer step (see explorer.py), or part of it.
+
+    ``n_deposits`` < 0: deposit at the agents (kinematic); otherwise at the first ``n_deposits``
+    rows of ``deposits`` (contact points; each projected onto the surface, skipped when farther
+    than r_a from the cloud). ``resets`` (N, 3) with ``reset_status`` (N,): when
+    reset_status[i] >= 0 the agent is put at resets[i] before its gradient step (eq. 22);
+    a reset farther than the start limit is refused (reset_status[i] = -2, its distance in
+    resets[i, 0]). ``phase`` 0: the whole step; 1: coverage and source only (the caller then
+    diffuses a full field); 2: resets and agent moves only (with ``u_full`` for HEAT_FULL).
+    """
+    N = ag.shape[0]
+    if phase != 2:
+        if n_deposits < 0:
+            for i in range(N):
+                deposit(P, perm, nodes, boxes, tpts, pf, pb, pi, fs, is_, prm, ag[i, AG_POS:AG_POS + 3],
+                        ag[i, AG_NRM:AG_NRM + 3])
+        else:
+            xp = np.empty(3)
+            nn = np.empty(3)
+            nb = np.empty(k, np.int64)
+            d2 = np.empty(k)
+            ref = ag[0, AG_NRM:AG_NRM + 3].copy()
+            for t in range(n_deposits):
+                q = deposits[t]
+                if nearest_distance(perm, nodes, boxes, tpts, q) > prm[PR_RA]:
+                    continue  # a contact off the cloud covers no cloud point
+                locate(P, perm, nodes, boxes, tpts, q, ref, k, xp, nn, nb, d2)
+                deposit(P, perm, nodes, boxes, tpts, pf, pb, pi, fs, is_, prm, xp, nn)
+        update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_)
+        is_[IS_SINCE_RESYNC] += 1
+        if resync_every > 0 and is_[IS_SINCE_RESYNC] >= resync_every:
+            resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_)
+        if phase == 1:
+            return
+        diffuse(sp, fs, mode == HEAT_CARRY)
+    for i in range(N):
+        if reset_status[i] >= 0:
+            d0 = nearest_distance(perm, nodes, boxes, tpts, resets[i])
+            if d0 > prm[PR_MAXSTART]:
+                reset_status[i] = -2
+                resets[i, 0] = d0
+            else:
+                place_agent(P, perm, nodes, boxes, tpts, ag, nbrs, i, resets[i], ag[i, AG_NRM:AG_NRM + 3].copy(), k)
+    for i in range(N):
+        move_agent(P, perm, nodes, boxes, tpts, Phi, pf, sp, fs, is_, ag, nbrs, i, k, prm, mode, u_full)

@@ -1,0 +1,434 @@
+"""Running a sweep: objects -> bases (once per object) -> runs in parallel -> one table and plots.
+
+One executor serves both engines (:func:`_execute`): it runs the same worker function,
+:func:`run_batch`, on the same batches, in joblib's local process pool (``loky``) or as tasks
+on an existing (or a local) Ray cluster, and yields each batch's results as soon as it is
+done. (joblib's own Ray backend cannot stream results back, which resuming needs.) A batch holds runs of one (object, nK); a worker loads that object's basis once (from
+the basis cache, which the driver fills before dispatching) and keeps it for its later batches.
+
+Crash safety and resuming: the driver writes each finished run as two small files,
+``runs/ID.npz`` (the per-step series) then ``runs/ID.json`` (the summary), each atomically; a
+run counts as done when its JSON exists, so a rerun skips it. ID is a hash of the object's
+content, the start and the whole explore config, so a changed grid never reuses a stale run.
+The table (``results.csv``, optionally ``results.parquet``), the merged series
+(``series.npz``) and the plots are rebuilt from the run files at the end of every sweep.
+
+Results do not depend on the engine or the number of workers: a run is a pure function of
+its inputs, single-threaded, with no BLAS call (explore.kernels).
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.sweep.grid import Grid, ObjectSpec, load_grid, run_config, run_id
+
+ENGINES = ("joblib", "ray")
+SERIES = ("ergodicity", "ergodicity_ref", "touched_fraction")
+#: Columns of results.csv before the grid's own option columns.
+LEAD_COLUMNS = ("run_id", "object", "n_points", "n_target", "start", "start_x", "start_y", "start_z", "nk", "alpha")
+#: Metric columns after them.
+METRIC_COLUMNS = ("steps", "ergodicity", "ergodicity_ref", "touched_fraction", "ergodicity_at_200",
+                  "ergodicity_at_500", "ergodicity_ref_at_200", "ergodicity_ref_at_500", "touched_fraction_at_200",
+                  "touched_fraction_at_500", "edge_events", "step_ms_median", "wall_s")
+#: Columns that measure time, and so differ between otherwise identical sweeps.
+TIMING_COLUMNS = ("step_ms_median", "wall_s")
+
+
+@dataclass
+class SweepResult:
+    """What a sweep did; ``files`` are paths relative to ``out``."""
+
+    out: Path
+    n_runs: int
+    computed: int
+    skipped: int
+    failed: list[dict] = field(default_factory=list)
+    wall_s: float = 0.0
+    files: list[str] = field(default_factory=list)
+    table: list[dict] = field(default_factory=list)
+
+
+@dataclass
+class _Object:
+    spec: ObjectSpec
+    key: str
+    points: np.ndarray
+    target: np.ndarray
+    starts: dict[int, np.ndarray]
+
+
+# ---------------------------------------------------------------------------------- objects
+def materialise(spec: ObjectSpec, starts: list[int], seed: int, out: Path) -> _Object:
+    """Capture (or load) one object, save it under ``out/objects/NAME`` and resolve its starts."""
+    from tergodic_cli.capture import CaptureConfig, capture_cloud, load_capture, save_capture
+    from tergodic_cli.explore.run import StartSpec, resolve_starts
+
+    if spec.source == "capture":
+        cap = load_capture(spec.location)
+    else:
+        kw = dict(spec.capture_options)
+        cfg = (CaptureConfig(source="file", path=spec.location, **kw) if spec.source == "file"
+               else CaptureConfig(source="synthetic", synthetic=spec.location, **kw))
+        try:
+            cap = capture_cloud(cfg)
+        except TypeError as exc:
+            raise TergodicError(f"object {spec.name}: bad capture option ({exc})", "see 'tergodic capture --help'") from None
+    require(bool(np.any(cap.target > 0)), f"object {spec.name}: the target is empty (no point has p > 0)",
+            "check its target/marking options")
+    save_capture(cap, out / "objects" / spec.name)
+    h = hashlib.sha1()
+    h.update(np.ascontiguousarray(cap.points, dtype=np.float64).tobytes())
+    h.update(np.ascontiguousarray(cap.target, dtype=np.float64).tobytes())
+    h.update(str(spec.neighbors).encode())
+    xyz = {}
+    for i in starts:
+        if spec.starts_file is not None:
+            xyz[i] = resolve_starts(StartSpec(starts_file=spec.starts_file, start_index=i), cap.points, 1, seed)[0]
+        else:  # a seeded random cloud point per start index
+            xyz[i] = resolve_starts(StartSpec(start="random"), cap.points, 1, seed * 100003 + i)[0]
+    return _Object(spec, h.hexdigest()[:16], np.asarray(cap.points, dtype=np.float64),
+                   np.asarray(cap.target, dtype=np.float64), xyz)
+
+
+# ---------------------------------------------------------------------------------- workers
+_BASES: dict[tuple, object] = {}
+
+
+def _basis_for(key: str, points, neighbors: int, max_nk: int, nk: int, cache_dir):
+    """The (object, nK) basis in this process: loaded once from the cache (largest nK), then truncated."""
+    full = _BASES.get((key, max_nk))
+    if full is None:
+        from tergodic_cli.explore.run import find_basis
+
+        full, _ = find_basis(points, max_nk, neighbors, cache_dir)
+        _BASES[(key, max_nk)] = full
+    part = _BASES.get((key, max_nk, nk))
+    if part is None:
+        part = full if nk == full.nk else full.truncated(nk)
+        _BASES[(key, max_nk, nk)] = part
+    return part
+
+
+def run_batch(task: dict) -> list[dict]:
+    """Run the explorer for every run of ``task`` (one object and nK); never raises for one run.
+
+    Returns one record per run: the summary, the per-step series (float32) and the wall time,
+    or an ``error`` message.
+    """
+    os.environ.setdefault("TERGODIC_NO_PROGRESS", "1")
+    from tergodic_cli.explore import ExploreConfig, Explorer, summarize_run
+
+    out = []
+    for run in task["runs"]:
+        t0 = time.perf_counter()
+        try:
+            cfg = ExploreConfig(**{**run["config"], "normal_hint": tuple(run["config"]["normal_hint"])})
+            basis = _basis_for(task["key"], task["points"], task["neighbors"], task["max_nk"], cfg.nk,
+                               task["cache_dir"])
+            warnings: list[str] = []
+            ex = Explorer(basis, task["target"], cfg, np.asarray(run["start_xyz"], dtype=np.float64)[None],
+                          on_event=warnings.append)
+            T = cfg.steps
+            series = {k: np.empty(T) for k in (*SERIES, "step_ms")}
+            for k in range(T):
+                ex.step()
+                m = ex.metrics()
+                for name in SERIES:
+                    series[name][k] = m[name]
+                series["step_ms"][k] = ex.last_step_ms
+            summary = summarize_run(series, cfg.to_dict(), {"edge_events": ex.edge_events, "warnings": warnings})
+            out.append({"run_id": run["run_id"], "summary": summary, "wall_s": time.perf_counter() - t0,
+                        "series": {k: series[k].astype(np.float32) for k in SERIES}})
+        except Exception as exc:  # one bad run must not lose the batch's other results
+            msg = exc.problem if isinstance(exc, TergodicError) else f"{type(exc).__name__}: {exc}"
+            out.append({"run_id": run["run_id"], "error": str(msg).splitlines()[0][:300]})
+    return out
+
+
+# ---------------------------------------------------------------------------------- engines
+def _ray(address: str | None, on_event):
+    """The ray module, initialised on ``address`` (or a new local cluster), and a cleanup callable."""
+    try:
+        import ray
+    except ImportError:
+        raise TergodicError("--engine ray needs Ray, which is not installed",
+                            "pip install 'ray>=2.9' (or use --engine joblib)") from None
+    started = False
+    if not ray.is_initialized():
+        try:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False, configure_logging=False)
+        except (ConnectionError, RuntimeError, ValueError) as exc:
+            where = address or "a new local cluster"
+            raise TergodicError(f"cannot start or reach Ray at {where} ({str(exc).splitlines()[0][:80]})",
+                                "start a cluster with 'ray start --head' and pass --address HOST:PORT") from None
+        started = True
+    on_event(f"ray: {int(ray.cluster_resources().get('CPU', 0))} CPUs "
+             f"({'started locally' if started else 'existing cluster'})")
+    return ray, (ray.shutdown if started else (lambda: None))
+
+
+def _execute(batches: list[dict], engine: str, jobs: int, address: str | None, on_event):
+    """Yield each batch's records as soon as it finishes (any order): the one executor of both
+    engines, running :func:`run_batch` in joblib's process pool or as Ray tasks."""
+    if engine == "joblib":
+        if jobs == 1:  # in-process: no pool to start
+            for b in batches:
+                yield run_batch(b)
+            return
+        import joblib
+
+        yield from joblib.Parallel(n_jobs=jobs, backend="loky", return_as="generator_unordered")(
+            joblib.delayed(run_batch)(b) for b in batches)
+        return
+    ray, cleanup = _ray(address, on_event)
+    try:
+        remote = ray.remote(num_cpus=1, max_retries=2)(run_batch)
+        cpus = max(int(ray.cluster_resources().get("CPU", 1)), 1)
+        limit = cpus if jobs == -1 else min(jobs, cpus)
+        todo = list(batches)
+        running = []
+        # Keep a bounded number of tasks in flight (2 per worker slot): the driver writes results
+        # while the cluster works, and a crash loses at most the batches in flight.
+        while todo or running:
+            while todo and len(running) < 2 * limit:
+                running.append(remote.remote(todo.pop(0)))
+            done, running = ray.wait(running, num_returns=1)
+            yield ray.get(done[0])
+    finally:
+        cleanup()
+
+
+def _warm_up() -> None:
+    """Compile (or load) the explorer's kernels once in the driver, so that the workers only
+    load the cached machine code instead of compiling it side by side."""
+    from tergodic_cli.explore import kernels
+
+    if not kernels.HAVE_NUMBA:
+        return
+    from tergodic_cli.basis import compute_basis
+    from tergodic_cli.explore import ExploreConfig, Explorer
+
+    i = np.arange(300) + 0.5
+    phi, theta = np.arccos(1 - 2 * i / 300), np.pi * (1 + 5**0.5) * i
+    pts = 0.05 * np.column_stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)])
+    ex = Explorer(compute_basis(pts, 10, 20), np.ones(300), ExploreConfig(nk=10, agent_radius=0.02), pts[:1],
+                  on_event=lambda m: None)
+    ex.step()
+
+
+# ---------------------------------------------------------------------------------- the sweep
+def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, engine: str = "joblib",
+              address: str | None = None, cache_dir=None, plots: bool = True, parquet: bool = False,
+              on_event: Callable[[str], None] | None = None) -> SweepResult:
+    """Run (or resume) the sweep of ``grid_path`` into ``out``; see the module docstring."""
+    from tergodic_cli.atomic import write_json, write_npz
+    from tergodic_cli.progress import track
+
+    say = on_event or (lambda msg: None)
+    t_start = time.perf_counter()
+    require(engine in ENGINES, f"--engine '{engine}' is unknown", f"use one of {', '.join(ENGINES)}")
+    if jobs is None:
+        jobs = -1 if engine == "ray" else (os.cpu_count() or 1)
+    require(jobs == -1 or jobs >= 1, f"--jobs must be >= 1 (or -1: all CPUs), got {jobs}", "e.g. --jobs 2")
+    grid = load_grid(grid_path)
+    out = Path(out)
+    require(not out.exists() or out.is_dir(), f"--out {out} exists and is not a folder", "give a folder for the sweep")
+    if engine == "ray":  # refuse early, before any work, when Ray is missing
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            raise TergodicError("--engine ray needs Ray, which is not installed",
+                                "pip install 'ray>=2.9' (or use --engine joblib)") from None
+
+    objects = []
+    for spec in grid.objects:
+        obj = materialise(spec, grid.starts, grid.seed, out)
+        from tergodic_cli.explore.run import find_basis
+
+        require(grid.max_nk < len(obj.points), f"object {spec.name}: nK = {grid.max_nk} is not below its "
+                f"{len(obj.points)} points", f"use nk values below {len(obj.points)}")
+        t0 = time.perf_counter()
+        _, hit = find_basis(obj.points, grid.max_nk, spec.neighbors, cache_dir, on_event=say)
+        say(f"object {spec.name}: {len(obj.points)} points, {int(np.count_nonzero(obj.target > 0))} target; basis "
+            f"nK = {grid.max_nk} {'from the cache' if hit else f'computed in {time.perf_counter() - t0:.1f} s'}")
+        objects.append(obj)
+
+    runs_dir = out / "runs"
+    runs_dir.mkdir(parents=True, exist_ok=True)
+    plan: list[tuple[_Object, int, dict, str, object]] = []
+    for obj in objects:
+        for combo in grid.combos():
+            cfg = run_config(grid, obj.spec, combo)
+            for start in grid.starts:
+                rid = run_id(obj.key, start, cfg.to_dict())
+                plan.append((obj, start, combo, rid, cfg))
+    done = {p.stem for p in runs_dir.glob("*.json")}
+    pending = [p for p in plan if p[3] not in done]
+    say(f"{len(plan)} runs: {len(plan) - len(pending)} done already, {len(pending)} to run "
+        f"({engine}, {'all CPUs' if jobs == -1 else f'{jobs} job(s)'})")
+
+    by_id = {p[3]: p for p in pending}
+    batches = _batches(pending, grid, jobs, cache_dir)
+    failed: list[dict] = []
+    computed = 0
+    if batches:
+        _warm_up()
+        for records in track(_execute(batches, engine, jobs, address, say), total=len(batches), description="sweep"):
+            for rec in records:
+                if "error" in rec:
+                    failed.append(rec)
+                    continue
+                write_npz(runs_dir / f"{rec['run_id']}.npz", **rec["series"])
+                write_json(runs_dir / f"{rec['run_id']}.json", _record(by_id[rec["run_id"]], rec))
+                computed += 1
+    table, series = _collect(plan, runs_dir)
+    files = _write_outputs(out, grid, table, series, parquet)
+    if plots and table:
+        from tergodic_cli.sweep.plots import plot_sweep
+
+        files += plot_sweep(out, grid, table, series)
+    from tergodic_cli.provenance import library_versions
+
+    result = SweepResult(out=out, n_runs=len(plan), computed=computed, skipped=len(plan) - len(pending),
+                         failed=failed, wall_s=time.perf_counter() - t_start, files=files, table=table)
+    write_json(out / "sweep.json", {
+        "grid": str(grid.path), "steps": grid.steps, "seed": grid.seed, "starts": grid.starts,
+        "options": grid.options, "objects": {o.spec.name: {"source": o.spec.source, "location": o.spec.location,
+                                                           "key": o.key, "n_points": len(o.points),
+                                                           "n_target": int(np.count_nonzero(o.target > 0)),
+                                                           "neighbors": o.spec.neighbors} for o in objects},
+        "engine": engine, "jobs": jobs, "runs": len(plan), "computed": computed, "skipped": result.skipped,
+        "failed": failed, "wall_s": result.wall_s, "files": files, "versions": library_versions()})
+    result.files = files + ["sweep.json"]
+    return result
+
+
+def _batches(pending, grid: Grid, jobs: int, cache_dir) -> list[dict]:
+    """Runs grouped by (object, nK), cut into batches small enough to keep every worker busy."""
+    workers = max(jobs, 1) if jobs != -1 else (os.cpu_count() or 2)
+    size = max(1, min(25, math.ceil(len(pending) / (4 * workers)))) if pending else 1
+    groups: dict[tuple, list] = {}
+    for obj, start, combo, rid, cfg in pending:
+        groups.setdefault((obj.spec.name, cfg.nk), []).append((obj, start, rid, cfg))
+    batches = []
+    for (_, _), items in sorted(groups.items()):
+        obj = items[0][0]
+        for i in range(0, len(items), size):
+            batches.append({"key": obj.key, "points": obj.points, "target": obj.target,
+                            "neighbors": obj.spec.neighbors, "max_nk": grid.max_nk,
+                            "cache_dir": None if cache_dir is None else str(cache_dir),
+                            "runs": [{"run_id": rid, "config": cfg.to_dict(), "start_xyz": obj.starts[start].tolist()}
+                                     for obj, start, rid, cfg in items[i:i + size]]})
+    return batches
+
+
+def _record(meta, rec: dict) -> dict:
+    obj, start, combo, rid, cfg = meta
+    return {"run_id": rid, "object": obj.spec.name, "object_key": obj.key, "n_points": len(obj.points),
+            "n_target": int(np.count_nonzero(obj.target > 0)), "start": start,
+            "start_xyz": obj.starts[start].tolist(), "grid": {k: combo[k] for k in combo},
+            "wall_s": rec["wall_s"], "summary": rec["summary"]}
+
+
+def _collect(plan, runs_dir: Path) -> tuple[list[dict], dict]:
+    """The table rows and series of this grid's finished runs (sorted), from the run files."""
+    rows, series = [], {k: [] for k in SERIES}
+    ids = []
+    for obj, start, combo, rid, cfg in plan:
+        jpath = runs_dir / f"{rid}.json"
+        if not jpath.exists():
+            continue
+        rec = json.loads(jpath.read_text())
+        s = rec["summary"]
+        row = {"run_id": rid, "object": rec["object"], "n_points": rec["n_points"], "n_target": rec["n_target"],
+               "start": start, "start_x": rec["start_xyz"][0], "start_y": rec["start_xyz"][1],
+               "start_z": rec["start_xyz"][2], "nk": cfg.nk, "alpha": cfg.alpha}
+        for k, v in combo.items():
+            if k not in ("nk", "alpha"):
+                row[k] = v
+        row.update({"steps": s["steps"], "ergodicity": s["ergodicity"], "ergodicity_ref": s["ergodicity_ref"],
+                    "touched_fraction": s["touched_fraction"]})
+        for name in ("ergodicity", "ergodicity_ref", "touched_fraction"):
+            for m in ("200", "500"):
+                row[f"{name}_at_{m}"] = s[f"{name}_at"][m]
+        row.update({"edge_events": s.get("edge_events"), "step_ms_median": s["step_ms_median"],
+                    "wall_s": rec["wall_s"]})
+        rows.append(row)
+        with np.load(runs_dir / f"{rid}.npz", allow_pickle=False) as z:
+            for k in SERIES:
+                series[k].append(z[k])
+        ids.append(rid)
+    order = sorted(range(len(rows)), key=lambda i: (rows[i]["object"], rows[i]["nk"], _alpha_key(rows[i]["alpha"]),
+                                                    [str(rows[i].get(k)) for k in rows[i] if k not in LEAD_COLUMNS
+                                                     and k not in METRIC_COLUMNS], rows[i]["start"]))
+    rows = [rows[i] for i in order]
+    merged = {"run_id": np.array([ids[i] for i in order], dtype="U16")}
+    for k in SERIES:
+        merged[k] = np.stack([series[k][i] for i in order]) if order else np.zeros((0, 0), np.float32)
+    return rows, merged
+
+
+def _alpha_key(alpha: str):
+    try:
+        return (0, float(alpha), "")
+    except ValueError:
+        return (1, 0.0, alpha)
+
+
+def _write_outputs(out: Path, grid: Grid, rows: list[dict], series: dict, parquet: bool) -> list[str]:
+    from tergodic_cli.atomic import atomic_path, write_npz
+
+    columns = list(LEAD_COLUMNS) + [k for k in grid.options if k not in ("nk", "alpha")] + list(METRIC_COLUMNS)
+    with atomic_path(out / "results.csv", suffix=".csv") as tmp:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
+            w.writeheader()
+            for r in rows:
+                w.writerow({k: ("" if r.get(k) is None else (repr(r[k]) if isinstance(r.get(k), float) else r[k]))
+                            for k in columns})
+    write_npz(out / "series.npz", **series)
+    files = ["results.csv", "series.npz"]
+    if parquet:
+        try:
+            import pyarrow as pa
+            import pyarrow.parquet as pq
+        except ImportError:
+            raise TergodicError("--parquet needs pyarrow, which is not installed",
+                                "pip install pyarrow, or use results.csv") from None
+        table = pa.table({k: [r.get(k) for r in rows] for k in columns if any(r.get(k) is not None for r in rows)})
+        with atomic_path(out / "results.parquet", suffix=".parquet") as tmp:
+            pq.write_table(table, tmp)
+        files.append("results.parquet")
+    return files
+
+
+def read_table(path: str | Path) -> list[dict]:
+    """results.csv as a list of dicts (numbers parsed), for tests and scripts."""
+    rows = []
+    with open(path, newline="") as fh:
+        for r in csv.DictReader(fh):
+            rows.append({k: _parse(v) for k, v in r.items()})
+    return rows
+
+
+def _parse(v: str):
+    if v == "":
+        return None
+    for cast in (int, float):
+        try:
+            return cast(v)
+        except ValueError:
+            pass
+    return v
