@@ -15,7 +15,7 @@ def register(app: typer.Typer) -> None:
 def explore(
     capture: Path = typer.Argument(..., help="Capture folder written by 'tergodic capture'."),
     out: Path = typer.Option(..., "--out", "-o", help="Run folder: trajectory.npz, summary.json, run.mcap."),
-    robot: str = typer.Option("kinematic", "--robot", help="'kinematic' (virtual agent only) or 'pybullet' (simulated arm)."),
+    robot: str = typer.Option("kinematic", "--robot", help="'kinematic' (virtual agent only), 'pybullet' (simulated Franka Panda, 1 kHz torque control) or 'franka' (real arm through franky)."),
     steps: int = typer.Option(1000, "--steps", help="Explorer steps (one step = --dt seconds)."),
     alpha: str = typer.Option("10", "--alpha", help="α of δt = α h² (eq. 21), or a schedule A0:A1@S1, e.g. 50:10@200 (50 for 200 steps, then 10)."),
     nk: int = typer.Option(200, "--nk", help="Eigenpairs used by the spectral diffusion (a larger cached basis is truncated)."),
@@ -38,6 +38,19 @@ def explore(
     log_cloud_every: int = typer.Option(50, "--log-cloud-every", help="Log coverage/heat/source per point every N steps (and at the end)."),
     max_start_distance: float = typer.Option(0.02, "--max-start-distance", help="Refuse a start farther than this (metres) from the cloud; closer ones are projected."),
     json_out: bool = typer.Option(False, "--json", help="Print summary.json to stdout."),
+    force: Optional[float] = typer.Option(None, "--force", help="[robot] Desired contact force along the tool axis, N [default: 5]."),
+    force_limit: Optional[float] = typer.Option(None, "--force-limit", help="[robot] Contact force that makes the robot retreat and stop, N [default: 3 x --force]."),
+    contact_force: Optional[float] = typer.Option(None, "--contact-force", help="[robot] Force that counts as touching (coverage is deposited above it), N [default: 20% of --force]."),
+    object_pose: Optional[str] = typer.Option(None, "--object-pose", help="[robot] Capture frame in the robot base frame: x,y,z[,roll,pitch,yaw] (m, deg) or x,y,z,qx,qy,qz,qw [default: 0.5 m in front of the base on a 0.2 m stand; identity for sim captures]."),
+    workspace: Optional[str] = typer.Option(None, "--workspace", help="[robot] Workspace box xmin,ymin,zmin,xmax,ymax,zmax in the base frame, m."),
+    explore_dt: Optional[float] = typer.Option(None, "--explore-dt", help="[robot] Simulated seconds per explorer step [default: 0.2; agent limits are rescaled so a step moves the same path]."),
+    normal_side: Optional[str] = typer.Option(None, "--normal-side", help="[robot] Side of the sheet the tool works on: auto, up or out."),
+    gui: bool = typer.Option(False, "--gui", help="[pybullet] Open the PyBullet GUI (needs a display)."),
+    realtime: bool = typer.Option(False, "--realtime", help="[pybullet] Pace the simulation to wall-clock time (with --gui)."),
+    robot_ip: Optional[str] = typer.Option(None, "--robot-ip", help="[franka] IP address of the Franka controller."),
+    ft: Optional[str] = typer.Option(None, "--ft", help="[franka] Force source: franka (the arm's own estimate, default), bota or netft."),
+    ft_address: Optional[str] = typer.Option(None, "--ft-address", help="[franka] Bota config JSON or Net F/T address."),
+    dry_run: bool = typer.Option(False, "--dry-run", help="[franka] Connect, read the sensors and print the plan without moving."),
 ) -> None:
     """Explore a capture with the paper's HEDAC agent and write the run.
 
@@ -51,6 +64,10 @@ def explore(
       tergodic explore cap/ --starts ../shared/data/reference/starts/bun270_X.npz --start-index 0 --neighbors 40 --out run/
 
       tergodic explore cap/ --alpha 50:10@200 --agents 3 --seed 1 --no-log --json --out run/
+
+      tergodic explore data/bowl --robot pybullet --force 5 --steps 300 --out run/
+
+      tergodic explore cap/ --robot franka --robot-ip 172.16.0.2 --ft bota --ft-address bota.json --dry-run --out run/
     """
     import json
 
@@ -62,8 +79,21 @@ def explore(
                         n_neighbors=fit_neighbors, epsilon=epsilon, basis_neighbors=neighbors,
                         max_start_distance=max_start_distance)
     spec = StartSpec(start=start, starts_file=str(starts) if starts is not None else None, start_index=start_index)
+    from tergodic_cli.commands._common import parse_floats
+
+    robot_options = {
+        "force": force, "contact_force": contact_force, "explore_dt": explore_dt, "normal_side": normal_side,
+        "gui": gui or None, "realtime": realtime or None,
+        "object_pose": parse_floats(object_pose, None, "--object-pose", "0.5,0,0.2") if object_pose else None,
+        "safety": {"force_limit": force_limit,
+                   **(_workspace(parse_floats(workspace, 6, "--workspace", "0.15,-0.6,0,0.85,0.6,0.9")) if workspace else {})},
+    }
+    hardware = {"robot_ip": robot_ip, "ft": ft, "ft_address": ft_address}
     summary = run_explore(capture, cfg, out, spec, robot=robot, log=not no_log, log_cloud_every=log_cloud_every,
-                          cache_dir=cache_dir, on_event=lambda msg: typer.echo(msg, err=True))
+                          cache_dir=cache_dir, on_event=lambda msg: typer.echo(msg, err=True),
+                          robot_options=robot_options, hardware=hardware, dry_run=dry_run, on_report=typer.echo)
+    if dry_run:
+        return
     if json_out:
         typer.echo(json.dumps(summary, indent=2))
         return
@@ -71,3 +101,7 @@ def explore(
                f"ergodicity_ref {summary['ergodicity_ref']:.4f}, touched {100 * summary['touched_fraction']:.1f}%, "
                f"step {summary['step_ms_median']:.2f} ms (median)")
     typer.echo(f"wrote {out}/ ({', '.join(summary['files'])})")
+
+
+def _workspace(box: tuple[float, ...]) -> dict:
+    return {"workspace_min": tuple(box[:3]), "workspace_max": tuple(box[3:])}

@@ -25,7 +25,7 @@ from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_con
 from tergodic_cli.explore.explorer import Explorer
 from tergodic_cli.explore.summary import summarize_run
 
-ROBOTS = ("kinematic", "pybullet")
+ROBOTS = ("kinematic", "pybullet", "franka")
 
 
 @dataclass
@@ -120,8 +120,16 @@ def find_basis(points: np.ndarray, nk: int, neighbors: int, cache_dir=None,
 
 def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path, starts: StartSpec | None = None,
                 robot: str = "kinematic", log: bool = True, log_cloud_every: int = 50, cache_dir=None,
-                on_event: Callable[[str], None] | None = None) -> dict:
-    """Run one exploration and write its artefacts; returns the summary dict."""
+                on_event: Callable[[str], None] | None = None, robot_options: dict | None = None,
+                hardware: dict | None = None, dry_run: bool = False, on_report: Callable[[str], None] | None = None) -> dict:
+    """Run one exploration and write its artefacts; returns the summary dict.
+
+    ``robot_options`` are :class:`~tergodic_cli.robot.RobotConfig` fields (``safety`` as a dict of
+    :class:`~tergodic_cli.robot.safety.SafetyConfig` fields). ``hardware`` holds the
+    :func:`~tergodic_cli.hardware.factory.make_hardware` arguments for ``robot="franka"``;
+    with ``dry_run`` the devices are connected and read, the plan is passed to ``on_report``,
+    nothing moves and nothing is written (the returned dict is then ``{"dry_run": report}``).
+    """
     from tergodic_cli.capture import load_capture
 
     say = on_event or (lambda msg: None)
@@ -143,13 +151,26 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
             f"use --nk < {capture.n_points}")
     start_xyz = resolve_starts(starts or StartSpec(), capture.points, cfg.n_agents, cfg.seed)
 
-    robot_api = _robot_backend() if robot == "pybullet" else None
+    devices = None
+    if robot == "franka":  # fail fast (missing SDK: one-line install hint) before any heavy work
+        from tergodic_cli.hardware.factory import make_hardware
+
+        devices = make_hardware(robot="franka", **(hardware or {}))
+    robot_api = _robot_backend() if robot != "kinematic" else None
     user_cfg = cfg
     if robot_api is not None:
         # The robot runs the explorer at its own step period with the same path per step.
-        robot_cfg = robot_api[1]()
+        robot_cfg = make_robot_config(robot_api[1], robot_options)
         scale = robot_api[2]
         cfg = scale(cfg, robot_cfg.explore_dt) if scale is not None else cfg
+    if dry_run:
+        require(devices is not None, "--dry-run needs a real robot", "use it with --robot franka")
+        from tergodic_cli.hardware.run import DryRunPlan, dry_run as hardware_dry_run
+
+        report = hardware_dry_run(devices[0], devices[1], None,
+                                  DryRunPlan(capture, robot_cfg, start=tuple(start_xyz[0])))
+        (on_report or say)(report)
+        return {"dry_run": report}
     basis, hit = find_basis(capture.points, cfg.nk, cfg.basis_neighbors, cache_dir, on_event=event)
     require(basis.points.shape == capture.points.shape and np.array_equal(basis.points, capture.points),
             "the basis does not match the capture's points", "recompute it: tergodic precompute CAPTURE --force")
@@ -182,6 +203,12 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
             for k in track(range(cfg.steps), total=cfg.steps, description="exploring"):
                 explorer.step()
                 after_step(k + 1, None)
+        elif devices is not None:
+            from tergodic_cli.hardware.run import explore_with_hardware
+
+            robot_extra = explore_with_hardware(capture, explorer, robot_cfg, cfg.steps, devices[0], devices[1],
+                                                on_step=lambda step, sample: after_step(step, sample),
+                                                on_event=event_hook) or {}
         else:
             robot_extra = robot_api[0](capture, explorer, robot_cfg, cfg.steps,
                                              on_step=lambda step, sample: after_step(step, sample),
@@ -206,6 +233,23 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     finally:
         if runlog is not None:
             runlog.__exit__(None, None, None)
+
+
+def make_robot_config(robot_config_cls, options: dict | None):
+    """A RobotConfig from CLI-level options (None values keep the defaults)."""
+    from dataclasses import fields, replace
+
+    from tergodic_cli.robot.safety import SafetyConfig
+
+    options = {k: v for k, v in (options or {}).items() if v is not None}
+    safety = {k: v for k, v in options.pop("safety", {}).items() if v is not None}
+    known = {f.name for f in fields(robot_config_cls)}
+    unknown = sorted(set(options) - known)
+    require(not unknown, f"unknown robot option(s): {', '.join(unknown)}", "see 'tergodic explore --help'")
+    cfg = robot_config_cls(**options)
+    if safety:
+        cfg = replace(cfg, safety=replace(cfg.safety if isinstance(cfg.safety, SafetyConfig) else SafetyConfig(), **safety))
+    return cfg
 
 
 def _robot_backend():
