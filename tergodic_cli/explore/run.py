@@ -213,7 +213,9 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
             robot_extra = robot_api[0](capture, explorer, robot_cfg, cfg.steps,
                                              on_step=lambda step, sample: after_step(step, sample),
                                              on_event=event_hook) or {}
-        require(recorder.count > 0, "the run made no explorer step", "check the robot backend's log")
+        require(recorder.count > 0,
+                f"the run made no explorer step (robot stopped: {robot_extra.get('stop_reason') or 'unknown reason'})",
+                "see the robot's events above; adjust --force, --object-pose or --workspace")
         if runlog is not None and recorder.count % log_cloud_every and recorder.count != cfg.steps:
             _log_cloud(runlog, explorer, recorder.count)  # a robot run that stopped early
 
@@ -254,9 +256,10 @@ def make_robot_config(robot_config_cls, options: dict | None):
 
 def _robot_backend():
     """(explore_with_robot, RobotConfig, robot_explore_config or None), imported on demand."""
-    try:
-        import tergodic_cli.robot as robot_pkg
+    import importlib
 
+    try:
+        robot_pkg = importlib.import_module("tergodic_cli.robot")
         explore_with_robot = robot_pkg.explore_with_robot
         robot_config = robot_pkg.RobotConfig
     except (ImportError, AttributeError) as exc:
