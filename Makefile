@@ -44,8 +44,11 @@ demo: setup
 	$(BIN)/tergodic replay $(DEMO)/kinematic --plot $(DEMO)/kinematic/plots
 	@echo "demo: see $(DEMO)/kinematic/summary.json and the PNGs in $(DEMO)/kinematic/plots/"
 
+# Every benchmark, BLAS pinned to one thread; each prints medians and ratios against the reference.
+BENCH_ENV := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 TERGODIC_NO_PROGRESS=1
+BENCHES   := precompute step explore_reference logging robot sweep
 bench: setup
-	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/precompute.py
+	@for b in $(BENCHES); do echo "== benchmarks/$$b.py"; $(BENCH_ENV) $(BIN)/python -P benchmarks/$$b.py || exit 1; done
 
 # Regenerate the project's own built-in clouds in data/.
 data: setup
