@@ -51,6 +51,9 @@ def explore(
     ft: Optional[str] = typer.Option(None, "--ft", help="[franka] Force source: franka (the arm's own estimate, default), bota or netft."),
     ft_address: Optional[str] = typer.Option(None, "--ft-address", help="[franka] Bota config JSON or Net F/T address."),
     dry_run: bool = typer.Option(False, "--dry-run", help="[franka] Connect, read the sensors and print the plan without moving."),
+    recapture_every: Optional[int] = typer.Option(None, "--recapture-every", help="[pybullet, sim capture] Closed loop: re-capture with the camera every K explorer steps and update the target (basis reused)."),
+    until_clean: float = typer.Option(0.05, "--until-clean", help="[closed loop] Stop when the camera sees less than this share of the initial marking."),
+    max_steps: Optional[int] = typer.Option(None, "--max-steps", help="[closed loop] Step budget [default: --steps]."),
 ) -> None:
     """Explore a capture with the paper's HEDAC agent and write the run.
 
@@ -66,6 +69,8 @@ def explore(
       tergodic explore cap/ --alpha 50:10@200 --agents 3 --seed 1 --no-log --json --out run/
 
       tergodic explore data/bowl --robot pybullet --force 5 --steps 300 --out run/
+
+      tergodic explore simcap/ --robot pybullet --recapture-every 200 --until-clean 0.05 --max-steps 1000 --out run/
 
       tergodic explore cap/ --robot franka --robot-ip 172.16.0.2 --ft bota --ft-address bota.json --dry-run --out run/
     """
@@ -91,9 +96,13 @@ def explore(
     hardware = {"robot_ip": robot_ip, "ft": ft, "ft_address": ft_address}
     summary = run_explore(capture, cfg, out, spec, robot=robot, log=not no_log, log_cloud_every=log_cloud_every,
                           cache_dir=cache_dir, on_event=lambda msg: typer.echo(msg, err=True),
-                          robot_options=robot_options, hardware=hardware, dry_run=dry_run, on_report=typer.echo)
+                          robot_options=robot_options, hardware=hardware, dry_run=dry_run, on_report=typer.echo,
+                          recapture_every=recapture_every, until_clean=until_clean, max_steps=max_steps)
     if dry_run:
         return
+    if summary.get("interrupted"):
+        typer.echo(f"interrupted: the robot was made safe; partial run written to {out}/", err=True)
+        raise typer.Exit(130)
     if json_out:
         typer.echo(json.dumps(summary, indent=2))
         return

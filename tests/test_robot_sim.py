@@ -339,3 +339,44 @@ def test_bowl_run_meets_the_control_goals():
     assert out["track_mm_median"] <= 5.0
     assert out["contact_fraction"] >= 0.95
     assert out["contact_touched_fraction"] >= 0.9 * out["agent_touched_fraction"]
+
+
+@pytest.fixture(scope="module")
+def sim_bowl():
+    """The textured bowl on a 20 cm stand, as a small simulated capture, and its basis."""
+    from tergodic_cli.capture.sim_camera import SimCameraConfig, SimCaptureConfig, capture_sim
+    from tergodic_cli.capture.textured import SimObjectConfig
+
+    cap = capture_sim(SimCaptureConfig(object=SimObjectConfig(object="bowl", marking="X", pose=(0.5, 0.0, 0.2),
+                                                              texture_size=64),
+                                       camera=SimCameraConfig(renderer="tiny", width=240, height=180)))
+    return cap, compute_basis(cap.points, 40, 30)
+
+
+@pytest.mark.parametrize("where", ["bottom", "near wall"])
+def test_approach_meets_the_surface_gently(sim_bowl, where):
+    # The bottom of the bowl's mesh is a vertex where many triangles meet: at 20 mm/s the first touch
+    # there hit 28 N (limit 15 N). On the wall facing the robot the sponge's side touches first, where
+    # a 2 mm/s push alone (0.1 N) never registered. The approach must touch gently and register.
+    cap, basis = sim_bowl
+    c = cap.points[np.argmin(cap.points[:, 2])]
+    target = c if where == "bottom" else c + np.array([-0.055, 0.0, 0.0])
+    start = cap.points[np.argmin(np.linalg.norm(cap.points[:, :2] - target[:2], axis=1))][None]
+    cfg = RobotConfig(**FAST)
+    ec = robot_explore_config(ExploreConfig(nk=40, seed=0, agent_radius=0.008), cfg.explore_dt)
+    ex = Explorer(basis, cap.target, ec, start, on_event=lambda msg: None)
+    with RobotRun(cap, ex, cfg) as run:
+        assert run.mesh_source == "sim_object"
+        peak = [0.0]
+        check = run.guard.check_force
+
+        def watch(t, w):
+            if run.sm.state == "approach":
+                peak[0] = max(peak[0], float(np.linalg.norm(np.asarray(w)[:3])))
+            return check(t, w)
+
+        run.guard.check_force = watch
+        out = run.run(2)
+    assert out["stop_reason"] == "completed"
+    assert [t["to"] for t in out["transitions"]][:3] == ["hover", "approach", "explore"]
+    assert 4.0 < peak[0] <= 2.0 * cfg.force  # pressed to F_d, never more than twice it

@@ -121,7 +121,8 @@ def find_basis(points: np.ndarray, nk: int, neighbors: int, cache_dir=None,
 def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path, starts: StartSpec | None = None,
                 robot: str = "kinematic", log: bool = True, log_cloud_every: int = 50, cache_dir=None,
                 on_event: Callable[[str], None] | None = None, robot_options: dict | None = None,
-                hardware: dict | None = None, dry_run: bool = False, on_report: Callable[[str], None] | None = None) -> dict:
+                hardware: dict | None = None, dry_run: bool = False, on_report: Callable[[str], None] | None = None,
+                recapture_every: int | None = None, until_clean: float = 0.05, max_steps: int | None = None) -> dict:
     """Run one exploration and write its artefacts; returns the summary dict.
 
     ``robot_options`` are :class:`~tergodic_cli.robot.RobotConfig` fields (``safety`` as a dict of
@@ -129,6 +130,9 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     :func:`~tergodic_cli.hardware.factory.make_hardware` arguments for ``robot="franka"``;
     with ``dry_run`` the devices are connected and read, the plan is passed to ``on_report``,
     nothing moves and nothing is written (the returned dict is then ``{"dry_run": report}``).
+    ``recapture_every`` (robot "pybullet", a ``--source sim`` capture) runs the closed outer loop:
+    every K steps re-capture with the simulated camera, update p on the same basis, and stop once the
+    camera sees less than ``until_clean`` of the initial marking or ``max_steps`` are spent.
     """
     from tergodic_cli.capture import load_capture
 
@@ -141,6 +145,10 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
 
     validate_config(cfg)
     require(robot in ROBOTS, f"--robot '{robot}' is unknown", f"use one of {', '.join(ROBOTS)}")
+    require(recapture_every is None or robot == "pybullet", "--recapture-every needs the simulated robot",
+            "add --robot pybullet (with a 'tergodic capture --source sim' capture)")
+    require(recapture_every is None or recapture_every >= 1, f"--recapture-every must be >= 1, got {recapture_every}", "e.g. 200")
+    require(0.0 <= until_clean < 1.0, f"--until-clean must be in [0, 1), got {until_clean}", "e.g. 0.05 (5% of the marking left)")
     require(log_cloud_every >= 1, f"--log-cloud-every must be >= 1, got {log_cloud_every}", "e.g. 50")
     out = Path(out_dir)
     require(not out.exists() or out.is_dir(), f"--out {out} exists and is not a folder", "give a folder path for the run")
@@ -203,6 +211,16 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
             for k in track(range(cfg.steps), total=cfg.steps, description="exploring"):
                 explorer.step()
                 after_step(k + 1, None)
+        elif recapture_every is not None:
+            from tergodic_cli.robot import CleaningLoopConfig, clean_with_robot, log_recapture
+
+            loop = CleaningLoopConfig(recapture_every=recapture_every, until_clean=until_clean,
+                                      max_steps=max_steps or cfg.steps)
+            on_recapture = ((lambda step, rec: log_recapture(runlog, explorer, step, step * cfg.dt, rec))
+                            if runlog is not None else None)
+            robot_extra = clean_with_robot(capture, explorer, robot_cfg, loop_cfg=loop,
+                                           on_step=lambda step, sample: after_step(step, sample),
+                                           on_event=event_hook, on_recapture=on_recapture) or {}
         elif devices is not None:
             from tergodic_cli.hardware.run import explore_with_hardware
 

@@ -1,6 +1,7 @@
 """Robot: a force-controlled arm follows the explorer (paper sections IV-B and V-A3).
 
 Entry points: :class:`RobotConfig`, :func:`explore_with_robot` (the ``--robot pybullet`` run),
+:func:`clean_with_robot` (the closed outer loop through the simulated camera, ``--recapture-every``),
 :func:`summarize_robot` (summary extras from the per-step samples, pure), and
 :func:`robot_explore_config` (the explorer's time scaling for robot mode).
 
@@ -21,11 +22,16 @@ def __getattr__(name):  # the run pulls in open3d, scipy and pybullet; load on f
         from tergodic_cli.robot import run
 
         return getattr(run, name)
+    if name in ("clean_with_robot", "CleaningLoopConfig", "log_recapture", "sim_scene_configs"):
+        from tergodic_cli.robot import closed_loop
+
+        return getattr(closed_loop, name)
     raise AttributeError(name)
 
 
 __all__ = [
-    "Arm", "ArmState", "ControllerGains", "Fault", "LineForceController", "PAPER_GAINS", "RobotConfig", "RobotRun",
-    "SafetyConfig", "SafetyGuard", "ToolLoad", "WrenchReading", "WrenchSensor", "explore_with_robot",
-    "robot_explore_config", "summarize_robot", "validate_robot_config",
+    "Arm", "ArmState", "CleaningLoopConfig", "ControllerGains", "Fault", "LineForceController", "PAPER_GAINS",
+    "RobotConfig", "RobotRun", "SafetyConfig", "SafetyGuard", "ToolLoad", "WrenchReading", "WrenchSensor",
+    "clean_with_robot", "explore_with_robot", "log_recapture", "robot_explore_config", "sim_scene_configs",
+    "summarize_robot", "validate_robot_config",
 ]

@@ -30,15 +30,20 @@ class RobotConfig:
     physics_dt : control and physics period, s (1 kHz).
     hover_height : m above the start point (along the normal) where the approach begins.
     approach_speed, retreat_speed : m/s along the tool axis; retreat_distance : m.
+    contact_speed : m/s at which the approach meets the surface (it slows down over the last
+        ~approach_speed × 0.25 s; at 20 mm/s the impact reached 10-28 N on the bowl).
     contact_force : N of contact normal force that counts as touching (coverage is deposited
         only above it); None = 20 % of ``force``.
     normal_side : which side of the sheet the tool works on: auto, up, out.
     mesh_edge : target triangle edge of the collision mesh, m.
     move_speed : peak joint speed of the picture -> hover move, rad/s.
     solver_iterations : PyBullet constraint-solver iterations.
-    jacobian_every : control steps per Jacobian refresh (4: 250 Hz; pose, twist, wrench, gravity
-        and the torque command stay at 1 kHz). At the exploration's joint speeds (< 0.3 rad/s) a
-        4 ms old Jacobian is off by < 0.1 %.
+    jacobian_every : control steps per Jacobian refresh, for backends where it costs (the PyBullet
+        arm computes pose and Jacobian together in compiled code every step and ignores it).
+    dynamics_every : control steps per refresh of the gravity + Coriolis compensation
+        (``calculateInverseDynamics``); 4 = 250 Hz: at < 0.3 rad/s the joints move 1.2 mrad in 4 ms,
+        ~0.03 N m of gravity torque on the shoulder (measured: no change in the force, tilt or
+        tracking figures, docs/robot.md).
     velocity_feedforward : damp the tool's velocity relative to the moving target line (its
         glide between explorer steps) instead of its absolute velocity (eq. 46): no damping lag.
     max_tool_tilt_deg : the commanded tool axis is kept within this angle of straight down; on
@@ -54,6 +59,7 @@ class RobotConfig:
     physics_dt: float = 0.001
     hover_height: float = 0.04
     approach_speed: float = 0.02
+    contact_speed: float = 0.002
     retreat_speed: float = 0.05
     retreat_distance: float = 0.05
     contact_force: float | None = None
@@ -62,6 +68,7 @@ class RobotConfig:
     move_speed: float = 0.8
     solver_iterations: int = 10
     jacobian_every: int = 4
+    dynamics_every: int = 4
     velocity_feedforward: bool = True
     max_tool_tilt_deg: float = 60.0
     picture_q: tuple[float, ...] = PICTURE_Q
@@ -104,10 +111,13 @@ def validate_robot_config(cfg: RobotConfig) -> None:
             "use e.g. --explore-dt 0.1")
     require(cfg.hover_height > 0.005, "hover_height must be > 5 mm", "e.g. 0.04")
     require(cfg.approach_speed > 0 and cfg.retreat_speed > 0, "approach and retreat speeds must be > 0", "e.g. 0.03 m/s")
+    require(0 < cfg.contact_speed <= cfg.approach_speed, "contact_speed must be > 0 and <= approach_speed",
+            "e.g. 0.005 m/s")
     require(cfg.contact_threshold < cfg.force, f"the contact threshold {cfg.contact_threshold:g} N is not below --force",
             "lower --contact-force")
     require(cfg.sponge.radius > 0.002, "the sponge radius must be > 2 mm", "e.g. 0.012")
     require(cfg.mesh_edge >= 0, "mesh_edge must be >= 0 m", "e.g. 0.006")
     require(len(cfg.picture_q) == 7, "picture_q needs 7 joint angles", "give the Panda's 7 joint angles in rad")
     require(1 <= int(cfg.jacobian_every) <= 10, "jacobian_every must be 1..10 control steps", "use 4 (250 Hz)")
+    require(1 <= int(cfg.dynamics_every) <= 10, "dynamics_every must be 1..10 control steps", "use 4 (250 Hz)")
     require(0 < cfg.max_tool_tilt_deg <= 90, "max_tool_tilt_deg must be in (0, 90]", "e.g. 60")

@@ -42,7 +42,6 @@ from typing import NamedTuple
 
 import numpy as np
 
-from tergodic_cli.robot.ga import line_motor_z_scalar
 
 
 #: Radians before a joint limit where the null-space repulsion starts.
@@ -87,13 +86,13 @@ PAPER_GAINS = ControllerGains(k_trans=(750.0, 750.0, 300.0), k_rot=(30.0, 30.0, 
 
 
 class ControlOutput(NamedTuple):
-    """One control step's torques and diagnostics (ee frame); a NamedTuple, cheap to make at 1 kHz."""
+    """One control step's torques and diagnostics (ee frame); views into the step's diagnostics array."""
 
     tau: np.ndarray  # (7,) task torques, N m
-    twist_error: tuple  # V_L = (t, φ), φz being the spin error about the tool axis
-    wrench_cmd: tuple  # total commanded wrench (f, m), ee frame
+    twist_error: np.ndarray  # (6,) V_L = (t, φ), φz being the spin error about the tool axis
+    wrench_cmd: np.ndarray  # (6,) total commanded wrench (f, m), ee frame
     force_filtered: float  # N along the tool axis
-    v_ee: tuple  # ee twist (v, ω), ee frame
+    v_ee: np.ndarray  # (6,) ee twist (v, ω), ee frame
 
 
 class LineForceController:
@@ -112,35 +111,103 @@ class LineForceController:
     q_rest : (7,) posture the null-space spring pulls towards.
     x_ref : (3,) base-frame direction the ee x-axis is held near (the spin about the tool axis).
     q_limits : (q_min, q_max) joint limits for the null-space limit repulsion (default: the Panda's).
+
+    The arithmetic is :func:`tergodic_cli.robot.kernels.line_force_step` (compiled); this class
+    holds its parameters and state (``prm``, ``state``, the null-space terms).
     """
 
     def __init__(self, gains: ControllerGains, dt: float, q_rest: np.ndarray, x_ref: np.ndarray, q_limits=None):
+        from tergodic_cli.robot import kernels as Kn
+        from tergodic_cli.robot.pybullet_backend.scene import Q_MAX, Q_MIN
+
+        self._Kn = Kn
         self.g = gains
         self.dt = float(dt)
-        self.q_rest = np.asarray(q_rest, dtype=float)
-        self.x_ref = np.asarray(x_ref, dtype=float)
         self.K = tuple(float(k) for k in gains.k_trans + gains.k_rot)
         self.D = tuple(float(k) for k in gains.d_trans + gains.d_rot)
         self.alpha = 1.0 - math.exp(-2.0 * math.pi * gains.force_filter_hz * self.dt) if gains.force_filter_hz > 0 else 1.0
-        self._tau_spring = np.zeros(7)  # null-space spring torques, refreshed every 10 steps
-        self._N_damp = np.zeros((7, 7))
-        self._n_age = 0
-        from tergodic_cli.robot.pybullet_backend.scene import Q_MAX, Q_MIN
-
-        self.q_min, self.q_max = (Q_MIN, Q_MAX) if q_limits is None else (np.asarray(q_limits[0]), np.asarray(q_limits[1]))
+        q_min, q_max = (Q_MIN, Q_MAX) if q_limits is None else (q_limits[0], q_limits[1])
+        prm = np.zeros(Kn.N_CP)
+        prm[Kn.CP_KP], prm[Kn.CP_KI], prm[Kn.CP_KD] = gains.kp, gains.ki, gains.kd
+        prm[Kn.CP_ALPHA], prm[Kn.CP_IMAX], prm[Kn.CP_SPIN] = self.alpha, gains.integral_max, gains.spin_stiffness
+        prm[Kn.CP_NS_K], prm[Kn.CP_NS_D], prm[Kn.CP_LIM_K] = gains.nullspace_stiffness, gains.nullspace_damping, gains.limit_stiffness
+        prm[Kn.CP_DT], prm[Kn.CP_LIMIT_ZONE] = self.dt, LIMIT_ZONE
+        #: Packed constants (kernels.KPK_*) and mutable state (kernels.MUT_*) of the compiled step.
+        self.kpk = np.concatenate([self.K, self.D, prm, np.asarray(x_ref, dtype=float), np.asarray(q_rest, dtype=float),
+                                   np.asarray(q_min, dtype=float), np.asarray(q_max, dtype=float)])
+        assert self.kpk.shape == (Kn.N_KPK,)
+        self.mut = np.zeros(Kn.N_MUT)
+        self._vref = np.zeros(3)
+        self._modes = Kn.MODES
+        self._step = Kn.line_force_step_packed
         self.reset()
+
+    # Views into the packed arrays, by name.
+    @property
+    def prm(self) -> np.ndarray:
+        return self.kpk[self._Kn.KPK_PRM:self._Kn.KPK_PRM + self._Kn.N_CP]
+
+    @property
+    def q_rest(self) -> np.ndarray:
+        return self.kpk[self._Kn.KPK_QREST:self._Kn.KPK_QREST + 7]
+
+    @property
+    def q_min(self) -> np.ndarray:
+        return self.kpk[self._Kn.KPK_QMIN:self._Kn.KPK_QMIN + 7]
+
+    @property
+    def q_max(self) -> np.ndarray:
+        return self.kpk[self._Kn.KPK_QMAX:self._Kn.KPK_QMAX + 7]
+
+    @property
+    def x_ref(self) -> np.ndarray:
+        return self.kpk[self._Kn.KPK_XREF:self._Kn.KPK_XREF + 3]
+
+    @x_ref.setter
+    def x_ref(self, v) -> None:
+        self.kpk[self._Kn.KPK_XREF:self._Kn.KPK_XREF + 3] = np.asarray(v, dtype=float)
+
+    @property
+    def state(self) -> np.ndarray:
+        """(N_CS,) PID state: filtered force, previous error, has-previous flag, integral, step count."""
+        return self.mut[:self._Kn.N_CS]
+
+    @property
+    def tau_spring(self) -> np.ndarray:
+        return self.mut[self._Kn.MUT_SPRING:self._Kn.MUT_SPRING + 7]
+
+    @property
+    def n_damp(self) -> np.ndarray:
+        return self.mut[self._Kn.MUT_DAMP:].reshape(7, 7)
+
+    @property
+    def f_filt(self) -> float:
+        return float(self.mut[self._Kn.CS_FFILT])
+
+    @property
+    def integral(self) -> float:
+        return float(self.mut[self._Kn.CS_INTEGRAL])
+
+    @property
+    def e_prev(self) -> float | None:
+        Kn = self._Kn
+        return float(self.mut[Kn.CS_EPREV]) if self.mut[Kn.CS_HAS_EPREV] else None
 
     def reset(self, force_now: float = 0.0) -> None:
         """Clear the PID state."""
-        self.f_filt = float(force_now)
-        self.e_prev = None
-        self.integral = 0.0
+        Kn = self._Kn
+        self.mut[Kn.CS_FFILT] = float(force_now)
+        self.mut[Kn.CS_EPREV] = 0.0
+        self.mut[Kn.CS_HAS_EPREV] = 0.0
+        self.mut[Kn.CS_INTEGRAL] = 0.0
 
     def start_tracking(self, force_desired: float, force_cmd: float) -> None:
         """Bumpless switch to "track": the PID output continues from ``force_cmd``."""
+        Kn = self._Kn
         e = force_desired - self.f_filt
-        self.integral = (force_cmd - self.g.kp * e) / self.g.ki if self.g.ki > 0 else 0.0
-        self.e_prev = e
+        self.mut[Kn.CS_INTEGRAL] = (force_cmd - self.g.kp * e) / self.g.ki if self.g.ki > 0 else 0.0
+        self.mut[Kn.CS_EPREV] = e
+        self.mut[Kn.CS_HAS_EPREV] = 1.0
 
     def step(self, st, a, d, wrench_ee, mode: str, force_desired: float, speed: float = 0.0,
              v_ref=None) -> ControlOutput:
@@ -155,67 +222,23 @@ class LineForceController:
         v_ref : velocity of the target line, base frame, 3 floats (or None): the translational damping
             acts on the velocity relative to it, so a moving target is followed without a damping lag.
         """
-        g = self.g
-        r0, r1, r2, r3, r4, r5, r6, r7, r8 = st.rot
-        px, py, pz = st.pos
-        # The target line in the ee frame: M̃ L_a⊥ M (Rᵀ applied to a - p and to d).
-        vx, vy, vz = a[0] - px, a[1] - py, a[2] - pz
-        dx, dy, dz = d[0], d[1], d[2]
-        tx, ty, tz, fx_, fy_, _ = line_motor_z_scalar(
-            r0 * vx + r3 * vy + r6 * vz, r1 * vx + r4 * vy + r7 * vz, r2 * vx + r5 * vy + r8 * vz,
-            r0 * dx + r3 * dy + r6 * dz, r1 * dx + r4 * dy + r7 * dz, r2 * dx + r5 * dy + r8 * dz)
-        xr = self.x_ref
-        spin = math.atan2(r1 * xr[0] + r4 * xr[1] + r7 * xr[2], r0 * xr[0] + r3 * xr[1] + r6 * xr[2])
-        J = st.jacobian
-        V = (J @ st.dq).tolist()  # base-frame twist (v, ω) of the TCP
-        if v_ref is not None:
-            V[0] -= v_ref[0]
-            V[1] -= v_ref[1]
-            V[2] -= v_ref[2]
-        ve = (r0 * V[0] + r3 * V[1] + r6 * V[2], r1 * V[0] + r4 * V[1] + r7 * V[2], r2 * V[0] + r5 * V[1] + r8 * V[2],
-              r0 * V[3] + r3 * V[4] + r6 * V[5], r1 * V[3] + r4 * V[4] + r7 * V[5], r2 * V[3] + r5 * V[4] + r8 * V[5])
-        # Wrench PID on the force along the tool axis (eqs. 40-41), on the filtered measurement.
-        self.f_filt += self.alpha * (float(wrench_ee[2]) - self.f_filt)
-        if mode == "track":
-            e = force_desired - self.f_filt
-            de = 0.0 if self.e_prev is None else (e - self.e_prev) / self.dt
-            self.e_prev = e
-            if g.ki > 0:
-                self.integral = min(max(self.integral + e * self.dt, 0.0), g.integral_max * max(force_desired, 0.0) / g.ki)
-            fz = g.kp * e + g.ki * self.integral + g.kd * de
-        elif mode == "approach":
-            fz = self.D[2] * speed
-        elif mode == "retreat":
-            fz = -self.D[2] * speed
-        else:
+        m = self._modes.get(mode)
+        if m is None:
             raise ValueError(f"unknown control mode {mode!r}")
-        K, D = self.K, self.D
-        # K_L V_L - D_V V_ee + W_C (eq. 47); no stiffness along the line (the force loop owns it),
-        # and along it the damping acts on the tool's own velocity (the target's slides along the line).
-        wx = K[0] * tx - D[0] * ve[0]
-        wy = K[1] * ty - D[1] * ve[1]
-        wz = fz - D[2] * (ve[2] if v_ref is None else ve[2] + (r2 * v_ref[0] + r5 * v_ref[1] + r8 * v_ref[2]))
-        mx = K[3] * fx_ - D[3] * ve[3]
-        my = K[4] * fy_ - D[4] * ve[4]
-        mz = g.spin_stiffness * spin - D[5] * ve[5]
-        W = np.array((r0 * wx + r1 * wy + r2 * wz, r3 * wx + r4 * wy + r5 * wz, r6 * wx + r7 * wy + r8 * wz,
-                      r0 * mx + r1 * my + r2 * mz, r3 * mx + r4 * my + r5 * mz, r6 * mx + r7 * my + r8 * mz))
-        tau = J.T @ W + self._posture(J, st.q, st.dq)
-        return ControlOutput(tau, (tx, ty, tz, fx_, fy_, spin), (wx, wy, wz, mx, my, mz), self.f_filt, ve)
+        tau = np.empty(7)
+        diag = np.empty(19)
+        use_vref = v_ref is not None
+        if use_vref:
+            self._vref[:] = v_ref
+        J = st.jacobian
+        self._step(st.ee_pose, J if J.flags.c_contiguous else np.ascontiguousarray(J), _f64(st.q), _f64(st.dq),
+                   _f64(a), _f64(d), _f64(wrench_ee), m, float(force_desired), float(speed), self._vref, use_vref,
+                   self.kpk, self.mut, tau, diag)
+        return ControlOutput(tau, diag[0:6], diag[6:12], float(diag[12]), diag[13:19])
 
-    def _posture(self, J: np.ndarray, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
-        # Posture spring, joint-limit repulsion and damper, projected into the Jacobian's null space
-        # (I - Jᵀ (Jᵀ)⁺, damped). The task damping cannot see self-motion, so the null-space damper
-        # runs every step; the projector and the slowly varying spring terms are refreshed at 100 Hz.
-        g = self.g
-        if self._n_age % 10 == 0:
-            N = np.eye(7) - J.T @ np.linalg.solve(J @ J.T + 1e-4 * np.eye(6), J)
-            lo = np.minimum(q - (self.q_min + LIMIT_ZONE), 0.0)
-            hi = np.maximum(q - (self.q_max - LIMIT_ZONE), 0.0)
-            self._tau_spring = N @ (g.nullspace_stiffness * (self.q_rest - q) - g.limit_stiffness * (lo + hi))
-            self._N_damp = g.nullspace_damping * N
-        self._n_age += 1
-        return self._tau_spring - self._N_damp @ dq
+
+def _f64(x) -> np.ndarray:
+    return x if isinstance(x, np.ndarray) and x.dtype == np.float64 and x.flags.c_contiguous else np.ascontiguousarray(x, dtype=float)
 
 
 @dataclass

@@ -144,47 +144,42 @@ class ContactWrench:
 
     ``tare_at(R)`` records the sensor orientation of the last tare (the tool load then is part
     of the zeroed reading); ``__call__`` removes the change of tool load since, then moves the
-    wrench from the sensor frame to the TCP: W'_m of eq. 39. Scalar code: it runs at 1 kHz.
+    wrench from the sensor frame to the TCP: W'_m of eq. 39. The arithmetic is
+    :func:`tergodic_cli.robot.kernels.contact_wrench` (compiled: it runs at 1 kHz).
     """
 
     def __init__(self, load: ToolLoad, frame_in_ee: np.ndarray):
-        self.load = load
-        self.R_se = tuple(np.asarray(frame_in_ee[:3, :3], dtype=float).ravel().tolist())  # sensor -> ee
-        self.p_se = tuple(np.asarray(frame_in_ee[:3, 3], dtype=float).tolist())  # sensor origin in the ee frame
-        self._mg = load.mass * GRAVITY
-        self._com = tuple(float(c) for c in load.com)
-        self._tare_load = (0.0,) * 6
+        from tergodic_cli.robot.kernels import contact_wrench
 
-    def _load(self, rot: tuple) -> tuple:
-        # Rᵀ_base_sensor (0, 0, m g) = (R_base_ee R_ee_sensor)ᵀ e_z m g = R_seᵀ (row 3 of R_base_ee) m g ... in the sensor frame.
-        s = self.R_se
-        z0, z1, z2 = rot[6] * self._mg, rot[7] * self._mg, rot[8] * self._mg  # (R_base_ee)ᵀ e_z m g in the ee frame
-        f0 = s[0] * z0 + s[3] * z1 + s[6] * z2
-        f1 = s[1] * z0 + s[4] * z1 + s[7] * z2
-        f2 = s[2] * z0 + s[5] * z1 + s[8] * z2
-        c0, c1, c2 = self._com
-        return (f0, f1, f2, c1 * f2 - c2 * f1, c2 * f0 - c0 * f2, c0 * f1 - c1 * f0)
+        self.load = load
+        self.R_se_m = np.ascontiguousarray(np.asarray(frame_in_ee, dtype=float)[:3, :3])  # sensor -> ee
+        self.p_se_v = np.ascontiguousarray(np.asarray(frame_in_ee, dtype=float)[:3, 3])  # sensor origin in the ee frame
+        self.R_se = tuple(self.R_se_m.ravel().tolist())
+        self.p_se = tuple(self.p_se_v.tolist())
+        self.mg = float(load.mass * GRAVITY)
+        self.com = np.ascontiguousarray(load.com, dtype=float)
+        self.tare_load = np.zeros(6)
+        self._kernel = contact_wrench
+
+    def _load(self, R_base_ee: np.ndarray) -> np.ndarray:
+        """The tool load (6,) in the sensor frame at this orientation (the reading of a free, still tool, untared)."""
+        from tergodic_cli.robot.kernels import tool_load
+
+        out = np.empty(6)
+        tool_load(np.asarray(R_base_ee, dtype=float), self.R_se_m, self.mg, self.com, out)
+        return out
 
     def tare_at(self, R_base_ee: np.ndarray) -> None:
         """Call right after :meth:`WrenchSensor.tare` with the tool at rest and free."""
-        self._tare_load = self._load(tuple(np.asarray(R_base_ee, dtype=float).ravel().tolist()))
+        self.tare_load = self._load(np.asarray(R_base_ee, dtype=float).reshape(3, 3))
 
-    def __call__(self, reading: np.ndarray, R_base_ee) -> np.ndarray:
+    def __call__(self, reading, R_base_ee) -> np.ndarray:
         """(6,) wrench (f, m) the tool applies to the environment, ee frame, moment about the TCP.
 
-        ``R_base_ee`` is the (3, 3) TCP rotation, or the same as 9 row-major floats.
+        ``reading`` is the sensor's (6,) wrench (array or 6-tuple); ``R_base_ee`` the (3, 3) TCP
+        rotation (or the (4, 4) pose, or 9 row-major floats).
         """
-        rot = R_base_ee if isinstance(R_base_ee, tuple) else tuple(np.asarray(R_base_ee).ravel().tolist())
-        ld = self._load(rot)
-        tl = self._tare_load
-        r = reading.tolist() if isinstance(reading, np.ndarray) else reading  # ndarray or 6-tuple
-        w = [r[i] + tl[i] - ld[i] for i in range(6)]
-        s = self.R_se
-        f0 = s[0] * w[0] + s[1] * w[1] + s[2] * w[2]
-        f1 = s[3] * w[0] + s[4] * w[1] + s[5] * w[2]
-        f2 = s[6] * w[0] + s[7] * w[1] + s[8] * w[2]
-        m0 = s[0] * w[3] + s[1] * w[4] + s[2] * w[5]
-        m1 = s[3] * w[3] + s[4] * w[4] + s[5] * w[5]
-        m2 = s[6] * w[3] + s[7] * w[4] + s[8] * w[5]
-        p0, p1, p2 = self.p_se  # moment about the TCP: m_B = m_A + (A - B) × f
-        return np.array((f0, f1, f2, m0 + p1 * f2 - p2 * f1, m1 + p2 * f0 - p0 * f2, m2 + p0 * f1 - p1 * f0))
+        R = R_base_ee if isinstance(R_base_ee, np.ndarray) else np.asarray(R_base_ee, dtype=float).reshape(3, 3)
+        out = np.empty(6)
+        self._kernel(np.asarray(reading, dtype=float), R, self.R_se_m, self.p_se_v, self.mg, self.com, self.tare_load, out)
+        return out

@@ -16,6 +16,7 @@ normal force exceeds ``contact_threshold``; the agent is reset to the measured t
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import replace
@@ -31,17 +32,24 @@ from tergodic_cli.robot.config import RobotConfig, validate_robot_config
 from tergodic_cli.robot.controller import JointImpedance, LineForceController, min_jerk
 from tergodic_cli.robot.ga import matrix_to_quat, point_line_distance, pose_matrix
 from tergodic_cli.robot.interfaces import ContactWrench
+from tergodic_cli.robot.pybullet_backend import PyBulletArm, PyBulletScene, PyBulletWrenchSensor
 from tergodic_cli.robot.safety import Fault, SafetyGuard
 from tergodic_cli.robot.summary import summarize_robot
 from tergodic_cli.robot.surface import (check_reachable, default_object_pose, oriented_normals, parse_object_pose,
-                                        reconstruct_mesh, resolve_side, transform_points)
+                                        reconstruct_mesh, resolve_side, sim_object_mesh, transform_points)
 
 #: Seconds of joint-impedance holding after a stop, so the arm ends at rest.
 HOLD_S = 0.5
 SETTLE_S = 0.3
 PRESS_TIMEOUT_S = 2.0
 PRESS_RAMP_S = 0.5
+#: The approach slows down to reach the surface in about this many seconds from where it is.
+APPROACH_TAU_S = 0.25
+#: N/s by which the approach push grows once the tool is at the expected surface.
+PRESS_RATE = 10.0
 RETREAT_TIMEOUT_S = 3.0
+#: Metres above the object's highest point the tool passes on its way to and from the picture pose.
+CLEARANCE = 0.04
 
 
 def robot_explore_config(cfg, explore_dt: float):
@@ -65,12 +73,11 @@ class RobotRun:
     goes through :func:`explore_with_robot`.
     """
 
-    def __init__(self, capture, explorer, cfg: RobotConfig, on_event: Callable[[int, str], None] | None = None):
+    def __init__(self, capture, explorer, cfg: RobotConfig, on_event: Callable[[int, str], None] | None = None,
+                 scene_mesh=None):
         from scipy.spatial import cKDTree
 
         from tergodic_cli.robot.kinematics import FrankaModel, tool_offset
-        from tergodic_cli.robot.pybullet_backend import PyBulletArm, PyBulletScene, PyBulletWrenchSensor
-
         validate_robot_config(cfg)
         t_setup = time.perf_counter()
         self.cfg = cfg
@@ -97,15 +104,36 @@ class RobotRun:
         check_reachable(self.points_base)
         side = resolve_side(cfg.normal_side, getattr(capture, "meta", {}) or {})
         self.normals = oriented_normals(points, side)
-        h = float((getattr(capture, "meta", {}) or {}).get("spacing_h_m") or mean_spacing(points))
-        self.mesh = reconstruct_mesh(points, self.normals, h, cfg.mesh_edge)
+        sim = meta.get("sim") if isinstance(meta.get("sim"), dict) else None
+        if scene_mesh is not None:  # given (mesh, pose in the capture frame), e.g. the closed loop's textured object
+            self.mesh, T_mesh = scene_mesh
+            self.mesh_source = "given"
+        elif sim is not None and sim.get("object"):
+            # A simulated capture: press on the object the camera rendered (its own surface), not on a
+            # mesh rebuilt from the cloud; the cleaning model fades exactly that surface.
+            self.mesh, T_mesh = sim_object_mesh(sim, cfg.mesh_edge)
+            self.mesh_source = "sim_object"
+        else:
+            h = float(meta.get("spacing_h_m") or mean_spacing(points))
+            self.mesh, T_mesh = reconstruct_mesh(points, self.normals, h, cfg.mesh_edge), np.eye(4)
+            self.mesh_source = "cloud"
+        self.T_mesh = self.T_obj @ np.asarray(T_mesh, dtype=float)  # mesh frame -> base frame
+        self._mesh_top = float(transform_points(self.T_mesh, self.mesh.vertices)[:, 2].max())
         self.kdtree = cKDTree(points)
+        #: Called as contact_hook(contacts, dt) every ``hook_every`` physics steps with the sponge's
+        #: contacts [(point on the object (3,) base frame, normal (3,), normal force N)] and the
+        #: simulated seconds they stand for (the closed loop's cleaning model). None: no calls.
+        self.contact_hook: Callable[[list, float], None] | None = None
+        self.hook_every = 20
+        self._hook_age = 0
+        self.hook_s = 0.0  # wall seconds spent in contact_hook
 
         self.scene = PyBulletScene(cfg.sponge, gui=cfg.gui, dt=cfg.physics_dt, solver_iterations=cfg.solver_iterations)
         try:
-            self.scene.add_object(self.mesh.vertices, self.mesh.triangles, self.T_obj)
+            self.scene.add_object(self.mesh.vertices, self.mesh.triangles, self.T_mesh)
             self.arm = PyBulletArm(self.scene)
             self.arm.jacobian_every = int(cfg.jacobian_every)
+            self.arm.dynamics_every = int(cfg.dynamics_every)
             self.arm.connect()
             self.scene.set_arm(np.array(cfg.picture_q))
             self.sensor = PyBulletWrenchSensor(self.scene, self.arm)
@@ -126,6 +154,13 @@ class RobotRun:
         self._shadow = _AgentCoverage(explorer)
         self._x_ref = st.ee_pose[:3, 0].copy()
         self._cb_s = 0.0
+        self._deferred = None
+        self._meas_cache = None
+        self.interrupted = False
+        #: The compiled 1 kHz loop (PyBullet arm); False: the generic loop through the protocols.
+        self.fast_loop = True
+        self._t0 = None
+        self.paused_s = 0.0
 
     # ------------------------------------------------------------------ frames
     def _to_base(self, x: np.ndarray) -> np.ndarray:
@@ -164,7 +199,7 @@ class RobotRun:
         """Read, check, command, step. Returns (state, ee wrench, controller output or None, fault or None)."""
         st = self.arm.read_state()
         rd = self.sensor.read()
-        w = self.contact(rd.wrench, st.rot)
+        w = self.contact(rd.wrench, st.ee_pose)
         fault = None
         out = None
         if mode == "joint":
@@ -183,27 +218,113 @@ class RobotRun:
         if fault is None:
             self.arm.command(tau)
             self.scene.step()
+            if self.contact_hook is not None:
+                self._run_hook()
             if self.cfg.realtime:
                 lag = self.scene.t - (time.perf_counter() - self._t0)
                 if lag > 0:
                     time.sleep(lag)
         return st, w, out, fault
 
-    def _track(self, A: list, D: list, v_ref=None):
-        """The 1 kHz loop of one explorer interval: :meth:`_tick` ("track", with every check)
-        unrolled with local names, the hot path of a run. Yields (state, wrench, a, d, fault)
-        after the last step or at the first fault (the fault's step is not commanded)."""
+    def _track(self, A: np.ndarray, D: np.ndarray, v_ref=None):
+        """The 1 kHz loop of one explorer interval (A, D: (n, 3) target line points and directions,
+        one per control step). Yields (state, wrench, a, d, fault) after the last step or at the
+        first fault (the fault's step is not commanded)."""
+        if self.fast_loop and isinstance(self.arm, PyBulletArm):
+            return self._track_fast(A, D, v_ref)
+        return self._track_generic(A.tolist(), D.tolist(), v_ref)
+
+    def _track_fast(self, A: np.ndarray, D: np.ndarray, v_ref=None):
+        """:meth:`_track_generic` for the PyBullet arm with the arithmetic in one compiled call per
+        tick (:func:`~tergodic_cli.robot.kernels.pybullet_tick`): per tick one joint read, the
+        sensor read, the kernel, one torque command, the physics step, and gravity + Coriolis every
+        ``dynamics_every`` ticks. Same checks in the same order, same arithmetic."""
+        from tergodic_cli.robot import kernels as Kn
+        from tergodic_cli.robot.interfaces import ArmState
+
+        arm, sc, ctrl, g = self.arm, self.scene, self.ctrl, self.guard
+        p, cid, rob, idx = sc.p, sc.cid, sc.robot, arm._read_idx
+        get_states, inv_dyn, send, physics = p.getJointStates, p.calculateInverseDynamics, p.setJointMotorControlArray, \
+            p.stepSimulation
+        joints, mode_torque, dt = sc.arm_joints, p.TORQUE_CONTROL, sc.dt
+        sread, tick = self.sensor.read, Kn.pybullet_tick
+        check_sensor, timeout = g.check_sensor, g.cfg.explorer_timeout
+        cst = Kn.pack_constants(arm._chain, self.contact, g, arm.tau_max, self.F_d, v_ref)
+        io = np.zeros(Kn.N_IO)
+        kpk, mut = ctrl.kpk, ctrl.mut
+        A = np.ascontiguousarray(A, dtype=float)
+        D = np.ascontiguousarray(D, dtype=float)
+        zeros, every, realtime = arm._zeros, arm.dynamics_every, self.cfg.realtime
+        hook = self._run_hook if self.contact_hook is not None else None
+        OK, F_FORCE, tau_sl = Kn.OK, Kn.F_FORCE, slice(Kn.IO_TAU, Kn.IO_TAU + 7)
+
+        def state():  # the ArmState of the last tick's read (as _track_generic yields it)
+            return ArmState(t, io[Kn.IO_Q:Kn.IO_Q + 7].copy(), io[Kn.IO_DQ:Kn.IO_DQ + 7].copy(),
+                            io[Kn.IO_T:Kn.IO_T + 16].reshape(4, 4).copy(), io[Kn.IO_J:Kn.IO_J + 42].reshape(6, 7).copy())
+
+        i = -1
+        t = sc.t
+        for i in range(len(A)):
+            states = get_states(rob, idx, physicsClientId=cid)
+            arm.reaction, arm.reaction_step = states[-1][2], sc.steps
+            rd = sread()
+            t = sc.t
+            arm._bias_age += 1
+            if arm._bias is None or arm._bias_age >= every or arm._bias_epoch != sc.teleports:
+                arm._bias = inv_dyn(rob, [s[0] for s in states[:-1]], [s[1] for s in states[:-1]], zeros,
+                                    physicsClientId=cid)
+                arm._bias_age = 0
+                arm._bias_epoch = sc.teleports
+            fault = check_sensor(t, rd.t, rd.wrench)
+            if fault is None:
+                code = tick(i, A, D, states, rd.wrench, arm._bias, cst, kpk, mut, io)
+                if code != OK:
+                    st = state()
+                    if code == F_FORCE:
+                        fault = g.check_force(t, io[Kn.IO_W:Kn.IO_W + 6])
+                    else:
+                        v = io[Kn.IO_DIAG + Kn.CD_VEE:Kn.IO_DIAG + Kn.CD_VEE + 3]
+                        fault = g.check_state(t, st.q, st.dq, st.ee_pose[:3, 3].copy(), float(np.sqrt(v @ v)))
+                elif g._target_t is not None and t - g._target_t > timeout:
+                    fault = g.check_explorer(t)
+            if fault is not None:
+                arm._q9 = arm._dq9 = None  # stale: the next command() reads the state first
+                yield state(), io[Kn.IO_W:Kn.IO_W + 6].copy(), A[i], D[i], fault
+                return
+            tot = io[tau_sl].tolist()
+            arm.last_tau = tot
+            send(rob, joints, mode_torque, forces=tot, physicsClientId=cid)
+            physics(physicsClientId=cid)
+            sc.steps += 1
+            sc.t = sc.steps * dt
+            if hook is not None:
+                hook()
+            if realtime:
+                lag = sc.t - (time.perf_counter() - self._t0)
+                if lag > 0:
+                    time.sleep(lag)
+        arm._q9 = arm._dq9 = None
+        if i < 0:
+            st = arm.read_state()
+            yield st, self.contact(self.sensor.read().wrench, st.ee_pose), None, None, None
+            return
+        yield state(), io[Kn.IO_W:Kn.IO_W + 6].copy(), A[i], D[i], None
+
+    def _track_generic(self, A: list, D: list, v_ref=None):
+        """The 1 kHz loop of one explorer interval through the Arm/WrenchSensor protocols:
+        :meth:`_tick` ("track", with every check) unrolled with local names."""
         read, sread, contact = self.arm.read_state, self.sensor.read, self.contact
         ctrl, command, physics = self.ctrl.step, self.arm.command, self.scene.step
         g = self.guard
         check_sensor, check_force, check_state, check_explorer = g.check_sensor, g.check_force, g.check_state, g.check_explorer
         F_d, sqrt, realtime = self.F_d, math.sqrt, self.cfg.realtime
+        hook = self._run_hook if self.contact_hook is not None else None
         st = w = a = d = None
         for a, d in zip(A, D):
             st = read()
             rd = sread()
             t = st.t
-            w = contact(rd.wrench, st.rot)
+            w = contact(rd.wrench, st.ee_pose)
             out = ctrl(st, a, d, w, "track", F_d, 0.0, v_ref)
             v = out.v_ee
             fault = (check_sensor(t, rd.t, rd.wrench) or check_force(t, w)
@@ -214,11 +335,22 @@ class RobotRun:
                 return
             command(out.tau)
             physics()
+            if hook is not None:
+                hook()
             if realtime:
                 lag = self.scene.t - (time.perf_counter() - self._t0)
                 if lag > 0:
                     time.sleep(lag)
         yield st, w, a, d, None
+
+    def _run_hook(self) -> None:
+        """Every ``hook_every`` physics steps: hand the sponge's contacts to ``contact_hook``."""
+        self._hook_age += 1
+        if self._hook_age >= self.hook_every:
+            self._hook_age = 0
+            t = time.perf_counter()
+            self.contact_hook(self.scene.sponge_contacts(), self.hook_every * self.cfg.physics_dt)
+            self.hook_s += time.perf_counter() - t
 
     # ------------------------------------------------------------------ faults and stops
     def _stop(self, fault: Fault, step: int) -> None:
@@ -254,10 +386,8 @@ class RobotRun:
                 break
 
     # ------------------------------------------------------------------ phases
-    def _move_to_hover(self) -> None:
-        cfg = self.cfg
-        a, d = self._agent_line()
-        self._start_line = (a, d)
+    def _hover_pose(self, a: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """(4, 4) TCP pose ``hover_height`` back from ``a`` along the tool axis ``d``."""
         z = d
         x = None
         for c in (self._x_ref, np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0])):
@@ -265,77 +395,137 @@ class RobotRun:
                 x = c - (c @ z) * z
                 x /= np.linalg.norm(x)
                 break
-        R = np.column_stack([x, np.cross(z, x), z])
-        T_hover = pose_matrix(R, a - cfg.hover_height * d)
-        if not self.guard.inside(T_hover[:3, 3]) or not self.guard.inside(a):
-            raise TergodicError(f"the start point {_fmt(a)} m or its hover pose is outside the workspace box",
-                                "move the object with --object-pose, or choose another start")
+        return pose_matrix(np.column_stack([x, np.cross(z, x), z]), a - self.cfg.hover_height * d)
+
+    def _move_to_hover(self) -> None:
+        cfg = self.cfg
+        a, d_normal = self._agent_line()
         q0 = self.arm.read_state().q
-        q_h, pe, oe = self.model.ik(T_hover, q0, q_rest=np.array(cfg.picture_q))
-        if pe > 1e-3 or oe > 1e-2:
-            raise TergodicError(f"the robot cannot reach the hover pose above the start point {_fmt(a)} m "
-                                f"(inverse kinematics off by {pe * 1e3:.1f} mm, {math.degrees(oe):.1f} deg)",
-                                "move the object closer with --object-pose, or choose another start")
+        # Along the normal if the arm can get there; on a steep wall the wrist may not: then come in
+        # less tilted (the sponge is a ball; the line controller tilts it back as far as it can).
+        for tilt in (cfg.max_tool_tilt_deg, 45.0, 30.0, 15.0, 0.0):
+            if tilt > cfg.max_tool_tilt_deg:
+                continue
+            d = clamp_tilt(d_normal, tilt)
+            T_hover = self._hover_pose(a, d)
+            if not self.guard.inside(T_hover[:3, 3]) or not self.guard.inside(a):
+                self._unreachable(f"the start point {_fmt(a)} m or its hover pose is outside the workspace box",
+                                  "move the object with --object-pose, or choose another start")
+            q_h, pe, oe = self.model.ik(T_hover, q0, q_rest=np.array(cfg.picture_q))
+            if pe <= 1e-3 and oe <= 1e-2:
+                break
+        else:
+            self._unreachable(f"the robot cannot reach the hover pose above the agent at {_fmt(a)} m "
+                              f"(inverse kinematics off by {pe * 1e3:.1f} mm, {math.degrees(oe):.1f} deg)",
+                              "move the object closer with --object-pose, or choose another start")
+        if tilt < cfg.max_tool_tilt_deg and float(d @ d_normal) < 0.9999:
+            self.on_event(self._step(), f"robot: the hover pose along the normal is out of reach; approaching "
+                                        f"tilted at most {tilt:.0f} deg instead")
+        self._start_line = (a, d)
         self.q_hover = q_h
-        self._x_ref = x
-        self.ctrl = LineForceController(cfg.gains, cfg.physics_dt, q_rest=q_h, x_ref=x)
-        self.sm.go(S.HOVER, self.scene.t, 0, f"moving to the hover pose {cfg.hover_height * 1e3:.0f} mm above the start {_fmt(a)} m")
-        # Min-jerk peaks at 1.875 × the mean speed: keep the joints under move_speed and the TCP
-        # under half the guard's speed limit.
-        dist = float(np.max(np.abs(q_h - q0)))
-        path = np.array([self.model.fk(q0 + s * (q_h - q0))[:3, 3] for s in np.linspace(0, 1, 21)])
-        length = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
-        duration = max(1.0, 1.875 * dist / cfg.move_speed, 1.875 * length / (0.5 * cfg.safety.tcp_speed_max))
-        n = int(round(duration / cfg.physics_dt))
-        for i in range(n + int(round(SETTLE_S / cfg.physics_dt))):
-            qd, dqd = min_jerk(q0, q_h, duration, (i + 1) * cfg.physics_dt)
-            st, w, out, fault = self._tick("joint", q_d=qd, dq_d=dqd)
-            if fault is not None:
-                self._stop(fault, 0)
+        self._x_ref = T_hover[:3, 0].copy()
+        self.ctrl = LineForceController(cfg.gains, cfg.physics_dt, q_rest=q_h, x_ref=self._x_ref)
+        step = self._step()
+        self.sm.go(S.HOVER, self.scene.t, step, f"moving to the hover pose {cfg.hover_height * 1e3:.0f} mm above the start {_fmt(a)} m")
+        # Come down from above the object: a joint-space path straight to a hover pose low in a
+        # bowl can sweep the sponge through the rim.
+        self._move_joints(self._above(T_hover, q_h), step)
+        self._move_joints(q_h, step)
         # Tare in free space, at rest: the tool's weight at this orientation becomes the zero.
         self.sensor.tare()
         st = self.arm.read_state()
         self.contact.tare_at(st.ee_pose[:3, :3])
         err = float(np.linalg.norm(st.ee_pose[:3, 3] - T_hover[:3, 3]))
-        self.on_event(0, f"robot: at hover ({err * 1e3:.1f} mm from the planned pose); F/T sensor tared")
+        self.on_event(step, f"robot: at hover ({err * 1e3:.1f} mm from the planned pose); F/T sensor tared")
+
+    def _unreachable(self, problem: str, fix: str) -> None:
+        """Before the run: bad input (TergodicError). Mid-run (a later cycle of the closed loop):
+        a fault, the arm holds where it is and the run ends with its log and summary."""
+        if self.sm.history:
+            self._stop(Fault("reach", "hold", f"{problem}; holding position", self.scene.t), self._step())
+        raise TergodicError(problem, fix)
+
+    def _above(self, T: np.ndarray, q_near: np.ndarray) -> np.ndarray:
+        """Joints that put the TCP at ``T``'s orientation and x, y, lifted to ``CLEARANCE`` above the
+        object's top (or ``q_near`` when ``T`` is that high already or the lift is out of reach)."""
+        z_top = float(self._mesh_top) + CLEARANCE
+        if T[2, 3] >= z_top - 1e-3:
+            return q_near
+        T_up = T.copy()
+        T_up[2, 3] = z_top
+        q_up, pe, oe = self.model.ik(T_up, q_near, q_rest=np.asarray(q_near, dtype=float))
+        return q_up if pe < 1e-3 and oe < 1e-2 and self.guard.inside(T_up[:3, 3]) else q_near
+
+    def _move_joints(self, q_target: np.ndarray, step: int) -> None:
+        """Joint-impedance min-jerk move from the present joints to ``q_target`` (7,), then settle."""
+        cfg = self.cfg
+        q0 = self.arm.read_state().q.copy()
+        # Min-jerk peaks at 1.875 × the mean speed: keep the joints under move_speed and the TCP
+        # under half the guard's speed limit.
+        dist = float(np.max(np.abs(q_target - q0)))
+        path = np.array([self.model.fk(q0 + s * (q_target - q0))[:3, 3] for s in np.linspace(0, 1, 21)])
+        length = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
+        duration = max(1.0, 1.875 * dist / cfg.move_speed, 1.875 * length / (0.5 * cfg.safety.tcp_speed_max))
+        n = int(round(duration / cfg.physics_dt))
+        for i in range(n + int(round(SETTLE_S / cfg.physics_dt))):
+            qd, dqd = min_jerk(q0, q_target, duration, (i + 1) * cfg.physics_dt)
+            st, w, out, fault = self._tick("joint", q_d=qd, dq_d=dqd)
+            if fault is not None:
+                self._stop(fault, step)
 
     def _approach(self) -> None:
         cfg = self.cfg
         a, d = self._start_line
-        self.sm.go(S.APPROACH, self.scene.t, 0, f"approaching along the normal at {cfg.approach_speed * 1e3:.0f} mm/s")
+        step = self._step()
+        self.sm.go(S.APPROACH, self.scene.t, step, f"approaching along the normal at {cfg.approach_speed * 1e3:.0f} mm/s")
         self.ctrl.reset()
-        timeout = (cfg.hover_height + 0.03) / cfg.approach_speed + 0.5
+        timeout = (cfg.hover_height + 0.03) / cfg.approach_speed + 0.03 / cfg.contact_speed + 0.5
         n = int(round(timeout / cfg.physics_dt))
         contact_at = None
         settled = 0
         t0 = self.scene.t
         f_ref = self.F_d
+        speed = cfg.approach_speed
+        press = 0.0
         for i in range(n + int(round(PRESS_TIMEOUT_S / cfg.physics_dt))):
             mode = "approach" if contact_at is None else "track"
             if contact_at is not None:  # ramp the set-point from the contact force to F_d: no overshoot
                 f_ref = min(self.F_d, f0 + (self.F_d - f0) * (self.scene.t - contact_at) / PRESS_RAMP_S)
-            st, w, out, fault = self._tick(mode, a, d, speed=cfg.approach_speed, force=f_ref)
+            st, w, out, fault = self._tick(mode, a, d, speed=speed, force=f_ref)
+            # Slow down near the surface: the sponge meets it at contact_speed (the contact's damping
+            # and the arm's momentum at 20 mm/s gave 10-28 N impacts on the bowl's trimesh). At that
+            # speed the push D_z·v is ~0.1 N, too little to register, so while the tool is blocked
+            # (moving at under half the commanded speed) the push ramps up (PRESS_RATE) until the
+            # force crosses the threshold.
+            gap = float((a - st.ee_pose[:3, 3]) @ d)
+            v_cmd = min(cfg.approach_speed, max(cfg.contact_speed, gap / APPROACH_TAU_S))
+            if contact_at is None:
+                step_p = PRESS_RATE * cfg.physics_dt
+                press = min(1.5 * self.threshold, press + step_p) if out.v_ee[2] < 0.5 * v_cmd else max(0.0, press - step_p)
+            speed = v_cmd + press / self.ctrl.D[2]
             if fault is not None:
-                self._stop(fault, 0)
+                self._stop(fault, step)
             f = out.force_filtered
             if contact_at is None:
                 if f >= self.threshold:
                     contact_at = self.scene.t
                     f0 = f
-                    self.ctrl.start_tracking(f0, self.ctrl.D[2] * cfg.approach_speed)
-                    self.on_event(0, f"robot: contact at {f:.2f} N after {contact_at - t0:.2f} s; pressing to {self.F_d:g} N")
+                    self.ctrl.start_tracking(f0, self.ctrl.D[2] * speed)
+                    self.on_event(step, f"robot: contact at {f:.2f} N after {contact_at - t0:.2f} s; pressing to {self.F_d:g} N")
                 elif i >= n:
                     self._stop(Fault("approach", "hold", f"no contact within {(cfg.hover_height + 0.03) * 1e3:.0f} mm below the "
-                                     "hover pose; check --object-pose; holding position", self.scene.t), 0)
+                                     "hover pose; check --object-pose; holding position", self.scene.t), step)
             elif f_ref >= self.F_d:
                 settled = settled + 1 if abs(f - self.F_d) <= 0.1 * self.F_d else 0
                 if settled >= 50:
                     break
         else:
-            self.on_event(0, f"robot: the force did not settle within {PRESS_TIMEOUT_S:.0f} s (now {out.force_filtered:.2f} N); exploring anyway")
-        self.sm.go(S.EXPLORE, self.scene.t, 0, f"in contact at {out.force_filtered:.2f} N; exploring")
+            self.on_event(step, f"robot: the force did not settle within {PRESS_TIMEOUT_S:.0f} s (now {out.force_filtered:.2f} N); exploring anyway")
+        self.sm.go(S.EXPLORE, self.scene.t, step, f"in contact at {out.force_filtered:.2f} N; exploring")
 
-    def _explore(self, steps: int, on_step) -> None:
+    def _explore(self, steps: int, on_step, defer_last: bool = False) -> None:
+        """``steps`` explorer steps in contact. With ``defer_last`` the last step's sample is recorded
+        but not handed to ``on_step`` yet: :meth:`emit_deferred` does it (with the re-capture's figures)."""
         from tergodic_cli.progress import track
 
         cfg = self.cfg
@@ -346,7 +536,7 @@ class RobotRun:
         w = self.contact(self.sensor.read().wrench, st.ee_pose[:3, :3])
         self.guard.feed_target(self.scene.t)
         step = int(getattr(ex, "step_index", 0))
-        for _ in track(range(steps), total=steps, description="explore (pybullet)"):
+        for k in track(range(steps), total=steps, description="explore (pybullet)"):
             meas = self._measure(st)
             deposit = self._to_obj(meas["contact_point"])[None, :] if meas["in_contact"] else np.zeros((0, 3))
             before = int(getattr(ex, "step_index", step))
@@ -373,18 +563,33 @@ class RobotRun:
             Dd = d_cur + s * (d_next - d_cur)
             Dd /= np.linalg.norm(Dd, axis=1, keepdims=True)
             v_ref = ((a_next - a_cur) / cfg.explore_dt).tolist() if cfg.velocity_feedforward else None
-            for st, w, a, d, fault in self._track(A.tolist(), Dd.tolist(), v_ref):
+            for st, w, a, d, fault in self._track(A, Dd, v_ref):
                 if fault is not None:
                     # A stalled explorer produced no new step: its last sample is out already.
                     fresh = fault.kind != "explorer" and step > (self.samples[-1]["step"] if self.samples else 0)
                     self._fault_sample(fault, step, st, w, np.array(a), np.array(d), on_step, record=fresh)
             a_cur, d_cur = a_next, d_next
             self.samples.append(self._sample(step, st, w, a_cur, d_cur))
-            self._emit(on_step, step)
+            if defer_last and k == steps - 1:
+                self._deferred = (on_step, step)
+            else:
+                self._emit(on_step, step)
         self._last_line = (a_cur, d_cur)
+        self._start_line = self._last_line  # a further explore() continues from here
+
+    def emit_deferred(self, extra: dict | None = None) -> None:
+        """Hand the deferred last sample (see :meth:`_explore`) to its ``on_step``, updated with ``extra``."""
+        if self._deferred is None:
+            return
+        on_step, step = self._deferred
+        self._deferred = None
+        if extra:
+            self.samples[-1].update(extra)
+        self._emit(on_step, step)
 
     def _fault_sample(self, fault: Fault, step: int, st, w, a, d, on_step, record: bool) -> None:
         """Record and emit the sample of the step a fault interrupted, then make the robot safe."""
+        self.emit_deferred()
         if record:
             self.samples.append(self._sample(step, st, w, a, d, stop_reason=fault.reason))
             self._emit(on_step, step)
@@ -399,6 +604,14 @@ class RobotRun:
     # ------------------------------------------------------------------ measurements
     def _measure(self, st) -> dict:
         """Contact point (force-weighted mean of the sponge/object contacts), contact force, surface normal."""
+        key = (id(st), self.scene.steps)
+        if self._meas_cache is not None and self._meas_cache[0] == key:  # the sample's, reused at the next step
+            return self._meas_cache[1]
+        meas = self._measure_now(st)
+        self._meas_cache = (key, meas)
+        return meas
+
+    def _measure_now(self, st) -> dict:
         contacts = self.scene.sponge_contacts()
         fsum = float(sum(c[2] for c in contacts))
         tcp = st.ee_pose[:3, 3]
@@ -422,7 +635,7 @@ class RobotRun:
         obj_q = matrix_to_quat(self.T_obj[:3, :3])
         sample = {
             "t_sim": float(st.t),
-            "t_wall": time.perf_counter() - self._t0 - self._cb_s,
+            "t_wall": time.perf_counter() - self._t0 - self._cb_s - self.paused_s,
             "state": self.sm.state,
             "ee_pose": np.concatenate([T[:3, 3], matrix_to_quat(R)]),
             "q": st.q.copy(),
@@ -454,33 +667,102 @@ class RobotRun:
 
     # ------------------------------------------------------------------ the run
     def run(self, steps: int, on_step: Callable[[int, dict], None] | None = None) -> dict:
-        """Picture -> hover -> approach -> explore ``steps`` explorer steps -> retreat. Returns the summary extras."""
-        from tergodic_cli.progress import Spinner
+        """Picture -> hover -> approach -> explore ``steps`` explorer steps -> retreat. Returns the summary extras.
 
+        A fault ends the run safe (retreat or hold, then ``stopped``); so does Ctrl-C
+        (KeyboardInterrupt anywhere inside, ``on_step`` included): the tool retreats if it was
+        in contact, the arm holds still, and the summary says ``interrupted``.
+        """
         if int(steps) < 1:
             raise TergodicError(f"--steps must be >= 1, got {steps}", "e.g. --steps 300")
-        self._t0 = time.perf_counter()
-        cpu0 = time.process_time()
-        self._cb_s = 0.0
-        self.on_event(0, f"robot {S.PICTURE}: at the picture pose (cloud of {len(self.points)} points captured; "
-                         f"collision mesh {len(self.mesh.triangles)} triangles)")
-        try:
-            with Spinner("robot: moving to the start and approaching"):
-                self._move_to_hover()
-                self._approach()
+        self.begin()
+        with self.guarded():
+            self.engage()
             self._explore(int(steps), on_step)
-            self.sm.go(S.RETREAT, self.scene.t, self._step(), f"{steps} explorer steps done; retreating")
-            a, d = self._last_line
-            self._retreat(a, d, self._step())
-            self.sm.go(S.DONE, self.scene.t, self._step(), "retreated; done")
-            self._hold(SETTLE_S)
+            self.finish(f"{steps} explorer steps done; retreating")
+        return self.result()
+
+    def begin(self) -> None:
+        """Start the run's clocks, at the picture pose (once per run)."""
+        self._t0 = time.perf_counter()
+        self._cpu0 = time.process_time()
+        self._cb_s = 0.0
+        self.paused_s = 0.0  # wall seconds the robot waited for others (the closed loop's re-captures)
+        self.on_event(0, f"robot {S.PICTURE}: at the picture pose (cloud of {len(self.points)} points captured; "
+                         f"collision mesh {len(self.mesh.triangles)} triangles from the {self.mesh_source})")
+
+    @contextlib.contextmanager
+    def guarded(self):
+        """Run phases inside: a fault (already made safe) ends them; Ctrl-C makes the robot safe and ends them."""
+        try:
+            yield
         except _Stop:
             pass
-        wall = time.perf_counter() - self._t0 - self._cb_s
-        cpu = time.process_time() - cpu0 - self._cb_s  # (the callback's wall time, a fair proxy for its CPU)
+        except KeyboardInterrupt:
+            self._interrupt()
+
+    def engage(self) -> None:
+        """(picture) -> hover above the agent -> approach -> pressing at F_d, state ``explore``."""
+        from tergodic_cli.progress import Spinner
+
+        with Spinner("robot: moving to the start and approaching"):
+            self._move_to_hover()
+            self._approach()
+
+    def explore(self, steps: int, on_step: Callable[[int, dict], None] | None = None, defer_last: bool = False) -> None:
+        """``steps`` explorer steps in contact (state ``explore``); see :meth:`_explore`."""
+        self._explore(int(steps), on_step, defer_last)
+
+    def to_picture(self, reason: str) -> None:
+        """explore -> retreat along the tool axis -> joint move to the picture pose, state ``picture``."""
+        step = self._step()
+        self.sm.go(S.RETREAT, self.scene.t, step, reason)
+        a, d = self._last_line
+        self._retreat(a, d, step)
+        self.sm.go(S.PICTURE, self.scene.t, step, "retreated; moving to the picture pose")
+        # Straight up to clear the object first: the joint-space path to the picture pose from low
+        # in a bowl can sweep the sponge through the rim.
+        st = self.arm.read_state()
+        self._move_joints(self._above(st.ee_pose, st.q), step)
+        self._move_joints(np.array(self.cfg.picture_q, dtype=float), step)
+
+    def finish(self, reason: str) -> None:
+        """End normally: retreat if in contact, then ``done``, holding still."""
+        step = self._step()
+        if self.sm.state == S.EXPLORE:
+            self.sm.go(S.RETREAT, self.scene.t, step, reason)
+            a, d = self._last_line
+            self._retreat(a, d, step)
+            reason = "retreated; done"
+        self.sm.go(S.DONE, self.scene.t, step, reason)
+        self._hold(SETTLE_S)
+
+    def _interrupt(self) -> None:
+        """Ctrl-C: retreat if the tool may be in contact, else hold; end ``stopped`` with a one-line reason."""
+        self.interrupted = True
+        reason = "interrupted by the user (Ctrl-C)"
+        state = self.sm.state
+        if self.sm.finished or state == S.HOLD:  # already stopping or stopped
+            self.stop_reason = self.stop_reason or reason
+            return
+        contact = state in (S.APPROACH, S.EXPLORE)
+        fault = Fault("interrupt", "retreat" if contact else "hold",
+                      f"{reason}; {'retreating' if contact else 'holding position'}", self.scene.t)
+        try:
+            self._stop(fault, self._step())
+        except _Stop:
+            pass
+
+    def result(self) -> dict:
+        """The summary extras of the run so far (call once, at the end)."""
+        self.emit_deferred()
+        wall = time.perf_counter() - self._t0 - self._cb_s - self.paused_s
+        # (the callback's and the pauses' wall time: a fair proxy for their CPU)
+        cpu = time.process_time() - self._cpu0 - self._cb_s - self.paused_s
         out = summarize_robot(self.samples, stop_reason=self.stop_reason)
         out.update({
             "final_state": self.sm.state,
+            "interrupted": bool(self.interrupted),
             "sim_seconds": self.scene.t,
             "wall_seconds": wall,
             "realtime_factor_run": self.scene.t / wall if wall > 0 else None,
@@ -490,6 +772,7 @@ class RobotRun:
                             for tr in self.sm.history],
             "object_pose": [float(x) for x in np.concatenate([self.T_obj[:3, 3], matrix_to_quat(self.T_obj[:3, :3])])],
             "mesh_triangles": int(len(self.mesh.triangles)),
+            "mesh_source": self.mesh_source,
             "control_hz": 1.0 / self.cfg.physics_dt,
             "explorer_hz": 1.0 / self.cfg.explore_dt,
             "robot_config": self.cfg.to_dict(),

@@ -81,41 +81,50 @@ class SafetyGuard:
         self.q_lo = np.asarray(q_min, float) + cfg.joint_margin
         self.q_hi = np.asarray(q_max, float) - cfg.joint_margin
         self.dq_hi = np.asarray(dq_max, float) * cfg.velocity_factor
-        self._q_lo, self._q_hi, self._dq_hi = self.q_lo.tolist(), self.q_hi.tolist(), self.dq_hi.tolist()
-        self._ws_lo, self._ws_hi = self.ws_lo.tolist(), self.ws_hi.tolist()
+        from tergodic_cli.robot import kernels
+
+        self._k = kernels
+        self.q_lo, self.q_hi, self.dq_hi = (np.ascontiguousarray(x) for x in (self.q_lo, self.q_hi, self.dq_hi))
+        self.ws_lo, self.ws_hi = np.ascontiguousarray(self.ws_lo), np.ascontiguousarray(self.ws_hi)
         self._sensor_t: float | None = None
         self._sensor_seen_at = 0.0
         self._target_t: float | None = None
 
     # ------------------------------------------------------------------ per control step
     def check_state(self, t: float, q: np.ndarray, dq: np.ndarray, tcp, tcp_speed: float) -> Fault | None:
-        """Joint position/velocity limits, TCP speed and the workspace box (scalar code: runs at 1 kHz)."""
-        ql, dql = q.tolist(), dq.tolist()
-        for j, (qj, lo, hi) in enumerate(zip(ql, self._q_lo, self._q_hi)):
-            if not lo <= qj <= hi:
-                return Fault("joint_position", "hold",
-                             f"joint {j + 1} at {qj:+.3f} rad is outside its limits [{lo:+.3f}, {hi:+.3f}] rad; "
-                             "holding position", t)
-        for j, (vj, vmax) in enumerate(zip(dql, self._dq_hi)):
-            if not -vmax <= vj <= vmax:
-                return Fault("joint_velocity", "hold",
-                             f"joint {j + 1} moves at {vj:+.2f} rad/s, over its {vmax:.2f} rad/s limit; holding position", t)
-        if not tcp_speed <= self.cfg.tcp_speed_max:
+        """Joint position/velocity limits, TCP speed and the workspace box (compiled: runs at 1 kHz)."""
+        q = np.asarray(q, dtype=float)
+        dq = np.asarray(dq, dtype=float)
+        code, j = self._k.state_fault(q, dq, np.asarray(tcp, dtype=float), float(tcp_speed), self.q_lo, self.q_hi,
+                                      self.dq_hi, float(self.cfg.tcp_speed_max), self.ws_lo, self.ws_hi)
+        return None if code == self._k.OK else self.state_fault_reason(t, code, j, q, dq, tcp, tcp_speed)
+
+    def state_fault_reason(self, t: float, code: int, j: int, q, dq, tcp, tcp_speed: float) -> Fault:
+        """The :class:`Fault` of a code from :func:`~tergodic_cli.robot.kernels.state_fault`."""
+        k = self._k
+        if code == k.F_JOINT_POS:
+            return Fault("joint_position", "hold",
+                         f"joint {j + 1} at {q[j]:+.3f} rad is outside its limits [{self.q_lo[j]:+.3f}, {self.q_hi[j]:+.3f}] rad; "
+                         "holding position", t)
+        if code == k.F_JOINT_VEL:
+            return Fault("joint_velocity", "hold",
+                         f"joint {j + 1} moves at {dq[j]:+.2f} rad/s, over its {self.dq_hi[j]:.2f} rad/s limit; holding position", t)
+        if code == k.F_TCP_SPEED:
             return Fault("tcp_speed", "hold", f"the tool moves at {tcp_speed:.2f} m/s, over {self.cfg.tcp_speed_max:.2f} m/s; "
                          "holding position", t)
-        lo, hi = self._ws_lo, self._ws_hi
-        if not (lo[0] <= tcp[0] <= hi[0] and lo[1] <= tcp[1] <= hi[1] and lo[2] <= tcp[2] <= hi[2]):
-            return Fault("workspace", "hold", f"the tool at {_fmt(tcp)} m left the workspace box {_fmt(self.ws_lo)}..{_fmt(self.ws_hi)} m; "
-                         "holding position", t)
-        return None
+        return Fault("workspace", "hold", f"the tool at {_fmt(tcp)} m left the workspace box {_fmt(self.ws_lo)}..{_fmt(self.ws_hi)} m; "
+                     "holding position", t)
 
     def check_force(self, t: float, wrench_ee) -> Fault | None:
         """|F| of the contact force against the limit."""
-        f = math.sqrt(float(wrench_ee[0]) ** 2 + float(wrench_ee[1]) ** 2 + float(wrench_ee[2]) ** 2)
-        if not f <= self.force_limit:  # also catches NaN
-            return Fault("force", "retreat", f"contact force {f:.1f} N over the {self.force_limit:.1f} N limit; retreating", t,
-                         {"force": f})
+        code, f = self._k.force_fault(np.asarray(wrench_ee, dtype=float), self.force_limit)
+        if code != self._k.OK:  # also catches NaN
+            return self.force_fault_reason(t, f)
         return None
+
+    def force_fault_reason(self, t: float, f: float) -> Fault:
+        return Fault("force", "retreat", f"contact force {f:.1f} N over the {self.force_limit:.1f} N limit; retreating", t,
+                     {"force": f})
 
     def check_sensor(self, t: float, sample_t: float, wrench) -> Fault | None:
         """Watchdog on the F/T stream: a sample time that stops advancing, or non-finite values."""

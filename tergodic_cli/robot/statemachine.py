@@ -1,6 +1,7 @@
 """The robot's discrete states (paper V-A3) and their logged transitions.
 
 picture -> hover -> approach -> explore -> retreat -> done; any fault -> hold or retreat -> stopped.
+The closed loop (issue 6) cycles: ... explore -> retreat -> picture (re-capture) -> hover -> ... -> picture -> done.
 """
 
 from __future__ import annotations
@@ -8,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Callable
 
-PICTURE = "picture"  # at the picture pose, where the cloud was captured
+PICTURE = "picture"  # at (or moving to) the picture pose, where the cloud is captured
 HOVER = "hover"  # joint impedance move to, and wait at, the pose above the start point
 APPROACH = "approach"  # along the surface normal until the contact force threshold, then press to F_d
 EXPLORE = "explore"  # the agent drives the line target, the wrench PID holds F_d
@@ -19,11 +20,11 @@ STOPPED = "stopped"  # finished after a fault, holding still
 
 STATES = (PICTURE, HOVER, APPROACH, EXPLORE, RETREAT, HOLD, DONE, STOPPED)
 ALLOWED = {
-    PICTURE: {HOVER, HOLD, STOPPED},
+    PICTURE: {HOVER, DONE, RETREAT, HOLD, STOPPED},
     HOVER: {APPROACH, HOLD, RETREAT, STOPPED},
     APPROACH: {EXPLORE, RETREAT, HOLD, STOPPED},
     EXPLORE: {RETREAT, HOLD, STOPPED},
-    RETREAT: {DONE, HOLD, STOPPED},
+    RETREAT: {PICTURE, DONE, HOLD, STOPPED},
     HOLD: {STOPPED},
     DONE: set(),
     STOPPED: set(),

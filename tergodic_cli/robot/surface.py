@@ -162,3 +162,47 @@ def check_reachable(points_base: np.ndarray, reach: float = 0.8, ws=None) -> Non
                             "move it closer with --object-pose x,y,z (e.g. 0.5,0,0)")
     if float(points_base[:, 0].min()) < 0.2 and float(np.abs(points_base[:, 1]).min()) < 0.15:
         raise TergodicError("the object overlaps the robot's base", "move it in front of the robot with --object-pose (e.g. 0.5,0,0)")
+
+
+def sim_object_mesh(sim_meta: dict, edge: float = 0.01) -> tuple[SurfaceMesh, np.ndarray]:
+    """The collision mesh of a simulated capture's object: the textured object's own surface.
+
+    A ``--source sim`` capture records its object (``meta["sim"]["object"]``, a
+    :class:`~tergodic_cli.capture.textured.SimObjectConfig` as a dict) and its pose in the base
+    frame (``meta["sim"]["object_pose"]``). The robot presses on that surface, not on a mesh
+    rebuilt from the cloud, so the sponge touches exactly what the camera renders and the
+    cleaning model fades. Built-in objects are re-triangulated at ``edge`` (their analytic
+    surface, so no decimation error beyond the chord sag); a user ``.obj`` is decimated to
+    about ``edge``.
+
+    Returns the mesh (object frame, metres) and its (4, 4) pose in the robot base frame.
+    """
+    import time
+
+    from tergodic_cli.capture.textured import BUILTIN_OBJECTS, builtin_mesh, read_obj
+
+    t0 = time.perf_counter()
+    obj = dict(sim_meta.get("object") or {})
+    kind = str(obj.get("object", ""))
+    pose = sim_meta.get("object_pose")
+    require(bool(kind) and pose is not None, "the capture's sim record has no object or object pose",
+            "re-capture with 'tergodic capture --source sim'")
+    T = np.asarray(pose, dtype=float)
+    require(T.shape == (4, 4) and bool(np.all(np.isfinite(T))), "the capture's sim object pose is not a 4x4 transform",
+            "re-capture with 'tergodic capture --source sim'")
+    if kind in BUILTIN_OBJECTS:
+        mesh = builtin_mesh(kind, float(edge) if edge > 0 else float(obj.get("mesh_edge") or 0.003))
+        return SurfaceMesh(mesh.vertices.copy(), mesh.triangles.copy(), time.perf_counter() - t0), T
+    vertices, triangles, _ = read_obj(kind, str(obj.get("units", "m")))
+    if edge > 0:
+        import open3d as o3d
+
+        m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(triangles.astype(np.int32)))
+        m.remove_duplicated_vertices()
+        target = int(m.get_surface_area() / (0.433 * edge * edge))
+        if 50 <= target < len(m.triangles):
+            m = m.simplify_quadric_decimation(target)
+            m.remove_degenerate_triangles()
+            m.remove_unreferenced_vertices()
+        vertices, triangles = np.asarray(m.vertices).copy(), np.asarray(m.triangles, dtype=np.int64).copy()
+    return SurfaceMesh(vertices, triangles, time.perf_counter() - t0), T

@@ -3,6 +3,7 @@
 - ``ergodicity.png``: ε(t) and the reference residual;
 - ``touched.png``: fraction of the target touched, over time;
 - ``force.png`` (robot runs): measured normal force against the desired one;
+- ``cleaning.png`` (closed-loop runs): the marking left at each re-capture, against steps;
 - ``cloud_target.png``, ``cloud_coverage.png``, ``cloud_heat.png``: the last cloud from
   three orthographic views, coloured by p, final coverage c and heat u, with the agents'
   trajectories drawn on top.
@@ -80,6 +81,7 @@ def plot_run(data: RunLogData, out_dir: str | os.PathLike) -> list[Path]:
     rs = data.robot_series()
     if rs:
         written += _plot_force(plt, data, rs, out)
+    written += _plot_cleaning(plt, data, out)
 
     cloud = data.clouds[-1] if data.clouds else None
     if cloud is not None:
@@ -116,6 +118,35 @@ def _plot_force(plt, data: RunLogData, rs: dict[str, np.ndarray], out: Path) -> 
     ax.legend()
     fig.tight_layout()
     path = _save(fig, out / "force.png")
+    plt.close(fig)
+    return [path]
+
+
+def _plot_cleaning(plt, data: RunLogData, out: Path) -> list[Path]:
+    """Closed-loop runs: the share of the initial marking left after each re-capture, against steps.
+
+    The robot sample of each cycle's last step carries ``marking_remaining`` (what the camera sees)
+    and ``marking_remaining_true`` (the texture's ink), see :mod:`tergodic_cli.robot.closed_loop`.
+    """
+    rows = [s for s in (data.robot or []) if s.get("marking_remaining") is not None]
+    if not rows:
+        return []
+    steps = np.array([0] + [int(s["step"]) for s in rows])
+    seen = np.array([1.0] + [float(s["marking_remaining"]) for s in rows])
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.plot(steps, 100 * seen, "o-", color="C3", label="seen by the camera (marking_remaining)")
+    true = [s.get("marking_remaining_true") for s in rows]
+    if all(v is not None for v in true):
+        ax.plot(steps, 100 * np.array([1.0] + [float(v) for v in true]), "s--", color="0.4", ms=4,
+                label="ink left in the texture (true)")
+    ax.set_ylim(0, 105)
+    ax.set_xlabel("explorer step")
+    ax.set_ylabel("marking left (% of the initial)")
+    ax.set_title("Cleaning: marking left at each re-capture" + (" (truncated log)" if data.truncated else ""))
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    path = _save(fig, out / "cleaning.png")
     plt.close(fig)
     return [path]
 

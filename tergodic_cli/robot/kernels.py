@@ -1,0 +1,457 @@
+"""Compiled (numba) kernels of the 1 kHz robot loop: forward kinematics and Jacobian, the contact
+wrench, the line-force controller and the safety limits.
+
+Each kernel is the only implementation of its math: :class:`~tergodic_cli.robot.controller.LineForceController`,
+:class:`~tergodic_cli.robot.interfaces.ContactWrench` and :class:`~tergodic_cli.robot.safety.SafetyGuard`
+call them, and :func:`pybullet_tick` chains them for the hot loop of a PyBullet run, so one numba call
+replaces ~400 Python-level float operations per control step (docs/robot.md, "Timing").
+
+Arrays are float64 and C-contiguous; small matrix products are written out (numba's ``@`` on 3×3
+goes through BLAS, slower at this size). Without numba the same functions run as plain Python:
+correct, about 30× slower.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from tergodic_cli.robot.ga import line_motor_z_scalar
+
+try:  # numba is a declared dependency (the explorer's kernels need it too)
+    import numba
+
+    def njit(fn):
+        return numba.njit(cache=True, nogil=True, fastmath=False)(fn)
+
+    HAVE_NUMBA = True
+except ImportError:  # pragma: no cover - exercised only where numba is missing
+    def njit(fn):
+        return fn
+
+    HAVE_NUMBA = False
+
+line_motor_z = njit(line_motor_z_scalar)
+
+# Controller modes.
+MODE_TRACK, MODE_APPROACH, MODE_RETREAT = 0, 1, 2
+MODES = {"track": MODE_TRACK, "approach": MODE_APPROACH, "retreat": MODE_RETREAT}
+
+# Controller parameters, one float64 array (CP_*), and state (CS_*).
+CP_KP, CP_KI, CP_KD, CP_ALPHA, CP_IMAX, CP_SPIN, CP_NS_K, CP_NS_D, CP_LIM_K, CP_DT, CP_LIMIT_ZONE = range(11)
+N_CP = 11
+CS_FFILT, CS_EPREV, CS_HAS_EPREV, CS_INTEGRAL, CS_AGE = range(5)
+N_CS = 5
+# Diagnostics of one controller step (CD_*): twist error (6), commanded wrench (6), filtered force, ee twist (6).
+CD_TWIST, CD_WRENCH, CD_FFILT, CD_VEE = 0, 6, 12, 13
+N_CD = 19
+
+# The controller's packed constants ``kpk`` and mutable state ``mut`` (held by LineForceController):
+# kpk: K (6), D (6), prm (N_CP), x_ref (3), q_rest (7), q_min (7), q_max (7)
+KPK_K, KPK_D, KPK_PRM = 0, 6, 12
+KPK_XREF = KPK_PRM + N_CP
+KPK_QREST, KPK_QMIN, KPK_QMAX = KPK_XREF + 3, KPK_XREF + 10, KPK_XREF + 17
+N_KPK = KPK_XREF + 24
+# mut: PID state (N_CS), null-space spring torques (7), null-space damping (7 x 7, row-major)
+MUT_STATE, MUT_SPRING, MUT_DAMP = 0, N_CS, N_CS + 7
+N_MUT = N_CS + 56
+
+# Safety fault codes of :func:`state_fault`, :func:`force_fault`, :func:`pybullet_tick`.
+OK, F_JOINT_POS, F_JOINT_VEL, F_TCP_SPEED, F_WORKSPACE, F_FORCE, F_SENSOR = 0, 1, 2, 3, 4, 5, 6
+
+
+# ----------------------------------------------------------------------------- kinematics
+@njit
+def fk_jacobian(q, F, axis, qidx, tcp_off, T, J):
+    """TCP pose and geometric Jacobian of a serial chain.
+
+    q : (n,) joint positions. F : (m, 4, 4) each link frame in its parent's at zero joint angle.
+    axis : (m, 3) joint axes in the link frames. qidx : (m,) index into q of each link's joint (-1: fixed).
+    tcp_off : (3,) the TCP in the last link's frame. Fills T (4, 4), the TCP in the base frame, and
+    J (6, n): rows (v, ω) of the TCP, base frame (libfranka's zero Jacobian, PyBullet's calculateJacobian).
+    """
+    n = J.shape[1]
+    zs = np.empty((n, 3))
+    ps = np.empty((n, 3))
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
+    px, py, pz = 0.0, 0.0, 0.0
+    for k in range(F.shape[0]):
+        f = F[k]
+        # p += R f_t; R = R f_R
+        px, py, pz = (px + r00 * f[0, 3] + r01 * f[1, 3] + r02 * f[2, 3],
+                      py + r10 * f[0, 3] + r11 * f[1, 3] + r12 * f[2, 3],
+                      pz + r20 * f[0, 3] + r21 * f[1, 3] + r22 * f[2, 3])
+        a00 = r00 * f[0, 0] + r01 * f[1, 0] + r02 * f[2, 0]
+        a01 = r00 * f[0, 1] + r01 * f[1, 1] + r02 * f[2, 1]
+        a02 = r00 * f[0, 2] + r01 * f[1, 2] + r02 * f[2, 2]
+        a10 = r10 * f[0, 0] + r11 * f[1, 0] + r12 * f[2, 0]
+        a11 = r10 * f[0, 1] + r11 * f[1, 1] + r12 * f[2, 1]
+        a12 = r10 * f[0, 2] + r11 * f[1, 2] + r12 * f[2, 2]
+        a20 = r20 * f[0, 0] + r21 * f[1, 0] + r22 * f[2, 0]
+        a21 = r20 * f[0, 1] + r21 * f[1, 1] + r22 * f[2, 1]
+        a22 = r20 * f[0, 2] + r21 * f[1, 2] + r22 * f[2, 2]
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = a00, a01, a02, a10, a11, a12, a20, a21, a22
+        i = qidx[k]
+        if i >= 0:
+            ux, uy, uz = axis[k, 0], axis[k, 1], axis[k, 2]
+            c, s = math.cos(q[i]), math.sin(q[i])
+            v = 1.0 - c
+            # Rodrigues: rotation by q about u (unit), in the link frame; R = R Rot
+            b00, b01, b02 = c + ux * ux * v, ux * uy * v - uz * s, ux * uz * v + uy * s
+            b10, b11, b12 = uy * ux * v + uz * s, c + uy * uy * v, uy * uz * v - ux * s
+            b20, b21, b22 = uz * ux * v - uy * s, uz * uy * v + ux * s, c + uz * uz * v
+            a00 = r00 * b00 + r01 * b10 + r02 * b20
+            a01 = r00 * b01 + r01 * b11 + r02 * b21
+            a02 = r00 * b02 + r01 * b12 + r02 * b22
+            a10 = r10 * b00 + r11 * b10 + r12 * b20
+            a11 = r10 * b01 + r11 * b11 + r12 * b21
+            a12 = r10 * b02 + r11 * b12 + r12 * b22
+            a20 = r20 * b00 + r21 * b10 + r22 * b20
+            a21 = r20 * b01 + r21 * b11 + r22 * b21
+            a22 = r20 * b02 + r21 * b12 + r22 * b22
+            r00, r01, r02, r10, r11, r12, r20, r21, r22 = a00, a01, a02, a10, a11, a12, a20, a21, a22
+            zs[i, 0] = r00 * ux + r01 * uy + r02 * uz
+            zs[i, 1] = r10 * ux + r11 * uy + r12 * uz
+            zs[i, 2] = r20 * ux + r21 * uy + r22 * uz
+            ps[i, 0], ps[i, 1], ps[i, 2] = px, py, pz
+    ox, oy, oz = tcp_off[0], tcp_off[1], tcp_off[2]
+    tx = px + r00 * ox + r01 * oy + r02 * oz
+    ty = py + r10 * ox + r11 * oy + r12 * oz
+    tz = pz + r20 * ox + r21 * oy + r22 * oz
+    T[0, 0], T[0, 1], T[0, 2], T[0, 3] = r00, r01, r02, tx
+    T[1, 0], T[1, 1], T[1, 2], T[1, 3] = r10, r11, r12, ty
+    T[2, 0], T[2, 1], T[2, 2], T[2, 3] = r20, r21, r22, tz
+    T[3, 0], T[3, 1], T[3, 2], T[3, 3] = 0.0, 0.0, 0.0, 1.0
+    for i in range(n):
+        zx, zy, zz = zs[i, 0], zs[i, 1], zs[i, 2]
+        dx, dy, dz = tx - ps[i, 0], ty - ps[i, 1], tz - ps[i, 2]
+        J[0, i] = zy * dz - zz * dy
+        J[1, i] = zz * dx - zx * dz
+        J[2, i] = zx * dy - zy * dx
+        J[3, i], J[4, i], J[5, i] = zx, zy, zz
+
+
+# ----------------------------------------------------------------------------- the contact wrench
+@njit
+def tool_load(T, R_se, mg, com, out):
+    """The wrench (6,) that holds the tool still against gravity, sensor frame (what a tared-at-zero
+    sensor reads for a free tool). T (4, 4) or (3, 3): the TCP rotation; R_se (3, 3): the sensor in
+    the ee frame; mg: weight, N; com (3,): centre of mass, sensor frame."""
+    # Rᵀ_base_sensor (0, 0, m g) = R_seᵀ (row 3 of R_base_ee) m g.
+    z0, z1, z2 = T[2, 0] * mg, T[2, 1] * mg, T[2, 2] * mg
+    f0 = R_se[0, 0] * z0 + R_se[1, 0] * z1 + R_se[2, 0] * z2
+    f1 = R_se[0, 1] * z0 + R_se[1, 1] * z1 + R_se[2, 1] * z2
+    f2 = R_se[0, 2] * z0 + R_se[1, 2] * z1 + R_se[2, 2] * z2
+    c0, c1, c2 = com[0], com[1], com[2]
+    out[0], out[1], out[2] = f0, f1, f2
+    out[3], out[4], out[5] = c1 * f2 - c2 * f1, c2 * f0 - c0 * f2, c0 * f1 - c1 * f0
+
+
+@njit
+def contact_wrench(r, T, R_se, p_se, mg, com, tare_load, out):
+    """The wrench (6,) the tool applies to its surroundings, ee frame, moment about the TCP (eq. 39).
+
+    r : (6,) sensor reading (tare removed), sensor frame. T : (4, 4) TCP pose (only R is used).
+    R_se (3, 3), p_se (3,): the sensor frame in the ee frame. mg : tool weight, N; com (3,) its centre
+    of mass in the sensor frame; tare_load (6,): the tool load at the tare orientation. Fills ``out``.
+    """
+    ld = np.empty(6)
+    tool_load(T, R_se, mg, com, ld)
+    w0 = r[0] + tare_load[0] - ld[0]
+    w1 = r[1] + tare_load[1] - ld[1]
+    w2 = r[2] + tare_load[2] - ld[2]
+    w3 = r[3] + tare_load[3] - ld[3]
+    w4 = r[4] + tare_load[4] - ld[4]
+    w5 = r[5] + tare_load[5] - ld[5]
+    g0 = R_se[0, 0] * w0 + R_se[0, 1] * w1 + R_se[0, 2] * w2
+    g1 = R_se[1, 0] * w0 + R_se[1, 1] * w1 + R_se[1, 2] * w2
+    g2 = R_se[2, 0] * w0 + R_se[2, 1] * w1 + R_se[2, 2] * w2
+    m0 = R_se[0, 0] * w3 + R_se[0, 1] * w4 + R_se[0, 2] * w5
+    m1 = R_se[1, 0] * w3 + R_se[1, 1] * w4 + R_se[1, 2] * w5
+    m2 = R_se[2, 0] * w3 + R_se[2, 1] * w4 + R_se[2, 2] * w5
+    p0, p1, p2 = p_se[0], p_se[1], p_se[2]  # moment about the TCP: m_B = m_A + (A - B) × f
+    out[0], out[1], out[2] = g0, g1, g2
+    out[3] = m0 + p1 * g2 - p2 * g1
+    out[4] = m1 + p2 * g0 - p0 * g2
+    out[5] = m2 + p0 * g1 - p1 * g0
+
+
+# ----------------------------------------------------------------------------- the controller
+@njit
+def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use_vref, K, D, prm, state,
+                    x_ref, q_rest, q_min, q_max, tau_spring, n_damp, tau, diag):
+    """One step of eq. 47 with the wrench PID (see :class:`~tergodic_cli.robot.controller.LineForceController`).
+
+    T (4, 4) TCP pose, J (6, 7) base-frame Jacobian, q, dq (7,), a, d (3,) target line (base frame, d
+    into the surface), w (6,) measured ee wrench, mode MODE_*, v_ref (3,) target line velocity (used
+    when ``use_vref``). K, D (6,) gains, prm (N_CP,) parameters, state (N_CS,) PID state (updated).
+    tau_spring (7,), n_damp (7, 7): the null-space terms, refreshed here every 10 steps (updated).
+    Fills tau (7,) and diag (N_CD,).
+    """
+    r0, r1, r2 = T[0, 0], T[0, 1], T[0, 2]
+    r3, r4, r5 = T[1, 0], T[1, 1], T[1, 2]
+    r6, r7, r8 = T[2, 0], T[2, 1], T[2, 2]
+    vx, vy, vz = a[0] - T[0, 3], a[1] - T[1, 3], a[2] - T[2, 3]
+    dx, dy, dz = d[0], d[1], d[2]
+    # The target line in the ee frame (M̃ L_a⊥ M: Rᵀ applied to a - p and to d), its motor's log.
+    tx, ty, tz, fx_, fy_, _unused = line_motor_z(
+        r0 * vx + r3 * vy + r6 * vz, r1 * vx + r4 * vy + r7 * vz, r2 * vx + r5 * vy + r8 * vz,
+        r0 * dx + r3 * dy + r6 * dz, r1 * dx + r4 * dy + r7 * dz, r2 * dx + r5 * dy + r8 * dz)
+    spin = math.atan2(r1 * x_ref[0] + r4 * x_ref[1] + r7 * x_ref[2], r0 * x_ref[0] + r3 * x_ref[1] + r6 * x_ref[2])
+    V0 = V1 = V2 = V3 = V4 = V5 = 0.0
+    for j in range(7):  # base-frame TCP twist J q̇
+        qd = dq[j]
+        V0 += J[0, j] * qd
+        V1 += J[1, j] * qd
+        V2 += J[2, j] * qd
+        V3 += J[3, j] * qd
+        V4 += J[4, j] * qd
+        V5 += J[5, j] * qd
+    if use_vref:
+        V0 -= v_ref[0]
+        V1 -= v_ref[1]
+        V2 -= v_ref[2]
+    ve0 = r0 * V0 + r3 * V1 + r6 * V2
+    ve1 = r1 * V0 + r4 * V1 + r7 * V2
+    ve2 = r2 * V0 + r5 * V1 + r8 * V2
+    ve3 = r0 * V3 + r3 * V4 + r6 * V5
+    ve4 = r1 * V3 + r4 * V4 + r7 * V5
+    ve5 = r2 * V3 + r5 * V4 + r8 * V5
+    # Wrench PID on the force along the tool axis (eqs. 40-41), on the filtered measurement.
+    state[CS_FFILT] += prm[CP_ALPHA] * (w[2] - state[CS_FFILT])
+    if mode == MODE_TRACK:
+        e = force_desired - state[CS_FFILT]
+        de = 0.0 if state[CS_HAS_EPREV] == 0.0 else (e - state[CS_EPREV]) / prm[CP_DT]
+        state[CS_EPREV] = e
+        state[CS_HAS_EPREV] = 1.0
+        ki = prm[CP_KI]
+        if ki > 0:
+            cap = prm[CP_IMAX] * max(force_desired, 0.0) / ki
+            state[CS_INTEGRAL] = min(max(state[CS_INTEGRAL] + e * prm[CP_DT], 0.0), cap)
+        fz = prm[CP_KP] * e + ki * state[CS_INTEGRAL] + prm[CP_KD] * de
+    elif mode == MODE_APPROACH:
+        fz = D[2] * speed
+    else:
+        fz = -D[2] * speed
+    # K_L V_L - D_V V_ee + W_C (eq. 47); along the line the damping acts on the tool's own velocity.
+    wx = K[0] * tx - D[0] * ve0
+    wy = K[1] * ty - D[1] * ve1
+    if use_vref:
+        wz = fz - D[2] * (ve2 + (r2 * v_ref[0] + r5 * v_ref[1] + r8 * v_ref[2]))
+    else:
+        wz = fz - D[2] * ve2
+    mx = K[3] * fx_ - D[3] * ve3
+    my = K[4] * fy_ - D[4] * ve4
+    mz = prm[CP_SPIN] * spin - D[5] * ve5
+    W0 = r0 * wx + r1 * wy + r2 * wz
+    W1 = r3 * wx + r4 * wy + r5 * wz
+    W2 = r6 * wx + r7 * wy + r8 * wz
+    W3 = r0 * mx + r1 * my + r2 * mz
+    W4 = r3 * mx + r4 * my + r5 * mz
+    W5 = r6 * mx + r7 * my + r8 * mz
+    _posture(J, q, prm, state, q_rest, q_min, q_max, tau_spring, n_damp)
+    for j in range(7):
+        acc = J[0, j] * W0 + J[1, j] * W1 + J[2, j] * W2 + J[3, j] * W3 + J[4, j] * W4 + J[5, j] * W5
+        acc += tau_spring[j]
+        for k in range(7):
+            acc -= n_damp[j, k] * dq[k]
+        tau[j] = acc
+    diag[0], diag[1], diag[2], diag[3], diag[4], diag[5] = tx, ty, tz, fx_, fy_, spin
+    diag[6], diag[7], diag[8], diag[9], diag[10], diag[11] = wx, wy, wz, mx, my, mz
+    diag[12] = state[CS_FFILT]
+    diag[13], diag[14], diag[15], diag[16], diag[17], diag[18] = ve0, ve1, ve2, ve3, ve4, ve5
+
+
+@njit
+def line_force_step_packed(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use_vref, kpk, mut, tau, diag):
+    """:func:`line_force_step` with the controller's packed ``kpk`` and ``mut`` (fewer arguments to dispatch)."""
+    line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use_vref, kpk[KPK_K:KPK_K + 6],
+                    kpk[KPK_D:KPK_D + 6], kpk[KPK_PRM:KPK_PRM + N_CP], mut[MUT_STATE:MUT_STATE + N_CS],
+                    kpk[KPK_XREF:KPK_XREF + 3], kpk[KPK_QREST:KPK_QREST + 7], kpk[KPK_QMIN:KPK_QMIN + 7],
+                    kpk[KPK_QMAX:KPK_QMAX + 7], mut[MUT_SPRING:MUT_SPRING + 7],
+                    mut[MUT_DAMP:MUT_DAMP + 49].reshape((7, 7)), tau, diag)
+
+
+@njit
+def _posture(J, q, prm, state, q_rest, q_min, q_max, tau_spring, n_damp):
+    # Posture spring, joint-limit repulsion and damper in the Jacobian's null space,
+    # N = I - Jᵀ (J Jᵀ + 1e-4 I)⁻¹ J. The task damping cannot see self-motion, so the null-space
+    # damper runs every step; N and the slowly varying spring terms are refreshed at 100 Hz.
+    if int(state[CS_AGE]) % 10 == 0:
+        # A = J Jᵀ + 1e-4 I (SPD), Cholesky A = L Lᵀ, X = A⁻¹ J, N = I - Jᵀ X; written out (6×6:
+        # no LAPACK call, and numba compiles it in a fraction of the time np.linalg takes).
+        A = np.empty((6, 6))
+        for r in range(6):
+            for c in range(r + 1):
+                acc = 0.0
+                for k in range(7):
+                    acc += J[r, k] * J[c, k]
+                A[r, c] = acc
+                A[c, r] = acc
+            A[r, r] += 1e-4
+        L = np.zeros((6, 6))
+        for r in range(6):
+            for c in range(r + 1):
+                acc = A[r, c]
+                for k in range(c):
+                    acc -= L[r, k] * L[c, k]
+                L[r, c] = math.sqrt(acc) if r == c else acc / L[c, c]
+        X = np.empty((6, 7))
+        for col in range(7):
+            y = np.empty(6)
+            for r in range(6):  # L y = J[:, col]
+                acc = J[r, col]
+                for k in range(r):
+                    acc -= L[r, k] * y[k]
+                y[r] = acc / L[r, r]
+            for r in range(5, -1, -1):  # Lᵀ x = y
+                acc = y[r]
+                for k in range(r + 1, 6):
+                    acc -= L[k, r] * X[k, col]
+                X[r, col] = acc / L[r, r]
+        N = np.empty((7, 7))
+        for r in range(7):
+            for c in range(7):
+                acc = 0.0
+                for k in range(6):
+                    acc += J[k, r] * X[k, c]
+                N[r, c] = (1.0 if r == c else 0.0) - acc
+        zone = prm[CP_LIMIT_ZONE]
+        s = np.empty(7)
+        for j in range(7):
+            lo = min(q[j] - (q_min[j] + zone), 0.0)
+            hi = max(q[j] - (q_max[j] - zone), 0.0)
+            s[j] = prm[CP_NS_K] * (q_rest[j] - q[j]) - prm[CP_LIM_K] * (lo + hi)
+        for j in range(7):
+            acc = 0.0
+            for k in range(7):
+                acc += N[j, k] * s[k]
+                n_damp[j, k] = prm[CP_NS_D] * N[j, k]
+            tau_spring[j] = acc
+    state[CS_AGE] += 1.0
+
+
+# ----------------------------------------------------------------------------- safety limits
+@njit
+def state_fault(q, dq, pos, tcp_speed, q_lo, q_hi, dq_hi, tcp_max, ws_lo, ws_hi):
+    """(code, index): the first limit broken (F_* code, joint index or -1), or (OK, -1).
+
+    Joint positions in [q_lo, q_hi], |q̇| <= dq_hi, TCP speed <= tcp_max, TCP in the box [ws_lo, ws_hi].
+    NaN breaks every limit.
+    """
+    for j in range(q.shape[0]):
+        if not (q_lo[j] <= q[j] <= q_hi[j]):
+            return F_JOINT_POS, j
+    for j in range(dq.shape[0]):
+        if not (-dq_hi[j] <= dq[j] <= dq_hi[j]):
+            return F_JOINT_VEL, j
+    if not tcp_speed <= tcp_max:
+        return F_TCP_SPEED, -1
+    for k in range(3):
+        if not (ws_lo[k] <= pos[k] <= ws_hi[k]):
+            return F_WORKSPACE, k
+    return OK, -1
+
+
+@njit
+def force_fault(w, limit):
+    """(code, |f|): F_FORCE when the force magnitude of the wrench w (6,) is over ``limit`` (or NaN)."""
+    f = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    return (OK if f <= limit else F_FORCE), f
+
+
+# ----------------------------------------------------------------------------- the PyBullet hot loop
+# numba's dispatcher costs ~0.2 µs per array argument, more for tuples: the hot loop passes the
+# joint states as PyBullet returns them, the controller's kpk and mut, and two packed arrays.
+# cst (built by :func:`pack_constants` once per explorer interval): header [m, F_d, use_vref],
+# v_ref (3), the chain (F (m, 4, 4), axis (m, 3), qidx (m,)), tcp offset (3), R_se (3, 3), p_se (3),
+# m g, com (3), tare load (6), guard q_lo (7), q_hi (7), dq_hi (7), tcp speed max, workspace lo (3),
+# hi (3), force limit, tau_max (7).
+# io (read back by RobotRun._track_fast): q (7), q̇ (7), w (6), tau (7, the total torque to send),
+# diag (N_CD), T (16), J (42).
+IO_Q, IO_DQ, IO_W, IO_TAU, IO_DIAG = 0, 7, 14, 20, 27
+IO_T = IO_DIAG + N_CD
+IO_J = IO_T + 16
+N_IO = IO_J + 42
+
+
+def pack_constants(chain, contact, guard, tau_max, force_desired: float, v_ref) -> np.ndarray:
+    """The ``cst`` array of :func:`pybullet_tick` (see the layout above)."""
+    F, axis, qidx, off = chain
+    use = v_ref is not None
+    parts = [[len(qidx), float(force_desired), 1.0 if use else 0.0], v_ref if use else np.zeros(3),
+             F.ravel(), axis.ravel(), qidx.astype(float), off, contact.R_se_m.ravel(), contact.p_se_v, [contact.mg],
+             contact.com, contact.tare_load, guard.q_lo, guard.q_hi, guard.dq_hi, [guard.cfg.tcp_speed_max],
+             guard.ws_lo, guard.ws_hi, [guard.force_limit], tau_max]
+    return np.ascontiguousarray(np.concatenate([np.asarray(x, dtype=float).ravel() for x in parts]))
+
+
+@njit
+def pybullet_tick(i, A, D, states, reading, bias, cst, kpk, mut, io):
+    """One 1 kHz tick of the "track" loop after the joint read: FK + Jacobian, contact wrench, force
+    check, controller, state checks, and the torque to send (task + ``bias``, clamped to tau_max).
+
+    i : row of A, D (n, 3), the gliding target line. states : ``getJointStates`` of the 7 arm joints
+    and the sensor joint, as PyBullet returns it. reading : the sensor's 6 numbers (tare removed);
+    bias : gravity + Coriolis (7 numbers). kpk, mut : the controller's (``mut`` is updated).
+    Returns an F_* code (OK: send io[IO_TAU:IO_TAU + 7]). The separate kernels, chained.
+    """
+    q = io[IO_Q:IO_Q + 7]
+    dq = io[IO_DQ:IO_DQ + 7]
+    for j in range(7):
+        q[j] = states[j][0]
+        dq[j] = states[j][1]
+    m = int(cst[0])
+    force_desired = cst[1]
+    use_vref = cst[2] != 0.0
+    v_ref = cst[3:6]
+    o = 6
+    F = cst[o:o + 16 * m].reshape((m, 4, 4))
+    o += 16 * m
+    axis = cst[o:o + 3 * m].reshape((m, 3))
+    o += 3 * m
+    qidx = np.empty(m, dtype=np.int64)
+    for k in range(m):
+        qidx[k] = int(cst[o + k])
+    o += m
+    tcp_off = cst[o:o + 3]
+    R_se = cst[o + 3:o + 12].reshape((3, 3))
+    p_se = cst[o + 12:o + 15]
+    mg = cst[o + 15]
+    com = cst[o + 16:o + 19]
+    tare = cst[o + 19:o + 25]
+    o += 25
+    q_lo = cst[o:o + 7]
+    q_hi = cst[o + 7:o + 14]
+    dq_hi = cst[o + 14:o + 21]
+    tcp_max = cst[o + 21]
+    ws_lo = cst[o + 22:o + 25]
+    ws_hi = cst[o + 25:o + 28]
+    force_limit = cst[o + 28]
+    tau_max = cst[o + 29:o + 36]
+    T = io[IO_T:IO_T + 16].reshape((4, 4))
+    J = io[IO_J:IO_J + 42].reshape((6, 7))
+    w = io[IO_W:IO_W + 6]
+    diag = io[IO_DIAG:IO_DIAG + N_CD]
+    fk_jacobian(q, F, axis, qidx, tcp_off, T, J)
+    r = np.empty(6)
+    for k in range(6):
+        r[k] = reading[k]
+    contact_wrench(r, T, R_se, p_se, mg, com, tare, w)
+    code, _f = force_fault(w, force_limit)
+    if code != OK:
+        return code
+    task = np.empty(7)
+    line_force_step_packed(T, J, q, dq, A[i], D[i], w, MODE_TRACK, force_desired, 0.0, v_ref, use_vref, kpk, mut,
+                           task, diag)
+    v0, v1, v2 = diag[CD_VEE], diag[CD_VEE + 1], diag[CD_VEE + 2]
+    pos = np.empty(3)
+    pos[0], pos[1], pos[2] = T[0, 3], T[1, 3], T[2, 3]
+    code, _j = state_fault(q, dq, pos, math.sqrt(v0 * v0 + v1 * v1 + v2 * v2), q_lo, q_hi, dq_hi, tcp_max, ws_lo, ws_hi)
+    if code != OK:
+        return code
+    for j in range(7):
+        lim = tau_max[j]
+        io[IO_TAU + j] = min(max(task[j] + bias[j], -lim), lim)
+    return OK
