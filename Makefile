@@ -48,7 +48,7 @@ demo: setup
 BENCH_ENV := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 TERGODIC_NO_PROGRESS=1
 BENCHES   := precompute step explore_reference logging robot sweep
 bench: setup
-	@for b in $(BENCHES); do echo "== benchmarks/$$b.py"; $(BENCH_ENV) $(BIN)/python -P benchmarks/$$b.py || exit 1; done
+	@for b in $(BENCHES); do echo "== benchmarks/$$b.py"; $(BENCH_ENV) $(BIN)/python benchmarks/$$b.py || exit 1; done
 
 # Regenerate the project's own built-in clouds in data/.
 data: setup

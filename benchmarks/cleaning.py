@@ -21,15 +21,10 @@ It prints one row per re-capture (the remaining share against steps) and writes 
 
 from __future__ import annotations
 
+import _env  # noqa: F401,I001  (first: path fix, one BLAS thread; see benchmarks/_env.py)
+
 import os
 import sys
-
-_here = os.path.dirname(os.path.abspath(__file__))
-sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _here]
-
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
-os.environ.setdefault("TERGODIC_NO_PROGRESS", "1")
 
 import argparse  # noqa: E402
 import json  # noqa: E402

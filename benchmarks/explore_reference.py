@@ -15,16 +15,11 @@ Exits 0 with a note when the reference data is absent.
 
 from __future__ import annotations
 
+import _env  # noqa: F401,I001  (first: path fix, one BLAS thread; see benchmarks/_env.py)
+
 import os
 import sys
 
-# Running "python benchmarks/x.py" puts benchmarks/ first on sys.path, where a module named like a
-# stdlib one (benchmarks/logging.py) would shadow it; import from the installed packages only.
-sys.path[:] = [p for p in sys.path if os.path.abspath(p or ".") != os.path.dirname(os.path.abspath(__file__))]
-
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"  # before numpy is imported
-os.environ.setdefault("TERGODIC_NO_PROGRESS", "1")
 
 import argparse  # noqa: E402
 import json  # noqa: E402

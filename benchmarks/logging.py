@@ -18,17 +18,11 @@ Run:  OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/loggi
 
 from __future__ import annotations
 
+import _env  # noqa: F401,I001  (first: path fix, one BLAS thread; see benchmarks/_env.py)
+
 import os
 import sys
 
-# This file is named like the standard library's ``logging``: take its folder off the
-# import path first, or every library that does ``import logging`` would import this script.
-if sys.path and os.path.abspath(sys.path[0]) == os.path.dirname(os.path.abspath(__file__)):
-    sys.path.pop(0)
-
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"  # before numpy: BLAS pinned to one thread
-os.environ.setdefault("TERGODIC_NO_PROGRESS", "1")
 
 import argparse  # noqa: E402
 import shutil  # noqa: E402

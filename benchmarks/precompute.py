@@ -20,14 +20,10 @@ The load average is printed at the start and the end.
 
 from __future__ import annotations
 
+import _env  # noqa: F401,I001  (first: path fix, one BLAS thread; see benchmarks/_env.py)
+
 import os
 import sys
-
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"  # before numpy is imported
-# Modules in benchmarks/ (e.g. logging.py) must not shadow the standard library.
-_HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _HERE]
 
 import argparse  # noqa: E402
 import json  # noqa: E402
@@ -38,7 +34,6 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 
-os.environ.setdefault("TERGODIC_NO_PROGRESS", "1")
 
 REPO = Path(__file__).resolve().parents[1]
 REFERENCE = REPO.parent / "shared" / "data" / "reference"

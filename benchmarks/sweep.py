@@ -17,13 +17,10 @@ and the time that takes is reported apart from the runs'.
 
 from __future__ import annotations
 
+import _env  # noqa: F401,I001  (first: path fix, one BLAS thread; see benchmarks/_env.py)
+
 import os
 import sys
-
-sys.path[:] = [p for p in sys.path if os.path.abspath(p or ".") != os.path.dirname(os.path.abspath(__file__))]
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"
-os.environ.setdefault("TERGODIC_NO_PROGRESS", "1")
 
 import argparse  # noqa: E402
 import json  # noqa: E402
