@@ -29,15 +29,7 @@ def arpack_reference(L, mass, nk):
 
 
 def clusters(evals: np.ndarray, rtol: float = CLUSTER_RTOL) -> list[list[int]]:
-    """Index groups of (near-)equal eigenvalues; zeros form one group."""
-    floor = 1e-9 * abs(evals[-1])
-    groups = [[0]]
-    for i in range(1, len(evals)):
-        if evals[i] - evals[i - 1] <= rtol * max(abs(evals[i]), floor):
-            groups[-1].append(i)
-        else:
-            groups.append([i])
-    return groups
+    return es.eigenvalue_clusters(evals, rtol)
 
 
 def max_principal_angle_sine(A: np.ndarray, B: np.ndarray, mass: np.ndarray) -> float:

@@ -627,3 +627,19 @@ def smallest_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int 
     evals, evecs = arpack_eigenpairs(L, mass, nk, sigma=sigma, v0=rng.standard_normal(n))
     evals[np.abs(evals) < 1e-9 * max(abs(float(evals[-1])), 1e-300)] = 0.0
     return evals, evecs
+
+
+def eigenvalue_clusters(evals: np.ndarray, rtol: float = 1e-3) -> list[list[int]]:
+    """Index groups of (near-)equal eigenvalues (ascending ``evals``); the zeros form one group.
+
+    Eigenvectors are only defined up to a rotation within such a group, so two solvers are
+    compared per group (principal angles), not per vector.
+    """
+    floor = 1e-9 * abs(evals[-1])
+    groups = [[0]]
+    for i in range(1, len(evals)):
+        if evals[i] - evals[i - 1] <= rtol * max(abs(evals[i]), floor):
+            groups[-1].append(i)
+        else:
+            groups.append([i])
+    return groups

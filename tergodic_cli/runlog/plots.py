@@ -33,8 +33,12 @@ def _pyplot():
 
 
 def _save(fig, path: Path) -> Path:
+    """Write ``fig`` as a PNG atomically, then close it."""
+    import matplotlib.pyplot as plt
+
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
     return path
 
 
@@ -65,7 +69,6 @@ def plot_run(data: RunLogData, out_dir: str | os.PathLike) -> list[Path]:
     ax.legend()
     fig.tight_layout()
     written.append(_save(fig, out / "ergodicity.png"))
-    plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(7, 4))
     ax.plot(t, 100 * s["touched_fraction"], color="C2")
@@ -76,7 +79,6 @@ def plot_run(data: RunLogData, out_dir: str | os.PathLike) -> list[Path]:
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
     written.append(_save(fig, out / "touched.png"))
-    plt.close(fig)
 
     rs = data.robot_series()
     if rs:
@@ -118,7 +120,6 @@ def _plot_force(plt, data: RunLogData, rs: dict[str, np.ndarray], out: Path) -> 
     ax.legend()
     fig.tight_layout()
     path = _save(fig, out / "force.png")
-    plt.close(fig)
     return [path]
 
 
@@ -147,7 +148,6 @@ def _plot_cleaning(plt, data: RunLogData, out: Path) -> list[Path]:
     ax.legend()
     fig.tight_layout()
     path = _save(fig, out / "cleaning.png")
-    plt.close(fig)
     return [path]
 
 
@@ -191,5 +191,4 @@ def _plot_cloud(plt, cloud, field: str, cmap: str, label: str, traj, path: Path,
     fig.colorbar(sc, cax=cax, label=label, extend="max" if vmax < np.nanmax(vals) else "neither")
     fig.suptitle(f"{label} at step {cloud.step}; agent trajectory drawn in {line}, dot = last position{note}")
     path = _save(fig, path)
-    plt.close(fig)
     return path
