@@ -47,7 +47,7 @@ def capture_reference(name: str):
 
 
 def run_starts(basis, target, starts, steps, **cfg_kw) -> dict:
-    """Median ergodicity_ref, touched and step time over ``starts`` (k, 3)."""
+    """Median ergodicity_ref, touched, ε (eq. 48) and step time over ``starts`` (k, 3)."""
     from tergodic_cli.explore import ExploreConfig, Explorer
 
     rows = []
@@ -62,7 +62,8 @@ def run_starts(basis, target, starts, steps, **cfg_kw) -> dict:
     r = np.array(rows)
     return {"eps_ref": float(np.median(r[:, 0])), "touched": float(np.median(r[:, 1])), "ms": float(np.median(r[:, 2])),
             "ergodicity": float(np.median(r[:, 3])), "eps_ref_each": r[:, 0].round(4).tolist(),
-            "touched_each": r[:, 1].round(4).tolist(), "touched_min": float(r[:, 1].min())}
+            "touched_each": r[:, 1].round(4).tolist(), "touched_min": float(r[:, 1].min()),
+            "ergodicity_each": r[:, 3].round(4).tolist()}
 
 
 def main() -> int:
@@ -102,17 +103,20 @@ def main() -> int:
         table.append((name, cap.n_points, n_t, "published", {"eps_ref": pub["eps_ref"], "touched": pub["touched"],
                                                               "ms": pub["ms"]}))
         if args.compare:
-            for diffusion, integrator in (("carry", "spectral"), ("carry", "implicit"), ("source", "resolvent"),
-                                          ("source", "spectral")):
+            for diffusion, integrator, norm in (("carry", "resolvent", "cloud"), ("carry", "spectral", "target"),
+                                                ("carry", "implicit", "target"), ("source", "resolvent", "target"),
+                                                ("source", "spectral", "target")):
                 r = run_starts(basis, cap.target, starts, args.steps, agent_radius=pub["radius"], a_max=0.003,
-                               diffusion=diffusion, integrator=integrator)
-                results[f"{name}/{diffusion}-{integrator}"] = r
-                table.append((name, cap.n_points, n_t, f"{diffusion}/{integrator} a=3", r))
+                               diffusion=diffusion, integrator=integrator, coverage_norm=norm)
+                results[f"{name}/{diffusion}-{integrator}-{norm}"] = r
+                table.append((name, cap.n_points, n_t, f"{diffusion}/{integrator}/{norm} a=3", r))
 
-    print("\n| object | nP | target | run | ergodicity_ref at %d | touched | step |" % args.steps)
-    print("|---|---|---|---|---|---|---|")
+    print("\n| object | nP | target | run | ergodicity_ref at %d | touched | ε (eq. 48) | step |" % args.steps)
+    print("|---|---|---|---|---|---|---|---|")
     for name, n, n_t, label, r in table:
-        print(f"| {name} | {n} | {n_t} | {label} | {r['eps_ref']:.3f} | {100 * r['touched']:.1f}% | {r['ms']:.2f} ms |")
+        erg = f"{r['ergodicity']:.2f}" if "ergodicity" in r else ""
+        print(f"| {name} | {n} | {n_t} | {label} | {r['eps_ref']:.3f} | {100 * r['touched']:.1f}% | {erg} | "
+              f"{r['ms']:.2f} ms |")
     print("\nGoals (issue 3): ε_ref <= 0.9x published (bunny), <= published (plate); 100% touched; step no slower.")
     for name in args.objects.split(","):
         pub = PUBLISHED[name]
@@ -132,12 +136,15 @@ def main() -> int:
 
 def heldout(steps: int, cache: str) -> dict:
     """Defaults against the variants on synthetic objects (3 random starts each): how often a run
-    gets stuck (< 99 % of the target touched) and the mean ε_ref. Not the reference clouds."""
+    gets stuck (< 99 % of the target touched), ε_ref (mean, median), the touched share and ε
+    (eq. 48). Not the reference clouds."""
     from tergodic_cli.basis import BasisConfig, get_basis
     from tergodic_cli.capture import CaptureConfig, capture_cloud
 
-    variants = {"carry/resolvent (default)": {}, "carry/spectral (eq. 19)": {"integrator": "spectral"},
-                "carry/implicit": {"integrator": "implicit"}, "source/resolvent": {"diffusion": "source"}}
+    variants = {"carry/resolvent/target (default)": {}, "carry/resolvent/cloud (eq. 2)": {"coverage_norm": "cloud"},
+                "carry/spectral/target (eq. 19)": {"integrator": "spectral"},
+                "carry/implicit/target": {"integrator": "implicit"},
+                "source/resolvent/target": {"diffusion": "source"}}
     out = {v: [] for v in variants}
     for obj in ("bowl", "plate", "mug", "sphere"):
         for mark in ("X", "ring", "dots"):
@@ -149,16 +156,22 @@ def heldout(steps: int, cache: str) -> dict:
                 out[v].append(r)
                 print(f"heldout {obj}/{mark} {v}: ε_ref {r['eps_ref_each']} touched {r['touched_each']} "
                       f"{r['ms']:.2f} ms", file=sys.stderr, flush=True)
-    print("\n| variant | runs stuck (<99% touched) | mean ε_ref | median step |")
-    print("|---|---|---|---|")
+    print("\n| variant | runs stuck (<99% touched) | mean ε_ref | median ε_ref | median / min touched "
+          "| mean ε (eq. 48) | median step |")
+    print("|---|---|---|---|---|---|---|")
     summary = {}
     for v, rows in out.items():
         eps = np.concatenate([r["eps_ref_each"] for r in rows])
         tch = np.concatenate([r["touched_each"] for r in rows])
+        erg = np.concatenate([r["ergodicity_each"] for r in rows])
         summary[v] = {"stuck": int((tch < 0.99).sum()), "runs": len(tch), "mean_eps_ref": float(eps.mean()),
+                      "median_eps_ref": float(np.median(eps)), "median_touched": float(np.median(tch)),
+                      "min_touched": float(tch.min()), "mean_ergodicity": float(erg.mean()),
                       "ms": float(np.median([r["ms"] for r in rows]))}
         s = summary[v]
-        print(f"| {v} | {s['stuck']}/{s['runs']} | {s['mean_eps_ref']:.3f} | {s['ms']:.2f} ms |")
+        print(f"| {v} | {s['stuck']}/{s['runs']} | {s['mean_eps_ref']:.3f} | {s['median_eps_ref']:.3f} | "
+              f"{100 * s['median_touched']:.1f}% / {100 * s['min_touched']:.1f}% | {s['mean_ergodicity']:.2f} | "
+              f"{s['ms']:.2f} ms |")
     return summary
 
 

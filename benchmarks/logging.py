@@ -101,7 +101,8 @@ def _bunny_explorer_factory(steps: int):
 
 
 def bench_explorer(steps: int = 1000, repeats: int = 3, cloud_every: int = 50,
-                   compressions: tuple[str, ...] = ("zstd", "lz4")) -> dict | None:
+                   variants: tuple[tuple[str, str], ...] = (("process", "lz4"), ("inline", "lz4"), ("inline", "zstd"))
+                   ) -> dict | None:
     """B: two identical explorers stepped in lockstep, one of them logged; ms per step and overhead.
 
     Lockstep (plain step k, then logged step k, then k + 1 ...) exposes both sides to the
@@ -113,61 +114,84 @@ def bench_explorer(steps: int = 1000, repeats: int = 3, cloud_every: int = 50,
     cap, basis, cfg, make, cache = made
     out: dict = {"n_points": len(basis.points)}
     try:
-        for comp in compressions:
-            runs = np.array([_lockstep(make, cap, basis, cfg, steps, cloud_every, comp) for _ in range(repeats)])
-            cp, cl, wp, wl = np.median(runs, axis=0)
-            out[comp] = {"cpu_plain_ms": cp, "cpu_logged_ms": cl, "cpu_overhead": float(np.median(runs[:, 1] / runs[:, 0])) - 1,
-                         "wall_plain_ms": wp, "wall_logged_ms": wl, "wall_overhead": float(np.median(runs[:, 3] / runs[:, 2])) - 1}
+        for writer, comp in variants:
+            runs = [_lockstep(make, cap, basis, cfg, steps, cloud_every, comp, writer) for _ in range(repeats)]
+            med = {key: float(np.median([r[key] for r in runs])) for key in runs[0]}
+            for kind in ("thread", "wall"):  # the median of per-run ratios: each run is one load condition
+                med[f"{kind}_overhead"] = float(np.median([r[f"{kind}_logged"] / r[f"{kind}_plain"] for r in runs])) - 1
+            out[f"{writer} {comp}"] = med
     finally:
         shutil.rmtree(cache, ignore_errors=True)
     return out
 
 
-def _lockstep(make, cap, basis, cfg, steps: int, cloud_every: int, compression: str) -> tuple[float, float, float, float]:
-    """(plain, logged) ms per step of CPU time, then of wall time; the logged side as the explore command logs.
+def _lockstep(make, cap, basis, cfg, steps: int, cloud_every: int, compression: str,
+              writer: str = "process") -> dict[str, float]:
+    """ms per step of the plain and the logged explorer, the logged side as the explore command logs.
 
-    CPU time (all threads of this process) is what the log costs; wall time is what a
-    user waits, but on a shared machine it also counts the time other processes run.
+    - ``thread_*``: CPU time of the thread that steps the explorers (what the log takes
+      from the step itself, whatever else runs on the machine);
+    - ``wall_*``: wall time, what a user waits (on a shared machine it also counts the
+      time other processes run);
+    - ``writer_cpu``: CPU time the log spends elsewhere: the pipe thread and the writer
+      child (``writer="process"``) — it runs beside the step, on another core.
+    Opening and closing the log count on the logged side.
     """
     from tergodic_cli.provenance import library_versions
-    from tergodic_cli.runlog import RunLog
+    from tergodic_cli.runlog.background import BackgroundRunLog, LogWriterProcess
+    from tergodic_cli.runlog.writer import RunLog, SpectralField
 
+    def proc_cpu(pid: int) -> float:  # utime + stime of a live process (Linux)
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+    child = LogWriterProcess() if writer == "process" else None  # as explore does: started before the set-up
     plain_ex, log_ex = make(), make()
+    if child:  # its start-up (imports, ~0.3 s CPU once per run) overlaps explore's own; leave it out
+        child.wait_ready()
+        child_cpu0 = proc_cpu(child.proc.pid)
     tmp = Path(tempfile.mkdtemp(prefix="tergodic-bench-"))
-    cpu, wall = time.process_time, time.perf_counter
-    c_plain = c_log = w_plain = w_log = 0.0
+    tcpu, pcpu, wall = time.thread_time, time.process_time, time.perf_counter
+    t_plain = t_log = w_plain = w_log = 0.0
+    p_start, t_start = pcpu(), tcpu()
     try:
-        c0, w0 = cpu(), wall()
-        log = RunLog(tmp / "run.mcap", config=cfg.to_dict(), seed=cfg.seed, versions=library_versions(),
-                     capture_sidecar=cap.meta, points=basis.points, target=cap.target, cloud_every=cloud_every,
-                     compression=compression)
-        c_log += cpu() - c0
+        c0, w0 = tcpu(), wall()
+        kw = {"writer": child} if child else {}
+        log = (BackgroundRunLog if child else RunLog)(
+            tmp / "run.mcap", config=cfg.to_dict(), seed=cfg.seed, versions=library_versions(), capture_sidecar=cap.meta,
+            points=basis.points, target=cap.target, cloud_every=cloud_every, compression=compression,
+            field_basis=log_ex.evecs, **kw)
+        t_log += tcpu() - c0
         w_log += wall() - w0
         for k in range(steps):
-            c0, w0 = cpu(), wall()
+            c0, w0 = tcpu(), wall()
             plain_ex.step()
             plain_ex.metrics()
-            c1, w1 = cpu(), wall()
+            c1, w1 = tcpu(), wall()
             log_ex.step()
             m = log_ex.metrics()
             step_ms = (wall() - w1) * 1e3
             log.log_step(k + 1, (k + 1) * cfg.dt, positions=log_ex.positions, velocities=log_ex.velocities,
                          normals=log_ex.normals, metrics=m, step_ms=step_ms)
             if (k + 1) % cloud_every == 0 or k + 1 == steps:
-                log.log_cloud(k + 1, coverage=log_ex.coverage, heat=log_ex.heat, source=log_ex.source)
-            c2, w2 = cpu(), wall()
-            c_plain += c1 - c0
-            c_log += c2 - c1
+                log.log_cloud(k + 1, coverage=log_ex.coverage, heat=SpectralField(*log_ex.heat_terms()),
+                              source=log_ex.source, target=log_ex.p)  # as tergodic explore logs it
+            c2, w2 = tcpu(), wall()
+            t_plain += c1 - c0
+            t_log += c2 - c1
             w_plain += w1 - w0
             w_log += w2 - w1
-        c0, w0 = cpu(), wall()
+        child_cpu = proc_cpu(child.proc.pid) - child_cpu0 if child else 0.0  # (misses the final footer)
+        c0, w0 = tcpu(), wall()
         log.close({"steps": steps})
-        c_log += cpu() - c0
+        t_log += tcpu() - c0
         w_log += wall() - w0
+        other_threads = (pcpu() - p_start) - (tcpu() - t_start)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     k = 1e3 / steps
-    return c_plain * k, c_log * k, w_plain * k, w_log * k
+    return {"thread_plain": t_plain * k, "thread_logged": t_log * k, "wall_plain": w_plain * k, "wall_logged": w_log * k,
+            "writer_cpu": (other_threads + child_cpu) * k}
 
 
 def bench_cli(steps: int = 1000, repeats: int = 3) -> dict | None:
@@ -232,12 +256,12 @@ def main() -> None:
         print("B. skipped (no reference bunny or no explorer)")
     else:
         print(f"B. kinematic explorer on the reference bunny ({r['n_points']} points, nK 200, 1000 steps, lockstep)")
-        for comp in ("zstd", "lz4"):
-            c = r[comp]
-            print(f"   {comp:<4} CPU : {c['cpu_plain_ms']:.3f} ms/step without log, {c['cpu_logged_ms']:.3f} with it "
-                  f"-> overhead {100 * c['cpu_overhead']:+.1f} % (budget 10 %)")
-            print(f"   {comp:<4} wall: {c['wall_plain_ms']:.3f} ms/step without log, {c['wall_logged_ms']:.3f} with it "
-                  f"-> overhead {100 * c['wall_overhead']:+.1f} %")
+        for key in (k for k in r if k != "n_points"):
+            c = r[key]
+            print(f"   {key:<12}: step thread {c['thread_plain']:.4f} ms plain, {c['thread_logged']:.4f} logged "
+                  f"-> {100 * c['thread_overhead']:+.1f} % (budget 10 %); wall {c['wall_plain']:.4f} / "
+                  f"{c['wall_logged']:.4f} -> {100 * c['wall_overhead']:+.1f} %; writer CPU elsewhere "
+                  f"{c['writer_cpu']:.4f} ms/step")
     if args.skip_cli:
         return
     r = bench_cli(repeats=max(1, reps // 2 + 1))

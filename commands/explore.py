@@ -27,6 +27,7 @@ def explore(
     agents: int = typer.Option(1, "--agents", help="Agents sharing one coverage field (eq. 3)."),
     diffusion: str = typer.Option("carry", "--diffusion", help="'carry': u <- e^{-δtL}u + s (default, measured best); 'source': eq. 19 on the current source only."),
     integrator: str = typer.Option("resolvent", "--integrator", help="'resolvent' (eq. 4 in the eigenbasis, 1/(1+λδt); default, measured most robust), 'spectral' (eq. 19, e^{-λδt}) or 'implicit' (sparse (M + δt L)^-1 M, the exact baseline)."),
+    coverage_norm: str = typer.Option("target", "--coverage-norm", help="What the source's coverage is normalised over: 'target' (default: the marked points, so coverage beside a thin marking does not count towards it and every marked spot keeps a pull until reached; measured in docs/explore.md) or 'cloud' (the whole cloud, eq. 2 as printed). The metric ε (eq. 48) always uses 'cloud'."),
     v_max: float = typer.Option(0.003, "--v-max", help="Speed limit, m/s (paper: 0.003)."),
     a_max: float = typer.Option(0.003, "--a-max", help="Acceleration limit, m/s² (paper: 0.003)."),
     dt: float = typer.Option(1.0, "--dt", help="Seconds per explorer step (paper: 1)."),
@@ -80,7 +81,7 @@ def explore(
     from tergodic_cli.explore.run import StartSpec, run_explore
 
     cfg = ExploreConfig(steps=steps, alpha=alpha, nk=nk, agent_radius=agent_radius, n_agents=agents, v_max=v_max,
-                        a_max=a_max, dt=dt, diffusion=diffusion, integrator=integrator, seed=seed,
+                        a_max=a_max, dt=dt, diffusion=diffusion, integrator=integrator, coverage_norm=coverage_norm, seed=seed,
                         n_neighbors=fit_neighbors, epsilon=epsilon, basis_neighbors=neighbors,
                         max_start_distance=max_start_distance)
     spec = StartSpec(start=start, starts_file=str(starts) if starts is not None else None, start_index=start_index)

@@ -9,7 +9,8 @@ import pytest
 from conftest import fibonacci_sphere, jittered_square
 
 from tergodic_cli.basis import BasisConfig, compute_basis, get_basis
-from tergodic_cli.basis.cache import geometry_key
+from tergodic_cli.basis import cache as cache_mod
+from tergodic_cli.basis.cache import array_checksum, geometry_key
 from tergodic_cli.capture.synthetic import generate_synthetic
 
 
@@ -106,6 +107,111 @@ def test_tampered_cache_is_detected_and_recomputed(isolated_cache):
     assert not hit and any("unreadable" in m for m in messages)
     meta = json.loads((entry / "basis.json").read_text())
     assert meta["key"] == basis.meta["key"]
+
+
+def _npy_data_offset(path) -> int:
+    with open(path, "rb") as f:
+        np.lib.format.read_magic(f)
+        np.lib.format.read_array_header_1_0(f)
+        return f.tell()
+
+
+def test_cache_detects_a_flipped_byte_a_truncation_and_an_old_layout(isolated_cache):
+    pts = generate_synthetic("plate", "X", seed=0, spacing=0.004).points
+    cfg = BasisConfig(nk=12, neighbors=20)
+    basis, _ = get_basis(pts, cfg)
+    entry = isolated_cache / "basis" / basis.meta["key"]
+    path = entry / "evecs.npy"
+    start = _npy_data_offset(path)
+    raw = path.read_bytes()
+    assert len(raw) - start == basis.evecs.nbytes > 8 * 4096  # rows and a tail
+    for pos in (start, start + len(raw[start:]) // 2 + 3, len(raw) - 1):  # first, middle, last byte
+        bad = bytearray(raw)
+        bad[pos] ^= 0x10
+        path.write_bytes(bytes(bad))
+        messages = []
+        again, hit = get_basis(pts, cfg, on_event=messages.append)
+        assert not hit and any("checksum" in m for m in messages), pos
+        np.testing.assert_allclose(again.evecs, basis.evecs)
+    path.write_bytes(raw[:-5])  # truncated
+    messages = []
+    _, hit = get_basis(pts, cfg, on_event=messages.append)
+    assert not hit and any("unreadable" in m for m in messages)
+    # An entry written by an older layout (no point order, other checksums) is recomputed.
+    meta = json.loads((entry / "basis.json").read_text())
+    del meta["checksums"]["points_order"]
+    (entry / "basis.json").write_text(json.dumps(meta))
+    (entry / "points_order.npy").unlink()
+    messages = []
+    _, hit = get_basis(pts, cfg, on_event=messages.append)
+    assert not hit and messages
+    _, hit = get_basis(pts, cfg)
+    assert hit
+
+
+def test_checksum_catches_every_single_byte_flip_and_word_swaps():
+    rng = np.random.default_rng(0)
+    a = rng.standard_normal(2 * 4096 + 5)  # two checksum rows and a 40-byte tail
+    ref = array_checksum(a)
+    raw = bytearray(a.tobytes())
+    for pos in list(range(0, len(raw), 5)) + list(range(len(raw) - 48, len(raw))):
+        for bit in (0x01, 0x80):
+            raw[pos] ^= bit
+            assert array_checksum(np.frombuffer(bytes(raw), dtype=a.dtype)) != ref, (pos, bit)
+            raw[pos] ^= bit
+    assert array_checksum(np.frombuffer(bytes(raw), dtype=a.dtype)) == ref
+    for i, j in ((3, 10), (3, 4096 + 3), (100, 4096 + 7)):  # same row; same lane; neither
+        b = a.copy()
+        b[[i, j]] = b[[j, i]]
+        assert array_checksum(b) != ref, (i, j)
+    m = rng.standard_normal((600, 50))  # swapped rows of a matrix, and a changed shape or dtype
+    ref = array_checksum(m)
+    assert array_checksum(m[[1, 0, *range(2, 600)]]) != ref
+    assert array_checksum(m.reshape(50, 600)) != ref
+    assert array_checksum(m.view(np.int64)) != ref
+    assert array_checksum(np.array(1.5)) != array_checksum(np.array(2.5))
+
+
+def test_canonical_order_is_the_lexicographic_order():
+    rng = np.random.default_rng(3)
+    for span in (1000, 1 << 20, 1 << 40):  # packed single sort; its limit; the lexsort fallback
+        q = rng.integers(-span, span, size=(5000, 3))
+        q[:100, 0] = q[100:200, 0]  # shared x: the order then depends on y and z
+        order, ident = cache_mod._canonical_order(q)
+        np.testing.assert_array_equal(q[order], q[np.lexsort((q[:, 2], q[:, 1], q[:, 0]))])
+        perm = rng.permutation(len(q))
+        assert cache_mod._canonical_order(q[perm])[1] == ident  # the key does not depend on the order
+
+
+def test_cache_hit_in_the_stored_order_and_in_another_order(isolated_cache):
+    pts = generate_synthetic("bowl", "X", seed=2, spacing=0.004).points
+    cfg = BasisConfig(nk=10, neighbors=20)
+    first, _ = get_basis(pts, cfg)
+    perm = np.random.default_rng(1).permutation(len(pts))
+    again, hit = get_basis(pts, cfg)
+    assert hit and again.evecs.flags.c_contiguous
+    np.testing.assert_array_equal(again.evecs, first.evecs)
+    np.testing.assert_array_equal(again.L.indptr, first.L.indptr)
+    shuffled, hit = get_basis(pts[perm], cfg)
+    assert hit
+    np.testing.assert_array_equal(shuffled.evecs, first.evecs[perm])
+    np.testing.assert_array_equal(shuffled.L.toarray(), first.L.toarray()[perm][:, perm])
+    # A hit from the shuffled order leaves the stored entry as it was: the original order still hits.
+    back, hit = get_basis(pts, cfg)
+    assert hit
+    np.testing.assert_array_equal(back.evecs, first.evecs)
+
+
+def test_duplicate_points_are_counted_and_refused():
+    from tergodic_cli.basis.core import check_geometry
+    from tergodic_cli.errors import TergodicError
+
+    pts = jittered_square(20, 0.1, seed=4)
+    check_geometry(pts)
+    pts[0] = [0.0, 0.0, 0.0]
+    dup = np.vstack([pts, pts[[5, 5, 9]], [[-0.0, 0.0, -0.0]]])  # -0.0 equals 0.0
+    with pytest.raises(TergodicError, match="has 4 duplicate points"):
+        check_geometry(dup)
 
 
 def test_laplacian_annihilates_constants_and_is_symmetric():

@@ -157,6 +157,43 @@ def test_inertia_counts_eigenvalues_below_the_shift(bowl):
         assert factor.n_negative == np.count_nonzero(ref_evals < sigma)
 
 
+@pytest.mark.parametrize("backend", ["qdldl", "superlu"])
+def test_refactor_at_another_shift_counts_like_a_fresh_factor(bowl, monkeypatch, backend):
+    # The completeness count re-factorises with the first factor's analysis; the shifted
+    # matrices keep one sparsity pattern even when a diagonal entry cancels exactly.
+    if backend == "superlu":
+        monkeypatch.setitem(sys.modules, "qdldl", None)
+    L, mass = bowl
+    s = np.sqrt(mass)
+    A = sp.csc_matrix(sp.diags(1 / s) @ L @ sp.diags(1 / s))
+    shifted = es.ShiftedMatrix(A)
+    ref_evals, _ = arpack_reference(L, mass, 40)
+    sigmas = [0.5 * (ref_evals[k] + ref_evals[k + 1]) for k in (9, 30, 20)]
+    factor = es.SymmetricFactor(shifted(sigmas[0]))
+    assert factor.backend == backend
+    for sigma in sigmas:
+        K = shifted(sigma)
+        assert K.nnz == shifted.A.nnz
+        np.testing.assert_allclose(K.toarray(), A.toarray() - sigma * np.eye(A.shape[0]))
+        assert factor.refactor(K).n_negative == np.count_nonzero(ref_evals < sigma)
+    # A shift equal to a diagonal entry makes that entry exactly zero: it stays stored.
+    d0 = float(A.diagonal()[0])
+    assert shifted(d0).nnz == shifted.A.nnz and shifted(d0)[0, 0] == 0.0
+
+
+def test_tridiagonal_eigh_matches_scipy():
+    from scipy.linalg import eigh_tridiagonal
+
+    rng = np.random.default_rng(7)
+    a, b = rng.standard_normal(150), rng.random(149)
+    w, z = es.tridiagonal_eigh(a, b)
+    w_ref, z_ref = eigh_tridiagonal(a, b)
+    np.testing.assert_allclose(w, w_ref, atol=1e-12)
+    T = np.diag(a) + np.diag(b, 1) + np.diag(b, -1)
+    np.testing.assert_allclose(T @ z, z * w, atol=1e-12)
+    np.testing.assert_allclose(z.T @ z, np.eye(150), atol=1e-12)
+
+
 def test_superlu_fallback_without_qdldl(bowl, monkeypatch):
     monkeypatch.setitem(sys.modules, "qdldl", None)  # import qdldl -> ImportError
     L, mass = bowl

@@ -104,20 +104,30 @@ def test_uniform_target_on_a_sphere_ergodicity_falls(sphere):
     assert r_still["erg"][-1] > 0.98 * r_still["erg"][0]
 
 
-def test_incremental_metrics_equal_their_definitions(bowl):
+@pytest.mark.parametrize("norm", ["target", "cloud"])
+def test_incremental_metrics_equal_their_definitions(bowl, norm):
     cloud, basis = bowl
     target = cloud.mask.astype(float)
-    ex = Explorer(basis, target, ExploreConfig(nk=80, agent_radius=0.012), cloud.points[:1])
+    # Start on the marking: the first footprint covers target and off-target points, so the
+    # two normalisations of the source differ from step 1 on.
+    start = cloud.points[np.flatnonzero(cloud.mask)[:1]]
+    ex = Explorer(basis, target, ExploreConfig(nk=80, agent_radius=0.012, coverage_norm=norm), start)
     for _ in range(120):
         ex.step()
     m = ex.metrics()
+    # ε (eq. 48) always normalises the coverage over the cloud, whatever drives the agent.
     assert m["ergodicity"] == pytest.approx(M.ergodicity(target, ex.coverage, basis.mass), rel=1e-9)
     assert m["touched_fraction"] == pytest.approx(M.touched_fraction(target, ex.coverage), abs=1e-15)
-    # p̂ = e^{-δtL} p̄ + s̄₁ after step 1 (the published code's first heat), then [c = 0] masks it.
-    first = Explorer(basis, target, ExploreConfig(nk=80, agent_radius=0.012, integrator="spectral"), cloud.points[:1])
+    # p̂ = e^{-δtL} p̄ + s̄₁ after step 1 (the published code's first heat: s̄₁ with the cloud's
+    # normalisation), then [c = 0] masks it.
+    first = Explorer(basis, target, ExploreConfig(nk=80, agent_radius=0.012, integrator="spectral",
+                                                  coverage_norm="cloud"), start)
     first.step()
     assert m["ergodicity_ref"] == pytest.approx(M.ergodicity_ref(first.heat, ex.coverage), rel=1e-9)
-    np.testing.assert_allclose(ex.source, M.source_term(target, ex.coverage, basis.mass), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(ex.source, M.source_term(target, ex.coverage, basis.mass, norm=norm), rtol=1e-12,
+                               atol=0)
+    other = M.source_term(target, ex.coverage, basis.mass, norm="cloud" if norm == "target" else "target")
+    assert np.abs(other - ex.source).max() > 0.1 * ex.source.max()  # the two normalisations do differ here
 
 
 def test_footprint_is_the_gaussian_of_tangent_distance_within_the_radius(sphere):

@@ -139,6 +139,7 @@ def test_small_agent_radius_warns(cap, tmp_path):
     (("--steps", "0"), "steps"),
     (("--diffusion", "magic"), "diffusion"),
     (("--integrator", "magic"), "integrator"),
+    (("--coverage-norm", "marking"), "coverage-norm"),
     (("--robot", "hovercraft"), "robot"),
     (("--nk", "100000"), "nk"),
     (("--start-index", "2"), "--starts"),
@@ -149,6 +150,20 @@ def test_bad_input_is_one_line_and_exit_2_with_nothing_written(cap, tmp_path, ar
                   *args)
     assert_one_line_error(res, needle)
     assert not (run / "summary.json").exists() and not (run / "trajectory.npz").exists()
+
+
+def test_coverage_norm_is_recorded_and_changes_the_run(cap, tmp_path):
+    runs = {}
+    for norm in ("target", "cloud"):
+        res = _explore(cap, tmp_path / norm, "--steps", "150", "--start", "0", "--coverage-norm", norm)
+        assert res.code == 0, res.err
+        runs[norm] = json.loads((tmp_path / norm / "summary.json").read_text())
+        assert runs[norm]["config"]["coverage_norm"] == norm
+    default = _explore(cap, tmp_path / "default", "--steps", "1", "--start", "0")
+    assert json.loads((tmp_path / "default" / "summary.json").read_text())["config"]["coverage_norm"] == "target", \
+        default.err
+    with np.load(tmp_path / "target" / "trajectory.npz") as a, np.load(tmp_path / "cloud" / "trajectory.npz") as b:
+        assert np.abs(a["positions"] - b["positions"]).max() > 1e-3  # the agents went different ways
 
 
 def test_bad_starts_files(cap, tmp_path):

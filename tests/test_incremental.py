@@ -37,9 +37,11 @@ def bowl():
 
 class FullRecompute:
     """u_t = Φ f(λδt) Φᵀ M u_{t-1} + s̄_t from u₀ = p̄ (carry) or u_t = Φ f(λδt) Φᵀ M s̄_t (source),
-    with s̄ = s/∫s recomputed on all points from the coverage every step."""
+    with s̄ = s/∫s recomputed on all points from the coverage every step (``norm``: what the
+    source's coverage is normalised over, as ``ExploreConfig.coverage_norm``)."""
 
-    def __init__(self, basis, target, nk, alpha, integrator, diffusion):
+    def __init__(self, basis, target, nk, alpha, integrator, diffusion, norm="target"):
+        self.norm = norm
         self.phi, self.mass = basis.evecs[:, :nk], basis.mass
         self.p = target
         dt = time_step(alpha, basis.h)
@@ -51,7 +53,7 @@ class FullRecompute:
         self.b = self.phi.T @ (self.mass * pbar)
 
     def step(self, coverage):
-        s = M.source_term(self.p, coverage, self.mass)
+        s = M.source_term(self.p, coverage, self.mass, norm=self.norm)
         total = float(self.mass @ s)
         self.sbar = s / total if total > 0 else np.zeros_like(s)
         coef = self.phi.T @ (self.mass * self.sbar)
@@ -87,11 +89,17 @@ def _compare(ex: Explorer, ref: FullRecompute, steps: int, deposit=None, reset=N
         assert ex.metrics()["touched_fraction"] == M.touched_fraction(ref.p, ex.coverage)
         # The active set {p̄ > c̄} the explorer keeps equals the definition's (up to exact ties);
         # count points that entered it without being touched: only the growth of Z moved them.
-        z = ref.mass @ ex.coverage
+        z = ref.mass[T] @ ex.coverage[T] if ref.norm == "target" else ref.mass @ ex.coverage
         e = ref.p[T] / (ref.mass @ ref.p) - (ex.coverage[T] / z if z > 0 else 0.0)
         flags = ex._pb[K.PB_ACTIVE][ex._rank][T] == 1
         clear = np.abs(e) > 1e-12 * np.abs(ref.p[T] / (ref.mass @ ref.p))
         worst["active_mismatch"] += int(np.count_nonzero(flags[clear] != (e[clear] > 0)))
+        if ex._prm[K.PR_ZTARGET] != 0.0:  # ε (eq. 48) keeps its own active set, with the cloud's Z
+            zc = ref.mass @ ex.coverage
+            e = ref.p[T] / (ref.mass @ ref.p) - (ex.coverage[T] / zc if zc > 0 else 0.0)
+            flags = ex._pb[K.PB_EACTIVE][ex._rank][T] == 1
+            clear = np.abs(e) > 1e-12 * np.abs(ref.p[T] / (ref.mass @ ref.p))
+            worst["active_mismatch"] += int(np.count_nonzero(flags[clear] != (e[clear] > 0)))
         untouched_now = ex.coverage[T] == before[T]
         worst["reentries"] += int(np.count_nonzero(untouched_now & flags & (active_before[T] == 0)))
     return worst
@@ -113,6 +121,24 @@ def test_incremental_heat_at_the_neighbours_equals_the_full_recompute_over_1000_
     assert worst["reentries"] > 100, worst  # the heap path did real work
     # The run did explore (the comparison is not between two idle fields).
     assert ex.metrics()["ergodicity"] < 0.8 * M.ergodicity(target, np.zeros(len(pts)), basis.mass)
+
+
+@pytest.mark.parametrize("norm", ["target", "cloud"])
+def test_incremental_heat_for_a_marking_equals_the_full_recompute_over_1000_steps(bowl, norm):
+    # A marking (the target is a part of the cloud): with the default normalisation over the
+    # target the source's Z and ε's (the cloud's) differ, and both are kept incrementally.
+    cloud, basis = bowl
+    target = cloud.mask.astype(float)
+    cfg = ExploreConfig(nk=60, agent_radius=0.012, resync_every=300, coverage_norm=norm)
+    ex = Explorer(basis, target, cfg, cloud.points[np.flatnonzero(target)[:1]])
+    assert (ex._prm[K.PR_ZTARGET] != 0.0) == (norm == "target")
+    ref = FullRecompute(basis, target, 60, 10.0, "resolvent", "carry", norm=norm)
+    worst = _compare(ex, ref, 1000)
+    assert worst["heat"] < RTOL, worst
+    assert worst["ergodicity"] < RTOL, worst
+    assert worst["active_mismatch"] == 0, worst
+    assert worst["reentries"] > 10, worst  # points re-entered the active set through Z alone
+    assert ex.metrics()["touched_fraction"] > 0.9  # the run did explore the marking
 
 
 @pytest.mark.parametrize("integrator, diffusion", [("spectral", "carry"), ("resolvent", "source")])

@@ -59,9 +59,10 @@ def check_geometry(points: np.ndarray) -> None:
     require(sv[0] > 0, "all points are identical", "give a cloud that spans a surface")
     require(sv[1] > 1e-6 * sv[0], "the points are (nearly) collinear, so they span no surface",
             "give a cloud that samples a 2-D surface")
-    n_unique = len(np.unique(points, axis=0))
-    require(n_unique == len(points), f"the cloud has {len(points) - n_unique} duplicate points",
-            "re-capture with a voxel filter (--voxel 0.003)")
+    # Duplicates by one lexicographic sort (np.unique(axis=0) sorts a structured copy: 5x slower).
+    ordered = points[np.lexsort((points[:, 2], points[:, 1], points[:, 0]))]
+    n_dup = int(np.count_nonzero(np.all(ordered[1:] == ordered[:-1], axis=1)))
+    require(n_dup == 0, f"the cloud has {n_dup} duplicate points", "re-capture with a voxel filter (--voxel 0.003)")
 
 
 def compute_laplacian(points: np.ndarray, n_neighbors: int, validate: bool = True) -> tuple[sp.csr_matrix, np.ndarray]:

@@ -9,6 +9,7 @@ from tergodic_cli.errors import TergodicError, require
 
 DIFFUSIONS = ("carry", "source")
 INTEGRATORS = ("resolvent", "spectral", "implicit")
+COVERAGE_NORMS = ("target", "cloud")
 #: The paper's n_N (Table II, "M = 20"): neighbours for the tangent fit and the gradient fit.
 DEFAULT_NEIGHBORS = 20
 #: Default footprint shape: ε r_a = 2, so the disc of radius r_a holds 1 - e^-4 = 98 % of the
@@ -40,6 +41,12 @@ class ExploreConfig:
         source, so agents do not get stuck in a region they have cleared), "spectral" (eq. 19,
         Φ e^{-λδt} Φᵀ M) or "implicit" ((M + δt L)⁻¹ M, sparse, factorised once per α: the
         exact baseline).
+    coverage_norm : what the source's coverage is normalised over, c̄ = c̃ / ∫c̃: "target" (the
+        default: ∫ over the target's support {p > 0}, so coverage beside the target does not count
+        towards matching it and the residual on a covered marking can vanish; measured in
+        docs/explore.md) or "cloud" (∫ over the whole cloud, eq. 2 as printed: with a footprint
+        wider than the marking the residual keeps a floor there). The metric ε (eq. 48) always
+        uses the cloud's normalisation.
     seed : seed of everything random in the run (random starts).
     resync_every : K: the incrementally kept spectral source (docs/speed.md) is recomputed in
         full every K steps to bound round-off; 1 recomputes every step (the O(n_target nK)
@@ -63,6 +70,7 @@ class ExploreConfig:
     dt: float = 1.0
     diffusion: str = "carry"
     integrator: str = "resolvent"
+    coverage_norm: str = "target"
     seed: int = 0
     resync_every: int = 1000
     n_neighbors: int = DEFAULT_NEIGHBORS
@@ -120,6 +128,8 @@ def validate_config(cfg: ExploreConfig) -> None:
     require(cfg.a_max > 0 and math.isfinite(cfg.a_max), f"--a-max must be > 0 m/s², got {cfg.a_max}", "e.g. --a-max 0.003")
     require(cfg.dt > 0 and math.isfinite(cfg.dt), f"--dt must be > 0 s, got {cfg.dt}", "e.g. --dt 1")
     require(cfg.diffusion in DIFFUSIONS, f"--diffusion '{cfg.diffusion}' is unknown", f"use one of {', '.join(DIFFUSIONS)}")
+    require(cfg.coverage_norm in COVERAGE_NORMS, f"--coverage-norm '{cfg.coverage_norm}' is unknown",
+            f"use one of {', '.join(COVERAGE_NORMS)}")
     require(cfg.integrator in INTEGRATORS, f"--integrator '{cfg.integrator}' is unknown",
             f"use one of {', '.join(INTEGRATORS)}")
     require(int(cfg.resync_every) >= 0, f"resync_every must be >= 0 steps, got {cfg.resync_every}",

@@ -5,8 +5,10 @@ One :meth:`Explorer.step`:
 1. deposit the footprint φ(r) = exp(-ε² r²) (eq. 30) on the cloud points within r_a of each
    agent, r measured in the agent's tangent plane (eq. 31), into the raw coverage c̃ shared
    by all agents (eq. 3) - or, in robot mode, at the given contact points;
-2. source s = max(p̄ - c̄, 0)² (eq. 1) with p̄ and c̄ = c̃ / ∫c̃ normalised to unit mass with M
-   (eq. 2); it is injected as s / ∫s, so every step adds unit mass whatever the residual;
+2. source s = max(p̄ - c̄, 0)² (eq. 1) with p̄ normalised to unit mass with M and c̄ = c̃ / ∫c̃,
+   ∫ over the target's support (``coverage_norm`` "target", the default: coverage beside the
+   marking does not count towards it) or over the cloud (eq. 2); it is injected as s / ∫s, so
+   every step adds unit mass whatever the residual. ε (eq. 48) always uses the cloud's ∫;
 3. diffuse with δt = α h² (eq. 21): ``carry`` u <- D u + s/∫s from u₀ = p̄ (eq. 5), or
    ``source`` u = D s/∫s, where D is, by ``integrator``: ``resolvent`` Φ (1 + λδt)⁻¹ Φᵀ M
    (eq. 4, the stationary HEDAC equation, in the eigenbasis), ``spectral`` Φ e^{-λδt} Φᵀ M
@@ -253,8 +255,13 @@ class Explorer:
         self._pb[:] = 0
         self._pb[K.PB_TARGET, T] = 1
         self._pi[K.PI_TARGET, : len(T)] = T
-        self._heap_keys = np.zeros(len(T))
-        self._heap_idx = np.zeros(len(T), dtype=np.int64)
+        # The source's c̄ = c̃/Z: Z over the target (cfg.coverage_norm "target") or the cloud (eq. 2).
+        # When they differ, ε (eq. 48, the cloud's Z) is kept apart with its own active set, whose
+        # heap is the second half of the heap arrays.
+        separate = self.cfg.coverage_norm == "target" and len(T) < n
+        self._prm[K.PR_ZTARGET] = 1.0 if separate else 0.0
+        self._heap_keys = np.zeros(2 * len(T) if separate else len(T))
+        self._heap_idx = np.zeros(len(self._heap_keys), dtype=np.int64)
         keep = self._is[[K.IS_EDGE, K.IS_FOOTPRINT, K.IS_ROWS, K.IS_POPS]]  # run diagnostics survive a new target
         drift = self._fs[K.FS_DRIFT]
         self._is[:] = 0
@@ -264,7 +271,7 @@ class Explorer:
         self._fs[:] = 0.0
         self._fs[K.FS_DRIFT] = drift
         K.resync(self._phi, self._pf, self._pb, self._pi, self._sp, self._heap_keys, self._heap_idx, self._fs,
-                 self._is)
+                 self._is, self._prm[K.PR_ZTARGET])
         self._ref_norm2 = 1.0
         # Φᵀ M p̄: the spectral part of u₀ = p̄ (eq. 5) and of the reference heat p̂.
         pbar_coef = K.project_rows(self._phi, self._pf[K.PF_MASS] * pbar)
@@ -274,7 +281,7 @@ class Explorer:
         if not self._spectral:
             self._u_full[:] = pbar
             self._u_orig[:] = pbar[self._rank]
-        self._metrics = {"ergodicity": math.sqrt(max(self._fs[K.FS_MASS_S], 0.0)), "ergodicity_ref": float("nan"),
+        self._metrics = {"ergodicity": self._ergodicity(), "ergodicity_ref": float("nan"),
                          "touched_fraction": int(self._is[K.IS_TOUCHED]) / len(T)}
         if hasattr(self, "_state"):
             self._bind()
@@ -283,6 +290,11 @@ class Explorer:
         """The step kernel's state arguments, bound once (the heap arrays change with the target)."""
         self._state = (self._P, *self._tree, self._phi, self._pf, self._pb, self._pi, self._sp, self._heap_keys,
                        self._heap_idx, self._fs, self._is, self._prm, self._ag, self._nbrs, self._k)
+
+    def _ergodicity(self) -> float:
+        """ε (eq. 48) with the cloud-normalised coverage: √∫s when the source uses the same Z."""
+        sq = self._fs[K.FS_ERG2] if self._prm[K.PR_ZTARGET] != 0.0 else self._fs[K.FS_MASS_S]
+        return math.sqrt(max(float(sq), 0.0))
 
     @property
     def edge_events(self) -> int:
@@ -323,7 +335,7 @@ class Explorer:
     def source(self) -> np.ndarray:
         from tergodic_cli.explore.metrics import source_term
 
-        return source_term(self.p, self.coverage, self.mass)
+        return source_term(self.p, self.coverage, self.mass, norm=self.cfg.coverage_norm)
 
     def _sbar(self) -> np.ndarray:
         """(n,) the injected source s/∫s as the step used it (running Z and ∫s), internal order."""
@@ -344,6 +356,18 @@ class Explorer:
         if self._mode == K.HEAT_CARRY:
             u += self._sbar()
         return u[self._rank]
+
+    def heat_terms(self) -> tuple[np.ndarray | None, np.ndarray]:
+        """u as ``evecs @ coeffs + residual`` in the cloud's order: (coeffs (nK,) or None, residual (n,)).
+
+        Copies, O(n) now; the O(n nK) product is left to the caller (the run log does it in its
+        writer process). ``coeffs`` is None when u has no spectral form (``--integrator implicit``).
+        """
+        if not self._spectral:
+            return None, self._u_orig.copy()
+        a = self._sp[K.SP_A].copy()
+        residual = self._sbar()[self._rank] if self._mode == K.HEAT_CARRY else np.zeros(len(self.points))
+        return a, residual
 
     def heat_at(self, idx: np.ndarray) -> np.ndarray:
         """u at the cloud points ``idx`` (m,) exactly as the agents' gradient fits see it, O(m nK)."""
@@ -419,7 +443,7 @@ class Explorer:
             self._take_reference_heat()
         fs = self._fs
         self._metrics = {
-            "ergodicity": math.sqrt(max(float(fs[K.FS_MASS_S]), 0.0)),
+            "ergodicity": self._ergodicity(),
             "ergodicity_ref": math.sqrt(max(float(fs[K.FS_REF_UNTOUCHED]), 0.0) / self._ref_norm2),
             "touched_fraction": int(self._is[K.IS_TOUCHED]) / self._n_target,
         }
@@ -448,7 +472,16 @@ class Explorer:
         e^{-δtL} p̄ + s̄₁ (the published code's), whichever diffusion drives the agents, so
         that the metric compares runs and variants on the same footing. O(n nK), once."""
         decay = np.exp(-self.evals * time_step(self._alpha, self.h))
-        u = K.expand_rows(self._phi, decay * self._sp[K.SP_PBARCOEF]) + self._sbar()  # internal order
+        u = K.expand_rows(self._phi, decay * self._sp[K.SP_PBARCOEF])  # internal order
+        if self._prm[K.PR_ZTARGET] == 0.0:
+            u += self._sbar()
+        else:  # the published code's s̄₁ has the cloud-normalised coverage (eq. 2), whatever drives the agents
+            T = self._T
+            Zc = self._fs[K.FS_ZC]
+            e = np.maximum(self._pf[K.PF_PBAR, T] - (self._cov[T] / Zc if Zc > 0 else 0.0), 0.0) ** 2
+            total = float(self._pf[K.PF_MASS, T] @ e)
+            if total > 0:
+                u[T] += e / total
         total = float(u.sum())
         if not (total > 0 and math.isfinite(total)):
             raise TergodicError("the heat after the first step has no positive mass",

@@ -57,7 +57,9 @@ PF_W0, PF_W1, PF_W2 = 6, 7, 8  # scratch: weights of the rows a source update ad
 N_PF = 9
 # Rows of the per-point int8 array ``pb`` (n columns).
 PB_TARGET, PB_ACTIVE, PB_INHEAP, PB_MARK = 0, 1, 2, 3
-N_PB = 4
+# ... the active set of ε (eq. 48) and its heap flag, when its Z (the cloud's) is not the source's.
+PB_EACTIVE, PB_EINHEAP = 4, 5
+N_PB = 6
 # Rows of the per-point index array ``pi`` (n columns): changed list, ball buffer, target list.
 PI_CHG, PI_BALL, PI_TARGET = 0, 1, 2
 N_PI = 3
@@ -69,14 +71,22 @@ AG_POS, AG_VEL, AG_ACC, AG_NRM, AG_T1, AG_T2 = 0, 3, 6, 9, 12, 15
 N_AG = 18
 # Float state ``fs``.
 FS_Z, FS_MASS_S, FS_G0, FS_G1, FS_G2, FS_REF_UNTOUCHED, FS_DRIFT = 0, 1, 2, 3, 4, 5, 6
-N_FS = 8
+# The cloud's Z = ∫_Ω c̃, and ε² (eq. 48) = E0 - 2 E1/Z_Ω + E2/Z_Ω² from sums like G's over its own
+# active set (kept only when the source's Z is the target's, PR_ZTARGET).
+FS_ZC, FS_E0, FS_E1, FS_E2, FS_ERG2 = 7, 8, 9, 10, 11
+N_FS = 12
 # Int state ``is_``.
 IS_HEAP, IS_TOUCHED, IS_EDGE, IS_NCHG, IS_SINCE_RESYNC, IS_PHAT, IS_NTARGET, IS_RESYNCS = 0, 1, 2, 3, 4, 5, 6, 7
 # Work counters (benchmarks/step.py): footprint points visited, rows of Φ added into F.
 IS_FOOTPRINT, IS_ROWS, IS_POPS = 8, 9, 10
-N_IS = 11
+# Size of ε's heap, kept in the second half of the heap arrays (the first half is the source's).
+IS_EHEAP = 11
+N_IS = 12
 # Float parameters ``prm``.
 PR_EPS2, PR_RA, PR_H2, PR_AMAX, PR_VMAX, PR_DT, PR_MAXSTART = 0, 1, 2, 3, 4, 5, 6
+#: 1.0: the source's coverage is normalised over the target (Z = ∫_T c̃) and ε (eq. 48) is kept
+#: apart with the cloud's Z; 0.0: one Z = ∫_Ω c̃ for both (eq. 2, or a target covering the cloud).
+PR_ZTARGET = 7
 N_PR = 8
 # Heat modes of :func:`step_kernel`: spectral carry-over, spectral current source, a full field.
 HEAT_CARRY, HEAT_SOURCE, HEAT_FULL = 0, 1, 2
@@ -653,8 +663,9 @@ def _is_active(c, pbar, Z):
 
 
 @njit
-def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
-    """Full recompute of Z, the active set, the heap and the accumulators F, G (O(|T| nK)).
+def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
+    """Full recompute of Z, the active set, the heap and the accumulators F, G (O(|T| nK)),
+    and of ε's own sums when ``ztarget`` (PR_ZTARGET).
 
     Records in fs[FS_DRIFT] the largest relative change of ∫s and of Φᵀ M s that it made
     (the round-off the incremental updates had accumulated).
@@ -671,9 +682,17 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
     inv = 1.0 / Zold if Zold > 0.0 else 0.0
     for q in range(nK):
         old_coef[q] = sp[SP_F0, q] - 2.0 * inv * sp[SP_F1, q] + inv * inv * sp[SP_F2, q]
-    Z = 0.0
+    Zc = 0.0
     for j in range(n):
-        Z += mass[j] * cov[j]
+        Zc += mass[j] * cov[j]
+    fs[FS_ZC] = Zc
+    if ztarget != 0.0:  # the source's coverage is normalised over the target
+        Z = 0.0
+        for t in range(nt):
+            Z += mass[targets[t]] * cov[targets[t]]
+        resync_ergodicity(pf, pb, pi, hk[nt:], hi[nt:], fs, is_)
+    else:
+        Z = Zc
     fs[FS_Z] = Z
     for q in range(nK):
         sp[SP_F0, q] = 0.0
@@ -718,6 +737,90 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
         if big > 0.0:
             drift = max(drift, dev / big)
         fs[FS_DRIFT] = max(fs[FS_DRIFT], drift)
+
+
+@njit
+def resync_ergodicity(pf, pb, pi, hk, hi, fs, is_):
+    """Full recompute of ε²'s (eq. 48) active set {p̄ > c̃/Z_Ω}, heap and sums E (O(|T|)), for a
+    source whose coverage is normalised over the target: ε keeps the cloud's Z (eq. 2)."""
+    mass, pbar, cov = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV]
+    active, inheap = pb[PB_EACTIVE], pb[PB_EINHEAP]
+    targets = pi[PI_TARGET]
+    Z = fs[FS_ZC]
+    e0 = 0.0
+    e1 = 0.0
+    e2 = 0.0
+    size = 0
+    for t in range(is_[IS_NTARGET]):
+        j = targets[t]
+        c = cov[j]
+        p = pbar[j]
+        if _is_active(c, p, Z):
+            active[j] = 1
+            inheap[j] = 0
+            m = mass[j]
+            e0 += m * p * p
+            e1 += m * p * c
+            e2 += m * c * c
+        else:
+            active[j] = 0
+            inheap[j] = 1
+            size = heap_push(hk, hi, size, max(c / p, Z), j)
+    is_[IS_EHEAP] = size
+    fs[FS_E0], fs[FS_E1], fs[FS_E2] = e0, e1, e2
+    inv = 1.0 / Z if Z > 0.0 else 0.0
+    fs[FS_ERG2] = e0 - 2.0 * inv * e1 + inv * inv * e2
+
+
+@njit
+def update_ergodicity(pf, pb, pi, hk, hi, fs, is_):
+    """ε²'s sums E after this step's deposits, as :func:`update_source` keeps G but over the
+    active set of the cloud's Z and without rows of Φ: O(changed points + crossings).
+    Must run before :func:`update_source`, which clears the changed list."""
+    mass, pbar, cov, oldc = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV], pf[PF_OLDC]
+    active, inheap = pb[PB_EACTIVE], pb[PB_EINHEAP]
+    chg = pi[PI_CHG]
+    Z = fs[FS_ZC]
+    e0, e1, e2 = fs[FS_E0], fs[FS_E1], fs[FS_E2]
+    size = is_[IS_EHEAP]
+    for t in range(is_[IS_NCHG]):
+        j = chg[t]
+        c0 = oldc[j]
+        c1 = cov[j]
+        p = pbar[j]
+        m = mass[j]
+        was = active[j] == 1
+        now = _is_active(c1, p, Z)
+        if was or now:
+            fw = 1.0 if was else 0.0
+            fn = 1.0 if now else 0.0
+            e0 += (fn - fw) * m * p * p
+            e1 += m * p * (fn * c1 - fw * c0)
+            e2 += m * (fn * c1 * c1 - fw * c0 * c0)
+        active[j] = 1 if now else 0
+        if not now and inheap[j] == 0:
+            size = heap_push(hk, hi, size, c1 / p, j)
+            inheap[j] = 1
+    while size > 0 and hk[0] < Z:
+        key, j, size = heap_pop(hk, hi, size)
+        inheap[j] = 0
+        if active[j] == 1:
+            continue
+        c = cov[j]
+        p = pbar[j]
+        if _is_active(c, p, Z):
+            m = mass[j]
+            e0 += m * p * p
+            e1 += m * p * c
+            e2 += m * c * c
+            active[j] = 1
+        else:
+            size = heap_push(hk, hi, size, max(c / p, Z), j)
+            inheap[j] = 1
+    is_[IS_EHEAP] = size
+    fs[FS_E0], fs[FS_E1], fs[FS_E2] = e0, e1, e2
+    inv = 1.0 / Z if Z > 0.0 else 0.0
+    fs[FS_ERG2] = e0 - 2.0 * inv * e1 + inv * inv * e2
 
 
 @njit
@@ -890,10 +993,12 @@ def deposit(P, perm, nodes, boxes, tpts, pf, pb, pi, fs, is_, prm, x, n):
     chg = pi[PI_CHG]
     eps2 = prm[PR_EPS2]
     have_phat = is_[IS_PHAT] == 1
+    ztarget = prm[PR_ZTARGET]
     nchg = is_[IS_NCHG]
     touched = is_[IS_TOUCHED]
     untouched = fs[FS_REF_UNTOUCHED]
     dz = 0.0
+    dzc = 0.0
     for t in range(cnt):
         j = ball[t]
         d0 = P[j, 0] - x[0]
@@ -914,8 +1019,12 @@ def deposit(P, perm, nodes, boxes, tpts, pf, pb, pi, fs, is_, prm, x, n):
             if have_phat:
                 untouched -= phat[j] * phat[j]
         cov[j] = c + phi
-        dz += mass[j] * phi
+        dm = mass[j] * phi
+        dzc += dm
+        if ztarget == 0.0 or target[j] == 1:
+            dz += dm
     fs[FS_Z] += dz
+    fs[FS_ZC] += dzc
     fs[FS_REF_UNTOUCHED] = untouched
     is_[IS_NCHG] = nchg
     is_[IS_TOUCHED] = touched
@@ -1082,10 +1191,13 @@ def step_kernel(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, sp, hk, hi, fs, is
                     continue  # a contact off the cloud covers no cloud point
                 locate(P, perm, nodes, boxes, tpts, q, ref, k, xp, nn, nb, d2)
                 deposit(P, perm, nodes, boxes, tpts, pf, pb, pi, fs, is_, prm, xp, nn)
+        if prm[PR_ZTARGET] != 0.0:
+            nt = is_[IS_NTARGET]
+            update_ergodicity(pf, pb, pi, hk[nt:], hi[nt:], fs, is_)
         update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_)
         is_[IS_SINCE_RESYNC] += 1
         if resync_every > 0 and is_[IS_SINCE_RESYNC] >= resync_every:
-            resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_)
+            resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, prm[PR_ZTARGET])
         if phase == 1:
             return
         diffuse(sp, fs, mode == HEAT_CARRY)

@@ -23,9 +23,20 @@ def normalise(f: np.ndarray, mass: np.ndarray) -> np.ndarray:
     return f / total if total > 0 else np.zeros_like(f, dtype=float)
 
 
-def source_term(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray) -> np.ndarray:
-    """s = max(p̄ - c̄, 0)² (eq. 1) with p̄, c̄ the target and raw coverage normalised to unit mass."""
-    return np.maximum(normalise(p, mass) - normalise(coverage, mass), 0.0) ** 2
+def source_term(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray, norm: str = "cloud") -> np.ndarray:
+    """s = max(p̄ - c̄, 0)² (eq. 1) with p̄ the target normalised to unit mass.
+
+    ``norm`` "cloud": c̄ = c̃ / ∫_Ω c̃, the raw coverage normalised over the whole cloud (eq. 2);
+    "target": c̄ = c̃ / ∫_T c̃ over the target's support T = {p > 0} (the explorer's default, see
+    docs/explore.md), so that coverage falling beside the target does not count towards it.
+    """
+    if norm == "target":
+        on_target = np.where(np.asarray(p) > 0, coverage, 0.0)
+        total = float(mass @ on_target)
+        cbar = coverage / total if total > 0 else np.zeros_like(coverage, dtype=float)
+    else:
+        cbar = normalise(coverage, mass)
+    return np.maximum(normalise(p, mass) - cbar, 0.0) ** 2
 
 
 def ergodicity(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray) -> float:

@@ -179,30 +179,44 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
                                   DryRunPlan(capture, robot_cfg, start=tuple(start_xyz[0])))
         (on_report or say)(report)
         return {"dry_run": report}
+    # the log's writer process starts now, so its imports overlap loading the basis
+    writer = _start_log_writer() if log else None
     basis, hit = find_basis(capture.points, cfg.nk, cfg.basis_neighbors, cache_dir, on_event=event)
     require(basis.points.shape == capture.points.shape and np.array_equal(basis.points, capture.points),
             "the basis does not match the capture's points", "recompute it: tergodic precompute CAPTURE --force")
     explorer = Explorer(basis, capture.target, cfg, start_xyz, on_event=event)
 
     recorder = _Recorder(explorer, cfg.steps)
-    runlog = _open_log(out, cfg, basis, capture, log_cloud_every) if log else None
+    runlog = _open_log(out, cfg, basis, capture, log_cloud_every, writer) if log else None
+    # kinematic runs: the log takes the recorder's rows in blocks (no per-step logging work);
+    # robot steps carry a sample each and are logged one by one
+    feed = _LogFeed(runlog, recorder) if runlog is not None and robot_api is None else None
     try:
         if runlog is not None:
             for msg in events:
                 runlog.log_event(0, 0.0, msg)
-        event_hook = (lambda step, msg: (say(msg), runlog.log_event(step, step * cfg.dt, msg))) if runlog else \
-            (lambda step, msg: say(msg))
+
+        def log_event(step: int, msg: str) -> None:
+            say(msg)
+            if feed is not None:
+                feed.flush()  # the event follows the steps before it
+            runlog.log_event(step, step * cfg.dt, msg)
+
+        event_hook = log_event if runlog else (lambda step, msg: say(msg))
         if runlog is not None:
             explorer._say = lambda msg: event_hook(explorer.step_index, msg)
 
         def after_step(step: int, robot_sample: dict | None) -> None:
             recorder.record(step, robot_sample)
             if runlog is not None:
-                runlog.log_step(step, step * cfg.dt, positions=explorer.positions, velocities=explorer.velocities,
-                                normals=explorer.normals, metrics=explorer.metrics(), step_ms=explorer.last_step_ms,
-                                robot=robot_sample)
+                if feed is not None:
+                    feed.after_step()
+                else:
+                    runlog.log_step(step, step * cfg.dt, positions=explorer.positions, velocities=explorer.velocities,
+                                    normals=explorer.normals, metrics=explorer.metrics(),
+                                    step_ms=explorer.last_step_ms, robot=robot_sample)
                 if step % log_cloud_every == 0 or step == cfg.steps:
-                    _log_cloud(runlog, explorer, step)
+                    _log_cloud(runlog, explorer, step, feed)
 
         robot_extra = {}
         if robot_api is None:
@@ -235,7 +249,7 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
                 f"the run made no explorer step (robot stopped: {robot_extra.get('stop_reason') or 'unknown reason'})",
                 "see the robot's events above; adjust --force, --object-pose or --workspace")
         if runlog is not None and recorder.count % log_cloud_every and recorder.count != cfg.steps:
-            _log_cloud(runlog, explorer, recorder.count)  # a robot run that stopped early
+            _log_cloud(runlog, explorer, recorder.count, feed)  # a robot run that stopped early
 
         extra = _provenance(capture_dir, capture, basis, hit, explorer, cfg, start_xyz, robot, starts, robot_extra,
                             logged=runlog is not None)
@@ -247,11 +261,18 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
 
         write_json(out / "summary.json", summary)
         if runlog is not None:
+            if feed is not None:
+                feed.flush()
             runlog.close(summary)
             runlog = None
         return summary
     finally:
         if runlog is not None:
+            if feed is not None:
+                try:
+                    feed.flush()  # the steps so far, before the log is closed as interrupted
+                except TergodicError:
+                    pass
             runlog.__exit__(None, None, None)
 
 
@@ -290,22 +311,60 @@ def _robot_backend():
     return explore_with_robot, robot_config, scale
 
 
-def _open_log(out: Path, cfg: ExploreConfig, basis, capture, cloud_every: int):
+def _start_log_writer():
     try:
-        from tergodic_cli.runlog import RunLog
+        from tergodic_cli.runlog.background import start_log_writer
+    except ImportError:
+        return None  # _open_log says what is missing
+    return start_log_writer()
+
+
+def _open_log(out: Path, cfg: ExploreConfig, basis, capture, cloud_every: int, writer=None):
+    try:
+        from tergodic_cli.runlog.background import open_run_log
     except ImportError as exc:
         raise TergodicError(f"run logging is not available ({str(exc).splitlines()[0][:80]})",
                             "use --no-log, or install tergodic with its logging dependencies (mcap)") from None
     from tergodic_cli.provenance import library_versions
 
     out.mkdir(parents=True, exist_ok=True)
-    log = RunLog(out / "run.mcap", config=cfg.to_dict(), seed=cfg.seed, versions=library_versions(),
-                 capture_sidecar=capture.meta, points=basis.points, target=capture.target, cloud_every=cloud_every)
+    log = open_run_log(out / "run.mcap", writer=writer, config=cfg.to_dict(), seed=cfg.seed, versions=library_versions(),
+                 capture_sidecar=capture.meta, points=basis.points, target=capture.target, cloud_every=cloud_every,
+                 field_basis=basis.evecs[:, : cfg.nk])
     return log.__enter__()
 
 
-def _log_cloud(runlog, explorer: Explorer, step: int) -> None:
-    runlog.log_cloud(step, coverage=explorer.coverage, heat=explorer.heat, source=explorer.source, target=explorer.p)
+class _LogFeed:
+    """Hands the recorder's per-step rows to the run log, ``every`` steps at a time (see RunLog.log_steps)."""
+
+    def __init__(self, runlog, recorder: "_Recorder", every: int | None = None):
+        self.log, self.rec, self.sent = runlog, recorder, 0
+        self.every = int(every or getattr(runlog, "flush_every", 50))
+
+    def after_step(self) -> None:
+        if self.rec.count - self.sent >= self.every:
+            self.flush()
+
+    def flush(self) -> None:
+        a, b = self.sent, self.rec.count
+        if b <= a:
+            return
+        r = self.rec
+        metrics = np.column_stack([r.sca[k][a:b] for k in ("ergodicity", "ergodicity_ref", "touched_fraction")])
+        self.log.log_steps(r.step[a:b], r.sca["time"][a:b], positions=r.vec["positions"][a:b],
+                           velocities=r.vec["velocities"][a:b], normals=r.vec["normals"][a:b], metrics=metrics,
+                           step_ms=r.sca["step_ms"][a:b])
+        self.sent = b
+
+
+def _log_cloud(runlog, explorer: Explorer, step: int, feed: _LogFeed | None = None) -> None:
+    if feed is not None:
+        feed.flush()  # the cloud follows the steps before it
+    from tergodic_cli.runlog.writer import SpectralField
+
+    # u = Φ a + r is reconstructed (O(n nK)) by the log's writer, not in the explorer's loop
+    runlog.log_cloud(step, coverage=explorer.coverage, heat=SpectralField(*explorer.heat_terms()),
+                     source=explorer.source, target=explorer.p)
 
 
 class _Recorder:
@@ -317,6 +376,7 @@ class _Recorder:
         self.count = 0
         self.vec = {k: np.zeros((steps, N, 3)) for k in ("positions", "velocities", "accelerations", "normals")}
         self.sca = {k: np.zeros(steps) for k in ("ergodicity", "ergodicity_ref", "touched_fraction", "step_ms", "time")}
+        self.step = np.zeros(steps, dtype=np.int64)  # the explorer step number of each row
 
     def record(self, step: int, robot_sample: dict | None) -> None:
         k = self.count
@@ -324,6 +384,7 @@ class _Recorder:
             grow = max(k, 16)
             self.vec = {n: np.concatenate([a, np.zeros((grow,) + a.shape[1:])]) for n, a in self.vec.items()}
             self.sca = {n: np.concatenate([a, np.zeros(grow)]) for n, a in self.sca.items()}
+            self.step = np.concatenate([self.step, np.zeros(grow, dtype=np.int64)])
         ex = self.ex
         self.vec["positions"][k] = ex.positions
         self.vec["velocities"][k] = ex.velocities
@@ -334,6 +395,7 @@ class _Recorder:
             self.sca[name][k] = m[name]
         self.sca["step_ms"][k] = ex.last_step_ms
         self.sca["time"][k] = step * ex.cfg.dt
+        self.step[k] = step
         self.count = k + 1
 
     def series(self) -> dict[str, np.ndarray]:

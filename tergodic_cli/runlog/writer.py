@@ -25,6 +25,7 @@ import json
 import math
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -273,6 +274,71 @@ def _set_time(stamp: Any, t_ns: int) -> None:
     stamp.seconds, stamp.nanos = divmod(t_ns, 1_000_000_000)
 
 
+@dataclass(frozen=True)
+class SpectralField:
+    """A per-point field given as ``field_basis @ coeffs + residual``, evaluated by the log.
+
+    ``coeffs`` (nK,) or None (the field is ``residual`` alone), ``residual`` (n,); the
+    ``field_basis`` (n, nK) is the one the log was opened with (``Explorer.evecs``). A run
+    log in a writer process then reconstructs the heat there, not in the explorer's loop.
+    """
+
+    coeffs: np.ndarray | None
+    residual: np.ndarray
+
+
+def check_field_basis(field_basis: Any, n: int) -> np.ndarray | None:
+    """``field_basis`` as a C-contiguous float64 (n, nK) array, or None."""
+    if field_basis is None:
+        return None
+    B = np.ascontiguousarray(field_basis, dtype=np.float64)
+    if B.ndim != 2 or B.shape[0] != n:
+        raise TergodicError(f"run log field_basis has shape {B.shape}, expected ({n}, nK)", "pass Explorer.evecs")
+    return B
+
+
+def check_spectral_field(f: SpectralField, field_basis: np.ndarray | None, n: int) -> None:
+    if np.shape(f.residual) != (n,):
+        raise TergodicError(f"run log field residual has shape {np.shape(f.residual)}, expected ({n},)",
+                            "pass one value per point")
+    if f.coeffs is not None:
+        if field_basis is None:
+            raise TergodicError("run log got a spectral field but no field_basis", "open the log with field_basis=evecs")
+        if np.shape(f.coeffs) != (field_basis.shape[1],):
+            raise TergodicError(f"run log field coefficients have shape {np.shape(f.coeffs)}, "
+                                f"expected ({field_basis.shape[1]},)", "pass one coefficient per basis vector")
+
+
+def evaluate_field(values: Any, field_basis: np.ndarray | None, n: int) -> np.ndarray:
+    """A cloud field as an (n,) array: ``values`` itself, or a :class:`SpectralField` evaluated."""
+    if isinstance(values, SpectralField):
+        check_spectral_field(values, field_basis, n)
+        r = np.asarray(values.residual, dtype=np.float64)
+        return r.copy() if values.coeffs is None else field_basis @ np.asarray(values.coeffs, dtype=np.float64) + r
+    return np.asarray(values)
+
+
+def check_log_args(points: Any, target: Any, compression: str, cloud_every: int,
+                   backend: str) -> tuple[np.ndarray, np.ndarray, str]:
+    """Validate a run log's arguments: (points (n, 3) float64, target (n,) float64, backend name)."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+        raise TergodicError(f"run log needs points of shape (n, 3), got {pts.shape}", "pass basis.points")
+    n = len(pts)
+    target = np.zeros(n) if target is None else np.asarray(target, dtype=np.float64)
+    if target.shape != (n,):
+        raise TergodicError(f"run log target has shape {target.shape}, expected ({n},)", "pass the per-point target p")
+    if compression not in ("zstd", "lz4"):
+        raise TergodicError(f"unknown log compression '{compression}'", "use zstd or lz4")
+    if int(cloud_every) < 1:
+        raise TergodicError(f"--log-cloud-every must be >= 1, got {cloud_every}", "e.g. --log-cloud-every 50")
+    if backend == "auto":
+        backend = "foxglove-sdk" if foxglove_sdk_available() else "mcap-python"
+    if backend not in BACKENDS:
+        raise TergodicError(f"unknown log backend '{backend}'", f"use one of {', '.join(BACKENDS)}")
+    return pts, target, backend
+
+
 # ---------------------------------------------------------------------------------------------
 # The public writer.
 # ---------------------------------------------------------------------------------------------
@@ -309,6 +375,8 @@ class RunLog:
         Also flush when this much wall time has passed since the last flush (slow robot steps).
     backend : {"auto", "foxglove-sdk", "mcap-python"}
         The MCAP writer; "auto" takes foxglove-sdk when installed.
+    field_basis : (n, nK) float array or None
+        The basis of :class:`SpectralField` cloud fields (``Explorer.evecs``).
 
     Notes
     -----
@@ -323,25 +391,13 @@ class RunLog:
                  versions: Mapping[str, Any] | None = None, capture_sidecar: Mapping[str, Any] | None = None,
                  points: np.ndarray, target: np.ndarray | None = None, cloud_every: int = 50,
                  compression: str = "lz4", flush_every: int | None = None, flush_seconds: float = 2.0,
-                 chunk_bytes: int = CHUNK_BYTES, backend: str = "auto"):
+                 chunk_bytes: int = CHUNK_BYTES, backend: str = "auto", field_basis: np.ndarray | None = None):
         from tergodic_cli import __version__ as tergodic_version
 
         self.path = Path(path)
-        pts = np.asarray(points, dtype=np.float64)
-        if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
-            raise TergodicError(f"run log needs points of shape (n, 3), got {pts.shape}", "pass basis.points")
+        pts, target, backend = check_log_args(points, target, compression, cloud_every, backend)
+        self._field_basis = check_field_basis(field_basis, len(pts))
         n = len(pts)
-        target = np.zeros(n) if target is None else np.asarray(target, dtype=np.float64)
-        if target.shape != (n,):
-            raise TergodicError(f"run log target has shape {target.shape}, expected ({n},)", "pass the per-point target p")
-        if compression not in ("zstd", "lz4"):
-            raise TergodicError(f"unknown log compression '{compression}'", "use zstd or lz4")
-        if int(cloud_every) < 1:
-            raise TergodicError(f"--log-cloud-every must be >= 1, got {cloud_every}", "e.g. --log-cloud-every 50")
-        if backend == "auto":
-            backend = "foxglove-sdk" if foxglove_sdk_available() else "mcap-python"
-        if backend not in BACKENDS:
-            raise TergodicError(f"unknown log backend '{backend}'", f"use one of {', '.join(BACKENDS)}")
         self.cloud_every = int(cloud_every)
         self.flush_every = max(1, int(flush_every) if flush_every else min(self.cloud_every, FLUSH_EVERY))
         self.flush_seconds = float(flush_seconds)
@@ -533,6 +589,52 @@ class RunLog:
                 self.flush_seconds > 0 and (i & 7) == 7 and time.monotonic() - self._last_flush >= self.flush_seconds):
             self._flush()
 
+    def log_steps(self, step: np.ndarray, t: np.ndarray, *, positions: np.ndarray, velocities: np.ndarray,
+                  normals: np.ndarray, metrics: np.ndarray, step_ms: np.ndarray) -> None:
+        """Log K steps at once, as K :meth:`log_step` calls with the standard metrics would.
+
+        Parameters
+        ----------
+        step : (K,) int array
+        t : (K,) float array, s
+        positions, velocities, normals : (K, N, 3) float arrays (m, m/s, unit)
+        metrics : (K, 3) float array
+            ergodicity, ergodicity_ref, touched_fraction per step.
+        step_ms : (K,) float array
+        """
+        self._require_open()
+        step = np.asarray(step, dtype=np.int64)
+        t = np.asarray(t, dtype=np.float64)
+        K = len(step)
+        if K == 0:
+            return
+        if step.min() < 0 or not (np.all(np.isfinite(t)) and t.min() >= 0.0):
+            raise TergodicError("run log got a negative step or a bad time", "steps must be >= 0 and times finite, >= 0")
+        P = np.asarray(positions, dtype=np.float64)
+        if P.ndim != 3 or P.shape[0] != K or P.shape[2] != 3 or P.shape[1] == 0:
+            raise TergodicError(f"run log got positions of shape {P.shape}, expected ({K}, N, 3)", "pass (K, N, 3) arrays")
+        self._write_pending()
+        if P.shape[1] != self._n_agents:
+            self._alloc(P.shape[1])
+        cap = self.flush_every
+        for a in range(0, K, cap):  # the encoder holds flush_every steps
+            b = min(K, a + cap)
+            t_ns = [round(x * 1e9) for x in t[a:b].tolist()]  # as log_step: Python's round of t * 1e9
+            scalars = np.column_stack((t[a:b], metrics[a:b], step_ms[a:b]))
+            records, poses, scenes = self._enc.encode(step[a:b].astype(np.uint64), t_ns, scalars, P[a:b],
+                                                      velocities[a:b], normals[a:b])
+            log_rec, log_pose, log_scene = self._loggers
+            try:
+                for i, tn in enumerate(t_ns):
+                    log_rec(records[i], tn)
+                    log_pose(poses[i], tn)
+                    log_scene(scenes[i], tn)
+            except (OSError, RuntimeError) as exc:
+                self._fail(exc)
+            self._flush()
+        self.n_steps += K
+        self._last_t = float(t[-1])
+
     def _extra_metrics(self, row: int, metrics: Mapping[str, float]) -> None:
         extras = {}
         for k, v in metrics.items():
@@ -624,7 +726,7 @@ class RunLog:
                   target: np.ndarray | None = None, t: float | None = None) -> None:
         """Log the cloud with per-point target p, coverage c, heat u and source s, each (n,).
 
-        ``t`` defaults to the time of the last logged step. The message is a
+        Any field may also be a :class:`SpectralField` (evaluated here). ``t`` defaults to the time of the last logged step. The message is a
         ``foxglove.PointCloud`` with float32 fields x y z target coverage heat source, in a
         chunk of its own that is on disk when this returns.
         """
@@ -633,7 +735,7 @@ class RunLog:
         buf = self._cloud_buf
         for col, name, values in ((3, "target", self.target if target is None else target),
                                   (4, "coverage", coverage), (5, "heat", heat), (6, "source", source)):
-            values = np.asarray(values)
+            values = evaluate_field(values, self._field_basis, n)
             if values.shape != (n,):
                 raise TergodicError(f"run log cloud field {name} has shape {values.shape}, expected ({n},)",
                                     "pass one value per point")

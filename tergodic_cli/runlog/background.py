@@ -1,0 +1,557 @@
+"""Write the run log from a child process, so logging costs the explorer a few microseconds a step.
+
+Encoding a step's protobuf messages and compressing chunks takes tens of microseconds,
+as long as the kinematic step itself. :class:`BackgroundRunLog` has the same API as
+:class:`~tergodic_cli.runlog.writer.RunLog`, but a step only lands in preallocated
+arrays; every ``flush_every`` steps the batch goes down a pipe, raw bytes, to a child
+process (``python -m tergodic_cli.runlog.background``) that runs the ordinary
+:class:`RunLog` on it. On a machine with two or more cores the encoding runs beside the
+explorer instead of inside its step.
+
+Wire format (this module is both ends; no pickle): each frame is
+``uint32 header length, uint32 payload length, JSON header, payload``; the header names
+the operation and the dtype and shape of every array packed, in order, into the payload.
+
+Crash safety is the in-process writer's: when the parent dies (SIGKILL included) the
+child sees end-of-file without a ``close`` frame, writes the steps it has as a last
+chunk and exits *without* the summary section, so the log reads as truncated and
+holds every step that reached the child.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import collections
+import os
+import select
+import struct
+import subprocess
+import sys
+import time
+import weakref
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from tergodic_cli.errors import TergodicError
+from tergodic_cli.runlog.writer import (CHUNK_BYTES, FLUSH_EVERY, SpectralField, _dumps, check_field_basis,
+                                        check_log_args, check_spectral_field)
+
+_FRAME = struct.Struct("<II")
+_METRIC_NAMES = ("ergodicity", "ergodicity_ref", "touched_fraction")
+_METRIC_KEYS = frozenset(_METRIC_NAMES)
+#: Seconds ``close`` waits for the child to finish the file.
+CLOSE_TIMEOUT_S = 300.0
+#: Environment switch: ``TERGODIC_LOG_WRITER=inline`` keeps the writer in the explorer's process.
+ENV_WRITER = "TERGODIC_LOG_WRITER"
+
+
+def _pack(op: str, arrays: Mapping[str, np.ndarray] = (), *, borrow: bool = False, **fields: Any) -> list:
+    """One frame as parts: the length prefix and JSON header (op, fields, array layout), then
+    each array's bytes. With ``borrow`` contiguous arrays are not copied (they must not change
+    until written); otherwise each is copied now."""
+    layout, blobs, size = [], [], 0
+    for name, a in dict(arrays).items():
+        a = np.ascontiguousarray(a)
+        layout.append([name, a.dtype.str, list(a.shape)])
+        blobs.append(memoryview(a).cast("B") if borrow else a.tobytes())
+        size += a.nbytes
+    header = _dumps({"op": op, "arrays": layout, **fields}).encode()
+    return [_FRAME.pack(len(header), size) + header, *blobs]
+
+
+def _unpack(header: bytes, payload: bytes) -> tuple[dict, dict[str, np.ndarray]]:
+    head = json.loads(header)
+    arrays, off = {}, 0
+    for name, dtype, shape in head.pop("arrays"):
+        dt = np.dtype(dtype)
+        if dt.hasobject:  # never objects: this is data, not code
+            raise ValueError(f"object array '{name}' in a log frame")
+        count = math.prod(shape)
+        arrays[name] = np.frombuffer(payload, dtype=dt, count=count, offset=off).reshape(shape)
+        off += count * dt.itemsize
+    return head, arrays
+
+
+class LogWriterProcess:
+    """The child process that writes a run log, and the pipe that feeds it.
+
+    Start it early (:func:`start_log_writer`): the child spends a few hundred milliseconds
+    importing the MCAP stack, which then overlaps the caller's own set-up. Frames go to the
+    pipe without blocking: what the pipe cannot take yet waits in memory and goes with the
+    next send, so the caller never waits on the child unless more than ``max_pending_bytes``
+    pile up (then it does, which bounds memory). No thread: a Python thread would have to
+    win the GIL back from the explorer for every write.
+    """
+
+    def __init__(self, max_pending_bytes: int = 64 << 20):
+        env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+        self.proc = subprocess.Popen([sys.executable, "-m", "tergodic_cli.runlog.background"], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, env=env, close_fds=True)
+        self._fd = self.proc.stdin.fileno()
+        _grow_pipe(self._fd)
+        os.set_blocking(self._fd, False)
+        self._pending: collections.deque[memoryview] = collections.deque()
+        self._pending_bytes = 0
+        self.max_pending_bytes = int(max_pending_bytes)
+        self.error: BaseException | None = None
+        self._ended = False
+        # a writer dropped unused (the run failed before logging) ends its child: end-of-file, nothing written
+        self._finalizer = weakref.finalize(self, self.proc.stdin.close)
+
+    def wait_ready(self, timeout: float = 60.0) -> bool:
+        """Block until the child has imported the MCAP stack (benchmarks use it to leave start-up out)."""
+        ready, _, _ = select.select([self.proc.stdout], [], [], timeout)
+        return bool(ready) and self.proc.stdout.readline().strip() == b"ready"
+
+    def send(self, *parts: bytes | memoryview) -> None:
+        """Queue the parts of one frame and write what the pipe takes now.
+
+        Parts are not copied: pass bytes, or views of arrays that do not change afterwards.
+        Raises OSError once the child has stopped reading.
+        """
+        if self.error is not None or self._ended:
+            raise BrokenPipeError("the log writer process stopped")
+        for part in parts:
+            mv = memoryview(part).cast("B")
+            if len(mv):
+                self._pending.append(mv)
+                self._pending_bytes += len(mv)
+        self._drain(block=self._pending_bytes > self.max_pending_bytes)
+
+    def _drain(self, block: bool) -> None:
+        """Write pending bytes; with ``block``, until none are left."""
+        pending = self._pending
+        try:
+            while pending:
+                mv = pending[0]
+                try:
+                    n = os.write(self._fd, mv[: 1 << 20])
+                except BlockingIOError:
+                    if not block:
+                        return
+                    select.select([], [self._fd], [], 1.0)
+                    continue
+                self._pending_bytes -= n
+                if n == len(mv):
+                    pending.popleft()
+                else:
+                    pending[0] = mv[n:]
+        except OSError as exc:  # EPIPE: the child is gone
+            self.error = exc
+            pending.clear()
+            raise
+
+    def finish(self, timeout: float = CLOSE_TIMEOUT_S) -> tuple[int, str]:
+        """Write what is pending, send end-of-file, wait for the child; (exit code, its last stdout line)."""
+        if not self._ended:
+            self._ended = True
+            self._finalizer.detach()
+            if self.error is None:
+                try:
+                    self._drain(block=True)
+                except OSError:
+                    pass
+            try:
+                self.proc.stdin.close()
+            except OSError:
+                pass
+        out = self.proc.stdout.read()  # until the child exits: it writes one line, at the end
+        self.proc.stdout.close()
+        try:
+            self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        return self.proc.returncode, ((out or b"").decode(errors="replace").strip().splitlines() or [""])[-1]
+
+
+def start_log_writer() -> LogWriterProcess | None:
+    """Start a log writer child now (None when ``TERGODIC_LOG_WRITER=inline`` or it cannot start)."""
+    if not use_background_writer():
+        return None
+    try:
+        return LogWriterProcess()
+    except OSError:
+        return None
+
+
+def use_background_writer() -> bool:
+    """Whether :func:`open_run_log` starts a child writer (``TERGODIC_LOG_WRITER`` = process|inline)."""
+    return os.environ.get(ENV_WRITER, "process").strip().lower() != "inline"
+
+
+class BackgroundRunLog:
+    """A :class:`~tergodic_cli.runlog.writer.RunLog` whose encoding and writing run in a child process.
+
+    Parameters are those of :class:`~tergodic_cli.runlog.writer.RunLog` and mean the same;
+    they are validated here, so a bad one raises at once. The file is the same byte
+    layout the in-process writer makes (only the creation time in its metadata differs).
+
+    Notes
+    -----
+    Per step the caller pays a few array stores. ``flush_every`` steps (or ``flush_seconds``
+    of wall time) go to the child together; points clouds, events and ``sync`` go at once,
+    in call order. If the child fails (disk full, killed), the next call raises a
+    :class:`TergodicError` carrying the child's one-line reason.
+    """
+
+    def __init__(self, path: str | os.PathLike, *, config: Mapping[str, Any], seed: int | None,
+                 versions: Mapping[str, Any] | None = None, capture_sidecar: Mapping[str, Any] | None = None,
+                 points: np.ndarray, target: np.ndarray | None = None, cloud_every: int = 50,
+                 compression: str = "lz4", flush_every: int | None = None, flush_seconds: float = 2.0,
+                 chunk_bytes: int = CHUNK_BYTES, backend: str = "auto", field_basis: np.ndarray | None = None,
+                 writer: LogWriterProcess | None = None):
+        self.path = Path(path)
+        pts, target, backend = check_log_args(points, target, compression, cloud_every, backend)
+        self._field_basis = check_field_basis(field_basis, len(pts))
+        self.points, self.target, self.backend = pts, target, backend
+        self.cloud_every = int(cloud_every)
+        self.flush_every = max(1, int(flush_every) if flush_every else min(self.cloud_every, FLUSH_EVERY))
+        self.flush_seconds = float(flush_seconds)
+        self.n_steps = 0
+        self.n_clouds = 0
+        self._closed = False
+        self._last_t = 0.0
+        self._n_agents = -1
+        self._k = 0  # rows pending
+        self._rows: list[tuple] = []  # (step, t, ε, ε_ref, touched, step_ms) of the pending rows
+        self._shape: tuple = ()
+        self._slow: dict[int, dict] = {}  # row -> {"metrics": ..., "robot": ...} of steps off the fast layout
+        self._last_send = time.monotonic()
+        try:  # fail here, in the caller, on an unwritable path (the child re-opens it)
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            with open(self.path, "wb"):
+                pass
+        except OSError as exc:
+            raise TergodicError(f"cannot write {self.path}: {exc.strerror or exc}",
+                                "check the folder exists and is writable") from None
+        self._writer = writer or LogWriterProcess()
+        arrays = {"points": pts.copy(), "target": target.copy()}  # copies: borrowed below
+        if self._field_basis is not None:  # Φ once, not copied: it is sent while the run goes on
+            arrays["field_basis"] = self._field_basis
+        self._send(_pack("open", arrays, borrow=True, path=str(self.path), config=dict(config),
+                         seed=None if seed is None else int(seed), versions=dict(versions or {}) or None,
+                         capture_sidecar=None if capture_sidecar is None else dict(capture_sidecar),
+                         cloud_every=self.cloud_every, compression=compression, flush_every=self.flush_every,
+                         flush_seconds=self.flush_seconds, chunk_bytes=int(chunk_bytes), backend=backend))
+
+    # -- plumbing ------------------------------------------------------------------------------
+    def _send(self, parts: list) -> None:
+        try:
+            self._writer.send(*parts)
+        except OSError:
+            self._closed = True
+            code, line = self._writer.finish()
+            raise _reported_error(line) or TergodicError(
+                f"writing {self.path} failed: the log writer process stopped (exit code {code})",
+                "check free disk space and permissions, or set TERGODIC_LOG_WRITER=inline") from None
+
+    def _require_open(self) -> None:
+        if self._closed:
+            raise TergodicError(f"the run log {self.path} is closed", "log steps before close()")
+
+    def _alloc(self, n_agents: int) -> None:
+        cap = self.flush_every
+        self._P = np.zeros((cap, n_agents, 3))
+        self._V = np.zeros((cap, n_agents, 3))
+        self._N = np.zeros((cap, n_agents, 3))
+        self._n_agents = n_agents
+        self._shape = (n_agents, 3)
+
+    def _send_pending(self) -> None:
+        k = self._k
+        if k == 0:
+            return
+        arrays = {"rows": np.array(self._rows, dtype=np.float64), "P": self._P[:k], "V": self._V[:k], "N": self._N[:k]}
+        slow = {str(i): v for i, v in self._slow.items()}
+        self._k = 0
+        self._rows = []
+        self._slow = {}
+        self._last_send = time.monotonic()
+        self._send(_pack("steps", arrays, slow=slow))
+
+    # -- the RunLog API ------------------------------------------------------------------------
+    def log_step(self, step: int, t: float, *, positions: np.ndarray, velocities: np.ndarray,
+                 normals: np.ndarray, metrics: Mapping[str, float], step_ms: float,
+                 robot: Mapping[str, Any] | None = None) -> None:
+        """Log one explorer step; see :meth:`RunLog.log_step <tergodic_cli.runlog.writer.RunLog.log_step>`.
+
+        The values are copied: the caller may reuse its arrays at once.
+        """
+        if self._closed:
+            self._require_open()
+        t = float(t)
+        if step < 0 or not 0.0 <= t < math.inf:
+            raise TergodicError(f"run log got step {step} at t = {t}", "steps must be >= 0 and times finite, >= 0")
+        i = self._k
+        try:  # the fast path: three array stores (numpy raises on a shape that does not fit)
+            if positions.shape != self._shape:
+                raise ValueError
+            self._P[i] = positions
+            self._V[i] = velocities
+            self._N[i] = normals
+        except (AttributeError, ValueError, TypeError):
+            positions, velocities, normals = self._agent_arrays(positions, velocities, normals)
+            i = self._k
+            self._P[i], self._V[i], self._N[i] = positions, velocities, normals
+        try:
+            if len(metrics) != 3:
+                raise KeyError
+            row = (step, t, metrics["ergodicity"], metrics["ergodicity_ref"], metrics["touched_fraction"], step_ms)
+        except KeyError:
+            self._slow.setdefault(i, {})["metrics"] = {str(k): float(v) for k, v in metrics.items()}
+            row = (step, t, math.nan, math.nan, math.nan, step_ms)
+        self._rows.append(row)
+        if robot is not None:
+            self._slow.setdefault(i, {})["robot"] = dict(robot)
+        self._k = i + 1
+        self.n_steps += 1
+        self._last_t = t
+        if self._k == self.flush_every or (
+                self.flush_seconds > 0 and (i & 7) == 7 and time.monotonic() - self._last_send >= self.flush_seconds):
+            self._send_pending()
+
+    def log_steps(self, step: np.ndarray, t: np.ndarray, *, positions: np.ndarray, velocities: np.ndarray,
+                  normals: np.ndarray, metrics: np.ndarray, step_ms: np.ndarray) -> None:
+        """Log K steps at once; see :meth:`RunLog.log_steps <tergodic_cli.runlog.writer.RunLog.log_steps>`.
+
+        The cheapest way to log: a caller that keeps its own per-step arrays (as ``tergodic
+        explore`` does for ``trajectory.npz``) hands over a block every few dozen steps.
+        """
+        self._require_open()
+        step = np.asarray(step, dtype=np.float64)
+        K = len(step)
+        if K == 0:
+            return
+        t = np.asarray(t, dtype=np.float64)
+        P = np.asarray(positions, dtype=np.float64)
+        m = np.asarray(metrics, dtype=np.float64)
+        if P.ndim != 3 or P.shape[0] != K or P.shape[2] != 3 or m.shape != (K, 3) or t.shape != (K,):
+            raise TergodicError(f"run log got a block of {K} steps with positions {P.shape}, metrics {m.shape}",
+                                "pass (K, N, 3) vectors, (K, 3) metrics and (K,) step, t, step_ms")
+        if step.min() < 0 or not (np.all(np.isfinite(t)) and t.min() >= 0.0):
+            raise TergodicError("run log got a negative step or a bad time", "steps must be >= 0 and times finite, >= 0")
+        self._send_pending()
+        rows = np.column_stack((step, t, m, np.asarray(step_ms, dtype=np.float64)))
+        self._send(_pack("steps", {"rows": rows, "P": P, "V": np.asarray(velocities, dtype=np.float64),
+                                   "N": np.asarray(normals, dtype=np.float64)}, slow={}))
+        self.n_steps += K
+        self._last_t = float(t[-1])
+
+    def _agent_arrays(self, positions, velocities, normals) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        P = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        V = np.asarray(velocities, dtype=np.float64).reshape(-1, 3)
+        Nn = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        if not (len(P) == len(V) == len(Nn)) or len(P) == 0:
+            raise TergodicError(f"run log got {len(P)} positions, {len(V)} velocities, {len(Nn)} normals",
+                                "pass (N, 3) arrays for N >= 1 agents")
+        if len(P) != self._n_agents:
+            self._send_pending()  # the rows so far keep their own layout
+            self._alloc(len(P))
+        return P, V, Nn
+
+    def log_cloud(self, step: int, *, coverage: np.ndarray, heat: np.ndarray | SpectralField, source: np.ndarray,
+                  target: np.ndarray | None = None, t: float | None = None) -> None:
+        """Log the cloud with per-point fields; see :meth:`RunLog.log_cloud <tergodic_cli.runlog.writer.RunLog.log_cloud>`.
+
+        ``heat`` as a :class:`~tergodic_cli.runlog.writer.SpectralField` (``Explorer.heat_terms()``)
+        is reconstructed by the child from the ``field_basis`` sent once at open, so the
+        O(n nK) product never runs in the caller.
+        """
+        self._require_open()
+        n = len(self.points)
+        arrays = {}
+        for name, values in (("target", target), ("coverage", coverage), ("heat", heat), ("source", source)):
+            if values is None:
+                continue
+            if isinstance(values, SpectralField):
+                check_spectral_field(values, self._field_basis, n)
+                if values.coeffs is not None:
+                    arrays[f"{name}.coeffs"] = np.asarray(values.coeffs, dtype=np.float64)
+                arrays[f"{name}.residual"] = np.asarray(values.residual, dtype=np.float64)
+                continue
+            values = np.asarray(values)
+            if values.shape != (n,):
+                raise TergodicError(f"run log cloud field {name} has shape {values.shape}, expected ({n},)",
+                                    "pass one value per point")
+            arrays[name] = values.astype(np.float32)  # the message's field type: the same rounding as in-process
+        self._send_pending()
+        self.n_clouds += 1
+        self._send(_pack("cloud", arrays, step=int(step), t=self._last_t if t is None else float(t)))
+
+    def log_event(self, step: int, t: float, text: str, level: str = "info") -> None:
+        """Log a ``foxglove.Log`` event after the steps so far."""
+        self._require_open()
+        self._send_pending()
+        self._send(_pack("event", step=int(step), t=float(t), text=str(text), level=str(level)))
+
+    def sync(self) -> None:
+        """Hand everything logged so far to the writer and have it flush the file."""
+        self._require_open()
+        self._send_pending()
+        self._send(_pack("sync"))
+
+    def close(self, summary: Mapping[str, Any] | None = None, status: str = "ok") -> None:
+        """Store ``summary`` and finish the file; returns when the file is complete. Idempotent."""
+        if self._closed:
+            return
+        self._send_pending()
+        self._send(_pack("close", summary=None if summary is None else dict(summary), status=str(status)))
+        self._closed = True
+        code, line = self._writer.finish()
+        if code != 0 or line != "ok":
+            raise _reported_error(line) or TergodicError(
+                f"writing {self.path} failed: the log writer process did not finish (exit code {code})",
+                "check free disk space and permissions")
+
+    def __enter__(self) -> "BackgroundRunLog":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if self._closed:
+            return
+        if exc_type is None:
+            self.close(None)
+            return
+        status = "interrupted" if issubclass(exc_type, KeyboardInterrupt) else f"error: {exc_type.__name__}"
+        try:
+            self.close(None, status=status)
+        except TergodicError:
+            pass  # the original exception matters more
+
+
+def _reported_error(line: str) -> TergodicError | None:
+    """The error a child reported as ``error<TAB>problem<TAB>fix``, or None."""
+    parts = line.split("\t")
+    if parts[0] != "error" or len(parts) < 2:
+        return None
+    return TergodicError(parts[1], (parts[2] or None) if len(parts) > 2 else None)
+
+
+def _grow_pipe(fd: int, size: int = 1 << 20) -> None:
+    """Ask Linux for a 1 MiB pipe, so a point cloud rarely waits for the child to read."""
+    try:
+        import fcntl
+
+        fcntl.fcntl(fd, getattr(fcntl, "F_SETPIPE_SZ", 1031), size)
+    except (ImportError, OSError):
+        pass  # the default 64 KiB pipe works, a little slower
+
+
+def open_run_log(path: str | os.PathLike, writer: LogWriterProcess | None = None, **kwargs: Any):
+    """A run log for ``path``, written by ``writer`` (or a new child process), or in this
+    process when ``TERGODIC_LOG_WRITER=inline``. ``kwargs`` are :class:`RunLog`'s."""
+    if writer is not None or use_background_writer():
+        return BackgroundRunLog(path, writer=writer, **kwargs)
+    from tergodic_cli.runlog.writer import RunLog
+
+    return RunLog(path, **kwargs)
+
+
+# ---------------------------------------------------------------------------------------------
+# The child: read frames from stdin, run the in-process RunLog on them.
+# ---------------------------------------------------------------------------------------------
+def _read_exact(fh: Any, n: int) -> bytes | None:
+    buf = bytearray(n)
+    view, got = memoryview(buf), 0
+    while got < n:
+        r = fh.readinto(view[got:])
+        if not r:
+            return None
+        got += r
+    return bytes(buf)
+
+
+def _write_steps(log: Any, a: dict[str, np.ndarray], slow: dict[str, dict]) -> None:
+    """Rows of the fast layout in bulk; a row with a robot sample or other metrics through log_step."""
+    rows, P, V, N = a["rows"], a["P"], a["V"], a["N"]
+    step, t, m, step_ms = rows[:, 0].astype(np.int64), rows[:, 1], rows[:, 2:5], rows[:, 5]
+    if not slow:
+        log.log_steps(step, t, positions=P, velocities=V, normals=N, metrics=m, step_ms=step_ms)
+        return
+    for i in range(len(step)):
+        extra = slow.get(str(i)) or {}
+        metrics = extra.get("metrics") or dict(zip(_METRIC_NAMES, m[i].tolist()))
+        log.log_step(int(step[i]), float(t[i]), positions=P[i], velocities=V[i], normals=N[i], metrics=metrics,
+                     step_ms=float(step_ms[i]), robot=extra.get("robot"))
+
+
+_ABANDONED: list = []
+
+
+def _serve(fh: Any) -> int:
+    """Run the writer on the frames in ``fh``; the exit code (0 closed, 3 abandoned by the parent)."""
+    from tergodic_cli.runlog.writer import RunLog
+
+    log = None
+    while True:
+        head = _read_exact(fh, _FRAME.size)
+        if head is None:
+            break
+        hlen, plen = _FRAME.unpack(head)
+        header = _read_exact(fh, hlen)
+        payload = _read_exact(fh, plen) if plen else b""
+        if header is None or payload is None:
+            break
+        h, a = _unpack(header, payload)
+        op = h["op"]
+        if op == "steps":
+            _write_steps(log, a, h["slow"])
+        elif op == "cloud":
+            fields = {k: v for k, v in a.items() if "." not in k}
+            for name in ("heat", "coverage", "source", "target"):
+                if f"{name}.residual" in a:
+                    fields[name] = SpectralField(a.get(f"{name}.coeffs"), a[f"{name}.residual"])
+            log.log_cloud(h["step"], t=h["t"], **fields)
+        elif op == "event":
+            log.log_event(h["step"], h["t"], h["text"], h["level"])
+        elif op == "sync":
+            log.sync()
+        elif op == "open":
+            log = RunLog(h["path"], config=h["config"], seed=h["seed"], versions=h["versions"],
+                         capture_sidecar=h["capture_sidecar"], points=a["points"], target=a["target"],
+                         field_basis=a.get("field_basis"),
+                         cloud_every=h["cloud_every"], compression=h["compression"], flush_every=h["flush_every"],
+                         flush_seconds=h["flush_seconds"], chunk_bytes=h["chunk_bytes"], backend=h["backend"])
+        elif op == "close":
+            log.close(h["summary"], status=h["status"])
+            return 0
+        else:
+            raise ValueError(f"unknown log frame '{op}'")
+    if log is not None:  # the parent died: keep what arrived, leave the file without its summary (truncated)
+        log.sync()
+        _ABANDONED.append(log)  # freeing the writer would finish the file (foxglove-sdk closes it on drop)
+    return 3
+
+
+def main() -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the parent, which closes the log properly
+    try:
+        from tergodic_cli.runlog import writer as _w  # the MCAP stack, before saying ready
+        from tergodic_cli.runlog.proto import step_record_class
+
+        _w._proto_classes(), step_record_class(), _w.foxglove_sdk_available()  # build the schemas once, now
+
+        sys.stdout.write("ready\n")
+        sys.stdout.flush()
+        code = _serve(sys.stdin.buffer)
+        msg = "ok" if code == 0 else "abandoned"
+    except TergodicError as exc:
+        code, msg = 2, f"error\t{exc.problem}\t{exc.fix or ''}"
+    except Exception as exc:  # noqa: BLE001 - reported to the parent in one line
+        code, msg = 1, f"error\tthe log writer failed: {type(exc).__name__}: {exc}\tset TERGODIC_LOG_WRITER=inline"
+    try:
+        sys.stdout.write(msg.replace("\n", " ") + "\n")
+        sys.stdout.flush()
+    except OSError:
+        pass
+    os._exit(code)  # no interpreter teardown: the MCAP writer must not finish a file the parent abandoned
+
+
+if __name__ == "__main__":
+    main()
