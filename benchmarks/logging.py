@@ -45,18 +45,30 @@ def _synthetic_step_data(n_points: int, steps: int, n_agents: int, seed: int = 0
 
 
 def bench_runlog(n_points: int = 2996, steps: int = 1000, n_agents: int = 1, repeats: int = 5,
-                 backend: str = "auto", cloud_every: int = 50) -> dict:
-    """A: RunLog cost per step (µs): the step loop alone, and including open and close."""
+                 backend: str = "auto", cloud_every: int = 50, writer: str = "inline") -> dict:
+    """A: RunLog cost per step (µs): the step loop alone, and including open and close.
+
+    ``writer="process"``: the caller's side of BackgroundRunLog (the child started and ready
+    beforehand, as explore starts it before loading the basis); "total" then includes waiting
+    for the child to finish the file.
+    """
     from tergodic_cli.runlog import RunLog
+    from tergodic_cli.runlog.background import BackgroundRunLog, LogWriterProcess
 
     d = _synthetic_step_data(n_points, steps, n_agents)
     caller, total, cpu_loop = [], [], []
     for _ in range(repeats):
         tmp = Path(tempfile.mkdtemp(prefix="tergodic-bench-"))
         try:
+            child = None
+            if writer == "process":
+                child = LogWriterProcess()
+                child.wait_ready()
             t0 = time.perf_counter()
-            log = RunLog(tmp / "run.mcap", config={"steps": steps}, seed=0, versions={}, points=d["points"],
-                         target=d["target"], cloud_every=cloud_every, backend=backend)
+            kw = {"writer": child} if child else {}
+            log = (BackgroundRunLog if child else RunLog)(
+                tmp / "run.mcap", config={"steps": steps}, seed=0, versions={}, points=d["points"], target=d["target"],
+                cloud_every=cloud_every, backend=backend, **kw)
             t_open, c_open = time.perf_counter(), time.process_time()
             for k in range(steps):
                 log.log_step(k + 1, float(k + 1), positions=d["P"][k], velocities=d["V"][k], normals=d["N"][k],
@@ -250,6 +262,9 @@ def main() -> None:
               f"file {r['file_bytes'] / 1e6:.2f} MB")
     r = bench_runlog(repeats=reps, n_agents=10)
     print(f"   10 agents    : {r['cpu_us']:6.1f} µs/step CPU, {r['caller_us']:6.1f} µs/step wall in the loop")
+    r = bench_runlog(repeats=reps, writer="process")
+    print(f"   writer child : {r['cpu_us']:6.1f} µs/step CPU, {r['caller_us']:6.1f} µs/step wall in the caller's loop "
+          f"(log_step each step), {r['total_us']:6.1f} µs/step wall incl. open + waiting for the child at close")
 
     r = bench_explorer(repeats=max(1, reps // 2 + 1))
     if r is None:

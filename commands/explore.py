@@ -77,6 +77,9 @@ def explore(
     """
     import json
 
+    from tergodic_cli.runlog.background import start_log_writer
+
+    log_writer = None if no_log or dry_run else start_log_writer()  # its imports overlap ours
     from tergodic_cli.explore import ExploreConfig
     from tergodic_cli.explore.run import StartSpec, run_explore
 
@@ -98,6 +101,7 @@ def explore(
     summary = run_explore(capture, cfg, out, spec, robot=robot, log=not no_log, log_cloud_every=log_cloud_every,
                           cache_dir=cache_dir, on_event=lambda msg: typer.echo(msg, err=True),
                           robot_options=robot_options, hardware=hardware, dry_run=dry_run, on_report=typer.echo,
+                          log_writer=log_writer,
                           recapture_every=recapture_every, until_clean=until_clean, max_steps=max_steps)
     if dry_run:
         return

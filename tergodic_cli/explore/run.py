@@ -122,7 +122,8 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
                 robot: str = "kinematic", log: bool = True, log_cloud_every: int = 50, cache_dir=None,
                 on_event: Callable[[str], None] | None = None, robot_options: dict | None = None,
                 hardware: dict | None = None, dry_run: bool = False, on_report: Callable[[str], None] | None = None,
-                recapture_every: int | None = None, until_clean: float = 0.05, max_steps: int | None = None) -> dict:
+                recapture_every: int | None = None, until_clean: float = 0.05, max_steps: int | None = None,
+                log_writer=None) -> dict:
     """Run one exploration and write its artefacts; returns the summary dict.
 
     ``robot_options`` are :class:`~tergodic_cli.robot.RobotConfig` fields (``safety`` as a dict of
@@ -133,6 +134,8 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     ``recapture_every`` (robot "pybullet", a ``--source sim`` capture) runs the closed outer loop:
     every K steps re-capture with the simulated camera, update p on the same basis, and stop once the
     camera sees less than ``until_clean`` of the initial marking or ``max_steps`` are spent.
+    ``log_writer``: a :func:`~tergodic_cli.runlog.background.start_log_writer` the caller started
+    earlier (the CLI starts it before its own imports); otherwise one is started here.
     """
     from tergodic_cli.capture import load_capture
 
@@ -180,7 +183,7 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
         (on_report or say)(report)
         return {"dry_run": report}
     # the log's writer process starts now, so its imports overlap loading the basis
-    writer = _start_log_writer() if log else None
+    writer = (log_writer or _start_log_writer()) if log else None
     basis, hit = find_basis(capture.points, cfg.nk, cfg.basis_neighbors, cache_dir, on_event=event)
     require(basis.points.shape == capture.points.shape and np.array_equal(basis.points, capture.points),
             "the basis does not match the capture's points", "recompute it: tergodic precompute CAPTURE --force")
