@@ -362,8 +362,10 @@ def force_fault(w, limit):
 
 
 # ----------------------------------------------------------------------------- the PyBullet hot loop
-# numba's dispatcher costs ~0.2 µs per array argument, more for tuples: the hot loop passes the
-# joint states as PyBullet returns them, the controller's kpk and mut, and two packed arrays.
+# numba's dispatcher costs ~0.2 µs per array argument, more for tuples, and most for nested tuples
+# of mixed types (typing and unboxing ``getJointStates``' tuple of (q, q̇, reaction 6-tuple, torque)
+# tuples cost ~2.5 µs a call): the hot loop passes the joint positions and velocities as two flat
+# tuples (``zip(*states)``), the controller's kpk and mut, and two packed arrays.
 # cst (built by :func:`pack_constants` once per explorer interval): header [m, F_d, use_vref],
 # v_ref (3), the chain (F (m, 4, 4), axis (m, 3), qidx (m,)), tcp offset (3), R_se (3, 3), p_se (3),
 # m g, com (3), tare load (6), guard q_lo (7), q_hi (7), dq_hi (7), tcp speed max, workspace lo (3),
@@ -388,20 +390,8 @@ def pack_constants(chain, contact, guard, tau_max, force_desired: float, v_ref) 
 
 
 @njit
-def pybullet_tick(i, A, D, states, reading, bias, cst, kpk, mut, io):
-    """One 1 kHz tick of the "track" loop after the joint read: FK + Jacobian, contact wrench, force
-    check, controller, state checks, and the torque to send (task + ``bias``, clamped to tau_max).
-
-    i : row of A, D (n, 3), the gliding target line. states : ``getJointStates`` of the 7 arm joints
-    and the sensor joint, as PyBullet returns it. reading : the sensor's 6 numbers (tare removed);
-    bias : gravity + Coriolis (7 numbers). kpk, mut : the controller's (``mut`` is updated).
-    Returns an F_* code (OK: send io[IO_TAU:IO_TAU + 7]). The separate kernels, chained.
-    """
-    q = io[IO_Q:IO_Q + 7]
-    dq = io[IO_DQ:IO_DQ + 7]
-    for j in range(7):
-        q[j] = states[j][0]
-        dq[j] = states[j][1]
+def _unpack_constants(cst):
+    """Views into the ``cst`` array of :func:`pack_constants` (layout above)."""
     m = int(cst[0])
     force_desired = cst[1]
     use_vref = cst[2] != 0.0
@@ -430,6 +420,28 @@ def pybullet_tick(i, A, D, states, reading, bias, cst, kpk, mut, io):
     ws_hi = cst[o + 25:o + 28]
     force_limit = cst[o + 28]
     tau_max = cst[o + 29:o + 36]
+    return (force_desired, use_vref, v_ref, F, axis, qidx, tcp_off, R_se, p_se, mg, com, tare, q_lo, q_hi, dq_hi,
+            tcp_max, ws_lo, ws_hi, force_limit, tau_max)
+
+
+@njit
+def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io):
+    """One 1 kHz tick of the "track" loop after the joint read: FK + Jacobian, contact wrench, force
+    check, controller, state checks, and the torque to send (task + ``bias``, clamped to tau_max).
+
+    i : row of A, D (n, 3), the gliding target line. qs, dqs : joint positions (rad) and velocities
+    (rad/s), flat tuples whose first 7 entries are the arm's (``zip(*getJointStates(...))``).
+    reading : the sensor's 6 numbers (tare removed); bias : gravity + Coriolis (7 numbers).
+    kpk, mut : the controller's (``mut`` is updated).
+    Returns an F_* code (OK: send io[IO_TAU:IO_TAU + 7]). The separate kernels, chained.
+    """
+    q = io[IO_Q:IO_Q + 7]
+    dq = io[IO_DQ:IO_DQ + 7]
+    for j in range(7):
+        q[j] = qs[j]
+        dq[j] = dqs[j]
+    (force_desired, use_vref, v_ref, F, axis, qidx, tcp_off, R_se, p_se, mg, com, tare, q_lo, q_hi, dq_hi, tcp_max,
+     ws_lo, ws_hi, force_limit, tau_max) = _unpack_constants(cst)
     T = io[IO_T:IO_T + 16].reshape((4, 4))
     J = io[IO_J:IO_J + 42].reshape((6, 7))
     w = io[IO_W:IO_W + 6]
@@ -454,4 +466,51 @@ def pybullet_tick(i, A, D, states, reading, bias, cst, kpk, mut, io):
     for j in range(7):
         lim = tau_max[j]
         io[IO_TAU + j] = min(max(task[j] + bias[j], -lim), lim)
+    return OK
+
+
+@njit
+def pybullet_joint_tick(i, QD, DQD, qs, dqs, reading, bias, cst, kd, io):
+    """One 1 kHz tick of a joint-impedance move after the joint read (the set-up moves): FK + Jacobian,
+    contact wrench, force check, τ = K (q_d - q) + D (q̇_d - q̇) (:class:`JointImpedance`), state
+    checks (TCP speed from J q̇), and the torque to send (τ + ``bias``, clamped to tau_max).
+
+    i : row of QD, DQD (n, 7), the desired joints (rad) and velocities (rad/s). qs, dqs, reading,
+    bias, cst, io : as :func:`pybullet_tick`. kd : (14,) joint stiffness (7) then damping (7).
+    Returns an F_* code (OK: send io[IO_TAU:IO_TAU + 7]).
+    """
+    q = io[IO_Q:IO_Q + 7]
+    dq = io[IO_DQ:IO_DQ + 7]
+    for j in range(7):
+        q[j] = qs[j]
+        dq[j] = dqs[j]
+    (_fd, _use, _vref, F, axis, qidx, tcp_off, R_se, p_se, mg, com, tare, q_lo, q_hi, dq_hi, tcp_max,
+     ws_lo, ws_hi, force_limit, tau_max) = _unpack_constants(cst)
+    T = io[IO_T:IO_T + 16].reshape((4, 4))
+    J = io[IO_J:IO_J + 42].reshape((6, 7))
+    w = io[IO_W:IO_W + 6]
+    fk_jacobian(q, F, axis, qidx, tcp_off, T, J)
+    r = np.empty(6)
+    for k in range(6):
+        r[k] = reading[k]
+    contact_wrench(r, T, R_se, p_se, mg, com, tare, w)
+    code, _f = force_fault(w, force_limit)
+    if code != OK:
+        return code
+    v0, v1, v2 = 0.0, 0.0, 0.0
+    for j in range(7):
+        v0 += J[0, j] * dq[j]
+        v1 += J[1, j] * dq[j]
+        v2 += J[2, j] * dq[j]
+    diag = io[IO_DIAG:IO_DIAG + N_CD]
+    diag[CD_VEE], diag[CD_VEE + 1], diag[CD_VEE + 2] = v0, v1, v2
+    pos = np.empty(3)
+    pos[0], pos[1], pos[2] = T[0, 3], T[1, 3], T[2, 3]
+    code, _j = state_fault(q, dq, pos, math.sqrt(v0 * v0 + v1 * v1 + v2 * v2), q_lo, q_hi, dq_hi, tcp_max, ws_lo, ws_hi)
+    if code != OK:
+        return code
+    for j in range(7):
+        lim = tau_max[j]
+        tau = kd[j] * (QD[i, j] - q[j]) + kd[7 + j] * (DQD[i, j] - dq[j])
+        io[IO_TAU + j] = min(max(tau + bias[j], -lim), lim)
     return OK

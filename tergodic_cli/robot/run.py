@@ -265,19 +265,19 @@ class RobotRun:
         i = -1
         t = sc.t
         for i in range(len(A)):
-            states = get_states(rob, idx, physicsClientId=cid)
-            arm.reaction, arm.reaction_step = states[-1][2], sc.steps
+            # Flat tuples: q, q̇ and reactions of the movable joints, then the sensor joint's (last).
+            qs, dqs, rs, _ = zip(*get_states(rob, idx, physicsClientId=cid))
+            arm.reaction, arm.reaction_step = rs[-1], sc.steps
             rd = sread()
             t = sc.t
             arm._bias_age += 1
             if arm._bias is None or arm._bias_age >= every or arm._bias_epoch != sc.teleports:
-                arm._bias = inv_dyn(rob, [s[0] for s in states[:-1]], [s[1] for s in states[:-1]], zeros,
-                                    physicsClientId=cid)
+                arm._bias = inv_dyn(rob, qs[:-1], dqs[:-1], zeros, physicsClientId=cid)
                 arm._bias_age = 0
                 arm._bias_epoch = sc.teleports
             fault = check_sensor(t, rd.t, rd.wrench)
             if fault is None:
-                code = tick(i, A, D, states, rd.wrench, arm._bias, cst, kpk, mut, io)
+                code = tick(i, A, D, qs, dqs, rd.wrench, arm._bias, cst, kpk, mut, io)
                 if code != OK:
                     st = state()
                     if code == F_FORCE:
@@ -309,6 +309,67 @@ class RobotRun:
             yield st, self.contact(self.sensor.read().wrench, st.ee_pose), None, None, None
             return
         yield state(), io[Kn.IO_W:Kn.IO_W + 6].copy(), A[i], D[i], None
+
+    def _joint_fast(self, QD: np.ndarray, DQD: np.ndarray):
+        """:meth:`_tick` ("joint", with every check) along QD, DQD (n, 7) for the PyBullet arm, the
+        arithmetic in one compiled call per tick (:func:`~tergodic_cli.robot.kernels.pybullet_joint_tick`),
+        as :meth:`_track_fast` does for the line tracking. Returns the first fault (that step is not
+        commanded) or None."""
+        from tergodic_cli.robot import kernels as Kn
+
+        arm, sc, g = self.arm, self.scene, self.guard
+        p, cid, rob, idx = sc.p, sc.cid, sc.robot, arm._read_idx
+        get_states, inv_dyn, send, physics = p.getJointStates, p.calculateInverseDynamics, p.setJointMotorControlArray, \
+            p.stepSimulation
+        joints, mode_torque, dt = sc.arm_joints, p.TORQUE_CONTROL, sc.dt
+        sread, tick, check_sensor = self.sensor.read, Kn.pybullet_joint_tick, g.check_sensor
+        cst = Kn.pack_constants(arm._chain, self.contact, g, arm.tau_max, self.F_d, None)
+        kd = np.ascontiguousarray(np.concatenate([self.joint.K, self.joint.D]), dtype=float)
+        io = np.zeros(Kn.N_IO)
+        QD = np.ascontiguousarray(QD, dtype=float)
+        DQD = np.ascontiguousarray(DQD, dtype=float)
+        zeros, every, realtime = arm._zeros, arm.dynamics_every, self.cfg.realtime
+        hook = self._run_hook if self.contact_hook is not None else None
+        OK, tau_sl = Kn.OK, slice(Kn.IO_TAU, Kn.IO_TAU + 7)
+        explore = self.sm.state == S.EXPLORE
+        for i in range(len(QD)):
+            qs, dqs, rs, _ = zip(*get_states(rob, idx, physicsClientId=cid))
+            arm.reaction, arm.reaction_step = rs[-1], sc.steps
+            rd = sread()
+            t = sc.t
+            arm._bias_age += 1
+            if arm._bias is None or arm._bias_age >= every or arm._bias_epoch != sc.teleports:
+                arm._bias = inv_dyn(rob, qs[:-1], dqs[:-1], zeros, physicsClientId=cid)
+                arm._bias_age = 0
+                arm._bias_epoch = sc.teleports
+            fault = check_sensor(t, rd.t, rd.wrench)
+            if fault is None:
+                code = tick(i, QD, DQD, qs, dqs, rd.wrench, arm._bias, cst, kd, io)
+                if code == Kn.F_FORCE:
+                    fault = g.check_force(t, io[Kn.IO_W:Kn.IO_W + 6])
+                elif code != OK:
+                    v = io[Kn.IO_DIAG + Kn.CD_VEE:Kn.IO_DIAG + Kn.CD_VEE + 3]
+                    fault = g.check_state(t, io[Kn.IO_Q:Kn.IO_Q + 7].copy(), io[Kn.IO_DQ:Kn.IO_DQ + 7].copy(),
+                                          io[Kn.IO_T:Kn.IO_T + 16].reshape(4, 4)[:3, 3].copy(), float(np.sqrt(v @ v)))
+                elif explore:
+                    fault = g.check_explorer(t)
+            if fault is not None:
+                arm._q9 = arm._dq9 = None  # stale: the next command() reads the state first
+                return fault
+            tot = io[tau_sl].tolist()
+            arm.last_tau = tot
+            send(rob, joints, mode_torque, forces=tot, physicsClientId=cid)
+            physics(physicsClientId=cid)
+            sc.steps += 1
+            sc.t = sc.steps * dt
+            if hook is not None:
+                hook()
+            if realtime:
+                lag = sc.t - (time.perf_counter() - self._t0)
+                if lag > 0:
+                    time.sleep(lag)
+        arm._q9 = arm._dq9 = None
+        return None
 
     def _track_generic(self, A: list, D: list, v_ref=None):
         """The 1 kHz loop of one explorer interval through the Arm/WrenchSensor protocols:
@@ -467,8 +528,15 @@ class RobotRun:
         length = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
         duration = max(1.0, 1.875 * dist / cfg.move_speed, 1.875 * length / (0.5 * cfg.safety.tcp_speed_max))
         n = int(round(duration / cfg.physics_dt))
-        for i in range(n + int(round(SETTLE_S / cfg.physics_dt))):
-            qd, dqd = min_jerk(q0, q_target, duration, (i + 1) * cfg.physics_dt)
+        path = [min_jerk(q0, q_target, duration, (i + 1) * cfg.physics_dt)
+                for i in range(n + int(round(SETTLE_S / cfg.physics_dt)))]
+        QD, DQD = np.array([a for a, _ in path]), np.array([b for _, b in path])
+        if self.fast_loop and isinstance(self.arm, PyBulletArm):
+            fault = self._joint_fast(QD, DQD)
+            if fault is not None:
+                self._stop(fault, step)
+            return
+        for qd, dqd in zip(QD, DQD):
             st, w, out, fault = self._tick("joint", q_d=qd, dq_d=dqd)
             if fault is not None:
                 self._stop(fault, step)

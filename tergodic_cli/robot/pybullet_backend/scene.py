@@ -13,6 +13,7 @@ Known PyBullet traps handled here:
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import tempfile
@@ -25,7 +26,8 @@ from tergodic_cli.robot.ga import pose_matrix, quat_to_matrix
 
 ARM_JOINTS = tuple(f"panda_joint{i}" for i in range(1, 8))
 SENSOR_JOINT = "panda_hand_joint"  # fixed joint flange -> hand: the wrist F/T sensor
-SPONGE_LINK = "sponge"
+#: The link carrying the sponge ball (part of the hand: see :func:`_hand_with_sponge`).
+SPONGE_LINK = "panda_hand"
 
 #: Franka Emika datasheet limits (stricter than the pybullet URDF's).
 Q_MIN = np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973])
@@ -53,19 +55,32 @@ class SpongeSpec:
     mass: float = 0.03
 
 
-def _sponge_urdf(spec: SpongeSpec) -> str:
-    i = 1e-6
-    return f"""
-  <joint name="sponge_joint" type="fixed"><parent link="panda_hand"/><child link="{SPONGE_LINK}"/>
-    <origin rpy="0 0 0" xyz="0 0 {spec.offset}"/></joint>
-  <link name="{SPONGE_LINK}">
-    <inertial><origin rpy="0 0 0" xyz="0 0 0"/><mass value="{spec.mass}"/>
-      <inertia ixx="{i}" ixy="0" ixz="0" iyy="{i}" iyz="0" izz="{i}"/></inertial>
-    <visual><geometry><sphere radius="{spec.radius}"/></geometry>
-      <material name="sponge_yellow"><color rgba="0.95 0.8 0.2 1"/></material></visual>
-    <collision><geometry><sphere radius="{spec.radius}"/></geometry></collision>
-  </link>
-</robot>"""
+#: The stock hand's inertial (panda.urdf): 0.81 kg, centre of mass 40 mm along the hand's z.
+_HAND_MASS, _HAND_COM_Z, _HAND_INERTIA = 0.81, 0.04, 0.1
+_HAND_INERTIAL = r'<inertial>\s*<origin rpy="0 0 0" xyz="0 0 0.04"/>\s*<mass value=".81"/>\s*' \
+                 r'<inertia ixx="0.1" ixy="0" ixz="0" iyy="0.1" iyz="0" izz="0.1"/>\s*</inertial>'
+
+
+def _hand_with_sponge(spec: SpongeSpec) -> tuple[str, str, str]:
+    """(inertial, visual, collision) URDF of the hand carrying the sponge ball as one rigid link.
+
+    The ball is part of the hand link, not a link of its own behind a fixed joint: PyBullet's
+    Featherstone solver walks every link of the chain for each contact row and in the
+    articulated-body passes, fixed links included: one link fewer saves a few per cent of a tick
+    in contact (docs/robot.md, "Timing"). Mass, centre of mass and inertia are the two bodies combined (parallel axes); the
+    only collision shape of the hand is the ball (the hand's hull touched nothing: only the
+    sponge may touch the object).
+    """
+    m = _HAND_MASS + spec.mass
+    cz = (_HAND_MASS * _HAND_COM_Z + spec.mass * spec.offset) / m
+    i_s = 0.4 * spec.mass * spec.radius ** 2  # solid ball
+    ixx = _HAND_INERTIA + _HAND_MASS * (_HAND_COM_Z - cz) ** 2 + i_s + spec.mass * (spec.offset - cz) ** 2
+    izz = _HAND_INERTIA + i_s
+    inertial = (f'<inertial><origin rpy="0 0 0" xyz="0 0 {cz:.9f}"/><mass value="{m:.9f}"/>'
+                f'<inertia ixx="{ixx:.9f}" ixy="0" ixz="0" iyy="{ixx:.9f}" iyz="0" izz="{izz:.9f}"/></inertial>')
+    ball = f'<origin rpy="0 0 0" xyz="0 0 {spec.offset}"/><geometry><sphere radius="{spec.radius}"/></geometry>'
+    visual = f'<visual>{ball}<material name="sponge_yellow"><color rgba="0.95 0.8 0.2 1"/></material></visual>'
+    return inertial, visual, f"<collision>{ball}</collision>"
 
 
 _FINGER_VISUALS = """
@@ -76,7 +91,7 @@ _FINGER_VISUALS = """
 """
 
 
-def panda_sponge_urdf(data: str, sponge: SpongeSpec) -> str:
+def panda_sponge_urdf(data: str, sponge: SpongeSpec, arm_collision: bool = True) -> str:
     """The stock ``franka_panda/panda.urdf`` with the gripper replaced by the sponge tool.
 
     The paper's sponge sits on the F/T sensor at the flange (V): the fingers become visuals of
@@ -100,9 +115,20 @@ def panda_sponge_urdf(data: str, sponge: SpongeSpec) -> str:
         raise TergodicError("pybullet_data's panda.urdf is not the expected file", "use pybullet 3.2.7")
     text = text.replace(hand, '<parent link="panda_link7"/>\n    <child link="panda_hand"/>\n'
                               '    <origin rpy="0 0 -0.785398163397" xyz="0 0 0.107"/>')
-    text = re.sub(r'(<link name="panda_hand">.*?</visual>)', lambda m: m.group(1) + _FINGER_VISUALS.format(m=meshes),
-                  text, count=1, flags=re.S)
-    return text.replace("</robot>", _sponge_urdf(sponge))
+    i0, i1 = text.index('<link name="panda_hand">'), text.index("</link>", text.index('<link name="panda_hand">'))
+    hand_link = text[i0:i1]
+    inertial, sponge_visual, sponge_collision = _hand_with_sponge(sponge)
+    hand_link, n_in = re.subn(_HAND_INERTIAL, inertial, hand_link)
+    hand_link, n_col = re.subn(r"<collision>.*?</collision>", sponge_collision, hand_link, flags=re.S)
+    if n_in != 1 or n_col != 1:
+        raise TergodicError("pybullet_data's panda.urdf is not the expected file", "use pybullet 3.2.7")
+    hand_link = re.sub(r"(</visual>)", lambda m: m.group(1) + _FINGER_VISUALS.format(m=meshes) + sponge_visual,
+                       hand_link, count=1)
+    text = text[:i0] + hand_link + text[i1:]
+    if not arm_collision:  # only the sponge has a collision shape
+        head, tail = text[:i0], text[i0:]
+        text = re.sub(r"<collision>.*?</collision>", "", head, flags=re.S) + tail
+    return text
 
 
 class PyBulletScene:
@@ -146,6 +172,7 @@ class PyBulletScene:
         table = self.gui if table is None else table
         self.table = p.loadURDF(os.path.join(data, "plane.urdf"), physicsClientId=cid) if table else None
         self.robot = self._load_robot(data)
+        p.setPhysicsEngineParameter(contactBreakingThreshold=self._breaking_factor(), physicsClientId=cid)
         self.object: int | None = None
         #: Robot links checked for contact with the object.
         self.object_colliders = [SPONGE_LINK]
@@ -159,7 +186,7 @@ class PyBulletScene:
         fd, path = tempfile.mkstemp(suffix=".urdf", prefix="tergodic_panda_")
         try:
             with os.fdopen(fd, "w") as fh:
-                fh.write(panda_sponge_urdf(data, self.sponge))
+                fh.write(panda_sponge_urdf(data, self.sponge, arm_collision=self.table is not None))
             robot = p.loadURDF(path, useFixedBase=True, flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=cid)
         finally:
             os.unlink(path)
@@ -181,9 +208,9 @@ class PyBulletScene:
         assert self.movable[:7] == self.arm_joints
         self.sensor_joint = names[SENSOR_JOINT]
         self.sponge_link = links[SPONGE_LINK]
-        #: The TCP is the sponge's tip, a point on the sponge link (no link of its own: one fewer body).
+        #: The TCP is the sponge's tip, a point on the sponge's link (no link of its own: one fewer body).
         self.tcp_link = self.sponge_link
-        self.tcp_offset = (0.0, 0.0, float(self.sponge.radius))
+        self.tcp_offset = (0.0, 0.0, float(self.sponge.offset + self.sponge.radius))
         # Torque control: switch the arm's default velocity motors off (force = 0).
         p.setJointMotorControlArray(robot, self.arm_joints, p.VELOCITY_CONTROL, forces=[0.0] * 7, physicsClientId=cid)
         extra = self.movable[7:]  # a working gripper: hold it closed
@@ -192,9 +219,31 @@ class PyBulletScene:
                                         forces=[50.0] * len(extra), physicsClientId=cid)
         p.enableJointForceTorqueSensor(robot, self.sensor_joint, True, physicsClientId=cid)
         s = self.sponge
+        # contactProcessingThreshold=0: only touching or penetrating points reach the solver. The
+        # sponge/trimesh manifold also holds points still up to the breaking threshold apart (about
+        # one of its four in contact); they carry no force but each costs the solver three rows
+        # (normal + 2 friction) of multibody Jacobians, ~8 % of a tick (docs/robot.md, "Timing").
         p.changeDynamics(robot, self.sponge_link, contactStiffness=s.stiffness, contactDamping=s.damping,
-                         lateralFriction=s.friction, spinningFriction=0.0, rollingFriction=0.0, physicsClientId=cid)
+                         lateralFriction=s.friction, spinningFriction=0.0, rollingFriction=0.0,
+                         contactProcessingThreshold=0.0, physicsClientId=cid)
         return robot
+
+    def _breaking_factor(self) -> float:
+        """PyBullet's ``contactBreakingThreshold`` that keeps the sponge ball's own contact threshold.
+
+        Bullet scales the threshold (how far apart contact points are still made and kept) with
+        each shape's bounding radius about its body's centre of mass: 0.02 × (|c| + √3 r) for a
+        ball of radius r whose centre sits at c. As a link of its own the ball had c = 0: 0.42 mm.
+        As a child of the hand's shape, 87 mm from the hand's centre of mass, the same default
+        would give 2.2 mm, which keeps stale points and measurably changes the contact (median
+        track on the bowl 0.7 -> 1.0 mm, force error +20 %). The factor below restores 0.42 mm.
+        The setting is process-wide in Bullet (every client), and only the sponge ever touches.
+        """
+        p, cid = self.p, self.cid
+        com = np.array(p.getDynamicsInfo(self.robot, self.sponge_link, physicsClientId=cid)[3])
+        ball = np.array([0.0, 0.0, self.sponge.offset])
+        r = math.sqrt(3.0) * self.sponge.radius
+        return 0.02 * r / (float(np.linalg.norm(ball - com)) + r)
 
     def set_arm(self, q: np.ndarray) -> None:
         """Teleport the arm to ``q`` (7,) at rest (set-up only, never mid-run)."""
