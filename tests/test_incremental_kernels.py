@@ -148,3 +148,36 @@ def test_the_explorer_tree_on_a_flat_grid_matches_scipy_including_ties():
     for x in pts[::17]:
         K.tree_knn(*tree, x, 20, idx, d2)
         np.testing.assert_allclose(np.sqrt(d2), ref.query(x, k=20)[0], rtol=1e-12, atol=1e-15)
+
+
+def test_ball_query_keeps_the_descent_order(cloud):
+    # The footprint's order fixes the order of the running sums: the shortcut for boxes wholly
+    # inside the ball must give the points a full descent gives, in the same (ascending) order.
+    perm, nodes, boxes, tpts = K.tree_build(cloud)
+    tree = (np.arange(len(perm)), nodes, boxes, tpts)  # the explorer's internal order
+    buf = np.empty(len(cloud), np.int64)
+    rng = np.random.default_rng(9)
+    for x in rng.uniform(-0.12, 0.12, (100, 3)):
+        for r in (0.01, 0.05, 0.3):
+            cnt = K.tree_ball(*tree, x, r, buf)
+            d = tpts - x
+            want = np.flatnonzero((d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) + d[:, 2] * d[:, 2] <= r * r)
+            np.testing.assert_array_equal(buf[:cnt], want)
+
+
+def test_wide_heap_pops_the_smallest_key_between_pushes():
+    rng = np.random.default_rng(6)
+    keys = rng.integers(0, 50, 2000).astype(float)  # many ties, several levels of 8 children
+    hk, hi = np.empty(2000), np.empty(2000, np.int64)
+    size = 0
+    waiting = {}
+    for j, key in enumerate(keys):
+        size = K.heap_push(hk, hi, size, key, j)
+        waiting[j] = key
+        if j % 3 == 2:  # pops between pushes
+            key, i, size = K.heap_pop(hk, hi, size)
+            assert key == min(waiting.values()) == waiting.pop(i)
+    while size:
+        key, i, size = K.heap_pop(hk, hi, size)
+        assert key == min(waiting.values()) == waiting.pop(i)
+    assert not waiting

@@ -48,6 +48,39 @@ except ImportError:  # pragma: no cover - exercised only where numba is missing
 
     HAVE_NUMBA = False
 
+
+def _make_prefetch():
+    """``prefetch(A, i, q)``: ask the CPU to start loading the cache line of A[i, q] (A a 2-D
+    float64 array) and go on without waiting for it. A no-op without numba."""
+    if not HAVE_NUMBA:
+        return lambda A, i, q: None
+    from llvmlite import ir
+    from numba.core import cgutils, types
+    from numba.extending import intrinsic
+
+    @intrinsic
+    def prefetch(typingctx, A, i, q):
+        sig = types.void(A, types.intp, types.intp)
+
+        def codegen(context, builder, signature, args):
+            aryty = signature.args[0]
+            ary = context.make_array(aryty)(context, builder, args[0])
+            ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1], args[2]], wraparound=False)
+            i8p = ir.IntType(8).as_pointer()
+            i32 = ir.IntType(32)
+            fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]),
+                                                "llvm.prefetch.p0")
+            # a read, kept in the caches (locality 2: L2 and beyond), of data
+            builder.call(fn, [builder.bitcast(ptr, i8p), ir.Constant(i32, 0), ir.Constant(i32, 2), ir.Constant(i32, 1)])
+            return context.get_dummy_value()
+
+        return sig, codegen
+
+    return prefetch
+
+
+prefetch = _make_prefetch()
+
 #: Points per KD-tree leaf.
 LEAF_SIZE = 8
 
@@ -233,6 +266,16 @@ def tree_knn(perm, nodes, boxes, tpts, x, k, out_idx, out_d2):
 
 
 @njit
+def _box_far2(boxes, node, x0, x1, x2):
+    """Squared distance from (x0, x1, x2) to the farthest corner of a node's box, summed in
+    the order the point test sums it."""
+    a = max(boxes[node, 3] - x0, x0 - boxes[node, 0])
+    b = max(boxes[node, 4] - x1, x1 - boxes[node, 1])
+    c = max(boxes[node, 5] - x2, x2 - boxes[node, 2])
+    return a * a + b * b + c * c
+
+
+@njit
 def tree_ball(perm, nodes, boxes, tpts, x, r, out):
     """Indices of the points within distance ``r`` (metres) of ``x`` into ``out``; returns their count."""
     x0, x1, x2 = x[0], x[1], x[2]
@@ -245,6 +288,13 @@ def tree_ball(perm, nodes, boxes, tpts, x, r, out):
         sp -= 1
         node = stack[sp]
         if _box_dist2(boxes, node, x0, x1, x2) > r2:
+            continue
+        if _box_far2(boxes, node, x0, x1, x2) <= r2:
+            # The whole box is in the ball: each of its points would pass the test below
+            # (rounding is monotone), so take them all, in the order the descent would.
+            for j in range(nodes[node, 0], nodes[node, 1]):
+                out[cnt] = perm[j]
+                cnt += 1
             continue
         left = nodes[node, 2]
         if left < 0:
@@ -570,45 +620,69 @@ def cubic_slope(uv, values, weights, k, degree):
 
 
 # ---------------------------------------------------------------------------------- heap
+#: Children per node of the thresholds' min-heap. A binary heap of 100k entries is 17 levels
+#: deep and each level is a cache miss; with 8 children it is 6 levels, and the 8 keys a level
+#: compares are adjacent in memory.
+HEAP_ARITY = 8
+
+
 @njit
 def heap_push(hk, hi, size, key, idx):
+    """Insert (key, idx) into the min-heap hk[:size], hi[:size]; returns the new size."""
     i = size
+    while i > 0:
+        parent = (i - 1) // HEAP_ARITY
+        if hk[parent] <= key:
+            break
+        hk[i] = hk[parent]
+        hi[i] = hi[parent]
+        i = parent
     hk[i] = key
     hi[i] = idx
-    while i > 0:
-        parent = (i - 1) // 2
-        if hk[parent] <= hk[i]:
-            break
-        hk[parent], hk[i] = hk[i], hk[parent]
-        hi[parent], hi[i] = hi[i], hi[parent]
-        i = parent
     return size + 1
 
 
 @njit
 def heap_pop(hk, hi, size):
+    """Remove the smallest key; returns (key, idx, new size)."""
     key, idx = hk[0], hi[0]
     size -= 1
     if size > 0:
-        hk[0] = hk[size]
-        hi[0] = hi[size]
+        last_k = hk[size]
+        last_i = hi[size]
         i = 0
         while True:
-            left = 2 * i + 1
-            if left >= size:
+            first = HEAP_ARITY * i + 1
+            if first >= size:
                 break
-            child = left
-            if left + 1 < size and hk[left + 1] < hk[left]:
-                child = left + 1
-            if hk[i] <= hk[child]:
+            child = first
+            ck = hk[first]
+            end = min(first + HEAP_ARITY, size)
+            for c in range(first + 1, end):
+                if hk[c] < ck:
+                    ck = hk[c]
+                    child = c
+            if last_k <= ck:
                 break
-            hk[child], hk[i] = hk[i], hk[child]
-            hi[child], hi[i] = hi[i], hi[child]
+            hk[i] = ck
+            hi[i] = hi[child]
             i = child
+        hk[i] = last_k
+        hi[i] = last_i
     return key, idx, size
 
 
 # ---------------------------------------------------------------------------------- source
+@njit
+def _prefetch_row(Phi, j):
+    """Start loading row j of Φ: the rows a step adds are scattered over a large array (160 MB
+    at 100k points, nK = 200), and loads issued together overlap instead of waiting in turn."""
+    nK = Phi.shape[1]
+    for q in range(0, nK, 8):  # 8 doubles per 64-byte cache line
+        prefetch(Phi, j, q)
+    prefetch(Phi, j, nK - 1)
+
+
 @njit
 def _add_row(sp, Phi, j, w0, w1, w2):
     """F_k += w_k φ_j (one row of Φ)."""
@@ -858,6 +932,8 @@ def update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
             rows[nrows] = j
             W0[nrows], W1[nrows], W2[nrows] = w0, w1, w2
             nrows += 1
+            if c0 != 0.0:  # (an untouched point's row was requested by the deposit)
+                _prefetch_row(Phi, j)
         active[j] = 1 if now else 0
         if not now and inheap[j] == 0:
             size = heap_push(hk, hi, size, c1 / p, j)
@@ -881,6 +957,7 @@ def update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
             rows[nrows] = j
             W0[nrows], W1[nrows], W2[nrows] = w0, w1, w2
             nrows += 1
+            _prefetch_row(Phi, j)
             active[j] = 1
         else:  # its key was stale (c̃ has grown since): wait for the true threshold
             size = heap_push(hk, hi, size, max(c / p, Z), j)
@@ -983,7 +1060,7 @@ def heat_at(Phi, pf, sp, fs, j, mode, u_full):
 
 # ---------------------------------------------------------------------------------- coverage
 @njit
-def deposit(P, perm, nodes, boxes, tpts, pf, pb, pi, fs, is_, prm, x, n):
+def deposit(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, x, n):
     """Add the footprint φ(r) = exp(-ε² r²) (eq. 30), r the tangent-plane distance to ``x``
     with normal ``n`` (eq. 31), to every point within r_a of ``x``; note changed target points."""
     ball = pi[PI_BALL]
@@ -1013,6 +1090,8 @@ def deposit(P, perm, nodes, boxes, tpts, pf, pb, pi, fs, is_, prm, x, n):
             oldc[j] = c
             chg[nchg] = j
             nchg += 1
+            if c == 0.0:  # untouched, hence active: its row will be added, start loading it now
+                _prefetch_row(Phi, j)
         if c == 0.0 and phi > 0.0:
             if target[j] == 1:
                 touched += 1
@@ -1177,7 +1256,7 @@ def step_kernel(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, sp, hk, hi, fs, is
     if phase != 2:
         if n_deposits < 0:
             for i in range(N):
-                deposit(P, perm, nodes, boxes, tpts, pf, pb, pi, fs, is_, prm, ag[i, AG_POS:AG_POS + 3],
+                deposit(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, ag[i, AG_POS:AG_POS + 3],
                         ag[i, AG_NRM:AG_NRM + 3])
         else:
             xp = np.empty(3)
@@ -1190,7 +1269,7 @@ def step_kernel(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, sp, hk, hi, fs, is
                 if nearest_distance(perm, nodes, boxes, tpts, q) > prm[PR_RA]:
                     continue  # a contact off the cloud covers no cloud point
                 locate(P, perm, nodes, boxes, tpts, q, ref, k, xp, nn, nb, d2)
-                deposit(P, perm, nodes, boxes, tpts, pf, pb, pi, fs, is_, prm, xp, nn)
+                deposit(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, xp, nn)
         if prm[PR_ZTARGET] != 0.0:
             nt = is_[IS_NTARGET]
             update_ergodicity(pf, pb, pi, hk[nt:], hi[nt:], fs, is_)
