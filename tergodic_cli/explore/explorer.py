@@ -369,6 +369,30 @@ class Explorer:
         residual = self._sbar()[self._rank] if self._mode == K.HEAT_CARRY else np.zeros(len(self.points))
         return a, residual
 
+    def cloud_fields(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
+        """Coverage c̃, source s and the heat's terms in one O(n) pass, in the cloud's order.
+
+        Returns ``(coverage, source, coeffs, residual)`` with u = ``evecs @ coeffs + residual``
+        (see :meth:`heat_terms`); s uses the running normaliser of the last step, so it equals
+        :attr:`source` up to round-off. What a run log's point cloud needs, cheaply.
+        """
+        n = len(self.points)
+        s = np.zeros(n)
+        Z, ms = self._fs[K.FS_Z], self._fs[K.FS_MASS_S]
+        T = self._T
+        e = self._pf[K.PF_PBAR, T] - (self._cov[T] / Z if Z > 0 else 0.0)
+        s[T] = np.maximum(e, 0.0) ** 2
+        rank = self._rank
+        source = s[rank]
+        coverage = self._cov[rank]
+        if not self._spectral:
+            return coverage, source, None, self._u_orig.copy()
+        if self._mode == K.HEAT_CARRY:
+            residual = source / ms if ms > 0 else np.zeros(n)
+        else:
+            residual = np.zeros(n)
+        return coverage, source, self._sp[K.SP_A].copy(), residual
+
     def heat_at(self, idx: np.ndarray) -> np.ndarray:
         """u at the cloud points ``idx`` (m,) exactly as the agents' gradient fits see it, O(m nK)."""
         idx = self._rank[np.asarray(idx, dtype=np.int64).ravel()]

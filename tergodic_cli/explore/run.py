@@ -365,9 +365,9 @@ def _log_cloud(runlog, explorer: Explorer, step: int, feed: _LogFeed | None = No
         feed.flush()  # the cloud follows the steps before it
     from tergodic_cli.runlog.writer import SpectralField
 
-    # u = Φ a + r is reconstructed (O(n nK)) by the log's writer, not in the explorer's loop
-    runlog.log_cloud(step, coverage=explorer.coverage, heat=SpectralField(*explorer.heat_terms()),
-                     source=explorer.source, target=explorer.p)
+    # one O(n) pass; u = Φ a + r is reconstructed (O(n nK)) by the log's writer, not in the explorer's loop
+    coverage, source, coeffs, residual = explorer.cloud_fields()
+    runlog.log_cloud(step, coverage=coverage, heat=SpectralField(coeffs, residual), source=source, target=explorer.p)
 
 
 class _Recorder:

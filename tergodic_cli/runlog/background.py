@@ -48,6 +48,9 @@ CLOSE_TIMEOUT_S = 300.0
 ENV_WRITER = "TERGODIC_LOG_WRITER"
 
 
+_HEADERS: dict[tuple, str] = {}  # (op, array layout) -> the header's JSON up to its fields
+
+
 def _pack(op: str, arrays: Mapping[str, np.ndarray] = (), *, borrow: bool = False, **fields: Any) -> list:
     """One frame as parts: the length prefix and JSON header (op, fields, array layout), then
     each array's bytes. With ``borrow`` contiguous arrays are not copied (they must not change
@@ -55,11 +58,30 @@ def _pack(op: str, arrays: Mapping[str, np.ndarray] = (), *, borrow: bool = Fals
     layout, blobs, size = [], [], 0
     for name, a in dict(arrays).items():
         a = np.ascontiguousarray(a)
-        layout.append([name, a.dtype.str, list(a.shape)])
+        layout.append((name, a.dtype.str, a.shape))
         blobs.append(memoryview(a).cast("B") if borrow else a.tobytes())
         size += a.nbytes
-    header = _dumps({"op": op, "arrays": layout, **fields}).encode()
+    key = (op, tuple(layout))
+    prefix = _HEADERS.get(key)
+    if prefix is None:  # json.dumps costs ~15 µs a call here: the fixed part is made once per layout
+        prefix = _HEADERS[key] = json.dumps({"op": op, "arrays": layout})[:-1]
+    parts = [prefix]
+    for k, v in fields.items():
+        if type(v) is int or type(v) is float:  # repr is valid JSON for these (NaN/Infinity as json writes them)
+            parts.append(f'"{k}": {_json_number(v)}')
+        else:
+            try:
+                parts.append(f'"{k}": {json.dumps(v)}')
+            except TypeError:  # numpy values in a config or summary
+                parts.append(f'"{k}": {_dumps(v)}')
+    header = (", ".join(parts) + "}").encode()
     return [_FRAME.pack(len(header), size) + header, *blobs]
+
+
+def _json_number(v: int | float) -> str:
+    if type(v) is float and not math.isfinite(v):
+        return "NaN" if v != v else ("Infinity" if v > 0 else "-Infinity")
+    return repr(v)
 
 
 def _unpack(header: bytes, payload: bytes) -> tuple[dict, dict[str, np.ndarray]]:
@@ -322,24 +344,25 @@ class BackgroundRunLog:
         explore`` does for ``trajectory.npz``) hands over a block every few dozen steps.
         """
         self._require_open()
-        step = np.asarray(step, dtype=np.float64)
         K = len(step)
         if K == 0:
             return
-        t = np.asarray(t, dtype=np.float64)
         P = np.asarray(positions, dtype=np.float64)
-        m = np.asarray(metrics, dtype=np.float64)
-        if P.ndim != 3 or P.shape[0] != K or P.shape[2] != 3 or m.shape != (K, 3) or t.shape != (K,):
-            raise TergodicError(f"run log got a block of {K} steps with positions {P.shape}, metrics {m.shape}",
+        if P.ndim != 3 or P.shape[0] != K or P.shape[2] != 3 or np.shape(metrics) != (K, 3) or np.shape(t) != (K,):
+            raise TergodicError(f"run log got a block of {K} steps with positions {P.shape}, metrics {np.shape(metrics)}",
                                 "pass (K, N, 3) vectors, (K, 3) metrics and (K,) step, t, step_ms")
-        if step.min() < 0 or not (np.all(np.isfinite(t)) and t.min() >= 0.0):
+        rows = np.empty((K, 6))
+        rows[:, 0] = step
+        rows[:, 1] = t
+        rows[:, 2:5] = metrics
+        rows[:, 5] = step_ms
+        lo = rows[:, :2].min(axis=0)
+        if not (lo[0] >= 0.0 and lo[1] >= 0.0 and math.isfinite(rows[:, 1].sum())):
             raise TergodicError("run log got a negative step or a bad time", "steps must be >= 0 and times finite, >= 0")
         self._send_pending()
-        rows = np.column_stack((step, t, m, np.asarray(step_ms, dtype=np.float64)))
-        self._send(_pack("steps", {"rows": rows, "P": P, "V": np.asarray(velocities, dtype=np.float64),
-                                   "N": np.asarray(normals, dtype=np.float64)}, slow={}))
+        self._send(_pack("steps", {"rows": rows, "P": P, "V": velocities, "N": normals}, slow={}))
         self.n_steps += K
-        self._last_t = float(t[-1])
+        self._last_t = float(rows[-1, 1])
 
     def _agent_arrays(self, positions, velocities, normals) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         P = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
@@ -527,6 +550,23 @@ def _serve(fh: Any) -> int:
     return 3
 
 
+def _warm_up(RunLog: type) -> None:
+    """Run every code path once on a throw-away file while the parent is still importing, so
+    the real run does not pay first-call costs (templates, schemas, native writer set-up)."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="tergodic-log-warm-") as tmp:
+        rng = np.random.default_rng(0)
+        pts = rng.standard_normal((8, 3))
+        log = RunLog(Path(tmp) / "warm.mcap", config={}, seed=0, points=pts, field_basis=np.eye(8, 2))
+        z = np.zeros((2, 1, 3))
+        log.log_steps(np.arange(1, 3), np.arange(1.0, 3.0), positions=z, velocities=z, normals=z + 1.0,
+                      metrics=np.zeros((2, 3)), step_ms=np.zeros(2))
+        log.log_cloud(2, coverage=np.zeros(8), heat=SpectralField(np.ones(2), np.zeros(8)), source=np.zeros(8))
+        log.log_event(2, 2.0, "warm-up")
+        log.close({"steps": 2})
+
+
 def main() -> None:
     import signal
 
@@ -536,9 +576,12 @@ def main() -> None:
         from tergodic_cli.runlog.proto import step_record_class
 
         _w._proto_classes(), step_record_class(), _w.foxglove_sdk_available()  # build the schemas once, now
-
-        sys.stdout.write("ready\n")
-        sys.stdout.flush()
+        _warm_up(_w.RunLog)
+        try:
+            sys.stdout.write("ready\n")
+            sys.stdout.flush()
+        except OSError:  # the parent is gone already: still write what it sent
+            pass
         code = _serve(sys.stdin.buffer)
         msg = "ok" if code == 0 else "abandoned"
     except TergodicError as exc:
