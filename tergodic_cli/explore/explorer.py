@@ -357,24 +357,13 @@ class Explorer:
             u += self._sbar()
         return u[self._rank]
 
-    def heat_terms(self) -> tuple[np.ndarray | None, np.ndarray]:
-        """u as ``evecs @ coeffs + residual`` in the cloud's order: (coeffs (nK,) or None, residual (n,)).
-
-        Copies, O(n) now; the O(n nK) product is left to the caller (the run log does it in its
-        writer process). ``coeffs`` is None when u has no spectral form (``--integrator implicit``).
-        """
-        if not self._spectral:
-            return None, self._u_orig.copy()
-        a = self._sp[K.SP_A].copy()
-        residual = self._sbar()[self._rank] if self._mode == K.HEAT_CARRY else np.zeros(len(self.points))
-        return a, residual
-
     def cloud_fields(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
         """Coverage c̃, source s and the heat's terms in one O(n) pass, in the cloud's order.
 
         Returns ``(coverage, source, coeffs, residual)`` with u = ``evecs @ coeffs + residual``
-        (see :meth:`heat_terms`); s uses the running normaliser of the last step, so it equals
-        :attr:`source` up to round-off. What a run log's point cloud needs, cheaply.
+        (the O(n nK) product is left to the caller: the run log does it in its writer process;
+        ``coeffs`` is None when u has no spectral form, ``--integrator implicit``). s uses the
+        running normaliser of the last step, so it equals :attr:`source` up to round-off.
         """
         n = len(self.points)
         s = np.zeros(n)

@@ -380,7 +380,7 @@ class BackgroundRunLog:
                   target: np.ndarray | None = None, t: float | None = None) -> None:
         """Log the cloud with per-point fields; see :meth:`RunLog.log_cloud <tergodic_cli.runlog.writer.RunLog.log_cloud>`.
 
-        ``heat`` as a :class:`~tergodic_cli.runlog.writer.SpectralField` (``Explorer.heat_terms()``)
+        ``heat`` as a :class:`~tergodic_cli.runlog.writer.SpectralField` (from ``Explorer.cloud_fields()``)
         is reconstructed by the child from the ``field_basis`` sent once at open, so the
         O(n nK) product never runs in the caller.
         """
