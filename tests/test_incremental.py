@@ -198,3 +198,38 @@ def test_periodic_resync_measures_a_round_off_sized_drift(sphere):
         ex.step()
     assert int(ex._is[K.IS_RESYNCS]) == 1 + 4  # the initial recompute and one every 100 steps
     assert 0.0 < ex.resync_drift < 1e-11
+
+
+def test_pending_lists_hold_exactly_the_inactive_points_under_this_steps_footprint(bowl):
+    # A point the footprint deactivates waits in a pending list, not the heap, while the
+    # footprint still covers it. Every step: each inactive target point is in the heap or in a
+    # pending list, the lists hold no duplicates and match their flags, and a listed point is
+    # one whose coverage grew this step (it leaves the list once the footprint has passed).
+    cloud, basis = bowl
+    target = cloud.mask.astype(float)
+    ex = Explorer(basis, target, ExploreConfig(nk=60, agent_radius=0.012, resync_every=0),
+                  cloud.points[np.flatnonzero(target)[:1]])
+    assert ex._prm[K.PR_ZTARGET] != 0.0  # both the source's and ε's active sets are kept
+    nt = int(ex._is[K.IS_NTARGET])
+    T = ex._T
+    lists = [(K.PB_ACTIVE, K.PB_INHEAP, K.PB_PEND, K.PI_PEND, K.IS_NPEND, K.IS_HEAP, 0),
+             (K.PB_EACTIVE, K.PB_EINHEAP, K.PB_EPEND, K.PI_EPEND, K.IS_NEPEND, K.IS_EHEAP, nt)]
+    longest = [0, 0]
+    for _ in range(600):
+        before = ex._cov.copy()
+        ex.step()
+        grew = ex._cov > before
+        for w, (pa, ph, pp, pl, nl, nh, off) in enumerate(lists):
+            npend = int(ex._is[nl])
+            pend = ex._pi[pl, :npend]
+            assert len(np.unique(pend)) == npend
+            flagged = np.flatnonzero(ex._pb[pp])
+            np.testing.assert_array_equal(np.sort(pend), flagged)
+            assert grew[pend].all()
+            inheap = set(ex._heap_idx[off:off + int(ex._is[nh])].tolist())
+            assert set(np.flatnonzero(ex._pb[ph]).tolist()) <= inheap
+            inactive = T[ex._pb[pa, T] == 0]
+            waiting = (ex._pb[ph, inactive] == 1) | (ex._pb[pp, inactive] == 1)
+            assert waiting.all(), inactive[~waiting]
+            longest[w] = max(longest[w], npend)
+    assert longest[0] > 0 and longest[1] > 0  # the lists were used

@@ -21,7 +21,9 @@ m p̄² (c̃/Z < p̄ there), so the expansion loses no precision to cancellation
 only at the footprint's points: their terms are swapped (one row of Φ each). Z changes
 everywhere, but it only grows, so a point can only *enter* A through Z: it does when Z exceeds
 its threshold t_i = c̃_i / p̄_i. Inactive points wait in a min-heap keyed by t_i (lazily: a key
-may be stale-low, since c̃ only grows, and is then re-pushed), so each entry costs one row.
+may be stale-low, since c̃ only grows, and is then re-pushed), so each entry costs one row. A
+point the footprint has just deactivated waits in a short pending list instead, checked every
+step, until the footprint leaves it: only then is its threshold final and worth a heap entry.
 The spectral coefficients of the injected source s/∫s follow in O(nK); the heat u = Φ a + s̄
 is evaluated only at the agents' n_N neighbours. A full recompute (:func:`resync`) every K
 steps bounds the round-off of the running sums.
@@ -92,10 +94,13 @@ N_PF = 9
 PB_TARGET, PB_ACTIVE, PB_INHEAP, PB_MARK = 0, 1, 2, 3
 # ... the active set of ε (eq. 48) and its heap flag, when its Z (the cloud's) is not the source's.
 PB_EACTIVE, PB_EINHEAP = 4, 5
-N_PB = 6
-# Rows of the per-point index array ``pi`` (n columns): changed list, ball buffer, target list.
-PI_CHG, PI_BALL, PI_TARGET = 0, 1, 2
-N_PI = 3
+# ... in the source's pending list (a point the footprint deactivated and still covers), in ε's.
+PB_PEND, PB_EPEND = 6, 7
+N_PB = 8
+# Rows of the per-point index array ``pi`` (n columns): changed list, ball buffer, target list,
+# the source's and ε's pending lists.
+PI_CHG, PI_BALL, PI_TARGET, PI_PEND, PI_EPEND = 0, 1, 2, 3, 4
+N_PI = 5
 # Rows of the spectral array ``sp`` (nK columns).
 SP_DECAY, SP_A, SP_B, SP_F0, SP_F1, SP_F2, SP_EXPDECAY, SP_PBARCOEF = 0, 1, 2, 3, 4, 5, 6, 7
 N_SP = 8
@@ -114,7 +119,9 @@ IS_HEAP, IS_TOUCHED, IS_EDGE, IS_NCHG, IS_SINCE_RESYNC, IS_PHAT, IS_NTARGET, IS_
 IS_FOOTPRINT, IS_ROWS, IS_POPS = 8, 9, 10
 # Size of ε's heap, kept in the second half of the heap arrays (the first half is the source's).
 IS_EHEAP = 11
-N_IS = 12
+# Lengths of the source's and ε's pending lists (PI_PEND, PI_EPEND).
+IS_NPEND, IS_NEPEND = 12, 13
+N_IS = 14
 # Float parameters ``prm``.
 PR_EPS2, PR_RA, PR_H2, PR_AMAX, PR_VMAX, PR_DT, PR_MAXSTART = 0, 1, 2, 3, 4, 5, 6
 #: 1.0: the source's coverage is normalised over the target (Z = ∫_T c̃) and ε (eq. 48) is kept
@@ -776,10 +783,13 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
     g1 = 0.0
     g2 = 0.0
     size = 0
+    pending = pb[PB_PEND]
+    is_[IS_NPEND] = 0
     for t in range(nt):
         j = targets[t]
         c = cov[j]
         p = pbar[j]
+        pending[j] = 0
         if _is_active(c, p, Z):
             active[j] = 1
             inheap[j] = 0
@@ -821,6 +831,8 @@ def resync_ergodicity(pf, pb, pi, hk, hi, fs, is_):
     active, inheap = pb[PB_EACTIVE], pb[PB_EINHEAP]
     targets = pi[PI_TARGET]
     Z = fs[FS_ZC]
+    pending = pb[PB_EPEND]
+    is_[IS_NEPEND] = 0
     e0 = 0.0
     e1 = 0.0
     e2 = 0.0
@@ -829,6 +841,7 @@ def resync_ergodicity(pf, pb, pi, hk, hi, fs, is_):
         j = targets[t]
         c = cov[j]
         p = pbar[j]
+        pending[j] = 0
         if _is_active(c, p, Z):
             active[j] = 1
             inheap[j] = 0
@@ -852,11 +865,33 @@ def update_ergodicity(pf, pb, pi, hk, hi, fs, is_):
     active set of the cloud's Z and without rows of Φ: O(changed points + crossings).
     Must run before :func:`update_source`, which clears the changed list."""
     mass, pbar, cov, oldc = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV], pf[PF_OLDC]
-    active, inheap = pb[PB_EACTIVE], pb[PB_EINHEAP]
+    active, inheap, mark, pending = pb[PB_EACTIVE], pb[PB_EINHEAP], pb[PB_MARK], pb[PB_EPEND]
     chg = pi[PI_CHG]
+    pend = pi[PI_EPEND]
     Z = fs[FS_ZC]
     e0, e1, e2 = fs[FS_E0], fs[FS_E1], fs[FS_E2]
     size = is_[IS_EHEAP]
+    npend = 0
+    for t in range(is_[IS_NEPEND]):  # the pending list, as in update_source
+        j = pend[t]
+        if active[j] == 1:
+            pending[j] = 0
+        elif mark[j] == 1:
+            pend[npend] = j
+            npend += 1
+        else:
+            pending[j] = 0
+            c = cov[j]
+            p = pbar[j]
+            if _is_active(c, p, Z):
+                m = mass[j]
+                e0 += m * p * p
+                e1 += m * p * c
+                e2 += m * c * c
+                active[j] = 1
+            else:
+                size = heap_push(hk, hi, size, max(c / p, Z), j)
+                inheap[j] = 1
     for t in range(is_[IS_NCHG]):
         j = chg[t]
         c0 = oldc[j]
@@ -872,9 +907,11 @@ def update_ergodicity(pf, pb, pi, hk, hi, fs, is_):
             e1 += m * p * (fn * c1 - fw * c0)
             e2 += m * (fn * c1 * c1 - fw * c0 * c0)
         active[j] = 1 if now else 0
-        if not now and inheap[j] == 0:
-            size = heap_push(hk, hi, size, c1 / p, j)
-            inheap[j] = 1
+        if not now and inheap[j] == 0 and pending[j] == 0:
+            pend[npend] = j
+            npend += 1
+            pending[j] = 1
+    is_[IS_NEPEND] = npend
     while size > 0 and hk[0] < Z:
         key, j, size = heap_pop(hk, hi, size)
         inheap[j] = 0
@@ -903,13 +940,44 @@ def update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
     list) and the growth of Z (points whose threshold c̃/p̄ it passed enter the active set)."""
     mass, pbar, cov, oldc = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV], pf[PF_OLDC]
     W0, W1, W2 = pf[PF_W0], pf[PF_W1], pf[PF_W2]
-    active, inheap, mark = pb[PB_ACTIVE], pb[PB_INHEAP], pb[PB_MARK]
+    active, inheap, mark, pending = pb[PB_ACTIVE], pb[PB_INHEAP], pb[PB_MARK], pb[PB_PEND]
     chg = pi[PI_CHG]
     rows = pi[PI_BALL]  # free after the deposits: the rows to add
+    pend = pi[PI_PEND]
     nrows = 0
     Z = fs[FS_Z]
     g0, g1, g2 = fs[FS_G0], fs[FS_G1], fs[FS_G2]
     size = is_[IS_HEAP]
+    # A point the footprint deactivates waits in the pending list, not in the heap, while the
+    # footprint still covers it: its c̃ (hence its threshold) is still growing, and a heap key
+    # would go stale and be popped and re-pushed. Once it is left alone its key is final.
+    npend = 0
+    for t in range(is_[IS_NPEND]):
+        j = pend[t]
+        if active[j] == 1:  # re-entered through its own deposit
+            pending[j] = 0
+        elif mark[j] == 1:  # covered again this step: the changed list below decides
+            pend[npend] = j
+            npend += 1
+        else:
+            pending[j] = 0
+            c = cov[j]
+            p = pbar[j]
+            if _is_active(c, p, Z):  # Z passed its threshold while it was pending
+                is_[IS_ROWS] += 1
+                m = mass[j]
+                w0, w1, w2 = m * p * p, m * p * c, m * c * c
+                g0 += w0
+                g1 += w1
+                g2 += w2
+                rows[nrows] = j
+                W0[nrows], W1[nrows], W2[nrows] = w0, w1, w2
+                nrows += 1
+                _prefetch_row(Phi, j)
+                active[j] = 1
+            else:
+                size = heap_push(hk, hi, size, max(c / p, Z), j)
+                inheap[j] = 1
     for t in range(is_[IS_NCHG]):
         j = chg[t]
         mark[j] = 0
@@ -935,10 +1003,12 @@ def update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
             if c0 != 0.0:  # (an untouched point's row was requested by the deposit)
                 _prefetch_row(Phi, j)
         active[j] = 1 if now else 0
-        if not now and inheap[j] == 0:
-            size = heap_push(hk, hi, size, c1 / p, j)
-            inheap[j] = 1
+        if not now and inheap[j] == 0 and pending[j] == 0:
+            pend[npend] = j
+            npend += 1
+            pending[j] = 1
     is_[IS_NCHG] = 0
+    is_[IS_NPEND] = npend
     while size > 0 and hk[0] < Z:
         key, j, size = heap_pop(hk, hi, size)
         is_[IS_POPS] += 1
