@@ -617,7 +617,6 @@ def dense_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, report: dict | N
     from scipy.linalg import eigh
 
     report = {} if report is None else report
-    n = L.shape[0]
     s = np.sqrt(mass)
     Z = component_null_basis(L, s)
     c = Z.shape[1]

@@ -41,7 +41,6 @@ from tergodic_cli.runlog.writer import (CHUNK_BYTES, FLUSH_EVERY, SpectralField,
 
 _FRAME = struct.Struct("<II")
 _METRIC_NAMES = ("ergodicity", "ergodicity_ref", "touched_fraction")
-_METRIC_KEYS = frozenset(_METRIC_NAMES)
 #: Seconds ``close`` waits for the child to finish the file.
 CLOSE_TIMEOUT_S = 300.0
 #: Environment switch: ``TERGODIC_LOG_WRITER=inline`` keeps the writer in the explorer's process.
