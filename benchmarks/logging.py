@@ -202,14 +202,15 @@ def _lockstep(make, cap, basis, cfg, steps: int, cloud_every: int, compression: 
             log_ex.step()
             record(log_ex, rec[1], k, (wall() - w1) * 1e3)
             r = rec[1]
-            if k + 1 - sent >= every or (k + 1) % cloud_every == 0 or k + 1 == steps:
+            cloud = None
+            if (k + 1) % cloud_every == 0 or k + 1 == steps:  # as tergodic explore logs it: one frame
+                cov, src, coeffs, residual = log_ex.cloud_fields()
+                cloud = {"coverage": cov, "heat": SpectralField(coeffs, residual), "source": src, "target": log_ex.p}
+            if k + 1 - sent >= every or cloud is not None:
                 log.log_steps(np.arange(sent + 1, k + 2), r["t"][sent:k + 1], positions=r["P"][sent:k + 1],
                               velocities=r["V"][sent:k + 1], normals=r["N"][sent:k + 1], metrics=r["m"][sent:k + 1],
-                              step_ms=r["ms"][sent:k + 1])
+                              step_ms=r["ms"][sent:k + 1], cloud=cloud)
                 sent = k + 1
-            if (k + 1) % cloud_every == 0 or k + 1 == steps:
-                cov, src, coeffs, residual = log_ex.cloud_fields()  # as tergodic explore logs it
-                log.log_cloud(k + 1, coverage=cov, heat=SpectralField(coeffs, residual), source=src, target=log_ex.p)
             c2, w2 = tcpu(), wall()
             t_plain += c1 - c0
             t_log += c2 - c1

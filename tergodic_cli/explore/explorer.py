@@ -366,20 +366,12 @@ class Explorer:
         running normaliser of the last step, so it equals :attr:`source` up to round-off.
         """
         n = len(self.points)
-        s = np.zeros(n)
-        Z, ms = self._fs[K.FS_Z], self._fs[K.FS_MASS_S]
-        T = self._T
-        e = self._pf[K.PF_PBAR, T] - (self._cov[T] / Z if Z > 0 else 0.0)
-        s[T] = np.maximum(e, 0.0) ** 2
-        rank = self._rank
-        source = s[rank]
-        coverage = self._cov[rank]
+        coverage, source, residual = np.empty(n), np.empty(n), np.empty(n)
+        carry = self._spectral and self._mode == K.HEAT_CARRY
+        K.cloud_fields(self._pf[K.PF_PBAR], self._cov, self._T, self._rank, self._fs[K.FS_Z], self._fs[K.FS_MASS_S],
+                       carry, coverage, source, residual)  # one compiled pass: this runs in the explore loop
         if not self._spectral:
             return coverage, source, None, self._u_orig.copy()
-        if self._mode == K.HEAT_CARRY:
-            residual = source / ms if ms > 0 else np.zeros(n)
-        else:
-            residual = np.zeros(n)
         return coverage, source, self._sp[K.SP_A].copy(), residual
 
     def heat_at(self, idx: np.ndarray) -> np.ndarray:

@@ -212,14 +212,15 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
         def after_step(step: int, robot_sample: dict | None) -> None:
             recorder.record(step, robot_sample)
             if runlog is not None:
-                if feed is not None:
-                    feed.after_step()
+                cloud_now = step % log_cloud_every == 0 or step == cfg.steps
+                if feed is not None:  # the block and its cloud in one frame
+                    feed.after_step(cloud=_cloud_fields(explorer) if cloud_now else None)
                 else:
                     runlog.log_step(step, step * cfg.dt, positions=explorer.positions, velocities=explorer.velocities,
                                     normals=explorer.normals, metrics=explorer.metrics(),
                                     step_ms=explorer.last_step_ms, robot=robot_sample)
-                if step % log_cloud_every == 0 or step == cfg.steps:
-                    _log_cloud(runlog, explorer, step, feed)
+                    if cloud_now:
+                        _log_cloud(runlog, explorer, step)
 
         robot_extra = {}
         if robot_api is None:
@@ -344,30 +345,37 @@ class _LogFeed:
         self.log, self.rec, self.sent = runlog, recorder, 0
         self.every = int(every or getattr(runlog, "flush_every", 50))
 
-    def after_step(self) -> None:
-        if self.rec.count - self.sent >= self.every:
-            self.flush()
+    def after_step(self, cloud: dict | None = None) -> None:
+        """After each recorded step: hand over the block when it is full, or with ``cloud``."""
+        if cloud is not None or self.rec.count - self.sent >= self.every:
+            self.flush(cloud)
 
-    def flush(self) -> None:
+    def flush(self, cloud: dict | None = None) -> None:
         a, b = self.sent, self.rec.count
         if b <= a:
+            if cloud is not None:
+                self.log.log_cloud(int(self.rec.step[b - 1]) if b else 0, **cloud)
             return
         r = self.rec
         metrics = np.column_stack([r.sca[k][a:b] for k in ("ergodicity", "ergodicity_ref", "touched_fraction")])
         self.log.log_steps(r.step[a:b], r.sca["time"][a:b], positions=r.vec["positions"][a:b],
                            velocities=r.vec["velocities"][a:b], normals=r.vec["normals"][a:b], metrics=metrics,
-                           step_ms=r.sca["step_ms"][a:b])
+                           step_ms=r.sca["step_ms"][a:b], cloud=cloud)
         self.sent = b
+
+
+def _cloud_fields(explorer: Explorer) -> dict:
+    """log_cloud's fields from one O(n) pass; u = Φ a + r is rebuilt (O(n nK)) by the log's writer."""
+    from tergodic_cli.runlog.writer import SpectralField
+
+    coverage, source, coeffs, residual = explorer.cloud_fields()
+    return {"coverage": coverage, "heat": SpectralField(coeffs, residual), "source": source, "target": explorer.p}
 
 
 def _log_cloud(runlog, explorer: Explorer, step: int, feed: _LogFeed | None = None) -> None:
     if feed is not None:
         feed.flush()  # the cloud follows the steps before it
-    from tergodic_cli.runlog.writer import SpectralField
-
-    # one O(n) pass; u = Φ a + r is reconstructed (O(n nK)) by the log's writer, not in the explorer's loop
-    coverage, source, coeffs, residual = explorer.cloud_fields()
-    runlog.log_cloud(step, coverage=coverage, heat=SpectralField(coeffs, residual), source=source, target=explorer.p)
+    runlog.log_cloud(step, **_cloud_fields(explorer))
 
 
 class _Recorder:

@@ -336,11 +336,13 @@ class BackgroundRunLog:
             self._send_pending()
 
     def log_steps(self, step: np.ndarray, t: np.ndarray, *, positions: np.ndarray, velocities: np.ndarray,
-                  normals: np.ndarray, metrics: np.ndarray, step_ms: np.ndarray) -> None:
+                  normals: np.ndarray, metrics: np.ndarray, step_ms: np.ndarray, cloud: dict | None = None) -> None:
         """Log K steps at once; see :meth:`RunLog.log_steps <tergodic_cli.runlog.writer.RunLog.log_steps>`.
 
         The cheapest way to log: a caller that keeps its own per-step arrays (as ``tergodic
-        explore`` does for ``trajectory.npz``) hands over a block every few dozen steps.
+        explore`` does for ``trajectory.npz``) hands over a block every few dozen steps, with the
+        cloud of the block's last step (``cloud``: :meth:`log_cloud`'s keyword arguments) in the
+        same frame.
         """
         self._require_open()
         K = len(step)
@@ -358,8 +360,12 @@ class BackgroundRunLog:
         lo = rows[:, :2].min(axis=0)
         if not (lo[0] >= 0.0 and lo[1] >= 0.0 and math.isfinite(rows[:, 1].sum())):
             raise TergodicError("run log got a negative step or a bad time", "steps must be >= 0 and times finite, >= 0")
+        arrays = {"rows": rows, "P": P, "V": velocities, "N": normals}
+        if cloud is not None:
+            arrays.update(self._cloud_arrays(**cloud, prefix="cloud."))
+            self.n_clouds += 1
         self._send_pending()
-        self._send(_pack("steps", {"rows": rows, "P": P, "V": velocities, "N": normals}, slow={}))
+        self._send(_pack("steps", arrays, slow={}))
         self.n_steps += K
         self._last_t = float(rows[-1, 1])
 
@@ -384,6 +390,13 @@ class BackgroundRunLog:
         O(n nK) product never runs in the caller.
         """
         self._require_open()
+        arrays = self._cloud_arrays(coverage=coverage, heat=heat, source=source, target=target)
+        self._send_pending()
+        self.n_clouds += 1
+        self._send(_pack("cloud", arrays, step=int(step), t=self._last_t if t is None else float(t)))
+
+    def _cloud_arrays(self, *, coverage, heat, source, target=None, prefix: str = "") -> dict[str, np.ndarray]:
+        """A cloud's fields as frame arrays: float32 values, or a SpectralField's coeffs and residual."""
         n = len(self.points)
         arrays = {}
         for name, values in (("target", target), ("coverage", coverage), ("heat", heat), ("source", source)):
@@ -392,17 +405,15 @@ class BackgroundRunLog:
             if isinstance(values, SpectralField):
                 check_spectral_field(values, self._field_basis, n)
                 if values.coeffs is not None:
-                    arrays[f"{name}.coeffs"] = np.asarray(values.coeffs, dtype=np.float64)
-                arrays[f"{name}.residual"] = np.asarray(values.residual, dtype=np.float64)
+                    arrays[f"{prefix}{name}.coeffs"] = np.asarray(values.coeffs, dtype=np.float64)
+                arrays[f"{prefix}{name}.residual"] = np.asarray(values.residual, dtype=np.float64)
                 continue
             values = np.asarray(values)
             if values.shape != (n,):
                 raise TergodicError(f"run log cloud field {name} has shape {values.shape}, expected ({n},)",
                                     "pass one value per point")
-            arrays[name] = values.astype(np.float32)  # the message's field type: the same rounding as in-process
-        self._send_pending()
-        self.n_clouds += 1
-        self._send(_pack("cloud", arrays, step=int(step), t=self._last_t if t is None else float(t)))
+            arrays[prefix + name] = values.astype(np.float32)  # the message's field type: the same rounding as in-process
+        return arrays
 
     def log_event(self, step: int, t: float, text: str, level: str = "info") -> None:
         """Log a ``foxglove.Log`` event after the steps so far."""
@@ -501,6 +512,18 @@ def _write_steps(log: Any, a: dict[str, np.ndarray], slow: dict[str, dict]) -> N
                      step_ms=float(step_ms[i]), robot=extra.get("robot"))
 
 
+def _cloud_fields(a: dict[str, np.ndarray], prefix: str = "") -> dict:
+    """log_cloud's field arguments from frame arrays (``name`` or ``name.coeffs`` / ``name.residual``)."""
+    fields = {}
+    for name in ("target", "coverage", "heat", "source"):
+        key = prefix + name
+        if key in a:
+            fields[name] = a[key]
+        elif f"{key}.residual" in a:
+            fields[name] = SpectralField(a.get(f"{key}.coeffs"), a[f"{key}.residual"])
+    return fields
+
+
 _ABANDONED: list = []
 
 
@@ -522,12 +545,11 @@ def _serve(fh: Any) -> int:
         op = h["op"]
         if op == "steps":
             _write_steps(log, a, h["slow"])
+            cloud = _cloud_fields(a, "cloud.")
+            if cloud:  # the block's last step's cloud, sent in the same frame
+                log.log_cloud(int(a["rows"][-1, 0]), **cloud)
         elif op == "cloud":
-            fields = {k: v for k, v in a.items() if "." not in k}
-            for name in ("heat", "coverage", "source", "target"):
-                if f"{name}.residual" in a:
-                    fields[name] = SpectralField(a.get(f"{name}.coeffs"), a[f"{name}.residual"])
-            log.log_cloud(h["step"], t=h["t"], **fields)
+            log.log_cloud(h["step"], t=h["t"], **_cloud_fields(a))
         elif op == "event":
             log.log_event(h["step"], h["t"], h["text"], h["level"])
         elif op == "sync":

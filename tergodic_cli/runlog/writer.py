@@ -590,7 +590,7 @@ class RunLog:
             self._flush()
 
     def log_steps(self, step: np.ndarray, t: np.ndarray, *, positions: np.ndarray, velocities: np.ndarray,
-                  normals: np.ndarray, metrics: np.ndarray, step_ms: np.ndarray) -> None:
+                  normals: np.ndarray, metrics: np.ndarray, step_ms: np.ndarray, cloud: dict | None = None) -> None:
         """Log K steps at once, as K :meth:`log_step` calls with the standard metrics would.
 
         Parameters
@@ -601,6 +601,8 @@ class RunLog:
         metrics : (K, 3) float array
             ergodicity, ergodicity_ref, touched_fraction per step.
         step_ms : (K,) float array
+        cloud : dict or None
+            :meth:`log_cloud`'s keyword arguments for a cloud at the block's last step, logged after it.
         """
         self._require_open()
         step = np.asarray(step, dtype=np.int64)
@@ -634,6 +636,8 @@ class RunLog:
             self._flush()
         self.n_steps += K
         self._last_t = float(t[-1])
+        if cloud is not None:
+            self.log_cloud(int(step[-1]), **cloud)
 
     def _extra_metrics(self, row: int, metrics: Mapping[str, float]) -> None:
         extras = {}
