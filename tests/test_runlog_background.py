@@ -170,3 +170,42 @@ def test_the_environment_switch_keeps_the_writer_in_process(tmp_path, monkeypatc
     log = open_run_log(tmp_path / "b.mcap", config={}, seed=0, points=inp["points"])
     assert isinstance(log, BackgroundRunLog)
     log.close()
+
+
+def test_blocks_with_their_cloud_equal_step_by_step_logging(tmp_path):
+    """What explore sends (a block of rows and its cloud in one frame) writes the messages of
+    one log_step per step followed by log_cloud."""
+    inp = demo_inputs(steps=120, n_points=200, n_agents=1, seed=9)
+    n, steps = 200, inp["steps"]
+    basis = np.random.default_rng(2).standard_normal((n, 6))
+    kw = dict(config=inp["config"], seed=1, versions=inp["versions"], capture_sidecar=inp["sidecar"],
+              points=inp["points"], target=inp["target"], cloud_every=50, field_basis=basis)
+    metrics = np.column_stack([inp["metrics"][k] for k in ("ergodicity", "ergodicity_ref", "touched_fraction")])
+    cloud_at = {50, 100, 120}
+
+    def cloud(step):
+        c = inp["clouds"][step]
+        return {"coverage": c["coverage"], "heat": SpectralField(np.arange(6.0) - step, c["heat"]),
+                "source": c["source"]}
+
+    one = RunLog(tmp_path / "one.mcap", **kw)
+    for k in range(steps):
+        one.log_step(k + 1, float(k + 1), positions=inp["P"][k], velocities=inp["V"][k], normals=inp["N"][k],
+                     metrics=dict(zip(("ergodicity", "ergodicity_ref", "touched_fraction"), metrics[k])),
+                     step_ms=inp["step_ms"][k])
+        if k + 1 in cloud_at:
+            one.log_cloud(k + 1, **cloud(k + 1))
+    one.close({"steps": steps})
+    blocks = BackgroundRunLog(tmp_path / "blocks.mcap", **kw)
+    sent = 0
+    for end in (30, 50, 100, 120):
+        blocks.log_steps(np.arange(sent + 1, end + 1), np.arange(sent + 1, end + 1, dtype=float),
+                         positions=inp["P"][sent:end], velocities=inp["V"][sent:end], normals=inp["N"][sent:end],
+                         metrics=metrics[sent:end], step_ms=inp["step_ms"][sent:end],
+                         cloud=cloud(end) if end in cloud_at else None)
+        sent = end
+    blocks.close({"steps": steps})
+    a, b = _raw_messages(tmp_path / "one.mcap"), _raw_messages(tmp_path / "blocks.mcap")
+    assert len(a[0]) == len(b[0]) == 3 * steps + 3
+    assert a[0] == b[0] and a[1] == b[1]
+    assert [c.step for c in read_run_log(tmp_path / "blocks.mcap").clouds] == [50, 100, 120]
