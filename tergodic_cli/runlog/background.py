@@ -36,8 +36,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from tergodic_cli.errors import TergodicError
-from tergodic_cli.runlog.writer import (CHUNK_BYTES, FLUSH_EVERY, SpectralField, _dumps, check_field_basis,
-                                        check_log_args, check_spectral_field)
+from tergodic_cli.runlog.writer import (CHUNK_BYTES, FLUSH_EVERY, SpectralField, _dumps, check_agent_arrays,
+                                        check_field_basis, check_log_args, check_spectral_field)
 
 _FRAME = struct.Struct("<II")
 _METRIC_NAMES = ("ergodicity", "ergodicity_ref", "touched_fraction")
@@ -370,12 +370,7 @@ class BackgroundRunLog:
         self._last_t = float(rows[-1, 1])
 
     def _agent_arrays(self, positions, velocities, normals) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        P = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-        V = np.asarray(velocities, dtype=np.float64).reshape(-1, 3)
-        Nn = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-        if not (len(P) == len(V) == len(Nn)) or len(P) == 0:
-            raise TergodicError(f"run log got {len(P)} positions, {len(V)} velocities, {len(Nn)} normals",
-                                "pass (N, 3) arrays for N >= 1 agents")
+        P, V, Nn = check_agent_arrays(positions, velocities, normals)
         if len(P) != self._n_agents:
             self._send_pending()  # the rows so far keep their own layout
             self._alloc(len(P))

@@ -318,6 +318,17 @@ def evaluate_field(values: Any, field_basis: np.ndarray | None, n: int) -> np.nd
     return np.asarray(values)
 
 
+def check_agent_arrays(positions: Any, velocities: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One step's agent positions, velocities and normals as (N, 3) float64 arrays, N >= 1 each."""
+    P = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    V = np.asarray(velocities, dtype=np.float64).reshape(-1, 3)
+    Nn = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    if not (len(P) == len(V) == len(Nn)) or len(P) == 0:
+        raise TergodicError(f"run log got {len(P)} positions, {len(V)} velocities, {len(Nn)} normals",
+                            "pass (N, 3) arrays for N >= 1 agents")
+    return P, V, Nn
+
+
 def check_log_args(points: Any, target: Any, compression: str, cloud_every: int,
                    backend: str) -> tuple[np.ndarray, np.ndarray, str]:
     """Validate a run log's arguments: (points (n, 3) float64, target (n,) float64, backend name)."""
@@ -649,12 +660,7 @@ class RunLog:
 
     def _agent_arrays(self, positions, velocities, normals) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The slow path of log_step: validate shapes, (re)allocate for a new agent count."""
-        P = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-        V = np.asarray(velocities, dtype=np.float64).reshape(-1, 3)
-        Nn = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-        if not (len(P) == len(V) == len(Nn)) or len(P) == 0:
-            raise TergodicError(f"run log got {len(P)} positions, {len(V)} velocities, {len(Nn)} normals",
-                                "pass (N, 3) arrays for N >= 1 agents")
+        P, V, Nn = check_agent_arrays(positions, velocities, normals)
         if len(P) != self._n_agents:
             self._write_pending()  # the rows so far keep their own layout
             self._alloc(len(P))
