@@ -135,6 +135,8 @@ def bench_explorer(steps: int = 1000, repeats: int = 3, cloud_every: int = 50,
             med = {key: float(np.median([r[key] for r in runs])) for key in runs[0]}
             for kind in ("thread", "wall"):  # the median of per-run ratios: each run is one load condition
                 med[f"{kind}_overhead"] = float(np.median([r[f"{kind}_logged"] / r[f"{kind}_plain"] for r in runs])) - 1
+                med[f"{kind}_steps_overhead"] = float(np.median([r[f"{kind}_steps"] / r[f"{kind}_plain"]
+                                                                 for r in runs])) - 1
             out[f"{writer} {comp}"] = med
     finally:
         shutil.rmtree(cache, ignore_errors=True)
@@ -155,7 +157,8 @@ def _lockstep(make, cap, basis, cfg, steps: int, cloud_every: int, compression: 
     """
     from tergodic_cli.provenance import library_versions
     from tergodic_cli.runlog.background import BackgroundRunLog, LogWriterProcess
-    from tergodic_cli.runlog.writer import RunLog, SpectralField
+    from tergodic_cli.explore.run import LogFeed, RunRecorder
+    from tergodic_cli.runlog.writer import RunLog
 
     def proc_cpu(pid: int) -> float:  # utime + stime of a live process (Linux)
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -169,48 +172,32 @@ def _lockstep(make, cap, basis, cfg, steps: int, cloud_every: int, compression: 
     tmp = Path(tempfile.mkdtemp(prefix="tergodic-bench-"))
     tcpu, pcpu, wall = time.thread_time, time.process_time, time.perf_counter
     t_plain = t_log = w_plain = w_log = 0.0
+    w_fixed = t_fixed = 0.0  # opening and closing the log, a cost per run rather than per step
     p_start, t_start = pcpu(), tcpu()
     try:
         c0, w0 = tcpu(), wall()
-        kw = {"writer": child} if child else {}
+        # as explore opens it: with a writer child, Φ comes from the basis cache file, not down the pipe
+        kw = {"writer": child, "field_basis_file": basis.meta.get("evecs_file")} if child else {}
         log = (BackgroundRunLog if child else RunLog)(
             tmp / "run.mcap", config=cfg.to_dict(), seed=cfg.seed, versions=library_versions(), capture_sidecar=cap.meta,
             points=basis.points, target=cap.target, cloud_every=cloud_every, compression=compression,
             field_basis=log_ex.evecs, **kw)
-        t_log += tcpu() - c0
-        w_log += wall() - w0
-        # both sides keep every step in preallocated arrays (tergodic explore does so for
-        # trajectory.npz, with or without a log); the logged side also hands the log a block of
-        # rows every flush_every steps and the cloud every cloud_every steps, as explore does
-        N = len(plain_ex.positions)
-        rec = [{"P": np.zeros((steps, N, 3)), "V": np.zeros((steps, N, 3)), "N": np.zeros((steps, N, 3)),
-                "m": np.zeros((steps, 3)), "ms": np.zeros(steps), "t": np.zeros(steps)} for _ in range(2)]
-
-        def record(ex, r, k, step_ms):
-            r["P"][k], r["V"][k], r["N"][k] = ex.positions, ex.velocities, ex.normals
-            m = ex.metrics()
-            r["m"][k] = m["ergodicity"], m["ergodicity_ref"], m["touched_fraction"]
-            r["ms"][k] = step_ms
-            r["t"][k] = (k + 1) * cfg.dt
-
-        sent, every = 0, log.flush_every
+        t_fixed += tcpu() - c0
+        w_fixed += wall() - w0
+        # both sides keep every step in preallocated arrays, as tergodic explore does for
+        # trajectory.npz with or without a log (its RunRecorder); the logged side also hands the
+        # log a block of rows every flush_every steps, with the cloud every cloud_every steps,
+        # through explore's own LogFeed
+        rec_plain, rec_log = RunRecorder(plain_ex, steps), RunRecorder(log_ex, steps)
+        feed = LogFeed(log, rec_log)
         for k in range(steps):
             c0, w0 = tcpu(), wall()
             plain_ex.step()
-            record(plain_ex, rec[0], k, 0.0)
+            rec_plain.record(k + 1, None)
             c1, w1 = tcpu(), wall()
             log_ex.step()
-            record(log_ex, rec[1], k, (wall() - w1) * 1e3)
-            r = rec[1]
-            cloud = None
-            if (k + 1) % cloud_every == 0 or k + 1 == steps:  # as tergodic explore logs it: one frame
-                cov, src, coeffs, residual = log_ex.cloud_fields()
-                cloud = {"coverage": cov, "heat": SpectralField(coeffs, residual), "source": src, "target": log_ex.p}
-            if k + 1 - sent >= every or cloud is not None:
-                log.log_steps(np.arange(sent + 1, k + 2), r["t"][sent:k + 1], positions=r["P"][sent:k + 1],
-                              velocities=r["V"][sent:k + 1], normals=r["N"][sent:k + 1], metrics=r["m"][sent:k + 1],
-                              step_ms=r["ms"][sent:k + 1], cloud=cloud)
-                sent = k + 1
+            rec_log.record(k + 1, None)
+            feed.after_step(cloud=(k + 1) % cloud_every == 0 or k + 1 == steps)
             c2, w2 = tcpu(), wall()
             t_plain += c1 - c0
             t_log += c2 - c1
@@ -219,14 +206,15 @@ def _lockstep(make, cap, basis, cfg, steps: int, cloud_every: int, compression: 
         child_cpu = proc_cpu(child.proc.pid) - child_cpu0 if child else 0.0  # (misses the final footer)
         c0, w0 = tcpu(), wall()
         log.close({"steps": steps})
-        t_log += tcpu() - c0
-        w_log += wall() - w0
+        t_fixed += tcpu() - c0
+        w_fixed += wall() - w0
         other_threads = (pcpu() - p_start) - (tcpu() - t_start)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     k = 1e3 / steps
-    return {"thread_plain": t_plain * k, "thread_logged": t_log * k, "wall_plain": w_plain * k, "wall_logged": w_log * k,
-            "writer_cpu": (other_threads + child_cpu) * k}
+    return {"thread_plain": t_plain * k, "thread_logged": (t_log + t_fixed) * k, "wall_plain": w_plain * k,
+            "wall_logged": (w_log + w_fixed) * k, "thread_steps": t_log * k, "wall_steps": w_log * k,
+            "open_close_ms": w_fixed * 1e3, "writer_cpu": (other_threads + child_cpu) * k}
 
 
 def bench_cli(steps: int = 1000, repeats: int = 3) -> dict | None:

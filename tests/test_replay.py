@@ -311,6 +311,10 @@ def test_explore_then_replay_equals_summary_json(bowl_capture, tmp_path):
     with np.load(run / "trajectory.npz", allow_pickle=False) as z:
         assert np.array_equal(d.series["positions"], z["positions"])
         np.testing.assert_allclose(d.clouds[-1].coverage, z["coverage"], rtol=1e-6)  # float32 in the cloud
+        # the heat, rebuilt by the writer child from Φ it read from the basis cache file
+        np.testing.assert_allclose(d.clouds[-1].heat, z["heat"], rtol=1e-5, atol=1e-6 * np.abs(z["heat"]).max())
+        np.testing.assert_allclose(d.clouds[-1].target, z["target"], rtol=1e-6)
+    assert not any("not logged" in text for _, _, text in d.events)
     plots = run_cli("replay", run, "--plot", tmp_path / "plots")
     assert plots.code == 0, plots.err
     assert _png_is_drawn(tmp_path / "plots" / "cloud_coverage.png")

@@ -209,3 +209,98 @@ def test_blocks_with_their_cloud_equal_step_by_step_logging(tmp_path):
     assert len(a[0]) == len(b[0]) == 3 * steps + 3
     assert a[0] == b[0] and a[1] == b[1]
     assert [c.step for c in read_run_log(tmp_path / "blocks.mcap").clouds] == [50, 100, 120]
+
+
+def _basis_file(tmp_path, basis):
+    from tergodic_cli.basis.cache import array_checksum
+
+    path = tmp_path / "evecs.npy"
+    np.save(path, np.ascontiguousarray(basis), allow_pickle=False)
+    return {"path": str(path), "checksum": array_checksum(basis)}
+
+
+def test_reusable_step_blocks_with_a_basis_file_equal_step_by_step_logging(tmp_path):
+    """explore's fast path (a StepBlock refilled in place, Φ read by the child from the basis
+    cache file, the target only when it changes) writes the messages of one log_step per step
+    and log_cloud with the target each time."""
+    inp = demo_inputs(steps=120, n_points=200, n_agents=2, seed=11)
+    n, steps, nk = 200, inp["steps"], 6
+    phi = np.random.default_rng(3).standard_normal((n, nk + 2))  # the file holds more columns than in use
+    kw = dict(config=inp["config"], seed=1, versions=inp["versions"], capture_sidecar=inp["sidecar"],
+              points=inp["points"], target=inp["target"], cloud_every=50, field_basis=phi[:, :nk])
+    metrics = np.column_stack([inp["metrics"][k] for k in ("ergodicity", "ergodicity_ref", "touched_fraction")])
+    new_target = np.where(inp["target"] > 0, 0.0, 1.0)  # a re-capture between the 2nd and 3rd cloud
+    cloud_at = {50: inp["target"], 100: inp["target"], 120: new_target}
+
+    def coeffs(step):
+        return np.arange(float(nk)) - step
+
+    one = RunLog(tmp_path / "one.mcap", **kw)
+    for k in range(steps):
+        one.log_step(k + 1, float(k + 1), positions=inp["P"][k], velocities=inp["V"][k], normals=inp["N"][k],
+                     metrics=dict(zip(("ergodicity", "ergodicity_ref", "touched_fraction"), metrics[k])),
+                     step_ms=inp["step_ms"][k])
+        if k + 1 in cloud_at:
+            c = inp["clouds"][k + 1]
+            one.log_cloud(k + 1, coverage=c["coverage"], heat=SpectralField(coeffs(k + 1), c["heat"]),
+                          source=c["source"], target=cloud_at[k + 1])
+    one.close({"steps": steps})
+
+    log = BackgroundRunLog(tmp_path / "blocks.mcap", field_basis_file=_basis_file(tmp_path, phi), **kw)
+    sent, target_sent = 0, inp["target"]
+    for end in (30, 50, 100, 120):
+        cloud = end in cloud_at
+        with_target = cloud and cloud_at[end] is not target_sent
+        blk = log.step_block(end - sent, 2, cloud=cloud, n_coeffs=nk if cloud else 0, with_target=with_target)
+        blk.rows[:] = np.column_stack([np.arange(sent + 1, end + 1), np.arange(sent + 1, end + 1), metrics[sent:end],
+                                       inp["step_ms"][sent:end]])
+        blk.PVN[:] = np.stack([inp["P"][sent:end], inp["V"][sent:end], inp["N"][sent:end]])
+        if cloud:
+            c = inp["clouds"][end]
+            blk.coverage[:], blk.source[:] = c["coverage"], c["source"]
+            blk.heat_coeffs[:], blk.heat_residual[:] = coeffs(end), c["heat"]
+            if with_target:
+                blk.target[:] = cloud_at[end]
+                target_sent = cloud_at[end]
+        log.send_block(blk)
+        blk.rows[:] = -1.0  # the block is free again as soon as send_block returns
+        sent = end
+    assert log.step_block(50, 2, cloud=True, n_coeffs=nk) is log.step_block(50, 2, cloud=True, n_coeffs=nk)
+    log.close({"steps": steps})
+    a, b = _raw_messages(tmp_path / "one.mcap"), _raw_messages(tmp_path / "blocks.mcap")
+    assert len(a[0]) == len(b[0]) == 3 * steps + 3
+    assert a[0] == b[0] and a[1] == b[1]
+    d = read_run_log(tmp_path / "blocks.mcap")
+    assert np.array_equal(d.clouds[-1].target, new_target.astype(np.float32))
+
+
+def test_a_basis_file_changed_during_the_run_leaves_the_heat_out_with_a_warning(tmp_path):
+    inp = demo_inputs(steps=50, n_points=100, n_agents=1, seed=12)
+    phi = np.random.default_rng(4).standard_normal((100, 4))
+    ref = _basis_file(tmp_path, phi)
+    np.save(ref["path"], phi + 1e-12, allow_pickle=False)  # modified after its checksum was taken
+    log = BackgroundRunLog(tmp_path / "run.mcap", config=inp["config"], seed=1, points=inp["points"],
+                           target=inp["target"], field_basis=phi, field_basis_file=ref)
+    c = inp["clouds"][50]
+    metrics = np.column_stack([inp["metrics"][k] for k in ("ergodicity", "ergodicity_ref", "touched_fraction")])
+    log.log_steps(np.arange(1, 51), np.arange(1.0, 51.0), positions=inp["P"], velocities=inp["V"], normals=inp["N"],
+                  metrics=metrics, step_ms=inp["step_ms"],
+                  cloud={"coverage": c["coverage"], "heat": SpectralField(np.ones(4), c["heat"]), "source": c["source"]})
+    log.close({"steps": 50})
+    d = read_run_log(tmp_path / "run.mcap")
+    assert d.steps == 50 and not d.truncated
+    assert np.all(np.isnan(d.clouds[0].heat)) and np.allclose(d.clouds[0].coverage, c["coverage"], rtol=1e-6)
+    assert any("heat field is not logged" in text and "checksum" in text for _, _, text in d.events)
+
+
+def test_a_step_block_of_the_wrong_heat_size_is_refused(tmp_path):
+    inp = demo_inputs(steps=10, n_points=50, n_agents=1, seed=13)
+    log = BackgroundRunLog(tmp_path / "run.mcap", config=inp["config"], seed=1, points=inp["points"],
+                           target=inp["target"], field_basis=np.ones((50, 3)))
+    with pytest.raises(TergodicError, match="3 columns|as many"):
+        log.step_block(10, 1, cloud=True, n_coeffs=5)
+    blk = log.step_block(2, 1)
+    blk.rows[:] = [[1, -1.0, 0, 0, 0, 0], [2, 2.0, 0, 0, 0, 0]]
+    with pytest.raises(TergodicError, match="negative step or a bad time"):
+        log.send_block(blk)
+    log.close({"steps": 0})

@@ -217,6 +217,17 @@ def _read_checked(path: Path, expected: str | None) -> np.ndarray:
     return a.reshape(shape[::-1]).T if fortran else a.reshape(shape)
 
 
+def read_checked_array(path: str | Path, checksum: str) -> np.ndarray:
+    """An array of a cache entry (``basis.meta["evecs_file"]``), read and checked against its checksum.
+
+    Raises
+    ------
+    CacheMiss
+        unreadable, truncated, or modified since the entry was written.
+    """
+    return _read_checked(Path(path), checksum)
+
+
 def _read_exactly(f, view: memoryview) -> None:
     pos = 0
     while pos < len(view):
@@ -292,9 +303,12 @@ def _load_entry(entry: Path, points: np.ndarray, order: np.ndarray, canon: np.nd
     if cached.shape != canon.shape or np.abs(cached - canon).max() > 10 * QUANTUM_M:
         raise CacheMiss("geometry does not match its key")
     try:
-        return _from_arrays(arrays, points, order, meta)
+        basis = _from_arrays(arrays, points, order, meta)
     except (KeyError, TypeError, ValueError, IndexError) as exc:
         raise CacheMiss(f"inconsistent ({type(exc).__name__})") from None
+    if basis.evecs is arrays["evecs"]:  # row for row the file's: a reader may take Φ from disk
+        basis.meta["evecs_file"] = {"path": str(entry / "evecs.npy"), "checksum": checksums["evecs"]}
+    return basis
 
 
 def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None = None, force: bool = False,
@@ -353,6 +367,7 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
     _write_entry(entry, arrays, meta)
     timings["write_ms"] = 1e3 * (time.perf_counter() - t)
     meta["path"] = str(entry)
+    meta["evecs_file"] = {"path": str(entry / "evecs.npy"), "checksum": meta["checksums"]["evecs"]}
     basis.meta = meta
     return basis, False
 

@@ -332,6 +332,11 @@ class Explorer:
         return self._basis.evecs[:, : self.cfg.nk]
 
     @property
+    def heat_is_spectral(self) -> bool:
+        """Whether u = evecs @ a (+ a residual), so :meth:`cloud_fields` returns coefficients."""
+        return self._spectral
+
+    @property
     def source(self) -> np.ndarray:
         from tergodic_cli.explore.metrics import source_term
 
@@ -357,22 +362,34 @@ class Explorer:
             u += self._sbar()
         return u[self._rank]
 
-    def cloud_fields(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
+    def cloud_fields(self, out: tuple | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
         """Coverage c̃, source s and the heat's terms in one O(n) pass, in the cloud's order.
 
         Returns ``(coverage, source, coeffs, residual)`` with u = ``evecs @ coeffs + residual``
         (the O(n nK) product is left to the caller: the run log does it in its writer process;
         ``coeffs`` is None when u has no spectral form, ``--integrator implicit``). s uses the
         running normaliser of the last step, so it equals :attr:`source` up to round-off.
+
+        ``out``: arrays to fill instead, ``(coverage (n,), source (n,), coeffs (nK,) or None,
+        residual (n,))``; coverage and source may be float32 (rounded as ``astype`` would),
+        which saves the run log a conversion pass.
         """
         n = len(self.points)
-        coverage, source, residual = np.empty(n), np.empty(n), np.empty(n)
+        if out is None:
+            coverage, source, residual = np.empty(n), np.empty(n), np.empty(n)
+            coeffs = None
+        else:
+            coverage, source, coeffs, residual = out
         carry = self._spectral and self._mode == K.HEAT_CARRY
         K.cloud_fields(self._pf[K.PF_PBAR], self._cov, self._T, self._rank, self._fs[K.FS_Z], self._fs[K.FS_MASS_S],
                        carry, coverage, source, residual)  # one compiled pass: this runs in the explore loop
         if not self._spectral:
-            return coverage, source, None, self._u_orig.copy()
-        return coverage, source, self._sp[K.SP_A].copy(), residual
+            residual[:] = self._u_orig
+            return coverage, source, None, residual
+        if coeffs is None:
+            return coverage, source, self._sp[K.SP_A].copy(), residual
+        coeffs[:] = self._sp[K.SP_A]
+        return coverage, source, coeffs, residual
 
     def heat_at(self, idx: np.ndarray) -> np.ndarray:
         """u at the cloud points ``idx`` (m,) exactly as the agents' gradient fits see it, O(m nK)."""

@@ -189,11 +189,11 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
             "the basis does not match the capture's points", "recompute it: tergodic precompute CAPTURE --force")
     explorer = Explorer(basis, capture.target, cfg, start_xyz, on_event=event)
 
-    recorder = _Recorder(explorer, cfg.steps)
+    recorder = RunRecorder(explorer, cfg.steps)
     runlog = _open_log(out, cfg, basis, capture, log_cloud_every, writer) if log else None
     # kinematic runs: the log takes the recorder's rows in blocks (no per-step logging work);
     # robot steps carry a sample each and are logged one by one
-    feed = _LogFeed(runlog, recorder) if runlog is not None and robot_api is None else None
+    feed = LogFeed(runlog, recorder) if runlog is not None and robot_api is None else None
     try:
         if runlog is not None:
             for msg in events:
@@ -214,7 +214,7 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
             if runlog is not None:
                 cloud_now = step % log_cloud_every == 0 or step == cfg.steps
                 if feed is not None:  # the block and its cloud in one frame
-                    feed.after_step(cloud=_cloud_fields(explorer) if cloud_now else None)
+                    feed.after_step(cloud=cloud_now)
                 else:
                     runlog.log_step(step, step * cfg.dt, positions=explorer.positions, velocities=explorer.velocities,
                                     normals=explorer.normals, metrics=explorer.metrics(),
@@ -334,33 +334,55 @@ def _open_log(out: Path, cfg: ExploreConfig, basis, capture, cloud_every: int, w
     out.mkdir(parents=True, exist_ok=True)
     log = open_run_log(out / "run.mcap", writer=writer, config=cfg.to_dict(), seed=cfg.seed, versions=library_versions(),
                  capture_sidecar=capture.meta, points=basis.points, target=capture.target, cloud_every=cloud_every,
-                 field_basis=basis.evecs[:, : cfg.nk])
+                 field_basis=basis.evecs[:, : cfg.nk], field_basis_file=basis.meta.get("evecs_file"))
     return log.__enter__()
 
 
-class _LogFeed:
-    """Hands the recorder's per-step rows to the run log, ``every`` steps at a time (see RunLog.log_steps)."""
+class LogFeed:
+    """Hands the recorder's per-step rows to the run log, ``every`` steps at a time (see RunLog.log_steps).
 
-    def __init__(self, runlog, recorder: "_Recorder", every: int | None = None):
+    With a log written by a child process the rows and the cloud's fields are written
+    straight into a reusable frame (:class:`~tergodic_cli.runlog.background.StepBlock`):
+    a few array copies and one system call every ``every`` steps.
+    """
+
+    def __init__(self, runlog, recorder: "RunRecorder", every: int | None = None):
         self.log, self.rec, self.sent = runlog, recorder, 0
         self.every = int(every or getattr(runlog, "flush_every", 50))
+        self.blocks = hasattr(runlog, "step_block")
+        self.target_sent = runlog.target if self.blocks else None  # the target the log repeats
 
-    def after_step(self, cloud: dict | None = None) -> None:
-        """After each recorded step: hand over the block when it is full, or with ``cloud``."""
-        if cloud is not None or self.rec.count - self.sent >= self.every:
+    def after_step(self, cloud: bool = False) -> None:
+        """After each recorded step: hand over the block when it is full, or with the cloud (``cloud``)."""
+        if cloud or self.rec.count - self.sent >= self.every:
             self.flush(cloud)
 
-    def flush(self, cloud: dict | None = None) -> None:
+    def flush(self, cloud: bool = False) -> None:
         a, b = self.sent, self.rec.count
+        ex = self.rec.ex
         if b <= a:
-            if cloud is not None:
-                self.log.log_cloud(int(self.rec.step[b - 1]) if b else 0, **cloud)
+            if cloud:
+                self.log.log_cloud(int(self.rec.step[b - 1]) if b else 0, **_cloud_fields(ex))
             return
         r = self.rec
-        metrics = np.column_stack([r.sca[k][a:b] for k in ("ergodicity", "ergodicity_ref", "touched_fraction")])
-        self.log.log_steps(r.step[a:b], r.sca["time"][a:b], positions=r.vec["positions"][a:b],
-                           velocities=r.vec["velocities"][a:b], normals=r.vec["normals"][a:b], metrics=metrics,
-                           step_ms=r.sca["step_ms"][a:b], cloud=cloud)
+        if not self.blocks:
+            metrics = np.column_stack([r.sca[k][a:b] for k in ("ergodicity", "ergodicity_ref", "touched_fraction")])
+            self.log.log_steps(r.step[a:b], r.sca["time"][a:b], positions=r.vec["positions"][a:b],
+                               velocities=r.vec["velocities"][a:b], normals=r.vec["normals"][a:b], metrics=metrics,
+                               step_ms=r.sca["step_ms"][a:b], cloud=_cloud_fields(ex) if cloud else None)
+            self.sent = b
+            return
+        spectral = ex.evecs.shape[1] if cloud and ex.heat_is_spectral else 0
+        new_target = cloud and ex.p is not self.target_sent  # the target changes only on a re-capture
+        blk = self.log.step_block(b - a, r.vecs.shape[2], cloud, spectral, with_target=new_target)
+        blk.rows[:] = r.rows[a:b]
+        blk.PVN[:] = r.vecs[:3, a:b]
+        if cloud:
+            ex.cloud_fields(out=(blk.coverage, blk.source, blk.heat_coeffs, blk.heat_residual))
+            if new_target:
+                blk.target[:] = ex.p
+                self.target_sent = ex.p
+        self.log.send_block(blk)
         self.sent = b
 
 
@@ -372,30 +394,43 @@ def _cloud_fields(explorer: Explorer) -> dict:
     return {"coverage": coverage, "heat": SpectralField(coeffs, residual), "source": source, "target": explorer.p}
 
 
-def _log_cloud(runlog, explorer: Explorer, step: int, feed: _LogFeed | None = None) -> None:
+def _log_cloud(runlog, explorer: Explorer, step: int, feed: LogFeed | None = None) -> None:
     if feed is not None:
         feed.flush()  # the cloud follows the steps before it
     runlog.log_cloud(step, **_cloud_fields(explorer))
 
 
-class _Recorder:
-    """Per-step arrays, preallocated for the planned steps (grown if a backend runs longer)."""
+ROW_FIELDS = ("step", "time", "ergodicity", "ergodicity_ref", "touched_fraction", "step_ms")  # the run log's rows
+VEC_FIELDS = ("positions", "velocities", "normals", "accelerations")  # the first three: the run log's P, V, N
+
+
+class RunRecorder:
+    """Per-step arrays, preallocated for the planned steps (grown if a backend runs longer).
+
+    Scalars live in one (steps, 6) array in the run log's row layout and vectors in one
+    (4, steps, N, 3) array, so a block of steps goes to the log in two copies.
+    """
 
     def __init__(self, explorer: Explorer, steps: int):
         self.ex = explorer
         N = len(explorer.positions)
         self.count = 0
-        self.vec = {k: np.zeros((steps, N, 3)) for k in ("positions", "velocities", "accelerations", "normals")}
-        self.sca = {k: np.zeros(steps) for k in ("ergodicity", "ergodicity_ref", "touched_fraction", "step_ms", "time")}
-        self.step = np.zeros(steps, dtype=np.int64)  # the explorer step number of each row
+        self.rows = np.zeros((steps, len(ROW_FIELDS)))
+        self.vecs = np.zeros((len(VEC_FIELDS), steps, N, 3))
+        self._views()
+
+    def _views(self) -> None:
+        self.sca = {name: self.rows[:, i] for i, name in enumerate(ROW_FIELDS) if name != "step"}
+        self.vec = {name: self.vecs[i] for i, name in enumerate(VEC_FIELDS)}
+        self.step = self.rows[:, 0]  # the explorer step number of each row
 
     def record(self, step: int, robot_sample: dict | None) -> None:
         k = self.count
-        if k >= len(self.sca["time"]):
+        if k >= len(self.rows):
             grow = max(k, 16)
-            self.vec = {n: np.concatenate([a, np.zeros((grow,) + a.shape[1:])]) for n, a in self.vec.items()}
-            self.sca = {n: np.concatenate([a, np.zeros(grow)]) for n, a in self.sca.items()}
-            self.step = np.concatenate([self.step, np.zeros(grow, dtype=np.int64)])
+            self.rows = np.concatenate([self.rows, np.zeros((grow,) + self.rows.shape[1:])])
+            self.vecs = np.concatenate([self.vecs, np.zeros((self.vecs.shape[0], grow) + self.vecs.shape[2:])], axis=1)
+            self._views()
         ex = self.ex
         self.vec["positions"][k] = ex.positions
         self.vec["velocities"][k] = ex.velocities

@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import math
 import collections
+import itertools
 import os
 import select
 import struct
@@ -40,11 +41,14 @@ from tergodic_cli.runlog.writer import (CHUNK_BYTES, FLUSH_EVERY, SpectralField,
                                         check_field_basis, check_log_args, check_spectral_field)
 
 _FRAME = struct.Struct("<II")
+_IOV_BATCH = 64  # buffers per writev call (Linux allows 1024)
 _METRIC_NAMES = ("ergodicity", "ergodicity_ref", "touched_fraction")
 #: Seconds ``close`` waits for the child to finish the file.
 CLOSE_TIMEOUT_S = 300.0
 #: Environment switch: ``TERGODIC_LOG_WRITER=inline`` keeps the writer in the explorer's process.
 ENV_WRITER = "TERGODIC_LOG_WRITER"
+#: Environment switch: ``TERGODIC_LOG_PRIORITY=normal`` keeps the writer child at normal priority.
+ENV_PRIORITY = "TERGODIC_LOG_PRIORITY"
 
 
 _HEADERS: dict[tuple, str] = {}  # (op, array layout) -> the header's JSON up to its fields
@@ -142,24 +146,56 @@ class LogWriterProcess:
                 self._pending_bytes += len(mv)
         self._drain(block=self._pending_bytes > self.max_pending_bytes)
 
+    def send_reused(self, *parts: bytes | memoryview | np.ndarray) -> None:
+        """Like :meth:`send`, for parts the caller will overwrite after this call returns
+        (a :class:`StepBlock`'s buffer): what the pipe does not take now is copied."""
+        if self.error is not None or self._ended:
+            raise BrokenPipeError("the log writer process stopped")
+        pending = self._pending
+        if not pending:  # the common case: straight into the pipe, one system call
+            views = [memoryview(p).cast("B") for p in parts]
+            try:
+                n = os.writev(self._fd, views)
+            except BlockingIOError:
+                n = 0
+            except OSError as exc:
+                self.error = exc
+                raise
+            for mv in views:
+                if n >= len(mv):
+                    n -= len(mv)
+                    continue
+                rest = bytes(mv[n:])
+                n = 0
+                pending.append(memoryview(rest))
+                self._pending_bytes += len(rest)
+            if pending:
+                self._drain(block=self._pending_bytes > self.max_pending_bytes)
+            return
+        self.send(*(bytes(memoryview(p).cast("B")) for p in parts))
+
     def _drain(self, block: bool) -> None:
-        """Write pending bytes; with ``block``, until none are left."""
+        """Write pending bytes, many buffers per system call; with ``block``, until none are left."""
         pending = self._pending
         try:
             while pending:
-                mv = pending[0]
+                bufs = list(itertools.islice(pending, _IOV_BATCH))
                 try:
-                    n = os.write(self._fd, mv[: 1 << 20])
+                    n = os.writev(self._fd, bufs)
                 except BlockingIOError:
                     if not block:
                         return
                     select.select([], [self._fd], [], 1.0)
                     continue
                 self._pending_bytes -= n
-                if n == len(mv):
-                    pending.popleft()
-                else:
-                    pending[0] = mv[n:]
+                while n:
+                    mv = pending[0]
+                    if n >= len(mv):
+                        n -= len(mv)
+                        pending.popleft()
+                    else:
+                        pending[0] = mv[n:]
+                        n = 0
         except OSError as exc:  # EPIPE: the child is gone
             self.error = exc
             pending.clear()
@@ -189,6 +225,60 @@ class LogWriterProcess:
         return self.proc.returncode, ((out or b"").decode(errors="replace").strip().splitlines() or [""])[-1]
 
 
+class StepBlock:
+    """A reusable frame of ``k`` steps, and optionally the cloud at the last of them, for
+    :meth:`BackgroundRunLog.send_block`. Fill the arrays, then send; the block can be
+    refilled as soon as ``send_block`` returns.
+
+    The arrays are views into one byte buffer laid out as the child expects, so sending
+    copies nothing and costs one system call, whatever the number of arrays.
+
+    Attributes
+    ----------
+    rows : (k, 6) float64
+        Per step: step number, t (s), ergodicity, ergodicity_ref, touched fraction, step_ms.
+    P, V, N : (k, n_agents, 3) float64
+        Agent positions (m), velocities (m/s), unit normals.
+    PVN : (3, k, n_agents, 3) float64
+        P, V and N as one array (they are consecutive in the buffer).
+    coverage, source : (n,) float32
+        The cloud's fields (when the block has a cloud).
+    target : (n,) float32 or None
+        The target, in a block made ``with_target``; without it the log repeats the last one.
+    heat_coeffs : (n_coeffs,) float64, heat_residual : (n,) float64
+        The heat u = Φ a + r (a :class:`SpectralField`); no ``heat_coeffs`` when
+        ``n_coeffs`` is 0 (u = r).
+    """
+
+    def __init__(self, k: int, n_agents: int, n_points: int = 0, n_coeffs: int = 0, with_target: bool = True):
+        layout = [("rows", "<f8", (k, 6))] + [(v, "<f8", (k, n_agents, 3)) for v in ("P", "V", "N")]
+        self.has_cloud = n_points > 0
+        if self.has_cloud:
+            layout += [("cloud.coverage", "<f4", (n_points,)), ("cloud.source", "<f4", (n_points,)),
+                       ("cloud.heat.residual", "<f8", (n_points,))]
+            if n_coeffs:
+                layout.append(("cloud.heat.coeffs", "<f8", (n_coeffs,)))
+            if with_target:
+                layout.append(("cloud.target", "<f4", (n_points,)))
+        size = sum(np.dtype(d).itemsize * math.prod(shape) for _, d, shape in layout)
+        self.buf = np.zeros(size, dtype=np.uint8)
+        views, off = {}, 0
+        for name, d, shape in layout:
+            dt = np.dtype(d)
+            views[name] = np.ndarray(shape, dtype=dt, buffer=self.buf, offset=off)
+            off += dt.itemsize * math.prod(shape)
+        self.k = k
+        self.rows, self.P, self.V, self.N = views["rows"], views["P"], views["V"], views["N"]
+        self.PVN = np.ndarray((3, k, n_agents, 3), dtype="<f8", buffer=self.buf, offset=views["rows"].nbytes)
+        self.target = views.get("cloud.target")
+        self.coverage = views.get("cloud.coverage")
+        self.source = views.get("cloud.source")
+        self.heat_residual = views.get("cloud.heat.residual")
+        self.heat_coeffs = views.get("cloud.heat.coeffs")
+        head = (json.dumps({"op": "steps", "arrays": layout})[:-1] + ', "slow": {}}').encode()
+        self.head = _FRAME.pack(len(head), size) + head
+
+
 def start_log_writer() -> LogWriterProcess | None:
     """Start a log writer child now (None when ``TERGODIC_LOG_WRITER=inline`` or it cannot start)."""
     if not use_background_writer():
@@ -208,7 +298,9 @@ class BackgroundRunLog:
     """A :class:`~tergodic_cli.runlog.writer.RunLog` whose encoding and writing run in a child process.
 
     Parameters are those of :class:`~tergodic_cli.runlog.writer.RunLog` and mean the same;
-    they are validated here, so a bad one raises at once. The file is the same byte
+    they are validated here, so a bad one raises at once. ``field_basis_file``
+    (``basis.meta["evecs_file"]``: the cache file holding ``field_basis`` row for row, and its
+    checksum) lets the child read Φ from disk instead of the pipe. The file is the same byte
     layout the in-process writer makes (only the creation time in its metadata differs).
 
     Notes
@@ -224,7 +316,7 @@ class BackgroundRunLog:
                  points: np.ndarray, target: np.ndarray | None = None, cloud_every: int = 50,
                  compression: str = "lz4", flush_every: int | None = None, flush_seconds: float = 2.0,
                  chunk_bytes: int = CHUNK_BYTES, backend: str = "auto", field_basis: np.ndarray | None = None,
-                 writer: LogWriterProcess | None = None):
+                 writer: LogWriterProcess | None = None, field_basis_file: Mapping[str, str] | None = None):
         self.path = Path(path)
         pts, target, backend = check_log_args(points, target, compression, cloud_every, backend)
         self._field_basis = check_field_basis(field_basis, len(pts))
@@ -242,6 +334,7 @@ class BackgroundRunLog:
         self._shape: tuple = ()
         self._slow: dict[int, dict] = {}  # row -> {"metrics": ..., "robot": ...} of steps off the fast layout
         self._last_send = time.monotonic()
+        self._blocks: dict[tuple, StepBlock] = {}
         try:  # fail here, in the caller, on an unwritable path (the child re-opens it)
             self.path.parent.mkdir(parents=True, exist_ok=True)
             with open(self.path, "wb"):
@@ -251,18 +344,24 @@ class BackgroundRunLog:
                                 "check the folder exists and is writable") from None
         self._writer = writer or LogWriterProcess()
         arrays = {"points": pts.copy(), "target": target.copy()}  # copies: borrowed below
-        if self._field_basis is not None:  # Φ once, not copied: it is sent while the run goes on
-            arrays["field_basis"] = self._field_basis
+        basis_file = None
+        if self._field_basis is not None:
+            if field_basis_file:  # the child reads Φ from the basis cache: nothing to send
+                basis_file = {"path": str(field_basis_file["path"]), "checksum": str(field_basis_file["checksum"]),
+                              "columns": int(self._field_basis.shape[1])}
+            else:  # Φ once, not copied: it is sent while the run goes on
+                arrays["field_basis"] = self._field_basis
         self._send(_pack("open", arrays, borrow=True, path=str(self.path), config=dict(config),
+                         field_basis_file=basis_file,
                          seed=None if seed is None else int(seed), versions=dict(versions or {}) or None,
                          capture_sidecar=None if capture_sidecar is None else dict(capture_sidecar),
                          cloud_every=self.cloud_every, compression=compression, flush_every=self.flush_every,
                          flush_seconds=self.flush_seconds, chunk_bytes=int(chunk_bytes), backend=backend))
 
     # -- plumbing ------------------------------------------------------------------------------
-    def _send(self, parts: list) -> None:
+    def _send(self, parts: list, reused: bool = False) -> None:
         try:
-            self._writer.send(*parts)
+            (self._writer.send_reused if reused else self._writer.send)(*parts)
         except OSError:
             self._closed = True
             code, line = self._writer.finish()
@@ -367,6 +466,33 @@ class BackgroundRunLog:
         self._send_pending()
         self._send(_pack("steps", arrays, slow={}))
         self.n_steps += K
+        self._last_t = float(rows[-1, 1])
+
+    def step_block(self, k: int, n_agents: int, cloud: bool = False, n_coeffs: int = 0,
+                   with_target: bool = False) -> StepBlock:
+        """A reusable :class:`StepBlock` for ``k`` steps of ``n_agents`` agents (with the cloud's
+        fields when ``cloud``; ``n_coeffs`` spectral coefficients of the heat, 0 for none; the
+        target too when ``with_target``, else the last target logged is repeated)."""
+        key = (int(k), int(n_agents), bool(cloud), int(n_coeffs), bool(with_target))
+        block = self._blocks.get(key)
+        if block is None:
+            if cloud and n_coeffs and (self._field_basis is None or self._field_basis.shape[1] != n_coeffs):
+                raise TergodicError(f"a cloud block with {n_coeffs} heat coefficients needs a field basis of as many "
+                                    "columns", "open the log with field_basis=Explorer.evecs")
+            block = self._blocks[key] = StepBlock(k, n_agents, len(self.points) if cloud else 0, n_coeffs, with_target)
+        return block
+
+    def send_block(self, block: StepBlock) -> None:
+        """Log the block's steps (and cloud), as :meth:`log_steps` would; the block may be refilled at once."""
+        self._require_open()
+        rows = block.rows
+        # scalar reads, not array reductions: this runs every few dozen explorer steps, with cold caches
+        if not (rows[0, 0] >= 0.0 and rows[0, 1] >= 0.0 and math.isfinite(rows[-1, 1])):
+            raise TergodicError("run log got a negative step or a bad time", "steps must be >= 0 and times finite, >= 0")
+        self._send_pending()
+        self._send([block.head, block.buf], reused=True)
+        self.n_steps += block.k
+        self.n_clouds += block.has_cloud
         self._last_t = float(rows[-1, 1])
 
     def _agent_arrays(self, positions, velocities, normals) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -476,6 +602,7 @@ def open_run_log(path: str | os.PathLike, writer: LogWriterProcess | None = None
         return BackgroundRunLog(path, writer=writer, **kwargs)
     from tergodic_cli.runlog.writer import RunLog
 
+    kwargs.pop("field_basis_file", None)  # in this process Φ is at hand
     return RunLog(path, **kwargs)
 
 
@@ -507,16 +634,35 @@ def _write_steps(log: Any, a: dict[str, np.ndarray], slow: dict[str, dict]) -> N
                      step_ms=float(step_ms[i]), robot=extra.get("robot"))
 
 
-def _cloud_fields(a: dict[str, np.ndarray], prefix: str = "") -> dict:
-    """log_cloud's field arguments from frame arrays (``name`` or ``name.coeffs`` / ``name.residual``)."""
+def _cloud_fields(a: dict[str, np.ndarray], prefix: str = "", have_basis: bool = True) -> dict:
+    """log_cloud's field arguments from frame arrays (``name`` or ``name.coeffs`` / ``name.residual``);
+    without the field basis a spectral field is logged as NaN."""
     fields = {}
     for name in ("target", "coverage", "heat", "source"):
         key = prefix + name
         if key in a:
             fields[name] = a[key]
         elif f"{key}.residual" in a:
-            fields[name] = SpectralField(a.get(f"{key}.coeffs"), a[f"{key}.residual"])
+            coeffs = a.get(f"{key}.coeffs")
+            if coeffs is not None and not have_basis:
+                fields[name] = np.full(len(a[f"{key}.residual"]), np.nan)
+            else:
+                fields[name] = SpectralField(coeffs, a[f"{key}.residual"])
     return fields
+
+
+def _read_field_basis(ref: Mapping[str, Any], n: int) -> tuple[np.ndarray | None, str | None]:
+    """Φ (n, columns) from the basis cache file ``ref`` names, or (None, why not)."""
+    from tergodic_cli.basis.cache import CacheMiss, read_checked_array
+
+    try:
+        phi = read_checked_array(ref["path"], ref["checksum"])
+    except CacheMiss as exc:
+        return None, f"the basis cache file {ref['path']} is {exc} since the run started"
+    cols = int(ref["columns"])
+    if phi.ndim != 2 or phi.shape[0] != n or phi.shape[1] < cols:
+        return None, f"the basis cache file {ref['path']} does not fit this cloud"
+    return phi[:, :cols], None
 
 
 _ABANDONED: list = []
@@ -540,21 +686,26 @@ def _serve(fh: Any) -> int:
         op = h["op"]
         if op == "steps":
             _write_steps(log, a, h["slow"])
-            cloud = _cloud_fields(a, "cloud.")
+            cloud = _cloud_fields(a, "cloud.", log._field_basis is not None)
             if cloud:  # the block's last step's cloud, sent in the same frame
                 log.log_cloud(int(a["rows"][-1, 0]), **cloud)
         elif op == "cloud":
-            log.log_cloud(h["step"], t=h["t"], **_cloud_fields(a))
+            log.log_cloud(h["step"], t=h["t"], **_cloud_fields(a, "", log._field_basis is not None))
         elif op == "event":
             log.log_event(h["step"], h["t"], h["text"], h["level"])
         elif op == "sync":
             log.sync()
         elif op == "open":
+            field_basis, missing = a.get("field_basis"), None
+            if h.get("field_basis_file"):
+                field_basis, missing = _read_field_basis(h["field_basis_file"], len(a["points"]))
             log = RunLog(h["path"], config=h["config"], seed=h["seed"], versions=h["versions"],
                          capture_sidecar=h["capture_sidecar"], points=a["points"], target=a["target"],
-                         field_basis=a.get("field_basis"),
+                         field_basis=field_basis,
                          cloud_every=h["cloud_every"], compression=h["compression"], flush_every=h["flush_every"],
                          flush_seconds=h["flush_seconds"], chunk_bytes=h["chunk_bytes"], backend=h["backend"])
+            if missing:
+                log.log_event(0, 0.0, f"warning: the heat field is not logged: {missing}", "warning")
         elif op == "close":
             log.close(h["summary"], status=h["status"])
             return 0
@@ -583,13 +734,32 @@ def _warm_up(RunLog: type) -> None:
         log.close({"steps": 2})
 
 
+def _yield_to_parent() -> None:
+    """Run the child at idle priority (Linux ``SCHED_IDLE``): woken by the parent's write on the
+    parent's core, it would otherwise pre-empt the explorer until the scheduler moves it. Idle
+    priority runs it on whichever core is free and never in the explorer's way; when no core is
+    free, frames wait in the pipe and the parent's queue (bounded), and ``close`` waits for it."""
+    if os.environ.get(ENV_PRIORITY, "idle") != "idle":
+        return
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError):  # not Linux, or refused: a lower nice value does part of it
+        try:
+            os.nice(10)
+        except OSError:
+            pass
+
+
 def main() -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the parent, which closes the log properly
+    _yield_to_parent()
     try:
         from tergodic_cli.runlog import writer as _w  # the MCAP stack, before saying ready
         from tergodic_cli.runlog.proto import step_record_class
+
+        import tergodic_cli.basis.cache  # noqa: F401  (reads Φ from the basis cache at open)
 
         _w._proto_classes(), step_record_class(), _w.foxglove_sdk_available()  # build the schemas once, now
         _warm_up(_w.RunLog)

@@ -736,13 +736,18 @@ class RunLog:
                   target: np.ndarray | None = None, t: float | None = None) -> None:
         """Log the cloud with per-point target p, coverage c, heat u and source s, each (n,).
 
-        Any field may also be a :class:`SpectralField` (evaluated here). ``t`` defaults to the time of the last logged step. The message is a
+        ``target`` None repeats the last target logged (the one given at open, or by an earlier
+        cloud). Any field may also be a :class:`SpectralField` (evaluated here). ``t`` defaults to the time of the last logged step. The message is a
         ``foxglove.PointCloud`` with float32 fields x y z target coverage heat source, in a
         chunk of its own that is on disk when this returns.
         """
         self._require_open()
         n = len(self.points)
         buf = self._cloud_buf
+        if target is not None:  # the target from now on (a re-capture changed it)
+            target = evaluate_field(target, self._field_basis, n)
+            if target.shape == (n,):
+                self.target = np.array(target, dtype=np.float64)
         for col, name, values in ((3, "target", self.target if target is None else target),
                                   (4, "coverage", coverage), (5, "heat", heat), (6, "source", source)):
             values = evaluate_field(values, self._field_basis, n)
