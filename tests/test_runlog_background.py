@@ -304,3 +304,19 @@ def test_a_step_block_of_the_wrong_heat_size_is_refused(tmp_path):
     with pytest.raises(TergodicError, match="negative step or a bad time"):
         log.send_block(blk)
     log.close({"steps": 0})
+
+
+def test_begin_close_lets_the_caller_work_while_the_child_finishes(tmp_path):
+    inp = demo_inputs(steps=50, n_points=100, n_agents=1, seed=14)
+    log = BackgroundRunLog(tmp_path / "run.mcap", config=inp["config"], seed=1, points=inp["points"],
+                           target=inp["target"])
+    metrics = np.column_stack([inp["metrics"][k] for k in ("ergodicity", "ergodicity_ref", "touched_fraction")])
+    log.log_steps(np.arange(1, 51), np.arange(1.0, 51.0), positions=inp["P"], velocities=inp["V"], normals=inp["N"],
+                  metrics=metrics, step_ms=inp["step_ms"])
+    log.begin_close({"steps": 50, "note": "first"})
+    with pytest.raises(TergodicError, match="closed"):
+        log.log_event(50, 50.0, "too late")
+    log.close({"steps": 50, "note": "ignored: the first summary stands"})
+    log.close()
+    d = read_run_log(tmp_path / "run.mcap")
+    assert d.steps == 50 and not d.truncated and d.stored_summary["note"] == "first"

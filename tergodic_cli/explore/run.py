@@ -260,13 +260,16 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
         if cfg is not user_cfg:
             extra["requested_config"] = user_cfg.to_dict()  # before the robot's time scaling
         summary = summarize_run(recorder.series(), cfg.to_dict(), extra)
+        if runlog is not None:
+            if feed is not None:
+                feed.flush()
+            if hasattr(runlog, "begin_close"):  # the writer child finishes the file while we write ours
+                runlog.begin_close(summary)
         recorder.write(out / "trajectory.npz", start_xyz)
         from tergodic_cli.atomic import write_json
 
         write_json(out / "summary.json", summary)
         if runlog is not None:
-            if feed is not None:
-                feed.flush()
             runlog.close(summary)
             runlog = None
         return summary

@@ -334,6 +334,7 @@ class BackgroundRunLog:
         self._shape: tuple = ()
         self._slow: dict[int, dict] = {}  # row -> {"metrics": ..., "robot": ...} of steps off the fast layout
         self._last_send = time.monotonic()
+        self._closing = False  # the close frame is sent; the child is finishing the file
         self._blocks: dict[tuple, StepBlock] = {}
         try:  # fail here, in the caller, on an unwritable path (the child re-opens it)
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -370,7 +371,7 @@ class BackgroundRunLog:
                 "check free disk space and permissions, or set TERGODIC_LOG_WRITER=inline") from None
 
     def _require_open(self) -> None:
-        if self._closed:
+        if self._closed or self._closing:
             raise TergodicError(f"the run log {self.path} is closed", "log steps before close()")
 
     def _alloc(self, n_agents: int) -> None:
@@ -401,7 +402,7 @@ class BackgroundRunLog:
 
         The values are copied: the caller may reuse its arrays at once.
         """
-        if self._closed:
+        if self._closed or self._closing:
             self._require_open()
         t = float(t)
         if step < 0 or not 0.0 <= t < math.inf:
@@ -548,12 +549,23 @@ class BackgroundRunLog:
         self._send_pending()
         self._send(_pack("sync"))
 
-    def close(self, summary: Mapping[str, Any] | None = None, status: str = "ok") -> None:
-        """Store ``summary`` and finish the file; returns when the file is complete. Idempotent."""
-        if self._closed:
+    def begin_close(self, summary: Mapping[str, Any] | None = None, status: str = "ok") -> None:
+        """Send the end of the log and return at once: the child finishes the file while the
+        caller does other work (explore writes trajectory.npz and summary.json meanwhile).
+        :meth:`close` then waits for it. Idempotent."""
+        if self._closed or self._closing:
             return
         self._send_pending()
         self._send(_pack("close", summary=None if summary is None else dict(summary), status=str(status)))
+        self._closing = True
+
+    def close(self, summary: Mapping[str, Any] | None = None, status: str = "ok") -> None:
+        """Store ``summary`` and finish the file; returns when the file is complete. Idempotent.
+
+        After :meth:`begin_close` it only waits (its summary and status stand)."""
+        if self._closed:
+            return
+        self.begin_close(summary, status)
         self._closed = True
         code, line = self._writer.finish()
         if code != 0 or line != "ok":
