@@ -47,7 +47,7 @@ _METRIC_NAMES = ("ergodicity", "ergodicity_ref", "touched_fraction")
 CLOSE_TIMEOUT_S = 300.0
 #: Environment switch: ``TERGODIC_LOG_WRITER=inline`` keeps the writer in the explorer's process.
 ENV_WRITER = "TERGODIC_LOG_WRITER"
-#: Environment switch: ``TERGODIC_LOG_PRIORITY=normal`` keeps the writer child at normal priority.
+#: Environment switch: the writer child's scheduling, ``batch`` (default), ``idle`` or ``normal``.
 ENV_PRIORITY = "TERGODIC_LOG_PRIORITY"
 
 
@@ -215,14 +215,20 @@ class LogWriterProcess:
                 self.proc.stdin.close()
             except OSError:
                 pass
-        out = self.proc.stdout.read()  # until the child exits: it writes one line, at the end
+        line = b"ready"
+        while line.strip() == b"ready":  # its last line comes once the file is complete
+            line = self.proc.stdout.readline()
+        last = line.decode(errors="replace").strip()
+        if last == "ok":  # the file is finished: leave the child's exit to the system (it is reaped later)
+            self.proc.stdout.close()
+            return 0, last
         self.proc.stdout.close()
         try:
             self.proc.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
             self.proc.kill()
             self.proc.wait()
-        return self.proc.returncode, ((out or b"").decode(errors="replace").strip().splitlines() or [""])[-1]
+        return self.proc.returncode, last
 
 
 class StepBlock:
@@ -747,19 +753,19 @@ def _warm_up(RunLog: type) -> None:
 
 
 def _yield_to_parent() -> None:
-    """Run the child at idle priority (Linux ``SCHED_IDLE``): woken by the parent's write on the
-    parent's core, it would otherwise pre-empt the explorer until the scheduler moves it. Idle
-    priority runs it on whichever core is free and never in the explorer's way; when no core is
-    free, frames wait in the pipe and the parent's queue (bounded), and ``close`` waits for it."""
-    if os.environ.get(ENV_PRIORITY, "idle") != "idle":
+    """Keep the child out of the explorer's way (``TERGODIC_LOG_PRIORITY``: batch (default),
+    idle or normal). Woken by the parent's write, a normal child tends to run on the parent's
+    core and pre-empt the explorer until the scheduler moves it. Linux ``SCHED_BATCH`` never
+    pre-empts on wake-up but keeps a fair share of the CPU, so ``close`` never waits long on a
+    busy machine; ``SCHED_IDLE`` runs the child only on a free core (on a busy machine the
+    work then piles up until ``close``)."""
+    policy = {"batch": "SCHED_BATCH", "idle": "SCHED_IDLE"}.get(os.environ.get(ENV_PRIORITY, "batch"))
+    if policy is None or not hasattr(os, policy):
         return
     try:
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    except (AttributeError, OSError):  # not Linux, or refused: a lower nice value does part of it
-        try:
-            os.nice(10)
-        except OSError:
-            pass
+        os.sched_setscheduler(0, getattr(os, policy), os.sched_param(0))
+    except OSError:
+        pass
 
 
 def main() -> None:

@@ -102,9 +102,27 @@ def _varint(n: int) -> bytes:
 
 def timestamp_field(field_number: int, t_ns: int) -> bytes:
     """A ``google.protobuf.Timestamp`` field (wire type 2) holding ``t_ns`` nanoseconds."""
-    sec, nanos = divmod(int(t_ns), 1_000_000_000)
-    body = (b"\x08" + _varint(sec) if sec else b"") + (b"\x10" + _varint(nanos) if nanos else b"")
-    return _varint(field_number << 3 | 2) + _varint(len(body)) + body
+    return timestamped(field_number, [int(t_ns)], [b""])[0]
+
+
+def timestamped(field_number: int, t_ns: list[int], bodies: list[bytes]) -> list[bytes]:
+    """Each body with a ``google.protobuf.Timestamp`` field of its time prepended: the bytes of
+    :func:`timestamp_field`, a loop with fewer calls (it runs for every logged step)."""
+    tag = _varint(field_number << 3 | 2)
+    small, varint = _SMALL, _varint
+    out = []
+    for t, body in zip(t_ns, bodies):
+        sec, nanos = divmod(t, 1_000_000_000)
+        if sec < 128:
+            ts = (b"\x08" + small[sec]) if sec else b""
+        elif sec < 16384:
+            ts = bytes((8, sec & 0x7F | 0x80, sec >> 7))
+        else:
+            ts = b"\x08" + varint(sec)
+        if nanos:
+            ts += b"\x10" + varint(nanos)
+        out.append(tag + small[len(ts)] + ts + body)
+    return out
 
 
 def quats_z_to(normals: np.ndarray) -> np.ndarray:
@@ -222,7 +240,4 @@ class StepBatch:
         self.arrow_pos[:K] = P
         self.arrow_quat[:K] = quats_x_to(V.reshape(-1, 3)).reshape(K, N, 4)  # the arrow points along v
         self.shaft[:K] = np.minimum(5.0 * np.linalg.norm(V, axis=2), self.line_half)  # 5 s of travel
-        bodies = self._poses.messages(K)
-        ts = self._ts_field
-        poses = [timestamp_field(ts, t) + body for t, body in zip(t_ns, bodies)]
-        return self._rec.messages(K), poses, self._scene.messages(K)
+        return self._rec.messages(K), timestamped(self._ts_field, t_ns, self._poses.messages(K)), self._scene.messages(K)
