@@ -212,7 +212,7 @@ def test_blocks_with_their_cloud_equal_step_by_step_logging(tmp_path):
 
 
 def _basis_file(tmp_path, basis):
-    from tergodic_cli.basis.cache import array_checksum
+    from tergodic_cli.checked_npy import array_checksum
 
     path = tmp_path / "evecs.npy"
     np.save(path, np.ascontiguousarray(basis), allow_pickle=False)

@@ -20,13 +20,8 @@ and a checksum of every array). A missing, corrupt or edited entry is reported,
 discarded and recomputed.
 
 The checksum is computed while the file is read (each chunk is summed while it is still
-in the CPU cache), so a warm load is one pass over the bytes. It is BLAKE2b over the
-array's dtype and shape, the wrapping 64-bit sums of each run of 4096 words (the
-"rows"), the 4096 per-position sums across those runs (the "lanes"), and the few
-trailing bytes. Any change inside one 8-byte word (a flipped bit or byte) changes its
-row's sum, so it is always detected; two swapped words differ in their row or in their
-lane, so a swap is detected too. It detects corruption and edits; it is not a
-cryptographic seal against a deliberate forgery.
+in the CPU cache), so a warm load is one pass over the bytes; see
+:mod:`tergodic_cli.checked_npy` for what it detects.
 """
 
 from __future__ import annotations
@@ -46,15 +41,16 @@ import scipy.sparse as sp
 
 from tergodic_cli import FORMAT_VERSION
 from tergodic_cli.basis.core import Basis, compute_basis
+from tergodic_cli.checked_npy import CacheMiss, array_checksum, read_checked, read_checked_array  # noqa: F401
+
+__all__ = ["BasisConfig", "CacheMiss", "array_checksum", "default_cache_dir", "geometry_key", "get_basis",
+           "read_checked_array"]
 
 QUANTUM_M = 1e-6
 _DEGENERATE = 1e-7
 #: Layout of a cache entry (files, row order, checksum); part of the key, so entries of an
 #: older layout are never read: they are recomputed under their new key.
 CACHE_LAYOUT = 3
-#: Checksum geometry: 64-bit words per "row" (the lanes), rows read per chunk (512 KB).
-_LANES = 4096
-_CHUNK_ROWS = 16
 _BITS = 21  # per axis in the packed sort key: 2**21 µm = 2.1 m of extent
 
 
@@ -136,108 +132,6 @@ def _geometry(points: np.ndarray, cfg: BasisConfig) -> tuple[str, np.ndarray, bo
 
 
 # ---------------------------------------------------------------------------------------
-# Checksums (see the module docstring)
-
-
-class _Checksum:
-    """Incremental checksum of an array's bytes: feed whole rows of ``_LANES`` words, then the tail."""
-
-    def __init__(self, dtype: np.dtype, shape: tuple, fortran: bool):
-        self._hash = hashlib.blake2b(f"{np.dtype(dtype).str}{tuple(shape)}{bool(fortran)}".encode(), digest_size=16)
-        self._lanes = np.zeros(_LANES, dtype=np.uint64)
-
-    def rows(self, words: np.ndarray) -> None:
-        """``words``: uint64, a whole number of rows."""
-        block = words.reshape(-1, _LANES)
-        self._hash.update(block.sum(axis=1, dtype=np.uint64).tobytes())  # sums wrap modulo 2**64
-        self._lanes += block.sum(axis=0, dtype=np.uint64)
-
-    def finish(self, tail: bytes | memoryview) -> str:
-        self._hash.update(tail)
-        self._hash.update(self._lanes.tobytes())
-        return self._hash.hexdigest()
-
-
-def _body_bytes(nbytes: int) -> int:
-    """Bytes covered by whole rows of the checksum; the rest is the tail."""
-    return nbytes // (8 * _LANES) * (8 * _LANES)
-
-
-def array_checksum(a: np.ndarray) -> str:
-    """Checksum (32 hex digits) of an array as :func:`np.save` writes it (C order)."""
-    a = np.require(a, requirements="C")  # (ascontiguousarray would turn 0-d into 1-d)
-    raw = memoryview(a).cast("B") if a.nbytes else memoryview(b"")
-    body = _body_bytes(a.nbytes)
-    c = _Checksum(a.dtype, a.shape, False)
-    if body:
-        c.rows(np.frombuffer(raw[:body], dtype=np.uint64))
-    return c.finish(raw[body:])
-
-
-def _checksums(arrays: dict[str, np.ndarray]) -> dict[str, str]:
-    return {name: array_checksum(a) for name, a in arrays.items()}
-
-
-def _read_checked(path: Path, expected: str | None) -> np.ndarray:
-    """Read a ``.npy`` file and check its checksum in the same pass; never unpickles.
-
-    Raises
-    ------
-    CacheMiss
-        unreadable, truncated, an object dtype, or a checksum mismatch.
-    """
-    fmt = np.lib.format
-    try:
-        with open(path, "rb", buffering=0) as f:
-            version = fmt.read_magic(f)
-            if version == (1, 0):
-                shape, fortran, dtype = fmt.read_array_header_1_0(f)
-            elif version in ((2, 0), (3, 0)):
-                shape, fortran, dtype = fmt.read_array_header_2_0(f)
-            else:
-                raise ValueError(f"npy version {version}")
-            if dtype.hasobject:
-                raise ValueError("object arrays are never loaded (they would need unpickling)")
-            out = np.empty(int(np.prod(shape, dtype=np.int64)) * dtype.itemsize, dtype=np.uint8)
-            raw = memoryview(out)
-            body = _body_bytes(out.nbytes)
-            c = _Checksum(dtype, shape, fortran)
-            step = 8 * _LANES * _CHUNK_ROWS
-            for pos in range(0, body, step):
-                end = min(body, pos + step)
-                _read_exactly(f, raw[pos:end])
-                c.rows(out[pos:end].view(np.uint64))  # while the chunk is still in the CPU cache
-            _read_exactly(f, raw[body:])
-            digest = c.finish(raw[body:])
-    except (OSError, ValueError, EOFError, TypeError) as exc:
-        raise CacheMiss(f"unreadable ({type(exc).__name__})") from None
-    if digest != expected:
-        raise CacheMiss("checksum mismatch (corrupt or modified)")
-    a = out.view(dtype)
-    return a.reshape(shape[::-1]).T if fortran else a.reshape(shape)
-
-
-def read_checked_array(path: str | Path, checksum: str) -> np.ndarray:
-    """An array of a cache entry (``basis.meta["evecs_file"]``), read and checked against its checksum.
-
-    Raises
-    ------
-    CacheMiss
-        unreadable, truncated, or modified since the entry was written.
-    """
-    return _read_checked(Path(path), checksum)
-
-
-def _read_exactly(f, view: memoryview) -> None:
-    pos = 0
-    while pos < len(view):
-        got = f.readinto(view[pos:])
-        if not got:
-            raise ValueError("truncated file")
-        pos += got
-
-
-# ---------------------------------------------------------------------------------------
 # Entries
 
 
@@ -277,10 +171,6 @@ def _from_arrays(arrays: dict[str, np.ndarray], points: np.ndarray, order: np.nd
                  float(arrays["h"]), meta)
 
 
-class CacheMiss(Exception):
-    """The entry is absent; the message says why when it was present but unusable."""
-
-
 _ARRAY_NAMES = ("points_order", "canonical_points", "evals", "evecs", "mass", "L_data", "L_indices", "L_indptr", "h")
 
 
@@ -297,7 +187,7 @@ def _load_entry(entry: Path, points: np.ndarray, order: np.ndarray, canon: np.nd
         raise CacheMiss(f"unreadable ({type(exc).__name__})") from None
     if set(checksums) != set(_ARRAY_NAMES):
         raise CacheMiss("checksum mismatch (corrupt or modified)")
-    arrays = {name: _read_checked(entry / f"{name}.npy", checksums[name]) for name in _ARRAY_NAMES}
+    arrays = {name: read_checked(entry / f"{name}.npy", checksums[name]) for name in _ARRAY_NAMES}
     # Guard against key collisions: the cached geometry must be this geometry.
     cached = arrays["canonical_points"]
     if cached.shape != canon.shape or np.abs(cached - canon).max() > 10 * QUANTUM_M:
@@ -361,8 +251,9 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
         "h_m": basis.h,
         "lambda_range": [float(basis.evals[0]), float(basis.evals[-1])],
         "timings": timings,
+        "laplacian": basis.meta.get("laplacian"),  # which implementation made L and M
         "versions": library_versions(),
-        "checksums": _checksums(arrays),
+        "checksums": {name: array_checksum(a) for name, a in arrays.items()},
     }
     _write_entry(entry, arrays, meta)
     timings["write_ms"] = 1e3 * (time.perf_counter() - t)

@@ -65,26 +65,108 @@ def check_geometry(points: np.ndarray) -> None:
     require(n_dup == 0, f"the cloud has {n_dup} duplicate points", "re-capture with a voxel filter (--voxel 0.003)")
 
 
-def compute_laplacian(points: np.ndarray, n_neighbors: int, validate: bool = True) -> tuple[sp.csr_matrix, np.ndarray]:
+#: Environment switch: ``TERGODIC_LAPLACIAN=fast`` uses the compiled re-implementation (see compute_laplacian).
+ENV_LAPLACIAN = "TERGODIC_LAPLACIAN"
+LAPLACIAN_METHODS = ("robust_laplacian", "fast")
+#: The robust_laplacian release whose algorithm tergodic.basis.fast_laplacian reproduces.
+FAST_LAPLACIAN_MATCHES = "1.1.0"
+
+
+def laplacian_method() -> str:
+    """``robust_laplacian`` (default: the C++ library) or ``fast`` (our compiled re-implementation)."""
+    import os
+
+    method = os.environ.get(ENV_LAPLACIAN, "robust_laplacian").strip().lower() or "robust_laplacian"
+    require(method in LAPLACIAN_METHODS, f"{ENV_LAPLACIAN}={method} is not a Laplacian method",
+            f"set {ENV_LAPLACIAN} to {' or '.join(LAPLACIAN_METHODS)}")
+    return method
+
+
+def _robust_laplacian_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("robust_laplacian")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def compute_laplacian(points: np.ndarray, n_neighbors: int, validate: bool = True,
+                      info: dict | None = None) -> tuple[sp.csr_matrix, np.ndarray]:
     """Robust point-cloud Laplacian (Sharp & Crane 2020): L (n, n) CSR and lumped mass (n,).
 
-    ``validate=False`` skips :func:`check_geometry` when the caller already ran it.
-    """
-    import robust_laplacian
+    By default ``robust_laplacian.point_cloud_laplacian``. With ``TERGODIC_LAPLACIAN=fast``
+    (``tergodic precompute --laplacian fast``) the matrices come from
+    :mod:`tergodic_cli.basis.fast_laplacian`, a compiled re-implementation of that function
+    (release 1.1.0) that gives the same L and M to round-off, 2-2.5x faster once loaded. It is
+    not the default: loading its compiled code costs 0.3-0.6 s in a fresh process (30 s to
+    compile on first use), more than it saves on one cloud. Where a decision of the library's
+    algorithm is too close to call for round-off to agree (near-ties, regular grids), or another
+    robust_laplacian release is installed, the library itself is called.
 
+    ``validate=False`` skips :func:`check_geometry` when the caller already ran it. ``info``
+    (a dict) receives ``"laplacian"``: which implementation made the matrices, and why.
+    """
     if validate:
         check_geometry(points)
     require(n_neighbors >= 3, f"--neighbors {n_neighbors} is too small", "use at least 3 (default 30)")
     require(n_neighbors < len(points), f"--neighbors {n_neighbors} is not below the {len(points)} points", "use fewer neighbours")
-    try:
-        L, M = robust_laplacian.point_cloud_laplacian(points, n_neighbors=n_neighbors)
-    except (RuntimeError, ValueError, AssertionError) as exc:
-        raise TergodicError(f"robust_laplacian failed on this cloud ({str(exc).splitlines()[0][:80]})",
-                            "the points may be degenerate; check the capture or change --neighbors") from None
-    mass = np.asarray(M.diagonal(), dtype=np.float64)
+    info = {} if info is None else info
+    info["laplacian"] = "robust_laplacian"
+    L = None
+    if laplacian_method() == "fast":
+        lib = _robust_laplacian_version()
+        if lib != FAST_LAPLACIAN_MATCHES:
+            info["laplacian"] = (f"robust_laplacian (the re-implementation matches release {FAST_LAPLACIAN_MATCHES}, "
+                                 f"not the installed {lib})")
+        else:
+            from tergodic_cli.basis.fast_laplacian import LaplacianMismatchRisk
+            from tergodic_cli.basis.fast_laplacian import point_cloud_laplacian as fast_laplacian
+
+            try:
+                L, mass = fast_laplacian(points, n_neighbors=n_neighbors)
+                info["laplacian"] = "tergodic.fast_laplacian"
+            except LaplacianMismatchRisk as risk:
+                info["laplacian"] = f"robust_laplacian (the re-implementation declined: {risk})"
+            else:
+                why = _not_a_cotan_laplacian(L, mass)
+                if why:  # never expected; a safety net, O(nnz)
+                    L = None
+                    info["laplacian"] = f"robust_laplacian (the re-implementation's matrices failed a check: {why})"
+    if L is None:
+        import robust_laplacian
+
+        try:
+            L, M = robust_laplacian.point_cloud_laplacian(points, n_neighbors=n_neighbors)
+        except (RuntimeError, ValueError, AssertionError) as exc:
+            raise TergodicError(f"robust_laplacian failed on this cloud ({str(exc).splitlines()[0][:80]})",
+                                "the points may be degenerate; check the capture or change --neighbors") from None
+        mass = np.asarray(M.diagonal(), dtype=np.float64)
     require(np.all(np.isfinite(mass)) and np.all(mass > 0), "the Laplacian has zero-area points (degenerate sampling)",
             "re-capture with a voxel filter, or change --neighbors")
     return sp.csr_matrix(L, dtype=np.float64), mass
+
+
+def _not_a_cotan_laplacian(L: sp.spmatrix, mass: np.ndarray) -> str | None:
+    """What is wrong with (L, mass) as a cotangent Laplacian and lumped mass, or None: L must be
+    symmetric with zero row sums and a positive diagonal, the mass positive and finite."""
+    L = sp.csr_matrix(L)
+    scale = float(np.abs(L.data).max()) if L.nnz else 0.0
+    if not (scale > 0 and np.all(np.isfinite(L.data))):
+        return "L is empty or not finite"
+    Lt = L.T.tocsr()  # CSR of the transpose: same pattern and values when symmetric
+    L.sort_indices()
+    Lt.sort_indices()
+    if not (np.array_equal(L.indptr, Lt.indptr) and np.array_equal(L.indices, Lt.indices)
+            and np.abs(L.data - Lt.data).max() <= 1e-12 * scale):
+        return "L is not symmetric"
+    if np.abs(L @ np.ones(L.shape[0])).max() > 1e-9 * scale:
+        return "a row of L does not sum to zero"
+    if not np.all(L.diagonal() > 0):
+        return "L has a non-positive diagonal entry"
+    if not (np.all(np.isfinite(mass)) and np.all(mass > 0)):
+        return "a lumped mass is not positive"
+    return None
 
 
 def solve_eigenpairs(L: sp.csr_matrix, mass: np.ndarray, nk: int) -> tuple[np.ndarray, np.ndarray]:
@@ -120,7 +202,8 @@ def compute_basis(points: np.ndarray, nk: int, n_neighbors: int, timings: dict |
     check_geometry(points)
     require(nk < len(points), f"--nk {nk} is not below the number of points ({len(points)})", f"use --nk < {len(points)}")
     t = time.perf_counter()
-    L, mass = compute_laplacian(points, n_neighbors, validate=False)
+    made_by: dict = {}
+    L, mass = compute_laplacian(points, n_neighbors, validate=False, info=made_by)
     timings["laplacian_ms"] = 1e3 * (time.perf_counter() - t)
     t = time.perf_counter()
     evals, evecs = solve_eigenpairs(L, mass, nk)
@@ -128,4 +211,4 @@ def compute_basis(points: np.ndarray, nk: int, n_neighbors: int, timings: dict |
     t = time.perf_counter()
     h = mean_spacing(points)
     timings["spacing_ms"] = 1e3 * (time.perf_counter() - t)
-    return Basis(points, L, mass, evals, evecs, h)
+    return Basis(points, L, mass, evals, evecs, h, {"laplacian": made_by["laplacian"]})

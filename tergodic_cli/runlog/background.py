@@ -671,7 +671,7 @@ def _cloud_fields(a: dict[str, np.ndarray], prefix: str = "", have_basis: bool =
 
 def _read_field_basis(ref: Mapping[str, Any], n: int) -> tuple[np.ndarray | None, str | None]:
     """Φ (n, columns) from the basis cache file ``ref`` names, or (None, why not)."""
-    from tergodic_cli.basis.cache import CacheMiss, read_checked_array
+    from tergodic_cli.checked_npy import CacheMiss, read_checked_array
 
     try:
         phi = read_checked_array(ref["path"], ref["checksum"])
@@ -777,7 +777,7 @@ def main() -> None:
         from tergodic_cli.runlog import writer as _w  # the MCAP stack, before saying ready
         from tergodic_cli.runlog.proto import step_record_class
 
-        import tergodic_cli.basis.cache  # noqa: F401  (reads Φ from the basis cache at open)
+        import tergodic_cli.checked_npy  # noqa: F401  (reads Φ from the basis cache at open; no scipy)
 
         _w._proto_classes(), step_record_class(), _w.foxglove_sdk_available()  # build the schemas once, now
         _warm_up(_w.RunLog)
