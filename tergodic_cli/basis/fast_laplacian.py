@@ -605,6 +605,32 @@ def _svd_normal(b, wk):
 
 
 @njit(cache=True)
+def _tangent_basis(x, y, z):
+    """Two unit vectors completing (x, y, z) to a right-handed frame, exactly as geometry-central's
+    ``Vector3::buildTangentBasis`` computes them (the same operations in the same order)."""
+    r = 1.0 / np.sqrt(x * x + y * y + z * z)
+    ux = x * r
+    uy = y * r
+    uz = z * r
+    if abs(ux) > 0.9:
+        tx, ty, tz = 0.0, 1.0, 0.0
+    else:
+        tx, ty, tz = 1.0, 0.0, 0.0
+    ax = ty * uz - tz * uy
+    ay = tz * ux - tx * uz
+    az = tx * uy - ty * ux
+    r = 1.0 / np.sqrt(ax * ax + ay * ay + az * az)
+    ax *= r
+    ay *= r
+    az *= r
+    bx = uy * az - uz * ay
+    by = uz * ax - ux * az
+    bz = ux * ay - uy * ax
+    r = 1.0 / np.sqrt(bx * bx + by * by + bz * bz)
+    return ax, ay, az, bx * r, by * r, bz * r
+
+
+@njit(cache=True)
 def _chart(i, points, nb, normal_sign, offs, wk, cx, cy, rad, ang, dirx, diry):
     """Normal and 2-D chart coordinates of point ``i``'s neighbours ``nb`` (k,), as the library computes them.
 
@@ -634,29 +660,7 @@ def _chart(i, points, nb, normal_sign, offs, wk, cx, cy, rad, ang, dirx, diry):
     nx *= normal_sign
     ny *= normal_sign
     nz *= normal_sign
-    # tangent basis as geometry-central's Vector3::buildTangentBasis
-    r = 1.0 / np.sqrt(nx * nx + ny * ny + nz * nz)
-    ux = nx * r
-    uy = ny * r
-    uz = nz * r
-    if abs(ux) > 0.9:
-        tx, ty, tz = 0.0, 1.0, 0.0
-    else:
-        tx, ty, tz = 1.0, 0.0, 0.0
-    bxx = ty * uz - tz * uy
-    bxy = tz * ux - tx * uz
-    bxz = tx * uy - ty * ux
-    r = 1.0 / np.sqrt(bxx * bxx + bxy * bxy + bxz * bxz)
-    bxx *= r
-    bxy *= r
-    bxz *= r
-    byx = uy * bxz - uz * bxy
-    byy = uz * bxx - ux * bxz
-    byz = ux * bxy - uy * bxx
-    r = 1.0 / np.sqrt(byx * byx + byy * byy + byz * byz)
-    byx *= r
-    byy *= r
-    byz *= r
+    bxx, bxy, bxz, byx, byy, byz = _tangent_basis(nx, ny, nz)
     for j in range(k):
         q = nb[j]
         vx = points[q, 0] - points[i, 0]
@@ -1094,28 +1098,7 @@ def _tufted_cover(points, tris, mollify_factor, tie_guard):
         ex = points[ptip, 0] - points[ptail, 0]
         ey = points[ptip, 1] - points[ptail, 1]
         ez = points[ptip, 2] - points[ptail, 2]
-        r = 1.0 / np.sqrt(ex * ex + ey * ey + ez * ez)
-        ux = ex * r
-        uy = ey * r
-        uz = ez * r
-        if abs(ux) > 0.9:
-            tx, ty, tz = 0.0, 1.0, 0.0
-        else:
-            tx, ty, tz = 1.0, 0.0, 0.0
-        b0x = ty * uz - tz * uy
-        b0y = tz * ux - tx * uz
-        b0z = tx * uy - ty * ux
-        r = 1.0 / np.sqrt(b0x * b0x + b0y * b0y + b0z * b0z)
-        b0x *= r
-        b0y *= r
-        b0z *= r
-        b1x = uy * b0z - uz * b0y
-        b1y = uz * b0x - ux * b0z
-        b1z = ux * b0y - uy * b0x
-        r = 1.0 / np.sqrt(b1x * b1x + b1y * b1y + b1z * b1z)
-        b1x *= r
-        b1y *= r
-        b1z *= r
+        b0x, b0y, b0z, b1x, b1y, b1z = _tangent_basis(ex, ey, ez)
         for j in range(m):
             opp = tail[nxt[nxt[faces[j]]]]
             ox = points[opp, 0] - points[ptail, 0]
