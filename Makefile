@@ -46,7 +46,7 @@ demo: setup
 
 # Every benchmark, BLAS pinned to one thread; each prints medians and ratios against the reference.
 BENCH_ENV := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 TERGODIC_NO_PROGRESS=1
-BENCHES   := precompute step explore_reference logging robot sweep
+BENCHES   := precompute laplacian step explore_reference logging robot sweep
 bench: setup
 	@for b in $(BENCHES); do echo "== benchmarks/$$b.py"; $(BENCH_ENV) $(BIN)/python benchmarks/$$b.py || exit 1; done
 
