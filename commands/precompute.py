@@ -21,7 +21,7 @@ def precompute(
     json_out: bool = typer.Option(False, "--json", help="Print the basis metadata as JSON."),
     laplacian: Optional[str] = typer.Option(None, "--laplacian", help="robust_laplacian (default): the C++ library. "
                                             "fast: our compiled re-implementation, the same L and M to round-off and "
-                                            "2-2.5x faster once loaded, but 0.3-0.6 s to load per process (30 s to "
+                                            "2-2.5x faster once loaded, but 0.6-0.8 s to load per process (30 s to "
                                             "compile once); it hands over to the library on near-ties "
                                             "[env TERGODIC_LAPLACIAN]."),
 ) -> None:

@@ -99,7 +99,7 @@ def compute_laplacian(points: np.ndarray, n_neighbors: int, validate: bool = Tru
     (``tergodic precompute --laplacian fast``) the matrices come from
     :mod:`tergodic_cli.basis.fast_laplacian`, a compiled re-implementation of that function
     (release 1.1.0) that gives the same L and M to round-off, 2-2.5x faster once loaded. It is
-    not the default: loading its compiled code costs 0.3-0.6 s in a fresh process (30 s to
+    not the default: in a fresh process numba's import and set-up cost 0.6-0.8 s (and 30 s to
     compile on first use), more than it saves on one cloud. Where a decision of the library's
     algorithm is too close to call for round-off to agree (near-ties, regular grids), or another
     robust_laplacian release is installed, the library itself is called.
