@@ -676,11 +676,11 @@ def _read_field_basis(ref: Mapping[str, Any], n: int) -> tuple[np.ndarray | None
     try:
         phi = read_checked_array(ref["path"], ref["checksum"])
     except CacheMiss as exc:
-        return None, f"the basis cache file {ref['path']} is {exc} since the run started"
+        return None, f"the basis cache file {ref['path']} changed or became unreadable since the run started ({exc})"
     cols = int(ref["columns"])
     if phi.ndim != 2 or phi.shape[0] != n or phi.shape[1] < cols:
         return None, f"the basis cache file {ref['path']} does not fit this cloud"
-    return phi[:, :cols], None
+    return (phi if phi.shape[1] == cols else np.ascontiguousarray(phi[:, :cols])), None
 
 
 _ABANDONED: list = []
