@@ -37,8 +37,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from tergodic_cli.errors import TergodicError
-from tergodic_cli.runlog.writer import (CHUNK_BYTES, FLUSH_EVERY, SpectralField, _dumps, check_agent_arrays,
-                                        check_field_basis, check_log_args, check_spectral_field)
+from tergodic_cli.runlog.writer import (CHUNK_BYTES, FLUSH_EVERY, ClosesOnExit, SpectralField, _dumps,
+                                        check_agent_arrays, check_field_basis, check_log_args, check_spectral_field)
 
 _FRAME = struct.Struct("<II")
 _IOV_BATCH = 64  # buffers per writev call (Linux allows 1024)
@@ -300,7 +300,7 @@ def use_background_writer() -> bool:
     return os.environ.get(ENV_WRITER, "process").strip().lower() != "inline"
 
 
-class BackgroundRunLog:
+class BackgroundRunLog(ClosesOnExit):
     """A :class:`~tergodic_cli.runlog.writer.RunLog` whose encoding and writing run in a child process.
 
     Parameters are those of :class:`~tergodic_cli.runlog.writer.RunLog` and mean the same;
@@ -578,21 +578,6 @@ class BackgroundRunLog:
             raise _reported_error(line) or TergodicError(
                 f"writing {self.path} failed: the log writer process did not finish (exit code {code})",
                 "check free disk space and permissions")
-
-    def __enter__(self) -> "BackgroundRunLog":
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if self._closed:
-            return
-        if exc_type is None:
-            self.close(None)
-            return
-        status = "interrupted" if issubclass(exc_type, KeyboardInterrupt) else f"error: {exc_type.__name__}"
-        try:
-            self.close(None, status=status)
-        except TergodicError:
-            pass  # the original exception matters more
 
 
 def _reported_error(line: str) -> TergodicError | None:

@@ -353,7 +353,30 @@ def check_log_args(points: Any, target: Any, compression: str, cloud_every: int,
 # ---------------------------------------------------------------------------------------------
 # The public writer.
 # ---------------------------------------------------------------------------------------------
-class RunLog:
+class ClosesOnExit:
+    """``with`` support for a run log: leaving the block closes it, with the status ``ok``,
+    ``interrupted`` (Ctrl-C) or ``error: <type>``, so even a failed run leaves a readable file.
+    Subclasses have ``_closed`` and ``close(summary, status=...)``."""
+
+    _closed: bool
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if self._closed:
+            return
+        if exc_type is None:
+            self.close(None)
+            return
+        status = "interrupted" if issubclass(exc_type, KeyboardInterrupt) else f"error: {exc_type.__name__}"
+        try:
+            self.close(None, status=status)
+        except TergodicError:
+            pass  # the original exception matters more
+
+
+class RunLog(ClosesOnExit):
     """Log an exploration run into ``path`` (an MCAP file), one call per explorer step.
 
     Parameters
@@ -801,18 +824,3 @@ class RunLog:
             self._b.finish()
         except (OSError, RuntimeError) as exc:
             self._fail(exc)
-
-    def __enter__(self) -> "RunLog":
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if self._closed:
-            return
-        if exc_type is None:
-            self.close(None)
-        else:  # still finish a readable file, and say how the run ended
-            status = "interrupted" if issubclass(exc_type, KeyboardInterrupt) else f"error: {exc_type.__name__}"
-            try:
-                self.close(None, status=status)
-            except TergodicError:
-                pass  # the original exception matters more
