@@ -118,6 +118,30 @@ def _pseudo_angle(x, y):
 # distance come out in the library's order and the same one is left out at the k-th place.
 
 
+
+@njit(cache=True)
+def _split_pass(points, vind, left, count, cut, cutval, lft, strict):
+    """One pass of nanoflann's planeSplit over ``vind[left:left + count]`` from position ``lft``:
+    points with coordinate ``cut`` below ``cutval`` (``<`` when ``strict``, else ``<=``) are
+    swapped to the front, with nanoflann's exact swaps; returns where the front ends."""
+    rgt = count - 1
+    while True:
+        while lft <= rgt and (points[vind[left + lft], cut] < cutval if strict
+                              else points[vind[left + lft], cut] <= cutval):
+            lft += 1
+        while rgt != 0 and lft <= rgt and not (points[vind[left + rgt], cut] < cutval if strict
+                                               else points[vind[left + rgt], cut] <= cutval):
+            rgt -= 1
+        if lft > rgt or rgt == 0:
+            break
+        t = vind[left + lft]
+        vind[left + lft] = vind[left + rgt]
+        vind[left + rgt] = t
+        lft += 1
+        rgt -= 1
+    return lft
+
+
 @njit(cache=True)
 def _kd_build(points):
     """The k-d tree: (vind, child1, child2, lo, hi, feat, divlow, divhigh); leaves have child1 = -1, range [lo, hi)."""
@@ -201,35 +225,8 @@ def _kd_build(points):
                 mx = v
         cutval = mn if split < mn else (mx if split > mx else split)
         # two-pass partition: < cutval | == cutval | > cutval, with nanoflann's swaps
-        lft = 0
-        rgt = count - 1
-        while True:
-            while lft <= rgt and points[vind[left + lft], cut] < cutval:
-                lft += 1
-            while rgt != 0 and lft <= rgt and points[vind[left + rgt], cut] >= cutval:
-                rgt -= 1
-            if lft > rgt or rgt == 0:
-                break
-            t = vind[left + lft]
-            vind[left + lft] = vind[left + rgt]
-            vind[left + rgt] = t
-            lft += 1
-            rgt -= 1
-        lim1 = lft
-        rgt = count - 1
-        while True:
-            while lft <= rgt and points[vind[left + lft], cut] <= cutval:
-                lft += 1
-            while rgt != 0 and lft <= rgt and points[vind[left + rgt], cut] > cutval:
-                rgt -= 1
-            if lft > rgt or rgt == 0:
-                break
-            t = vind[left + lft]
-            vind[left + lft] = vind[left + rgt]
-            vind[left + rgt] = t
-            lft += 1
-            rgt -= 1
-        lim2 = lft
+        lim1 = _split_pass(points, vind, left, count, cut, cutval, 0, True)
+        lim2 = _split_pass(points, vind, left, count, cut, cutval, lim1, False)
         half = count // 2
         idx = lim1 if lim1 > half else (lim2 if lim2 < half else half)
         feat[node] = cut
