@@ -200,6 +200,7 @@ def _kd_build(points):
                 max_span = span
         max_spread = -1.0
         cut = 0
+        cut_mn = cut_mx = points[vind[left], 0]  # what the scan gives when the box is a point
         for d in range(3):
             span = box_in[node, d, 1] - box_in[node, d, 0]
             if span > (1.0 - 0.00001) * max_span:
@@ -214,15 +215,11 @@ def _kd_build(points):
                 if mx - mn > max_spread:
                     cut = d
                     max_spread = mx - mn
+                    cut_mn = mn  # nanoflann scans the cut dimension again; the same values
+                    cut_mx = mx
         split = (box_in[node, cut, 0] + box_in[node, cut, 1]) / 2
-        mn = points[vind[left], cut]
-        mx = mn
-        for t in range(left + 1, right):
-            v = points[vind[t], cut]
-            if v < mn:
-                mn = v
-            if v > mx:
-                mx = v
+        mn = cut_mn
+        mx = cut_mx
         cutval = mn if split < mn else (mx if split > mx else split)
         # two-pass partition: < cutval | == cutval | > cutval, with nanoflann's swaps
         lim1 = _split_pass(points, vind, left, count, cut, cutval, 0, True)
