@@ -967,6 +967,25 @@ def _layout(pax, pay, pbx, pby, lbc, lca):
 
 
 @njit(cache=True)
+def _sort_by_angle(faces, angles, slot, lo, hi):
+    """Insertion sort of ``[lo, hi)`` by angle descending, then input position (``slot``) ascending;
+    that tie-break is what libstdc++'s insertion sort does for up to 16 elements (stable)."""
+    for a in range(lo + 1, hi):
+        hv = faces[a]
+        av = angles[a]
+        sv = slot[a]
+        t = a
+        while t > lo and (angles[t - 1] < av or (angles[t - 1] == av and slot[t - 1] > sv)):
+            faces[t] = faces[t - 1]
+            angles[t] = angles[t - 1]
+            slot[t] = slot[t - 1]
+            t -= 1
+        faces[t] = hv
+        angles[t] = av
+        slot[t] = sv
+
+
+@njit(cache=True)
 def _tufted_cover(points, tris, mollify_factor, tie_guard):
     """Intrinsic tufted cover of the triangle soup ``tris`` (m, 3) with mollified 3-D edge lengths.
 
@@ -1110,19 +1129,7 @@ def _tufted_cover(points, tris, mollify_factor, tie_guard):
             slot[j] = j
         # the library: std::sort by atan2, descending; for <= 16 elements libstdc++ does a stable insertion sort.
         # Sort by pseudo-angle, then redo runs of near-equal pseudo-angles with exact atan2 (ties there are real).
-        for j in range(1, m):
-            hv = faces[j]
-            av = angles[j]
-            sv = slot[j]
-            t = j
-            while t > 0 and angles[t - 1] < av:
-                faces[t] = faces[t - 1]
-                angles[t] = angles[t - 1]
-                slot[t] = slot[t - 1]
-                t -= 1
-            faces[t] = hv
-            angles[t] = av
-            slot[t] = sv
+        _sort_by_angle(faces, angles, slot, 0, m)
         j = 0
         while j < m - 1:
             if angles[j] - angles[j + 1] > 1e-9:
@@ -1140,19 +1147,7 @@ def _tufted_cover(points, tris, mollify_factor, tie_guard):
                         return nxt, tail, twin, hedge, ehalf, length, 11, e
             for t in range(r0, r1):
                 angles[t] = np.arctan2(ang_y[slot[t]], ang_x[slot[t]])
-            for a in range(r0 + 1, r1):  # by exact angle descending, then by input position
-                hv = faces[a]
-                av = angles[a]
-                sv = slot[a]
-                t = a
-                while t > r0 and (angles[t - 1] < av or (angles[t - 1] == av and slot[t - 1] > sv)):
-                    faces[t] = faces[t - 1]
-                    angles[t] = angles[t - 1]
-                    slot[t] = slot[t - 1]
-                    t -= 1
-                faces[t] = hv
-                angles[t] = av
-                slot[t] = sv
+            _sort_by_angle(faces, angles, slot, r0, r1)  # by exact angle now
         # the sibling cycle after face duplication: each front halfedge followed by its back copy
         for j in range(m):
             hs = members[estart[e]] if j == 0 else members[estart[e] + m - j]
