@@ -1,12 +1,17 @@
-"""Laplacian benchmark: our numba re-implementation against robust_laplacian, on the reference bunny.
+"""Laplacian benchmark: our compiled re-implementation against robust_laplacian, on the reference bunny.
 
 Run ``python benchmarks/laplacian.py [--repeats N] [--compile-time]``.
+
+First, the cost of a fresh process (what one ``tergodic precompute`` pays): import and first call on
+the 2996-point bunny, in new interpreters, for the library, our ahead-of-time build (the default
+when ``make`` has built it) and our numba just-in-time kernels (numba cache warm). Then:
 
 For the bunny at 2996 and 18001 points (the paper's 3 mm and 0.976 mm voxels, voxel rule "all") and
 n_neighbors 30 and 40 it measures, BLAS pinned to one thread, medians over ``--repeats`` interleaved runs of
 
 - ``robust_laplacian.point_cloud_laplacian`` (the authors' call, C++),
-- ``tergodic_cli.basis.fast_laplacian.point_cloud_laplacian`` (ours, numba, single-threaded),
+- ``tergodic_cli.basis.fast_laplacian.point_cloud_laplacian`` (ours, single-threaded; the
+  ahead-of-time build when there is one, else numba),
 
 and prints the in-run ratio and the largest differences (L relative to max|L|, mass relative to its
 maximum, entries present in only one sparsity pattern). When our guard refuses a cloud
@@ -71,6 +76,36 @@ def compile_seconds() -> float:
     return float(out.stdout.strip().splitlines()[-1])
 
 
+FRESH_CODE = {
+    "robust_laplacian": ("import robust_laplacian\n"
+                         "f = lambda p: robust_laplacian.point_cloud_laplacian(p, n_neighbors=30)\n"),
+    "ours, ahead-of-time build": ("from tergodic_cli.basis.fast_laplacian import point_cloud_laplacian\n"
+                                  "f = lambda p: point_cloud_laplacian(p, 30, backend='aot')\n"),
+    "ours, numba just in time": ("from tergodic_cli.basis.fast_laplacian import point_cloud_laplacian\n"
+                                 "f = lambda p: point_cloud_laplacian(p, 30, backend='jit')\n"),
+}
+
+
+def fresh_process_ms(points: np.ndarray, repeats: int) -> dict[str, float | str]:
+    """Median ms from before the import to L in memory, each in a new interpreter (numpy preloaded)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "points.npy")
+        np.save(path, points)
+        out: dict[str, list[float] | str] = {name: [] for name in FRESH_CODE}
+        for _ in range(repeats):
+            for name, body in FRESH_CODE.items():
+                code = ("import sys, time, numpy as np\n"
+                        f"p = np.load({path!r})\n"
+                        "t = time.perf_counter()\n" + body + "f(p)\n"
+                        "print(1e3 * (time.perf_counter() - t), 'numba' in sys.modules)\n")
+                res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+                if res.returncode:
+                    out[name] = res.stderr.strip().splitlines()[-1][:100]
+                elif isinstance(out[name], list):
+                    out[name].append(float(res.stdout.split()[0]))
+    return {k: (float(np.median(v)) if isinstance(v, list) else v) for k, v in out.items()}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=9, help="interleaved runs per measurement; medians reported")
@@ -87,8 +122,14 @@ def main(argv=None) -> int:
     print(f"Laplacian benchmark: bunny {', '.join(map(str, SIZES.values()))} points, neighbours {NEIGHBORS}, "
           f"median of {args.repeats} interleaved runs, BLAS 1 thread; load average {os.getloadavg()[0]:.2f} "
           f"on {os.cpu_count()} CPUs")
-    t = time.perf_counter()
     warm = load_cloud(3.0, 2996)
+    print("fresh process, import + first call at 2996 points (median of 3):")
+    for name, ms in fresh_process_ms(warm, 3).items():
+        print(f"  {name:28s} {ms:7.0f} ms" if isinstance(ms, float) else f"  {name:28s} failed: {ms}")
+    from tergodic_cli.basis.fast_laplacian import compiled_pipeline
+
+    print(f"ours below = the {compiled_pipeline('auto')[1]} build")
+    t = time.perf_counter()
     try:
         point_cloud_laplacian(warm, 30)
     except LaplacianMismatchRisk:

@@ -19,10 +19,13 @@ def precompute(
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Cache root [default: $TERGODIC_CACHE_DIR or ~/.cache/tergodic]."),
     force: bool = typer.Option(False, "--force", help="Recompute even when the cache holds this basis."),
     json_out: bool = typer.Option(False, "--json", help="Print the basis metadata as JSON."),
-    laplacian: Optional[str] = typer.Option(None, "--laplacian", help="robust_laplacian (default): the C++ library. "
-                                            "fast: our compiled re-implementation, the same L and M to round-off and "
-                                            "2-2.5x faster once loaded, but 0.6-0.8 s to load per process (30 s to "
-                                            "compile once); it hands over to the library on near-ties "
+    laplacian: Optional[str] = typer.Option(None, "--laplacian", help="Which implementation makes L and M; all give "
+                                            "the same matrices to round-off. auto (default): our compiled "
+                                            "re-implementation of robust_laplacian, 2-2.5x faster, when its "
+                                            "ahead-of-time build exists ('make' builds it), else the library. "
+                                            "fast: the re-implementation, compiled just in time by numba when "
+                                            "not built (0.6-0.8 s per process). robust_laplacian: always the "
+                                            "C++ library. Near-ties always go to the library "
                                             "[env TERGODIC_LAPLACIAN]."),
 ) -> None:
     """Compute (or load from cache) the spectral basis of a capture.

@@ -236,3 +236,14 @@ def test_cli_process_errors_have_no_traceback(tmp_path):
     assert help_res.code == 0
     for verb in ("capture", "precompute"):
         assert verb in help_res.out
+
+
+def test_help_keeps_bracketed_text():
+    """Help texts say '[robot] ...' and '[default: ...]': printed literally, not eaten as Rich markup."""
+    explore = run_cli("explore", "--help")
+    assert explore.code == 0
+    flat = " ".join(explore.out.split())
+    assert "[robot] Desired contact force" in flat
+    assert "[default: $TERGODIC_CACHE_DIR or ~/.cache/tergodic]" in flat
+    precompute = " ".join(run_cli("precompute", "--help").out.split())
+    assert "[env TERGODIC_LAPLACIAN]" in precompute and "auto (default)" in precompute

@@ -1,5 +1,9 @@
 """The numba re-implementation of the robust point-cloud Laplacian against robust_laplacian itself.
 
+Both builds of its kernels are tested: numba just in time (``jit``) and the ahead-of-time extension
+(``aot``, built by ``make``). Without a build the ``aot`` cases skip, unless ``TERGODIC_EXPECT_AOT=1``
+(set by ``make test``), where a missing build fails.
+
 Equality means: the same sparsity pattern (exact zeros dropped), every entry within 1e-10 of max|L|,
 and the lumped mass within 1e-12 of its maximum. When the fast path refuses a cloud
 (LaplacianMismatchRisk) the test says so instead of passing silently, except where refusing is the
@@ -8,16 +12,38 @@ expected outcome (an exactly regular grid).
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import robust_laplacian
 import scipy.sparse as sp
 
-from tergodic_cli.basis.fast_laplacian import GUARD_REASONS, LaplacianMismatchRisk, point_cloud_laplacian
+from tergodic_cli.basis import fast_laplacian_aot
+from tergodic_cli.basis.fast_laplacian import (GUARD_REASONS, FastLaplacianNotBuilt, LaplacianMismatchRisk,
+                                               point_cloud_laplacian)
 from tergodic_cli.capture.synthetic import generate_synthetic
 
 L_RTOL = 1e-10
 MASS_RTOL = 1e-12
+
+
+def require_build() -> None:
+    """Skip without an ahead-of-time build, or fail where one is expected (``make test``)."""
+    path, why = fast_laplacian_aot.find_build()
+    if path is None:
+        if os.environ.get("TERGODIC_EXPECT_AOT") == "1":
+            pytest.fail(f"TERGODIC_EXPECT_AOT=1 but {why}")
+        pytest.skip(why)
+
+
+@pytest.fixture(params=["aot", "jit"])
+def backend(request) -> str:
+    if request.param == "aot":
+        require_build()
+    return request.param
 
 
 def library(points: np.ndarray, k: int) -> tuple[sp.csr_matrix, np.ndarray]:
@@ -40,8 +66,8 @@ def differences(points: np.ndarray, k: int, **kw) -> tuple[int, float, float]:
     return only_one, dL, dm
 
 
-def assert_same_as_library(points: np.ndarray, k: int) -> None:
-    only_one, dL, dm = differences(points, k)
+def assert_same_as_library(points: np.ndarray, k: int, backend: str = "auto") -> None:
+    only_one, dL, dm = differences(points, k, backend=backend)
     assert only_one == 0, f"{only_one} entries in only one sparsity pattern"
     assert dL <= L_RTOL, f"L differs by {dL:.2e} of max|L|"
     assert dm <= MASS_RTOL, f"mass differs by {dm:.2e} of its maximum"
@@ -64,25 +90,25 @@ def noisy_sphere(n: int, seed: int) -> np.ndarray:
 
 @pytest.mark.parametrize("k", [30, 40])
 @pytest.mark.parametrize("kind", ["bowl", "plate", "mug", "sphere"])
-def test_synthetic_objects_equal_library(kind, k):
-    assert_same_as_library(generate_synthetic(kind, "X", seed=0, spacing=0.004).points, k)
+def test_synthetic_objects_equal_library(kind, k, backend):
+    assert_same_as_library(generate_synthetic(kind, "X", seed=0, spacing=0.004).points, k, backend)
 
 
 @pytest.mark.parametrize("k", [30, 40])
 @pytest.mark.parametrize("cloud", ["height_field", "sphere"])
-def test_noisy_random_surfaces_equal_library(cloud, k):
+def test_noisy_random_surfaces_equal_library(cloud, k, backend):
     pts = noisy_height_field(1500, seed=7) if cloud == "height_field" else noisy_sphere(1500, seed=8)
-    assert_same_as_library(pts, k)
+    assert_same_as_library(pts, k, backend)
 
 
 @pytest.mark.parametrize("k", [30, 40])
 @pytest.mark.parametrize("name, count", [("bun270_X.ply", 2996), ("plate_shapes.ply", 6228)])
-def test_reference_clouds_equal_library(reference, name, count, k):
+def test_reference_clouds_equal_library(reference, name, count, k, backend):
     from tergodic_cli.capture import CaptureConfig, capture_cloud
 
     cap = capture_cloud(CaptureConfig(source="file", path=str(reference / name), voxel=0.003, voxel_rule="all"))
     assert len(cap.points) == count
-    assert_same_as_library(cap.points, k)
+    assert_same_as_library(cap.points, k, backend)
 
 
 def test_exact_grid_is_refused_or_equal():
@@ -135,23 +161,77 @@ def test_duplicate_points_are_refused():
 
 # --- how compute_laplacian uses it ---------------------------------------------------------------
 
-def test_compute_laplacian_uses_it_only_when_asked_and_says_which(monkeypatch):
+def test_compute_laplacian_methods_and_what_they_record(monkeypatch):
     from tergodic_cli.basis import core
 
+    require_build()
     pts = generate_synthetic("bowl", "X", seed=0, spacing=0.004).points
     L0, m0 = library(pts, 30)
     made: dict = {}
-    monkeypatch.delenv(core.ENV_LAPLACIAN, raising=False)
+    monkeypatch.setenv(core.ENV_LAPLACIAN, "robust_laplacian")
     core.compute_laplacian(pts, 30, info=made)
-    assert made["laplacian"] == "robust_laplacian"  # the default
-    monkeypatch.setenv(core.ENV_LAPLACIAN, "fast")
-    L1, m1 = core.compute_laplacian(pts, 30, info=made)
-    assert made["laplacian"] == "tergodic.fast_laplacian"
-    assert abs(L1 - L0).max() <= L_RTOL * abs(L0).max() and np.abs(m1 - m0).max() <= MASS_RTOL * m0.max()
+    assert made["laplacian"] == "robust_laplacian"
+    for method in ("auto", "fast", ""):  # "" (unset): auto
+        monkeypatch.setenv(core.ENV_LAPLACIAN, method)
+        L1, m1 = core.compute_laplacian(pts, 30, info=made)
+        assert made["laplacian"] == "tergodic.fast_laplacian"
+        assert abs(L1 - L0).max() <= L_RTOL * abs(L0).max() and np.abs(m1 - m0).max() <= MASS_RTOL * m0.max()
     # another robust_laplacian release: the library is called, and the reason recorded
     monkeypatch.setattr(core, "_robust_laplacian_version", lambda: "9.9.9")
     core.compute_laplacian(pts, 30, info=made)
     assert made["laplacian"].startswith("robust_laplacian") and "9.9.9" in made["laplacian"]
+
+
+def test_aot_and_jit_builds_give_identical_bits():
+    require_build()
+    for pts in (generate_synthetic("mug", "X", seed=0, spacing=0.004).points, noisy_sphere(1200, seed=9)):
+        La, ma = point_cloud_laplacian(pts, 30, backend="aot")
+        Lj, mj = point_cloud_laplacian(pts, 30, backend="jit")
+        assert np.array_equal(La.indptr, Lj.indptr) and np.array_equal(La.indices, Lj.indices)
+        assert np.array_equal(La.data, Lj.data) and np.array_equal(ma, mj)
+
+
+def test_default_in_a_fresh_process_is_the_build_without_numba():
+    """The point of the ahead-of-time build: the default path never imports numba."""
+    require_build()
+    code = (
+        "import sys, numpy as np\n"
+        "from tergodic_cli.basis.core import compute_laplacian\n"
+        "from tergodic_cli.capture.synthetic import generate_synthetic\n"
+        "info = {}\n"
+        "L, m = compute_laplacian(generate_synthetic('bowl', 'X', seed=0, spacing=0.004).points, 30, info=info)\n"
+        "print(info['laplacian'], 'numba' in sys.modules, L.shape[0] == len(m))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "TERGODIC_LAPLACIAN"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["tergodic.fast_laplacian", "False", "True"]
+
+
+def test_without_a_current_build_auto_uses_the_library_and_says_why(monkeypatch, tmp_path):
+    from tergodic_cli.basis import core
+
+    pts = noisy_height_field(600, seed=10)
+    monkeypatch.setenv(core.ENV_LAPLACIAN, "auto")
+    monkeypatch.setattr(fast_laplacian_aot, "search_dirs", lambda: [tmp_path])
+    monkeypatch.setattr(fast_laplacian_aot, "_LOADED", {})  # forget a build loaded by an earlier test
+    made: dict = {}
+    core.compute_laplacian(pts, 20, info=made)
+    assert made["laplacian"].startswith("robust_laplacian") and "not built" in made["laplacian"]
+    with pytest.raises(FastLaplacianNotBuilt, match="not built"):
+        point_cloud_laplacian(pts, 20, backend="aot")
+    # a build of other kernels (an edit since): stale, ignored
+    suffix = fast_laplacian_aot._suffix()
+    (tmp_path / ("fast_laplacian_0123456789abcdef" + suffix)).write_bytes(b"old")
+    core.compute_laplacian(pts, 20, info=made)
+    assert made["laplacian"].startswith("robust_laplacian") and "stale" in made["laplacian"]
+    # a damaged file under the current name: no build, and the reason names the file
+    (tmp_path / (fast_laplacian_aot.module_name() + suffix)).write_bytes(b"\x7fELF not really")
+    core.compute_laplacian(pts, 20, info=made)
+    assert made["laplacian"].startswith("robust_laplacian") and "does not load" in made["laplacian"]
+    L, mass = core.compute_laplacian(pts, 20)
+    L0, m0 = library(pts, 20)
+    assert abs(L - L0).max() == 0.0 and np.array_equal(mass, m0)  # the library's own matrices
 
 
 def test_compute_laplacian_hands_a_regular_grid_to_the_library(monkeypatch):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import numpy as np
 import scipy.sparse as sp
@@ -65,23 +65,24 @@ def check_geometry(points: np.ndarray) -> None:
     require(n_dup == 0, f"the cloud has {n_dup} duplicate points", "re-capture with a voxel filter (--voxel 0.003)")
 
 
-#: Environment switch: ``TERGODIC_LAPLACIAN=fast`` uses the compiled re-implementation (see compute_laplacian).
+#: Environment switch for which implementation makes L and M (see compute_laplacian).
 ENV_LAPLACIAN = "TERGODIC_LAPLACIAN"
-LAPLACIAN_METHODS = ("robust_laplacian", "fast")
+LAPLACIAN_METHODS = ("auto", "fast", "robust_laplacian")
 #: The robust_laplacian release whose algorithm tergodic.basis.fast_laplacian reproduces.
 FAST_LAPLACIAN_MATCHES = "1.1.0"
 
 
 def laplacian_method() -> str:
-    """``robust_laplacian`` (default: the C++ library) or ``fast`` (our compiled re-implementation)."""
+    """``auto`` (default), ``fast`` or ``robust_laplacian``, from ``$TERGODIC_LAPLACIAN``; see :func:`compute_laplacian`."""
     import os
 
-    method = os.environ.get(ENV_LAPLACIAN, "robust_laplacian").strip().lower() or "robust_laplacian"
+    method = os.environ.get(ENV_LAPLACIAN, "auto").strip().lower() or "auto"
     require(method in LAPLACIAN_METHODS, f"{ENV_LAPLACIAN}={method} is not a Laplacian method",
-            f"set {ENV_LAPLACIAN} to {' or '.join(LAPLACIAN_METHODS)}")
+            f"set {ENV_LAPLACIAN} to {', '.join(LAPLACIAN_METHODS)}")
     return method
 
 
+@lru_cache(maxsize=1)
 def _robust_laplacian_version() -> str:
     from importlib.metadata import PackageNotFoundError, version
 
@@ -95,14 +96,20 @@ def compute_laplacian(points: np.ndarray, n_neighbors: int, validate: bool = Tru
                       info: dict | None = None) -> tuple[sp.csr_matrix, np.ndarray]:
     """Robust point-cloud Laplacian (Sharp & Crane 2020): L (n, n) CSR and lumped mass (n,).
 
-    By default ``robust_laplacian.point_cloud_laplacian``. With ``TERGODIC_LAPLACIAN=fast``
-    (``tergodic precompute --laplacian fast``) the matrices come from
-    :mod:`tergodic_cli.basis.fast_laplacian`, a compiled re-implementation of that function
-    (release 1.1.0) that gives the same L and M to round-off, 2-2.5x faster once loaded. It is
-    not the default: in a fresh process numba's import and set-up cost 0.6-0.8 s (and 30 s to
-    compile on first use), more than it saves on one cloud. Where a decision of the library's
-    algorithm is too close to call for round-off to agree (near-ties, regular grids), or another
-    robust_laplacian release is installed, the library itself is called.
+    Two implementations give the same L and M to round-off (about 1e-14 of max|L|):
+    ``robust_laplacian.point_cloud_laplacian`` (the C++ library) and
+    :mod:`tergodic_cli.basis.fast_laplacian`, our compiled re-implementation of release 1.1.0,
+    2-2.5x faster. ``$TERGODIC_LAPLACIAN`` (``tergodic precompute --laplacian``) chooses:
+
+    - ``auto`` (default): the re-implementation when its ahead-of-time build is present and
+      current (``make`` builds it; it loads in under a millisecond), else the library;
+    - ``fast``: the re-implementation, from numba just in time when there is no build (0.6-0.8 s
+      to load per process, ~30 s to compile once);
+    - ``robust_laplacian``: always the library.
+
+    Whatever is asked, the library is called where the re-implementation declines (a decision of
+    the library's algorithm too close to call for round-off to agree: near-ties, regular grids),
+    where another robust_laplacian release is installed, or where its matrices fail a check.
 
     ``validate=False`` skips :func:`check_geometry` when the caller already ran it. ``info``
     (a dict) receives ``"laplacian"``: which implementation made the matrices, and why.
@@ -114,18 +121,21 @@ def compute_laplacian(points: np.ndarray, n_neighbors: int, validate: bool = Tru
     info = {} if info is None else info
     info["laplacian"] = "robust_laplacian"
     L = None
-    if laplacian_method() == "fast":
+    method = laplacian_method()
+    if method != "robust_laplacian":
+        from tergodic_cli.basis.fast_laplacian import FastLaplacianNotBuilt, LaplacianMismatchRisk
+        from tergodic_cli.basis.fast_laplacian import point_cloud_laplacian as fast_laplacian
+
         lib = _robust_laplacian_version()
         if lib != FAST_LAPLACIAN_MATCHES:
             info["laplacian"] = (f"robust_laplacian (the re-implementation matches release {FAST_LAPLACIAN_MATCHES}, "
                                  f"not the installed {lib})")
         else:
-            from tergodic_cli.basis.fast_laplacian import LaplacianMismatchRisk
-            from tergodic_cli.basis.fast_laplacian import point_cloud_laplacian as fast_laplacian
-
             try:
-                L, mass = fast_laplacian(points, n_neighbors=n_neighbors)
+                L, mass = fast_laplacian(points, n_neighbors=n_neighbors, backend="aot" if method == "auto" else "auto")
                 info["laplacian"] = "tergodic.fast_laplacian"
+            except FastLaplacianNotBuilt as why:
+                info["laplacian"] = f"robust_laplacian ({why})"
             except LaplacianMismatchRisk as risk:
                 info["laplacian"] = f"robust_laplacian (the re-implementation declined: {risk})"
             else:
