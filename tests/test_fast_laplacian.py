@@ -271,3 +271,20 @@ def test_a_bad_method_is_one_line(monkeypatch):
     monkeypatch.setenv(core.ENV_LAPLACIAN, "cotan-please")
     with pytest.raises(TergodicError, match="not a Laplacian method"):
         core.compute_laplacian(noisy_height_field(100, seed=6), 10)
+
+
+def test_spacing_from_the_build_equals_scipy(monkeypatch, tmp_path):
+    from scipy.spatial import cKDTree
+
+    from tergodic_cli.capture.filters import mean_spacing
+
+    require_build()
+    for pts in (noisy_sphere(2000, seed=11), generate_synthetic("plate", "X", seed=0, spacing=0.004).points):
+        dists, _ = cKDTree(pts).query(pts, k=4)
+        expected = float(dists[:, 1:].mean())
+        assert mean_spacing(pts) == pytest.approx(expected, rel=1e-13)
+        assert mean_spacing(pts, k=8) == pytest.approx(float(cKDTree(pts).query(pts, k=9)[0][:, 1:].mean()), rel=1e-13)
+    # without a build: scipy's, the same number
+    monkeypatch.setattr(fast_laplacian_aot, "search_dirs", lambda: [tmp_path])
+    monkeypatch.setattr(fast_laplacian_aot, "_LOADED", {})
+    assert mean_spacing(pts) == pytest.approx(expected, rel=1e-15)

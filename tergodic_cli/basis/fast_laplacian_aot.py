@@ -31,6 +31,8 @@ from pathlib import Path
 KERNELS = Path(__file__).with_name("fast_laplacian_kernels.py")
 PACKAGE_DIR = Path(__file__).with_name("_aot")
 BUILD_HINT = "python -m tergodic_cli.basis.fast_laplacian_aot (or make)"
+#: The compiled functions: name -> name of its numba signature in the kernels module.
+EXPORTS = {"laplacian_pipeline": "PIPELINE_SIGNATURE", "mean_neighbour_distance": "MEAN_DISTANCE_SIGNATURE"}
 
 _LOADED: dict[str, object] = {}
 
@@ -68,13 +70,14 @@ def find_build() -> tuple[Path | None, str]:
     return None, f"the fast Laplacian is not built; build it once: {BUILD_HINT}"
 
 
-def load_pipeline():
-    """The compiled ``laplacian_pipeline`` of the current build, or (None, why).
+def load_module():
+    """The current build as a module (functions ``laplacian_pipeline``, ``mean_neighbour_distance``),
+    or (None, why).
 
     Returns
     -------
-    (function, "built") or (None, reason). A failed import (another NumPy ABI, a broken file)
-    counts as not built, with its reason.
+    (module, "built") or (None, reason). A failed import (another NumPy ABI, a broken file) counts
+    as not built, with its reason.
     """
     name = module_name()
     if name in _LOADED:
@@ -86,21 +89,29 @@ def load_pipeline():
         spec = importlib.util.spec_from_file_location(name, path)
         module = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(module)
-        fn = module.laplacian_pipeline
+        missing = [f for f in EXPORTS if not hasattr(module, f)]
+        if missing:
+            raise ImportError(f"it lacks {', '.join(missing)}")
     except Exception as exc:  # an unloadable build is no build: say why and let the caller fall back
         return None, f"the ahead-of-time build at {path} does not load ({type(exc).__name__}: {exc}); rebuild: {BUILD_HINT}"
-    _LOADED[name] = fn
-    return fn, "built"
+    _LOADED[name] = module
+    return module, "built"
 
 
-def _smoke_test(fn) -> None:
-    """The freshly built function on a small noisy sphere: no guard, symmetric L, zero row sums."""
+def load_pipeline():
+    """The compiled ``laplacian_pipeline`` of the current build, or (None, why); see :func:`load_module`."""
+    module, why = load_module()
+    return (module.laplacian_pipeline if module is not None else None), why
+
+
+def _smoke_test(module) -> None:
+    """The fresh build on a small noisy sphere: no guard, symmetric L, zero row sums, a plausible spacing."""
     import numpy as np
 
     rng = np.random.default_rng(0)
     v = rng.normal(size=(400, 3))
     pts = np.ascontiguousarray(v / np.linalg.norm(v, axis=1, keepdims=True) * 0.05)
-    indptr, indices, data, mass, code, where = fn(pts, 12, 1e-5, np.ones(len(pts)), False)
+    indptr, indices, data, mass, code, where = module.laplacian_pipeline(pts, 12, 1e-5, np.ones(len(pts)), False)
     if code:
         raise RuntimeError(f"the built module refused its smoke-test cloud (guard {code} at {where})")
     import scipy.sparse as sp
@@ -110,6 +121,9 @@ def _smoke_test(fn) -> None:
     if not (abs(L - L.T).max() <= 1e-12 * scale and np.abs(L @ np.ones(len(pts))).max() <= 1e-10 * scale
             and np.all(mass > 0)):
         raise RuntimeError("the built module's Laplacian is not symmetric with zero row sums")
+    h = module.mean_neighbour_distance(pts, 3)
+    if not 0.002 < h < 0.01:  # 400 points on a 5 cm sphere are ~4.4 mm apart
+        raise RuntimeError(f"the built module's mean neighbour distance {h:.3g} m is implausible")
 
 
 def build(out_dir: Path | None = None, force: bool = False, log=print) -> Path:
@@ -156,13 +170,14 @@ def build(out_dir: Path | None = None, force: bool = False, log=print) -> Path:
             cc.output_dir = str(tmp)
             cc.verbose = False
             cc.target_cpu = "generic"  # a copied venv must not SIGILL on an older CPU
-            cc.export("laplacian_pipeline", kernels.PIPELINE_SIGNATURE)(kernels.laplacian_pipeline)
+            for fn, signature in EXPORTS.items():
+                cc.export(fn, getattr(kernels, signature))(getattr(kernels, fn))
             cc.compile()
             built = tmp / (name + _suffix())
             spec = importlib.util.spec_from_file_location(name, built)
             module = importlib.util.module_from_spec(spec)
             spec.loader.exec_module(module)
-            _smoke_test(module.laplacian_pipeline)
+            _smoke_test(module)
             os.replace(built, target)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)

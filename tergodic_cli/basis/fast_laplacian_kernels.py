@@ -1328,3 +1328,22 @@ def laplacian_pipeline(points, k, mollify_factor, normal_sign, tie_guard):
         return no_int, no_int, no_float, no_float, code, where
     indptr, indices, data, mass = _assemble(n, nxt, tail, twin, ehalf, hc, farea)
     return indptr, indices, data, mass, 0, -1
+
+
+#: numba signature of :func:`mean_neighbour_distance`.
+MEAN_DISTANCE_SIGNATURE = "f8(f8[:, ::1], i8)"
+
+
+@njit(cache=True)
+def mean_neighbour_distance(points, k):
+    """Mean distance from each point to its k nearest other points (step 1's k-d tree), metres.
+
+    The spacing h without importing ``scipy.spatial`` (~0.15 s in a fresh process). Needs k < n.
+    """
+    n = points.shape[0]
+    _, d2, _ = _knn(points, k)
+    total = 0.0
+    for i in range(n):
+        for j in range(1, k + 1):
+            total += math.sqrt(d2[i, j])
+    return total / (n * k)
