@@ -157,6 +157,7 @@ def build(out_dir: Path | None = None, force: bool = False, log=print) -> Path:
     if target.is_file() and not force:
         log(f"fast Laplacian: {target} is up to date")
         return target
+    log(f"fast Laplacian: compiling its kernels ahead of time into {out_dir} (about 30-50 s, once) ...")
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # numba.pycc is "pending deprecation"; see docs/precompute.md
