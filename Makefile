@@ -31,12 +31,12 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q -e '.[test]'
 	@touch $(STAMP)
 
-# The fast Laplacian's kernels, compiled ahead of time (~30 s once; a no-op when current). Without
-# this build tergodic still works: precompute then calls robust_laplacian itself.
+# The fast Laplacian's kernels, compiled ahead of time (~30-50 s once; a no-op when current). Without
+# this build tergodic still works (precompute then calls robust_laplacian), so setup goes on...
 setup: $(STAMP)
-	@$(BIN)/python -m tergodic_cli.basis.fast_laplacian_aot
+	@$(BIN)/python -m tergodic_cli.basis.fast_laplacian_aot || echo "setup: continuing without the fast Laplacian build"
 
-# TERGODIC_EXPECT_AOT: the tests of that build fail, instead of skipping, if it is missing.
+# ... but the tests do not: with TERGODIC_EXPECT_AOT the tests of that build fail if it is missing.
 test: setup
 	TERGODIC_EXPECT_AOT=1 $(BIN)/python -m pytest
 
