@@ -37,8 +37,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from tergodic_cli.errors import TergodicError
-from tergodic_cli.runlog.writer import (CHUNK_BYTES, FLUSH_EVERY, ClosesOnExit, SpectralField, _dumps,
-                                        check_agent_arrays, check_field_basis, check_log_args, check_spectral_field)
+from tergodic_cli.runlog.writer import (CHUNK_BYTES, FLUSH_EVERY, AgentRows, ClosesOnExit, SpectralField, _dumps,
+                                        check_field_basis, check_log_args, check_spectral_field)
 
 _FRAME = struct.Struct("<II")
 _IOV_BATCH = 64  # buffers per writev call (Linux allows 1024)
@@ -300,7 +300,7 @@ def use_background_writer() -> bool:
     return os.environ.get(ENV_WRITER, "process").strip().lower() != "inline"
 
 
-class BackgroundRunLog(ClosesOnExit):
+class BackgroundRunLog(ClosesOnExit, AgentRows):
     """A :class:`~tergodic_cli.runlog.writer.RunLog` whose encoding and writing run in a child process.
 
     Parameters are those of :class:`~tergodic_cli.runlog.writer.RunLog` and mean the same;
@@ -388,7 +388,7 @@ class BackgroundRunLog(ClosesOnExit):
         self._n_agents = n_agents
         self._shape = (n_agents, 3)
 
-    def _send_pending(self) -> None:
+    def _flush_pending(self) -> None:
         k = self._k
         if k == 0:
             return
@@ -439,7 +439,7 @@ class BackgroundRunLog(ClosesOnExit):
         self._last_t = t
         if self._k == self.flush_every or (
                 self.flush_seconds > 0 and (i & 7) == 7 and time.monotonic() - self._last_send >= self.flush_seconds):
-            self._send_pending()
+            self._flush_pending()
 
     def log_steps(self, step: np.ndarray, t: np.ndarray, *, positions: np.ndarray, velocities: np.ndarray,
                   normals: np.ndarray, metrics: np.ndarray, step_ms: np.ndarray, cloud: dict | None = None) -> None:
@@ -470,7 +470,7 @@ class BackgroundRunLog(ClosesOnExit):
         if cloud is not None:
             arrays.update(self._cloud_arrays(**cloud, prefix="cloud."))
             self.n_clouds += 1
-        self._send_pending()
+        self._flush_pending()
         self._send(_pack("steps", arrays, slow={}))
         self.n_steps += K
         self._last_t = float(rows[-1, 1])
@@ -496,18 +496,11 @@ class BackgroundRunLog(ClosesOnExit):
         # scalar reads, not array reductions: this runs every few dozen explorer steps, with cold caches
         if not (rows[0, 0] >= 0.0 and rows[0, 1] >= 0.0 and math.isfinite(rows[-1, 1])):
             raise TergodicError("run log got a negative step or a bad time", "steps must be >= 0 and times finite, >= 0")
-        self._send_pending()
+        self._flush_pending()
         self._send([block.head, block.buf], reused=True)
         self.n_steps += block.k
         self.n_clouds += block.has_cloud
         self._last_t = float(rows[-1, 1])
-
-    def _agent_arrays(self, positions, velocities, normals) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        P, V, Nn = check_agent_arrays(positions, velocities, normals)
-        if len(P) != self._n_agents:
-            self._send_pending()  # the rows so far keep their own layout
-            self._alloc(len(P))
-        return P, V, Nn
 
     def log_cloud(self, step: int, *, coverage: np.ndarray, heat: np.ndarray | SpectralField, source: np.ndarray,
                   target: np.ndarray | None = None, t: float | None = None) -> None:
@@ -519,7 +512,7 @@ class BackgroundRunLog(ClosesOnExit):
         """
         self._require_open()
         arrays = self._cloud_arrays(coverage=coverage, heat=heat, source=source, target=target)
-        self._send_pending()
+        self._flush_pending()
         self.n_clouds += 1
         self._send(_pack("cloud", arrays, step=int(step), t=self._last_t if t is None else float(t)))
 
@@ -546,13 +539,13 @@ class BackgroundRunLog(ClosesOnExit):
     def log_event(self, step: int, t: float, text: str, level: str = "info") -> None:
         """Log a ``foxglove.Log`` event after the steps so far."""
         self._require_open()
-        self._send_pending()
+        self._flush_pending()
         self._send(_pack("event", step=int(step), t=float(t), text=str(text), level=str(level)))
 
     def sync(self) -> None:
         """Hand everything logged so far to the writer and have it flush the file."""
         self._require_open()
-        self._send_pending()
+        self._flush_pending()
         self._send(_pack("sync"))
 
     def begin_close(self, summary: Mapping[str, Any] | None = None, status: str = "ok") -> None:
@@ -561,7 +554,7 @@ class BackgroundRunLog(ClosesOnExit):
         :meth:`close` then waits for it. Idempotent."""
         if self._closed or self._closing:
             return
-        self._send_pending()
+        self._flush_pending()
         self._send(_pack("close", summary=None if summary is None else dict(summary), status=str(status)))
         self._closing = True
 

@@ -376,7 +376,22 @@ class ClosesOnExit:
             pass  # the original exception matters more
 
 
-class RunLog(ClosesOnExit):
+class AgentRows:
+    """Both writers keep pending step rows laid out for one agent count; a new count writes out the
+    rows so far (``_flush_pending``) and lays out new ones (``_alloc``)."""
+
+    _n_agents: int
+
+    def _agent_arrays(self, positions, velocities, normals) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The slow path of log_step: validate shapes, (re)allocate for a new agent count."""
+        P, V, Nn = check_agent_arrays(positions, velocities, normals)
+        if len(P) != self._n_agents:
+            self._flush_pending()  # the rows so far keep their own layout
+            self._alloc(len(P))
+        return P, V, Nn
+
+
+class RunLog(ClosesOnExit, AgentRows):
     """Log an exploration run into ``path`` (an MCAP file), one call per explorer step.
 
     Parameters
@@ -446,7 +461,7 @@ class RunLog(ClosesOnExit):
         self._classes = _proto_classes()
         extent = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
         self._line_half = 0.25 * extent  # half-length of the drawn normal line
-        # the pending steps: plain lists until their chunk is written (_write_pending)
+        # the pending steps: plain lists until their chunk is written (_flush_pending)
         self._rows: list[tuple] = []  # (step, t, ε, ε_ref, touched, step_ms)
         self._rows_tns: list[int] = []  # log times, ns
         self._vecs: list[list] = []  # [positions, velocities, normals] as nested lists
@@ -500,7 +515,7 @@ class RunLog(ClosesOnExit):
         self._n_agents = n_agents
         self._shape = (n_agents, 3)
 
-    def _write_pending(self) -> None:
+    def _flush_pending(self) -> None:
         """Encode the pending steps and hand their messages to the writer, in step order."""
         k = len(self._rows)
         if k == 0:
@@ -532,7 +547,7 @@ class RunLog(ClosesOnExit):
             self._extras.clear()
 
     def _flush(self) -> None:
-        self._write_pending()
+        self._flush_pending()
         try:
             self._b.flush()  # close the chunk and flush the file: it survives a crash from here on
         except (OSError, RuntimeError) as exc:
@@ -649,7 +664,7 @@ class RunLog(ClosesOnExit):
         P = np.asarray(positions, dtype=np.float64)
         if P.ndim != 3 or P.shape[0] != K or P.shape[2] != 3 or P.shape[1] == 0:
             raise TergodicError(f"run log got positions of shape {P.shape}, expected ({K}, N, 3)", "pass (K, N, 3) arrays")
-        self._write_pending()
+        self._flush_pending()
         if P.shape[1] != self._n_agents:
             self._alloc(P.shape[1])
         cap = self.flush_every
@@ -680,14 +695,6 @@ class RunLog(ClosesOnExit):
                 raise TergodicError(f"run log metric name {k!r} is not allowed", "use another name")
             extras[k] = float(v)
         self._extras[row] = extras
-
-    def _agent_arrays(self, positions, velocities, normals) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The slow path of log_step: validate shapes, (re)allocate for a new agent count."""
-        P, V, Nn = check_agent_arrays(positions, velocities, normals)
-        if len(P) != self._n_agents:
-            self._write_pending()  # the rows so far keep their own layout
-            self._alloc(len(P))
-        return P, V, Nn
 
     def _robot_messages(self, step: int, t_ns: int, robot: Mapping[str, Any]) -> list:
         C = self._classes
@@ -815,7 +822,7 @@ class RunLog(ClosesOnExit):
         """Store ``summary`` (the summary.json dict) and finish the file; idempotent."""
         if self._closed:
             return
-        self._write_pending()
+        self._flush_pending()
         self._closed = True
         try:
             if summary is not None:
