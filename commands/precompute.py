@@ -38,18 +38,16 @@ def precompute(
       tergodic precompute cap/ --nk 200 --neighbors 30
     """
     import json
-    import os
 
     from tergodic_cli.basis import BasisConfig, get_basis
-    from tergodic_cli.basis.core import ENV_LAPLACIAN, laplacian_method
+    from tergodic_cli.basis.core import laplacian_method, using_laplacian
     from tergodic_cli.capture import load_capture
 
-    if laplacian is not None:
-        os.environ[ENV_LAPLACIAN] = laplacian
-    laplacian_method()  # a bad value fails here, in one line
-    cap = load_capture(capture)
-    basis, hit = get_basis(cap.points, BasisConfig(nk=nk, neighbors=neighbors), cache_dir, force=force,
-                           on_event=lambda msg: typer.echo(msg, err=True))
+    with using_laplacian(laplacian):
+        laplacian_method()  # a bad $TERGODIC_LAPLACIAN fails here, in one line
+        cap = load_capture(capture)
+        basis, hit = get_basis(cap.points, BasisConfig(nk=nk, neighbors=neighbors), cache_dir, force=force,
+                               on_event=lambda msg: typer.echo(msg, err=True))
     if json_out:
         typer.echo(json.dumps({**basis.meta, "cache_hit": hit}, indent=2))
         return

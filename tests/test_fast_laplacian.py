@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 import robust_laplacian
 import scipy.sparse as sp
+from conftest import assert_one_line_error, run_cli
 
 from tergodic_cli.basis import fast_laplacian_aot
 from tergodic_cli.basis.fast_laplacian import (GUARD_REASONS, FastLaplacianNotBuilt, LaplacianMismatchRisk,
@@ -288,3 +289,16 @@ def test_spacing_from_the_build_equals_scipy(monkeypatch, tmp_path):
     monkeypatch.setattr(fast_laplacian_aot, "search_dirs", lambda: [tmp_path])
     monkeypatch.setattr(fast_laplacian_aot, "_LOADED", {})
     assert mean_spacing(pts) == pytest.approx(expected, rel=1e-15)
+
+
+def test_precompute_laplacian_flag(tmp_path, monkeypatch):
+    """--laplacian chooses for this command only; a bad value is one line naming the flag."""
+    from tergodic_cli.basis import core
+
+    monkeypatch.delenv(core.ENV_LAPLACIAN, raising=False)
+    assert run_cli("capture", "--synthetic", "plate", "--voxel", "0.006", "--out", tmp_path / "cap").code == 0
+    assert_one_line_error(run_cli("precompute", tmp_path / "cap", "--laplacian", "cotan"),
+                          "--laplacian cotan is not a Laplacian method", "robust_laplacian")
+    lib = run_cli("precompute", tmp_path / "cap", "--nk", "20", "--laplacian", "robust_laplacian")
+    assert lib.code == 0 and "L and M by robust_laplacian" in lib.out
+    assert core.ENV_LAPLACIAN not in os.environ  # not left behind for the rest of the process

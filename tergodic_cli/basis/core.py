@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from contextlib import contextmanager
 from functools import cached_property, lru_cache
 
 import numpy as np
@@ -80,6 +81,30 @@ def laplacian_method() -> str:
     require(method in LAPLACIAN_METHODS, f"{ENV_LAPLACIAN}={method} is not a Laplacian method",
             f"set {ENV_LAPLACIAN} to {', '.join(LAPLACIAN_METHODS)}")
     return method
+
+
+@contextmanager
+def using_laplacian(method: str | None, flag: str = "--laplacian"):
+    """Within the block, :func:`compute_laplacian` uses ``method`` (None: leave the choice as it is).
+
+    A bad value is a one-line error naming ``flag``; the previous ``$TERGODIC_LAPLACIAN`` comes back after.
+    """
+    import os
+
+    if method is None:
+        yield
+        return
+    require(method in LAPLACIAN_METHODS, f"{flag} {method} is not a Laplacian method",
+            f"use one of {', '.join(LAPLACIAN_METHODS)}")
+    previous = os.environ.get(ENV_LAPLACIAN)
+    os.environ[ENV_LAPLACIAN] = method
+    try:
+        yield
+    finally:
+        if previous is None:
+            os.environ.pop(ENV_LAPLACIAN, None)
+        else:
+            os.environ[ENV_LAPLACIAN] = previous
 
 
 @lru_cache(maxsize=1)
