@@ -302,3 +302,16 @@ def test_precompute_laplacian_flag(tmp_path, monkeypatch):
     lib = run_cli("precompute", tmp_path / "cap", "--nk", "20", "--laplacian", "robust_laplacian")
     assert lib.code == 0 and "L and M by robust_laplacian" in lib.out
     assert core.ENV_LAPLACIAN not in os.environ  # not left behind for the rest of the process
+
+
+def test_without_the_kernels_source_there_is_no_build(monkeypatch, tmp_path):
+    """A bytecode-only install cannot date a build: no build, a reason, and the library is used."""
+    from tergodic_cli.basis import core
+
+    monkeypatch.setattr(fast_laplacian_aot, "KERNELS", tmp_path / "fast_laplacian_kernels.py")
+    path, why = fast_laplacian_aot.find_build()
+    assert path is None and "unreadable" in why
+    made: dict = {}
+    monkeypatch.setenv(core.ENV_LAPLACIAN, "auto")
+    core.compute_laplacian(noisy_height_field(300, seed=12), 12, info=made)
+    assert made["laplacian"].startswith("robust_laplacian") and "unreadable" in made["laplacian"]

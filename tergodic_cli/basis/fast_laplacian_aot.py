@@ -59,7 +59,10 @@ def _suffix() -> str:
 
 def find_build() -> tuple[Path | None, str]:
     """The current build's file, or None and why there is none (one line)."""
-    name = module_name()
+    try:
+        name = module_name()
+    except OSError as exc:  # an install without the kernels' source (bytecode only) cannot tell a build's age
+        return None, f"the kernels' source {KERNELS.name} is unreadable ({exc.strerror}); reinstall tergodic"
     for folder in search_dirs():
         path = folder / (name + _suffix())
         if path.is_file():
@@ -79,12 +82,12 @@ def load_module():
     (module, "built") or (None, reason). A failed import (another NumPy ABI, a broken file) counts
     as not built, with its reason.
     """
-    name = module_name()
-    if name in _LOADED:
-        return _LOADED[name], "built"
     path, why = find_build()
     if path is None:
         return None, why
+    name = path.name.split(".")[0]
+    if name in _LOADED:
+        return _LOADED[name], "built"
     try:
         spec = importlib.util.spec_from_file_location(name, path)
         module = importlib.util.module_from_spec(spec)
