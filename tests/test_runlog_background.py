@@ -172,6 +172,18 @@ def test_the_environment_switch_keeps_the_writer_in_process(tmp_path, monkeypatc
     log.close()
 
 
+def _log_step_by_step(path, kw, inp, metrics, clouds) -> None:
+    """The reference log: one log_step per step, then log_cloud(step, **clouds[step]) where one is given."""
+    one = RunLog(path, **kw)
+    for k in range(inp["steps"]):
+        one.log_step(k + 1, float(k + 1), positions=inp["P"][k], velocities=inp["V"][k], normals=inp["N"][k],
+                     metrics=dict(zip(("ergodicity", "ergodicity_ref", "touched_fraction"), metrics[k])),
+                     step_ms=inp["step_ms"][k])
+        if k + 1 in clouds:
+            one.log_cloud(k + 1, **clouds[k + 1])
+    one.close({"steps": inp["steps"]})
+
+
 def test_blocks_with_their_cloud_equal_step_by_step_logging(tmp_path):
     """What explore sends (a block of rows and its cloud in one frame) writes the messages of
     one log_step per step followed by log_cloud."""
@@ -188,14 +200,7 @@ def test_blocks_with_their_cloud_equal_step_by_step_logging(tmp_path):
         return {"coverage": c["coverage"], "heat": SpectralField(np.arange(6.0) - step, c["heat"]),
                 "source": c["source"]}
 
-    one = RunLog(tmp_path / "one.mcap", **kw)
-    for k in range(steps):
-        one.log_step(k + 1, float(k + 1), positions=inp["P"][k], velocities=inp["V"][k], normals=inp["N"][k],
-                     metrics=dict(zip(("ergodicity", "ergodicity_ref", "touched_fraction"), metrics[k])),
-                     step_ms=inp["step_ms"][k])
-        if k + 1 in cloud_at:
-            one.log_cloud(k + 1, **cloud(k + 1))
-    one.close({"steps": steps})
+    _log_step_by_step(tmp_path / "one.mcap", kw, inp, metrics, {step: cloud(step) for step in cloud_at})
     blocks = BackgroundRunLog(tmp_path / "blocks.mcap", **kw)
     sent = 0
     for end in (30, 50, 100, 120):
@@ -235,16 +240,10 @@ def test_reusable_step_blocks_with_a_basis_file_equal_step_by_step_logging(tmp_p
     def coeffs(step):
         return np.arange(float(nk)) - step
 
-    one = RunLog(tmp_path / "one.mcap", **kw)
-    for k in range(steps):
-        one.log_step(k + 1, float(k + 1), positions=inp["P"][k], velocities=inp["V"][k], normals=inp["N"][k],
-                     metrics=dict(zip(("ergodicity", "ergodicity_ref", "touched_fraction"), metrics[k])),
-                     step_ms=inp["step_ms"][k])
-        if k + 1 in cloud_at:
-            c = inp["clouds"][k + 1]
-            one.log_cloud(k + 1, coverage=c["coverage"], heat=SpectralField(coeffs(k + 1), c["heat"]),
-                          source=c["source"], target=cloud_at[k + 1])
-    one.close({"steps": steps})
+    clouds = {step: dict(coverage=inp["clouds"][step]["coverage"], source=inp["clouds"][step]["source"],
+                         heat=SpectralField(coeffs(step), inp["clouds"][step]["heat"]), target=target)
+              for step, target in cloud_at.items()}
+    _log_step_by_step(tmp_path / "one.mcap", kw, inp, metrics, clouds)
 
     log = BackgroundRunLog(tmp_path / "blocks.mcap", field_basis_file=_basis_file(tmp_path, phi), **kw)
     sent, target_sent = 0, inp["target"]
