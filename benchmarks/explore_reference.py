@@ -47,7 +47,7 @@ def capture_reference(name: str):
 
 
 def run_starts(basis, target, starts, steps, **cfg_kw) -> dict:
-    """Median ergodicity_ref, touched, ε (eq. 48) and step time over ``starts`` (k, 3)."""
+    """Median residual_ref, touched, ε (eq. 48) and step time over ``starts`` (k, 3)."""
     from tergodic_cli.explore import ExploreConfig, Explorer
 
     rows = []
@@ -58,7 +58,7 @@ def run_starts(basis, target, starts, steps, **cfg_kw) -> dict:
             ex.step()
             ms[k] = ex.last_step_ms
         m = ex.metrics()
-        rows.append((m["ergodicity_ref"], m["touched_fraction"], float(np.median(ms)), m["ergodicity"]))
+        rows.append((m["residual_ref"], m["touched_fraction"], float(np.median(ms)), m["ergodicity"]))
     r = np.array(rows)
     return {"eps_ref": float(np.median(r[:, 0])), "touched": float(np.median(r[:, 1])), "ms": float(np.median(r[:, 2])),
             "ergodicity": float(np.median(r[:, 3])), "eps_ref_each": r[:, 0].round(4).tolist(),
@@ -111,7 +111,7 @@ def main() -> int:
                 results[f"{name}/{diffusion}-{integrator}-{norm}"] = r
                 table.append((name, cap.n_points, n_t, f"{diffusion}/{integrator}/{norm} a=3", r))
 
-    print("\n| object | nP | target | run | ergodicity_ref at %d | touched | ε (eq. 48) | step |" % args.steps)
+    print("\n| object | nP | target | run | residual_ref at %d | touched | ε (eq. 48) | step |" % args.steps)
     print("|---|---|---|---|---|---|---|---|")
     for name, n, n_t, label, r in table:
         erg = f"{r['ergodicity']:.2f}" if "ergodicity" in r else ""

@@ -72,7 +72,7 @@ def bench_runlog(n_points: int = 2996, steps: int = 1000, n_agents: int = 1, rep
             t_open, c_open = time.perf_counter(), time.process_time()
             for k in range(steps):
                 log.log_step(k + 1, float(k + 1), positions=d["P"][k], velocities=d["V"][k], normals=d["N"][k],
-                             metrics={"ergodicity": 0.1 + k * 1e-5, "ergodicity_ref": 0.2, "touched_fraction": k / steps},
+                             metrics={"ergodicity": 0.1 + k * 1e-5, "residual_ref": 0.2, "touched_fraction": k / steps},
                              step_ms=0.9)
                 if (k + 1) % cloud_every == 0:
                     log.log_cloud(k + 1, coverage=d["field"][0], heat=d["field"][1], source=d["field"][2])

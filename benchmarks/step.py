@@ -61,7 +61,7 @@ def time_case(basis, target, starts, steps: int, nk: int = 200, **cfg_kw) -> dic
         for k in range(steps):
             ex.step()
             t[k] = ex.last_step_ms
-        first.append(t[0])  # includes the one-off O(n nK) reference heat p̂ of ergodicity_ref
+        first.append(t[0])  # includes the one-off O(n nK) reference heat p̂ of residual_ref
         ms.append(t[1:])
         for key in work:
             work[key] += ex.work[key]

@@ -112,7 +112,7 @@ def explore(
         typer.echo(json.dumps(summary, indent=2))
         return
     typer.echo(f"explored {summary['steps']} steps ({robot}): ergodicity {summary['ergodicity']:.4g} /m (eq. 48), "
-               f"ergodicity_ref {summary['ergodicity_ref']:.4f}, touched {100 * summary['touched_fraction']:.1f}%, "
+               f"residual_ref {summary['residual_ref']:.4f}, touched {100 * summary['touched_fraction']:.1f}%, "
                f"step {summary['step_ms_median']:.2f} ms (median)")
     typer.echo(f"wrote {out}/ ({', '.join(summary['files'])})")
 

@@ -12,7 +12,7 @@ from conftest import assert_one_line_error, run_cli
 
 from tergodic_cli.explore import summarize_run
 
-SUMMARY_KEYS = {"steps", "ergodicity", "ergodicity_ref", "touched_fraction", "ergodicity_at", "step_ms_median",
+SUMMARY_KEYS = {"steps", "ergodicity", "residual_ref", "touched_fraction", "ergodicity_at", "step_ms_median",
                 "config", "seed", "versions"}
 
 
@@ -50,10 +50,10 @@ def test_explore_from_a_fresh_capture_writes_trajectory_and_summary(cap, tmp_pat
         assert t["coverage"].shape == t["heat"].shape == t["target"].shape == (n,)
         assert t["ergodicity"].shape == (60,)
         # The summary is a pure function of the stored series.
-        again = summarize_run({k: t[k] for k in ("ergodicity", "ergodicity_ref", "touched_fraction", "step_ms")},
+        again = summarize_run({k: t[k] for k in ("ergodicity", "residual_ref", "touched_fraction", "step_ms")},
                               summary["config"], {k: summary[k] for k in summary if k not in (
-                                  "steps", "ergodicity", "ergodicity_ref", "touched_fraction", "ergodicity_at",
-                                  "ergodicity_ref_at", "touched_fraction_at", "step_ms_median", "seed", "config")})
+                                  "steps", "ergodicity", "residual_ref", "touched_fraction", "ergodicity_at",
+                                  "residual_ref_at", "touched_fraction_at", "step_ms_median", "seed", "config")})
         assert again == summary
     assert "explored 60 steps" in res.out
 
@@ -206,4 +206,4 @@ def test_reference_bunny_start_0(reference, tmp_path):
     assert summary["capture"]["n_target"] == 210
     # 206 of the 210 target points; the other 4 are two stray pairs 3-6 cm off the X (docs/explore.md).
     assert summary["touched_fraction"] >= 0.98
-    assert summary["ergodicity_ref"] < 0.16
+    assert summary["residual_ref"] < 0.16

@@ -74,7 +74,7 @@ def test_a_small_far_spot_is_reached_when_the_coverage_is_normalised_over_the_ta
         k_cloud, ex_cloud = _first_touch(basis, target, island, x0, "cloud", 1000)
         assert k_cloud is None
         assert ex_cloud.metrics()["touched_fraction"] == pytest.approx(1 - 9 / target.sum(), abs=0.01)
-        assert ex.metrics()["ergodicity_ref"] < 0.5 * ex_cloud.metrics()["ergodicity_ref"]
+        assert ex.metrics()["residual_ref"] < 0.5 * ex_cloud.metrics()["residual_ref"]
 
 
 def test_explorer_refuses_an_unknown_normalisation(plate_with_island):

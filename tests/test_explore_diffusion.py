@@ -72,7 +72,7 @@ def test_diffusion_conserves_the_integral_neumann(bowl):
     cloud, basis = bowl
     u = np.random.default_rng(0).uniform(0, 1, len(basis.mass))
     total = basis.mass @ u
-    dt = time_step(10, basis.h)
+    dt = time_step(10)
     spec = SpectralDiffusion(basis.evecs, basis.evals, basis.mass, dt)
     imp = ImplicitDiffusion(basis.L, basis.mass, dt)
     v, w = u.copy(), u.copy()
@@ -107,7 +107,7 @@ def test_explorer_reduced_spectral_carry_equals_the_full_operator(bowl, integrat
     cloud, basis = bowl
     target = cloud.mask.astype(float)
     ex = Explorer(basis, target, ExploreConfig(nk=60, agent_radius=0.012, integrator=integrator), basis.points[:1])
-    dt = time_step(10, basis.h)
+    dt = time_step(10)
     spec = SpectralDiffusion(basis.evecs, basis.evals, basis.mass, dt)
     if integrator == "resolvent":
         spec.decay = 1.0 / (1.0 + basis.evals * dt)
@@ -122,7 +122,7 @@ def test_explorer_reduced_spectral_carry_equals_the_full_operator(bowl, integrat
 def test_spectral_resolvent_approaches_the_sparse_implicit_step(bowl):
     # With every eigenpair the two are the same operator; with 60 of them the smooth part agrees.
     cloud, basis = bowl
-    dt = time_step(10, basis.h)
+    dt = time_step(10)
     u = np.exp(-((basis.points - basis.points[0]) ** 2).sum(1) / 0.02**2)  # smooth, 2 cm wide
     exact = ImplicitDiffusion(basis.L, basis.mass, dt).apply(u)
     coef = basis.evecs.T @ (basis.mass * u)

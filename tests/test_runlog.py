@@ -34,7 +34,7 @@ def demo_inputs(steps: int = 120, n_points: int = 400, n_agents: int = 2, robot:
     V[min(3, steps - 1), 0] = 0.0  # no heading on one step
     Nrm = rng.standard_normal((steps, n_agents, 3))
     Nrm /= np.linalg.norm(Nrm, axis=2, keepdims=True)
-    metrics = {"ergodicity": rng.random(steps) / 3, "ergodicity_ref": rng.random(steps) / 7,
+    metrics = {"ergodicity": rng.random(steps) / 3, "residual_ref": rng.random(steps) / 7,
                "touched_fraction": np.sort(rng.random(steps))}
     step_ms = 0.5 + rng.random(steps) / 3
     samples = None
@@ -407,7 +407,7 @@ CHILD = textwrap.dedent("""
     for k in range(1, 100000):
         log.log_step(k, float(k), positions=np.full((1, 3), k * 1e-3), velocities=np.zeros((1, 3)),
                      normals=np.array([[0.0, 0.0, 1.0]]),
-                     metrics={"ergodicity": 1.0 / k, "ergodicity_ref": 2.0 / k, "touched_fraction": k / 1e5},
+                     metrics={"ergodicity": 1.0 / k, "residual_ref": 2.0 / k, "touched_fraction": k / 1e5},
                      step_ms=0.5)
         if k % 50 == 0:
             log.log_cloud(k, coverage=np.full(n, k, float), heat=np.zeros(n), source=np.zeros(n))
@@ -466,7 +466,7 @@ def test_batch_encoding_decodes_exactly_with_the_official_schemas(tmp_path, n_ag
     inp = demo_inputs(steps=steps, n_agents=n_agents, seed=n_agents)
     inp["P"][0] = 0.0  # zero doubles are still written
     inp["V"][1] = 0.0
-    inp["metrics"]["ergodicity_ref"][0] = np.nan
+    inp["metrics"]["residual_ref"][0] = np.nan
     inp["metrics"]["ergodicity"][2] = np.inf
     inp["metrics"]["touched_fraction"][3] = -0.0
     times = np.cumsum(rng.random(steps) * 3.7)  # not whole seconds: nanos in the timestamps
@@ -494,7 +494,7 @@ def test_batch_encoding_decodes_exactly_with_the_official_schemas(tmp_path, n_ag
                                         inp["P"][k, a] + 0.25 * _extent(inp) * inp["N"][k, a]], rtol=0, atol=1e-15)
     d = read_run_log(tmp_path / "run.mcap")
     assert np.array_equal(d.series["step"], 2**40 + np.arange(steps))
-    np.testing.assert_array_equal(d.series["ergodicity_ref"], inp["metrics"]["ergodicity_ref"])
+    np.testing.assert_array_equal(d.series["residual_ref"], inp["metrics"]["residual_ref"])
 
 
 def _extent(inp: dict) -> float:

@@ -137,7 +137,7 @@ def test_a_dead_writer_is_a_one_line_error_in_the_caller(tmp_path):
     with pytest.raises(TergodicError, match="log writer process stopped") as err:
         for k in range(1, 10_000):
             log.log_step(k, float(k), positions=inp["P"][0], velocities=inp["V"][0], normals=inp["N"][0],
-                         metrics={"ergodicity": 1.0, "ergodicity_ref": 1.0, "touched_fraction": 0.0}, step_ms=1.0)
+                         metrics={"ergodicity": 1.0, "residual_ref": 1.0, "touched_fraction": 0.0}, step_ms=1.0)
             time.sleep(0.001)
     assert "\n" not in str(err.value) and "TERGODIC_LOG_WRITER=inline" in str(err.value)
 
@@ -153,7 +153,7 @@ def test_bad_arguments_fail_in_the_caller_before_anything_starts(tmp_path):
     with pytest.raises(TergodicError, match="shape"):
         log.log_cloud(1, coverage=np.zeros(3), heat=np.zeros(3), source=np.zeros(3))
     log.log_step(1, 1.0, positions=inp["P"][0], velocities=inp["V"][0], normals=inp["N"][0],
-                 metrics={"ergodicity": 0.5, "ergodicity_ref": 0.25, "touched_fraction": 0.0}, step_ms=1.0)
+                 metrics={"ergodicity": 0.5, "residual_ref": 0.25, "touched_fraction": 0.0}, step_ms=1.0)
     log.close()
     with pytest.raises(TergodicError, match="closed"):
         log.log_step(1, 1.0, positions=np.zeros(3), velocities=np.zeros(3), normals=np.zeros(3), metrics={}, step_ms=1)
@@ -177,7 +177,7 @@ def _log_step_by_step(path, kw, inp, metrics, clouds) -> None:
     one = RunLog(path, **kw)
     for k in range(inp["steps"]):
         one.log_step(k + 1, float(k + 1), positions=inp["P"][k], velocities=inp["V"][k], normals=inp["N"][k],
-                     metrics=dict(zip(("ergodicity", "ergodicity_ref", "touched_fraction"), metrics[k])),
+                     metrics=dict(zip(("ergodicity", "residual_ref", "touched_fraction"), metrics[k])),
                      step_ms=inp["step_ms"][k])
         if k + 1 in clouds:
             one.log_cloud(k + 1, **clouds[k + 1])
@@ -192,7 +192,7 @@ def test_blocks_with_their_cloud_equal_step_by_step_logging(tmp_path):
     basis = np.random.default_rng(2).standard_normal((n, 6))
     kw = dict(config=inp["config"], seed=1, versions=inp["versions"], capture_sidecar=inp["sidecar"],
               points=inp["points"], target=inp["target"], cloud_every=50, field_basis=basis)
-    metrics = np.column_stack([inp["metrics"][k] for k in ("ergodicity", "ergodicity_ref", "touched_fraction")])
+    metrics = np.column_stack([inp["metrics"][k] for k in ("ergodicity", "residual_ref", "touched_fraction")])
     cloud_at = {50, 100, 120}
 
     def cloud(step):
@@ -233,7 +233,7 @@ def test_reusable_step_blocks_with_a_basis_file_equal_step_by_step_logging(tmp_p
     phi = np.random.default_rng(3).standard_normal((n, nk + 2))  # the file holds more columns than in use
     kw = dict(config=inp["config"], seed=1, versions=inp["versions"], capture_sidecar=inp["sidecar"],
               points=inp["points"], target=inp["target"], cloud_every=50, field_basis=phi[:, :nk])
-    metrics = np.column_stack([inp["metrics"][k] for k in ("ergodicity", "ergodicity_ref", "touched_fraction")])
+    metrics = np.column_stack([inp["metrics"][k] for k in ("ergodicity", "residual_ref", "touched_fraction")])
     new_target = np.where(inp["target"] > 0, 0.0, 1.0)  # a re-capture between the 2nd and 3rd cloud
     cloud_at = {50: inp["target"], 100: inp["target"], 120: new_target}
 
@@ -281,7 +281,7 @@ def test_a_basis_file_changed_during_the_run_leaves_the_heat_out_with_a_warning(
     log = BackgroundRunLog(tmp_path / "run.mcap", config=inp["config"], seed=1, points=inp["points"],
                            target=inp["target"], field_basis=phi, field_basis_file=ref)
     c = inp["clouds"][50]
-    metrics = np.column_stack([inp["metrics"][k] for k in ("ergodicity", "ergodicity_ref", "touched_fraction")])
+    metrics = np.column_stack([inp["metrics"][k] for k in ("ergodicity", "residual_ref", "touched_fraction")])
     log.log_steps(np.arange(1, 51), np.arange(1.0, 51.0), positions=inp["P"], velocities=inp["V"], normals=inp["N"],
                   metrics=metrics, step_ms=inp["step_ms"],
                   cloud={"coverage": c["coverage"], "heat": SpectralField(np.ones(4), c["heat"]), "source": c["source"]})
@@ -309,7 +309,7 @@ def test_begin_close_lets_the_caller_work_while_the_child_finishes(tmp_path):
     inp = demo_inputs(steps=50, n_points=100, n_agents=1, seed=14)
     log = BackgroundRunLog(tmp_path / "run.mcap", config=inp["config"], seed=1, points=inp["points"],
                            target=inp["target"])
-    metrics = np.column_stack([inp["metrics"][k] for k in ("ergodicity", "ergodicity_ref", "touched_fraction")])
+    metrics = np.column_stack([inp["metrics"][k] for k in ("ergodicity", "residual_ref", "touched_fraction")])
     log.log_steps(np.arange(1, 51), np.arange(1.0, 51.0), positions=inp["P"], velocities=inp["V"], normals=inp["N"],
                   metrics=metrics, step_ms=inp["step_ms"])
     log.begin_close({"steps": 50, "note": "first"})

@@ -76,7 +76,7 @@ def test_tiny_sweep_in_process_and_on_a_process_pool_agree_and_resume(grid, tmp_
     assert (one.n_runs, one.computed, one.skipped, one.failed) == (16, 16, 0, [])
     rows = read_table(tmp_path / "one" / "results.csv")
     assert len(rows) == 16 and {r["object"] for r in rows} == {"plate", "bowl"}
-    assert all(r["steps"] == 40 and 0 < r["ergodicity_ref"] <= 1 for r in rows)
+    assert all(r["steps"] == 40 and 0 < r["residual_ref"] <= 1 for r in rows)
     assert _series(tmp_path / "one")["ergodicity"].shape == (16, 40)
     pool = run_sweep(grid, tmp_path / "pool", jobs=2, plots=True)
     assert pool.computed == 16
@@ -110,7 +110,7 @@ def test_a_table_row_is_the_explorer_run_it_names(grid, tmp_path):
     for _ in range(40):
         ex.step()
     m = ex.metrics()
-    assert row["ergodicity"] == m["ergodicity"] and row["ergodicity_ref"] == m["ergodicity_ref"]
+    assert row["ergodicity"] == m["ergodicity"] and row["residual_ref"] == m["residual_ref"]
     assert row["touched_fraction"] == m["touched_fraction"]
     # Random starts are seeded cloud points.
     assert np.min(np.linalg.norm(cap.points - [row["start_x"], row["start_y"], row["start_z"]], axis=1)) == 0.0
@@ -132,7 +132,7 @@ def test_parquet_table_equals_the_csv(grid, tmp_path):
     table = pq.read_table(tmp_path / "p" / "results.parquet").to_pylist()
     rows = read_table(tmp_path / "p" / "results.csv")
     assert len(table) == len(rows) == 16
-    assert [r["ergodicity_ref"] for r in table] == [r["ergodicity_ref"] for r in rows]
+    assert [r["residual_ref"] for r in table] == [r["residual_ref"] for r in rows]
 
 
 @pytest.mark.slow

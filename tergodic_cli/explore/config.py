@@ -70,7 +70,7 @@ class ExploreConfig:
     dt: float = 1.0
     diffusion: str = "carry"
     integrator: str = "resolvent"
-    coverage_norm: str = "target"
+    coverage_norm: str = "cloud"
     seed: int = 0
     resync_every: int = 1000
     n_neighbors: int = DEFAULT_NEIGHBORS
@@ -78,6 +78,9 @@ class ExploreConfig:
     basis_neighbors: int = 30
     max_start_distance: float = 0.02
     normal_hint: tuple[float, float, float] = field(default=(0.0, 0.0, 1.0))
+    heat_weight: float = 0.01
+    gain_weight: float = 1.0
+    gain_width: float = 1.5
 
     def to_dict(self) -> dict:
         d = asdict(self)

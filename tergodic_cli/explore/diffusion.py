@@ -3,7 +3,7 @@
 Both operate on full (n,) fields with the basis' weak Laplacian L and lumped mass M, with
 Neumann boundaries implicit in L (its rows sum to zero), so ∫u = Σ M u is conserved.
 
-- Spectral (eq. 19): u(t + δt) = Φ (e^{-λ δt} ⊙ Φᵀ M u(t)), δt = α h² (eq. 21).
+- Spectral (eq. 19): u(t + δt) = Φ (e^{-λ δt} ⊙ Φᵀ M u(t)), δt = α h₀² (eq. 21, h₀ fixed).
 - Implicit: one backward-Euler step u(t + δt) = (M + δt L)⁻¹ M u(t), factorised once per δt.
 
 The :class:`~tergodic_cli.explore.explorer.Explorer` uses a reduced form of the spectral
@@ -16,9 +16,15 @@ import numpy as np
 import scipy.sparse as sp
 
 
-def time_step(alpha: float, h: float) -> float:
-    """δt = α h² (eq. 21), m²."""
-    return float(alpha) * float(h) ** 2
+#: Reference spacing h₀ of δt = α h₀² (metres): the mean spacing of a 3 mm voxel grid, where the
+#: paper's α was tuned. A fixed length (not the cloud's own h) makes α mean the same diffusion on
+#: any sampling of an object (docs/explore.md).
+H0 = 0.0025
+
+
+def time_step(alpha: float) -> float:
+    """δt = α h₀² (eq. 21 with a fixed reference spacing h₀ = :data:`H0`), m²."""
+    return float(alpha) * H0 ** 2
 
 
 class SpectralDiffusion:

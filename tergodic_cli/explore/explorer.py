@@ -44,10 +44,10 @@ from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.explore import kernels as K
 from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_config
 from tergodic_cli.explore.diffusion import ImplicitDiffusion, time_step
+from tergodic_cli.explore.metrics import CoverageScore
 
 # Static per-cloud data, shared by every explorer of the same arrays (a sweep builds hundreds).
 _TREES: dict[int, tuple] = {}
-_REACH: dict[int, tuple] = {}
 _PHI: dict[int, tuple] = {}
 
 
@@ -93,20 +93,6 @@ def _internal_phi(evecs: np.ndarray, nk: int, order: np.ndarray) -> np.ndarray:
     return per_nk[nk]
 
 
-def edge_lengths(points: np.ndarray, L) -> np.ndarray:
-    """(n,) longest Laplacian edge at each point, metres (built once per L)."""
-
-    def build():
-        Lc = L.tocoo()
-        off = Lc.row != Lc.col
-        lengths = np.linalg.norm(points[Lc.row[off]] - points[Lc.col[off]], axis=1)
-        out = np.zeros(len(points))
-        np.maximum.at(out, Lc.row[off], lengths)
-        return out
-
-    return _cached(_REACH, L, build)
-
-
 class Explorer:
     """HEDAC exploration state on one cloud; see the module docstring for one step.
 
@@ -130,7 +116,7 @@ class Explorer:
     source : (n,) s = max(p̄ - c̄, 0)² (eq. 1), 1/m⁴ (computed on access).
     step_index : steps done.
     last_step_ms : wall time of the last :meth:`step`, metrics included.
-    edge_events : how many times an agent was pulled back onto the cloud.
+    edge_events : how many moves were refused because they left the data (edge, hole, gap).
     resync_drift : largest relative correction a periodic full recompute has made to the
         incrementally kept ∫s and Φᵀ M s (round-off; 0 before the second recompute).
     """
@@ -155,6 +141,7 @@ class Explorer:
         self.r_a = float(cfg.agent_radius)
         self._k = int(cfg.n_neighbors)
         index = cloud_index(self.points)
+        self._index = index
         self._order, self._rank, self._P, self._tree = index.order, index.rank, index.points, index.tree
         self._phi = _internal_phi(basis.evecs, cfg.nk, self._order)
         if self.r_a < self.h:
@@ -171,11 +158,6 @@ class Explorer:
         # Per-point state, packed for the compiled step (kernels.PF_*, PB_*, PI_* rows).
         self._pf = np.zeros((K.N_PF, n))
         self._pf[K.PF_MASS] = basis.mass[self._order]
-        # Off-cloud guard: the fitted plane of an open sheet extends past its last points, so an
-        # agent may slide off the object. It may stray from its nearest point j by at most
-        # max(r_a, ℓ_j), ℓ_j the longest Laplacian edge at j: gaps the Laplacian bridges (and
-        # the heat flows across) stay crossable, as in the paper's bunny ear; beyond, it is pulled back.
-        self._pf[K.PF_REACH] = np.maximum(edge_lengths(self.points, basis.L)[self._order], self.r_a)
         self._pb = np.zeros((K.N_PB, n), dtype=np.int8)
         self._pi = np.zeros((K.N_PI, n), dtype=np.int64)
         self._sp = np.zeros((K.N_SP, cfg.nk))
@@ -189,11 +171,18 @@ class Explorer:
         self._prm[K.PR_VMAX] = cfg.v_max
         self._prm[K.PR_DT] = cfg.dt
         self._prm[K.PR_MAXSTART] = cfg.max_start_distance
+        self._prm[K.PR_REACH] = K.SURFACE_REACH * self.h
+        self._prm[K.PR_HEAT] = cfg.heat_weight
+        # The gain is a footprint integral (∫φ = π/ε²): per unit area it weighs like the heat.
+        geps = self.eps / cfg.gain_width
+        self._prm[K.PR_GAIN_EPS2] = geps * geps
+        self._prm[K.PR_GAIN] = cfg.gain_weight * geps * geps / math.pi
         self._cov = self._pf[K.PF_COV]
         self._u_full = np.zeros(n if not self._spectral else 0)  # implicit: u in internal order
         self._u_orig = np.zeros(n if not self._spectral else 0)  # ... and in the cloud's order
         self.step_index = 0
         self.last_step_ms = 0.0
+        self._score = CoverageScore(index, target, self.r_a, self.h, cfg.n_agents)
         self.set_target(target)
 
         starts = np.asarray(starts, dtype=np.float64)
@@ -222,7 +211,7 @@ class Explorer:
                     f"start {np.array2string(x0, precision=4)} is {d0 * 1e3:.1f} mm from the cloud "
                     f"(limit {cfg.max_start_distance * 1e3:.0f} mm)",
                     "give a start on the object (x,y,z in metres, a point index, or 'random')")
-            K.place_agent(self._P, *self._tree, self._ag, self._nbrs, i, x0, hint, self._k)
+            K.place_agent(self._P, *self._tree, self._ag, self._nbrs, i, x0, hint, self._k, self._prm[K.PR_REACH])
             if d0 > self.h:
                 self._say(f"warning: start {np.array2string(x0, precision=4)} is {d0 * 1e3:.1f} mm off the cloud; "
                           f"projected onto the surface at {np.array2string(self.positions[i], precision=4)}")
@@ -232,7 +221,7 @@ class Explorer:
         """Use a new target p (n,) from a re-capture; the basis is unchanged.
 
         Coverage is kept unless ``reset_coverage``; the heat restarts from the new p̄ (eq. 5) and
-        the reference heat p̂ of ``ergodicity_ref`` is re-taken after the next step.
+        the reference heat p̂ of ``residual_ref`` is re-taken after the next step.
         """
         p = np.asarray(target, dtype=np.float64)
         n = len(self.points)
@@ -281,8 +270,9 @@ class Explorer:
         if not self._spectral:
             self._u_full[:] = pbar
             self._u_orig[:] = pbar[self._rank]
-        self._metrics = {"ergodicity": self._ergodicity(), "ergodicity_ref": float("nan"),
-                         "touched_fraction": int(self._is[K.IS_TOUCHED]) / len(T)}
+        self._score.set_target(p, self._index)
+        self._metrics = {"ergodicity": self._score.metrics()["ergodicity"], "residual_ref": float("nan"),
+                         "touched_fraction": self._score.metrics()["touched_fraction"]}
         if hasattr(self, "_state"):
             self._bind()
 
@@ -290,11 +280,6 @@ class Explorer:
         """The step kernel's state arguments, bound once (the heap arrays change with the target)."""
         self._state = (self._P, *self._tree, self._phi, self._pf, self._pb, self._pi, self._sp, self._heap_keys,
                        self._heap_idx, self._fs, self._is, self._prm, self._ag, self._nbrs, self._k)
-
-    def _ergodicity(self) -> float:
-        """ε (eq. 48) with the cloud-normalised coverage: √∫s when the source uses the same Z."""
-        sq = self._fs[K.FS_ERG2] if self._prm[K.PR_ZTARGET] != 0.0 else self._fs[K.FS_MASS_S]
-        return math.sqrt(max(float(sq), 0.0))
 
     @property
     def edge_events(self) -> int:
@@ -398,8 +383,13 @@ class Explorer:
                          for j in idx])
 
     def metrics(self) -> dict:
-        """{"ergodicity", "ergodicity_ref", "touched_fraction"} after the last step (see docs/explore.md)."""
+        """{"ergodicity", "residual_ref", "touched_fraction"} after the last step (see docs/explore.md):
+        the neutral score of :func:`metrics.coverage_score` and the authors' residual."""
         return dict(self._metrics)
+
+    def score(self) -> dict:
+        """The neutral score so far: ergodicity, touched_fraction, off_surface_fraction, step_max_m."""
+        return self._score.metrics()
 
     @property
     def alpha(self) -> float:
@@ -414,7 +404,7 @@ class Explorer:
         alpha = self.alpha
         if alpha != self._alpha:
             self._alpha = alpha
-            dt = time_step(alpha, self.h)
+            dt = time_step(alpha)
             if self.cfg.integrator == "spectral":
                 self._sp[K.SP_DECAY] = np.exp(-self.evals * dt)  # eq. 19
             elif self.cfg.integrator == "resolvent":
@@ -463,13 +453,15 @@ class Explorer:
         self.step_index += 1
         if self._is[K.IS_PHAT] == 0:
             self._take_reference_heat()
-        fs = self._fs
-        self._metrics = {
-            "ergodicity": self._ergodicity(),
-            "ergodicity_ref": math.sqrt(max(float(fs[K.FS_REF_UNTOUCHED]), 0.0) / self._ref_norm2),
-            "touched_fraction": int(self._is[K.IS_TOUCHED]) / self._n_target,
-        }
         self.last_step_ms = 1e3 * (time.perf_counter() - t0)
+        # The neutral score (metrics.coverage_score) is instrumentation: outside the step's time.
+        self._score.add(self.positions)
+        sc = self._score.metrics()
+        self._metrics = {
+            "ergodicity": sc["ergodicity"],
+            "residual_ref": math.sqrt(max(float(self._fs[K.FS_REF_UNTOUCHED]), 0.0) / self._ref_norm2),
+            "touched_fraction": sc["touched_fraction"],
+        }
 
     def _diffuse_full(self) -> None:
         """The implicit integrator on the whole field: u <- (M + δt L)⁻¹ M u + s̄ (carry) or u = ... s̄."""
@@ -490,10 +482,10 @@ class Explorer:
         self._u_full[:] = self._u_orig[self._order]
 
     def _take_reference_heat(self) -> None:
-        """p̂ of ``ergodicity_ref``: the heat after the first step of the carry-over scheme,
+        """p̂ of ``residual_ref``: the heat after the first step of the carry-over scheme,
         e^{-δtL} p̄ + s̄₁ (the published code's), whichever diffusion drives the agents, so
         that the metric compares runs and variants on the same footing. O(n nK), once."""
-        decay = np.exp(-self.evals * time_step(self._alpha, self.h))
+        decay = np.exp(-self.evals * time_step(self._alpha))
         u = K.expand_rows(self._phi, decay * self._sp[K.SP_PBARCOEF])  # internal order
         if self._prm[K.PR_ZTARGET] == 0.0:
             u += self._sbar()

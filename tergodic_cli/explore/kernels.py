@@ -87,7 +87,7 @@ prefetch = _make_prefetch()
 LEAF_SIZE = 8
 
 # Rows of the per-point float array ``pf`` (n columns).
-PF_MASS, PF_PBAR, PF_REACH, PF_PHAT, PF_COV, PF_OLDC = 0, 1, 2, 3, 4, 5
+PF_MASS, PF_PBAR, PF_PHAT, PF_COV, PF_OLDC = 0, 1, 3, 4, 5  # (row 2 unused)
 PF_W0, PF_W1, PF_W2 = 6, 7, 8  # scratch: weights of the rows a source update adds
 N_PF = 9
 # Rows of the per-point int8 array ``pb`` (n columns).
@@ -124,10 +124,16 @@ IS_NPEND, IS_NEPEND = 12, 13
 N_IS = 14
 # Float parameters ``prm``.
 PR_EPS2, PR_RA, PR_H2, PR_AMAX, PR_VMAX, PR_DT, PR_MAXSTART = 0, 1, 2, 3, 4, 5, 6
+#: An agent position must lie within this distance (metres) of a cloud point: SURFACE_REACH h.
+PR_REACH = 8
+#: Weights of the heat's gradient and of the footprint gain's (gain_gradient) in the agent's drive.
+PR_HEAT, PR_GAIN = 9, 10
+#: ε² of the gain's kernel (1/m²).
+PR_GAIN_EPS2 = 11
 #: 1.0: the source's coverage is normalised over the target (Z = ∫_T c̃) and ε (eq. 48) is kept
 #: apart with the cloud's Z; 0.0: one Z = ∫_Ω c̃ for both (eq. 2, or a target covering the cloud).
 PR_ZTARGET = 7
-N_PR = 8
+N_PR = 12
 # Heat modes of :func:`step_kernel`: spectral carry-over, spectral current source, a full field.
 HEAT_CARRY, HEAT_SOURCE, HEAT_FULL = 0, 1, 2
 
@@ -135,6 +141,16 @@ HEAT_CARRY, HEAT_SOURCE, HEAT_FULL = 0, 1, 2
 PLANE_RADIUS_RATIO = 1e4
 #: A sphere smaller than this share of the rms patch radius is noise (as geometry.py).
 MIN_RADIUS_RATIO = 0.5
+#: A position farther than this many mean spacings h from every cloud point is off the data
+#: (the coverage metric's limit is 2 h; the margin absorbs the fit's noise).
+SURFACE_REACH = 1.5
+#: Projections tried per move before the chord is taken, and the step's shrink factor per try.
+STEP_ITERATIONS = 4
+SHRINK = 0.98
+#: The footprint gain is summed over the points within this many r_a (φ(2 r_a) = e^-16 = 1e-7).
+GAIN_REACH = 2.0
+#: Directions per half-turn an agent tries when a move would leave the data (30° apart).
+SLIDE_DIRECTIONS = 6
 #: Fit-project-requery iterations that bring a start onto the surface (as the explorer).
 START_ITERATIONS = 8
 
@@ -1210,7 +1226,7 @@ def locate(P, perm, nodes, boxes, tpts, x, ref, k, out_xp, out_n, out_nb, d2buf)
 
 
 @njit
-def place_agent(P, perm, nodes, boxes, tpts, ag, nbrs, i, x0, ref, k):
+def place_agent(P, perm, nodes, boxes, tpts, ag, nbrs, i, x0, ref, k, prm_reach):
     """Project a start or reset position onto the surface (fit, project, re-query up to
     START_ITERATIONS times) and set agent ``i``'s position, normal, frame, tangent velocity."""
     x = x0.copy()
@@ -1227,6 +1243,10 @@ def place_agent(P, perm, nodes, boxes, tpts, ag, nbrs, i, x0, ref, k):
         r[:] = nn
         if moved < 1e-9:
             break
+    if _nearest_of(P, nb, k, x) > prm_reach * prm_reach:  # projected into a hole or past an edge
+        j = nb[0]
+        for d in range(3):
+            x[d] = P[j, d]
     ag[i, AG_POS:AG_POS + 3] = x
     ag[i, AG_NRM:AG_NRM + 3] = r
     nbrs[i, :] = nb
@@ -1265,62 +1285,164 @@ def agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full):
 
 
 @njit
-def move_agent(P, perm, nodes, boxes, tpts, Phi, pf, sp, fs, is_, ag, nbrs, i, k, prm, mode, u_full):
-    """Gradient step of agent i (eq. 6, saturated), semi-implicit Euler within v_max, projection
-    onto the surface, and the off-cloud guard (see explorer.py)."""
+def gain_gradient(P, perm, nodes, boxes, tpts, pf, pb, fs, prm, x, t1, t2, ball):
+    """∇G (3,) in the tangent plane (t1, t2) at ``x``, where G(x) = Σ_j M_j e_j φ(|x - x_j|) is the
+    footprint-weighted residual e = max(p̄ - c̃/Z_Ω, 0) a deposit at x would reduce: the descent
+    direction of the coverage error ε (eq. 48) for the next deposit. Exact, over the points within
+    GAIN_REACH r_a (φ < 1e-7 beyond, at the default ε = 2/r_a)."""
+    eps2 = prm[PR_GAIN_EPS2]
+    cnt = tree_ball(perm, nodes, boxes, tpts, x, GAIN_REACH * 2.0 / math.sqrt(eps2), ball)
+    mass, pbar, cov = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV]
+    target = pb[PB_TARGET]
+    Z = fs[FS_ZC]
+    inv = 1.0 / Z if Z > 0.0 else 0.0
+    g0 = 0.0
+    g1 = 0.0
+    g2 = 0.0
+    for t in range(cnt):
+        j = ball[t]
+        if target[j] == 0:
+            continue
+        e = pbar[j] - cov[j] * inv
+        if e <= 0.0:
+            continue
+        d0, d1, d2 = P[j, 0] - x[0], P[j, 1] - x[1], P[j, 2] - x[2]
+        w = mass[j] * e * math.exp(-eps2 * (d0 * d0 + d1 * d1 + d2 * d2))
+        g0 += w * d0
+        g1 += w * d1
+        g2 += w * d2
+    f = 2.0 * eps2
+    a = f * (g0 * t1[0] + g1 * t1[1] + g2 * t1[2])
+    b = f * (g0 * t2[0] + g1 * t2[1] + g2 * t2[2])
+    out = np.empty(3)
+    for d in range(3):
+        out[d] = a * t1[d] + b * t2[d]
+    return out
+
+
+@njit
+def _dist2(a, b):
+    d0, d1, d2 = a[0] - b[0], a[1] - b[1], a[2] - b[2]
+    return d0 * d0 + d1 * d1 + d2 * d2
+
+
+@njit
+def _nearest_of(P, nb, k, x):
+    """Squared distance from ``x`` to the nearest of the points ``nb[:k]``."""
+    best = np.inf
+    for t in range(k):
+        j = nb[t]
+        d0, d1, d2 = P[j, 0] - x[0], P[j, 1] - x[1], P[j, 2] - x[2]
+        dd = d0 * d0 + d1 * d1 + d2 * d2
+        if dd < best:
+            best = dd
+    return best
+
+
+@njit
+def try_move(P, perm, nodes, boxes, tpts, x, disp, ref, k, prm, out_xp, out_n, out_nb, d2buf):
+    """Move from ``x`` by ``disp`` (3,) and project onto the surface fitted there (eqs. 23-27),
+    shrinking the step until the projected displacement is at most v_max dt (the projection can
+    lengthen it). Returns True when the result lies on the data: its nearest cloud point is
+    within PR_REACH (the fit, a plane past a sheet's edge or across a hole, extends beyond the
+    points, so a projection there is refused)."""
+    limit = prm[PR_VMAX] * prm[PR_DT]
+    xt = np.empty(3)
+    scale = 1.0
+    for _ in range(STEP_ITERATIONS):
+        for d in range(3):
+            xt[d] = x[d] + scale * disp[d]
+        locate(P, perm, nodes, boxes, tpts, xt, ref, k, out_xp, out_n, out_nb, d2buf)
+        moved = math.sqrt(_dist2(out_xp, x))
+        if moved <= limit:
+            break
+        scale *= SHRINK * limit / moved
+    moved = math.sqrt(_dist2(out_xp, x))
+    if moved > limit:  # still long (a strongly curved fit): the chord, within round-off of the fit
+        f = limit / moved
+        for d in range(3):
+            out_xp[d] = x[d] + (out_xp[d] - x[d]) * f
+    return _nearest_of(P, out_nb, k, out_xp) <= prm[PR_REACH] * prm[PR_REACH]
+
+
+@njit
+def move_agent(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, sp, fs, is_, ag, nbrs, i, k, prm, mode, u_full):
+    """Gradient step of agent i (eq. 6, saturated), semi-implicit Euler within v_max, then the
+    move onto the surface (:func:`try_move`). A move that would leave the data (an edge, a hole,
+    a gap) is not made: the velocity is reflected off the boundary (its outward normal estimated
+    from where the agent's neighbours lie) and the reflected move tried, then the reversed one;
+    when neither stays on the data the agent waits with zero velocity."""
     g = agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full)
+    if prm[PR_GAIN] > 0.0:
+        gl = gain_gradient(P, perm, nodes, boxes, tpts, pf, pb, fs, prm, ag[i, AG_POS:AG_POS + 3],
+                           ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3], pi[PI_BALL])
+        for d in range(3):
+            g[d] = prm[PR_HEAT] * g[d] + prm[PR_GAIN] * gl[d]
     gn = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
     a_max, v_max, dt = prm[PR_AMAX], prm[PR_VMAX], prm[PR_DT]
     acc = np.zeros(3)
     if gn > 0.0 and math.isfinite(gn):
         for d in range(3):
             acc[d] = g[d] * (a_max / gn)
+    x = ag[i, AG_POS:AG_POS + 3].copy()
+    nrm = ag[i, AG_NRM:AG_NRM + 3].copy()
     v = np.empty(3)
     for d in range(3):
         v[d] = ag[i, AG_VEL + d] + acc[d] * dt
+    tangential(v, nrm)  # the acceleration lies in the tangent plane already; keep v there too
     speed = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
     if speed > v_max:
         f = v_max / speed
         for d in range(3):
             v[d] *= f
-    x_new = np.empty(3)
-    for d in range(3):
-        x_new[d] = ag[i, AG_POS + d] + v[d] * dt
     xp = np.empty(3)
     nn = np.empty(3)
-    nb = nbrs[i]
+    nb = np.empty(k, np.int64)
     d2 = np.empty(k)
-    ref = ag[i, AG_NRM:AG_NRM + 3].copy()
-    locate(P, perm, nodes, boxes, tpts, x_new, ref, k, xp, nn, nb, d2)
-    # Edge guard: an open sheet's fitted plane extends past its last points.
-    best = -1
-    bd = np.inf
-    for t in range(k):
-        j = nb[t]
-        e0, e1, e2 = P[j, 0] - xp[0], P[j, 1] - xp[1], P[j, 2] - xp[2]
-        dd = e0 * e0 + e1 * e1 + e2 * e2
-        if dd < bd:
-            bd = dd
-            best = j
-    reach = pf[PF_REACH, best]
-    if bd > reach * reach:
+    disp = np.empty(3)
+    for d in range(3):
+        disp[d] = v[d] * dt
+    ok = try_move(P, perm, nodes, boxes, tpts, x, disp, nrm, k, prm, xp, nn, nb, d2)
+    if not ok:
+        # The move leaves the data (an edge, a hole, a gap). Slide instead: of the tangent
+        # directions turned by ±30°, ±60°, ... from the intended one, take the nearest that stays
+        # on the data (at full, then half length), keeping the speed; else wait.
         is_[IS_EDGE] += 1
-        dist = math.sqrt(bd)
-        out = np.empty(3)
-        q = np.empty(3)
-        for d in range(3):
-            out[d] = (xp[d] - P[best, d]) / dist
-            q[d] = P[best, d] + out[d] * reach
-        ref2 = nn.copy()
-        locate(P, perm, nodes, boxes, tpts, q, ref2, k, xp, nn, nb, d2)
-        vo = v[0] * out[0] + v[1] * out[1] + v[2] * out[2]
-        vo = max(vo, 0.0)
-        for d in range(3):
-            v[d] -= 2.0 * vo * out[d]  # reflect off the edge: keep moving, never stall
+        t1 = ag[i, AG_T1:AG_T1 + 3]
+        t2 = ag[i, AG_T2:AG_T2 + 3]
+        vs = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+        a = v[0] * t1[0] + v[1] * t1[1] + v[2] * t1[2]
+        b = v[0] * t2[0] + v[1] * t2[1] + v[2] * t2[2]
+        if vs == 0.0:  # standing still: the intended way is the gradient's
+            a = g[0] * t1[0] + g[1] * t1[1] + g[2] * t1[2]
+            b = g[0] * t2[0] + g[1] * t2[1] + g[2] * t2[2]
+            vs = v_max
+        theta0 = math.atan2(b, a)
+        for length in (1.0, 0.5):
+            for m in range(1, 2 * SLIDE_DIRECTIONS):
+                turn = (m + 1) // 2 * (math.pi / SLIDE_DIRECTIONS) * (1.0 if m % 2 == 1 else -1.0)
+                ca, sa = math.cos(theta0 + turn), math.sin(theta0 + turn)
+                for d in range(3):
+                    v[d] = vs * (ca * t1[d] + sa * t2[d])
+                    disp[d] = length * v[d] * dt
+                ok = try_move(P, perm, nodes, boxes, tpts, x, disp, nrm, k, prm, xp, nn, nb, d2)
+                if ok:
+                    break
+            if ok:
+                break
+        if not ok:  # wait where it is; the next gradient step picks a new way
+            for d in range(3):
+                v[d] = 0.0
+                xp[d] = x[d]
+                nn[d] = nrm[d]
+            for t in range(k):
+                nb[t] = nbrs[i, t]
     for d in range(3):
         ag[i, AG_ACC + d] = acc[d]
         ag[i, AG_POS + d] = xp[d]
         ag[i, AG_NRM + d] = nn[d]
+    for t in range(k):
+        nbrs[i, t] = nb[t]
     tangential(v, nn)
     for d in range(3):
         ag[i, AG_VEL + d] = v[d]
@@ -1376,6 +1498,62 @@ def step_kernel(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, sp, hk, hi, fs, is
                 reset_status[i] = -2
                 resets[i, 0] = d0
             else:
-                place_agent(P, perm, nodes, boxes, tpts, ag, nbrs, i, resets[i], ag[i, AG_NRM:AG_NRM + 3].copy(), k)
+                place_agent(P, perm, nodes, boxes, tpts, ag, nbrs, i, resets[i], ag[i, AG_NRM:AG_NRM + 3].copy(), k,
+                            prm[PR_REACH])
     for i in range(N):
-        move_agent(P, perm, nodes, boxes, tpts, Phi, pf, sp, fs, is_, ag, nbrs, i, k, prm, mode, u_full)
+        move_agent(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, sp, fs, is_, ag, nbrs, i, k, prm, mode, u_full)
+
+
+# ---------------------------------------------------------------------------------- coverage score
+# The neutral score of a trajectory (metrics.CoverageScore): c_i = Σ_t exp(-ε² |P_i - X_t|²) with
+# 3-D distance, and ε = ‖max(p̄ - c̄, 0)‖₂ / ‖p̄‖₂ with p̄, c̄ unit mass in plain sums over the cloud.
+# State ``ss``: SS_C = Σ c, SS_TOUCHED target points within r_a of some X_t, SS_OFF positions more
+# than SS_OFFDIST from every point, SS_STEPMAX, SS_N positions scored. Parameters ``sp_``:
+SS_C, SS_TOUCHED, SS_OFF, SS_STEPMAX, SS_N = 0, 1, 2, 3, 4
+SC_EPS2, SC_CUT, SC_RA, SC_OFFDIST = 0, 1, 2, 3
+
+
+@njit
+def score_position(perm, nodes, boxes, tpts, x, prev, has_prev, cov, touched, target, ss, sp_, ball):
+    """Add position ``x`` (3,) to the score: its footprint on every point within SC_CUT, the
+    target points it touches (within r_a), whether it is off the cloud, its step from ``prev``."""
+    cnt = tree_ball(perm, nodes, boxes, tpts, x, sp_[SC_CUT], ball)
+    eps2 = sp_[SC_EPS2]
+    ra2 = sp_[SC_RA] * sp_[SC_RA]
+    near = np.inf
+    add = 0.0
+    for t in range(cnt):
+        j = ball[t]
+        d0, d1, d2 = tpts[j, 0] - x[0], tpts[j, 1] - x[1], tpts[j, 2] - x[2]
+        dd = d0 * d0 + d1 * d1 + d2 * d2
+        near = min(near, dd)
+        phi = math.exp(-eps2 * dd)
+        cov[j] += phi
+        add += phi
+        if dd <= ra2 and target[j] != 0 and touched[j] == 0:
+            touched[j] = 1
+            ss[SS_TOUCHED] += 1.0
+    ss[SS_C] += add
+    if near > sp_[SC_OFFDIST] * sp_[SC_OFFDIST]:  # (the ball reaches past SC_OFFDIST: else ask the tree)
+        if nearest_distance(perm, nodes, boxes, tpts, x) > sp_[SC_OFFDIST]:
+            ss[SS_OFF] += 1.0
+    if has_prev:
+        ss[SS_STEPMAX] = max(ss[SS_STEPMAX], math.sqrt(_dist2(x, prev)))
+    ss[SS_N] += 1.0
+
+
+@njit
+def score_epsilon(cov, tlist, pplain, ss):
+    """ε = ‖max(p̄ - c/Σc, 0)‖₂ / ‖p̄‖₂ over the target points ``tlist`` (p̄ = 0 elsewhere): O(|T|)."""
+    C = ss[SS_C]
+    inv = 1.0 / C if C > 0.0 else 0.0
+    num = 0.0
+    den = 0.0
+    for t in range(tlist.shape[0]):
+        j = tlist[t]
+        p = pplain[j]
+        den += p * p
+        e = p - cov[j] * inv
+        if e > 0.0:
+            num += e * e
+    return math.sqrt(num / den) if den > 0.0 else 0.0

@@ -48,7 +48,7 @@ def ergodicity(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray) -> float:
     return float(np.sqrt(mass @ (e * e)))
 
 
-def ergodicity_ref(first_heat: np.ndarray, coverage: np.ndarray) -> float:
+def residual_ref(first_heat: np.ndarray, coverage: np.ndarray) -> float:
     """The authors' residual: ‖p̂ · [c̃ = 0]‖₂ / ‖p̂‖₂ with p̂ = u₁ / Σu₁ (plain sums and norms).
 
     ``first_heat`` is the heat u after the first step; [c̃ = 0] marks points the footprint
@@ -63,3 +63,105 @@ def touched_fraction(p: np.ndarray, coverage: np.ndarray) -> float:
     """Share of target points (p > 0) whose coverage is > 0."""
     target = p > 0
     return float(np.count_nonzero(coverage[target] > 0) / max(np.count_nonzero(target), 1))
+
+
+#: The score's footprint is summed over the points within this many r_a (exp(-4 · 2.5²) = 1e-11).
+SCORE_CUT = 2.5
+#: A position farther than this many mean spacings h from every cloud point is off the surface.
+OFF_SURFACE_H = 2.0
+
+
+def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray, agent_radius: float,
+                   h: float) -> dict:
+    """The neutral coverage score of a trajectory, from full arrays (the reference form).
+
+    Parameters
+    ----------
+    points : (n, 3) cloud points P, metres.
+    target : (n,) target weight p >= 0.
+    positions : (T, 3) or (T, N, 3) agent positions X_t, metres (all agents' count).
+    agent_radius : r_a, metres; the footprint is exp(-(2/r_a)² d²), d the 3-D distance.
+    h : mean point spacing, metres.
+
+    Returns
+    -------
+    dict: ``ergodicity`` ε = ‖max(p̄ - c̄, 0)‖₂ / ‖p̄‖₂ with c_i = Σ_t exp(-(2/r_a)² |P_i - X_t|²) and
+    p̄ = p/Σp, c̄ = c/Σc (dimensionless, 0 is perfect, 1 untouched); ``touched_fraction`` (share of
+    target points within r_a of some X_t); ``off_surface_fraction`` (share of positions more than
+    2h from every point); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
+    """
+    from scipy.spatial import cKDTree
+
+    P = np.asarray(points, dtype=np.float64)
+    X = np.asarray(positions, dtype=np.float64)
+    steps = np.linalg.norm(np.diff(X, axis=0), axis=-1) if len(X) > 1 else np.zeros(1)
+    X = X.reshape(-1, 3)
+    k = (2.0 / agent_radius) ** 2
+    c = np.zeros(len(P))
+    for a in range(0, len(X), 256):
+        d2 = ((P[:, None, :] - X[None, a:a + 256, :]) ** 2).sum(-1)
+        c += np.exp(-k * d2).sum(1)
+    p = np.asarray(target, dtype=np.float64)
+    pbar = p / p.sum()
+    cbar = c / c.sum() if c.sum() > 0 else c
+    tree = cKDTree(P)
+    near, _ = tree.query(X)
+    hit = np.zeros(len(P), dtype=bool)
+    for idx in tree.query_ball_point(X, agent_radius):
+        hit[idx] = True
+    T = p > 0
+    return {"ergodicity": float(np.linalg.norm(np.maximum(pbar - cbar, 0.0)) / np.linalg.norm(pbar)),
+            "touched_fraction": float(hit[T].mean()), "off_surface_fraction": float((near > OFF_SURFACE_H * h).mean()),
+            "step_max_m": float(steps.max())}
+
+
+class CoverageScore:
+    """:func:`coverage_score`, kept up to date one step at a time (O(points near X_t + |T|) a step).
+
+    Parameters
+    ----------
+    index : the cloud's :class:`~tergodic_cli.explore.explorer.CloudIndex` (its tree and order).
+    target : (n,) target weight p in the cloud's order.
+    agent_radius : r_a, metres.
+    h : mean point spacing, metres.
+    n_agents : agents whose positions are added each step.
+    """
+
+    def __init__(self, index, target: np.ndarray, agent_radius: float, h: float, n_agents: int = 1):
+        from tergodic_cli.explore import kernels as K
+
+        self._K = K
+        self._tree = index.tree
+        n = len(index.order)
+        self._cov = np.zeros(n)
+        self._touched = np.zeros(n, dtype=np.int8)
+        self._ball = np.zeros(n, dtype=np.int64)
+        self._ss = np.zeros(5)
+        self._prm = np.array([(2.0 / agent_radius) ** 2, SCORE_CUT * agent_radius, agent_radius, OFF_SURFACE_H * h])
+        self._prev = np.zeros((n_agents, 3))
+        self.set_target(target, index)
+
+    def set_target(self, target: np.ndarray, index) -> None:
+        """A new target p (a re-capture): the coverage so far is kept, touched is re-counted."""
+        p = np.asarray(target, dtype=np.float64)[index.order]
+        self._tlist = np.flatnonzero(p > 0)
+        self._target = (p > 0).astype(np.int8)
+        self._pplain = p / p.sum()
+        self._ss[self._K.SS_TOUCHED] = float(np.count_nonzero(self._touched[self._tlist]))
+
+    def add(self, positions: np.ndarray) -> None:
+        """Score one step: the agents' positions (N, 3), metres."""
+        K, ss = self._K, self._ss
+        has_prev = ss[K.SS_N] > 0
+        for i, x in enumerate(positions):
+            K.score_position(*self._tree, x, self._prev[i], has_prev, self._cov, self._touched, self._target, ss,
+                             self._prm, self._ball)
+            self._prev[i] = x
+
+    def metrics(self) -> dict:
+        """{"ergodicity", "touched_fraction", "off_surface_fraction", "step_max_m"} so far."""
+        K, ss = self._K, self._ss
+        n = max(ss[K.SS_N], 1.0)
+        return {"ergodicity": K.score_epsilon(self._cov, self._tlist, self._pplain, ss) if ss[K.SS_N] else 1.0,
+                "touched_fraction": float(ss[K.SS_TOUCHED] / len(self._tlist)),
+                "off_surface_fraction": float(ss[K.SS_OFF] / n), "step_max_m": float(ss[K.SS_STEPMAX])}

@@ -5,7 +5,7 @@ Artefacts in RUN_DIR (written atomically at the end; nothing partial on error):
 - ``trajectory.npz``: per step (T steps, N agents) ``positions`` (T, N, 3) m, ``velocities``
   (T, N, 3) m/s, ``accelerations`` (T, N, 3) m/s², ``normals`` (T, N, 3) (the normal line of
   eq. 28 at step k is positions[k] + s·normals[k]), ``time`` (T,) s, the metric series
-  ``ergodicity``, ``ergodicity_ref``, ``touched_fraction``, ``step_ms`` (T,), the ``start``
+  ``ergodicity``, ``residual_ref``, ``touched_fraction``, ``step_ms`` (T,), the ``start``
   (N, 3), and per point the final ``coverage``, ``heat``, ``source``, ``target`` (n,) and ``points`` (n, 3);
 - ``summary.json``: :func:`summarize_run` of the series plus provenance (versions, seed, basis);
 - ``run.mcap``: the per-step log (unless ``log=False``), written by :mod:`tergodic_cli.runlog`.
@@ -369,7 +369,7 @@ class LogFeed:
             return
         r = self.rec
         if not self.blocks:
-            metrics = np.column_stack([r.sca[k][a:b] for k in ("ergodicity", "ergodicity_ref", "touched_fraction")])
+            metrics = np.column_stack([r.sca[k][a:b] for k in ("ergodicity", "residual_ref", "touched_fraction")])
             self.log.log_steps(r.step[a:b], r.sca["time"][a:b], positions=r.vec["positions"][a:b],
                                velocities=r.vec["velocities"][a:b], normals=r.vec["normals"][a:b], metrics=metrics,
                                step_ms=r.sca["step_ms"][a:b], cloud=_cloud_fields(ex) if cloud else None)
@@ -403,7 +403,7 @@ def _log_cloud(runlog, explorer: Explorer, step: int, feed: LogFeed | None = Non
     runlog.log_cloud(step, **_cloud_fields(explorer))
 
 
-ROW_FIELDS = ("step", "time", "ergodicity", "ergodicity_ref", "touched_fraction", "step_ms")  # the run log's rows
+ROW_FIELDS = ("step", "time", "ergodicity", "residual_ref", "touched_fraction", "step_ms")  # the run log's rows
 VEC_FIELDS = ("positions", "velocities", "normals", "accelerations")  # the first three: the run log's P, V, N
 
 
@@ -440,7 +440,7 @@ class RunRecorder:
         self.vec["accelerations"][k] = ex.accelerations
         self.vec["normals"][k] = ex.normals
         m = ex.metrics()
-        for name in ("ergodicity", "ergodicity_ref", "touched_fraction"):
+        for name in ("ergodicity", "residual_ref", "touched_fraction"):
             self.sca[name][k] = m[name]
         self.sca["step_ms"][k] = ex.last_step_ms
         self.sca["time"][k] = step * ex.cfg.dt
@@ -448,7 +448,7 @@ class RunRecorder:
         self.count = k + 1
 
     def series(self) -> dict[str, np.ndarray]:
-        return {k: self.sca[k][: self.count] for k in ("ergodicity", "ergodicity_ref", "touched_fraction", "step_ms")}
+        return {k: self.sca[k][: self.count] for k in ("ergodicity", "residual_ref", "touched_fraction", "step_ms")}
 
     def write(self, path: Path, start: np.ndarray) -> None:
         from tergodic_cli.atomic import write_npz

@@ -8,7 +8,7 @@ import numpy as np
 
 #: Steps at which ``ergodicity_at`` (and the other ``*_at`` keys) report values (paper VI-B: 200 and 500).
 MILESTONES = (200, 500)
-SERIES = ("ergodicity", "ergodicity_ref", "touched_fraction", "step_ms")
+SERIES = ("ergodicity", "residual_ref", "touched_fraction", "step_ms")
 
 
 def _num(x) -> float | None:
@@ -21,15 +21,15 @@ def summarize_run(series: dict[str, np.ndarray], config: dict, extra: dict | Non
 
     Parameters
     ----------
-    series : "ergodicity", "ergodicity_ref", "touched_fraction", "step_ms", each (T,) float64,
+    series : "ergodicity", "residual_ref", "touched_fraction", "step_ms", each (T,) float64,
         entry k being the value after step k + 1.
     config : the run configuration (``ExploreConfig.to_dict()``, including the seed).
     extra : merged in last (versions, robot metrics, capture/basis provenance, ...).
 
     Returns
     -------
-    dict with steps, ergodicity, ergodicity_ref, touched_fraction (final values),
-    ergodicity_at / ergodicity_ref_at / touched_fraction_at {"200": .., "500": ..} (None when the
+    dict with steps, ergodicity, residual_ref, touched_fraction (final values),
+    ergodicity_at / residual_ref_at / touched_fraction_at {"200": .., "500": ..} (None when the
     run is shorter), step_ms_median, seed and config. Non-finite numbers become None (valid JSON).
     """
     arrays = {k: np.asarray(series[k], dtype=np.float64) for k in SERIES}
@@ -46,10 +46,10 @@ def summarize_run(series: dict[str, np.ndarray], config: dict, extra: dict | Non
     summary = {
         "steps": steps,
         "ergodicity": final("ergodicity"),
-        "ergodicity_ref": final("ergodicity_ref"),
+        "residual_ref": final("residual_ref"),
         "touched_fraction": final("touched_fraction"),
         "ergodicity_at": at("ergodicity"),
-        "ergodicity_ref_at": at("ergodicity_ref"),
+        "residual_ref_at": at("residual_ref"),
         "touched_fraction_at": at("touched_fraction"),
         "step_ms_median": _num(np.median(arrays["step_ms"])) if steps else None,
         "seed": config.get("seed"),

@@ -42,7 +42,7 @@ from tergodic_cli.runlog.writer import (CHUNK_BYTES, FLUSH_EVERY, AgentRows, Clo
 
 _FRAME = struct.Struct("<II")
 _IOV_BATCH = 64  # buffers per writev call (Linux allows 1024)
-_METRIC_NAMES = ("ergodicity", "ergodicity_ref", "touched_fraction")
+_METRIC_NAMES = ("ergodicity", "residual_ref", "touched_fraction")
 #: Seconds ``close`` waits for the child to finish the file.
 CLOSE_TIMEOUT_S = 300.0
 #: Environment switch: ``TERGODIC_LOG_WRITER=inline`` keeps the writer in the explorer's process.
@@ -242,7 +242,7 @@ class StepBlock:
     Attributes
     ----------
     rows : (k, 6) float64
-        Per step: step number, t (s), ergodicity, ergodicity_ref, touched fraction, step_ms.
+        Per step: step number, t (s), ergodicity, residual_ref, touched fraction, step_ms.
     P, V, N : (k, n_agents, 3) float64
         Agent positions (m), velocities (m/s), unit normals.
     PVN : (3, k, n_agents, 3) float64
@@ -427,7 +427,7 @@ class BackgroundRunLog(ClosesOnExit, AgentRows):
         try:
             if len(metrics) != 3:
                 raise KeyError
-            row = (step, t, metrics["ergodicity"], metrics["ergodicity_ref"], metrics["touched_fraction"], step_ms)
+            row = (step, t, metrics["ergodicity"], metrics["residual_ref"], metrics["touched_fraction"], step_ms)
         except KeyError:
             self._slow.setdefault(i, {})["metrics"] = {str(k): float(v) for k, v in metrics.items()}
             row = (step, t, math.nan, math.nan, math.nan, step_ms)

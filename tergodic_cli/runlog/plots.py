@@ -58,8 +58,8 @@ def plot_run(data: RunLogData, out_dir: str | os.PathLike) -> list[Path]:
 
     fig, ax = plt.subplots(figsize=(7, 4))
     ax.plot(t, s["ergodicity"], label="ε (ergodicity)", color="C0")
-    if "ergodicity_ref" in s:
-        ax.plot(t, s["ergodicity_ref"], label="ergodicity_ref", color="C1", ls="--")
+    if "residual_ref" in s:
+        ax.plot(t, s["residual_ref"], label="residual_ref", color="C1", ls="--")
     if np.all(s["ergodicity"][np.isfinite(s["ergodicity"])] > 0):
         ax.set_yscale("log")
     ax.set_xlabel(tlabel)

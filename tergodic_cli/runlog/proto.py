@@ -11,7 +11,7 @@ schema record, so any protobuf-aware viewer (Foxglove's Plot panel, Rerun, the
       optional fixed64 step = 1;            // explorer step index (fixed width: see wire.py)
       optional double t = 2;                // simulated time, s
       optional double ergodicity = 3;       // ε after the step
-      optional double ergodicity_ref = 4;   // residual against the reference heat
+      optional double residual_ref = 4;   // residual against the reference heat
       optional double touched_fraction = 5; // share of target points touched
       optional double step_ms = 6;          // wall time of the explorer step, ms
       optional uint32 n_agents = 7;
@@ -34,7 +34,7 @@ PACKAGE = "tergodic"
 NAME = "StepRecord"
 FULL_NAME = f"{PACKAGE}.{NAME}"
 #: Named metric fields; any other metric goes to extra_names / extra_values.
-METRIC_FIELDS = ("ergodicity", "ergodicity_ref", "touched_fraction")
+METRIC_FIELDS = ("ergodicity", "residual_ref", "touched_fraction")
 VECTOR_FIELDS = ("positions", "velocities", "normals")
 
 
@@ -45,7 +45,7 @@ def _file_descriptor_proto() -> Any:
     fdp = d.FileDescriptorProto(name="tergodic/StepRecord.proto", package=PACKAGE, syntax="proto2")
     msg = fdp.message_type.add(name=NAME)
     fields = [("step", 1, F.TYPE_FIXED64, F.LABEL_OPTIONAL), ("t", 2, F.TYPE_DOUBLE, F.LABEL_OPTIONAL),
-              ("ergodicity", 3, F.TYPE_DOUBLE, F.LABEL_OPTIONAL), ("ergodicity_ref", 4, F.TYPE_DOUBLE, F.LABEL_OPTIONAL),
+              ("ergodicity", 3, F.TYPE_DOUBLE, F.LABEL_OPTIONAL), ("residual_ref", 4, F.TYPE_DOUBLE, F.LABEL_OPTIONAL),
               ("touched_fraction", 5, F.TYPE_DOUBLE, F.LABEL_OPTIONAL), ("step_ms", 6, F.TYPE_DOUBLE, F.LABEL_OPTIONAL),
               ("n_agents", 7, F.TYPE_UINT32, F.LABEL_OPTIONAL),
               ("positions", 8, F.TYPE_DOUBLE, F.LABEL_REPEATED), ("velocities", 9, F.TYPE_DOUBLE, F.LABEL_REPEATED),

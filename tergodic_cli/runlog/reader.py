@@ -49,7 +49,7 @@ class RunLogData:
     Attributes
     ----------
     series : dict of arrays, one row per logged step
-        ``step`` (T,) int64, ``t`` (T,) s, every metric (``ergodicity``, ``ergodicity_ref``,
+        ``step`` (T,) int64, ``t`` (T,) s, every metric (``ergodicity``, ``residual_ref``,
         ``touched_fraction``, ...) (T,), ``step_ms`` (T,), and ``positions``,
         ``velocities``, ``normals`` (T, N, 3) in the object frame (m, m/s).
     robot : list of dict or None

@@ -24,7 +24,7 @@ FRAME_EE = "ee"
 # --- topics --------------------------------------------------------------------------------
 # Every step.
 TOPIC_METRICS = "/explorer/metrics"          # tergodic.StepRecord (protobuf, proto.py): step, t, ergodicity,
-                                             #   ergodicity_ref, touched_fraction, step_ms, positions, velocities,
+                                             #   residual_ref, touched_fraction, step_ms, positions, velocities,
                                              #   normals, as float64 (exact)
 TOPIC_AGENT_POSES = "/explorer/agent_poses"  # foxglove.PosesInFrame, one pose per agent (z = surface normal, x = heading)
 TOPIC_AGENT_SCENE = "/explorer/agent_scene"  # foxglove.SceneUpdate: normal line L_a⊥ and velocity arrow per agent
@@ -53,7 +53,7 @@ ATTACHMENT_SIDECAR = "capture.json"
 CLOUD_FIELDS = ("target", "coverage", "heat", "source")
 
 #: Metric keys that form summarize_run's series, besides step_ms.
-SERIES_METRICS = ("ergodicity", "ergodicity_ref", "touched_fraction")
+SERIES_METRICS = ("ergodicity", "residual_ref", "touched_fraction")
 
 _NUM = {"type": "number"}
 

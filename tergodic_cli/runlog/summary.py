@@ -127,7 +127,7 @@ def format_table(summary: dict[str, Any], data: RunLogData, comparison: tuple[st
     for key in ("200", "500"):
         rows.append((f"ε at step {key}", _fmt(at.get(key))))
     rows.append(("ε at end", _fmt(summary.get("ergodicity"))))
-    rows.append(("ε reference at end", _fmt(summary.get("ergodicity_ref"))))
+    rows.append(("ε reference at end", _fmt(summary.get("residual_ref"))))
     tf = summary.get("touched_fraction")
     rows.append(("target touched", "n/a" if tf is None else f"{100 * tf:.2f} %"))
     if summary.get("step_ms_median") is not None:

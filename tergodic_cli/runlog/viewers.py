@@ -134,7 +134,7 @@ def write_rerun(data: RunLogData, dest: str | os.PathLike) -> Path:
 
     scalar = getattr(rr, "Scalars", None) or rr.Scalar
     s = data.series
-    keys = [k for k in ("ergodicity", "ergodicity_ref", "touched_fraction", "step_ms") if k in s]
+    keys = [k for k in ("ergodicity", "residual_ref", "touched_fraction", "step_ms") if k in s]
     clouds = {c.step: c for c in data.clouds}
     rs = data.robot_series()
     for i, step in enumerate(s["step"].tolist()):

@@ -155,7 +155,7 @@ class StepBatch:
     """Encodes a batch of explorer steps: ``tergodic.StepRecord``, ``foxglove.PosesInFrame`` and
     ``foxglove.SceneUpdate`` (normal line and velocity arrow per agent), for N agents."""
 
-    SCALARS = ("t", "ergodicity", "ergodicity_ref", "touched_fraction", "step_ms")
+    SCALARS = ("t", "ergodicity", "residual_ref", "touched_fraction", "step_ms")
 
     def __init__(self, n_agents: int, capacity: int, frame_id: str, line_half: float):
         from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive

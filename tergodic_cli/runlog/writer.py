@@ -240,7 +240,7 @@ BACKENDS = {"foxglove-sdk": _FoxgloveBackend, "mcap-python": _McapPythonBackend}
 # ---------------------------------------------------------------------------------------------
 # Helpers.
 # ---------------------------------------------------------------------------------------------
-_METRIC_FIELDS = frozenset(("ergodicity", "ergodicity_ref", "touched_fraction"))
+_METRIC_FIELDS = frozenset(("ergodicity", "residual_ref", "touched_fraction"))
 
 
 def _json_default(obj: Any) -> Any:
@@ -601,7 +601,7 @@ class RunLog(ClosesOnExit, AgentRows):
         positions, velocities, normals : (N, 3) float arrays
             Agent positions (m), velocities (m/s) and unit surface normals, object frame.
         metrics : dict
-            ``explorer.metrics()``: ergodicity, ergodicity_ref, touched_fraction (other
+            ``explorer.metrics()``: ergodicity, residual_ref, touched_fraction (other
             numeric names are kept too, at some cost).
         step_ms : float
             Wall time of the explorer step, ms.
@@ -623,7 +623,7 @@ class RunLog(ClosesOnExit, AgentRows):
         i = len(self._rows)
         t_ns = round(t * 1e9)
         if metrics.keys() == _METRIC_FIELDS:  # the standard names: a fixed layout, encoded in bulk
-            self._rows.append((step, t, metrics["ergodicity"], metrics["ergodicity_ref"], metrics["touched_fraction"],
+            self._rows.append((step, t, metrics["ergodicity"], metrics["residual_ref"], metrics["touched_fraction"],
                                step_ms))
         else:
             self._extra_metrics(i, metrics)
@@ -648,7 +648,7 @@ class RunLog(ClosesOnExit, AgentRows):
         t : (K,) float array, s
         positions, velocities, normals : (K, N, 3) float arrays (m, m/s, unit)
         metrics : (K, 3) float array
-            ergodicity, ergodicity_ref, touched_fraction per step.
+            ergodicity, residual_ref, touched_fraction per step.
         step_ms : (K,) float array
         cloud : dict or None
             :meth:`log_cloud`'s keyword arguments for a cloud at the block's last step, logged after it.

@@ -35,12 +35,12 @@ from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.sweep.grid import Grid, ObjectSpec, load_grid, run_config, run_id
 
 ENGINES = ("joblib", "ray")
-SERIES = ("ergodicity", "ergodicity_ref", "touched_fraction")
+SERIES = ("ergodicity", "residual_ref", "touched_fraction")
 #: Columns of results.csv before the grid's own option columns.
 LEAD_COLUMNS = ("run_id", "object", "n_points", "n_target", "start", "start_x", "start_y", "start_z", "nk", "alpha")
 #: Metric columns after them.
-METRIC_COLUMNS = ("steps", "ergodicity", "ergodicity_ref", "touched_fraction", "ergodicity_at_200",
-                  "ergodicity_at_500", "ergodicity_ref_at_200", "ergodicity_ref_at_500", "touched_fraction_at_200",
+METRIC_COLUMNS = ("steps", "ergodicity", "residual_ref", "touched_fraction", "ergodicity_at_200",
+                  "ergodicity_at_500", "residual_ref_at_200", "residual_ref_at_500", "touched_fraction_at_200",
                   "touched_fraction_at_500", "edge_events", "step_ms_median", "wall_s")
 #: Columns that measure time, and so differ between otherwise identical sweeps.
 TIMING_COLUMNS = ("step_ms_median", "wall_s")
@@ -358,9 +358,9 @@ def _collect(plan, runs_dir: Path) -> tuple[list[dict], dict]:
         for k, v in combo.items():
             if k not in ("nk", "alpha"):
                 row[k] = v
-        row.update({"steps": s["steps"], "ergodicity": s["ergodicity"], "ergodicity_ref": s["ergodicity_ref"],
+        row.update({"steps": s["steps"], "ergodicity": s["ergodicity"], "residual_ref": s["residual_ref"],
                     "touched_fraction": s["touched_fraction"]})
-        for name in ("ergodicity", "ergodicity_ref", "touched_fraction"):
+        for name in ("ergodicity", "residual_ref", "touched_fraction"):
             for m in ("200", "500"):
                 row[f"{name}_at_{m}"] = s[f"{name}_at"][m]
         row.update({"edge_events": s.get("edge_events"), "step_ms_median": s["step_ms_median"],
