@@ -78,8 +78,8 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
         syn = generate_synthetic(cfg.synthetic, cfg.marking, cfg.seed, noise=cfg.noise)
         points, colors, truth = syn.points, syn.colors, syn.mask
         provenance.update(object=cfg.synthetic, marking=cfg.marking, seed=cfg.seed)
-        if cfg.noise > 0:
-            provenance["noise_m"] = cfg.noise
+        if float(cfg.noise) > 0:  # validated above
+            provenance["noise_m"] = float(cfg.noise)
     else:
         raise TergodicError(f"unknown capture source '{cfg.source}'", "use --from FILE or --synthetic OBJECT")
     report.add("input", len(points))
@@ -164,8 +164,8 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
 def _validate_config(cfg: CaptureConfig) -> None:
     from tergodic_cli.capture.synthetic import check_noise
 
-    check_noise(cfg.noise)
-    require(cfg.noise == 0 or cfg.source == "synthetic", f"--noise is for --synthetic objects, not a {cfg.source} cloud",
+    noise = check_noise(cfg.noise)
+    require(noise == 0 or cfg.source == "synthetic", f"--noise is for --synthetic objects, not a {cfg.source} cloud",
             "drop --noise (a camera's or a file's cloud has its own noise)")
     require(cfg.units in ("m", "mm"), f"unknown --units '{cfg.units}'", "use m or mm")
     require(cfg.voxel >= 0 and np.isfinite(cfg.voxel), f"--voxel {cfg.voxel} is not a size", "give the voxel edge in metres, e.g. 0.003")

@@ -116,7 +116,7 @@ def generate_synthetic(kind: str, marking: str = "X", seed: int = 0, spacing: fl
         raise TergodicError(f"unknown synthetic object '{kind}'", f"use one of {', '.join(OBJECTS)}")
     if marking not in MARKINGS:
         raise TergodicError(f"unknown marking '{marking}'", f"use one of {', '.join(MARKINGS)}")
-    check_noise(noise)
+    noise = check_noise(noise)
     rng = np.random.default_rng(seed)
     sheet = _SHAPES[kind](rng, spacing)
     mask = _MARKS[marking](sheet.chart, sheet.size, np.random.default_rng(seed + 1)) & sheet.visible
@@ -129,12 +129,17 @@ def generate_synthetic(kind: str, marking: str = "X", seed: int = 0, spacing: fl
     return SyntheticCloud(points, colors, mask, sheet.size, sheet.normals)
 
 
-def check_noise(noise: float) -> None:
-    """Raise a one-line :class:`TergodicError` unless ``noise`` is a σ in metres (0 ≤ σ < MAX_NOISE)."""
+def check_noise(noise: float) -> float:
+    """``noise`` as a float σ in metres; a one-line :class:`TergodicError` unless 0 ≤ σ < MAX_NOISE."""
+    try:
+        noise = float(noise)
+    except (TypeError, ValueError):  # e.g. a string in a sweep grid
+        raise TergodicError(f"--noise {noise!r} is not a number", "give σ in metres, e.g. 0.0015") from None
     require(np.isfinite(noise) and noise >= 0, f"--noise {noise} is not a standard deviation",
             "give σ in metres, >= 0, e.g. 0.0015")
     require(noise < MAX_NOISE, f"--noise {noise} m is more than a depth camera's noise",
             "give σ in METRES, e.g. 0.0015 for 1.5 mm")
+    return noise
 
 
 class _Sheet(NamedTuple):
