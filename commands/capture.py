@@ -18,10 +18,10 @@ def register(app: typer.Typer) -> None:
 
 def capture(
     from_file: Optional[Path] = typer.Option(None, "--from", help="Point-cloud file: .ply, .pcd, .xyz/.xyzrgb/.txt (x y z \\[r g b]) or .npz (points, colors)."),
-    synthetic: Optional[str] = typer.Option(None, "--synthetic", help="Generate an object instead: bowl, plate, mug or sphere."),
+    synthetic: Optional[str] = typer.Option(None, "--synthetic", help="Generate an object instead: bowl, plate, mug, sphere, holed-plate (3 cm hole), thin-mug (walls 4 mm apart), torus, box (sharp edges) or partial (one side missing)."),
     source: Optional[str] = typer.Option(None, "--source", help="file, synthetic, sim or realsense; inferred from --from / --synthetic / --object when omitted."),
     sim_object: Optional[str] = typer.Option(None, "--object", help="Simulated camera (--source sim): bowl, plate, mug, or FILE.obj (metres; --units mm for millimetres)."),
-    marking: str = typer.Option("X", "--marking", help="Marking: X, ring or dots; with --source sim also IMAGE.png (alpha = intensity, else non-white = marking)."),
+    marking: str = typer.Option("X", "--marking", help="Marking: X, ring, dots or patches (two discs on opposite sides); with --source sim also IMAGE.png (alpha = intensity, else non-white = marking)."),
     object_pose: Optional[str] = typer.Option(None, "--object-pose", help="Sim: object pose in the robot base frame x,y,z[,roll,pitch,yaw] (m, deg) or x,y,z,qx,qy,qz,qw. Default 0.5,0,0 (the mug turned 180 deg so its marking faces the camera)."),
     camera_pose: Optional[str] = typer.Option(None, "--camera-pose", help="Sim: eye and target ex,ey,ez,tx,ty,tz (m), or the optical frame x,y,z,qx,qy,qz,qw (z forward). Default: eye 0.30,0,0.60 looking at the object. RealSense: the optical frame x,y,z,qx,qy,qz,qw in the robot base frame (hand-eye calibration); default: the camera frame."),
     serial: Optional[str] = typer.Option(None, "--serial", help="RealSense: the camera's serial number (needed when several are connected)."),
@@ -29,7 +29,8 @@ def capture(
     height: int = typer.Option(480, "--height", help="Sim/RealSense: image height, pixels."),
     fov: float = typer.Option(42.0, "--fov", help="Sim: vertical field of view, degrees."),
     renderer: str = typer.Option("auto", "--renderer", help="Sim: auto (EGL when it loads, else TinyRenderer), egl or tiny."),
-    seed: int = typer.Option(0, "--seed", help="Seed for synthetic sampling, colour noise and the dots marking."),
+    seed: int = typer.Option(0, "--seed", help="Seed for synthetic sampling, colour noise, surface noise and the dots marking."),
+    noise: float = typer.Option(0.0, "--noise", help="Synthetic: Gaussian noise along the surface normal, σ in METRES (e.g. 0.0015 = 1.5 mm; 0 = none)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder for the capture (cloud.npz, cloud.ply, capture.json)."),
     voxel: float = typer.Option(0.003, "--voxel", help="Voxel edge in METRES (0 disables). The paper uses 0.003."),
     voxel_rule: str = typer.Option("fraction", "--voxel-rule", help="p per voxel: 'fraction' of target points (default), or 'all' (target only if every point is; the authors' code)."),
@@ -45,6 +46,10 @@ def capture(
     Examples:
 
       tergodic capture --synthetic bowl --marking X --out cap/
+
+      tergodic capture --synthetic bowl --noise 0.0015 --out cap/
+
+      tergodic capture --synthetic torus --marking patches --out cap/
 
       tergodic capture --source sim --object bowl --marking X --out cap/
 
@@ -68,6 +73,7 @@ def capture(
         synthetic=(synthetic or "bowl") if kind != "sim" else (sim_object or "bowl"),
         marking=marking,
         seed=seed,
+        noise=noise,
         units=units if kind != "sim" else "m",  # a sim cloud is in metres; --units applies to the .obj
         voxel=voxel,
         voxel_rule=voxel_rule,
@@ -124,7 +130,7 @@ def _resolve_source(source: Optional[str], from_file, synthetic, sim_object) -> 
     from tergodic_cli.errors import TergodicError
 
     given = [name for name, value in (("file", from_file), ("synthetic", synthetic), ("sim", sim_object)) if value is not None]
-    usage = "use --from FILE, --synthetic bowl|plate|mug|sphere or --source sim --object bowl|plate|mug|FILE.obj"
+    usage = "use --from FILE, --synthetic OBJECT (see --help) or --source sim --object bowl|plate|mug|FILE.obj"
     if source is None:
         if len(given) != 1:
             raise TergodicError("give exactly one source", usage)

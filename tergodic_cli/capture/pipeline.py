@@ -32,6 +32,7 @@ class CaptureConfig:
     synthetic: str = "bowl"
     marking: str = "X"
     seed: int = 0
+    noise: float = 0.0  # synthetic only: σ (m) of Gaussian noise along the surface normal
     units: str = "m"  # units of the input coordinates: "m" or "mm"
     voxel: float = 0.003  # metres; 0 disables the voxel grid
     voxel_rule: str = "fraction"
@@ -74,9 +75,11 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     elif cfg.source == "synthetic":
         from tergodic_cli.capture.synthetic import generate_synthetic
 
-        syn = generate_synthetic(cfg.synthetic, cfg.marking, cfg.seed)
+        syn = generate_synthetic(cfg.synthetic, cfg.marking, cfg.seed, noise=cfg.noise)
         points, colors, truth = syn.points, syn.colors, syn.mask
         provenance.update(object=cfg.synthetic, marking=cfg.marking, seed=cfg.seed)
+        if float(cfg.noise) > 0:  # validated above
+            provenance["noise_m"] = float(cfg.noise)
     else:
         raise TergodicError(f"unknown capture source '{cfg.source}'", "use --from FILE or --synthetic OBJECT")
     report.add("input", len(points))
@@ -159,6 +162,11 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
 
 
 def _validate_config(cfg: CaptureConfig) -> None:
+    from tergodic_cli.capture.synthetic import check_noise
+
+    noise = check_noise(cfg.noise)
+    require(noise == 0 or cfg.source == "synthetic", f"--noise is for --synthetic objects, not a {cfg.source} cloud",
+            "drop --noise (a camera's or a file's cloud has its own noise)")
     require(cfg.units in ("m", "mm"), f"unknown --units '{cfg.units}'", "use m or mm")
     require(cfg.voxel >= 0 and np.isfinite(cfg.voxel), f"--voxel {cfg.voxel} is not a size", "give the voxel edge in metres, e.g. 0.003")
     require(cfg.voxel < 1.0, f"--voxel {cfg.voxel} m is larger than any tabletop object",

@@ -32,7 +32,7 @@ from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.rotations import euler_xyz_matrix, matrix_to_quat, quat_to_matrix
 
 BUILTIN_OBJECTS = ("bowl", "plate", "mug")
-PATTERN_MARKINGS = ("X", "ring", "dots")
+PATTERN_MARKINGS = ("X", "ring", "dots", "patches")
 
 # The same surfaces as the synthetic point-cloud generator.
 from tergodic_cli.capture.synthetic import (  # noqa: E402
@@ -76,7 +76,7 @@ class SimObjectConfig:
     """What the simulated scene holds: an object, its marking and its pose in the robot base frame.
 
     object : "bowl", "plate", "mug", or a path to a Wavefront .obj (metres unless ``units`` is "mm").
-    marking : "X", "ring", "dots" (drawn in the chart like the synthetic generator) or a path to a
+    marking : "X", "ring", "dots", "patches" (drawn in the chart like the synthetic generator) or a path to a
         .png (alpha = marking intensity; without alpha, non-white pixels are marking).
     pose : x,y,z (m) [+ roll,pitch,yaw (deg) | + qx,qy,qz,qw]: the object frame in the robot base frame.
         None = :func:`default_pose`: 0.5 m in front of the base, where the robot stage places
@@ -355,7 +355,7 @@ def read_marking_image(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     >= WHITE_LEVEL are clean (intensity 0) and all others are marking (intensity 1).
     """
     path = Path(path)
-    require(path.is_file(), f"marking image {path} does not exist", "give X, ring, dots or the path to a .png")
+    require(path.is_file(), f"marking image {path} does not exist", "give X, ring, dots, patches or the path to a .png")
     try:
         from PIL import Image
 

@@ -8,9 +8,9 @@ Format (paths are relative to the grid file)::
     [objects.bunny]              # one table per object
     file = "bunny.ply"           # a cloud file, captured with the options below, or
     # capture = "captures/cup"   # a capture folder ('tergodic capture'), or
-    # synthetic = "mug"          # a synthetic object (bowl, plate, mug, sphere) with marking = "X"
+    # synthetic = "mug"          # a synthetic object ('tergodic capture --help') with marking = "X"
     voxel = 0.003                # capture options for file/synthetic: voxel, voxel_rule, units,
-    voxel_rule = "all"           # target, marking, seed, crop, outliers
+    voxel_rule = "all"           # target, marking, seed, noise (synthetic), crop, outliers
     neighbors = 40               # robust Laplacian neighbours of the basis (default 30)
     starts = "bun270_X.npz"      # start file (key x0_arr); without it starts are random points
     agent_radius = 0.0075        # any ExploreConfig field: this object's value
@@ -41,7 +41,7 @@ from tergodic_cli.explore.config import ExploreConfig, validate_config
 #: Keys of an object table that say where its cloud comes from.
 SOURCES = ("file", "capture", "synthetic")
 #: Capture options an object table may carry (CaptureConfig fields).
-CAPTURE_KEYS = ("voxel", "voxel_rule", "units", "target", "marking", "seed", "crop", "outliers")
+CAPTURE_KEYS = ("voxel", "voxel_rule", "units", "target", "marking", "seed", "noise", "crop", "outliers")
 #: ExploreConfig fields that a sweep sets itself or that make no sense per run.
 RESERVED = ("steps", "nk", "seed", "basis_neighbors")
 EXPLORE_KEYS = tuple(f.name for f in fields(ExploreConfig) if f.name not in ("steps", "seed"))
