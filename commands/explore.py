@@ -111,9 +111,11 @@ def explore(
     if json_out:
         typer.echo(json.dumps(summary, indent=2))
         return
-    typer.echo(f"explored {summary['steps']} steps ({robot}): ergodicity {summary['ergodicity']:.4g} /m (eq. 48), "
-               f"residual_ref {summary['residual_ref']:.4f}, touched {100 * summary['touched_fraction']:.1f}%, "
-               f"step {summary['step_ms_median']:.2f} ms (median)")
+    typer.echo(f"explored {summary['steps']} steps ({robot}): ε {summary['ergodicity']:.3f} (unit-mass, 0 best), "
+               f"touched {100 * summary['touched_fraction']:.1f}%, "
+               f"off-surface {100 * (summary.get('off_surface_fraction') or 0.0):.1f}%, "
+               f"step max {1e3 * (summary.get('step_max_m') or 0.0):.2f} mm, "
+               f"explorer step {summary['step_ms_median']:.3f} ms (median)")
     typer.echo(f"wrote {out}/ ({', '.join(summary['files'])})")
 
 

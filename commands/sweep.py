@@ -76,19 +76,19 @@ def sweep(
 
 
 def _print_table(rows: list[dict]) -> None:
-    """Mean final residual_ref over starts per object, nK (rows) and α (columns)."""
+    """Mean final ε (the neutral unit-mass ergodicity) over starts per object, nK (rows) and α (columns)."""
     import statistics
 
     for obj in sorted({r["object"] for r in rows}):
-        sel = [r for r in rows if r["object"] == obj and r["residual_ref"] is not None]
+        sel = [r for r in rows if r["object"] == obj and r["ergodicity"] is not None]
         nks = sorted({r["nk"] for r in sel})
         alphas = sorted({str(r["alpha"]) for r in sel}, key=lambda a: (len(a), a))
-        typer.echo(f"\n{obj}: mean residual_ref at the last step (over starts and other options)")
+        typer.echo(f"\n{obj}: mean ε at the last step (over starts and other options)")
         typer.echo("| nK \\ α | " + " | ".join(alphas) + " |")
         typer.echo("|---|" + "---|" * len(alphas))
         for nk in nks:
             cells = []
             for a in alphas:
-                v = [r["residual_ref"] for r in sel if r["nk"] == nk and str(r["alpha"]) == a]
+                v = [r["ergodicity"] for r in sel if r["nk"] == nk and str(r["alpha"]) == a]
                 cells.append(f"{statistics.fmean(v):.3f}" if v else "")
             typer.echo(f"| {nk} | " + " | ".join(cells) + " |")

@@ -208,8 +208,8 @@ def test_loop_stops_at_the_step_budget(scene):
     cam, cap, basis = scene
     rcfg = RobotConfig(**FAST)
     out = clean_with_robot(cap, _explorer(cap, basis, rcfg), rcfg, camera=cam,
-                           loop_cfg=CleaningLoopConfig(recapture_every=4, until_clean=0.0, max_steps=6))
-    assert out["steps_done"] == 6 and out["recaptures"] == 2 and not out["clean_reached"]
+                           loop_cfg=CleaningLoopConfig(recapture_every=2, until_clean=0.0, max_steps=3))
+    assert out["steps_done"] == 3 and out["recaptures"] == 2 and not out["clean_reached"], out
     assert "budget" in out["loop_stop"] and out["final_state"] == "done"
 
 

@@ -3,8 +3,9 @@
 With eq. 2 as printed (``"cloud"``), c̄ = c̃ / ∫_Ω c̃: when the footprint is wider than the
 marking, a share 1 - f of every deposit lands beside it, ∫_T c̄ = f < 1 = ∫ p̄, and the residual
 on a covered marking never falls below p̄ (1 - f). The marking then outweighs a small target
-spot far from it for ever. Normalised over the target (``"target"``, the default) the residual
-of a covered marking vanishes and the far spot keeps its pull.
+spot far from it for ever. Normalised over the target (``"target"``) the residual of a covered
+marking vanishes and the far spot keeps its pull. (The heat drive alone is tested here; the default
+drive adds the footprint gain, docs/explore.md.)
 """
 
 from __future__ import annotations
@@ -50,7 +51,8 @@ def plate_with_island():
 
 
 def _first_touch(basis, target, island, x0, norm, steps):
-    ex = Explorer(basis, target, ExploreConfig(nk=60, agent_radius=0.025, coverage_norm=norm), x0[None])
+    ex = Explorer(basis, target, ExploreConfig(nk=60, agent_radius=0.025, coverage_norm=norm, heat_weight=1.0,
+                                                   gain_weight=0.0), x0[None])
     for k in range(steps):
         ex.step()
         if (ex.coverage[island] > 0).any():

@@ -213,7 +213,7 @@ def test_pending_lists_hold_exactly_the_inactive_points_under_this_steps_footpri
     # one whose coverage grew this step (it leaves the list once the footprint has passed).
     cloud, basis = bowl
     target = cloud.mask.astype(float)
-    ex = Explorer(basis, target, ExploreConfig(nk=60, agent_radius=0.012, resync_every=0),
+    ex = Explorer(basis, target, ExploreConfig(nk=60, agent_radius=0.012, resync_every=0, coverage_norm="target"),
                   cloud.points[np.flatnonzero(target)[:1]])
     assert ex._prm[K.PR_ZTARGET] != 0.0  # both the source's and ε's active sets are kept
     nt = int(ex._is[K.IS_NTARGET])

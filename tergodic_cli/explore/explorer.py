@@ -182,7 +182,7 @@ class Explorer:
         self._u_orig = np.zeros(n if not self._spectral else 0)  # ... and in the cloud's order
         self.step_index = 0
         self.last_step_ms = 0.0
-        self._score = CoverageScore(index, target, self.r_a, self.h, cfg.n_agents)
+        self._score = None
         self.set_target(target)
 
         starts = np.asarray(starts, dtype=np.float64)
@@ -270,7 +270,10 @@ class Explorer:
         if not self._spectral:
             self._u_full[:] = pbar
             self._u_orig[:] = pbar[self._rank]
-        self._score.set_target(p, self._index)
+        if self._score is None:
+            self._score = CoverageScore(self._index, p, self.r_a, self.h, self.cfg.n_agents)
+        else:
+            self._score.set_target(p, self._index)
         self._metrics = {"ergodicity": self._score.metrics()["ergodicity"], "residual_ref": float("nan"),
                          "touched_fraction": self._score.metrics()["touched_fraction"]}
         if hasattr(self, "_state"):

@@ -32,9 +32,9 @@ from scipy.linalg.lapack import dsyevd
 #: A sphere whose radius exceeds this many rms patch radii is treated as its tangent plane
 #: (its sagitta over the patch is below 1e-4 of the patch size, far below the sampling noise).
 PLANE_RADIUS_RATIO = 1e4
-#: A sphere smaller than this share of the rms patch radius cannot be a surface through the
+#: A sphere smaller than this many rms patch radii is not a plausible surface through the
 #: patch: the fit has latched onto noise, and the least-squares plane is used instead.
-MIN_RADIUS_RATIO = 0.5
+MIN_RADIUS_RATIO = 1.5
 
 
 @dataclass(frozen=True)

@@ -140,7 +140,7 @@ HEAT_CARRY, HEAT_SOURCE, HEAT_FULL = 0, 1, 2
 #: A sphere fit larger than this many rms patch radii is its tangent plane (as geometry.py).
 PLANE_RADIUS_RATIO = 1e4
 #: A sphere smaller than this share of the rms patch radius is noise (as geometry.py).
-MIN_RADIUS_RATIO = 0.5
+MIN_RADIUS_RATIO = 1.5
 #: A position farther than this many mean spacings h from every cloud point is off the data
 #: (the coverage metric's limit is 2 h; the margin absorbs the fit's noise).
 SURFACE_REACH = 1.5

@@ -474,6 +474,9 @@ def _provenance(capture_dir, capture, basis, hit, explorer: Explorer, cfg: Explo
         "explorer": {"alpha_schedule": [[s, a] for s, a in parse_alpha(cfg.alpha)],
                      "epsilon_per_m": cfg.footprint_epsilon, "edge_events": int(explorer.edge_events),
                      "diffusion": cfg.diffusion, "integrator": cfg.integrator},
+        # the neutral score's surface checks (issue 13): positions > 2h off the cloud, longest step
+        "off_surface_fraction": explorer.score()["off_surface_fraction"],
+        "step_max_m": explorer.score()["step_max_m"],
         "starts": {"start": starts.start, "starts_file": starts.starts_file, "start_index": starts.start_index,
                    "xyz": np.asarray(start_xyz).tolist()},
         "files": ["trajectory.npz", "summary.json"] + (["run.mcap"] if logged else []),

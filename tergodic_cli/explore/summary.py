@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 #: Steps at which ``ergodicity_at`` (and the other ``*_at`` keys) report values (paper VI-B: 200 and 500).
-MILESTONES = (200, 500)
+MILESTONES = (200, 500, 1000)
 SERIES = ("ergodicity", "residual_ref", "touched_fraction", "step_ms")
 
 
@@ -28,9 +28,11 @@ def summarize_run(series: dict[str, np.ndarray], config: dict, extra: dict | Non
 
     Returns
     -------
-    dict with steps, ergodicity, residual_ref, touched_fraction (final values),
-    ergodicity_at / residual_ref_at / touched_fraction_at {"200": .., "500": ..} (None when the
-    run is shorter), step_ms_median, seed and config. Non-finite numbers become None (valid JSON).
+    dict with steps, ergodicity (the neutral unit-mass ε of ``metrics.coverage_score``),
+    residual_ref (the authors' residual), touched_fraction (final values), ergodicity_at /
+    residual_ref_at / touched_fraction_at {"200": .., "500": .., "1000": ..} (None when the run is
+    shorter), step_ms_median, seed and config; ``extra`` adds off_surface_fraction and step_max_m
+    (``Explorer.score()``). Non-finite numbers become None (valid JSON).
     """
     arrays = {k: np.asarray(series[k], dtype=np.float64) for k in SERIES}
     steps = len(arrays["ergodicity"])

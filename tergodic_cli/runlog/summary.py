@@ -124,12 +124,17 @@ def format_table(summary: dict[str, Any], data: RunLogData, comparison: tuple[st
     wall = float(s["step_ms"].sum()) / 1e3
     rows.append(("duration", f"{t1:.6g} s simulated (t = {t0:.6g} .. {t1:.6g}), {wall:.3g} s of explorer steps"))
     at = summary.get("ergodicity_at") or {}
-    for key in ("200", "500"):
-        rows.append((f"ε at step {key}", _fmt(at.get(key))))
-    rows.append(("ε at end", _fmt(summary.get("ergodicity"))))
-    rows.append(("ε reference at end", _fmt(summary.get("residual_ref"))))
+    for key in ("200", "500", "1000"):
+        if at.get(key) is not None:
+            rows.append((f"ε at step {key}", _fmt(at.get(key))))
+    rows.append(("ε at end (unit-mass, 0 best)", _fmt(summary.get("ergodicity"))))
+    rows.append(("authors' residual at end", _fmt(summary.get("residual_ref"))))
     tf = summary.get("touched_fraction")
     rows.append(("target touched", "n/a" if tf is None else f"{100 * tf:.2f} %"))
+    if summary.get("off_surface_fraction") is not None:
+        rows.append(("off the surface (> 2h)", f"{100 * summary['off_surface_fraction']:.2f} % of steps"))
+    if summary.get("step_max_m") is not None:
+        rows.append(("largest step", f"{1e3 * summary['step_max_m']:.3f} mm"))
     if summary.get("step_ms_median") is not None:
         rows.append(("step time median", f"{summary['step_ms_median']:.3g} ms"))
     if data.robot:

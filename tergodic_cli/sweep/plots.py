@@ -5,8 +5,8 @@
 - ``eps_t.png``: ergodicity over time, mean ± std band over starts, one band per nK at the α
   nearest 10 (the paper's best), and ``eps_t_alpha.png``: one band per α at the largest nK.
 
-Columns are objects; the top row is ``residual_ref`` (the published code's residual), the
-bottom row ``ergodicity`` (eq. 48). When the grid varies other options too, each combination
+Columns are objects; the top row is ``ergodicity`` (the neutral unit-mass ε), the bottom row
+``residual_ref`` (the published code's residual). When the grid varies other options too, each combination
 of them gets its own set of files (suffix ``__key=value``).
 """
 
@@ -20,7 +20,7 @@ import numpy as np
 
 from tergodic_cli.sweep.grid import Grid
 
-METRICS = (("residual_ref", "ε_ref (published code's residual)"), ("ergodicity", "ε (eq. 48), 1/m"))
+METRICS = (("ergodicity", "ε (unit-mass eq. 48, dimensionless)"), ("residual_ref", "published code's residual"))
 
 
 def _num(alpha) -> float | None:

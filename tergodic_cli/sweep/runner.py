@@ -41,7 +41,8 @@ LEAD_COLUMNS = ("run_id", "object", "n_points", "n_target", "start", "start_x", 
 #: Metric columns after them.
 METRIC_COLUMNS = ("steps", "ergodicity", "residual_ref", "touched_fraction", "ergodicity_at_200",
                   "ergodicity_at_500", "residual_ref_at_200", "residual_ref_at_500", "touched_fraction_at_200",
-                  "touched_fraction_at_500", "edge_events", "step_ms_median", "wall_s")
+                  "touched_fraction_at_500", "off_surface_fraction", "step_max_m", "edge_events", "step_ms_median",
+                  "wall_s")
 #: Columns that measure time, and so differ between otherwise identical sweeps.
 TIMING_COLUMNS = ("step_ms_median", "wall_s")
 
@@ -148,7 +149,9 @@ def run_batch(task: dict) -> list[dict]:
                 for name in SERIES:
                     series[name][k] = m[name]
                 series["step_ms"][k] = ex.last_step_ms
-            summary = summarize_run(series, cfg.to_dict(), {"edge_events": ex.edge_events, "warnings": warnings})
+            summary = summarize_run(series, cfg.to_dict(), {"edge_events": ex.edge_events, "warnings": warnings,
+                                                                  "off_surface_fraction": ex.score()["off_surface_fraction"],
+                                                                  "step_max_m": ex.score()["step_max_m"]})
             out.append({"run_id": run["run_id"], "summary": summary, "wall_s": time.perf_counter() - t0,
                         "series": {k: series[k].astype(np.float32) for k in SERIES}})
         except Exception as exc:  # one bad run must not lose the batch's other results
@@ -363,7 +366,8 @@ def _collect(plan, runs_dir: Path) -> tuple[list[dict], dict]:
         for name in ("ergodicity", "residual_ref", "touched_fraction"):
             for m in ("200", "500"):
                 row[f"{name}_at_{m}"] = s[f"{name}_at"][m]
-        row.update({"edge_events": s.get("edge_events"), "step_ms_median": s["step_ms_median"],
+        row.update({"off_surface_fraction": s.get("off_surface_fraction"), "step_max_m": s.get("step_max_m"),
+                    "edge_events": s.get("edge_events"), "step_ms_median": s["step_ms_median"],
                     "wall_s": rec["wall_s"]})
         rows.append(row)
         with np.load(runs_dir / f"{rid}.npz", allow_pickle=False) as z:

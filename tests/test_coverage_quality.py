@@ -1,0 +1,77 @@
+"""Coverage quality under the neutral score (issue 13): the agent stays on the data, never steps
+farther than v_max dt, and reaches the target, on the geometry real captures have.
+
+The clouds are the project's own (``capture.synthetic.COVERAGE_OBJECTS``: a bowl with 1.5 mm
+noise, a plate with a hole, a thin-walled mug, a torus with two target patches, a box with sharp
+edges, a one-sided partial scan), captured at the default 3 mm voxel; the paper's bunny and plate
+are used when ../shared/data/reference is present. The score is recomputed from the trajectory
+with ``metrics.coverage_score`` (full arrays), independent of the explorer's incremental one.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tergodic_cli.basis import BasisConfig, get_basis
+from tergodic_cli.capture import CaptureConfig, capture_cloud
+from tergodic_cli.capture.synthetic import COVERAGE_OBJECTS
+from tergodic_cli.explore import ExploreConfig, Explorer
+from tergodic_cli.explore.metrics import coverage_score
+
+REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "data" / "reference"
+STEPS = 1000
+
+
+def _run(basis, target, x0, radius, steps=STEPS):
+    cfg = ExploreConfig(steps=steps, agent_radius=radius)
+    ex = Explorer(basis, target, cfg, np.atleast_2d(x0), on_event=lambda msg: None)
+    X = np.empty((steps, 3))
+    for k in range(steps):
+        ex.step()
+        X[k] = ex.positions[0]
+    return ex, X, cfg
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("obj", COVERAGE_OBJECTS, ids=lambda o: f"{o.object}-{o.marking}-{o.noise * 1e3:g}mm")
+def test_the_agent_stays_on_the_data_and_reaches_the_target(obj, tmp_path):
+    cap = capture_cloud(CaptureConfig(source="synthetic", synthetic=obj.object, marking=obj.marking, noise=obj.noise))
+    basis, _ = get_basis(cap.points, BasisConfig(nk=200, neighbors=30), str(tmp_path))
+    starts = cap.points[np.random.default_rng(1).choice(cap.n_points, 3, replace=False)]
+    for x0 in starts:
+        ex, X, cfg = _run(basis, cap.target, x0, 0.0075)
+        ref = coverage_score(cap.points, cap.target, X, 0.0075, basis.h)
+        assert ref["off_surface_fraction"] == 0.0, (obj, x0)
+        assert ref["step_max_m"] <= cfg.v_max * cfg.dt * (1 + 1e-9), (obj, x0)
+        assert ref["touched_fraction"] >= 0.98, (obj, x0, ref)
+        assert 0.0 < ref["ergodicity"] < 0.7, (obj, x0, ref)  # 1 is nothing covered
+        assert ex.metrics()["ergodicity"] == pytest.approx(ref["ergodicity"], rel=1e-9)
+
+
+#: The authors' code under the same score (issue 13): median ε over the starts.
+AUTHORS = {"bun270_X": (0.0075, 5, 0.468), "plate_shapes": (0.015, 3, 0.398)}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(AUTHORS))
+def test_the_reference_clouds_are_covered_better_than_by_the_authors_code(name, tmp_path):
+    if not (REFERENCE / f"{name}.ply").exists():
+        pytest.skip(f"reference data absent ({REFERENCE})")
+    radius, n_starts, authors = AUTHORS[name]
+    cap = capture_cloud(CaptureConfig(source="file", path=str(REFERENCE / f"{name}.ply"), voxel=0.003, voxel_rule="all"))
+    basis, _ = get_basis(cap.points, BasisConfig(nk=200, neighbors=40), str(tmp_path))
+    with np.load(REFERENCE / "starts" / f"{name}.npz", allow_pickle=False) as data:
+        starts = data["x0_arr"][:n_starts]
+    eps = []
+    for x0 in starts:
+        ex, X, cfg = _run(basis, cap.target, x0, radius)
+        ref = coverage_score(cap.points, cap.target, X, radius, basis.h)
+        assert ref["off_surface_fraction"] == 0.0
+        assert ref["step_max_m"] <= cfg.v_max * cfg.dt * (1 + 1e-9)
+        assert ref["touched_fraction"] >= 0.98
+        eps.append(ref["ergodicity"])
+    # The goal (0.85x) is measured by benchmarks/coverage.py; here: better than the authors' code.
+    assert np.median(eps) < authors, eps
