@@ -246,4 +246,22 @@ def test_help_keeps_bracketed_text():
     assert "[robot] Desired contact force" in flat
     assert "[default: $TERGODIC_CACHE_DIR or ~/.cache/tergodic]" in flat
     precompute = " ".join(run_cli("precompute", "--help").out.split())
-    assert "[env TERGODIC_LAPLACIAN]" in precompute and "auto (default)" in precompute
+    assert "[default: $TERGODIC_CACHE_DIR or ~/.cache/tergodic]" in precompute
+
+
+def test_capture_imports_nothing_from_later_stages():
+    """capture/ is the first stage: importing basis/ (or anything after it) would make a cycle."""
+    import ast
+    from pathlib import Path
+
+    import tergodic_cli.capture as capture_pkg
+
+    later = ("tergodic_cli.basis", "tergodic_cli.explore", "tergodic_cli.robot", "tergodic_cli.runlog",
+             "tergodic_cli.sweep")
+    found = []
+    for path in Path(capture_pkg.__file__).parent.glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            found += [f"{path.name}: {n}" for n in names if n.startswith(later)]
+    assert not found
