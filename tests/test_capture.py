@@ -220,7 +220,7 @@ def test_precompute_refuses_non_capture(tmp_path):
 def test_precompute_twice_is_a_cache_hit_and_target_change_reuses_it(tmp_path):
     assert run_cli("capture", "--synthetic", "plate", "--voxel", "0.006", "--out", tmp_path / "a").code == 0
     first = run_cli("precompute", tmp_path / "a", "--nk", "30")
-    assert first.code == 0 and "computed basis" in first.out and "laplacian" in first.out
+    assert first.code == 0 and "computed basis" in first.out and "laplacian" in first.out and "eigensolver" in first.out
     second = run_cli("precompute", tmp_path / "a", "--nk", "30")
     assert second.code == 0 and "cache hit" in second.out and "nothing recomputed" in second.out
     # Same geometry, another target colour rule -> same basis.
