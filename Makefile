@@ -31,14 +31,10 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q -e '.[test]'
 	@touch $(STAMP)
 
-# The fast Laplacian's kernels, compiled ahead of time (~30-50 s once; a no-op when current). Without
-# this build tergodic still works (precompute then calls robust_laplacian), so setup goes on...
 setup: $(STAMP)
-	@$(BIN)/python -m tergodic_cli.basis.fast_laplacian_aot || echo "setup: continuing without the fast Laplacian build"
 
-# ... but the tests do not: with TERGODIC_EXPECT_AOT the tests of that build fail if it is missing.
 test: setup
-	TERGODIC_EXPECT_AOT=1 $(BIN)/python -m pytest
+	$(BIN)/python -m pytest
 
 # The main job on the built-in data: the procedurally built bowl with an X in data/bowl.
 # Basis (cached), 1000 kinematic exploration steps logged to MCAP, then the replay's plots.
@@ -50,7 +46,7 @@ demo: setup
 
 # Every benchmark, BLAS pinned to one thread; each prints medians and ratios against the reference.
 BENCH_ENV := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 TERGODIC_NO_PROGRESS=1
-BENCHES   := precompute laplacian step explore_reference logging robot sweep
+BENCHES   := precompute step explore_reference logging robot sweep
 bench: setup
 	@for b in $(BENCHES); do echo "== benchmarks/$$b.py"; $(BENCH_ENV) $(BIN)/python benchmarks/$$b.py || exit 1; done
 

@@ -19,14 +19,6 @@ def precompute(
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Cache root [default: $TERGODIC_CACHE_DIR or ~/.cache/tergodic]."),
     force: bool = typer.Option(False, "--force", help="Recompute even when the cache holds this basis."),
     json_out: bool = typer.Option(False, "--json", help="Print the basis metadata as JSON."),
-    laplacian: Optional[str] = typer.Option(None, "--laplacian", help="Which implementation makes L and M; all give "
-                                            "the same matrices to round-off. auto (default): our compiled "
-                                            "re-implementation of robust_laplacian, 2-2.5x faster, when its "
-                                            "ahead-of-time build exists ('make' builds it), else the library. "
-                                            "fast: the re-implementation, compiled just in time by numba when "
-                                            "not built (0.6-0.8 s per process). robust_laplacian: always the "
-                                            "C++ library. Near-ties always go to the library "
-                                            "[env TERGODIC_LAPLACIAN]."),
 ) -> None:
     """Compute (or load from cache) the spectral basis of a capture.
 
@@ -40,14 +32,11 @@ def precompute(
     import json
 
     from tergodic_cli.basis import BasisConfig, get_basis
-    from tergodic_cli.basis.core import laplacian_method, using_laplacian
     from tergodic_cli.capture import load_capture
 
-    with using_laplacian(laplacian):
-        laplacian_method()  # a bad $TERGODIC_LAPLACIAN fails here, in one line
-        cap = load_capture(capture)
-        basis, hit = get_basis(cap.points, BasisConfig(nk=nk, neighbors=neighbors), cache_dir, force=force,
-                               on_event=lambda msg: typer.echo(msg, err=True))
+    cap = load_capture(capture)
+    basis, hit = get_basis(cap.points, BasisConfig(nk=nk, neighbors=neighbors), cache_dir, force=force,
+                           on_event=lambda msg: typer.echo(msg, err=True))
     if json_out:
         typer.echo(json.dumps({**basis.meta, "cache_hit": hit}, indent=2))
         return
@@ -57,7 +46,6 @@ def precompute(
     else:
         t = basis.meta["timings"]
         typer.echo("computed basis: " + ", ".join(f"{k.removesuffix('_ms')} {v:.0f} ms" for k, v in t.items()))
-        typer.echo(f"  L and M by {basis.meta.get('laplacian')}")
     typer.echo(f"  {cap.n_points} points, nK = {basis.nk}, neighbours = {neighbors}, h = {basis.h * 1e3:.3f} mm, "
                f"λ = {basis.evals[0]:.3g} .. {basis.evals[-1]:.4g} 1/m²")
     typer.echo(f"  {basis.meta['path']}")

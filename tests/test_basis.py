@@ -225,3 +225,40 @@ def test_laplacian_annihilates_constants_and_is_symmetric():
     basis = compute_basis(fibonacci_sphere(800), nk=5, n_neighbors=20)
     assert abs(basis.L - basis.L.T).max() < 1e-12
     assert np.abs(basis.L @ np.ones(800)).max() < 1e-9
+
+
+def test_basis_laplacian_is_the_librarys():
+    """L and M are robust_laplacian's own output, for both neighbour counts in use."""
+    import robust_laplacian
+
+    pts = generate_synthetic("bowl", "X", seed=0, spacing=0.005).points
+    for k in (30, 40):
+        basis = compute_basis(pts, nk=8, n_neighbors=k)
+        L, M = robust_laplacian.point_cloud_laplacian(pts, n_neighbors=k)
+        assert (basis.L != L.tocsr()).nnz == 0
+        np.testing.assert_array_equal(basis.mass, M.diagonal())
+
+
+def test_spacing_is_the_mean_distance_to_three_nearest_neighbours():
+    pts = jittered_square(15, 0.1, seed=7)
+    d = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=2)
+    expected = np.sort(d, axis=1)[:, 1:4].mean()  # brute force, self excluded
+    basis = compute_basis(pts, nk=4, n_neighbors=12)
+    assert basis.h == pytest.approx(expected, rel=1e-12)
+
+
+def test_entry_recording_an_older_laplacian_choice_still_loads(isolated_cache):
+    """Entries written while a re-implementation could make L record it in basis.json; the key never
+    held it and the matrices were the library's to round-off, so such an entry is a plain hit."""
+    pts = generate_synthetic("plate", "X", seed=0, spacing=0.006).points
+    cfg = BasisConfig(nk=10, neighbors=20)
+    basis, _ = get_basis(pts, cfg)
+    meta_path = isolated_cache / "basis" / basis.meta["key"] / "basis.json"
+    meta = json.loads(meta_path.read_text())
+    assert "laplacian" not in meta
+    meta["laplacian"] = "tergodic.fast_laplacian"
+    meta_path.write_text(json.dumps(meta))
+    messages = []
+    again, hit = get_basis(pts, cfg, on_event=messages.append)
+    assert hit and not messages
+    np.testing.assert_array_equal(again.evecs, basis.evecs)

@@ -220,7 +220,7 @@ def test_precompute_refuses_non_capture(tmp_path):
 def test_precompute_twice_is_a_cache_hit_and_target_change_reuses_it(tmp_path):
     assert run_cli("capture", "--synthetic", "plate", "--voxel", "0.006", "--out", tmp_path / "a").code == 0
     first = run_cli("precompute", tmp_path / "a", "--nk", "30")
-    assert first.code == 0 and "computed basis" in first.out and "laplacian" in first.out
+    assert first.code == 0 and "computed basis" in first.out and "laplacian" in first.out and "eigensolver" in first.out
     second = run_cli("precompute", tmp_path / "a", "--nk", "30")
     assert second.code == 0 and "cache hit" in second.out and "nothing recomputed" in second.out
     # Same geometry, another target colour rule -> same basis.
@@ -246,4 +246,22 @@ def test_help_keeps_bracketed_text():
     assert "[robot] Desired contact force" in flat
     assert "[default: $TERGODIC_CACHE_DIR or ~/.cache/tergodic]" in flat
     precompute = " ".join(run_cli("precompute", "--help").out.split())
-    assert "[env TERGODIC_LAPLACIAN]" in precompute and "auto (default)" in precompute
+    assert "[default: $TERGODIC_CACHE_DIR or ~/.cache/tergodic]" in precompute
+
+
+def test_capture_imports_nothing_from_later_stages():
+    """capture/ is the first stage: importing basis/ (or anything after it) would make a cycle."""
+    import ast
+    from pathlib import Path
+
+    import tergodic_cli.capture as capture_pkg
+
+    later = ("tergodic_cli.basis", "tergodic_cli.explore", "tergodic_cli.robot", "tergodic_cli.runlog",
+             "tergodic_cli.sweep")
+    found = []
+    for path in Path(capture_pkg.__file__).parent.glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            found += [f"{path.name}: {n}" for n in names if n.startswith(later)]
+    assert not found

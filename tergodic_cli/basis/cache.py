@@ -251,7 +251,6 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
         "h_m": basis.h,
         "lambda_range": [float(basis.evals[0]), float(basis.evals[-1])],
         "timings": timings,
-        "laplacian": basis.meta.get("laplacian"),  # which implementation made L and M
         "versions": library_versions(),
         "checksums": {name: array_checksum(a) for name, a in arrays.items()},
     }

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from contextlib import contextmanager
-from functools import cached_property, lru_cache
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -66,142 +65,35 @@ def check_geometry(points: np.ndarray) -> None:
     require(n_dup == 0, f"the cloud has {n_dup} duplicate points", "re-capture with a voxel filter (--voxel 0.003)")
 
 
-#: Environment switch for which implementation makes L and M (see compute_laplacian).
-ENV_LAPLACIAN = "TERGODIC_LAPLACIAN"
-LAPLACIAN_METHODS = ("auto", "fast", "robust_laplacian")
-#: The robust_laplacian release whose algorithm tergodic.basis.fast_laplacian reproduces.
-FAST_LAPLACIAN_MATCHES = "1.1.0"
+def compute_laplacian(points: np.ndarray, n_neighbors: int, validate: bool = True) -> tuple[sp.csr_matrix, np.ndarray]:
+    """Robust point-cloud Laplacian (Sharp & Crane 2020) by ``robust_laplacian.point_cloud_laplacian``.
 
+    Parameters
+    ----------
+    points : (n, 3) float64, metres.
+    n_neighbors : neighbours of each point's local triangulation (3 <= k < n).
+    validate : run :func:`check_geometry` first (False when the caller already did).
 
-def laplacian_method() -> str:
-    """``auto`` (default), ``fast`` or ``robust_laplacian``, from ``$TERGODIC_LAPLACIAN``; see :func:`compute_laplacian`."""
-    import os
-
-    method = os.environ.get(ENV_LAPLACIAN, "auto").strip().lower() or "auto"
-    require(method in LAPLACIAN_METHODS, f"{ENV_LAPLACIAN}={method} is not a Laplacian method",
-            f"set {ENV_LAPLACIAN} to {', '.join(LAPLACIAN_METHODS)}")
-    return method
-
-
-@contextmanager
-def using_laplacian(method: str | None, flag: str = "--laplacian"):
-    """Within the block, :func:`compute_laplacian` uses ``method`` (None: leave the choice as it is).
-
-    A bad value is a one-line error naming ``flag``; the previous ``$TERGODIC_LAPLACIAN`` comes back after.
-    """
-    import os
-
-    if method is None:
-        yield
-        return
-    require(method in LAPLACIAN_METHODS, f"{flag} {method} is not a Laplacian method",
-            f"use one of {', '.join(LAPLACIAN_METHODS)}")
-    previous = os.environ.get(ENV_LAPLACIAN)
-    os.environ[ENV_LAPLACIAN] = method
-    try:
-        yield
-    finally:
-        if previous is None:
-            os.environ.pop(ENV_LAPLACIAN, None)
-        else:
-            os.environ[ENV_LAPLACIAN] = previous
-
-
-@lru_cache(maxsize=1)
-def _robust_laplacian_version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("robust_laplacian")
-    except PackageNotFoundError:
-        return "unknown"
-
-
-def compute_laplacian(points: np.ndarray, n_neighbors: int, validate: bool = True,
-                      info: dict | None = None) -> tuple[sp.csr_matrix, np.ndarray]:
-    """Robust point-cloud Laplacian (Sharp & Crane 2020): L (n, n) CSR and lumped mass (n,).
-
-    Two implementations give the same L and M to round-off (about 1e-14 of max|L|):
-    ``robust_laplacian.point_cloud_laplacian`` (the C++ library) and
-    :mod:`tergodic_cli.basis.fast_laplacian`, our compiled re-implementation of release 1.1.0,
-    2-2.5x faster. ``$TERGODIC_LAPLACIAN`` (``tergodic precompute --laplacian``) chooses:
-
-    - ``auto`` (default): the re-implementation when its ahead-of-time build is present and
-      current (``make`` builds it; it loads in under a millisecond), else the library;
-    - ``fast``: the re-implementation, from numba just in time when there is no build (0.6-0.8 s
-      to load per process, ~30 s to compile once);
-    - ``robust_laplacian``: always the library.
-
-    Whatever is asked, the library is called where the re-implementation declines (a decision of
-    the library's algorithm too close to call for round-off to agree: near-ties, regular grids),
-    where another robust_laplacian release is installed, or where its matrices fail a check.
-
-    ``validate=False`` skips :func:`check_geometry` when the caller already ran it. ``info``
-    (a dict) receives ``"laplacian"``: which implementation made the matrices, and why.
+    Returns
+    -------
+    L : (n, n) CSR float64, the weak (stiffness) Laplacian: cotangent weights, symmetric, rows sum to 0.
+    mass : (n,) float64, the lumped mass M's diagonal (areas, m²).
     """
     if validate:
         check_geometry(points)
     require(n_neighbors >= 3, f"--neighbors {n_neighbors} is too small", "use at least 3 (default 30)")
     require(n_neighbors < len(points), f"--neighbors {n_neighbors} is not below the {len(points)} points", "use fewer neighbours")
-    info = {} if info is None else info
-    info["laplacian"] = "robust_laplacian"
-    L = None
-    method = laplacian_method()
-    if method != "robust_laplacian":
-        from tergodic_cli.basis.fast_laplacian import FastLaplacianNotBuilt, LaplacianMismatchRisk
-        from tergodic_cli.basis.fast_laplacian import point_cloud_laplacian as fast_laplacian
+    import robust_laplacian
 
-        lib = _robust_laplacian_version()
-        if lib != FAST_LAPLACIAN_MATCHES:
-            info["laplacian"] = (f"robust_laplacian (the re-implementation matches release {FAST_LAPLACIAN_MATCHES}, "
-                                 f"not the installed {lib})")
-        else:
-            try:
-                L, mass = fast_laplacian(points, n_neighbors=n_neighbors, backend="aot" if method == "auto" else "auto")
-                info["laplacian"] = "tergodic.fast_laplacian"
-            except FastLaplacianNotBuilt as why:
-                info["laplacian"] = f"robust_laplacian ({why})"
-            except LaplacianMismatchRisk as risk:
-                info["laplacian"] = f"robust_laplacian (the re-implementation declined: {risk})"
-            else:
-                why = _not_a_cotan_laplacian(L, mass)
-                if why:  # never expected; a safety net, O(nnz)
-                    L = None
-                    info["laplacian"] = f"robust_laplacian (the re-implementation's matrices failed a check: {why})"
-    if L is None:
-        import robust_laplacian
-
-        try:
-            L, M = robust_laplacian.point_cloud_laplacian(points, n_neighbors=n_neighbors)
-        except (RuntimeError, ValueError, AssertionError) as exc:
-            raise TergodicError(f"robust_laplacian failed on this cloud ({str(exc).splitlines()[0][:80]})",
-                                "the points may be degenerate; check the capture or change --neighbors") from None
-        mass = np.asarray(M.diagonal(), dtype=np.float64)
+    try:
+        L, M = robust_laplacian.point_cloud_laplacian(points, n_neighbors=n_neighbors)
+    except (RuntimeError, ValueError, AssertionError) as exc:
+        raise TergodicError(f"robust_laplacian failed on this cloud ({str(exc).splitlines()[0][:80]})",
+                            "the points may be degenerate; check the capture or change --neighbors") from None
+    mass = np.asarray(M.diagonal(), dtype=np.float64)
     require(np.all(np.isfinite(mass)) and np.all(mass > 0), "the Laplacian has zero-area points (degenerate sampling)",
             "re-capture with a voxel filter, or change --neighbors")
     return sp.csr_matrix(L, dtype=np.float64), mass
-
-
-def _not_a_cotan_laplacian(L: sp.spmatrix, mass: np.ndarray) -> str | None:
-    """What is wrong with (L, mass) as a cotangent Laplacian and lumped mass, or None: L must be
-    symmetric with zero row sums and a positive diagonal, the mass positive and finite."""
-    L = sp.csr_matrix(L)
-    scale = float(np.abs(L.data).max()) if L.nnz else 0.0
-    if not (scale > 0 and np.all(np.isfinite(L.data))):
-        return "L is empty or not finite"
-    Lt = L.T.tocsr()  # CSR of the transpose: same pattern and values when symmetric
-    L.sort_indices()
-    Lt.sort_indices()
-    if not (np.array_equal(L.indptr, Lt.indptr) and np.array_equal(L.indices, Lt.indices)
-            and np.abs(L.data - Lt.data).max() <= 1e-12 * scale):
-        return "L is not symmetric"
-    if np.abs(L @ np.ones(L.shape[0])).max() > 1e-9 * scale:
-        return "a row of L does not sum to zero"
-    if not np.all(L.diagonal() > 0):
-        return "L has a non-positive diagonal entry"
-    if not (np.all(np.isfinite(mass)) and np.all(mass > 0)):
-        return "a lumped mass is not positive"
-    return None
 
 
 def solve_eigenpairs(L: sp.csr_matrix, mass: np.ndarray, nk: int) -> tuple[np.ndarray, np.ndarray]:
@@ -237,8 +129,7 @@ def compute_basis(points: np.ndarray, nk: int, n_neighbors: int, timings: dict |
     check_geometry(points)
     require(nk < len(points), f"--nk {nk} is not below the number of points ({len(points)})", f"use --nk < {len(points)}")
     t = time.perf_counter()
-    made_by: dict = {}
-    L, mass = compute_laplacian(points, n_neighbors, validate=False, info=made_by)
+    L, mass = compute_laplacian(points, n_neighbors, validate=False)
     timings["laplacian_ms"] = 1e3 * (time.perf_counter() - t)
     t = time.perf_counter()
     evals, evecs = solve_eigenpairs(L, mass, nk)
@@ -246,4 +137,4 @@ def compute_basis(points: np.ndarray, nk: int, n_neighbors: int, timings: dict |
     t = time.perf_counter()
     h = mean_spacing(points)
     timings["spacing_ms"] = 1e3 * (time.perf_counter() - t)
-    return Basis(points, L, mass, evals, evecs, h, {"laplacian": made_by["laplacian"]})
+    return Basis(points, L, mass, evals, evecs, h)

@@ -72,17 +72,17 @@ def mean_spacing(points: np.ndarray, k: int = 3) -> float:
     """Mean distance from each point to its ``k`` nearest neighbours, h in eq. 21 (metres).
 
     k = 3 matches the edge statistic of the authors' public code, so δt = α h² agrees.
-    With the fast Laplacian's ahead-of-time build its k-d tree is used (the same distances; it
-    spares a fresh process the ~0.15 s import of ``scipy.spatial``), else scipy's.
-    """
-    pts = np.ascontiguousarray(points, dtype=np.float64)
-    if len(pts) > k + 1:
-        from tergodic_cli.basis.fast_laplacian_aot import load_module
 
-        built, _ = load_module()
-        if built is not None:
-            return float(built.mean_neighbour_distance(pts, k))
+    Parameters
+    ----------
+    points : (n, 3) float64, metres, n > k.
+
+    Returns
+    -------
+    h : float, metres.
+    """
     from scipy.spatial import cKDTree
 
-    dists, _ = cKDTree(pts).query(pts, k=k + 1)
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    dists, _ = cKDTree(pts).query(pts, k=k + 1)  # the first neighbour is the point itself
     return float(dists[:, 1:].mean())
