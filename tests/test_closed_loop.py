@@ -243,21 +243,21 @@ def test_ctrl_c_in_the_loop_ends_safe_with_a_readable_log(scene, tmp_path, kept_
         def on_step(step, s):
             log.log_step(step, step * ex.cfg.dt, positions=ex.positions, velocities=ex.velocities,
                          normals=ex.normals, metrics=ex.metrics(), step_ms=ex.last_step_ms, robot=s)
-            if step == 13:  # in contact, during the second cycle
+            if step == 5:  # in contact, during the second cycle
                 raise KeyboardInterrupt
 
         out = clean_with_robot(cap, ex, rcfg, camera=cam, on_step=on_step,
                                on_event=lambda step, msg: log.log_event(step, step * ex.cfg.dt, msg),
-                               loop_cfg=CleaningLoopConfig(recapture_every=10, until_clean=0.0, max_steps=40))
+                               loop_cfg=CleaningLoopConfig(recapture_every=3, until_clean=0.0, max_steps=40))
         run = kept_runs[-1]
         assert out["interrupted"] and out["final_state"] == "stopped"
         assert out["stop_reason"].startswith("interrupted by the user (Ctrl-C)") and "\n" not in out["stop_reason"]
         assert [t["to"] for t in out["transitions"]][-2:] == ["retreat", "stopped"]
         assert run.scene.sponge_contacts() == [] and _at_rest(run) < 0.05
-        assert out["recaptures"] == 1 and out["steps_done"] == 13
+        assert out["recaptures"] == 1 and out["steps_done"] == 5
         log.close(out)
     data = read_run_log(tmp_path / "run.mcap")
-    assert data.steps == 13 and data.end["status"] == "ok" and not data.truncated
+    assert data.steps == 5 and data.end["status"] == "ok" and not data.truncated
     assert any("interrupted by the user" in e[2] for e in data.events)
 
 
@@ -292,14 +292,14 @@ def test_a_force_fault_in_a_later_cycle_ends_safe(scene, kept_runs):
     ex = _explorer(cap, basis, rcfg)
 
     def on_step(step, s):
-        if step == 14:  # the object is knocked 6 mm into the sponge during the second cycle
+        if step == 5:  # the object is knocked 6 mm into the sponge during the second cycle
             sc = kept_runs[-1].scene
             T = sc.object_pose.copy()
             T[2, 3] += 0.006
             sc.move_object(T)
 
     out = clean_with_robot(cap, ex, rcfg, camera=cam, on_step=on_step,
-                           loop_cfg=CleaningLoopConfig(recapture_every=10, until_clean=0.0, max_steps=40))
+                           loop_cfg=CleaningLoopConfig(recapture_every=3, until_clean=0.0, max_steps=40))
     run = kept_runs[-1]
     assert out["final_state"] == "stopped" and "force" in out["stop_reason"] and not out["interrupted"]
     assert out["loop_stop"] == out["stop_reason"] and not out["clean_reached"]

@@ -40,7 +40,7 @@ def test_explore_from_a_fresh_capture_writes_trajectory_and_summary(cap, tmp_pat
     summary = json.loads((run / "summary.json").read_text())
     assert SUMMARY_KEYS <= set(summary)
     assert summary["steps"] == 60 and summary["seed"] == 3 and summary["config"]["seed"] == 3
-    assert summary["ergodicity_at"] == {"200": None, "500": None}
+    assert summary["ergodicity_at"] == {"200": None, "500": None, "1000": None}
     assert summary["basis"]["cache_hit"] is False and _cache_entries(isolated_cache) == 1
     with np.load(run / "trajectory.npz", allow_pickle=False) as t:
         n = len(t["points"])
