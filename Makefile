@@ -58,5 +58,11 @@ bench: setup
 data: setup
 	for obj in bowl plate mug; do $(BIN)/tergodic capture --synthetic $$obj --marking X --seed 0 --out data/$$obj; done
 
+# numba's kernels (explorer, robot) into its disk cache, so the first explore starts at once (~30 s cold, ~3 s warm).
+.PHONY: warm
+warm: $(STAMP)
+	@$(BIN)/python -m tergodic_cli.warm
+setup: warm
+
 clean:
 	rm -rf $(DEMO) .cache .pytest_cache
