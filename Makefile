@@ -28,6 +28,8 @@ $(STAMP): pyproject.toml
 	$(MAKE) sysdeps
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
+	@# open3d and open3d-cpu write the same files: a venv made before the switch drops open3d first
+	@if [ "$$(uname -sm)" = "Linux x86_64" ] && $(BIN)/pip show -q open3d >/dev/null 2>&1; then $(BIN)/pip uninstall -y -q open3d; fi
 	$(BIN)/pip install -q -e '.[test]'
 	@touch $(STAMP)
 
