@@ -269,7 +269,9 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
         from tergodic_cli.warm import compile_explorer
 
         compile_explorer(say)  # once here, so the workers load the cached code instead of each compiling it
-        for records in track(_execute(batches, engine, jobs, address, say), total=len(batches), description="sweep"):
+        # the bar counts runs, as announced above, not batches
+        for records in track(_execute(batches, engine, jobs, address, say), total=len(pending), description="sweep",
+                             weight=len):
             for rec in records:
                 if "error" in rec:
                     failed.append(rec)
