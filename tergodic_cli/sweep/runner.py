@@ -129,7 +129,9 @@ def run_batch(task: dict) -> list[dict]:
     """
     os.environ.setdefault("TERGODIC_NO_PROGRESS", "1")
     from tergodic_cli.explore import ExploreConfig, Explorer, summarize_run
+    from tergodic_cli.warm import compile_explorer
 
+    compile_explorer()  # a worker's first step would otherwise load the kernels inside its timing
     out = []
     for run in task["runs"]:
         t0 = time.perf_counter()
