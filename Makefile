@@ -60,7 +60,7 @@ bench: setup
 data: setup
 	for obj in bowl plate mug; do $(BIN)/tergodic capture --synthetic $$obj --marking X --seed 0 --out data/$$obj; done
 
-# numba's kernels (explorer, robot) into its disk cache, so the first explore starts at once (~30 s cold, ~3 s warm).
+# numba's kernels (explorer, robot) into its disk cache, so the first explore starts at once (~35 s cold, ~5 s when current).
 .PHONY: warm
 warm: $(STAMP)
 	@$(BIN)/python -m tergodic_cli.warm
