@@ -17,7 +17,7 @@ def register(app: typer.Typer) -> None:
 
 
 def capture(
-    from_file: Optional[Path] = typer.Option(None, "--from", help="Point-cloud file: .ply, .pcd, .xyz/.xyzrgb/.txt (x y z \\[r g b]) or .npz (points, colors)."),
+    from_file: Optional[Path] = typer.Option(None, "--from", help="Point-cloud file: .ply, .pcd, .xyz/.xyzrgb/.txt (x y z [r g b]) or .npz (points, colors)."),
     synthetic: Optional[str] = typer.Option(None, "--synthetic", help="Generate an object instead: bowl, plate, mug, sphere, holed-plate (3 cm hole), thin-mug (walls 4 mm apart), torus, box (sharp edges) or partial (one side missing)."),
     source: Optional[str] = typer.Option(None, "--source", help="file, synthetic, sim or realsense; inferred from --from / --synthetic / --object when omitted."),
     sim_object: Optional[str] = typer.Option(None, "--object", help="Simulated camera (--source sim): bowl, plate, mug, or FILE.obj (metres; --units mm for millimetres)."),

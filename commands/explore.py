@@ -82,6 +82,7 @@ def explore(
     log_writer = None if no_log or dry_run else start_log_writer()  # its imports overlap ours
     from tergodic_cli.explore import ExploreConfig
     from tergodic_cli.explore.run import StartSpec, run_explore
+    from tergodic_cli.progress import echo as echo_err
 
     cfg = ExploreConfig(steps=steps, alpha=alpha, nk=nk, agent_radius=agent_radius, n_agents=agents, v_max=v_max,
                         a_max=a_max, dt=dt, diffusion=diffusion, integrator=integrator, coverage_norm=coverage_norm, seed=seed,
@@ -99,15 +100,17 @@ def explore(
     }
     hardware = {"robot_ip": robot_ip, "ft": ft, "ft_address": ft_address}
     summary = run_explore(capture, cfg, out, spec, robot=robot, log=not no_log, log_cloud_every=log_cloud_every,
-                          cache_dir=cache_dir, on_event=lambda msg: typer.echo(msg, err=True),
+                          cache_dir=cache_dir, on_event=echo_err,
                           robot_options=robot_options, hardware=hardware, dry_run=dry_run, on_report=typer.echo,
                           log_writer=log_writer,
                           recapture_every=recapture_every, until_clean=until_clean, max_steps=max_steps)
     if dry_run:
         return
     if summary.get("interrupted"):
-        typer.echo(f"interrupted: the robot was made safe; partial run written to {out}/", err=True)
-        raise typer.Exit(130)
+        from tergodic_cli.errors import Terminated
+
+        echo_err(f"interrupted: the robot was made safe; partial run written to {out}/")
+        raise typer.Exit(143 if Terminated.received else 130)
     if json_out:
         typer.echo(json.dumps(summary, indent=2))
         return

@@ -33,10 +33,11 @@ def precompute(
 
     from tergodic_cli.basis import BasisConfig, get_basis
     from tergodic_cli.capture import load_capture
+    from tergodic_cli.progress import echo as echo_err
 
     cap = load_capture(capture)
     basis, hit = get_basis(cap.points, BasisConfig(nk=nk, neighbors=neighbors), cache_dir, force=force,
-                           on_event=lambda msg: typer.echo(msg, err=True))
+                           on_event=echo_err)
     if json_out:
         typer.echo(json.dumps({**basis.meta, "cache_hit": hit}, indent=2))
         return

@@ -43,7 +43,7 @@ def replay(
     import sys
 
     from tergodic_cli.errors import TergodicError
-    from tergodic_cli.progress import Spinner
+    from tergodic_cli.progress import Spinner, echo as echo_err
     from tergodic_cli.runlog import read_run_log, resolve_log_path
     from tergodic_cli.runlog.summary import compare_with_file, format_table, recompute_summary
 
@@ -70,7 +70,7 @@ def replay(
     with Spinner(f"reading {path.name}"):
         data = read_run_log(path, clouds=need_clouds)
     # "wrote ..." notes go to stderr when stdout carries JSON
-    say = (lambda msg: typer.echo(msg, err=True)) if json_out else typer.echo
+    say = echo_err if json_out else typer.echo
     if data.truncated:
         typer.echo(f"tergodic: warning: {path} is truncated (the run was cut short); "
                    f"read {data.steps} steps up to the last complete chunk", err=True)

@@ -12,6 +12,7 @@ def register(app: typer.Typer) -> None:
     app.command("sweep", no_args_is_help=True)(sweep)
 
 
+# The docstring's "\b" lines keep click from reflowing the GRID.toml example (it prints verbatim).
 def sweep(
     grid: Path = typer.Argument(..., help="GRID.toml: [objects.NAME] tables and a [grid] of option lists."),
     out: Path = typer.Option(..., "--out", "-o", help="Sweep folder: results.csv, series.npz, plots, runs/ (resumable)."),
@@ -31,8 +32,10 @@ def sweep(
 
     GRID.toml:
 
+    \b
       steps = 1000
 
+    \b
       [objects.bunny]
       file = "bun270_X.ply"      # or capture = "cap/", or synthetic = "mug"
       voxel = 0.003
@@ -41,6 +44,7 @@ def sweep(
       starts = "starts/bun270_X.npz"
       agent_radius = 0.0075
 
+    \b
       [grid]
       start = 10
       nk = [25, 50, 100, 200]
@@ -55,9 +59,15 @@ def sweep(
     import json
 
     from tergodic_cli.sweep import run_sweep
+    from tergodic_cli.progress import echo as echo_err
 
-    res = run_sweep(grid, out, jobs=jobs, engine=engine, address=address, cache_dir=cache_dir, plots=not no_plots,
-                    parquet=parquet, on_event=lambda msg: typer.echo(msg, err=True))
+    try:
+        res = run_sweep(grid, out, jobs=jobs, engine=engine, address=address, cache_dir=cache_dir, plots=not no_plots,
+                        parquet=parquet, on_event=echo_err)
+    except KeyboardInterrupt as exc:
+        from tergodic_cli.errors import Interrupted
+
+        raise Interrupted("interrupted; rerun the same command to resume", exc) from None
     summary = {"out": str(res.out), "runs": res.n_runs, "computed": res.computed, "skipped": res.skipped,
                "failed": len(res.failed), "wall_s": round(res.wall_s, 2), "files": res.files}
     if json_out:

@@ -34,6 +34,64 @@ app = typer.Typer(
     context_settings={"help_option_names": ["-h", "--help"]},
 )
 
+#: The libraries whose versions ``--version`` prints (distribution names; the first one installed counts).
+LIBRARIES = (("numpy",), ("scipy",), ("open3d", "open3d-cpu"), ("robust_laplacian", "robust-laplacian"),
+             ("pybullet",), ("numba",), ("mcap",))
+
+
+def version_text() -> str:
+    """``tergodic --version``: this package's version, then the key libraries' (from their metadata, no imports)."""
+    from importlib import metadata
+    import platform
+
+    from tergodic_cli import __version__
+
+    lines = [f"tergodic {__version__} (Python {platform.python_version()}, {platform.system()} {platform.machine()})"]
+    for names in LIBRARIES:
+        found = "not installed"
+        for dist in names:
+            try:
+                found = metadata.version(dist) + (f" ({dist})" if dist != names[0] else "")
+                break
+            except metadata.PackageNotFoundError:
+                continue
+        lines.append(f"  {names[0]} {found}")
+    return "\n".join(lines)
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        typer.echo(version_text())
+        raise typer.Exit(0)
+
+
+@app.callback()
+def _root(version: bool = typer.Option(False, "--version", "-V", callback=_print_version, is_eager=True,
+                                       help="Print the version of tergodic and of its key libraries, and exit.")) -> None:
+    pass
+
+
+class _Command(typer.core.TyperCommand):
+    """Usage lines in the usual form, ``tergodic sweep [OPTIONS] GRID``; typer writes ``{grid}``."""
+
+    def collect_usage_pieces(self, ctx) -> list[str]:
+        pieces = [self.options_metavar] if self.options_metavar else []
+        for param in self.get_params(ctx):
+            if isinstance(param, typer.core.TyperArgument):
+                name = (param.metavar or param.name).upper()
+                name = name if param.required else f"[{name}]"
+                pieces.append(name + ("..." if param.nargs != 1 else ""))
+            else:
+                pieces.extend(param.get_usage_pieces(ctx))
+        return pieces
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt as exc:  # typer would turn it into a silent exit 130
+            raise typer.Exit(_interrupted(exc)) from None
+
+
 for _verb in VERBS:
     try:
         _module = importlib.import_module(f"tergodic_cli.commands.{_verb}")
@@ -42,19 +100,34 @@ for _verb in VERBS:
             raise
         continue
     _module.register(app)
+for _info in app.registered_commands:
+    if _info.cls in (None, typer.core.TyperCommand):
+        _info.cls = _Command
+
+
+def _on_sigterm(signum, frame) -> None:
+    from tergodic_cli.errors import Terminated
+
+    Terminated.received = True
+    raise Terminated()
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``tergodic`` console script; returns the exit code."""
+    """Entry point of the ``tergodic`` console script; returns the exit code (130 on Ctrl-C, 143 on SIGTERM)."""
+    import signal
+
     try:
-        result = app(args=argv, standalone_mode=False)
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    except ValueError:  # not the main thread (an embedding caller): leave SIGTERM alone
+        previous = None
+    try:
+        result = app(args=argv, prog_name="tergodic", standalone_mode=False)
         return int(result) if isinstance(result, int) else 0
     except TergodicError as exc:
         print(f"tergodic: error: {exc}", file=sys.stderr)
         return exc.exit_code
-    except (typer.Abort, KeyboardInterrupt):
-        print("tergodic: interrupted", file=sys.stderr)
-        return 130
+    except (typer.Abort, KeyboardInterrupt) as exc:
+        return _interrupted(exc)
     except Exception as exc:
         # Usage errors and --help/Exit from typer's (vendored) click carry their own exit code.
         if hasattr(exc, "exit_code"):
@@ -62,6 +135,18 @@ def main(argv: list[str] | None = None) -> int:
                 exc.show()
             return int(exc.exit_code)
         raise
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupted(exc: BaseException) -> int:
+    """Ctrl-C or SIGTERM: one line (a verb's own, e.g. how to resume), no traceback; the exit code."""
+    from tergodic_cli.progress import echo
+
+    code = getattr(exc, "exit_code", 130)
+    echo(f"tergodic: {getattr(exc, 'message', None) or ('terminated' if code == 143 else 'interrupted')}")
+    return code
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -23,3 +23,19 @@ def require(condition: bool, problem: str, fix: str | None = None) -> None:
     """Raise :class:`TergodicError` unless ``condition`` holds."""
     if not condition:
         raise TergodicError(problem, fix)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised by the CLI's handler where the program is, so verbs clean up as on Ctrl-C."""
+
+    exit_code = 143
+    received = False  # set by the handler: verbs that absorb the interrupt (a robot made safe) still exit 143
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C (or SIGTERM) with the verb's own one-line ``message``, e.g. how to resume."""
+
+    def __init__(self, message: str, cause: BaseException | None = None):
+        super().__init__(message)
+        self.message = message
+        self.exit_code = getattr(cause, "exit_code", 130)

@@ -14,8 +14,26 @@ def progress_enabled() -> bool:
     return not os.environ.get("TERGODIC_NO_PROGRESS")
 
 
-def track(iterable: Iterable[T], total: int | None = None, description: str = "") -> Iterator[T]:
-    """Iterate with a rich progress bar on stderr (silent when disabled)."""
+#: The rich consoles of the bars and spinners on screen now, innermost last (see :func:`echo`).
+_LIVE: list = []
+
+
+def echo(message: str) -> None:
+    """One line on stderr. With a bar or spinner on screen it goes through that display's console,
+    which ends the animated line first: a plain write would run into it ("...approachingrobot: at hover")."""
+    if _LIVE:
+        _LIVE[-1].print(message, markup=False, highlight=False, emoji=False, soft_wrap=True)
+    else:
+        print(message, file=sys.stderr, flush=True)
+
+
+def track(iterable: Iterable[T], total: int | None = None, description: str = "",
+          weight=None) -> Iterator[T]:
+    """Iterate with a rich progress bar on stderr (silent when disabled).
+
+    ``weight(item)``: how many units an item completes (default 1), e.g. the runs in a batch, so the
+    bar counts what the user was told about. It is applied after the item's loop body.
+    """
     if not progress_enabled():
         yield from iterable
         return
@@ -23,6 +41,9 @@ def track(iterable: Iterable[T], total: int | None = None, description: str = ""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     console = Console(file=sys.stderr)
+    if not console.is_terminal:  # no animation in a file or pipe, and rich would leave a blank line
+        yield from iterable
+        return
     columns = (
         TextColumn("[progress.description]{task.description}"),
         BarColumn(),
@@ -30,8 +51,15 @@ def track(iterable: Iterable[T], total: int | None = None, description: str = ""
         TimeElapsedColumn(),
         TimeRemainingColumn(),
     )
-    with Progress(*columns, console=console, transient=not console.is_terminal) as bar:
-        yield from bar.track(iterable, total=total, description=description)
+    with Progress(*columns, console=console) as bar:
+        _LIVE.append(console)
+        try:
+            task = bar.add_task(description, total=total)
+            for item in iterable:
+                yield item
+                bar.advance(task, 1 if weight is None else weight(item))
+        finally:
+            _LIVE.remove(console)
 
 
 class Spinner:
@@ -45,10 +73,15 @@ class Spinner:
         if progress_enabled():
             from rich.console import Console
 
-            self._status = Console(file=sys.stderr).status(self.description)
+            console = Console(file=sys.stderr)
+            if not console.is_terminal:
+                return self
+            self._status = console.status(self.description)
             self._status.__enter__()
+            _LIVE.append(console)
         return self
 
     def __exit__(self, *exc) -> None:
         if self._status is not None:
+            _LIVE.remove(self._status.console)
             self._status.__exit__(*exc)

@@ -7,6 +7,9 @@ import platform
 import sys
 from importlib import metadata
 
+#: Other distributions of the same module: open3d-cpu installs ``open3d`` (pyproject.toml).
+_ALIASES = {"open3d": ("open3d-cpu",)}
+
 _PACKAGES = ("tergodic", "numpy", "scipy", "open3d", "robust-laplacian", "pybullet", "pygafro", "mcap")
 
 
@@ -14,10 +17,13 @@ _PACKAGES = ("tergodic", "numpy", "scipy", "open3d", "robust-laplacian", "pybull
 def _versions() -> tuple[tuple[str, str], ...]:
     out = {"python": sys.version.split()[0], "platform": platform.platform()}
     for name in _PACKAGES:
-        try:
-            out[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            out[name] = "absent"
+        out[name] = "absent"
+        for dist in (name,) + _ALIASES.get(name, ()):
+            try:
+                out[name] = metadata.version(dist)
+                break
+            except metadata.PackageNotFoundError:
+                continue
     return tuple(out.items())
 
 

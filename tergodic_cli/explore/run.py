@@ -187,6 +187,12 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     basis, hit = find_basis(capture.points, cfg.nk, cfg.basis_neighbors, cache_dir, on_event=event)
     require(basis.points.shape == capture.points.shape and np.array_equal(basis.points, capture.points),
             "the basis does not match the capture's points", "recompute it: tergodic precompute CAPTURE --force")
+    from tergodic_cli.warm import compile_explorer, robot_kernels_line
+
+    # numba compiles on first call: done here, so no compile lands in a timed step (step_ms)
+    compile_explorer(say)
+    if robot_api is not None and (line := robot_kernels_line()):
+        say(line)
     explorer = Explorer(basis, capture.target, cfg, start_xyz, on_event=event)
 
     recorder = RunRecorder(explorer, cfg.steps)

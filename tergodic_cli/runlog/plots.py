@@ -56,19 +56,7 @@ def plot_run(data: RunLogData, out_dir: str | os.PathLike) -> list[Path]:
     t, tlabel = _time_axis(data)
     note = " (truncated log)" if data.truncated else ""
 
-    fig, ax = plt.subplots(figsize=(7, 4))
-    ax.plot(t, s["ergodicity"], label="ε (ergodicity)", color="C0")
-    if "residual_ref" in s:
-        ax.plot(t, s["residual_ref"], label="residual_ref", color="C1", ls="--")
-    if np.all(s["ergodicity"][np.isfinite(s["ergodicity"])] > 0):
-        ax.set_yscale("log")
-    ax.set_xlabel(tlabel)
-    ax.set_ylabel("ε")
-    ax.set_title(f"Ergodicity over time{note}")
-    ax.grid(True, alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    written.append(_save(fig, out / "ergodicity.png"))
+    written.append(_plot_ergodicity(plt, t, tlabel, s, note, out / "ergodicity.png"))
 
     fig, ax = plt.subplots(figsize=(7, 4))
     ax.plot(t, 100 * s["touched_fraction"], color="C2")
@@ -88,12 +76,41 @@ def plot_run(data: RunLogData, out_dir: str | os.PathLike) -> list[Path]:
     cloud = data.clouds[-1] if data.clouds else None
     if cloud is not None:
         traj = data.series.get("positions")
-        for field, cmap, label, line in (("target", "cividis", "target p", "red"),
-                                         ("coverage", "viridis", "coverage c (final)", "white"),
-                                         ("heat", "inferno", "heat u (final)", "cyan")):
+        for field, cmap, label, line in (("target", "cividis", "target weight p (0-1, unitless)", "red"),
+                                         ("coverage", "viridis", "coverage c̃ (summed footprint, unitless)", "white"),
+                                         ("heat", "inferno", "heat u (1/m²)", "cyan")):
             if field in cloud.fields:
                 written.append(_plot_cloud(plt, cloud, field, cmap, label, traj, out / f"cloud_{field}.png", note, line))
     return written
+
+
+#: The authors' residual, under its old and its new name (the first one present is plotted).
+RESIDUAL_KEYS = ("residual_ref", "ergodicity_ref")
+
+
+def _plot_ergodicity(plt, t, tlabel: str, s: dict, note: str, path: Path) -> Path:
+    """ε (eq. 48) and the authors' residual, each on its own axis: they are different quantities."""
+    ref = next((k for k in RESIDUAL_KEYS if k in s), None)
+    fig, axes = plt.subplots(2 if ref else 1, 1, figsize=(7, 5.6 if ref else 3.6), sharex=True, squeeze=False)
+    ax = axes[0, 0]
+    eps = np.asarray(s["ergodicity"], dtype=np.float64)
+    ax.plot(t, eps, color="C0")
+    fin = eps[np.isfinite(eps)]
+    if fin.size and np.all(fin > 0) and fin.max() > 10 * fin.min():  # log only over more than a decade
+        ax.set_yscale("log")
+    ax.set_ylabel("ε (eq. 48)")
+    ax.set_title(f"Ergodicity ε over time{note}")
+    if ref:
+        ax2 = axes[1, 0]
+        ax2.plot(t, s[ref], color="C1")
+        ax2.set_ylim(0, max(1.0, float(np.nanmax(s[ref])) if len(s[ref]) else 1.0) * 1.02)
+        ax2.set_ylabel(f"{ref} (unitless)")
+        ax2.set_title("Residual of the authors' code: share of the target's heat not yet touched", fontsize=10)
+    for a in axes[:, 0]:
+        a.grid(True, alpha=0.3)
+    axes[-1, 0].set_xlabel(tlabel)
+    fig.tight_layout()
+    return _save(fig, path)
 
 
 def _plot_force(plt, data: RunLogData, rs: dict[str, np.ndarray], out: Path) -> list[Path]:
@@ -164,31 +181,46 @@ def _color_range(vals: np.ndarray) -> tuple[float, float]:
 
 
 def _plot_cloud(plt, cloud, field: str, cmap: str, label: str, traj, path: Path, note: str, line: str) -> Path:
+    """Front and side views above the top view, as in a technical drawing, sized by the object's
+    extents, in millimetres; a flat view keeps a readable height (its axis limits widen instead)."""
+    from matplotlib.ticker import MaxNLocator
+
     pts = cloud.points
     vals = cloud.fields[field]
-    fig, axes = plt.subplots(1, 3, figsize=(14, 4.8))
-    fig.subplots_adjust(left=0.05, right=0.9, bottom=0.12, top=0.86, wspace=0.28)
     vmin, vmax = _color_range(vals)
-    sc = None
-    span = float(np.max(pts.max(0) - pts.min(0))) or 1.0
+    span = pts.max(0) - pts.min(0)
+    big = float(span.max()) or 1.0
+    sx, sy, sz = np.maximum(span, 0.35 * big)  # no strip thinner than about a third of the largest extent
+    width = 11.0
+    height = float(np.clip(0.85 * width * (sz + sy) / (sx + sy) + 1.3, 5.0, 11.0))
+    fig = plt.figure(figsize=(width, height))
+    gs = fig.add_gridspec(2, 3, width_ratios=(sx, sy, 0.05 * (sx + sy)), height_ratios=(sz, sy),
+                          left=0.08, right=0.9, bottom=0.08, top=0.9, wspace=0.3, hspace=0.3)
+    cells = {"front (x-z)": gs[0, 0], "side (y-z)": gs[0, 1], "top (x-y)": gs[1, 0]}
     size = max(0.5, min(12.0, 2.0e4 / max(len(pts), 1)))
-    for ax, (name, h, v, d, sign) in zip(axes, _VIEWS):
+    sc = None
+    for name, h, v, d, sign in _VIEWS:
+        ax = fig.add_subplot(cells[name])
         order = np.argsort(sign * pts[:, d])  # painter's order: far points first, near ones on top
-        sc = ax.scatter(pts[order, h], pts[order, v], c=vals[order], cmap=cmap, vmin=vmin, vmax=vmax,
+        sc = ax.scatter(1e3 * pts[order, h], 1e3 * pts[order, v], c=vals[order], cmap=cmap, vmin=vmin, vmax=vmax,
                         s=size, linewidths=0)
         if traj is not None and traj.dtype != object and traj.ndim == 3 and len(traj):
             for k in range(traj.shape[1]):
-                ax.plot(traj[:, k, h], traj[:, k, v], color=line, lw=0.6, alpha=0.6)
-                ax.plot(traj[-1, k, h], traj[-1, k, v], "o", color=line, ms=4, mec="k", mew=0.5)
-        ax.set_aspect("equal")
-        ax.set_title(name)
-        ax.set_xlabel("xyz"[h] + " (m)")
-        ax.set_ylabel("xyz"[v] + " (m)")
-        pad = 0.03 * span
-        ax.set_xlim(pts[:, h].min() - pad, pts[:, h].max() + pad)
-        ax.set_ylim(pts[:, v].min() - pad, pts[:, v].max() + pad)
-    cax = fig.add_axes((0.92, 0.15, 0.012, 0.68))
+                ax.plot(1e3 * traj[:, k, h], 1e3 * traj[:, k, v], color=line, lw=0.6, alpha=0.6)
+                ax.plot(1e3 * traj[-1, k, h], 1e3 * traj[-1, k, v], "o", color=line, ms=4, mec="k", mew=0.5)
+        pad = 30.0 * big  # 3% of the largest extent, in mm
+        ax.set_xlim(1e3 * pts[:, h].min() - pad, 1e3 * pts[:, h].max() + pad)
+        ax.set_ylim(1e3 * pts[:, v].min() - pad, 1e3 * pts[:, v].max() + pad)
+        ax.set_aspect("equal", adjustable="datalim")  # true proportions; the limits widen to fill the cell
+        ax.xaxis.set_major_locator(MaxNLocator(5))
+        ax.yaxis.set_major_locator(MaxNLocator(5))
+        ax.set_title(name, fontsize=10)
+        ax.set_xlabel("xyz"[h] + " (mm)")
+        ax.set_ylabel("xyz"[v] + " (mm)")
+        ax.grid(True, alpha=0.2)
+    cax = fig.add_subplot(gs[:, 2])
     fig.colorbar(sc, cax=cax, label=label, extend="max" if vmax < np.nanmax(vals) else "neither")
-    fig.suptitle(f"{label} at step {cloud.step}; agent trajectory drawn in {line}, dot = last position{note}")
-    path = _save(fig, path)
-    return path
+    fig.text(0.54, 0.3, f"step {cloud.step}\n\nagent trajectory: {line} line\ndot: last position", fontsize=10,
+             va="center")
+    fig.suptitle(f"{label} at step {cloud.step}{note}")
+    return _save(fig, path)

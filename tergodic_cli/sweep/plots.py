@@ -20,7 +20,15 @@ import numpy as np
 
 from tergodic_cli.sweep.grid import Grid
 
-METRICS = (("ergodicity", "ε (unit-mass eq. 48, dimensionless)"), ("residual_ref", "published code's residual"))
+METRICS = (("ergodicity", "ε (unit-mass eq. 48, dimensionless)"), ("residual_ref", "residual of the published code (unitless)"))
+#: The residual's key: "residual_ref", or "ergodicity_ref" in results written before the rename.
+RESIDUAL_KEYS = ("residual_ref", "ergodicity_ref")
+
+
+def _metrics(rows: list[dict]) -> tuple[tuple[str, str], ...]:
+    """METRICS with the residual under the key the results use; ε and the residual each get their own row of axes."""
+    ref = next((k for k in RESIDUAL_KEYS if rows and k in rows[0]), "residual_ref")
+    return tuple((ref if key == "residual_ref" else key, label) for key, label in METRICS)
 
 
 def _num(alpha) -> float | None:
@@ -75,7 +83,7 @@ def plot_sweep(out: Path, grid: Grid, rows: list[dict], series: dict) -> list[st
 def _final_plot(plt, rows, objects, xkey, xs, lkey, lines, xlabel, log2=False, log10=False):
     fig, axes = plt.subplots(2, len(objects), figsize=(4.2 * len(objects), 6.4), squeeze=False)
     for col, obj in enumerate(objects):
-        for row, (metric, label) in enumerate(METRICS):
+        for row, (metric, label) in enumerate(_metrics(rows)):
             ax = axes[row, col]
             for line in lines:
                 xv, mean, std = [], [], []
@@ -111,7 +119,7 @@ def _time_plot(plt, rows, objects, series, index, lkey, lines, fixed: dict, fixe
         return None
     fig, axes = plt.subplots(2, len(objects), figsize=(4.2 * len(objects), 6.4), squeeze=False)
     for col, obj in enumerate(objects):
-        for row, (metric, label) in enumerate(METRICS):
+        for row, (metric, label) in enumerate(_metrics(rows)):
             ax = axes[row, col]
             for line in lines:
                 ids = [r["run_id"] for r in rows if r["object"] == obj and str(r[lkey]) == str(line)

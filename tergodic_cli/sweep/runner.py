@@ -130,7 +130,9 @@ def run_batch(task: dict) -> list[dict]:
     """
     os.environ.setdefault("TERGODIC_NO_PROGRESS", "1")
     from tergodic_cli.explore import ExploreConfig, Explorer, summarize_run
+    from tergodic_cli.warm import compile_explorer
 
+    compile_explorer()  # a worker's first step would otherwise load the kernels inside its timing
     out = []
     for run in task["runs"]:
         t0 = time.perf_counter()
@@ -213,24 +215,6 @@ def _execute(batches: list[dict], engine: str, jobs: int, address: str | None, o
         cleanup()
 
 
-def _warm_up() -> None:
-    """Compile (or load) the explorer's kernels once in the driver, so that the workers only
-    load the cached machine code instead of compiling it side by side."""
-    from tergodic_cli.explore import kernels
-
-    if not kernels.HAVE_NUMBA:
-        return
-    from tergodic_cli.basis import compute_basis
-    from tergodic_cli.explore import ExploreConfig, Explorer
-
-    i = np.arange(300) + 0.5
-    phi, theta = np.arccos(1 - 2 * i / 300), np.pi * (1 + 5**0.5) * i
-    pts = 0.05 * np.column_stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)])
-    ex = Explorer(compute_basis(pts, 10, 20), np.ones(300), ExploreConfig(nk=10, agent_radius=0.02), pts[:1],
-                  on_event=lambda m: None)
-    ex.step()
-
-
 # ---------------------------------------------------------------------------------- the sweep
 def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, engine: str = "joblib",
               address: str | None = None, cache_dir=None, plots: bool = True, parquet: bool = False,
@@ -287,8 +271,12 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
     failed: list[dict] = []
     computed = 0
     if batches:
-        _warm_up()
-        for records in track(_execute(batches, engine, jobs, address, say), total=len(batches), description="sweep"):
+        from tergodic_cli.warm import compile_explorer
+
+        compile_explorer(say)  # once here, so the workers load the cached code instead of each compiling it
+        # the bar counts runs, as announced above, not batches
+        for records in track(_execute(batches, engine, jobs, address, say), total=len(pending), description="sweep",
+                             weight=len):
             for rec in records:
                 if "error" in rec:
                     failed.append(rec)
