@@ -75,3 +75,27 @@ def test_the_reference_clouds_are_covered_better_than_by_the_authors_code(name, 
         eps.append(ref["ergodicity"])
     # The goal (0.85x) is measured by benchmarks/coverage.py; here: better than the authors' code.
     assert np.median(eps) < authors, eps
+
+
+def test_a_start_on_a_part_without_target_moves_to_the_targets_part_with_a_warning():
+    from tergodic_cli.basis import compute_basis
+
+    # Two 6 x 6 cm sheets at 3 mm spacing, 2 cm apart (a gap no agent on the data can cross);
+    # the target is a disc on the second one.
+    g = np.arange(0.0, 0.06, 0.003)
+    u, v = np.meshgrid(g, g)
+    a = np.column_stack([u.ravel(), v.ravel(), np.zeros(u.size)])
+    b = a + [0.08, 0.0, 0.0]
+    pts = np.vstack([a, b])
+    target = (np.linalg.norm(pts[:, :2] - [0.11, 0.03], axis=1) < 0.012).astype(float)
+    basis = compute_basis(pts, 60, 30)
+    said = []
+    ex = Explorer(basis, target, ExploreConfig(nk=60, agent_radius=0.0075), a[:1], on_event=said.append)
+    assert len(said) == 1 and "part of the cloud the target is not on" in said[0]
+    assert ex.positions[0, 0] >= 0.08 - 1e-9  # on the second sheet
+    X = []
+    for _ in range(300):
+        ex.step()
+        X.append(ex.positions[0].copy())
+    ref = coverage_score(pts, target, np.array(X), 0.0075, basis.h)
+    assert ref["touched_fraction"] >= 0.98 and ref["off_surface_fraction"] == 0.0

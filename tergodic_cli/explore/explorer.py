@@ -49,6 +49,7 @@ from tergodic_cli.explore.metrics import CoverageScore
 # Static per-cloud data, shared by every explorer of the same arrays (a sweep builds hundreds).
 _TREES: dict[int, tuple] = {}
 _PHI: dict[int, tuple] = {}
+_PARTS: dict[int, tuple] = {}
 
 
 def _cached(store: dict, owner, build):
@@ -83,6 +84,24 @@ class CloudIndex:
 def cloud_index(points: np.ndarray) -> CloudIndex:
     """The :class:`CloudIndex` of ``points`` (n, 3), built once per array."""
     return _cached(_TREES, points, lambda: CloudIndex(points))
+
+
+def surface_parts(points: np.ndarray, h: float) -> np.ndarray:
+    """(n,) label of the part of the cloud each point is on, in the cloud's order: points closer
+    than 2 x SURFACE_REACH h are joined, so an agent that stays within SURFACE_REACH h of the
+    data can cross between any two points of one part and no others (built once per array)."""
+
+    def build():
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+        from scipy.spatial import cKDTree
+
+        pairs = cKDTree(points).query_pairs(2.0 * K.SURFACE_REACH * h, output_type="ndarray")
+        n = len(points)
+        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+        return connected_components(graph, directed=False)[1]
+
+    return _cached(_PARTS, points, build)
 
 
 def _internal_phi(evecs: np.ndarray, nk: int, order: np.ndarray) -> np.ndarray:
@@ -215,6 +234,23 @@ class Explorer:
             if d0 > self.h:
                 self._say(f"warning: start {np.array2string(x0, precision=4)} is {d0 * 1e3:.1f} mm off the cloud; "
                           f"projected onto the surface at {np.array2string(self.positions[i], precision=4)}")
+            self._to_target_part(i, hint)
+
+    def _to_target_part(self, i: int, hint: np.ndarray) -> None:
+        """Move agent i to the target's part of the cloud when its start is on a part the agent
+        cannot leave without leaving the data (a gap wider than 2 x SURFACE_REACH h)."""
+        parts = surface_parts(self.points, self.h)
+        here = parts[self._order[self._nbrs[i, 0]]]
+        if np.any(self.p[parts == here] > 0):
+            return
+        reachable = np.flatnonzero(np.isin(parts, np.unique(parts[self.p > 0])))
+        x = self.positions[i].copy()
+        j = reachable[np.argmin(np.linalg.norm(self.points[reachable] - x, axis=1))]
+        K.place_agent(self._P, *self._tree, self._ag, self._nbrs, i, self.points[j].copy(), hint, self._k,
+                      self._prm[K.PR_REACH])
+        self._say(f"warning: start {np.array2string(x, precision=4)} is on a part of the cloud the target is not on "
+                  f"(a gap wider than {2 * K.SURFACE_REACH * self.h * 1e3:.1f} mm); starting at the nearest point "
+                  f"of the target's part, {np.linalg.norm(self.points[j] - x) * 1e3:.1f} mm away")
 
     # ------------------------------------------------------------------ target and state
     def set_target(self, target: np.ndarray, reset_coverage: bool = False) -> None:

@@ -1374,7 +1374,11 @@ def move_agent(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, sp, fs, is_, ag, nb
     when neither stays on the data the agent waits with zero velocity."""
     g = agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full)
     if prm[PR_GAIN] > 0.0:
-        gl = gain_gradient(P, perm, nodes, boxes, tpts, pf, pb, fs, prm, ag[i, AG_POS:AG_POS + 3],
+        # taken where the agent's momentum carries it next (x + v dt): it cannot turn at once
+        ahead = np.empty(3)
+        for d in range(3):
+            ahead[d] = ag[i, AG_POS + d] + ag[i, AG_VEL + d] * prm[PR_DT]
+        gl = gain_gradient(P, perm, nodes, boxes, tpts, pf, pb, fs, prm, ahead,
                            ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3], pi[PI_BALL])
         for d in range(3):
             g[d] = prm[PR_HEAT] * g[d] + prm[PR_GAIN] * gl[d]
