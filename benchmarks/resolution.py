@@ -1,0 +1,90 @@
+"""Resolution independence (issue 13, item 5): one object sampled at about 3k, 30k and 100k points.
+
+The synthetic bowl with its X (the project's own object), sampled densely and voxel-filtered to
+three sizes; the default explorer (nK 200, α 10, δt = α h₀² with a fixed h₀, r_a 7.5 mm), the same
+three starts (the points nearest three fixed positions), 1000 steps. Prints ε, touched,
+off-surface share, step max and the median step time per size, and the ratios to the 3k row.
+Goals: ε within 10 % across the sizes, touched ≥ 98 % at each, step at 100k ≤ 2x the step at 3k.
+
+    python benchmarks/resolution.py             # 3k, 30k, 100k (the 100k basis takes a few minutes)
+    python benchmarks/resolution.py --sizes 3000,30000
+"""
+
+from __future__ import annotations
+
+import _env  # noqa: F401,I001  (first: path fix, one BLAS thread; see benchmarks/_env.py)
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+
+def capture_at(n_target_points: int, raw):
+    """The capture of ``raw`` (points, colours) with the voxel that leaves about ``n_target_points``."""
+    from tergodic_cli.capture import CaptureConfig, capture_cloud
+
+    lo, hi = 1e-4, 0.01
+    cap = None
+    for _ in range(18):  # bisect the voxel size on the point count
+        voxel = (lo * hi) ** 0.5
+        cap = capture_cloud(CaptureConfig(source="synthetic", voxel=voxel), raw=raw)
+        if abs(cap.n_points - n_target_points) < 0.03 * n_target_points:
+            break
+        lo, hi = (voxel, hi) if cap.n_points > n_target_points else (lo, voxel)
+    return cap
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", default="3000,30000,100000")
+    ap.add_argument("--steps", type=int, default=1000)
+    args = ap.parse_args()
+    from tergodic_cli.basis import BasisConfig, get_basis
+    from tergodic_cli.capture.synthetic import generate_synthetic
+    from tergodic_cli.explore import ExploreConfig, Explorer
+
+    sizes = [int(s) for s in args.sizes.split(",")]
+    # Raw samples dense enough for the largest size (about 3 raw points per kept point).
+    area_per_point = 0.0012**2 * 6548 / max(sizes)  # the default bowl keeps ~6.5k points at 3 mm
+    syn = generate_synthetic("bowl", "X", seed=0, spacing=float(np.sqrt(area_per_point / 3.0)))
+    raw = (syn.points, syn.colors)
+    cache = tempfile.mkdtemp(prefix="tergodic-resolution-")
+    fixed = np.array([[0.0, 0.0, 0.0], [0.03, 0.02, 0.01], [-0.04, 0.0, 0.02]])
+    rows = []
+    for n in sizes:
+        cap = capture_at(n, raw)
+        t0 = time.perf_counter()
+        basis, _ = get_basis(cap.points, BasisConfig(nk=200, neighbors=30), cache)
+        t_basis = time.perf_counter() - t0
+        eps, touched, off, smax, ms = [], [], [], [], []
+        for x in fixed:
+            x0 = cap.points[np.argmin(np.linalg.norm(cap.points - x, axis=1))]
+            ex = Explorer(basis, cap.target, ExploreConfig(steps=args.steps), x0[None], on_event=lambda m: None)
+            t = np.empty(args.steps)
+            for k in range(args.steps):
+                ex.step()
+                t[k] = ex.last_step_ms
+            sc = ex.score()
+            eps.append(sc["ergodicity"])
+            touched.append(sc["touched_fraction"])
+            off.append(sc["off_surface_fraction"])
+            smax.append(sc["step_max_m"])
+            ms.append(np.median(t))
+        rows.append((cap.n_points, float(basis.h), t_basis, float(np.median(eps)), min(touched), max(off), max(smax),
+                     float(np.median(ms)), eps))
+        print(f"{cap.n_points} points (h {basis.h * 1e3:.2f} mm, basis {t_basis:.1f} s): ε {np.round(eps, 3)}",
+              file=sys.stderr, flush=True)
+    print("\n| points | h | ε median | ε / 3k | touched min | off-surface | step max | step | step / 3k |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    e0, s0 = rows[0][3], rows[0][7]
+    for n, h, _tb, e, tmin, off, smax, ms, _ in rows:
+        print(f"| {n} | {h * 1e3:.2f} mm | {e:.3f} | {e / e0:.2f} | {100 * tmin:.1f}% | {100 * off:.1f}% | "
+              f"{smax * 1e3:.2f} mm | {ms * 1e3:.0f} µs | {ms / s0:.2f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
