@@ -18,6 +18,7 @@ def precompute(
     neighbors: int = typer.Option(30, "--neighbors", help="Neighbours for robust_laplacian. 40 bridges scan gaps (the bunny's ear joins the body)."),
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Cache root [default: $TERGODIC_CACHE_DIR or ~/.cache/tergodic]."),
     force: bool = typer.Option(False, "--force", help="Recompute even when the cache holds this basis."),
+    max_points: int = typer.Option(500_000, "--max-points", help="Refuse captures with more points than this (GBs and minutes of work)."),
     json_out: bool = typer.Option(False, "--json", help="Print the basis metadata as JSON."),
     laplacian: Optional[str] = typer.Option(None, "--laplacian", help="Which implementation makes L and M; all give "
                                             "the same matrices to round-off. auto (default): our compiled "
@@ -46,6 +47,7 @@ def precompute(
     with using_laplacian(laplacian):
         laplacian_method()  # a bad $TERGODIC_LAPLACIAN fails here, in one line
         cap = load_capture(capture)
+        _check_size(capture, cap.n_points, max_points)
         basis, hit = get_basis(cap.points, BasisConfig(nk=nk, neighbors=neighbors), cache_dir, force=force,
                                on_event=lambda msg: typer.echo(msg, err=True))
     if json_out:
@@ -61,3 +63,13 @@ def precompute(
     typer.echo(f"  {cap.n_points} points, nK = {basis.nk}, neighbours = {neighbors}, h = {basis.h * 1e3:.3f} mm, "
                f"λ = {basis.evals[0]:.3g} .. {basis.evals[-1]:.4g} 1/m²")
     typer.echo(f"  {basis.meta['path']}")
+
+
+def _check_size(capture: Path, n: int, limit: int) -> None:
+    """Refuse a cloud too large to precompute in reasonable memory and time, unless --max-points allows it."""
+    from tergodic_cli.capture.pipeline import size_estimate
+    from tergodic_cli.errors import TergodicError
+
+    if n > limit:
+        raise TergodicError(f"{capture} has {n:,} points, above the {limit:,}-point limit: precompute would need "
+                            f"{size_estimate(n)}", f"re-capture with a coarser --voxel (e.g. 0.003), or pass --max-points {n}")
