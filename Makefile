@@ -56,7 +56,7 @@ bench: setup
 
 # Regenerate the project's own built-in clouds in data/.
 data: setup
-	for obj in bowl plate mug; do $(BIN)/tergodic capture --synthetic $$obj --marking X --seed 0 --out data/$$obj; done
+	for obj in bowl plate mug; do $(BIN)/tergodic capture --synthetic $$obj --marking X --seed 0 --out data/$$obj --overwrite; done
 
 clean:
 	rm -rf $(DEMO) .cache .pytest_cache
