@@ -45,7 +45,10 @@ def os_cause(exc: OSError) -> str:
     import errno
 
     name = errno.errorcode.get(exc.errno or -1, "")
-    return _CAUSES.get(name) or (exc.strerror or type(exc).__name__).lower()
+    text = str(exc).lower()
+    if not name and ("space" in text or "written" in text):  # numpy's short write ("N requested and M written"): no errno
+        name = "ENOSPC"
+    return _CAUSES.get(name) or (exc.strerror or str(exc) or type(exc).__name__).lower()
 
 
 def os_error(exc: OSError, path, action: str, fix: str) -> TergodicError:

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from tergodic_cli.atomic import _json_default
-from tergodic_cli.errors import TergodicError, os_error, require_writable
+from tergodic_cli.errors import TergodicError, os_cause, os_error, require_writable
 
 SIDECAR = "capture.json"
 ARRAYS = "cloud.npz"
@@ -76,7 +76,6 @@ def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, 
     error leaves no partial folder and an existing capture untouched (replaced only with
     ``overwrite``). ``extra(folder)`` may add files (e.g. the camera image) before the rename.
     """
-    import errno
     import os
     import shutil
     import tempfile
@@ -131,7 +130,7 @@ def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, 
             except OSError:
                 pass
         if isinstance(exc, OSError):
-            raise os_error(exc, out, "write the capture", "free space or " + _OUT_FIX if exc.errno in (errno.ENOSPC, errno.EDQUOT) else _OUT_FIX) from None
+            raise os_error(exc, out, "write the capture", "free space or " + _OUT_FIX if os_cause(exc) in ("no space left on device", "disk quota exceeded") else _OUT_FIX) from None
         raise
     capture.meta = meta
     return out / SIDECAR

@@ -54,13 +54,9 @@ def read_cloud(path: str | Path, drop_invalid: bool = False,
     if not blob:
         raise TergodicError(f"{path.name} is an empty file", "re-export the point cloud")
     reader = _Reader(path, blob, drop_invalid, colour_depth)
-    if suffix == ".ply":
-        return reader.ply()
-    if suffix == ".pcd":
-        return reader.pcd()
-    if suffix == ".npz":
-        return reader.npz()
-    return reader.text()
+    read = {".ply": reader.ply, ".pcd": reader.pcd, ".npz": reader.npz}.get(suffix, reader.text)
+    with np.errstate(all="ignore"):  # a garbage body's NaNs are reported as such, not as numpy warnings
+        return read()
 
 
 class _Reader:
