@@ -359,6 +359,17 @@ class _Boom:
         return (open, (self.path, "w"))
 
 
+def test_npz_that_is_not_a_zip(tmp_path, good):
+    (tmp_path / "junk.npz").write_bytes(b"PK\x03\x04" + b"\x00garbage" * 40)
+    bad_capture(good, "--from", tmp_path / "junk.npz", needles=("junk.npz", "not a readable npz"))
+
+
+def test_pcd_unknown_data_kind(tmp_path, good, cloud):
+    data, _ = pcd_ascii(*cloud)
+    (tmp_path / "lzma.pcd").write_bytes(data.replace(b"DATA ascii", b"DATA lzma"))
+    bad_capture(good, "--from", tmp_path / "lzma.pcd", needles=("lzma.pcd", "unknown pcd data 'lzma'"))
+
+
 def test_npz_nan_row(tmp_path, good, cloud):
     pts = cloud[0].copy()
     pts[33] = np.nan
@@ -410,6 +421,14 @@ def test_overwrite_replaces_the_whole_folder(tmp_path, good):
     assert code == 0, err
     assert json.loads((good / "capture.json").read_text())["provenance"]["object"] == "plate"
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".good")) == []
+
+
+def test_out_that_is_the_current_folder(good):
+    before = snapshot(good)
+    proc = subprocess.run([str(EXE), "capture", "--synthetic", "bowl", "--out", ".", "--overwrite"], cwd=good,
+                          capture_output=True, text=True, timeout=300, env={**os.environ, "TERGODIC_NO_PROGRESS": "1"})
+    one_line_error(proc.returncode, proc.stdout, proc.stderr, "--out .", "current folder")
+    assert snapshot(good) == before
 
 
 def test_overwrite_refuses_a_folder_of_other_files(tmp_path):

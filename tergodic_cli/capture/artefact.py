@@ -53,7 +53,12 @@ _OUT_FIX = "choose another --out"
 def check_out_folder(out: str | Path, overwrite: bool) -> None:
     """Refuse an ``--out`` that cannot take a capture, before any work: a file, a folder of
     other files, an existing capture without ``overwrite``, or an unwritable parent."""
+    import os
+
     out = Path(out)
+    here = os.path.abspath(out)
+    if os.path.commonpath([here, os.getcwd()]) == here:  # renaming it would pull the folder from under the shell
+        raise TergodicError(f"--out {out} is the current folder or holds it", "give --out a folder of its own, e.g. --out cap/")
     if out.exists() and not out.is_dir():
         raise TergodicError(f"--out {out} is a file, not a folder", _OUT_FIX)
     if out.is_dir():
@@ -82,18 +87,19 @@ def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, 
 
     from tergodic_cli.capture.readers import write_ply
 
-    out = Path(out_dir)
-    check_out_folder(out, overwrite)
+    shown = Path(out_dir)
+    check_out_folder(shown, overwrite)
+    out = Path(os.path.abspath(shown))  # normalised: '.', '..' and a trailing slash have a real name and parent
     arrays = {"points": capture.points.astype(np.float64), "target": capture.target.astype(np.float64)}
     if capture.colors is not None:
         arrays["colors"] = capture.colors.astype(np.float32)
     created, tmp, old = [], None, None
     try:
-        for parent in reversed(out.absolute().parents):  # remember what we create, to remove it on failure
+        for parent in reversed(out.parents):  # remember what we create, to remove it on failure
             if not parent.exists():
                 parent.mkdir()
                 created.append(parent)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.absolute().parent))
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
         with open(tmp / ARRAYS, "wb") as fh:
             np.savez(fh, **arrays)
         write_ply(tmp / "cloud.ply", capture.points, capture.colors)
@@ -107,7 +113,7 @@ def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, 
         (tmp / SIDECAR).write_text(json.dumps(meta, indent=2) + "\n")
         os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes 0700; a capture is an ordinary folder
         if out.exists():  # move the old capture aside, put the new one in place, then drop the old
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.absolute().parent))
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
             os.replace(out, old / out.name)
             try:
                 os.replace(tmp, out)
@@ -130,10 +136,10 @@ def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, 
             except OSError:
                 pass
         if isinstance(exc, OSError):
-            raise os_error(exc, out, "write the capture", "free space or " + _OUT_FIX if os_cause(exc) in ("no space left on device", "disk quota exceeded") else _OUT_FIX) from None
+            raise os_error(exc, shown, "write the capture", "free space or " + _OUT_FIX if os_cause(exc) in ("no space left on device", "disk quota exceeded") else _OUT_FIX) from None
         raise
     capture.meta = meta
-    return out / SIDECAR
+    return shown / SIDECAR
 
 
 def load_capture(path: str | Path) -> Capture:
