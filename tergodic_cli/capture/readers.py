@@ -98,7 +98,7 @@ class _Reader:
                     and parts[2] in _PLY_TYPES and parts[3] in _PLY_TYPES:
                 elements[-1][2].append(("list", parts[2], parts[3], parts[4]))
             else:
-                self.fail(f"header line {lineno}", f"cannot parse '{line.strip()[:60]}'")
+                self.fail(f"header line {lineno}", f"cannot parse '{_printable(line.strip()[:60])}'")
         if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
             self.fail("header", f"unknown PLY format '{fmt}'", "re-export it as ascii or binary PLY")
         names = [e[0] for e in elements]
@@ -202,7 +202,7 @@ class _Reader:
             elif key == "DATA":
                 data = vals[0].lower() if vals else ""
             elif key not in ("VERSION", "VIEWPOINT"):
-                self.fail(f"line {lineno}", f"cannot parse the PCD header line '{line[:60]}'", "re-export it as PCD")
+                self.fail(f"line {lineno}", f"cannot parse the PCD header line '{_printable(line[:60])}'", "re-export it as PCD")
         if not fields:
             self.fail("header", "no FIELDS line", "re-export it as PCD")
         k = len(fields)
@@ -370,7 +370,7 @@ class _Reader:
                     try:
                         float(tok)
                     except ValueError:
-                        self.fail(f"line {line_of(i)}", f"'{tok[:20]}' in column {j + 1} is not a number", _FIX_EXPORT)
+                        self.fail(f"line {line_of(i)}", f"'{_printable(tok[:20])}' in column {j + 1} is not a number", _FIX_EXPORT)
             raise
 
     def _finite(self, table, where):
@@ -430,6 +430,11 @@ _PLY_TYPES = {"char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1", "short":
               "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
 _PCD_AS_PLY = {("U", 1): "uchar", ("U", 2): "ushort", ("F", 4): "float", ("F", 8): "double",
                ("I", 1): "char", ("I", 2): "short", ("I", 4): "int", ("U", 4): "uint", ("I", 8): "int64", ("U", 8): "uint64"}
+
+
+def _printable(text: str) -> str:
+    """Quoted file content for a one-line message: control characters become '?'."""
+    return "".join(ch if ch.isprintable() else "?" for ch in text)
 
 
 def _int(text: str) -> int | None:
