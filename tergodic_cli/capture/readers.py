@@ -299,7 +299,7 @@ class _Reader:
 
     # ------------------------------------------------------------------------------ text
     def text(self):
-        lines = self.blob.decode("utf-8", "replace").split("\n")
+        lines = self.blob.decode("utf-8-sig", "replace").split("\n")  # -sig: a BOM is not part of x
         data_lines, lineno = [], []
         for i, ln in enumerate(lines, 1):
             s = ln.split("#", 1)[0].split("//", 1)[0].strip()
