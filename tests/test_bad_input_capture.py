@@ -587,7 +587,7 @@ def test_size_guard_with_a_low_limit(tmp_path, small):
     code, out, err = run("capture", "--synthetic", "bowl", "--voxel", "0.008", "--max-points", "100", "--out", tmp_path / "c")
     assert code == 0
     warning = [ln for ln in err.splitlines() if ln.startswith("warning:")]
-    assert len(warning) == 1 and "--voxel" in warning[0] and "GB" in warning[0] and "--max-points" in warning[0]
+    assert len(warning) == 1 and "--voxel" in warning[0] and " MB and over " in warning[0] and "--max-points" in warning[0]
     n = json.loads((small / "capture.json").read_text())["counts"]["output"]
     one_line_error(*run("precompute", small, "--max-points", "100"), f"{n:,} points", "--max-points", "--voxel")
 

@@ -136,7 +136,8 @@ def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, 
             except OSError:
                 pass
         if isinstance(exc, OSError):
-            raise os_error(exc, shown, "write the capture", "free space or " + _OUT_FIX if os_cause(exc) in ("no space left on device", "disk quota exceeded") else _OUT_FIX) from None
+            full = os_cause(exc) in ("no space left on device", "disk quota exceeded")
+            raise os_error(exc, shown, "write the capture", ("free space or " if full else "") + _OUT_FIX) from None
         raise
     capture.meta = meta
     return shown / SIDECAR
