@@ -271,6 +271,14 @@ def test_pcd_binary_truncated(tmp_path, good, cloud):
     bad_capture(good, "--from", tmp_path / "cut.pcd", needles=("cut.pcd", "truncated", "1490 are complete"))
 
 
+def test_pcd_binary_garbage_body_is_not_a_units_problem(tmp_path, good, cloud):
+    data = bytearray(pcd_binary(*cloud))
+    body = len(data) - 1500 * 16
+    data[body:] = np.random.default_rng(5).integers(0, 256, 1500 * 16, dtype=np.uint8).tobytes()
+    (tmp_path / "garbage.pcd").write_bytes(bytes(data))
+    bad_capture(good, "--from", tmp_path / "garbage.pcd", needles=("garbage.pcd",), absent=("units", "millimetres"))
+
+
 def test_pcd_binary_reads_packed_colours(tmp_path, cloud):
     (tmp_path / "ok.pcd").write_bytes(pcd_binary(*cloud))
     code, _, err = run("capture", "--from", tmp_path / "ok.pcd", "--voxel", "0", "--out", tmp_path / "cap")
