@@ -223,6 +223,16 @@ def test_ply_ushort_colours_are_read_as_16_bit(tmp_path, cloud):
     assert np.allclose(colours, c8 / 255.0, atol=1e-6)  # as 8-bit they would all be clipped to white
 
 
+def test_ply_nan_in_an_unused_property_is_fine(tmp_path, cloud):
+    pts, c8 = cloud
+    head = ("ply\nformat ascii 1.0\nelement vertex 1500\n" + "".join(f"property float {a}\n" for a in "xyz")
+            + "property float nx\n" + "".join(f"property uchar {c}\n" for c in ("red", "green", "blue")) + "end_header\n")
+    rows = [f"{p[0]:.6f} {p[1]:.6f} {p[2]:.6f} nan {c[0]} {c[1]} {c[2]}" for p, c in zip(pts, c8)]
+    (tmp_path / "normals.ply").write_text(head + "\n".join(rows) + "\n")
+    code, _, err = run("capture", "--from", tmp_path / "normals.ply", "--voxel", "0", "--out", tmp_path / "cap")
+    assert code == 0, err
+
+
 def test_ply_float_colours_above_one(tmp_path, good, cloud):
     f = write_ascii_ply(tmp_path / "fc.ply", ascii_rows(cloud[0], cloud[1] * 257), colour="float")
     bad_capture(good, "--from", f, needles=("fc.ply", "out of range", "--colour-depth 16"))

@@ -383,15 +383,18 @@ class _Reader:
         return table
 
     def _columns(self, table, names, types, where):
-        """Pick x, y, z and the colour channels; check finiteness and the colour depth."""
-        table = self._finite(table, where)
+        """Pick x, y, z and the colour channels; check their finiteness and the colour depth.
+        Other columns (normals, curvature, intensity) are not used, so their NaNs do not matter."""
         ix = [names.index(a) for a in ("x", "y", "z")]
+        ic = next(([names.index(c) for c in trio] for trio in
+                   (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue"))
+                   if all(c in names for c in trio)), [])
+        used = ix + ic
+        self._finite(table[:, used], lambda i, j: where(i, used[j] if j is not None else None))
         points = np.ascontiguousarray(table[:, ix])
-        for trio in (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
-            if all(c in names for c in trio):
-                ic = [names.index(c) for c in trio]
-                return points, self._colour(table[:, ic], [types[j] for j in ic], ic, where)
-        return points, None
+        if not ic:
+            return points, None
+        return points, self._colour(table[:, ic], [types[j] for j in ic], ic, where)
 
     def _colour(self, rgb, types, ic, where):
         """Colours in [0, 1]: by the declared type when it says, else by --colour-depth or the values."""
@@ -401,10 +404,8 @@ class _Reader:
             i, j = np.argwhere(finite & (rgb < 0))[0]
             self.fail(where(int(i), ic[j]), f"negative colour value {rgb[i, j]:g}", "colours are 0..255, 0..65535 or 0..1")
         declared = {"uchar": 8, "uint8": 8, "ushort": 16, "uint16": 16, "float": 0, "float32": 0, "double": 0, "float64": 0}
-        depth = self.colour_depth
-        kind = types[0]
-        if depth is None and kind in declared:
-            depth = declared[kind]  # the file's type says it: ushort is 16-bit, float is 0..1
+        # The file's type says it when it can (ushort is 16-bit, float is 0..1); else --colour-depth; else the values.
+        depth = declared.get(types[0], self.colour_depth)
         hi = float(vals.max()) if vals.size else 0.0
         if depth is None:  # text, NPZ or an unusual PLY type: decide by the values, refuse when ambiguous
             if hi <= 1.0:
