@@ -56,16 +56,18 @@ def os_error(exc: OSError, path, action: str, fix: str) -> TergodicError:
     return TergodicError(f"cannot {action} {path}: {os_cause(exc)}", fix)
 
 
-def require_writable(path, option: str) -> None:
-    """Refuse, before any work, a ``path`` that cannot be created: its nearest existing
-    ancestor must be a folder we may write into (``option`` names the flag to change)."""
+def require_writable(path, option: str, sibling: bool = False) -> None:
+    """Refuse, before any work, a folder ``path`` we cannot write into: its nearest existing
+    ancestor (from its parent when ``sibling``: the folder is built beside it and renamed
+    in) must be a folder we may write into. ``option`` names the flag to change."""
     import os
     from pathlib import Path
 
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise TergodicError(f"{option} {path} is a file, not a folder", f"choose another {option}")
-    parent = path.absolute()
+    parent = Path(os.path.abspath(path))
+    parent = parent.parent if sibling else parent
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent
     if not parent.is_dir():

@@ -71,7 +71,7 @@ def check_out_folder(out: str | Path, overwrite: bool) -> None:
                                 "choose another --out; only a capture folder is replaced")
         if names and not overwrite:
             raise TergodicError(f"--out {out} already holds a capture", "pass --overwrite to replace it, or choose another --out")
-    require_writable(out, "--out")
+    require_writable(out, "--out", sibling=True)
 
 
 def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, extra=None) -> Path:
