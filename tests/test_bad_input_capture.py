@@ -510,6 +510,19 @@ def test_out_on_a_read_only_filesystem(tmp_path, mount):
     assert snapshot(ro / "cap") == before and not (ro / "new").exists()
 
 
+def test_out_in_a_chmod_read_only_folder(tmp_path):
+    if os.geteuid() == 0:
+        pytest.skip("root ignores chmod; test_out_on_a_read_only_filesystem covers this with a read-only mount")
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o555)
+    try:
+        one_line_error(*run("capture", "--synthetic", "bowl", "--out", locked / "cap"), "permission denied", "--out")
+        assert list(locked.iterdir()) == []
+    finally:
+        locked.chmod(0o755)
+
+
 def test_out_on_a_full_disk_keeps_the_old_capture(tmp_path, mount):
     disk = mount("tmpfs", tmp_path / "disk", "512k")
     code, _, err = run("capture", "--synthetic", "bowl", "--voxel", "0.006", "--out", disk / "cap")
