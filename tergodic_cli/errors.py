@@ -65,13 +65,13 @@ def require_writable(path, option: str, sibling: bool = False) -> None:
 
     path = Path(path)
     if path.exists() and not path.is_dir():
-        raise TergodicError(f"{option} {path} is a file, not a folder", f"choose another {option}")
+        raise TergodicError(f"cannot write {path}: it is a file, not a folder", f"choose another {option}")
     parent = Path(os.path.abspath(path))
     parent = parent.parent if sibling else parent
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent
     if not parent.is_dir():
-        raise TergodicError(f"{option} {path}: {parent} is a file, not a folder", f"choose another {option}")
+        raise TergodicError(f"cannot write {path}: {parent} is a file, not a folder", f"choose another {option}")
     if not os.access(parent, os.W_OK | os.X_OK):  # also false for root on a read-only filesystem
         ro = bool(os.statvfs(parent).f_flag & os.ST_RDONLY)
         raise TergodicError(f"cannot write {path}: {'read-only filesystem' if ro else 'permission denied'} at {parent}",

@@ -210,7 +210,8 @@ def test_ply_binary_garbage_body_is_not_a_units_problem(tmp_path, good, cloud):
     rng = np.random.default_rng(3)
     data[head:] = rng.integers(0, 256, len(data) - head, dtype=np.uint8).tobytes()
     (tmp_path / "garbage.ply").write_bytes(bytes(data))
-    bad_capture(good, "--from", tmp_path / "garbage.ply", needles=("garbage.ply",), absent=("units", "millimetres"))
+    bad_capture(good, "--from", tmp_path / "garbage.ply", needles=("garbage.ply", "corrupt", "re-export"),
+                absent=("units", "millimetres", "--drop-invalid"))
 
 
 def test_ply_ushort_colours_are_read_as_16_bit(tmp_path, cloud):
@@ -286,7 +287,7 @@ def test_pcd_binary_garbage_body_is_not_a_units_problem(tmp_path, good, cloud):
     body = len(data) - 1500 * 16
     data[body:] = np.random.default_rng(5).integers(0, 256, 1500 * 16, dtype=np.uint8).tobytes()
     (tmp_path / "garbage.pcd").write_bytes(bytes(data))
-    bad_capture(good, "--from", tmp_path / "garbage.pcd", needles=("garbage.pcd",), absent=("units", "millimetres"))
+    bad_capture(good, "--from", tmp_path / "garbage.pcd", needles=("garbage.pcd", "corrupt"), absent=("units", "millimetres"))
 
 
 def test_pcd_binary_reads_packed_colours(tmp_path, cloud):

@@ -376,6 +376,11 @@ class _Reader:
     def _finite(self, table, where):
         bad = ~np.isfinite(table)
         if bad.any() and not self.drop_invalid:
+            huge = ~bad & (np.abs(np.where(bad, 0, table)) > _ABSURD)
+            if huge.any():  # NaNs among absurd magnitudes: a garbage body (wrong layout or byte order), not stray rows
+                i, j = (int(v) for v in np.argwhere(huge)[0])
+                self.fail(where(i, j), f"value {table[i, j]:.3g} beside {int(bad.sum())} NaN/inf values: the body looks corrupt",
+                          "re-export the cloud (check its declared types and byte order)")
             rows = np.flatnonzero(bad.any(axis=1))
             i = int(rows[0])
             j = int(np.flatnonzero(bad[i])[0])
@@ -425,6 +430,9 @@ class _Reader:
             self.fail(where(int(i), ic[j]), f"colour value {rgb[i, j]:g} is out of range for {label} colour", fix)
         return rgb / limit
 
+
+#: No coordinate (metres or millimetres) or colour channel comes near this: such values are garbage.
+_ABSURD = 1e9
 
 _PLY_TYPES = {"char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1", "short": "i2", "ushort": "u2",
               "int16": "i2", "uint16": "u2", "int": "i4", "uint": "u4", "int32": "i4", "uint32": "u4",
