@@ -414,6 +414,12 @@ def test_millimetres_still_get_the_units_message(tmp_path, good, cloud):
     bad_capture(good, "--from", tmp_path / "mm.npz", needles=("mm.npz", "millimetres", "--units mm"))
 
 
+@pytest.mark.parametrize("spec, needle", [("hsv:400-10,0.5,0.3", "hue 400"), ("hsv:340-20,1.5,0.3", "0..1"),
+                                          ("hsv:nan-20,0.5,0.3", "hue nan")])
+def test_hsv_target_out_of_range(good, spec, needle):
+    bad_capture(good, "--synthetic", "bowl", "--target", spec, needles=(needle, "hsv:340-20,0.5,0.3"), absent=("no points match",))
+
+
 # ----------------------------------------------------------------------------- --out faults
 
 def test_out_under_a_file(tmp_path, good):
