@@ -54,7 +54,7 @@ bench: setup
 
 # Regenerate the project's own built-in clouds in data/.
 data: setup
-	for obj in bowl plate mug; do $(BIN)/tergodic capture --synthetic $$obj --marking X --seed 0 --out data/$$obj; done
+	for obj in bowl plate mug; do $(BIN)/tergodic capture --synthetic $$obj --marking X --seed 0 --out data/$$obj --overwrite; done
 
 # numba's kernels (explorer, robot) into its disk cache, so the first explore starts at once (~35 s cold, ~5 s when current).
 .PHONY: warm

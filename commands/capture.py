@@ -39,6 +39,9 @@ def capture(
     target: str = typer.Option("red", "--target", help="Target colour: red, green, blue, yellow, orange, magenta, cyan, black, white; hsv:H1-H2,SMIN,VMIN; or 'all' for uniform coverage."),
     units: str = typer.Option("m", "--units", help="Units of the input coordinates (the cloud file, or the sim .obj): m or mm."),
     drop_invalid: bool = typer.Option(False, "--drop-invalid", help="Drop NaN/inf points instead of refusing the cloud."),
+    colour_depth: Optional[int] = typer.Option(None, "--colour-depth", help="Bits per colour channel, 8 or 16, when the file does not say (XYZRGB text, NPZ); default: 0..1 floats or 0..255, and more is refused."),
+    max_points: int = typer.Option(500_000, "--max-points", help="Warn when more points than this remain after filtering (precompute refuses them)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing capture folder at --out."),
     json_out: bool = typer.Option(False, "--json", help="Print the sidecar as JSON instead of the table."),
 ) -> None:
     """Capture a coloured point cloud and segment its target marking.
@@ -81,7 +84,12 @@ def capture(
         outliers=_parse_outliers(outliers) if outliers else None,
         target=target,
         drop_invalid=drop_invalid,
+        colour_depth=colour_depth,
+        max_points=max_points,
     )
+    from tergodic_cli.capture.artefact import check_out_folder
+
+    check_out_folder(out, overwrite)  # before any work: a refused --out costs nothing
     frame = None
     if kind == "sim":
         from tergodic_cli.capture.sim_camera import SimCameraConfig, SimCaptureConfig, capture_sim
@@ -103,9 +111,9 @@ def capture(
                                 camera_pose=_floats(camera_pose, "--camera-pose", "0.3,0,0.6,1,0,0,0"))
     else:
         cap = capture_cloud(cfg)
-    sidecar = save_capture(cap, out)
-    if frame is not None:  # what the camera saw, beside the artefact (not part of it)
-        _write_image(sidecar.parent / "camera_rgb.png", frame.rgb)
+    # What the camera saw goes beside the artefact (not part of it), inside the same atomic folder.
+    extra = (lambda folder: _write_image(folder / "camera_rgb.png", frame.rgb)) if frame is not None else None
+    sidecar = save_capture(cap, out, overwrite=overwrite, extra=extra)
     if json_out:
         typer.echo(json.dumps(cap.meta, indent=2))
         return

@@ -18,6 +18,7 @@ def precompute(
     neighbors: int = typer.Option(30, "--neighbors", help="Neighbours for robust_laplacian. 40 bridges scan gaps (the bunny's ear joins the body)."),
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Cache root [default: $TERGODIC_CACHE_DIR or ~/.cache/tergodic]."),
     force: bool = typer.Option(False, "--force", help="Recompute even when the cache holds this basis."),
+    max_points: int = typer.Option(500_000, "--max-points", help="Refuse captures with more points than this (GBs and minutes of work)."),
     json_out: bool = typer.Option(False, "--json", help="Print the basis metadata as JSON."),
 ) -> None:
     """Compute (or load from cache) the spectral basis of a capture.
@@ -36,6 +37,7 @@ def precompute(
     from tergodic_cli.progress import echo as echo_err
 
     cap = load_capture(capture)
+    _check_size(capture, cap.n_points, max_points)
     basis, hit = get_basis(cap.points, BasisConfig(nk=nk, neighbors=neighbors), cache_dir, force=force,
                            on_event=echo_err)
     if json_out:
@@ -50,3 +52,13 @@ def precompute(
     typer.echo(f"  {cap.n_points} points, nK = {basis.nk}, neighbours = {neighbors}, h = {basis.h * 1e3:.3f} mm, "
                f"λ = {basis.evals[0]:.3g} .. {basis.evals[-1]:.4g} 1/m²")
     typer.echo(f"  {basis.meta['path']}")
+
+
+def _check_size(capture: Path, n: int, limit: int) -> None:
+    """Refuse a cloud too large to precompute in reasonable memory and time, unless --max-points allows it."""
+    from tergodic_cli.capture.pipeline import size_estimate
+    from tergodic_cli.errors import TergodicError
+
+    if n > limit:
+        raise TergodicError(f"{capture} has {n:,} points, above the {limit:,}-point limit: precompute would need "
+                            f"{size_estimate(n)}", f"re-capture with a coarser --voxel (e.g. 0.003), or pass --max-points {n}")

@@ -126,6 +126,12 @@ def main(argv: list[str] | None = None) -> int:
     except TergodicError as exc:
         print(f"tergodic: error: {exc}", file=sys.stderr)
         return exc.exit_code
+    except OSError as exc:  # the operating system's refusals not caught nearer: still one line, no traceback
+        from tergodic_cli.errors import os_cause
+
+        where = f" {exc.filename}" if exc.filename else ""
+        print(f"tergodic: error: cannot complete:{where} {os_cause(exc)}; check the paths and free space", file=sys.stderr)
+        return 2
     except (typer.Abort, KeyboardInterrupt) as exc:
         return _interrupted(exc)
     except Exception as exc:

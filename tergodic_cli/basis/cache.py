@@ -51,6 +51,7 @@ _DEGENERATE = 1e-7
 #: Layout of a cache entry (files, row order, checksum); part of the key, so entries of an
 #: older layout are never read: they are recomputed under their new key.
 CACHE_LAYOUT = 3
+_CACHE_OPTION = "--cache-dir (or $TERGODIC_CACHE_DIR)"
 _BITS = 21  # per axis in the packed sort key: 2**21 µm = 2.1 m of extent
 
 
@@ -232,8 +233,10 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
         except CacheMiss as miss:
             if str(miss):
                 say(f"warning: cached basis {entry} is unusable: {miss}; recomputing")
+    from tergodic_cli.errors import require_writable
     from tergodic_cli.progress import Spinner
 
+    require_writable(entry.parent, _CACHE_OPTION)  # before minutes of work, not after
     with Spinner(f"computing basis: Laplacian + {cfg.nk} eigenpairs of {len(points)} points"):
         basis = compute_basis(points, cfg.nk, cfg.neighbors, timings)
     from tergodic_cli.provenance import library_versions
@@ -254,7 +257,13 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
         "versions": library_versions(),
         "checksums": {name: array_checksum(a) for name, a in arrays.items()},
     }
-    _write_entry(entry, arrays, meta)
+    try:
+        _write_entry(entry, arrays, meta)
+    except OSError as exc:  # a full disk or a vanished permission: one line, nothing partial (see _write_entry)
+        from tergodic_cli.errors import os_error
+
+        raise os_error(exc, entry.parent.parent, "write the basis cache",
+                       f"free space or choose another {_CACHE_OPTION}") from None
     timings["write_ms"] = 1e3 * (time.perf_counter() - t)
     meta["path"] = str(entry)
     meta["evecs_file"] = {"path": str(entry / "evecs.npy"), "checksum": meta["checksums"]["evecs"]}

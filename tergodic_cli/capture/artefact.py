@@ -8,7 +8,9 @@ A capture folder holds:
 - ``capture.json``: the sidecar: provenance, units, filters with counts, target rule,
   target share, spacing h, extent, seed, library versions, and the sha256 of ``cloud.npz``.
 
-``capture.json`` is written last, so a folder without it is not a capture.
+The folder is built beside its target and renamed into place when complete.
+``capture.json`` carries ``sidecar_sha256``, a checksum of its own content, so a stub or
+an edited sidecar is refused by :func:`load_capture`, like a changed ``cloud.npz``.
 """
 
 from __future__ import annotations
@@ -20,11 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from tergodic_cli.atomic import write_json, write_npz
-from tergodic_cli.errors import TergodicError
+from tergodic_cli.atomic import _json_default
+from tergodic_cli.errors import TergodicError, os_cause, os_error, require_writable
 
 SIDECAR = "capture.json"
 ARRAYS = "cloud.npz"
+#: The sidecar's own checksum: a stub or an edited capture.json is refused on load.
+SIDECAR_SHA = "sidecar_sha256"
 
 
 @dataclass
@@ -41,52 +45,148 @@ class Capture:
         return len(self.points)
 
 
-def save_capture(capture: Capture, out_dir: str | Path) -> Path:
-    """Write ``capture`` into ``out_dir`` (created if needed); returns the sidecar path."""
+#: The files a capture folder may hold; --overwrite replaces only a folder of these.
+CAPTURE_FILES = frozenset({ARRAYS, "cloud.ply", SIDECAR, "camera_rgb.png"})
+_OUT_FIX = "choose another --out"
+
+
+def check_out_folder(out: str | Path, overwrite: bool) -> None:
+    """Refuse an ``--out`` that cannot take a capture, before any work: a file, a folder of
+    other files, an existing capture without ``overwrite``, or an unwritable parent."""
+    import os
+
+    out = Path(out)
+    here = os.path.abspath(out)
+    if os.path.commonpath([here, os.getcwd()]) == here:  # renaming it would pull the folder from under the shell
+        raise TergodicError(f"--out {out} is the current folder or holds it", "give --out a folder of its own, e.g. --out cap/")
+    if out.exists() and not out.is_dir():
+        raise TergodicError(f"--out {out} is a file, not a folder", _OUT_FIX)
+    if out.is_dir():
+        try:
+            names = {p.name for p in out.iterdir()}
+        except OSError as exc:
+            raise os_error(exc, out, "read", _OUT_FIX) from None
+        if names and not names <= CAPTURE_FILES:
+            raise TergodicError(f"--out {out} holds files that are not a capture's ({sorted(names - CAPTURE_FILES)[0]}, ...)",
+                                "choose another --out; only a capture folder is replaced")
+        if names and not overwrite:
+            raise TergodicError(f"--out {out} already holds a capture", "pass --overwrite to replace it, or choose another --out")
+    require_writable(out, "--out", sibling=True)
+
+
+def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, extra=None) -> Path:
+    """Write ``capture`` into ``out_dir``; returns the sidecar path.
+
+    The folder is built in a temporary sibling and renamed into place when complete, so an
+    error leaves no partial folder and an existing capture untouched (replaced only with
+    ``overwrite``). ``extra(folder)`` may add files (e.g. the camera image) before the rename.
+    """
+    import os
+    import shutil
+    import tempfile
+
     from tergodic_cli.capture.readers import write_ply
 
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise TergodicError(f"--out {out} exists and is not a folder", "give a folder path for the capture")
+    shown = Path(out_dir)
+    check_out_folder(shown, overwrite)
+    out = Path(os.path.abspath(shown))  # normalised: '.', '..' and a trailing slash have a real name and parent
     arrays = {"points": capture.points.astype(np.float64), "target": capture.target.astype(np.float64)}
     if capture.colors is not None:
         arrays["colors"] = capture.colors.astype(np.float32)
-    write_npz(out / ARRAYS, **arrays)
-    write_ply(out / "cloud.ply", capture.points, capture.colors)
-    meta = dict(capture.meta)
-    meta["arrays"] = {"file": ARRAYS, "sha256": _sha256(out / ARRAYS)}
-    write_json(out / SIDECAR, meta)
+    created, tmp, old = [], None, None
+    try:
+        for parent in reversed(out.parents):  # remember what we create, to remove it on failure
+            if not parent.exists():
+                parent.mkdir()
+                created.append(parent)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+        with open(tmp / ARRAYS, "wb") as fh:
+            np.savez(fh, **arrays)
+        write_ply(tmp / "cloud.ply", capture.points, capture.colors)
+        if extra is not None:
+            extra(tmp)
+        meta = dict(capture.meta)
+        meta.pop(SIDECAR_SHA, None)
+        meta["arrays"] = {"file": ARRAYS, "sha256": _sha256(tmp / ARRAYS)}
+        meta = json.loads(json.dumps(meta, default=_json_default))  # what a reader will see
+        meta[SIDECAR_SHA] = sidecar_checksum(meta)
+        (tmp / SIDECAR).write_text(json.dumps(meta, indent=2) + "\n")
+        os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes 0700; a capture is an ordinary folder
+        if out.exists():  # move the old capture aside, put the new one in place, then drop the old
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
+            os.replace(out, old / out.name)
+            try:
+                os.replace(tmp, out)
+            except BaseException:
+                os.replace(old / out.name, out)
+                raise
+            tmp = None
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, out)
+            tmp = None
+    except BaseException as exc:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+        if old is not None and not (old / out.name).exists():
+            shutil.rmtree(old, ignore_errors=True)
+        for parent in reversed(created):
+            try:
+                parent.rmdir()
+            except OSError:
+                pass
+        if isinstance(exc, OSError):
+            full = os_cause(exc) in ("no space left on device", "disk quota exceeded")
+            raise os_error(exc, shown, "write the capture", ("free space or " if full else "") + _OUT_FIX) from None
+        raise
     capture.meta = meta
-    return out / SIDECAR
+    return shown / SIDECAR
 
 
 def load_capture(path: str | Path) -> Capture:
-    """Load a capture folder (or its ``capture.json``), verifying its arrays."""
+    """Load a capture folder (or its ``capture.json``), verifying the sidecar and its arrays."""
     path = Path(path)
     folder = path.parent if path.name == SIDECAR else path
     sidecar = folder / SIDECAR
+    rerun = "re-run 'tergodic capture ... --out DIR --overwrite'"
     if not sidecar.exists():
         raise TergodicError(f"{folder} is not a capture (no {SIDECAR})", "run 'tergodic capture ... --out DIR' first and pass DIR")
     try:
         meta = json.loads(sidecar.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError):
-        raise TergodicError(f"{sidecar} is not valid JSON", "re-run 'tergodic capture'") from None
+        raise TergodicError(f"{sidecar} is not valid JSON", rerun) from None
+    except OSError as exc:
+        raise os_error(exc, sidecar, "read", "check the capture folder's permissions") from None
+    if not isinstance(meta, dict) or SIDECAR_SHA not in meta or not isinstance(meta.get("arrays"), dict):
+        raise TergodicError(f"{sidecar} is a stub or from an older tergodic (no checksum)", rerun)
+    if meta[SIDECAR_SHA] != sidecar_checksum(meta):
+        raise TergodicError(f"{sidecar} was edited (its checksum does not match its content)", rerun)
     arrays = folder / ARRAYS
     if not arrays.exists():
-        raise TergodicError(f"{folder} has no {ARRAYS}", "re-run 'tergodic capture'")
-    expected = meta.get("arrays", {}).get("sha256")
-    if expected and expected != _sha256(arrays):
-        raise TergodicError(f"{arrays} does not match the checksum in {SIDECAR} (modified?)", "re-run 'tergodic capture'")
+        raise TergodicError(f"{folder} has no {ARRAYS}", rerun)
+    try:
+        actual = _sha256(arrays)
+    except OSError as exc:
+        raise os_error(exc, arrays, "read", "check the capture folder's permissions") from None
+    if meta["arrays"].get("sha256") != actual:
+        raise TergodicError(f"{arrays} does not match the checksum in {SIDECAR} (modified?)", rerun)
     try:
         with np.load(arrays, allow_pickle=False) as data:
             points = np.asarray(data["points"], dtype=np.float64)
             target = np.asarray(data["target"], dtype=np.float64)
             colors = np.asarray(data["colors"], dtype=np.float64) if "colors" in data.files else None
     except Exception as exc:
-        raise TergodicError(f"{arrays} is unreadable ({type(exc).__name__})", "re-run 'tergodic capture'") from None
+        raise TergodicError(f"{arrays} is unreadable ({type(exc).__name__})", rerun) from None
     if points.ndim != 2 or points.shape[1] != 3 or target.shape != (len(points),):
-        raise TergodicError(f"{arrays} has inconsistent shapes", "re-run 'tergodic capture'")
+        raise TergodicError(f"{arrays} has inconsistent shapes", rerun)
     return Capture(points, colors, target, meta)
+
+
+def sidecar_checksum(meta: dict) -> str:
+    """sha256 of the sidecar's content without its own checksum field (canonical JSON)."""
+    body = {k: v for k, v in meta.items() if k != SIDECAR_SHA}
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def _sha256(path: Path) -> str:
@@ -95,3 +195,12 @@ def _sha256(path: Path) -> str:
         for block in iter(lambda: fh.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def _umask() -> int:
+    import os
+
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -21,6 +22,15 @@ MIN_POINTS = 10
 MAX_EXTENT_M = 5.0
 #: ... and one smaller than this was almost surely metres read as millimetres.
 MIN_EXTENT_M = 0.005
+#: Spans beyond these are not a units mistake (x1000 would not make them an object): a corrupt body.
+CORRUPT_EXTENT_M = MAX_EXTENT_M * 1e3
+DEGENERATE_EXTENT_M = MIN_EXTENT_M * 1e-3
+#: Above this many points after filtering, precompute needs GBs and minutes (issue 16, item 6).
+MAX_POINTS = 500_000
+#: Rough cost of precompute per point (nK = 200), measured at 120k points: 1.6 GB peak, 27 s on 2 cores.
+#: Time grows faster than linearly, so the estimate is a lower bound.
+BYTES_PER_POINT = 13_000
+SECONDS_PER_POINT = 2.3e-4
 
 
 @dataclass
@@ -40,6 +50,8 @@ class CaptureConfig:
     outliers: tuple[int, float] | None = None  # (nb_neighbors, std_ratio)
     target: str = "red"
     drop_invalid: bool = False
+    colour_depth: int | None = None  # 8 or 16 bits per channel when the file does not say; None: by the values
+    max_points: int = MAX_POINTS  # more points after filtering get a size warning
     allow_empty_target: bool = False  # re-captures of a cleaned object may have no marking left
 
 
@@ -53,13 +65,18 @@ class CaptureReport:
         self.stages.append((name, int(n)))
 
 
-def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] | None = None) -> Capture:
+def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] | None = None,
+                  on_event=None) -> Capture:
     """Run the capture pipeline for ``cfg``.
 
     ``raw`` bypasses the source (points, colours) for sources that produce arrays
-    themselves (simulated or real cameras).
+    themselves (simulated or real cameras). ``on_event(str)`` gets warnings (the size guard).
     """
     _validate_config(cfg)
+    if on_event is None:
+        import sys
+
+        on_event = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
     t0 = time.perf_counter()
     target_range = parse_target(cfg.target)
     report = CaptureReport()
@@ -70,7 +87,7 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     elif cfg.source == "file":
         from tergodic_cli.capture.readers import read_cloud
 
-        points, colors = read_cloud(cfg.path)
+        points, colors = read_cloud(cfg.path, drop_invalid=cfg.drop_invalid, colour_depth=cfg.colour_depth)
         provenance["path"] = str(cfg.path)
     elif cfg.source == "synthetic":
         from tergodic_cli.capture.synthetic import generate_synthetic
@@ -88,16 +105,18 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     if cfg.units == "mm":
         points = points * 1e-3
     finite = np.all(np.isfinite(points), axis=1)
+    if colors is not None:
+        finite &= np.all(np.isfinite(colors), axis=1)
     if not finite.all():
         bad = int((~finite).sum())
-        require(cfg.drop_invalid, f"the cloud has {bad} points with NaN or inf coordinates",
+        require(cfg.drop_invalid, f"the cloud has {bad} points with NaN or inf coordinates or colours",
                 "remove them, or pass --drop-invalid to drop them")
         points, colors = points[finite], (colors[finite] if colors is not None else None)
         truth = truth[finite] if truth is not None else None
         report.add("drop invalid", len(points))
     require(len(points) >= MIN_POINTS, f"the cloud has only {len(points)} points",
             f"give at least {MIN_POINTS} points (check the file or the filters)")
-    _check_extent(points, cfg.units)
+    _check_extent(points, cfg.units, f"{Path(cfg.path).name}: " if cfg.source == "file" and cfg.path else "")
 
     keep = np.ones(len(points), bool)
     if cfg.crop is not None:
@@ -119,7 +138,9 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     if cfg.voxel > 0:
         points, colors, p = voxel_downsample(points, colors, is_target, cfg.voxel, cfg.voxel_rule)
         report.add(f"voxel {cfg.voxel * 1e3:g} mm", len(points))
-    else:
+    if len(points) > cfg.max_points:  # before the duplicate check and the k-d tree
+        on_event(size_warning(len(points), cfg.max_points))
+    if cfg.voxel <= 0:
         p = is_target.astype(np.float64)
         n_unique = len(np.unique(points, axis=0))
         require(n_unique == len(points), f"the cloud has {len(points) - n_unique} duplicate points",
@@ -172,6 +193,8 @@ def _validate_config(cfg: CaptureConfig) -> None:
     require(cfg.voxel < 1.0, f"--voxel {cfg.voxel} m is larger than any tabletop object",
             "give the voxel edge in metres, e.g. 0.003 (not millimetres)")
     require(cfg.voxel_rule in VOXEL_RULES, f"unknown --voxel-rule '{cfg.voxel_rule}'", f"use one of {', '.join(VOXEL_RULES)}")
+    require(cfg.colour_depth in (None, 8, 16), f"--colour-depth {cfg.colour_depth} is not supported", "use --colour-depth 8 or 16")
+    require(cfg.max_points >= 1, f"--max-points {cfg.max_points} is not a point count", "e.g. --max-points 1000000")
     if cfg.crop is not None:
         box = np.asarray(cfg.crop, dtype=float)
         require(box.shape == (6,) and np.all(box[:3] < box[3:]), "--crop needs xmin,ymin,zmin,xmax,ymax,zmax with min < max",
@@ -180,14 +203,35 @@ def _validate_config(cfg: CaptureConfig) -> None:
         require(cfg.outliers[0] >= 1 and cfg.outliers[1] > 0, "--outliers needs NB,STD with NB >= 1 and STD > 0", "e.g. --outliers 20,2.0")
 
 
-def _check_extent(points: np.ndarray, units: str) -> None:
+def _check_extent(points: np.ndarray, units: str, label: str = "") -> None:
+    """Refuse a cloud whose span says the units are wrong; only then is the message about units."""
     extent = float(np.ptp(points, axis=0).max())
+    if extent > CORRUPT_EXTENT_M:
+        raise TergodicError(f"{label}the cloud spans {extent:.3g} m, too large even for millimetres (corrupt values in the file?)",
+                            "check the file's body, or --crop away the stray points (metres)")
     if extent > MAX_EXTENT_M:
-        raise TergodicError(f"the cloud spans {extent:.3g} m, which looks like millimetres read as metres",
+        raise TergodicError(f"{label}the cloud spans {extent:.3g} m, which looks like millimetres read as metres",
                             "pass --units mm" if units == "m" else "check the file's units")
+    if extent == 0.0:
+        raise TergodicError(f"{label}all {len(points)} points are identical", "check the file: it holds one point repeated")
+    if extent < DEGENERATE_EXTENT_M:
+        raise TergodicError(f"{label}the cloud spans only {extent:.3g} m, too small even for metres read as millimetres "
+                            "(nearly identical or corrupt points)", "check the file's body")
     if extent < MIN_EXTENT_M:
-        raise TergodicError(f"the cloud spans only {extent * 1e3:.3g} mm, which looks like metres read as millimetres",
+        raise TergodicError(f"{label}the cloud spans only {extent * 1e3:.3g} mm, which looks like metres read as millimetres",
                             "pass --units m" if units == "mm" else "check the file's units")
+
+
+def size_estimate(n: int) -> str:
+    """What precompute would roughly need for ``n`` points (nK = 200)."""
+    gb, seconds = n * BYTES_PER_POINT / 1e9, n * SECONDS_PER_POINT
+    memory = f"~{gb:.1f} GB" if gb >= 1 else f"~{max(gb * 1e3, 1):.0f} MB"
+    return f"{memory} and over {seconds / 60:.0f} min" if seconds >= 60 else f"{memory} and over {max(seconds, 1):.0f} s"
+
+
+def size_warning(n: int, limit: int) -> str:
+    return (f"warning: {n:,} points after filtering, above the {limit:,}-point limit: precompute would need "
+            f"{size_estimate(n)}; use a coarser --voxel (e.g. 0.003), or --max-points {n} to accept")
 
 
 def _config_dict(cfg: CaptureConfig) -> dict:

@@ -2,10 +2,17 @@
 
 Every reader returns ``(points, colors)``: points float64 (n, 3) in the file's
 units, colours float64 (n, 3) in [0, 1] or ``None`` when the file has none.
+
+The readers are strict: a header/body count mismatch, a non-finite value, an
+ambiguous or out-of-range colour depth and a wrong column count each raise a
+one-line :class:`TergodicError` naming the file, the line (or field) and the fix.
+PLY and PCD are parsed here with numpy, not by open3d, whose reader keeps the rows
+before a bad one without failing and prints its own ``RPly:`` lines.
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -13,11 +20,23 @@ import numpy as np
 from tergodic_cli.errors import TergodicError
 
 SUPPORTED = (".ply", ".pcd", ".xyz", ".xyzrgb", ".txt", ".npz")
+COLOUR_DEPTHS = (8, 16)
+
+_FIX_EXPORT = "re-export the cloud"
+_FIX_INVALID = "remove those rows, or pass --drop-invalid to drop them"
 
 
-def read_cloud(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Read a coloured point cloud from ``path`` (format from the extension)."""
+def read_cloud(path: str | Path, drop_invalid: bool = False,
+               colour_depth: int | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read a coloured point cloud from ``path`` (format from the extension).
+
+    ``drop_invalid``: keep rows with NaN/inf (the pipeline drops them) instead of refusing.
+    ``colour_depth``: 8 or 16 bits per channel for integer colours whose depth the file
+    does not say (text, NPZ); None reads 0..1 as floats, 0..255 as 8-bit and refuses more.
+    """
     path = Path(path)
+    if colour_depth is not None and colour_depth not in COLOUR_DEPTHS:
+        raise TergodicError(f"--colour-depth {colour_depth} is not supported", "use --colour-depth 8 or 16")
     if not path.exists():
         raise TergodicError(f"no such file: {path}", "check the path given to --from")
     if not path.is_file():
@@ -29,111 +48,434 @@ def read_cloud(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
             f"use one of {', '.join(SUPPORTED)}",
         )
     try:
-        with open(path, "rb") as fh:
-            head = fh.read(64)
+        blob = path.read_bytes()
     except OSError as exc:
-        raise TergodicError(f"cannot read {path}: {exc.strerror}", "check the file's permissions") from None
-    if not head:
+        raise TergodicError(f"cannot read {path}: {(exc.strerror or str(exc)).lower()}", "check the file's permissions") from None
+    if not blob:
         raise TergodicError(f"{path.name} is an empty file", "re-export the point cloud")
-    if suffix in (".ply", ".pcd"):
-        return _read_open3d(path, head)
-    if suffix == ".npz":
-        return _read_npz(path)
-    return _read_text(path)
+    reader = _Reader(path, blob, drop_invalid, colour_depth)
+    read = {".ply": reader.ply, ".pcd": reader.pcd, ".npz": reader.npz}.get(suffix, reader.text)
+    with np.errstate(all="ignore"):  # a garbage body's NaNs are reported as such, not as numpy warnings
+        return read()
 
 
-def _read_open3d(path: Path, head: bytes) -> tuple[np.ndarray, np.ndarray | None]:
-    if path.suffix.lower() == ".ply" and not head.startswith(b"ply"):
-        raise TergodicError(f"{path.name} is not a valid PLY (no 'ply' header)", "re-export it as PLY")
-    import open3d as o3d
+class _Reader:
+    """One file's bytes and the options that decide what is an error."""
 
-    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-    pcd = o3d.io.read_point_cloud(str(path))
-    points = np.asarray(pcd.points, dtype=np.float64)
-    if len(points) == 0:
-        raise TergodicError(
-            f"{path.name} holds no readable points (corrupt or truncated file?)",
-            "re-export the cloud; PLY needs x, y, z vertex properties",
-        )
-    _check_truncated_ply(path, head, len(points))
-    colors = np.asarray(pcd.colors, dtype=np.float64) if pcd.has_colors() else None
-    return points, colors
+    def __init__(self, path: Path, blob: bytes, drop_invalid: bool, colour_depth: int | None):
+        self.path, self.name, self.blob = path, path.name, blob
+        self.drop_invalid, self.colour_depth = drop_invalid, colour_depth
+
+    def fail(self, where: str, problem: str, fix: str = _FIX_EXPORT):
+        raise TergodicError(f"{self.name}{', ' + where if where else ''}: {problem}", fix)
+
+    # ------------------------------------------------------------------------------- PLY
+    def ply(self):
+        if not self.blob.startswith(b"ply"):
+            self.fail("", "not a valid PLY (no 'ply' header)", "re-export it as PLY")
+        end = self.blob.find(b"end_header")
+        if end < 0:
+            self.fail("", "no PLY end_header line (corrupt or not a PLY?)", "re-export it as PLY")
+        nl = self.blob.find(b"\n", end)
+        body_start = len(self.blob) if nl < 0 else nl + 1
+        header = self.blob[:end].decode("ascii", "replace").splitlines()
+        n_header_lines = len(header) + 1
+        fmt, elements = None, []  # [name, count, [(type, name) | ("list", ct, it, name)], header line]
+        for lineno, line in enumerate(header, 1):
+            parts = line.split()
+            if not parts or parts[0] in ("ply", "comment", "obj_info"):
+                continue
+            if parts[0] == "format" and len(parts) >= 2:
+                fmt = parts[1]
+            elif parts[0] == "element" and len(parts) == 3:
+                count = _int(parts[2])
+                if count is None or count < 0:
+                    self.fail(f"header line {lineno}", f"bad element count '{parts[2]}'")
+                elements.append([parts[1], count, [], lineno])
+            elif parts[0] == "property" and elements and len(parts) == 3 and parts[1] in _PLY_TYPES:
+                elements[-1][2].append((parts[1], parts[2]))
+            elif parts[0] == "property" and elements and len(parts) == 5 and parts[1] == "list" \
+                    and parts[2] in _PLY_TYPES and parts[3] in _PLY_TYPES:
+                elements[-1][2].append(("list", parts[2], parts[3], parts[4]))
+            else:
+                self.fail(f"header line {lineno}", f"cannot parse '{_printable(line.strip()[:60])}'")
+        if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+            self.fail("header", f"unknown PLY format '{fmt}'", "re-export it as ascii or binary PLY")
+        names = [e[0] for e in elements]
+        if "vertex" not in names:
+            self.fail("header", "no 'element vertex'", "re-export the cloud; PLY needs x, y, z vertex properties")
+        vi = names.index("vertex")
+        _, n, props, vline = elements[vi]
+        pnames = [p[-1] for p in props]
+        for axis in ("x", "y", "z"):
+            if axis not in pnames:
+                self.fail("header", f"the vertex element has no '{axis}' property",
+                          "re-export the cloud; PLY needs x, y, z vertex properties")
+        if any(p[0] == "list" for p in props):
+            self.fail(f"header line {vline}", "list properties on vertices are not supported", "re-export xyz and colours only")
+        if fmt == "ascii":
+            table, where = self._ply_ascii(elements, vi, body_start, n_header_lines)
+        else:
+            table, where = self._ply_binary(elements, vi, body_start, "<" if fmt.endswith("little_endian") else ">")
+        return self._columns(table, pnames, [p[0] for p in props], where)
+
+    def _ply_ascii(self, elements, vi, body_start, n_header_lines):
+        lines = self.blob[body_start:].decode("ascii", "replace").split("\n")
+        first = n_header_lines + 1  # file line number of the body's first line
+        skip = sum(count for _, count, _, _ in elements[:vi])  # one line per row of earlier elements
+        n, props = elements[vi][1], elements[vi][2]
+        rows = lines[skip:skip + n]
+        short = next((i for i, ln in enumerate(rows) if not ln.strip()), len(rows))
+        if short < n:
+            got = sum(1 for ln in lines[skip:] if ln.strip())
+            self.fail(f"line {first + skip + short}", f"the header declares {n} vertices but the body holds {got} (truncated?)")
+        extra = sum(1 for ln in lines[skip + n:] if ln.strip())
+        if extra and len(elements) == vi + 1:
+            self.fail(f"line {first + skip + n}", f"the header declares {n} vertices but the body holds {n + extra} rows",
+                      "fix the 'element vertex' count in the header or re-export the cloud")
+        table = self._parse_rows(rows, len(props), lambda i: first + skip + i)
+        return table, lambda i, j: f"line {first + skip + i}" + (f" ('{props[j][1]}')" if j is not None else "")
+
+    def _ply_binary(self, elements, vi, body_start, endian):
+        def row_dtype(props):
+            return np.dtype([(f"f{j}", endian + _PLY_TYPES[p[0]]) for j, p in enumerate(props)])
+
+        offset = body_start
+        for name, count, props, line in elements[:vi]:
+            if any(p[0] == "list" for p in props):
+                self.fail(f"header line {line}", f"element '{name}' with list properties comes before the vertices",
+                          "re-export with the vertices first")
+            offset += count * row_dtype(props).itemsize
+        dtype = row_dtype(elements[vi][2])
+        n = elements[vi][1]
+        need = n * dtype.itemsize
+        have = len(self.blob) - offset
+        if have < need:
+            self.fail("body", f"truncated: {len(self.blob)} of {offset + need} bytes; the header declares {n} vertices "
+                      f"but only {max(have, 0) // dtype.itemsize} are complete")
+        after = elements[vi + 1:]
+        if not any(p[0] == "list" for e in after for p in e[2]):  # fixed-size rest: its length is known
+            rest = sum(count * row_dtype(props).itemsize for _, count, props, _ in after)
+            if have > need + rest:
+                extra = have - need - rest
+                self.fail("body", f"{extra} bytes after the {n} vertices the header declares "
+                          f"(room for {extra // dtype.itemsize} more: a wrong 'element vertex' count?)",
+                          "fix the 'element vertex' count in the header or re-export the cloud")
+            if have < need + rest:
+                self.fail("body", f"truncated: {len(self.blob)} of {offset + need + rest} bytes")
+        rec = np.frombuffer(self.blob, dtype=dtype, count=n, offset=offset)
+        table = np.empty((n, len(dtype.names)))
+        for j, name in enumerate(dtype.names):
+            table[:, j] = rec[name]
+        props = elements[vi][2]
+        return table, lambda i, j: f"vertex {i}" + (f" ('{props[j][1]}')" if j is not None else "")
+
+    # ------------------------------------------------------------------------------- PCD
+    def pcd(self):
+        fields = size = types = counts = None
+        width = height = points = data = None
+        pos, lineno = 0, 0
+        while data is None:
+            nl = self.blob.find(b"\n", pos)
+            if nl < 0:
+                self.fail("header", "no DATA line (not a PCD, or truncated?)", "re-export it as PCD")
+            line = self.blob[pos:nl].decode("ascii", "replace").strip()
+            pos, lineno = nl + 1, lineno + 1
+            if not line or line.startswith("#"):
+                continue
+            key, *vals = line.split()
+            key = key.upper()
+            if key == "FIELDS":
+                fields = vals
+            elif key == "SIZE":
+                size = [_int(v) for v in vals]
+            elif key == "TYPE":
+                types = [v.upper() for v in vals]
+            elif key == "COUNT":
+                counts = [_int(v) for v in vals]
+            elif key in ("WIDTH", "HEIGHT", "POINTS"):
+                value = _int(vals[0]) if len(vals) == 1 else None
+                if value is None or value < 0:
+                    self.fail(f"line {lineno}", f"bad {key} '{' '.join(vals)}'", "re-export it as PCD")
+                width, height, points = (value, height, points) if key == "WIDTH" else \
+                    (width, value, points) if key == "HEIGHT" else (width, height, value)
+            elif key == "DATA":
+                data = vals[0].lower() if vals else ""
+            elif key not in ("VERSION", "VIEWPOINT"):
+                self.fail(f"line {lineno}", f"cannot parse the PCD header line '{_printable(line[:60])}'", "re-export it as PCD")
+        if not fields:
+            self.fail("header", "no FIELDS line", "re-export it as PCD")
+        k = len(fields)
+        counts = counts or [1] * k
+        if size is None or types is None or len(size) != k or len(types) != k or len(counts) != k \
+                or None in size or None in counts:
+            self.fail("header", f"FIELDS, SIZE, TYPE and COUNT disagree ({k} fields)", "re-export it as PCD")
+        if points is None:
+            points = (width or 0) * (height or 1)
+        if width is not None and width * (height or 1) != points:
+            self.fail("header", f"WIDTH x HEIGHT = {width * (height or 1)} but POINTS = {points}",
+                      "fix the header or re-export the cloud")
+        for axis in ("x", "y", "z"):
+            if axis not in fields:
+                self.fail("header", f"no '{axis}' field", "re-export the cloud with x, y, z fields")
+        names, kinds = [], []  # one column per scalar
+        for f, s, t, c in zip(fields, size, types, counts):
+            if (t, s) not in _PCD_AS_PLY:
+                self.fail("header", f"field '{f}' has an unsupported TYPE {t} / SIZE {s}", "re-export it as PCD")
+            for ci in range(c):
+                names.append(f if c == 1 else f"{f}[{ci}]")
+                kinds.append((t, s))
+        packed = next((f for f in ("rgb", "rgba") if f in names), None)
+        if packed is not None and kinds[names.index(packed)][1] != 4:
+            self.fail("header", f"field '{packed}' has SIZE {kinds[names.index(packed)][1]}, expected 4 (packed 8-bit colour)",
+                      "re-export it as PCD")
+        bits = None  # packed colours: 0x00RRGGBB in a float's or uint32's bits (PCL's layout)
+        if data == "ascii":
+            lines = self.blob[pos:].decode("ascii", "replace").split("\n")
+            first = lineno + 1
+            rows = lines[:points]
+            short = next((i for i, ln in enumerate(rows) if not ln.strip()), len(rows))
+            got = sum(1 for ln in lines if ln.strip())
+            if short < points or got > points:
+                self.fail(f"line {first + min(short, points)}", f"the header declares POINTS {points} but the body holds {got} rows",
+                          "fix POINTS (and WIDTH) in the header or re-export the cloud")
+            table = self._parse_rows(rows, len(names), lambda i: first + i)
+            if packed is not None:
+                col = table[:, names.index(packed)]
+                ok = np.isfinite(col)
+                col = np.where(ok, col, 0)
+                bits = col.astype(np.float32).view(np.uint32) if kinds[names.index(packed)][0] == "F" else col.astype(np.uint32)
+            where = lambda i, j: f"line {first + i}" + (f" ('{names[j]}')" if j is not None else "")
+        elif data in ("binary", "binary_compressed"):
+            dtype = np.dtype([(f"f{j}", f"<{t.lower()}{s}") for j, (t, s) in enumerate(kinds)])
+            if data == "binary":
+                need = points * dtype.itemsize
+                have = len(self.blob) - pos
+                if have < need:
+                    self.fail("body", f"truncated: {len(self.blob)} of {pos + need} bytes; POINTS {points} declared "
+                              f"but only {max(have, 0) // dtype.itemsize} are complete")
+                if have > need:
+                    self.fail("body", f"{have - need} bytes after the {points} points the header declares "
+                              f"(room for {(have - need) // dtype.itemsize} more: a wrong POINTS count?)",
+                              "fix POINTS (and WIDTH) in the header or re-export the cloud")
+                rec = np.frombuffer(self.blob, dtype=dtype, count=points, offset=pos)
+            else:
+                rec = self._pcd_compressed(pos, dtype, points)
+            table = np.empty((points, len(kinds)))
+            for j in range(len(kinds)):
+                table[:, j] = rec[f"f{j}"]
+            if packed is not None:
+                bits = rec[f"f{names.index(packed)}"].view(np.uint32)
+            where = lambda i, j: f"point {i}" + (f" ('{names[j]}')" if j is not None else "")
+        else:
+            self.fail("header", f"unknown PCD DATA '{data}'", "re-export it as ascii or binary PCD")
+        if bits is not None:
+            ix = [names.index(a) for a in ("x", "y", "z")]
+            pts = self._finite(table[:, ix], lambda i, j: where(i, ix[j] if j is not None else None))
+            rgb = np.column_stack([(bits >> 16) & 255, (bits >> 8) & 255, bits & 255]).astype(np.float64)
+            return np.ascontiguousarray(pts), rgb / 255.0
+        return self._columns(table, names, [_PCD_AS_PLY[k_] for k_ in kinds], where)
+
+    def _pcd_compressed(self, pos, dtype, points):
+        """PCL's binary_compressed: two uint32 sizes, then LZF of the fields stored one after another."""
+        if len(self.blob) - pos < 8:
+            self.fail("body", "truncated before the compressed block's sizes")
+        csize, usize = (int(v) for v in np.frombuffer(self.blob, "<u4", 2, pos))
+        if len(self.blob) - pos - 8 < csize:
+            self.fail("body", f"truncated: the compressed block needs {csize} bytes, {len(self.blob) - pos - 8} are left")
+        if usize != points * dtype.itemsize:
+            self.fail("body", f"the compressed block holds {usize} bytes but POINTS {points} needs {points * dtype.itemsize}",
+                      "fix POINTS (and WIDTH) in the header or re-export the cloud")
+        raw = _lzf_decompress(self.blob[pos + 8:pos + 8 + csize], usize)
+        if raw is None:
+            self.fail("body", "the compressed block is corrupt")
+        rec = np.empty(points, dtype=dtype)
+        off = 0
+        for name in dtype.names:
+            fdt = dtype.fields[name][0]
+            rec[name] = np.frombuffer(raw, fdt, points, off)
+            off += points * fdt.itemsize
+        return rec
+
+    # ------------------------------------------------------------------------------ text
+    def text(self):
+        lines = self.blob.decode("utf-8-sig", "replace").split("\n")  # -sig: a BOM is not part of x
+        data_lines, lineno = [], []
+        for i, ln in enumerate(lines, 1):
+            s = ln.split("#", 1)[0].split("//", 1)[0].strip()
+            if s:
+                data_lines.append(s)
+                lineno.append(i)
+        if not data_lines:
+            self.fail("", "holds no points", "one point per line: x y z [r g b]")
+        k = len(data_lines[0].replace(",", " ").split())
+        if k not in (3, 6):
+            self.fail(f"line {lineno[0]}", f"{k} columns", "use 3 (x y z) or 6 (x y z r g b) columns per line")
+        table = self._parse_rows(data_lines, k, lambda i: lineno[i], "use 3 (x y z) or 6 (x y z r g b) columns on every line")
+        return self._columns(table, ["x", "y", "z", "r", "g", "b"][:k], [None] * k,
+                             lambda i, j: f"line {lineno[i]}" + (f" (column {j + 1})" if j is not None else ""))
+
+    # ------------------------------------------------------------------------------- NPZ
+    def npz(self):
+        import io
+        import zipfile
+
+        try:
+            with np.load(io.BytesIO(self.blob), allow_pickle=False) as data:
+                if "points" not in data.files:
+                    self.fail("", "no 'points' array", "save the cloud with np.savez(points=..., colors=...)")
+                points = data["points"]
+                colors = data["colors"] if "colors" in data.files else None
+        except TergodicError:
+            raise
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile, KeyError):  # corrupt zip, object arrays
+            self.fail("", "not a readable NPZ (corrupt, or holding pickled objects)", "re-save it with np.savez (numbers only)")
+        for field, arr in (("points", points), ("colors", colors)):
+            if arr is not None and arr.dtype.kind not in "biuf":
+                self.fail(f"field '{field}'", f"dtype {arr.dtype} is not numeric", "store numbers (float or int)")
+        if points.ndim != 2 or points.shape[1] != 3:
+            self.fail("field 'points'", f"shape {points.shape}, expected (n, 3)", "store points as an (n, 3) array")
+        if colors is not None and (colors.ndim != 2 or colors.shape[1] != 3 or len(colors) != len(points)):
+            self.fail("field 'colors'", f"shape {colors.shape} for {len(points)} points, expected ({len(points)}, 3)",
+                      "give one RGB triple per point")
+        table = points.astype(np.float64)
+        names, types = ["x", "y", "z"], [None] * 3
+        if colors is not None:
+            table = np.column_stack([table, colors.astype(np.float64)])
+            names += ["r", "g", "b"]
+            types += ["uchar" if colors.dtype == np.uint8 else None] * 3  # uint16 may hold 8-bit values: ambiguous
+        return self._columns(table, names, types,
+                             lambda i, j: f"row {i}" + (f" of '{'points' if j < 3 else 'colors'}'" if j is not None else ""))
+
+    # ---------------------------------------------------------------------------- common
+    def _parse_rows(self, rows, k, line_of, fix="every row needs the columns the header declares"):
+        """Rows of text into an (n, k) float table; a row with another column count fails naming its line."""
+        import io
+
+        try:  # fast path in C; on any doubt, the row-by-row scan below finds and names the bad line
+            table = np.loadtxt(io.StringIO("\n".join(rows)), dtype=np.float64, ndmin=2, comments=None)
+            if table.shape == (len(rows), k):
+                return table
+        except ValueError:
+            pass
+        split = [r.replace(",", " ").split() for r in rows]
+        for i, toks in enumerate(split):
+            if len(toks) != k:
+                self.fail(f"line {line_of(i)}", f"{len(toks)} values where {k} were expected", fix)
+        try:
+            return np.array([t for toks in split for t in toks], dtype=np.float64).reshape(len(rows), k)
+        except ValueError:
+            for i, toks in enumerate(split):
+                for j, tok in enumerate(toks):
+                    try:
+                        float(tok)
+                    except ValueError:
+                        self.fail(f"line {line_of(i)}", f"'{_printable(tok[:20])}' in column {j + 1} is not a number", _FIX_EXPORT)
+            raise
+
+    def _finite(self, table, where):
+        bad = ~np.isfinite(table)
+        if bad.any() and not self.drop_invalid:
+            huge = ~bad & (np.abs(np.where(bad, 0, table)) > _ABSURD)
+            if huge.any():  # NaNs among absurd magnitudes: a garbage body (wrong layout or byte order), not stray rows
+                i, j = (int(v) for v in np.argwhere(huge)[0])
+                self.fail(where(i, j), f"value {table[i, j]:.3g} beside {int(bad.sum())} NaN/inf values: the body looks corrupt",
+                          "re-export the cloud (check its declared types and byte order)")
+            rows = np.flatnonzero(bad.any(axis=1))
+            i = int(rows[0])
+            j = int(np.flatnonzero(bad[i])[0])
+            self.fail(where(i, j), f"non-finite value {table[i, j]} ({len(rows)} {'point' if len(rows) == 1 else 'points'} with NaN or inf in all)", _FIX_INVALID)
+        return table
+
+    def _columns(self, table, names, types, where):
+        """Pick x, y, z and the colour channels; check their finiteness and the colour depth.
+        Other columns (normals, curvature, intensity) are not used, so their NaNs do not matter."""
+        ix = [names.index(a) for a in ("x", "y", "z")]
+        ic = next(([names.index(c) for c in trio] for trio in
+                   (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue"))
+                   if all(c in names for c in trio)), [])
+        used = ix + ic
+        self._finite(table[:, used], lambda i, j: where(i, used[j] if j is not None else None))
+        points = np.ascontiguousarray(table[:, ix])
+        if not ic:
+            return points, None
+        return points, self._colour(table[:, ic], [types[j] for j in ic], ic, where)
+
+    def _colour(self, rgb, types, ic, where):
+        """Colours in [0, 1]: by the declared type when it says, else by --colour-depth or the values."""
+        finite = np.isfinite(rgb)
+        vals = rgb[finite]
+        if vals.size and vals.min() < 0:
+            i, j = np.argwhere(finite & (rgb < 0))[0]
+            self.fail(where(int(i), ic[j]), f"negative colour value {rgb[i, j]:g}", "colours are 0..255, 0..65535 or 0..1")
+        declared = {"uchar": 8, "uint8": 8, "ushort": 16, "uint16": 16, "float": 0, "float32": 0, "double": 0, "float64": 0}
+        # The file's type says it when it can (ushort is 16-bit, float is 0..1); else --colour-depth; else the values.
+        depth = declared.get(types[0], self.colour_depth)
+        hi = float(vals.max()) if vals.size else 0.0
+        if depth is None:  # text, NPZ or an unusual PLY type: decide by the values, refuse when ambiguous
+            if hi <= 1.0:
+                depth = 0
+            elif hi <= 255.0:
+                depth = 8
+            else:
+                i, j = np.argwhere(finite & (rgb > 255))[0]
+                self.fail(where(int(i), ic[j]), f"colour value {rgb[i, j]:g} is above 255: not 8-bit colour",
+                          "pass --colour-depth 16 if the colours are 16-bit (0..65535)")
+        limit = {0: 1.0, 8: 255.0, 16: 65535.0}[depth]
+        if hi > limit:
+            i, j = np.argwhere(finite & (rgb > limit))[0]
+            label = "0..1 (float type)" if depth == 0 else f"{depth}-bit"
+            fix = ("pass --colour-depth 16 if the colours are 16-bit (0..65535)" if depth in (0, 8) and hi <= 65535
+                   else "re-export the colours as 8-bit (0..255)")
+            self.fail(where(int(i), ic[j]), f"colour value {rgb[i, j]:g} is out of range for {label} colour", fix)
+        return rgb / limit
 
 
-_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
-              "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+#: No coordinate (metres or millimetres) or colour channel comes near this: such values are garbage.
+_ABSURD = 1e9
+
+_PLY_TYPES = {"char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1", "short": "i2", "ushort": "u2",
+              "int16": "i2", "uint16": "u2", "int": "i4", "uint": "u4", "int32": "i4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+_PCD_AS_PLY = {("U", 1): "uchar", ("U", 2): "ushort", ("F", 4): "float", ("F", 8): "double",
+               ("I", 1): "char", ("I", 2): "short", ("I", 4): "int", ("U", 4): "uint", ("I", 8): "int64", ("U", 8): "uint64"}
 
 
-def _check_truncated_ply(path: Path, head: bytes, n_read: int) -> None:
-    """open3d reads a truncated PLY without failing; compare the header's promise with the file."""
-    if path.suffix.lower() != ".ply":
-        return
-    with open(path, "rb") as fh:
-        blob = fh.read(8192)
-    end = blob.find(b"end_header")
-    if end < 0:
-        raise TergodicError(f"{path.name} has no PLY end_header line (corrupt?)", "re-export it as PLY")
-    header_len = blob.index(b"\n", end) + 1
-    lines = blob[:end].decode("ascii", "replace").splitlines()
-    fmt, elements = "", []  # [(count, row_bytes or None when rows vary)]
-    for line in lines:
-        parts = line.split()
-        if parts[:1] == ["format"] and len(parts) > 1:
-            fmt = parts[1]
-        elif parts[:1] == ["element"] and len(parts) == 3:
-            elements.append([int(parts[2]), 0])
-        elif parts[:1] == ["property"] and elements:
-            size = _PLY_SIZES.get(parts[1]) if parts[1] != "list" else None
-            elements[-1][1] = None if size is None or elements[-1][1] is None else elements[-1][1] + size
-    declared = elements[0][0] if elements else n_read
-    if fmt.startswith("binary") and all(row is not None for _, row in elements):
-        expected = header_len + sum(count * row for count, row in elements)
-        actual = path.stat().st_size
-        if actual < expected:
-            raise TergodicError(f"{path.name} is truncated: {actual} of {expected} bytes", "re-export the cloud")
-    elif declared != n_read:
-        raise TergodicError(f"{path.name} declares {declared} vertices but {n_read} could be read (truncated?)",
-                            "re-export the cloud")
+def _printable(text: str) -> str:
+    """Quoted file content for a one-line message: control characters become '?'."""
+    return "".join(ch if ch.isprintable() else "?" for ch in text)
 
 
-def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+def _int(text: str) -> int | None:
+    return int(text) if re.fullmatch(r"[+-]?\d+", text or "") else None
+
+
+def _lzf_decompress(data: bytes, size: int) -> bytes | None:
+    """LZF (liblzf) decompression in pure Python; None when the stream is corrupt."""
+    out = bytearray()
+    i, n = 0, len(data)
     try:
-        with np.load(path, allow_pickle=False) as data:
-            if "points" not in data.files:
-                raise TergodicError(f"{path.name} has no 'points' array", "save the cloud with np.savez(points=..., colors=...)")
-            points = np.asarray(data["points"], dtype=np.float64)
-            colors = np.asarray(data["colors"], dtype=np.float64) if "colors" in data.files else None
-    except TergodicError:
-        raise
-    except Exception as exc:  # zipfile/ValueError: corrupt archive or object arrays
-        raise TergodicError(f"{path.name} is not a readable NPZ ({type(exc).__name__})", "re-save it with np.savez") from None
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise TergodicError(f"'points' in {path.name} has shape {points.shape}, expected (n, 3)", "store points as an (n, 3) array")
-    return points, _normalise_colors(colors, len(points), path.name)
-
-
-def _read_text(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    try:
-        table = np.loadtxt(path, dtype=np.float64, ndmin=2, comments=("#", "//"))
-    except ValueError as exc:
-        raise TergodicError(f"{path.name} is not a numeric XYZ/XYZRGB table ({exc})", "one point per line: x y z [r g b]") from None
-    if table.size == 0:
-        raise TergodicError(f"{path.name} holds no points", "one point per line: x y z [r g b]")
-    if table.shape[1] not in (3, 6):
-        raise TergodicError(f"{path.name} has {table.shape[1]} columns", "use 3 (x y z) or 6 (x y z r g b) columns")
-    colors = table[:, 3:6] if table.shape[1] == 6 else None
-    return table[:, :3].copy(), _normalise_colors(colors, len(table), path.name)
-
-
-def _normalise_colors(colors: np.ndarray | None, n: int, name: str) -> np.ndarray | None:
-    if colors is None:
+        while i < n:
+            ctrl = data[i]
+            i += 1
+            if ctrl < 32:
+                out += data[i:i + ctrl + 1]
+                i += ctrl + 1
+            else:
+                length = ctrl >> 5
+                if length == 7:
+                    length += data[i]
+                    i += 1
+                ref = len(out) - ((ctrl & 0x1F) << 8) - data[i] - 1
+                i += 1
+                if ref < 0:
+                    return None
+                for _ in range(length + 2):
+                    out.append(out[ref])
+                    ref += 1
+    except IndexError:
         return None
-    if colors.shape != (n, 3):
-        raise TergodicError(f"colours in {name} have shape {colors.shape}, expected ({n}, 3)", "give one RGB triple per point")
-    if not np.all(np.isfinite(colors)):
-        raise TergodicError(f"colours in {name} contain NaN or inf", "fix the colour channels")
-    # 0..255 integers are common in text and NPZ files.
-    return colors / 255.0 if colors.max(initial=0.0) > 1.0 else colors
+    return bytes(out) if len(out) == size else None
 
 
 def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None) -> None:

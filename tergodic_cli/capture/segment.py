@@ -57,10 +57,16 @@ def parse_target(spec: str) -> HsvRange | None:
         try:
             hue, s_min, v_min = spec[4:].split(",")
             lo, hi = (float(x) for x in hue.split("-"))
-            rng = HsvRange(lo % 360.0, hi % 360.0, s_min=float(s_min), v_min=float(v_min))
+            s_lo, v_lo = float(s_min), float(v_min)
         except ValueError:
             raise TergodicError(f"bad HSV target '{spec}'", "write it as hsv:H1-H2,SMIN,VMIN, e.g. hsv:340-20,0.5,0.3") from None
-        return rng
+        # Checked here: a hue of 400 would wrap silently and end as "no points match".
+        if not (0.0 <= lo <= 360.0 and 0.0 <= hi <= 360.0):
+            raise TergodicError(f"hue {lo if not 0.0 <= lo <= 360.0 else hi:g} in --target '{spec}' is outside 0..360 degrees",
+                                "e.g. hsv:340-20,0.5,0.3 (hues wrap through 0 when H1 > H2)")
+        if not (0.0 <= s_lo <= 1.0 and 0.0 <= v_lo <= 1.0):
+            raise TergodicError(f"SMIN and VMIN in --target '{spec}' must be within 0..1", "e.g. hsv:340-20,0.5,0.3")
+        return HsvRange(lo % 360.0, hi % 360.0, s_min=s_lo, v_min=v_lo)
     raise TergodicError(
         f"unknown target colour '{spec}'",
         f"use one of {', '.join(sorted(NAMED))}, 'all', or hsv:H1-H2,SMIN,VMIN",
