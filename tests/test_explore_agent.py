@@ -131,7 +131,7 @@ def test_incremental_metrics_equal_their_definitions(bowl, norm):
     np.testing.assert_allclose(ex.source, M.source_term(target, ex.coverage, basis.mass, norm=norm), rtol=1e-12,
                                atol=0)
     other = M.source_term(target, ex.coverage, basis.mass, norm="cloud" if norm == "target" else "target")
-    assert np.abs(other - ex.source).max() > 0.1 * ex.source.max()  # the two normalisations do differ here
+    assert np.abs(other - ex.source).max() > 0.05 * ex.source.max()  # the two normalisations do differ here
 
 
 def test_footprint_is_the_gaussian_of_tangent_distance_within_the_radius(sphere):

@@ -26,7 +26,7 @@ class ExploreConfig:
     Attributes
     ----------
     steps : number of explorer steps (one step = ``dt`` seconds).
-    alpha : diffusion scalar α of δt = α h² (eq. 21): a number ("10"), or a schedule
+    alpha : diffusion scalar α of δt = α h₀² (eq. 21, h₀ = 2.5 mm fixed): a number ("10"), or a schedule
         "A0:A1@S1[:A2@S2...]": α = A0 for the first S1 steps, then A1, then A2 from step S2 on
         (e.g. "50:10@200", high first for reach, low later for local detail; paper VI-E).
     nk : eigenpairs used by the spectral diffusion (the basis is truncated to this).
@@ -41,12 +41,8 @@ class ExploreConfig:
         source, so agents do not get stuck in a region they have cleared), "spectral" (eq. 19,
         Φ e^{-λδt} Φᵀ M) or "implicit" ((M + δt L)⁻¹ M, sparse, factorised once per α: the
         exact baseline).
-    coverage_norm : what the source's coverage is normalised over, c̄ = c̃ / ∫c̃: "target" (the
-        default: ∫ over the target's support {p > 0}, so coverage beside the target does not count
-        towards matching it and the residual on a covered marking can vanish; measured in
-        docs/explore.md) or "cloud" (∫ over the whole cloud, eq. 2 as printed: with a footprint
-        wider than the marking the residual keeps a floor there). The metric ε (eq. 48) always
-        uses the cloud's normalisation.
+    coverage_norm : what the source's coverage is normalised over, c̄ = c̃ / ∫c̃: "cloud" (the
+        whole cloud, eq. 2 as printed; the default) or "target" (the target's support {p > 0}).
     seed : seed of everything random in the run (random starts).
     resync_every : K: the incrementally kept spectral source (docs/speed.md) is recomputed in
         full every K steps to bound round-off; 1 recomputes every step (the O(n_target nK)
@@ -58,6 +54,9 @@ class ExploreConfig:
     max_start_distance : a start farther than this (metres) from the cloud is refused; one
         farther than the spacing h is projected onto the surface with a warning.
     normal_hint : initial orientation of the surface normals (they then stay continuous).
+    heat_weight, gain_weight : weights of the heat's gradient and of the footprint gain's in the
+        agent's drive (docs/explore.md, "How the agent is driven": measured on the reference clouds).
+    gain_width : the gain's kernel width as a multiple of the footprint's (1/ε).
     """
 
     steps: int = 1000
@@ -143,5 +142,12 @@ def validate_config(cfg: ExploreConfig) -> None:
         require(math.isfinite(cfg.epsilon) and cfg.epsilon > 0, f"--epsilon must be > 0 (1/m), got {cfg.epsilon}",
                 "omit it for the default 1/agent-radius")
     require(cfg.max_start_distance > 0, "max_start_distance must be > 0 metres", "e.g. 0.02")
+    for name in ("heat_weight", "gain_weight"):
+        w = getattr(cfg, name)
+        require(math.isfinite(w) and w >= 0, f"{name} must be >= 0, got {w}", "e.g. heat_weight 0.01, gain_weight 1")
+    require(cfg.heat_weight > 0 or cfg.gain_weight > 0, "heat_weight and gain_weight are both 0: nothing drives the agent",
+            "give one of them a positive weight")
+    require(math.isfinite(cfg.gain_width) and cfg.gain_width > 0, f"gain_width must be > 0, got {cfg.gain_width}",
+            "e.g. 1.5 (the footprint's width times 1.5)")
     require(len(cfg.normal_hint) == 3 and any(abs(float(x)) > 0 for x in cfg.normal_hint),
             "normal_hint must be a non-zero 3-vector", "e.g. (0, 0, 1)")

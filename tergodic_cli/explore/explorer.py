@@ -6,20 +6,20 @@ One :meth:`Explorer.step`:
    agent, r measured in the agent's tangent plane (eq. 31), into the raw coverage c̃ shared
    by all agents (eq. 3) - or, in robot mode, at the given contact points;
 2. source s = max(p̄ - c̄, 0)² (eq. 1) with p̄ normalised to unit mass with M and c̄ = c̃ / ∫c̃,
-   ∫ over the target's support (``coverage_norm`` "target", the default: coverage beside the
-   marking does not count towards it) or over the cloud (eq. 2); it is injected as s / ∫s, so
-   every step adds unit mass whatever the residual. ε (eq. 48) always uses the cloud's ∫;
-3. diffuse with δt = α h² (eq. 21): ``carry`` u <- D u + s/∫s from u₀ = p̄ (eq. 5), or
+   ∫ over the cloud (eq. 2, the default) or the target's support (``coverage_norm`` "target");
+   it is injected as s / ∫s, so every step adds unit mass whatever the residual;
+3. diffuse with δt = α h₀² (eq. 21, h₀ fixed: :data:`diffusion.H0`): ``carry`` u <- D u + s/∫s from u₀ = p̄ (eq. 5), or
    ``source`` u = D s/∫s, where D is, by ``integrator``: ``resolvent`` Φ (1 + λδt)⁻¹ Φᵀ M
    (eq. 4, the stationary HEDAC equation, in the eigenbasis), ``spectral`` Φ e^{-λδt} Φᵀ M
    (eq. 19) or ``implicit`` (M + δt L)⁻¹ M (sparse, exact);
-4. for each agent: ∇u at its projected position from a weighted cubic fit (eqs. 32-33; a plane
-   when the agent is off the sampled surface), acceleration a = a_max ∇u/|∇u| (eq. 6
-   saturated: u has no physical scale), semi-implicit Euler v <- clip(v + a δt, v_max),
-   x <- x + v δt; then x is projected onto the CGA plane/sphere fitted to its n_N nearest
-   points (eqs. 23-27) and v is turned into the new tangent plane keeping its speed. An agent
-   that slid off the object (farther from its nearest point than r_a or that point's longest
-   Laplacian edge) is put back at that distance and its velocity reflected.
+4. for each agent: the drive g = heat_weight ∇u + gain_weight ∇G, ∇u at its projected position
+   from a weighted cubic fit (eqs. 32-33), ∇G the exact gradient of the footprint gain (the
+   residual a deposit would remove, :func:`kernels.gain_gradient`); acceleration a = a_max g/|g|
+   (eq. 6 saturated), semi-implicit Euler v <- clip(v + a δt, v_max); the move is projected onto
+   the CGA plane/sphere fitted to its n_N nearest points (eqs. 23-27), kept within v_max δt, and
+   refused when it leaves the data (more than 1.5 h from every neighbour): the agent then slides
+   along the boundary (:func:`kernels.move_agent`). The neutral score
+   (:class:`metrics.CoverageScore`) is updated after the step, outside its time.
 
 Cost: with the spectral integrators a step does work proportional to the points under the
 footprint and to nK, not to the number of cloud points: the spectral coefficients of the
