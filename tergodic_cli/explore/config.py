@@ -77,7 +77,7 @@ class ExploreConfig:
     basis_neighbors: int = 30
     max_start_distance: float = 0.02
     normal_hint: tuple[float, float, float] = field(default=(0.0, 0.0, 1.0))
-    heat_weight: float = 0.01
+    heat_weight: float = 0.02
     gain_weight: float = 1.0
     gain_width: float = 1.5
 
