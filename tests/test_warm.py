@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from tergodic_cli import warm
+from tergodic_cli.explore import warm as explore_warm
 
 numba = pytest.importorskip("numba")
 
@@ -51,10 +52,10 @@ def test_cached_follows_numbas_index(tmp_path):
 def test_cold_line_is_said_once_and_only_when_cold(monkeypatch):
     said: list[str] = []
     for cold in (True, False):
-        monkeypatch.setattr(warm, "explorer_kernels_cached", lambda cold=cold: not cold)
-        monkeypatch.setattr(warm, "_compiled_here", lambda: False)  # as at the start of a run
+        monkeypatch.setattr(explore_warm, "explorer_kernels_cached", lambda cold=cold: not cold)
+        monkeypatch.setattr(explore_warm, "_compiled_here", lambda: False)  # as at the start of a run
         said.clear()
-        warm.compile_explorer(said.append)
+        explore_warm.compile_explorer(said.append)
         assert said == ([warm.COLD_LINE] if cold else [])
     assert "first run only" in warm.COLD_LINE and "compiling the explorer's kernels" in warm.COLD_LINE
 

@@ -187,7 +187,8 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     basis, hit = find_basis(capture.points, cfg.nk, cfg.basis_neighbors, cache_dir, on_event=event)
     require(basis.points.shape == capture.points.shape and np.array_equal(basis.points, capture.points),
             "the basis does not match the capture's points", "recompute it: tergodic precompute CAPTURE --force")
-    from tergodic_cli.warm import compile_explorer, robot_kernels_line
+    from tergodic_cli.explore.warm import compile_explorer
+    from tergodic_cli.robot.warm import robot_kernels_line
 
     # numba compiles on first call: done here, so no compile lands in a timed step (step_ms)
     compile_explorer(say)

@@ -130,7 +130,7 @@ def run_batch(task: dict) -> list[dict]:
     """
     os.environ.setdefault("TERGODIC_NO_PROGRESS", "1")
     from tergodic_cli.explore import ExploreConfig, Explorer, summarize_run
-    from tergodic_cli.warm import compile_explorer
+    from tergodic_cli.explore.warm import compile_explorer
 
     compile_explorer()  # a worker's first step would otherwise load the kernels inside its timing
     out = []
@@ -271,7 +271,7 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
     failed: list[dict] = []
     computed = 0
     if batches:
-        from tergodic_cli.warm import compile_explorer
+        from tergodic_cli.explore.warm import compile_explorer
 
         compile_explorer(say)  # once here, so the workers load the cached code instead of each compiling it
         # the bar counts runs, as announced above, not batches
