@@ -281,11 +281,8 @@ class Explorer:
         self._pb[K.PB_TARGET, T] = 1
         self._pi[K.PI_TARGET, : len(T)] = T
         # The source's c̄ = c̃/Z: Z over the target (cfg.coverage_norm "target") or the cloud (eq. 2).
-        # When they differ, ε (eq. 48, the cloud's Z) is kept apart with its own active set, whose
-        # heap is the second half of the heap arrays.
-        separate = self.cfg.coverage_norm == "target" and len(T) < n
-        self._prm[K.PR_ZTARGET] = 1.0 if separate else 0.0
-        self._heap_keys = np.zeros(2 * len(T) if separate else len(T))
+        self._prm[K.PR_ZTARGET] = 1.0 if self.cfg.coverage_norm == "target" and len(T) < n else 0.0
+        self._heap_keys = np.zeros(len(T))
         self._heap_idx = np.zeros(len(self._heap_keys), dtype=np.int64)
         keep = self._is[[K.IS_EDGE, K.IS_FOOTPRINT, K.IS_ROWS, K.IS_POPS]]  # run diagnostics survive a new target
         drift = self._fs[K.FS_DRIFT]

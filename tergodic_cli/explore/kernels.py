@@ -92,15 +92,13 @@ PF_W0, PF_W1, PF_W2 = 6, 7, 8  # scratch: weights of the rows a source update ad
 N_PF = 9
 # Rows of the per-point int8 array ``pb`` (n columns).
 PB_TARGET, PB_ACTIVE, PB_INHEAP, PB_MARK = 0, 1, 2, 3
-# ... the active set of ε (eq. 48) and its heap flag, when its Z (the cloud's) is not the source's.
-PB_EACTIVE, PB_EINHEAP = 4, 5
-# ... in the source's pending list (a point the footprint deactivated and still covers), in ε's.
-PB_PEND, PB_EPEND = 6, 7
-N_PB = 8
+# ... in the source's pending list (a point the footprint deactivated and still covers).
+PB_PEND = 4
+N_PB = 5
 # Rows of the per-point index array ``pi`` (n columns): changed list, ball buffer, target list,
-# the source's and ε's pending lists.
-PI_CHG, PI_BALL, PI_TARGET, PI_PEND, PI_EPEND = 0, 1, 2, 3, 4
-N_PI = 5
+# the source's pending list.
+PI_CHG, PI_BALL, PI_TARGET, PI_PEND = 0, 1, 2, 3
+N_PI = 4
 # Rows of the spectral array ``sp`` (nK columns).
 SP_DECAY, SP_A, SP_B, SP_F0, SP_F1, SP_F2, SP_EXPDECAY, SP_PBARCOEF = 0, 1, 2, 3, 4, 5, 6, 7
 N_SP = 8
@@ -109,19 +107,16 @@ AG_POS, AG_VEL, AG_ACC, AG_NRM, AG_T1, AG_T2 = 0, 3, 6, 9, 12, 15
 N_AG = 18
 # Float state ``fs``.
 FS_Z, FS_MASS_S, FS_G0, FS_G1, FS_G2, FS_REF_UNTOUCHED, FS_DRIFT = 0, 1, 2, 3, 4, 5, 6
-# The cloud's Z = ∫_Ω c̃, and ε² (eq. 48) = E0 - 2 E1/Z_Ω + E2/Z_Ω² from sums like G's over its own
-# active set (kept only when the source's Z is the target's, PR_ZTARGET).
-FS_ZC, FS_E0, FS_E1, FS_E2, FS_ERG2 = 7, 8, 9, 10, 11
-N_FS = 12
+# The cloud's Z = ∫_Ω c̃ (the footprint gain's normaliser, whatever the source's is).
+FS_ZC = 7
+N_FS = 8
 # Int state ``is_``.
 IS_HEAP, IS_TOUCHED, IS_EDGE, IS_NCHG, IS_SINCE_RESYNC, IS_PHAT, IS_NTARGET, IS_RESYNCS = 0, 1, 2, 3, 4, 5, 6, 7
 # Work counters (benchmarks/step.py): footprint points visited, rows of Φ added into F.
 IS_FOOTPRINT, IS_ROWS, IS_POPS = 8, 9, 10
-# Size of ε's heap, kept in the second half of the heap arrays (the first half is the source's).
-IS_EHEAP = 11
-# Lengths of the source's and ε's pending lists (PI_PEND, PI_EPEND).
-IS_NPEND, IS_NEPEND = 12, 13
-N_IS = 14
+# Length of the source's pending list (PI_PEND).
+IS_NPEND = 11
+N_IS = 12
 # Float parameters ``prm``.
 PR_EPS2, PR_RA, PR_H2, PR_AMAX, PR_VMAX, PR_DT, PR_MAXSTART = 0, 1, 2, 3, 4, 5, 6
 #: An agent position must lie within this distance (metres) of a cloud point: SURFACE_REACH h.
@@ -130,8 +125,8 @@ PR_REACH = 8
 PR_HEAT, PR_GAIN = 9, 10
 #: ε² of the gain's kernel (1/m²).
 PR_GAIN_EPS2 = 11
-#: 1.0: the source's coverage is normalised over the target (Z = ∫_T c̃) and ε (eq. 48) is kept
-#: apart with the cloud's Z; 0.0: one Z = ∫_Ω c̃ for both (eq. 2, or a target covering the cloud).
+#: 1.0: the source's coverage is normalised over the target (Z = ∫_T c̃); 0.0: over the cloud
+#: (Z = ∫_Ω c̃, eq. 2; also when the target covers the cloud).
 PR_ZTARGET = 7
 N_PR = 12
 # Heat modes of :func:`step_kernel`: spectral carry-over, spectral current source, a full field.
@@ -761,8 +756,8 @@ def _is_active(c, pbar, Z):
 
 @njit
 def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
-    """Full recompute of Z, the active set, the heap and the accumulators F, G (O(|T| nK)),
-    and of ε's own sums when ``ztarget`` (PR_ZTARGET).
+    """Full recompute of Z (the target's when ``ztarget``, PR_ZTARGET), the cloud's Z, the active
+    set, the heap and the accumulators F, G (O(|T| nK)).
 
     Records in fs[FS_DRIFT] the largest relative change of ∫s and of Φᵀ M s that it made
     (the round-off the incremental updates had accumulated).
@@ -787,7 +782,6 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
         Z = 0.0
         for t in range(nt):
             Z += mass[targets[t]] * cov[targets[t]]
-        resync_ergodicity(pf, pb, pi, hk[nt:], hi[nt:], fs, is_)
     else:
         Z = Zc
     fs[FS_Z] = Z
@@ -837,117 +831,6 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
         if big > 0.0:
             drift = max(drift, dev / big)
         fs[FS_DRIFT] = max(fs[FS_DRIFT], drift)
-
-
-@njit
-def resync_ergodicity(pf, pb, pi, hk, hi, fs, is_):
-    """Full recompute of ε²'s (eq. 48) active set {p̄ > c̃/Z_Ω}, heap and sums E (O(|T|)), for a
-    source whose coverage is normalised over the target: ε keeps the cloud's Z (eq. 2)."""
-    mass, pbar, cov = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV]
-    active, inheap = pb[PB_EACTIVE], pb[PB_EINHEAP]
-    targets = pi[PI_TARGET]
-    Z = fs[FS_ZC]
-    pending = pb[PB_EPEND]
-    is_[IS_NEPEND] = 0
-    e0 = 0.0
-    e1 = 0.0
-    e2 = 0.0
-    size = 0
-    for t in range(is_[IS_NTARGET]):
-        j = targets[t]
-        c = cov[j]
-        p = pbar[j]
-        pending[j] = 0
-        if _is_active(c, p, Z):
-            active[j] = 1
-            inheap[j] = 0
-            m = mass[j]
-            e0 += m * p * p
-            e1 += m * p * c
-            e2 += m * c * c
-        else:
-            active[j] = 0
-            inheap[j] = 1
-            size = heap_push(hk, hi, size, max(c / p, Z), j)
-    is_[IS_EHEAP] = size
-    fs[FS_E0], fs[FS_E1], fs[FS_E2] = e0, e1, e2
-    inv = 1.0 / Z if Z > 0.0 else 0.0
-    fs[FS_ERG2] = e0 - 2.0 * inv * e1 + inv * inv * e2
-
-
-@njit
-def update_ergodicity(pf, pb, pi, hk, hi, fs, is_):
-    """ε²'s sums E after this step's deposits, as :func:`update_source` keeps G but over the
-    active set of the cloud's Z and without rows of Φ: O(changed points + crossings).
-    Must run before :func:`update_source`, which clears the changed list."""
-    mass, pbar, cov, oldc = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV], pf[PF_OLDC]
-    active, inheap, mark, pending = pb[PB_EACTIVE], pb[PB_EINHEAP], pb[PB_MARK], pb[PB_EPEND]
-    chg = pi[PI_CHG]
-    pend = pi[PI_EPEND]
-    Z = fs[FS_ZC]
-    e0, e1, e2 = fs[FS_E0], fs[FS_E1], fs[FS_E2]
-    size = is_[IS_EHEAP]
-    npend = 0
-    for t in range(is_[IS_NEPEND]):  # the pending list, as in update_source
-        j = pend[t]
-        if active[j] == 1:
-            pending[j] = 0
-        elif mark[j] == 1:
-            pend[npend] = j
-            npend += 1
-        else:
-            pending[j] = 0
-            c = cov[j]
-            p = pbar[j]
-            if _is_active(c, p, Z):
-                m = mass[j]
-                e0 += m * p * p
-                e1 += m * p * c
-                e2 += m * c * c
-                active[j] = 1
-            else:
-                size = heap_push(hk, hi, size, max(c / p, Z), j)
-                inheap[j] = 1
-    for t in range(is_[IS_NCHG]):
-        j = chg[t]
-        c0 = oldc[j]
-        c1 = cov[j]
-        p = pbar[j]
-        m = mass[j]
-        was = active[j] == 1
-        now = _is_active(c1, p, Z)
-        if was or now:
-            fw = 1.0 if was else 0.0
-            fn = 1.0 if now else 0.0
-            e0 += (fn - fw) * m * p * p
-            e1 += m * p * (fn * c1 - fw * c0)
-            e2 += m * (fn * c1 * c1 - fw * c0 * c0)
-        active[j] = 1 if now else 0
-        if not now and inheap[j] == 0 and pending[j] == 0:
-            pend[npend] = j
-            npend += 1
-            pending[j] = 1
-    is_[IS_NEPEND] = npend
-    while size > 0 and hk[0] < Z:
-        key, j, size = heap_pop(hk, hi, size)
-        inheap[j] = 0
-        if active[j] == 1:
-            continue
-        c = cov[j]
-        p = pbar[j]
-        if _is_active(c, p, Z):
-            m = mass[j]
-            e0 += m * p * p
-            e1 += m * p * c
-            e2 += m * c * c
-            active[j] = 1
-        else:
-            size = heap_push(hk, hi, size, max(c / p, Z), j)
-            inheap[j] = 1
-    is_[IS_EHEAP] = size
-    fs[FS_E0], fs[FS_E1], fs[FS_E2] = e0, e1, e2
-    inv = 1.0 / Z if Z > 0.0 else 0.0
-    fs[FS_ERG2] = e0 - 2.0 * inv * e1 + inv * inv * e2
 
 
 @njit
@@ -1485,9 +1368,6 @@ def step_kernel(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, sp, hk, hi, fs, is
                     continue  # a contact off the cloud covers no cloud point
                 locate(P, perm, nodes, boxes, tpts, q, ref, k, xp, nn, nb, d2)
                 deposit(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, xp, nn)
-        if prm[PR_ZTARGET] != 0.0:
-            nt = is_[IS_NTARGET]
-            update_ergodicity(pf, pb, pi, hk[nt:], hi[nt:], fs, is_)
         update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_)
         is_[IS_SINCE_RESYNC] += 1
         if resync_every > 0 and is_[IS_SINCE_RESYNC] >= resync_every:

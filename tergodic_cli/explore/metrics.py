@@ -40,9 +40,11 @@ def source_term(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray, norm: str
 
 
 def ergodicity(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray) -> float:
-    """Eq. 48: ε = ‖max(p̄ - c̄, 0)‖₂ / ∫p̄ with ‖f‖₂ = (Σ M_i f_i²)^½ and ∫p̄ = 1.
+    """Eq. 48 in the surface's measure: ‖max(p̄ - c̄, 0)‖₂ with ‖f‖₂ = (Σ M_i f_i²)^½, ∫p̄ = 1.
 
-    Units 1/m (a density difference in L2 on the surface). At zero coverage it is ‖p̄‖₂.
+    Units 1/m (a density difference in L2 on the surface); it is √∫s of the source with the
+    cloud's normalisation. Not the reported score: that is :func:`coverage_score` (unit masses in
+    plain sums, dimensionless), which compares any trajectory with any other.
     """
     e = np.maximum(normalise(p, mass) - normalise(coverage, mass), 0.0)
     return float(np.sqrt(mass @ (e * e)))
