@@ -9,12 +9,14 @@ import typer
 
 
 def register(app: typer.Typer) -> None:
-    app.command("replay", no_args_is_help=True)(replay)
+    from tergodic_cli.commands._common import EXIT_CODES
+
+    app.command("replay", no_args_is_help=True, epilog=EXIT_CODES)(replay)
 
 
 def replay(
     run: Path = typer.Argument(..., help="Run folder written by 'tergodic explore' (holding run.mcap), or the .mcap file."),
-    json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON: the keys of summary.json plus 'truncated'."),
+    json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON: the keys of summary.json plus 'truncated' and 'status' (complete, interrupted, truncated)."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write PNG figures into this folder (ε(t), touched(t), force(t), cloud views)."),
     export: Optional[str] = typer.Option(None, "--export", help="Export the time series: npz or csv."),
     export_out: Optional[Path] = typer.Option(None, "--export-out", help="Where --export writes (default: series.npz or series.csv beside run.mcap)."),
@@ -27,7 +29,9 @@ def replay(
 
     The summary is recomputed from the logged series alone and equals summary.json;
     a log cut short by a crash is read up to its last complete chunk and reported
-    as truncated.
+    as truncated; a run stopped by Ctrl-C or SIGTERM is reported as interrupted; a log
+    damaged inside (bad CRC, garbage) or with bytes appended after its end is refused
+    as corrupt, naming the byte offset.
 
     Examples:
 
@@ -74,6 +78,9 @@ def replay(
     if data.truncated:
         typer.echo(f"tergodic: warning: {path} is truncated (the run was cut short); "
                    f"read {data.steps} steps up to the last complete chunk", err=True)
+    elif data.status == "interrupted":
+        typer.echo(f"tergodic: warning: {path} is from an interrupted run (Ctrl-C or SIGTERM); "
+                   f"it holds the {data.steps} steps before it", err=True)
 
     if step is not None:
         state = _state_at(data, step)
@@ -81,7 +88,7 @@ def replay(
     else:
         summary = recompute_summary(data)
         if json_out:
-            typer.echo(json.dumps({**summary, "truncated": data.truncated}, indent=2, default=_jsonable))
+            typer.echo(json.dumps({**summary, "truncated": data.truncated, "status": data.status}, indent=2, default=_jsonable))
         else:
             typer.echo(format_table(summary, data, compare_with_file(summary, path.parent / "summary.json")))
 

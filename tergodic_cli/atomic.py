@@ -59,3 +59,148 @@ def _json_default(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+# ------------------------------------------------------------------------------ whole folders
+#: The operating system's causes, in the words of the one-line message (no errno, no library text).
+_CAUSES = {"ENOSPC": "no space left on device", "EDQUOT": "disk quota exceeded", "EROFS": "read-only filesystem",
+           "EACCES": "permission denied", "EPERM": "permission denied",
+           "ENOTDIR": "a part of the path is a file, not a folder", "EISDIR": "it is a folder",
+           "ENAMETOOLONG": "the name is too long", "EIO": "input/output error"}
+
+
+def os_cause(exc: OSError) -> str:
+    """A short lower-case cause for ``exc``."""
+    import errno
+
+    name = errno.errorcode.get(exc.errno or -1, "")
+    text = str(exc).lower()
+    if not name and ("space" in text or "written" in text):  # numpy's short write has no errno
+        name = "ENOSPC"
+    return _CAUSES.get(name) or (exc.strerror or str(exc) or type(exc).__name__).lower()
+
+
+def _full(exc: BaseException) -> bool:
+    return isinstance(exc, OSError) and os_cause(exc) in ("no space left on device", "disk quota exceeded")
+
+
+class AtomicFolder:
+    """Build a folder in a temporary sibling (``.NAME.tmp-XXXX``) and rename it into place when complete.
+
+    ``check()`` refuses, before any work, a target that is a file, lies under a file, sits in a
+    folder we cannot write, or already holds files without ``overwrite``. An existing folder is
+    replaced whole (moved aside, the new one renamed in, the old one removed), never merged.
+    On Ctrl-C/SIGTERM with ``keep_partial`` what was built so far is renamed into place
+    (``kept`` is then True); on any other error the temporary folder is removed and an
+    operating-system error becomes one line (:class:`TergodicError`).
+    """
+
+    def __init__(self, target: str | os.PathLike, overwrite: bool = False, option: str = "--out",
+                 what: str = "folder", keep_partial: bool = False):
+        self.shown = Path(target)
+        self.target = Path(os.path.abspath(target))
+        self.overwrite, self.option, self.what, self.keep_partial = overwrite, option, what, keep_partial
+        self.tmp: Path | None = None
+        self.kept = False
+        self._created: list[Path] = []
+
+    def check(self) -> None:
+        from tergodic_cli.errors import TergodicError
+
+        shown, target, opt = self.shown, self.target, self.option
+        other = f"choose another {opt}"
+        if os.path.commonpath([str(target), os.getcwd()]) == str(target):  # renaming would pull it from under us
+            raise TergodicError(f"{opt} {shown} is the current folder or holds it", f"give {opt} a folder of its own")
+        if target.is_symlink() or (target.exists() and not target.is_dir()):
+            raise TergodicError(f"{opt} {shown} is a file, not a folder", other)
+        parent = target.parent
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent
+        if not parent.is_dir():
+            raise TergodicError(f"{opt} {shown} is under {parent}, which is a file, not a folder", other)
+        if not os.access(parent, os.W_OK | os.X_OK):  # false for root too on a read-only filesystem
+            ro = bool(os.statvfs(parent).f_flag & os.ST_RDONLY)
+            raise TergodicError(f"cannot write {opt} {shown}: {'read-only filesystem' if ro else 'permission denied'}"
+                                f" at {parent}", other)
+        if target.is_dir() and not self.overwrite:
+            try:
+                busy = any(target.iterdir())
+            except OSError as exc:
+                raise TergodicError(f"cannot read {opt} {shown}: {os_cause(exc)}", other) from None
+            if busy:
+                raise TergodicError(f"{opt} {shown} already holds a {self.what}",
+                                    f"pass --overwrite to replace it, or {other}")
+
+    def __enter__(self) -> Path:
+        import tempfile
+
+        self.check()
+        try:
+            for parent in reversed(self.target.parents):  # remember what we create, to remove it on failure
+                if not parent.exists():
+                    parent.mkdir()
+                    self._created.append(parent)
+            self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.tmp-", dir=self.target.parent))
+        except OSError as exc:
+            self._discard()
+            raise self._error(exc) from None
+        return self.tmp
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is None:
+            try:
+                self._swap_in()
+            except OSError as err:
+                self._discard()
+                raise self._error(err) from None
+            return False
+        if issubclass(exc_type, KeyboardInterrupt) and self.keep_partial and self.tmp is not None:
+            try:
+                if any(self.tmp.iterdir()):
+                    self._swap_in()
+                    self.kept = True
+                    return False
+            except OSError:
+                pass  # keep the interrupt; the partial folder is lost
+        self._discard()
+        if isinstance(exc, OSError):
+            raise self._error(exc) from None
+        return False
+
+    def _swap_in(self) -> None:
+        import shutil
+        import tempfile
+
+        assert self.tmp is not None
+        os.chmod(self.tmp, 0o777 & ~_umask())  # mkdtemp makes 0700; an artefact is an ordinary folder
+        target = self.target
+        if target.exists():  # move the old one aside, put the new one in place, then drop the old
+            old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
+            os.replace(target, old / target.name)
+            try:
+                os.replace(self.tmp, target)
+            except BaseException:
+                os.replace(old / target.name, target)
+                raise
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(self.tmp, target)
+        self.tmp = None
+
+    def _discard(self) -> None:
+        import shutil
+
+        if self.tmp is not None:
+            shutil.rmtree(self.tmp, ignore_errors=True)
+            self.tmp = None
+        for parent in reversed(self._created):
+            try:
+                parent.rmdir()
+            except OSError:
+                pass
+
+    def _error(self, exc: OSError):
+        from tergodic_cli.errors import TergodicError
+
+        fix = ("free space or " if _full(exc) else "") + f"choose another {self.option}"
+        return TergodicError(f"cannot write the {self.what} {self.shown}: {os_cause(exc)}", fix)
