@@ -24,6 +24,7 @@ def replay(
     gui: bool = typer.Option(False, "--gui", help="Replay the logged joint states in the PyBullet GUI (robot runs; needs a display, else exit 2)."),
     speed: float = typer.Option(1.0, "--speed", help="--gui playback speed, times real time."),
     rerun: Optional[Path] = typer.Option(None, "--rerun", help="Write a Rerun recording (.rrd); needs rerun-sdk."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --plot folder or --export file (whole, once the new one is complete)."),
 ) -> None:
     """Recompute a run's summary from its log, and plot, export or re-drive it.
 
@@ -70,6 +71,16 @@ def replay(
                                 "run it on a desktop, or use --plot OUT_DIR / open run.mcap in Foxglove")
 
     path = resolve_log_path(run)
+    # every output is checked before the (long) read, and built aside then renamed in
+    from tergodic_cli.atomic import AtomicFolder, check_output_file
+
+    dest = None
+    if export is not None:
+        dest = export_out or path.parent / f"series.{export}"
+        check_output_file(dest, overwrite, "--export-out")
+    plots = AtomicFolder(plot, overwrite=overwrite, option="--plot", what="set of plots") if plot is not None else None
+    if plots is not None:
+        plots.check()
     need_clouds = plot is not None or rerun is not None or step is not None or gui
     with Spinner(f"reading {path.name}"):
         data = read_run_log(path, clouds=need_clouds)
@@ -95,14 +106,15 @@ def replay(
     if export is not None:
         from tergodic_cli.runlog.export import export_series
 
-        dest = export_out or path.parent / f"series.{export}"
         export_series(data, export, dest)
         say(f"wrote {dest} ({data.steps} rows)")
     if plot is not None:
         from tergodic_cli.runlog.plots import plot_run
 
-        for p in plot_run(data, plot):
-            say(f"wrote {p}")
+        with plots as tmp:
+            written = plot_run(data, tmp)
+        for p in written:
+            say(f"wrote {plot / p.name}")
     if rerun is not None:
         from tergodic_cli.runlog.viewers import write_rerun
 

@@ -19,17 +19,52 @@ import numpy as np
 def atomic_path(target: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
     """Yield a temporary path in the target's folder; rename it over ``target`` on success."""
     target = Path(target)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix + ".tmp", dir=target.parent)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix + ".tmp", dir=target.parent)
+    except OSError as exc:
+        raise _file_error(exc, target) from None
     os.close(fd)
     tmp_path = Path(tmp)
     try:
         yield tmp_path
         os.chmod(tmp_path, 0o666 & ~_umask())  # mkstemp makes 0600; artefacts are ordinary files
         os.replace(tmp_path, target)
-    except BaseException:
+    except BaseException as exc:
         tmp_path.unlink(missing_ok=True)
+        if isinstance(exc, OSError):  # one line, not a traceback
+            raise _file_error(exc, target) from None
         raise
+
+
+def _file_error(exc: OSError, target: Path):
+    from tergodic_cli.errors import TergodicError
+
+    return TergodicError(f"cannot write {target}: {os_cause(exc)}",
+                         ("free space, or " if _full(exc) else "") + "check the path and its permissions")
+
+
+def check_output_file(path: str | os.PathLike, overwrite: bool, option: str) -> None:
+    """Refuse, before any work, an output file that is a folder, lies under a file, sits in a
+    folder we cannot write, or exists without ``overwrite`` (it is then written atomically)."""
+    from tergodic_cli.errors import TergodicError
+
+    shown = Path(path)
+    target = Path(os.path.abspath(path))
+    other = f"choose another {option}"
+    if target.is_dir():
+        raise TergodicError(f"{option} {shown} is a folder, not a file", other)
+    parent = target.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise TergodicError(f"{option} {shown} is under {parent}, which is a file, not a folder", other)
+    if not os.access(parent, os.W_OK | os.X_OK):
+        ro = bool(os.statvfs(parent).f_flag & os.ST_RDONLY)
+        raise TergodicError(f"cannot write {option} {shown}: {'read-only filesystem' if ro else 'permission denied'}"
+                            f" at {parent}", other)
+    if target.exists() and not overwrite:
+        raise TergodicError(f"{option} {shown} already exists", f"pass --overwrite to replace it, or {other}")
 
 
 def _umask() -> int:
@@ -104,12 +139,13 @@ class AtomicFolder:
         self.kept = False
         self._created: list[Path] = []
 
-    def check(self) -> None:
+    def check(self, renamed: bool = True) -> None:
+        """``renamed=False``: only the checks of a folder written into in place (a resumable sweep)."""
         from tergodic_cli.errors import TergodicError
 
         shown, target, opt = self.shown, self.target, self.option
         other = f"choose another {opt}"
-        if os.path.commonpath([str(target), os.getcwd()]) == str(target):  # renaming would pull it from under us
+        if renamed and os.path.commonpath([str(target), os.getcwd()]) == str(target):  # renaming would pull it from under us
             raise TergodicError(f"{opt} {shown} is the current folder or holds it", f"give {opt} a folder of its own")
         if target.is_symlink() or (target.exists() and not target.is_dir()):
             raise TergodicError(f"{opt} {shown} is a file, not a folder", other)
@@ -122,6 +158,8 @@ class AtomicFolder:
             ro = bool(os.statvfs(parent).f_flag & os.ST_RDONLY)
             raise TergodicError(f"cannot write {opt} {shown}: {'read-only filesystem' if ro else 'permission denied'}"
                                 f" at {parent}", other)
+        if target.is_dir() and not os.access(target, os.W_OK | os.X_OK):
+            raise TergodicError(f"cannot write {opt} {shown}: permission denied or read-only filesystem", other)
         if target.is_dir() and not self.overwrite:
             try:
                 busy = any(target.iterdir())

@@ -214,7 +214,8 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
         if folder.kept:
             from tergodic_cli.errors import Interrupted
 
-            raise Interrupted(f"interrupted; the partial run is in {out}/ (its log is marked interrupted)", exc) from None
+            word = "terminated" if getattr(exc, "exit_code", 130) == 143 else "interrupted"
+            raise Interrupted(f"{word}; the partial run is in {out}/ (its log is marked interrupted)", exc) from None
         raise
 
 
