@@ -200,10 +200,27 @@ class AtomicFolder:
                     return False
             except OSError:
                 pass  # keep the interrupt; the partial folder is lost
+        full = isinstance(exc, OSError) and _full(exc) or self._disk_full()  # before the discard frees it
+        tmp = str(self.tmp) if self.tmp is not None else None
         self._discard()
-        if isinstance(exc, OSError):
-            raise self._error(exc) from None
+        from tergodic_cli.errors import TergodicError
+
+        if isinstance(exc, OSError) or (full and isinstance(exc, TergodicError)):
+            cause = "no space left on device" if full else os_cause(exc)
+            raise TergodicError(f"cannot write the {self.what} {self.shown}: {cause}",
+                                ("free space or " if full else "") + f"choose another {self.option}") from None
+        if isinstance(exc, TergodicError) and tmp and tmp in str(exc):  # name the folder, not its temporary sibling
+            raise TergodicError(exc.problem.replace(tmp, str(self.shown)),
+                                exc.fix.replace(tmp, str(self.shown)) if exc.fix else None) from None
         return False
+
+    def _disk_full(self) -> bool:
+        import shutil
+
+        try:
+            return shutil.disk_usage(self.target.parent).free < (1 << 20)
+        except OSError:
+            return False
 
     def _swap_in(self) -> None:
         import shutil

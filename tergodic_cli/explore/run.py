@@ -181,7 +181,7 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     if robot_api is not None:
         # The robot runs the explorer at its own step period with the same path per step.
         robot_cfg = make_robot_config(robot_api[1], robot_options)
-        check_robot(robot, robot_cfg, capture, recapture_every, until_clean, max_steps or cfg.steps)
+        check_robot(robot, robot_cfg, capture, recapture_every, until_clean, max_steps or cfg.steps, start_xyz)
         scale = robot_api[2]
         cfg = scale(cfg, robot_cfg.explore_dt) if scale is not None else cfg
     if dry_run:
@@ -319,15 +319,19 @@ def _write_run(out: Path, explorer, cfg, user_cfg, basis, hit, capture, capture_
         raise
 
 
-def check_robot(robot: str, robot_cfg, capture, recapture_every, until_clean, max_steps) -> None:
-    """The robot's preconditions, before anything is written: its config (force range, ...), a
-    display for --gui, a reachable object pose and the closed loop's settings."""
+def check_robot(robot: str, robot_cfg, capture, recapture_every, until_clean, max_steps, start_xyz=None) -> None:
+    """The robot's preconditions, before anything is written: its config (force range, ...), the
+    safety limits, a display for --gui, a reachable object pose, starts inside the workspace box
+    and the closed loop's settings."""
     import os
     from dataclasses import replace
 
     from tergodic_cli.robot.config import validate_robot_config
+    from tergodic_cli.robot.safety import SafetyGuard
 
     validate_robot_config(robot_cfg if robot == "pybullet" else replace(robot_cfg, backend="pybullet"))
+    # the guard's own checks (workspace box, force limit above --force); joint limits do not matter here
+    SafetyGuard(robot_cfg.safety, np.zeros(7), np.ones(7), np.ones(7), float(robot_cfg.force))
     if getattr(robot_cfg, "gui", False) and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)", "run without --gui, or on a desktop")
     if robot == "pybullet":
@@ -343,6 +347,11 @@ def check_robot(robot: str, robot_cfg, capture, recapture_every, until_clean, ma
         else:
             T_obj = default_object_pose(np.asarray(capture.points, dtype=float))
         check_reachable(transform_points(T_obj, capture.points))
+        ws = robot_cfg.safety
+        for a in ([] if start_xyz is None else transform_points(T_obj, np.atleast_2d(start_xyz))):
+            if not (np.all(a >= np.asarray(ws.workspace_min)) and np.all(a <= np.asarray(ws.workspace_max))):
+                raise TergodicError(f"the start point ({', '.join(f'{v:.3f}' for v in a)}) m is outside the workspace box",
+                                    "move the object with --object-pose, widen --workspace, or choose another start")
     if recapture_every is not None:
         from tergodic_cli.robot.closed_loop import CleaningLoopConfig, validate_loop_config
 
