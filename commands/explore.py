@@ -114,16 +114,17 @@ def explore(
 
         echo_err(f"interrupted: the robot was made safe; partial run written to {out}/")
         raise typer.Exit(143 if Terminated.received else 130)
+    fault = summary.get("final_state") == "stopped"  # the robot stopped on a fault and reached a safe state: exit 3
     if json_out:
         typer.echo(json.dumps(summary, indent=2))
-        return
+        raise typer.Exit(3 if fault else 0)
     typer.echo(f"explored {summary['steps']} steps ({robot}): ε {summary['ergodicity']:.3f} (unit-mass, 0 best), "
                f"touched {100 * summary['touched_fraction']:.1f}%, "
                f"off-surface {100 * (summary.get('off_surface_fraction') or 0.0):.1f}%, "
                f"step max {1e3 * (summary.get('step_max_m') or 0.0):.2f} mm, "
                f"explorer step {summary['step_ms_median']:.3f} ms (median)")
     typer.echo(f"wrote {out}/ ({', '.join(summary['files'])})")
-    if summary.get("final_state") == "stopped":  # the robot stopped on a fault and reached a safe state
+    if fault:
         raise typer.Exit(3)
 
 

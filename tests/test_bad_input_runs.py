@@ -413,3 +413,17 @@ def test_help_lists_the_exit_codes(verb):
     for part in ("Exit codes", "0 complete", "2 bad input", "3 the robot stopped on a fault", "130 interrupted",
                  "143 terminated"):
         assert part in text, (verb, part)
+
+
+@pytest.mark.parametrize("json_out", [False, True])
+def test_robot_fault_stop_exits_3(cap, tmp_path, monkeypatch, json_out):
+    """A run the library reports as stopped on a fault (final_state 'stopped', safe) exits 3, also with --json."""
+    import tergodic_cli.explore.run as run_mod
+
+    summary = {"steps": 21, "ergodicity": 0.9, "touched_fraction": 0.1, "step_ms_median": 0.1, "files": [],
+               "final_state": "stopped", "stop_reason": "joint 4 near its limit", "interrupted": False}
+    monkeypatch.setattr(run_mod, "run_explore", lambda *a, **k: summary)
+    res = run_cli("explore", cap, "--out", tmp_path / "run", "--no-log", *(["--json"] if json_out else []))
+    assert res.code == 3, res.err
+    summary["final_state"] = "done"
+    assert run_cli("explore", cap, "--out", tmp_path / "run", "--no-log").code == 0
