@@ -78,7 +78,8 @@ def replay(
     if export is not None:
         dest = export_out or path.parent / f"series.{export}"
         check_output_file(dest, overwrite, "--export-out")
-    plots = AtomicFolder(plot, overwrite=overwrite, option="--plot", what="set of plots") if plot is not None else None
+    plots = AtomicFolder(plot, overwrite=overwrite, option="--plot", what="set of plots",
+                         owned=lambda name: name.endswith(".png")) if plot is not None else None
     if plots is not None:
         plots.check()
     need_clouds = plot is not None or rerun is not None or step is not None or gui

@@ -131,7 +131,10 @@ class AtomicFolder:
     """
 
     def __init__(self, target: str | os.PathLike, overwrite: bool = False, option: str = "--out",
-                 what: str = "folder", keep_partial: bool = False):
+                 what: str = "folder", keep_partial: bool = False, owned=None):
+        #: ``owned(name)``: whether an entry may be in a folder of this kind; --overwrite replaces
+        #: only such a folder (never, say, a home folder given as --out by mistake)
+        self.owned = owned
         self.shown = Path(target)
         self.target = Path(os.path.abspath(target))
         self.overwrite, self.option, self.what, self.keep_partial = overwrite, option, what, keep_partial
@@ -160,12 +163,16 @@ class AtomicFolder:
                                 f" at {parent}", other)
         if target.is_dir() and not os.access(target, os.W_OK | os.X_OK):
             raise TergodicError(f"cannot write {opt} {shown}: permission denied or read-only filesystem", other)
-        if target.is_dir() and not self.overwrite:
+        if target.is_dir() and renamed:
             try:
-                busy = any(target.iterdir())
+                names = sorted(p.name for p in target.iterdir())
             except OSError as exc:
                 raise TergodicError(f"cannot read {opt} {shown}: {os_cause(exc)}", other) from None
-            if busy:
+            foreign = [n for n in names if self.owned is not None and not self.owned(n)]
+            if foreign:
+                raise TergodicError(f"{opt} {shown} holds files that are not a {self.what}'s ({foreign[0]}"
+                                    f"{', ...' if len(foreign) > 1 else ''})", f"{other}; only a {self.what} is replaced")
+            if names and not self.overwrite:
                 raise TergodicError(f"{opt} {shown} already holds a {self.what}",
                                     f"pass --overwrite to replace it, or {other}")
 

@@ -134,12 +134,28 @@ def test_overwrite_with_no_log_replaces_the_run_whole(cap, good):
 
 
 def test_overwrite_replaces_the_run_whole(cap, good):
-    (good.path / "stale.txt").write_text("from an older run")
+    (good.path / "series.csv").write_text("step,t\n1,1.0\n")  # the old run's export: replaced with it
     res = explore(cap, good.path, "--overwrite", "--seed", "7")
     assert res.code == 0, res.err
     assert sorted(p.name for p in good.path.iterdir()) == ["run.mcap", "summary.json", "trajectory.npz"]
     assert hashes(good.path)["run.mcap"] != good.before["run.mcap"]
     assert run_cli("replay", good.path).code == 0
+
+
+def test_overwrite_refuses_a_folder_that_is_not_a_run(cap, good):
+    (good.path / "notes.txt").write_text("mine")
+    good.before = hashes(good.path)
+    assert_one_line_error(explore(cap, good.path, "--overwrite"), "not a run's", "notes.txt")
+    good.check()
+
+
+def test_replay_overwrite_refuses_a_folder_that_is_not_plots(good, tmp_path):
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "thesis.tex").write_text("mine")
+    assert_one_line_error(run_cli("replay", good.path, "--plot", mine, "--overwrite"), "thesis.tex")
+    assert (mine / "thesis.tex").read_text() == "mine"
+    good.check()
 
 
 def test_out_is_a_file(cap, good):
@@ -303,13 +319,13 @@ def test_replay_plot_under_a_file(good):
 def test_replay_existing_plots_need_overwrite_then_are_replaced_whole(good, tmp_path):
     plots = tmp_path / "plots"
     assert run_cli("replay", good.path, "--plot", plots).code == 0
-    (plots / "mine.txt").write_text("kept until --overwrite")
+    (plots / "old.png").write_bytes(b"a plot an older version drew")
     before = hashes(plots)
     assert_one_line_error(run_cli("replay", good.path, "--plot", plots), "--plot", "--overwrite")
     assert hashes(plots) == before
     res = run_cli("replay", good.path, "--plot", plots, "--overwrite")
     assert res.code == 0, res.err
-    assert not (plots / "mine.txt").exists() and (plots / "ergodicity.png").exists()
+    assert not (plots / "old.png").exists() and (plots / "ergodicity.png").exists()
     assert leftovers(tmp_path) == []
     good.check()
 

@@ -26,6 +26,8 @@ from tergodic_cli.explore.explorer import Explorer
 from tergodic_cli.explore.summary import summarize_run
 
 ROBOTS = ("kinematic", "pybullet", "franka")
+#: What a run folder may hold: explore's files and replay's default outputs (--overwrite replaces only these).
+RUN_FILES = frozenset({"run.mcap", "summary.json", "trajectory.npz", "series.npz", "series.csv", "plots", "run.rrd"})
 
 
 @dataclass
@@ -161,7 +163,7 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     out = Path(out_dir)
     from tergodic_cli.atomic import AtomicFolder
 
-    folder = AtomicFolder(out, overwrite=overwrite, what="run", keep_partial=True)
+    folder = AtomicFolder(out, overwrite=overwrite, what="run", keep_partial=True, owned=RUN_FILES.__contains__)
     if not dry_run:
         folder.check()  # before any work: a refused --out costs nothing and touches nothing
     capture = load_capture(capture_dir)
