@@ -150,8 +150,9 @@ class AtomicFolder:
         other = f"choose another {opt}"
         if renamed and os.path.commonpath([str(target), os.getcwd()]) == str(target):  # renaming would pull it from under us
             raise TergodicError(f"{opt} {shown} is the current folder or holds it", f"give {opt} a folder of its own")
-        if target.is_symlink() or (target.exists() and not target.is_dir()):
-            raise TergodicError(f"{opt} {shown} is a file, not a folder", other)
+        if target.is_symlink() or (target.exists() and not target.is_dir()):  # a link would be replaced, not followed
+            raise TergodicError(f"{opt} {shown} is a {'symbolic link' if target.is_symlink() else 'file'}, not a folder",
+                                other)
         parent = target.parent
         while not parent.exists() and parent != parent.parent:
             parent = parent.parent
@@ -207,16 +208,20 @@ class AtomicFolder:
                     return False
             except OSError:
                 pass  # keep the interrupt; the partial folder is lost
-        full = isinstance(exc, OSError) and _full(exc) or self._disk_full()  # before the discard frees it
-        tmp = str(self.tmp) if self.tmp is not None else None
-        self._discard()
         from tergodic_cli.errors import TergodicError
+
+        tmp = str(self.tmp) if self.tmp is not None else None
+        # a write into our folder that failed (e.g. reported by the log's writer process) on a full
+        # disk: looked at before the discard frees the space
+        ours = isinstance(exc, TergodicError) and tmp is not None and tmp in str(exc)
+        full = _full(exc) if isinstance(exc, OSError) else (ours and self._disk_full())
+        self._discard()
 
         if isinstance(exc, OSError) or (full and isinstance(exc, TergodicError)):
             cause = "no space left on device" if full else os_cause(exc)
             raise TergodicError(f"cannot write the {self.what} {self.shown}: {cause}",
                                 ("free space or " if full else "") + f"choose another {self.option}") from None
-        if isinstance(exc, TergodicError) and tmp and tmp in str(exc):  # name the folder, not its temporary sibling
+        if ours:  # name the folder, not its temporary sibling
             raise TergodicError(exc.problem.replace(tmp, str(self.shown)),
                                 exc.fix.replace(tmp, str(self.shown)) if exc.fix else None) from None
         return False
