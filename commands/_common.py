@@ -14,3 +14,9 @@ def parse_floats(text: str, n: int | None, option: str, example: str) -> tuple[f
     if n is not None and len(values) != n:
         raise TergodicError(f"{option} needs {n} numbers, got {len(values)}", f"e.g. {option} {example}")
     return values
+
+
+#: The ``--help`` epilog of every verb ("\b": click prints the lines as they are).
+EXIT_CODES = ("Exit codes:\n\n\b\n  0    complete\n  2    bad input, or an output that cannot be written\n"
+              "  3    the robot stopped on a fault and reached a safe state\n  130  interrupted (Ctrl-C)\n"
+              "  143  terminated (SIGTERM)")

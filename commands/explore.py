@@ -9,7 +9,9 @@ import typer
 
 
 def register(app: typer.Typer) -> None:
-    app.command("explore", no_args_is_help=True)(explore)
+    from tergodic_cli.commands._common import EXIT_CODES
+
+    app.command("explore", no_args_is_help=True, epilog=EXIT_CODES)(explore)
 
 
 def explore(
@@ -39,6 +41,7 @@ def explore(
     log_cloud_every: int = typer.Option(50, "--log-cloud-every", help="Log coverage/heat/source per point every N steps (and at the end)."),
     max_start_distance: float = typer.Option(0.02, "--max-start-distance", help="Refuse a start farther than this (metres) from the cloud; closer ones are projected."),
     json_out: bool = typer.Option(False, "--json", help="Print summary.json to stdout."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing run folder at --out (whole, once the new run is complete)."),
     force: Optional[float] = typer.Option(None, "--force", help="[robot] Desired contact force along the tool axis, N [default: 5]."),
     force_limit: Optional[float] = typer.Option(None, "--force-limit", help="[robot] Contact force that makes the robot retreat and stop, N [default: 3 x --force]."),
     contact_force: Optional[float] = typer.Option(None, "--contact-force", help="[robot] Force that counts as touching (coverage is deposited above it), N [default: 20% of --force]."),
@@ -102,7 +105,7 @@ def explore(
     summary = run_explore(capture, cfg, out, spec, robot=robot, log=not no_log, log_cloud_every=log_cloud_every,
                           cache_dir=cache_dir, on_event=echo_err,
                           robot_options=robot_options, hardware=hardware, dry_run=dry_run, on_report=typer.echo,
-                          log_writer=log_writer,
+                          log_writer=log_writer, overwrite=overwrite,
                           recapture_every=recapture_every, until_clean=until_clean, max_steps=max_steps)
     if dry_run:
         return
@@ -111,15 +114,18 @@ def explore(
 
         echo_err(f"interrupted: the robot was made safe; partial run written to {out}/")
         raise typer.Exit(143 if Terminated.received else 130)
+    fault = summary.get("final_state") == "stopped"  # the robot stopped on a fault and reached a safe state: exit 3
     if json_out:
         typer.echo(json.dumps(summary, indent=2))
-        return
+        raise typer.Exit(3 if fault else 0)
     typer.echo(f"explored {summary['steps']} steps ({robot}): ε {summary['ergodicity']:.3f} (unit-mass, 0 best), "
                f"touched {100 * summary['touched_fraction']:.1f}%, "
                f"off-surface {100 * (summary.get('off_surface_fraction') or 0.0):.1f}%, "
                f"step max {1e3 * (summary.get('step_max_m') or 0.0):.2f} mm, "
                f"explorer step {summary['step_ms_median']:.3f} ms (median)")
     typer.echo(f"wrote {out}/ ({', '.join(summary['files'])})")
+    if fault:
+        raise typer.Exit(3)
 
 
 def _workspace(box: tuple[float, ...]) -> dict:

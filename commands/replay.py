@@ -9,12 +9,14 @@ import typer
 
 
 def register(app: typer.Typer) -> None:
-    app.command("replay", no_args_is_help=True)(replay)
+    from tergodic_cli.commands._common import EXIT_CODES
+
+    app.command("replay", no_args_is_help=True, epilog=EXIT_CODES)(replay)
 
 
 def replay(
     run: Path = typer.Argument(..., help="Run folder written by 'tergodic explore' (holding run.mcap), or the .mcap file."),
-    json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON: the keys of summary.json plus 'truncated'."),
+    json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON: the keys of summary.json plus 'truncated' and 'status' (complete, interrupted, truncated)."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write PNG figures into this folder (ε(t), touched(t), force(t), cloud views)."),
     export: Optional[str] = typer.Option(None, "--export", help="Export the time series: npz or csv."),
     export_out: Optional[Path] = typer.Option(None, "--export-out", help="Where --export writes (default: series.npz or series.csv beside run.mcap)."),
@@ -22,12 +24,15 @@ def replay(
     gui: bool = typer.Option(False, "--gui", help="Replay the logged joint states in the PyBullet GUI (robot runs; needs a display, else exit 2)."),
     speed: float = typer.Option(1.0, "--speed", help="--gui playback speed, times real time."),
     rerun: Optional[Path] = typer.Option(None, "--rerun", help="Write a Rerun recording (.rrd); needs rerun-sdk."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --plot folder or --export file (whole, once the new one is complete)."),
 ) -> None:
     """Recompute a run's summary from its log, and plot, export or re-drive it.
 
     The summary is recomputed from the logged series alone and equals summary.json;
     a log cut short by a crash is read up to its last complete chunk and reported
-    as truncated.
+    as truncated; a run stopped by Ctrl-C or SIGTERM is reported as interrupted; a log
+    damaged inside (bad CRC, garbage) or with bytes appended after its end is refused
+    as corrupt, naming the byte offset.
 
     Examples:
 
@@ -66,6 +71,17 @@ def replay(
                                 "run it on a desktop, or use --plot OUT_DIR / open run.mcap in Foxglove")
 
     path = resolve_log_path(run)
+    # every output is checked before the (long) read, and built aside then renamed in
+    from tergodic_cli.atomic import AtomicFolder, check_output_file
+
+    dest = None
+    if export is not None:
+        dest = export_out or path.parent / f"series.{export}"
+        check_output_file(dest, overwrite, "--export-out")
+    plots = AtomicFolder(plot, overwrite=overwrite, option="--plot", what="set of plots",
+                         owned=lambda name: name.endswith(".png")) if plot is not None else None
+    if plots is not None:
+        plots.check()
     need_clouds = plot is not None or rerun is not None or step is not None or gui
     with Spinner(f"reading {path.name}"):
         data = read_run_log(path, clouds=need_clouds)
@@ -74,6 +90,9 @@ def replay(
     if data.truncated:
         typer.echo(f"tergodic: warning: {path} is truncated (the run was cut short); "
                    f"read {data.steps} steps up to the last complete chunk", err=True)
+    elif data.status == "interrupted":
+        typer.echo(f"tergodic: warning: {path} is from an interrupted run (Ctrl-C or SIGTERM); "
+                   f"it holds the {data.steps} steps before it", err=True)
 
     if step is not None:
         state = _state_at(data, step)
@@ -81,21 +100,22 @@ def replay(
     else:
         summary = recompute_summary(data)
         if json_out:
-            typer.echo(json.dumps({**summary, "truncated": data.truncated}, indent=2, default=_jsonable))
+            typer.echo(json.dumps({**summary, "truncated": data.truncated, "status": data.status}, indent=2, default=_jsonable))
         else:
             typer.echo(format_table(summary, data, compare_with_file(summary, path.parent / "summary.json")))
 
     if export is not None:
         from tergodic_cli.runlog.export import export_series
 
-        dest = export_out or path.parent / f"series.{export}"
         export_series(data, export, dest)
         say(f"wrote {dest} ({data.steps} rows)")
     if plot is not None:
         from tergodic_cli.runlog.plots import plot_run
 
-        for p in plot_run(data, plot):
-            say(f"wrote {p}")
+        with plots as tmp:
+            written = plot_run(data, tmp)
+        for p in written:
+            say(f"wrote {plot / p.name}")
     if rerun is not None:
         from tergodic_cli.runlog.viewers import write_rerun
 

@@ -9,7 +9,9 @@ import typer
 
 
 def register(app: typer.Typer) -> None:
-    app.command("sweep", no_args_is_help=True)(sweep)
+    from tergodic_cli.commands._common import EXIT_CODES
+
+    app.command("sweep", no_args_is_help=True, epilog=EXIT_CODES)(sweep)
 
 
 # The docstring's "\b" lines keep click from reflowing the GRID.toml example (it prints verbatim).
@@ -28,7 +30,8 @@ def sweep(
 
     Each (object, nK) basis is computed once (the largest nK, then truncated). Finished runs
     are kept in OUT/runs/ and skipped when the command is run again, so an interrupted sweep
-    resumes where it stopped. Results do not depend on the engine or the number of jobs.
+    resumes where it stopped; a finished run whose record does not verify (damaged, edited)
+    is run again, and said so. Results do not depend on the engine or the number of jobs.
 
     GRID.toml:
 

@@ -19,17 +19,52 @@ import numpy as np
 def atomic_path(target: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
     """Yield a temporary path in the target's folder; rename it over ``target`` on success."""
     target = Path(target)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix + ".tmp", dir=target.parent)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix + ".tmp", dir=target.parent)
+    except OSError as exc:
+        raise _file_error(exc, target) from None
     os.close(fd)
     tmp_path = Path(tmp)
     try:
         yield tmp_path
         os.chmod(tmp_path, 0o666 & ~_umask())  # mkstemp makes 0600; artefacts are ordinary files
         os.replace(tmp_path, target)
-    except BaseException:
+    except BaseException as exc:
         tmp_path.unlink(missing_ok=True)
+        if isinstance(exc, OSError):  # one line, not a traceback
+            raise _file_error(exc, target) from None
         raise
+
+
+def _file_error(exc: OSError, target: Path):
+    from tergodic_cli.errors import TergodicError
+
+    return TergodicError(f"cannot write {target}: {os_cause(exc)}",
+                         ("free space, or " if _full(exc) else "") + "check the path and its permissions")
+
+
+def check_output_file(path: str | os.PathLike, overwrite: bool, option: str) -> None:
+    """Refuse, before any work, an output file that is a folder, lies under a file, sits in a
+    folder we cannot write, or exists without ``overwrite`` (it is then written atomically)."""
+    from tergodic_cli.errors import TergodicError
+
+    shown = Path(path)
+    target = Path(os.path.abspath(path))
+    other = f"choose another {option}"
+    if target.is_dir():
+        raise TergodicError(f"{option} {shown} is a folder, not a file", other)
+    parent = target.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise TergodicError(f"{option} {shown} is under {parent}, which is a file, not a folder", other)
+    if not os.access(parent, os.W_OK | os.X_OK):
+        ro = bool(os.statvfs(parent).f_flag & os.ST_RDONLY)
+        raise TergodicError(f"cannot write {option} {shown}: {'read-only filesystem' if ro else 'permission denied'}"
+                            f" at {parent}", other)
+    if target.exists() and not overwrite:
+        raise TergodicError(f"{option} {shown} already exists", f"pass --overwrite to replace it, or {other}")
 
 
 def _umask() -> int:
@@ -59,3 +94,180 @@ def _json_default(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+# ------------------------------------------------------------------------------ whole folders
+#: The operating system's causes, in the words of the one-line message (no errno, no library text).
+_CAUSES = {"ENOSPC": "no space left on device", "EDQUOT": "disk quota exceeded", "EROFS": "read-only filesystem",
+           "EACCES": "permission denied", "EPERM": "permission denied",
+           "ENOTDIR": "a part of the path is a file, not a folder", "EISDIR": "it is a folder",
+           "ENAMETOOLONG": "the name is too long", "EIO": "input/output error"}
+
+
+def os_cause(exc: OSError) -> str:
+    """A short lower-case cause for ``exc``."""
+    import errno
+
+    name = errno.errorcode.get(exc.errno or -1, "")
+    text = str(exc).lower()
+    if not name and ("space" in text or "written" in text):  # numpy's short write has no errno
+        name = "ENOSPC"
+    return _CAUSES.get(name) or (exc.strerror or str(exc) or type(exc).__name__).lower()
+
+
+def _full(exc: BaseException) -> bool:
+    return isinstance(exc, OSError) and os_cause(exc) in ("no space left on device", "disk quota exceeded")
+
+
+class AtomicFolder:
+    """Build a folder in a temporary sibling (``.NAME.tmp-XXXX``) and rename it into place when complete.
+
+    ``check()`` refuses, before any work, a target that is a file, lies under a file, sits in a
+    folder we cannot write, or already holds files without ``overwrite``. An existing folder is
+    replaced whole (moved aside, the new one renamed in, the old one removed), never merged.
+    On Ctrl-C/SIGTERM with ``keep_partial`` what was built so far is renamed into place
+    (``kept`` is then True); on any other error the temporary folder is removed and an
+    operating-system error becomes one line (:class:`TergodicError`).
+    """
+
+    def __init__(self, target: str | os.PathLike, overwrite: bool = False, option: str = "--out",
+                 what: str = "folder", keep_partial: bool = False, owned=None):
+        #: ``owned(name)``: whether an entry may be in a folder of this kind; --overwrite replaces
+        #: only such a folder (never, say, a home folder given as --out by mistake)
+        self.owned = owned
+        self.shown = Path(target)
+        self.target = Path(os.path.abspath(target))
+        self.overwrite, self.option, self.what, self.keep_partial = overwrite, option, what, keep_partial
+        self.tmp: Path | None = None
+        self.kept = False
+        self._created: list[Path] = []
+
+    def check(self, renamed: bool = True) -> None:
+        """``renamed=False``: only the checks of a folder written into in place (a resumable sweep)."""
+        from tergodic_cli.errors import TergodicError
+
+        shown, target, opt = self.shown, self.target, self.option
+        other = f"choose another {opt}"
+        if renamed and os.path.commonpath([str(target), os.getcwd()]) == str(target):  # renaming would pull it from under us
+            raise TergodicError(f"{opt} {shown} is the current folder or holds it", f"give {opt} a folder of its own")
+        if target.is_symlink() or (target.exists() and not target.is_dir()):  # a link would be replaced, not followed
+            raise TergodicError(f"{opt} {shown} is a {'symbolic link' if target.is_symlink() else 'file'}, not a folder",
+                                other)
+        parent = target.parent
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent
+        if not parent.is_dir():
+            raise TergodicError(f"{opt} {shown} is under {parent}, which is a file, not a folder", other)
+        if not os.access(parent, os.W_OK | os.X_OK):  # false for root too on a read-only filesystem
+            ro = bool(os.statvfs(parent).f_flag & os.ST_RDONLY)
+            raise TergodicError(f"cannot write {opt} {shown}: {'read-only filesystem' if ro else 'permission denied'}"
+                                f" at {parent}", other)
+        if target.is_dir() and not os.access(target, os.W_OK | os.X_OK):
+            raise TergodicError(f"cannot write {opt} {shown}: permission denied or read-only filesystem", other)
+        if target.is_dir() and renamed:
+            try:
+                names = sorted(p.name for p in target.iterdir())
+            except OSError as exc:
+                raise TergodicError(f"cannot read {opt} {shown}: {os_cause(exc)}", other) from None
+            foreign = [n for n in names if self.owned is not None and not self.owned(n)]
+            if foreign:
+                raise TergodicError(f"{opt} {shown} holds files that are not a {self.what}'s ({foreign[0]}"
+                                    f"{', ...' if len(foreign) > 1 else ''})", f"{other}; only a {self.what} is replaced")
+            if names and not self.overwrite:
+                raise TergodicError(f"{opt} {shown} already holds a {self.what}",
+                                    f"pass --overwrite to replace it, or {other}")
+
+    def __enter__(self) -> Path:
+        import tempfile
+
+        self.check()
+        try:
+            for parent in reversed(self.target.parents):  # remember what we create, to remove it on failure
+                if not parent.exists():
+                    parent.mkdir()
+                    self._created.append(parent)
+            self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.tmp-", dir=self.target.parent))
+        except OSError as exc:
+            self._discard()
+            raise self._error(exc) from None
+        return self.tmp
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is None:
+            try:
+                self._swap_in()
+            except OSError as err:
+                self._discard()
+                raise self._error(err) from None
+            return False
+        if issubclass(exc_type, KeyboardInterrupt) and self.keep_partial and self.tmp is not None:
+            try:
+                if any(self.tmp.iterdir()):
+                    self._swap_in()
+                    self.kept = True
+                    return False
+            except OSError:
+                pass  # keep the interrupt; the partial folder is lost
+        from tergodic_cli.errors import TergodicError
+
+        tmp = str(self.tmp) if self.tmp is not None else None
+        # a write into our folder that failed (e.g. reported by the log's writer process) on a full
+        # disk: looked at before the discard frees the space
+        ours = isinstance(exc, TergodicError) and tmp is not None and tmp in str(exc)
+        full = _full(exc) if isinstance(exc, OSError) else (ours and self._disk_full())
+        self._discard()
+
+        if isinstance(exc, OSError) or (full and isinstance(exc, TergodicError)):
+            cause = "no space left on device" if full else os_cause(exc)
+            raise TergodicError(f"cannot write the {self.what} {self.shown}: {cause}",
+                                ("free space or " if full else "") + f"choose another {self.option}") from None
+        if ours:  # name the folder, not its temporary sibling
+            raise TergodicError(exc.problem.replace(tmp, str(self.shown)),
+                                exc.fix.replace(tmp, str(self.shown)) if exc.fix else None) from None
+        return False
+
+    def _disk_full(self) -> bool:
+        import shutil
+
+        try:
+            return shutil.disk_usage(self.target.parent).free < (1 << 20)
+        except OSError:
+            return False
+
+    def _swap_in(self) -> None:
+        import shutil
+        import tempfile
+
+        assert self.tmp is not None
+        os.chmod(self.tmp, 0o777 & ~_umask())  # mkdtemp makes 0700; an artefact is an ordinary folder
+        target = self.target
+        if target.exists():  # move the old one aside, put the new one in place, then drop the old
+            old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
+            os.replace(target, old / target.name)
+            try:
+                os.replace(self.tmp, target)
+            except BaseException:
+                os.replace(old / target.name, target)
+                raise
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(self.tmp, target)
+        self.tmp = None
+
+    def _discard(self) -> None:
+        import shutil
+
+        if self.tmp is not None:
+            shutil.rmtree(self.tmp, ignore_errors=True)
+            self.tmp = None
+        for parent in reversed(self._created):
+            try:
+                parent.rmdir()
+            except OSError:
+                pass
+
+    def _error(self, exc: OSError):
+        from tergodic_cli.errors import TergodicError
+
+        fix = ("free space or " if _full(exc) else "") + f"choose another {self.option}"
+        return TergodicError(f"cannot write the {self.what} {self.shown}: {os_cause(exc)}", fix)

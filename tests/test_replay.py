@@ -49,7 +49,7 @@ def test_replay_json_equals_summary_json(kin_run):
     assert res.code == 0, res.err
     out = json.loads(res.out)
     stored = json.loads((run / "summary.json").read_text())
-    assert out.pop("truncated") is False
+    assert out.pop("truncated") is False and out.pop("status") == "complete"
     assert out == stored
     # and the numbers are the series' own, not copies of the stored file
     assert out["ergodicity"] == inp["metrics"]["ergodicity"][-1]
@@ -300,7 +300,7 @@ def test_explore_then_replay_equals_summary_json(bowl_capture, tmp_path):
     assert replay.code == 0, replay.err
     out = json.loads(replay.out)
     stored = json.loads((run / "summary.json").read_text())
-    assert out.pop("truncated") is False
+    assert out.pop("truncated") is False and out.pop("status") == "complete"
     assert out == stored
     assert out["ergodicity_at"]["200"] is not None
     table = run_cli("replay", run)
@@ -321,7 +321,8 @@ def test_explore_then_replay_equals_summary_json(bowl_capture, tmp_path):
 
 
 def test_sigkilled_explore_replays_as_truncated(bowl_capture, tmp_path):
-    """Kill a real 'tergodic explore' with SIGKILL mid-run: replay reads it up to the last chunk, truncated."""
+    """Kill a real 'tergodic explore' with SIGKILL mid-run: the run folder is never published (it is built
+    in a temporary sibling), and replay reads the sibling's log up to the last chunk, truncated."""
     import os
     import signal
     import subprocess
@@ -337,7 +338,8 @@ def test_sigkilled_explore_replays_as_truncated(bowl_capture, tmp_path):
         deadline, size = time.monotonic() + 150, 0
         while size < (1 << 20) and time.monotonic() < deadline and proc.poll() is None:
             time.sleep(0.05)
-            size = (run / "run.mcap").stat().st_size if (run / "run.mcap").exists() else 0
+            logs = list(tmp_path.glob(".run.tmp-*/run.mcap"))
+            size = logs[0].stat().st_size if logs else 0
         assert size >= 1 << 20 and proc.poll() is None, (size, proc.poll())
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(timeout=30)
@@ -347,8 +349,8 @@ def test_sigkilled_explore_replays_as_truncated(bowl_capture, tmp_path):
             proc.wait()
         proc.stderr.close()
     assert proc.returncode == -signal.SIGKILL
-    assert not (run / "summary.json").exists()
-    res = run_cli("replay", run, "--json")
+    assert not run.exists()
+    res = run_cli("replay", logs[0].parent, "--json")
     assert res.code == 0, res.err
     out = json.loads(res.out)
     assert out["truncated"] is True and out["steps"] >= 160
@@ -374,7 +376,7 @@ def test_robot_run_replays_to_its_summary(bowl_capture, tmp_path):
                   "--out", run)
     assert res.code == 0, res.err
     out = json.loads(run_cli("replay", run, "--json").out)
-    assert out.pop("truncated") is False
+    assert out.pop("truncated") is False and out.pop("status") == "complete"
     assert out == json.loads((run / "summary.json").read_text())
     d = read_run_log(run)
     assert len(d.robot) == 25 and d.topics[S.TOPIC_TF]["count"] >= 25 and d.topics[S.TOPIC_JOINTS]["count"] == 25

@@ -26,6 +26,8 @@ from tergodic_cli.explore.explorer import Explorer
 from tergodic_cli.explore.summary import summarize_run
 
 ROBOTS = ("kinematic", "pybullet", "franka")
+#: What a run folder may hold: explore's files and replay's default outputs (--overwrite replaces only these).
+RUN_FILES = frozenset({"run.mcap", "summary.json", "trajectory.npz", "series.npz", "series.csv", "plots", "run.rrd"})
 
 
 @dataclass
@@ -123,7 +125,7 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
                 on_event: Callable[[str], None] | None = None, robot_options: dict | None = None,
                 hardware: dict | None = None, dry_run: bool = False, on_report: Callable[[str], None] | None = None,
                 recapture_every: int | None = None, until_clean: float = 0.05, max_steps: int | None = None,
-                log_writer=None) -> dict:
+                log_writer=None, overwrite: bool = False) -> dict:
     """Run one exploration and write its artefacts; returns the summary dict.
 
     ``robot_options`` are :class:`~tergodic_cli.robot.RobotConfig` fields (``safety`` as a dict of
@@ -136,6 +138,11 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     camera sees less than ``until_clean`` of the initial marking or ``max_steps`` are spent.
     ``log_writer``: a :func:`~tergodic_cli.runlog.background.start_log_writer` the caller started
     earlier (the CLI starts it before its own imports); otherwise one is started here.
+
+    The run folder is built in a temporary sibling and renamed into place when complete; an
+    existing ``out_dir`` holding files is refused up front unless ``overwrite`` (then replaced
+    whole). On Ctrl-C/SIGTERM the partial run (log marked interrupted) is renamed into place and
+    :class:`~tergodic_cli.errors.Interrupted` is raised with a one-line message.
     """
     from tergodic_cli.capture import load_capture
 
@@ -154,7 +161,11 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     require(0.0 <= until_clean < 1.0, f"--until-clean must be in [0, 1), got {until_clean}", "e.g. 0.05 (5% of the marking left)")
     require(log_cloud_every >= 1, f"--log-cloud-every must be >= 1, got {log_cloud_every}", "e.g. 50")
     out = Path(out_dir)
-    require(not out.exists() or out.is_dir(), f"--out {out} exists and is not a folder", "give a folder path for the run")
+    from tergodic_cli.atomic import AtomicFolder
+
+    folder = AtomicFolder(out, overwrite=overwrite, what="run", keep_partial=True, owned=RUN_FILES.__contains__)
+    if not dry_run:
+        folder.check()  # before any work: a refused --out costs nothing and touches nothing
     capture = load_capture(capture_dir)
     require(bool(np.any(capture.target > 0)), f"the target of {capture_dir} is empty (no point has p > 0)",
             "re-capture with the right --target colour, or --target all for uniform coverage")
@@ -172,6 +183,7 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     if robot_api is not None:
         # The robot runs the explorer at its own step period with the same path per step.
         robot_cfg = make_robot_config(robot_api[1], robot_options)
+        check_robot(robot, robot_cfg, capture, recapture_every, until_clean, max_steps or cfg.steps, start_xyz)
         scale = robot_api[2]
         cfg = scale(cfg, robot_cfg.explore_dt) if scale is not None else cfg
     if dry_run:
@@ -196,6 +208,24 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
         say(line)
     explorer = Explorer(basis, capture.target, cfg, start_xyz, on_event=event)
 
+    try:
+        with folder as tmp:
+            return _write_run(tmp, explorer, cfg, user_cfg, basis, hit, capture, capture_dir, start_xyz, starts, robot,
+                              robot_api, robot_cfg if robot_api is not None else None, devices, log, log_cloud_every,
+                              writer, events, say, recapture_every, until_clean, max_steps)
+    except KeyboardInterrupt as exc:
+        if folder.kept:
+            from tergodic_cli.errors import Interrupted
+
+            word = "terminated" if getattr(exc, "exit_code", 130) == 143 else "interrupted"
+            raise Interrupted(f"{word}; the partial run is in {out}/ (its log is marked interrupted)", exc) from None
+        raise
+
+
+def _write_run(out: Path, explorer, cfg, user_cfg, basis, hit, capture, capture_dir, start_xyz, starts, robot,
+               robot_api, robot_cfg, devices, log, log_cloud_every, writer, events, say, recapture_every,
+               until_clean, max_steps) -> dict:
+    """The explorer loop and the artefacts, written into ``out`` (the temporary run folder)."""
     recorder = RunRecorder(explorer, cfg.steps)
     runlog = _open_log(out, cfg, basis, capture, log_cloud_every, writer) if log else None
     # kinematic runs: the log takes the recorder's rows in blocks (no per-step logging work);
@@ -270,24 +300,66 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
         if runlog is not None:
             if feed is not None:
                 feed.flush()
+            status = "interrupted" if summary.get("interrupted") else "ok"  # a robot made safe after Ctrl-C
             if hasattr(runlog, "begin_close"):  # the writer child finishes the file while we write ours
-                runlog.begin_close(summary)
+                runlog.begin_close(summary, status=status)
         recorder.write(out / "trajectory.npz", start_xyz)
         from tergodic_cli.atomic import write_json
 
         write_json(out / "summary.json", summary)
         if runlog is not None:
-            runlog.close(summary)
+            runlog.close(summary, status=status)
             runlog = None
         return summary
-    finally:
+    except BaseException as exc:
         if runlog is not None:
             if feed is not None:
                 try:
                     feed.flush()  # the steps so far, before the log is closed as interrupted
                 except TergodicError:
                     pass
-            runlog.__exit__(None, None, None)
+            runlog.__exit__(type(exc), exc, None)  # marks the log "interrupted" (Ctrl-C) or "error: ..."
+        raise
+
+
+def check_robot(robot: str, robot_cfg, capture, recapture_every, until_clean, max_steps, start_xyz=None) -> None:
+    """The robot's preconditions, before anything is written: its config (force range, ...), the
+    safety limits, a display for --gui, a reachable object pose, starts inside the workspace box
+    and the closed loop's settings."""
+    import os
+    from dataclasses import replace
+
+    from tergodic_cli.robot.config import validate_robot_config
+    from tergodic_cli.robot.safety import SafetyGuard
+
+    validate_robot_config(robot_cfg if robot == "pybullet" else replace(robot_cfg, backend="pybullet"))
+    # the guard's own checks (workspace box, force limit above --force); joint limits do not matter here
+    SafetyGuard(robot_cfg.safety, np.zeros(7), np.ones(7), np.ones(7), float(robot_cfg.force))
+    if getattr(robot_cfg, "gui", False) and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)", "run without --gui, or on a desktop")
+    if robot == "pybullet":
+        from tergodic_cli.robot.surface import (check_reachable, default_object_pose, parse_object_pose,
+                                                transform_points)
+
+        # the same placement as RobotRun, so an unreachable pose is refused before the run folder
+        meta = getattr(capture, "meta", {}) or {}
+        if robot_cfg.object_pose is not None:
+            T_obj = parse_object_pose(robot_cfg.object_pose)
+        elif meta.get("frame") == "robot_base":
+            T_obj = np.eye(4)
+        else:
+            T_obj = default_object_pose(np.asarray(capture.points, dtype=float))
+        check_reachable(transform_points(T_obj, capture.points))
+        ws = robot_cfg.safety
+        for a in ([] if start_xyz is None else transform_points(T_obj, np.atleast_2d(start_xyz))):
+            if not (np.all(a >= np.asarray(ws.workspace_min)) and np.all(a <= np.asarray(ws.workspace_max))):
+                raise TergodicError(f"the start point ({', '.join(f'{v:.3f}' for v in a)}) m is outside the workspace box",
+                                    "move the object with --object-pose, widen --workspace, or choose another start")
+    if recapture_every is not None:
+        from tergodic_cli.robot.closed_loop import CleaningLoopConfig, validate_loop_config
+
+        validate_loop_config(CleaningLoopConfig(recapture_every=recapture_every, until_clean=until_clean,
+                                                max_steps=max_steps))
 
 
 def make_robot_config(robot_config_cls, options: dict | None):

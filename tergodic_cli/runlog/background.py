@@ -746,10 +746,22 @@ def _yield_to_parent() -> None:
         pass
 
 
+def _quiet_foxglove() -> None:
+    """foxglove-sdk prints its write errors (e.g. a full disk) on stderr beside the one line the
+    parent prints from our report; FOXGLOVE_LOG_LEVEL still wins."""
+    try:
+        import foxglove
+
+        foxglove.set_log_level("CRITICAL")
+    except (ImportError, AttributeError):
+        pass
+
+
 def main() -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the parent, which closes the log properly
+    _quiet_foxglove()
     _yield_to_parent()
     try:
         from tergodic_cli.runlog import writer as _w  # the MCAP stack, before saying ready

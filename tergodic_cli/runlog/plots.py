@@ -24,9 +24,12 @@ _VIEWS = (("front (x-z)", 0, 2, 1, -1), ("side (y-z)", 1, 2, 0, 1), ("top (x-y)"
 
 
 def _pyplot():
+    import logging
+
     import matplotlib
 
     matplotlib.use("Agg", force=True)
+    logging.getLogger("matplotlib").setLevel(logging.ERROR)  # its layout notes are not the user's problem
     import matplotlib.pyplot as plt
 
     return plt

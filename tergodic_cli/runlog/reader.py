@@ -58,6 +58,9 @@ class RunLogData:
         The point clouds in log order.
     truncated : bool
         True when the file ends before its footer (a killed run).
+    status : str
+        "complete", "interrupted" (closed by the writer after Ctrl-C/SIGTERM, marked in its
+        end record), "truncated" (cut at the end), or "error: TYPE" (closed after an error).
     """
 
     path: Path
@@ -77,6 +80,13 @@ class RunLogData:
     truncated: bool
     truncation_note: str = ""
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+
+    @property
+    def status(self) -> str:
+        if self.truncated:
+            return "truncated"
+        end = (self.end or {}).get("status", "ok")
+        return "complete" if end == "ok" else end
 
     @property
     def steps(self) -> int:
@@ -166,8 +176,8 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
         Not an MCAP file, a truncated header, an unknown log schema version, not a
         tergodic log, or no step at all (one line, exit 2 in the CLI).
     """
-    from mcap.records import Attachment, Channel, Footer, Header, Message, Metadata, Schema
-    from mcap.stream_reader import StreamReader
+    from mcap.records import Attachment, Channel, Chunk, Footer, Header, Message, Metadata, Schema
+    from mcap.stream_reader import StreamReader, breakup_chunk
 
     path = resolve_log_path(path)
     _check_head(path)
@@ -186,14 +196,31 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
     topic_of: dict[int, str] = {}
     PointCloud = Log = step_decoder = None
 
+    size = path.stat().st_size
+    finished = _has_footer(path, size)
     with open(path, "rb") as fh:
-        records = iter(StreamReader(fh, validate_crcs=True).records)
+        reader = StreamReader(fh, validate_crcs=True, emit_chunks=True)
+        stream = reader._stream  # its byte count is the offset of the next record
+        top = iter(reader.records)
+        inner: list = []
         while True:
             try:
-                rec = next(records)
+                if inner:
+                    rec = inner.pop()
+                else:
+                    at = max(stream.count, len(_MAGIC))  # the first call reads the magic first
+                    rec = next(top)
+                    if isinstance(rec, Chunk):  # opened here, so a bad chunk is named by its offset
+                        inner = breakup_chunk(rec, validate_crc=True)[::-1]
+                        continue
             except StopIteration:
                 break
-            except Exception as exc:  # a cut: EndOfFile, short record, bad CRC, broken compression
+            except Exception as exc:  # a cut (EndOfFile, short record) or damage (bad CRC, garbage)
+                if complete and _cut_magic(path, at, size):
+                    truncated, note = True, "cut inside the closing magic"
+                    break
+                if finished or complete or not _runs_past_end(path, at, size):
+                    raise _corrupt(path, at, exc) from None
                 if not have_header:
                     raise TergodicError(f"{path} has a truncated header ({type(exc).__name__})",
                                         "the run died at start; re-run it") from None
@@ -238,6 +265,11 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
                 have_header = True
             elif isinstance(rec, Footer):
                 complete = True
+                _check_summary_crc(path, rec, at)
+        if complete and stream.count < size:  # bytes after the closing magic: not written by the log's writer
+            raise TergodicError(f"{path} has {size - stream.count} bytes of garbage after the end of the log "
+                                f"(from byte {stream.count})",
+                                f"remove them (truncate -s {stream.count} {path}), or re-run 'tergodic explore'")
     if not have_header:
         raise TergodicError(f"{path} has a truncated header", "the run died at start; re-run it")
     if not complete and not truncated:
@@ -274,6 +306,72 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
         stored_summary=_meta_json(S.META_SUMMARY), end=metadata.get(S.META_END),
         series=series, robot=[_arrays(s) for s in robot] or None, clouds=cloud_frames, events=events,
         topics=topics, truncated=truncated, truncation_note=note, metadata=metadata)
+
+
+_FOOTER_LEN = 1 + 8 + 20  # opcode, length, summary_start, summary_offset_start, summary_crc
+
+
+def _has_footer(path: Path, size: int) -> bool:
+    """The file ends in a footer record and the closing magic: it was finished, so a bad
+    record inside it is damage, not a cut."""
+    import struct
+
+    if size < len(_MAGIC) * 2 + _FOOTER_LEN:
+        return False
+    with open(path, "rb") as fh:
+        fh.seek(size - len(_MAGIC) - _FOOTER_LEN)
+        tail = fh.read()
+    return tail[-len(_MAGIC):] == _MAGIC and tail[0] == 0x02 and struct.unpack_from("<Q", tail, 1)[0] == 20
+
+
+def _cut_magic(path: Path, at: int, size: int) -> bool:
+    """After the footer the file holds only a part of the closing magic: cut in its last bytes."""
+    with open(path, "rb") as fh:
+        fh.seek(at)
+        rest = fh.read()
+    return len(rest) < len(_MAGIC) and _MAGIC.startswith(rest)
+
+
+def _runs_past_end(path: Path, at: int, size: int) -> bool:
+    """The record at byte ``at`` is a known record type whose length reaches past the end of the
+    file: the file was cut inside it (a truncation), not damaged."""
+    import struct
+
+    with open(path, "rb") as fh:
+        fh.seek(at)
+        head = fh.read(9)
+    if len(head) < 9:
+        return True
+    opcode, length = head[0], struct.unpack_from("<Q", head, 1)[0]
+    return 0x01 <= opcode <= 0x0F and at + 9 + length > size
+
+
+def _corrupt(path: Path, at: int, exc: BaseException | None, why: str = "") -> TergodicError:
+    from mcap.records import DataEnd
+
+    what = type(exc).__name__
+    record = getattr(exc, "record", None)
+    if why:
+        where = f"at byte {at} ({why})"
+    elif isinstance(record, DataEnd):  # the whole data section's checksum, checked at its end
+        where = f"before byte {at} (the data section's checksum does not match)"
+    else:
+        where = f"at byte {at} ({'bad CRC of the chunk starting there' if 'CRC' in what else f'unreadable record, {what}'})"
+    return TergodicError(f"{path} is corrupt {where}; the file was damaged after it was written",
+                         "restore it from a copy, or re-run 'tergodic explore'")
+
+
+def _check_summary_crc(path: Path, footer: Any, at: int) -> None:
+    """The footer's CRC over the summary section (the reader does not check it)."""
+    import zlib
+
+    if not footer.summary_crc or not footer.summary_start:
+        return
+    with open(path, "rb") as fh:
+        fh.seek(footer.summary_start)
+        body = fh.read(at + 1 + 8 + 16 - footer.summary_start)  # up to the footer's own CRC field
+    if zlib.crc32(body) != footer.summary_crc:
+        raise _corrupt(path, footer.summary_start, None, "the summary section's checksum does not match")
 
 
 def _step_decoder(schema: Any):

@@ -117,7 +117,7 @@ def _robot_rows(summary: dict[str, Any]) -> list[tuple[str, str]]:
 def format_table(summary: dict[str, Any], data: RunLogData, comparison: tuple[str, list[str]] | None) -> str:
     """The human summary: steps, duration, ε at 200/500/end, touched, force statistics."""
     s = data.series
-    lines = [f"{data.path}  (log schema {data.version}, {'TRUNCATED' if data.truncated else 'complete'})"]
+    lines = [f"{data.path}  (log schema {data.version}, {data.status if data.status == 'complete' else data.status.upper()})"]
     rows: list[tuple[str, str]] = []
     rows.append(("steps", _fmt(summary.get("steps", data.steps), "d")))
     t0, t1 = float(s["t"][0]), float(s["t"][-1])
@@ -156,4 +156,6 @@ def format_table(summary: dict[str, Any], data: RunLogData, comparison: tuple[st
     lines += [f"  {k:<{width}}  {v}" for k, v in rows]
     if data.truncated:
         lines.append(f"  note: the log is truncated ({data.truncation_note}); read up to the last complete chunk")
+    elif data.status == "interrupted":
+        lines.append("  note: the run was interrupted (Ctrl-C or SIGTERM); the log holds the steps before it")
     return "\n".join(lines)

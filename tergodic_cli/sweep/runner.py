@@ -7,11 +7,13 @@ done. (joblib's own Ray backend cannot stream results back, which resuming needs
 the basis cache, which the driver fills before dispatching) and keeps it for its later batches.
 
 Crash safety and resuming: the driver writes each finished run as two small files,
-``runs/ID.npz`` (the per-step series) then ``runs/ID.json`` (the summary), each atomically; a
-run counts as done when its JSON exists, so a rerun skips it. ID is a hash of the object's
+``runs/ID.npz`` (the per-step series) then ``runs/ID.json`` (the summary, with the sha256 of the
+series file and of its own content), each atomically; a run counts as done when its record
+verifies (:func:`load_record`), so a rerun skips it and runs a damaged one again. ID is a hash of the object's
 content, the start and the whole explore config, so a changed grid never reuses a stale run.
 The table (``results.csv``, optionally ``results.parquet``), the merged series
-(``series.npz``) and the plots are rebuilt from the run files at the end of every sweep.
+(``series.npz``), the plots and ``sweep.json`` are rebuilt from the run files at the end of every
+sweep, in a temporary folder inside OUT, and moved into place once all are written.
 
 Results do not depend on the engine or the number of workers: a run is a pure function of
 its inputs, single-threaded, with no BLAS call (explore.kernels).
@@ -231,7 +233,10 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
     require(jobs == -1 or jobs >= 1, f"--jobs must be >= 1 (or -1: all CPUs), got {jobs}", "e.g. --jobs 2")
     grid = load_grid(grid_path)
     out = Path(out)
-    require(not out.exists() or out.is_dir(), f"--out {out} exists and is not a folder", "give a folder for the sweep")
+    from tergodic_cli.atomic import AtomicFolder
+
+    # before any work: a file, a path under a file, a folder we cannot write (it is resumed in place)
+    AtomicFolder(out, overwrite=True, what="sweep").check(renamed=False)
     if engine == "ray":  # refuse early, before any work, when Ray is missing
         try:
             import ray  # noqa: F401
@@ -261,8 +266,17 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
             for start in grid.starts:
                 rid = run_id(obj.key, start, cfg.to_dict())
                 plan.append((obj, start, combo, rid, cfg))
-    done = {p.stem for p in runs_dir.glob("*.json")}
-    pending = [p for p in plan if p[3] not in done]
+    finished, bad = {}, []
+    for p in plan:
+        if (runs_dir / f"{p[3]}.json").exists():
+            rec = load_record(runs_dir, p[3])
+            if isinstance(rec, str):
+                bad.append(rec)
+            else:
+                finished[p[3]] = rec
+    if bad:
+        say(f"sweep: {len(bad)} finished run record(s) do not verify (e.g. {bad[0]}); running them again")
+    pending = [p for p in plan if p[3] not in finished]
     say(f"{len(plan)} runs: {len(plan) - len(pending)} done already, {len(pending)} to run "
         f"({engine}, {'all CPUs' if jobs == -1 else f'{jobs} job(s)'})")
 
@@ -282,19 +296,34 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
                     failed.append(rec)
                     continue
                 write_npz(runs_dir / f"{rec['run_id']}.npz", **rec["series"])
-                write_json(runs_dir / f"{rec['run_id']}.json", _record(by_id[rec["run_id"]], rec))
+                record = _record(by_id[rec["run_id"]], rec)
+                record["series_sha256"] = _sha256(runs_dir / f"{rec['run_id']}.npz")
+                record[RECORD_SHA] = record_checksum(record)
+                write_json(runs_dir / f"{rec['run_id']}.json", record)
+                finished[rec["run_id"]] = (json.loads(json.dumps(record, default=_jsonable)),
+                                           {k: np.asarray(v) for k, v in rec["series"].items()})
                 computed += 1
-    table, series = _collect(plan, runs_dir)
-    files = _write_outputs(out, grid, table, series, parquet)
-    if plots and table:
-        from tergodic_cli.sweep.plots import plot_sweep
+    table, series = _collect(plan, finished)
+    staged = _Staged(out)
+    with staged as stage:  # the outputs are built aside and moved in together
+        files = _write_outputs(stage, grid, table, series, parquet)
+        if plots and table:
+            from tergodic_cli.sweep.plots import plot_sweep
 
-        files += plot_sweep(out, grid, table, series)
+            files += plot_sweep(stage, grid, table, series)
+        result = SweepResult(out=out, n_runs=len(plan), computed=computed, skipped=len(plan) - len(pending),
+                             failed=failed, wall_s=time.perf_counter() - t_start, files=files, table=table)
+        _write_sweep_json(stage, grid, objects, engine, jobs, plan, computed, result, failed, files)
+        staged.files = files + ["sweep.json"]
+    result.files = files + ["sweep.json"]
+    return result
+
+
+def _write_sweep_json(stage: Path, grid, objects, engine, jobs, plan, computed, result, failed, files) -> None:
+    from tergodic_cli.atomic import write_json
     from tergodic_cli.provenance import library_versions
 
-    result = SweepResult(out=out, n_runs=len(plan), computed=computed, skipped=len(plan) - len(pending),
-                         failed=failed, wall_s=time.perf_counter() - t_start, files=files, table=table)
-    write_json(out / "sweep.json", {
+    write_json(stage / "sweep.json", {
         "grid": str(grid.path), "steps": grid.steps, "seed": grid.seed, "starts": grid.starts,
         "options": grid.options, "objects": {o.spec.name: {"source": o.spec.source, "location": o.spec.location,
                                                            "key": o.key, "n_points": len(o.points),
@@ -302,8 +331,99 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
                                                            "neighbors": o.spec.neighbors} for o in objects},
         "engine": engine, "jobs": jobs, "runs": len(plan), "computed": computed, "skipped": result.skipped,
         "failed": failed, "wall_s": result.wall_s, "files": files, "versions": library_versions()})
-    result.files = files + ["sweep.json"]
-    return result
+
+
+class _Staged:
+    """A temporary folder inside ``out`` (same filesystem) whose ``files`` are renamed into ``out``
+    once all are written; on an error it is removed and the old outputs stay as they were."""
+
+    def __init__(self, out: Path):
+        self.out, self.files, self.path = out, [], None
+
+    def __enter__(self) -> Path:
+        import tempfile
+
+        try:
+            self.path = Path(tempfile.mkdtemp(prefix=".results.tmp-", dir=self.out))
+        except OSError as exc:
+            raise _os_error(exc, self.out) from None
+        return self.path
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        import shutil
+
+        try:
+            if exc_type is None:
+                for name in self.files:
+                    os.replace(self.path / name, self.out / name)
+        except OSError as err:
+            raise _os_error(err, self.out) from None
+        finally:
+            shutil.rmtree(self.path, ignore_errors=True)
+        if isinstance(exc, OSError):
+            raise _os_error(exc, self.out) from None
+        return False
+
+
+def _os_error(exc: OSError, out: Path) -> TergodicError:
+    from tergodic_cli.atomic import os_cause
+
+    return TergodicError(f"cannot write the sweep's results in {out}: {os_cause(exc)}",
+                         "free space or fix the folder's permissions, then run the same command again: finished runs are kept")
+
+
+#: The record's checksum of its own content (canonical JSON without this key).
+RECORD_SHA = "record_sha256"
+#: What a finished-run record must hold to be counted as done.
+RECORD_KEYS = ("run_id", "object", "n_points", "n_target", "start", "start_xyz", "wall_s", "summary", "series_sha256")
+SUMMARY_KEYS = ("steps", "ergodicity", "residual_ref", "touched_fraction", "ergodicity_at", "residual_ref_at",
+                "touched_fraction_at", "step_ms_median")
+
+
+def record_checksum(record: dict) -> str:
+    body = {k: v for k, v in record.items() if k != RECORD_SHA}
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True, default=_jsonable)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def load_record(runs_dir: Path, rid: str):
+    """The finished run ``rid`` as (record, series), or a one-phrase reason it does not verify:
+    unreadable or not JSON, a missing key, an edited record, a missing or changed series file."""
+    jpath, npath = runs_dir / f"{rid}.json", runs_dir / f"{rid}.npz"
+    name = f"runs/{rid}.json"
+    try:
+        rec = json.loads(jpath.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return f"{name}: not readable JSON"
+    if not isinstance(rec, dict) or not isinstance(rec.get("summary"), dict):
+        return f"{name}: not a run record"
+    missing = [k for k in RECORD_KEYS if k not in rec] + [k for k in SUMMARY_KEYS if k not in rec["summary"]]
+    if missing:
+        return f"{name}: no '{missing[0]}'"
+    if rec.get(RECORD_SHA) != record_checksum(rec) or rec["run_id"] != rid:
+        return f"{name}: edited (its checksum does not match)"
+    try:
+        if _sha256(npath) != rec["series_sha256"]:
+            return f"runs/{rid}.npz: changed (its checksum does not match the record)"
+        with np.load(npath, allow_pickle=False) as z:
+            series = {k: np.asarray(z[k]) for k in SERIES}
+    except (OSError, ValueError, KeyError):
+        return f"runs/{rid}.npz: missing or unreadable"
+    return rec, series
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _jsonable(obj):
+    from tergodic_cli.atomic import _json_default
+
+    return _json_default(obj)
 
 
 def _batches(pending, grid: Grid, jobs: int, cache_dir) -> list[dict]:
@@ -333,15 +453,14 @@ def _record(meta, rec: dict) -> dict:
             "wall_s": rec["wall_s"], "summary": rec["summary"]}
 
 
-def _collect(plan, runs_dir: Path) -> tuple[list[dict], dict]:
-    """The table rows and series of this grid's finished runs (sorted), from the run files."""
+def _collect(plan, finished: dict) -> tuple[list[dict], dict]:
+    """The table rows and series of this grid's finished runs (sorted), from the verified records."""
     rows, series = [], {k: [] for k in SERIES}
     ids = []
     for obj, start, combo, rid, cfg in plan:
-        jpath = runs_dir / f"{rid}.json"
-        if not jpath.exists():
+        if rid not in finished:
             continue
-        rec = json.loads(jpath.read_text())
+        rec, run_series = finished[rid]
         s = rec["summary"]
         row = {"run_id": rid, "object": rec["object"], "n_points": rec["n_points"], "n_target": rec["n_target"],
                "start": start, "start_x": rec["start_xyz"][0], "start_y": rec["start_xyz"][1],
@@ -358,9 +477,8 @@ def _collect(plan, runs_dir: Path) -> tuple[list[dict], dict]:
                     "edge_events": s.get("edge_events"), "step_ms_median": s["step_ms_median"],
                     "wall_s": rec["wall_s"]})
         rows.append(row)
-        with np.load(runs_dir / f"{rid}.npz", allow_pickle=False) as z:
-            for k in SERIES:
-                series[k].append(z[k])
+        for k in SERIES:
+            series[k].append(run_series[k])
         ids.append(rid)
     order = sorted(range(len(rows)), key=lambda i: (rows[i]["object"], rows[i]["nk"], _alpha_key(rows[i]["alpha"]),
                                                     [str(rows[i].get(k)) for k in rows[i] if k not in LEAD_COLUMNS
