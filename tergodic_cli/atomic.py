@@ -14,6 +14,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from tergodic_cli.errors import os_cause  # noqa: F401  (one wording of the OS's causes, for every verb)
+
 
 @contextlib.contextmanager
 def atomic_path(target: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
@@ -98,23 +100,6 @@ def _json_default(obj: Any) -> Any:
 
 # ------------------------------------------------------------------------------ whole folders
 #: The operating system's causes, in the words of the one-line message (no errno, no library text).
-_CAUSES = {"ENOSPC": "no space left on device", "EDQUOT": "disk quota exceeded", "EROFS": "read-only filesystem",
-           "EACCES": "permission denied", "EPERM": "permission denied",
-           "ENOTDIR": "a part of the path is a file, not a folder", "EISDIR": "it is a folder",
-           "ENAMETOOLONG": "the name is too long", "EIO": "input/output error"}
-
-
-def os_cause(exc: OSError) -> str:
-    """A short lower-case cause for ``exc``."""
-    import errno
-
-    name = errno.errorcode.get(exc.errno or -1, "")
-    text = str(exc).lower()
-    if not name and ("space" in text or "written" in text):  # numpy's short write has no errno
-        name = "ENOSPC"
-    return _CAUSES.get(name) or (exc.strerror or str(exc) or type(exc).__name__).lower()
-
-
 def _full(exc: BaseException) -> bool:
     return isinstance(exc, OSError) and os_cause(exc) in ("no space left on device", "disk quota exceeded")
 
