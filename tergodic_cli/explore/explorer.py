@@ -50,6 +50,7 @@ from tergodic_cli.explore.metrics import CoverageScore
 _TREES: dict[int, tuple] = {}
 _PHI: dict[int, tuple] = {}
 _PARTS: dict[int, tuple] = {}
+_FIELDS: dict[int, tuple] = {}
 
 
 def _cached(store: dict, owner, build):
@@ -107,9 +108,58 @@ def surface_parts(points: np.ndarray, h: float) -> np.ndarray:
 def _internal_phi(evecs: np.ndarray, nk: int, order: np.ndarray) -> np.ndarray:
     """Φ[:, :nk] with its rows in internal order, C-contiguous (built once per array and nK)."""
     per_nk = _cached(_PHI, evecs, dict)
-    if nk not in per_nk:
-        per_nk[nk] = np.ascontiguousarray(evecs[order, :nk], dtype=np.float64)
-    return per_nk[nk]
+    key = (nk, len(order))  # the whole cloud, or its field set (one per cloud)
+    if key not in per_nk:
+        per_nk[key] = np.ascontiguousarray(evecs[order, :nk], dtype=np.float64)
+    return per_nk[key]
+
+
+#: The explorer keeps coverage, source and heat on the cloud thinned to a voxel grid of this size
+#: (metres) when the cloud is much denser: the paper's capture voxel, where its α and footprint were
+#: tuned. A step then costs about the same on any sampling of an object (docs/explore.md).
+FIELD_VOXEL = 0.003
+#: ... when the cloud's spacing h is below this share of FIELD_VOXEL (a 3 mm capture is used whole).
+THIN_BELOW = 0.5
+
+
+class FieldSet:
+    """The points that carry the explorer's fields: ``sel`` (m,) cloud indices, ``rep`` (n,) the
+    position in ``sel`` that stands for each cloud point, ``mass`` (m,) the summed lumped mass of
+    the points each stands for (m²), ``points`` (m, 3), ``h`` their mean spacing (metres)."""
+
+    def __init__(self, points: np.ndarray, mass: np.ndarray, h: float):
+        n = len(points)
+        if h >= THIN_BELOW * FIELD_VOXEL:
+            self.sel, self.rep, self.mass, self.points, self.h = np.arange(n), np.arange(n), mass, points, h
+            self.thinned = False
+            return
+        from scipy.spatial import cKDTree
+
+        cell = np.floor((points - points.min(axis=0)) / FIELD_VOXEL).astype(np.int64)
+        _, group, counts = np.unique(cell, axis=0, return_inverse=True, return_counts=True)
+        group = group.ravel()
+        centre = np.zeros((len(counts), 3))
+        np.add.at(centre, group, points)
+        centre /= counts[:, None]
+        # each voxel's stand-in: its point nearest the voxel's centroid (a real point, on the data)
+        d = np.linalg.norm(points - centre[group], axis=1)
+        order = np.lexsort((d, group))
+        first = np.ones(n, dtype=bool)
+        first[1:] = group[order][1:] != group[order][:-1]
+        self.sel = np.sort(order[first])
+        slot = np.empty(len(counts), dtype=np.int64)
+        slot[group[self.sel]] = np.arange(len(self.sel))
+        self.rep = slot[group]
+        self.mass = np.bincount(self.rep, weights=mass, minlength=len(self.sel))
+        self.points = np.ascontiguousarray(points[self.sel])
+        dist, _ = cKDTree(self.points).query(self.points, 4)
+        self.h = float(dist[:, 1:].mean())
+        self.thinned = True
+
+
+def field_set(points: np.ndarray, mass: np.ndarray, h: float) -> FieldSet:
+    """The :class:`FieldSet` of a cloud (built once per array)."""
+    return _cached(_FIELDS, points, lambda: FieldSet(points, mass, h))
 
 
 class Explorer:
@@ -159,10 +209,17 @@ class Explorer:
         self.eps = cfg.footprint_epsilon
         self.r_a = float(cfg.agent_radius)
         self._k = int(cfg.n_neighbors)
-        index = cloud_index(self.points)
-        self._index = index
+        self._full = cloud_index(self.points)  # what lies on the data, the score, the starts
+        # The fields live on the cloud, or on its thinned field set when the cloud is much denser
+        # than a 3 mm capture (the implicit integrator needs the whole cloud's L).
+        fset = field_set(self.points, self.mass, self.h)
+        if fset.thinned and cfg.integrator == "implicit":
+            fset = FieldSet(self.points, self.mass, float("inf"))
+        self._field = fset
+        index = cloud_index(fset.points)
         self._order, self._rank, self._P, self._tree = index.order, index.rank, index.points, index.tree
-        self._phi = _internal_phi(basis.evecs, cfg.nk, self._order)
+        self._phi = _internal_phi(basis.evecs, cfg.nk, fset.sel[self._order])
+        n = len(fset.sel)
         if self.r_a < self.h:
             self._say(f"warning: agent radius {self.r_a * 1e3:.2f} mm is below the point spacing h = "
                       f"{self.h * 1e3:.2f} mm; the footprint may miss points (use --agent-radius >= h)")
@@ -176,7 +233,7 @@ class Explorer:
 
         # Per-point state, packed for the compiled step (kernels.PF_*, PB_*, PI_* rows).
         self._pf = np.zeros((K.N_PF, n))
-        self._pf[K.PF_MASS] = basis.mass[self._order]
+        self._pf[K.PF_MASS] = fset.mass[self._order]
         self._pb = np.zeros((K.N_PB, n), dtype=np.int8)
         self._pi = np.zeros((K.N_PI, n), dtype=np.int64)
         self._sp = np.zeros((K.N_SP, cfg.nk))
@@ -185,7 +242,7 @@ class Explorer:
         self._prm = np.zeros(K.N_PR)
         self._prm[K.PR_EPS2] = self.eps * self.eps
         self._prm[K.PR_RA] = self.r_a
-        self._prm[K.PR_H2] = self.h * self.h
+        self._prm[K.PR_H2] = fset.h * fset.h
         self._prm[K.PR_AMAX] = cfg.a_max
         self._prm[K.PR_VMAX] = cfg.v_max
         self._prm[K.PR_DT] = cfg.dt
@@ -225,12 +282,13 @@ class Explorer:
         hint = np.asarray(cfg.normal_hint, dtype=float)
         hint = hint / np.linalg.norm(hint)
         for i, x0 in enumerate(starts):
-            d0 = K.nearest_distance(*self._tree, x0)
+            d0 = K.nearest_distance(*self._full.tree, x0)
             require(d0 <= cfg.max_start_distance,
                     f"start {np.array2string(x0, precision=4)} is {d0 * 1e3:.1f} mm from the cloud "
                     f"(limit {cfg.max_start_distance * 1e3:.0f} mm)",
                     "give a start on the object (x,y,z in metres, a point index, or 'random')")
-            K.place_agent(self._P, *self._tree, self._ag, self._nbrs, i, x0, hint, self._k, self._prm[K.PR_REACH])
+            K.place_agent(self._P, *self._tree, self._full.tree, self._ag, self._nbrs, i, x0, hint, self._k,
+                          self._prm[K.PR_REACH])
             if d0 > self.h:
                 self._say(f"warning: start {np.array2string(x0, precision=4)} is {d0 * 1e3:.1f} mm off the cloud; "
                           f"projected onto the surface at {np.array2string(self.positions[i], precision=4)}")
@@ -240,14 +298,14 @@ class Explorer:
         """Move agent i to the target's part of the cloud when its start is on a part the agent
         cannot leave without leaving the data (a gap wider than 2 x SURFACE_REACH h)."""
         parts = surface_parts(self.points, self.h)
-        here = parts[self._order[self._nbrs[i, 0]]]
+        here = parts[self._field.sel[self._order[self._nbrs[i, 0]]]]
         if np.any(self.p[parts == here] > 0):
             return
         reachable = np.flatnonzero(np.isin(parts, np.unique(parts[self.p > 0])))
         x = self.positions[i].copy()
         j = reachable[np.argmin(np.linalg.norm(self.points[reachable] - x, axis=1))]
-        K.place_agent(self._P, *self._tree, self._ag, self._nbrs, i, self.points[j].copy(), hint, self._k,
-                      self._prm[K.PR_REACH])
+        K.place_agent(self._P, *self._tree, self._full.tree, self._ag, self._nbrs, i, self.points[j].copy(), hint,
+                      self._k, self._prm[K.PR_REACH])
         self._say(f"warning: start {np.array2string(x, precision=4)} is on a part of the cloud the target is not on "
                   f"(a gap wider than {2 * K.SURFACE_REACH * self.h * 1e3:.1f} mm); starting at the nearest point "
                   f"of the target's part, {np.linalg.norm(self.points[j] - x) * 1e3:.1f} mm away")
@@ -271,7 +329,11 @@ class Explorer:
         if reset_coverage:
             self._cov[:] = 0.0
         self.p = p
-        pbar = (p / total)[self._order]  # internal order from here on
+        fset = self._field
+        n = len(fset.sel)
+        # p̄ on the field set: each field point carries the mass-weighted mean of the points it stands for
+        held = np.bincount(fset.rep, weights=self.mass * p, minlength=n)
+        pbar = (np.divide(held, fset.mass, out=np.zeros(n), where=fset.mass > 0) / total)[self._order]  # internal order
         T = np.flatnonzero(pbar > 0)
         self._T = T
         self._n_target = len(T)
@@ -304,9 +366,9 @@ class Explorer:
             self._u_full[:] = pbar
             self._u_orig[:] = pbar[self._rank]
         if self._score is None:
-            self._score = CoverageScore(self._index, p, self.r_a, self.h, self.cfg.n_agents)
+            self._score = CoverageScore(self._full, p, self.r_a, self.h, self.cfg.n_agents)
         else:
-            self._score.set_target(p, self._index)
+            self._score.set_target(p, self._full)
         self._metrics = {"ergodicity": self._score.metrics()["ergodicity"], "residual_ref": float("nan"),
                          "touched_fraction": self._score.metrics()["touched_fraction"]}
         if hasattr(self, "_state"):
@@ -314,7 +376,7 @@ class Explorer:
 
     def _bind(self) -> None:
         """The step kernel's state arguments, bound once (the heap arrays change with the target)."""
-        self._state = (self._P, *self._tree, self._phi, self._pf, self._pb, self._pi, self._sp, self._heap_keys,
+        self._state = (self._P, *self._tree, self._full.tree, self._phi, self._pf, self._pb, self._pi, self._sp, self._heap_keys,
                        self._heap_idx, self._fs, self._is, self._prm, self._ag, self._nbrs, self._k)
 
     @property
@@ -339,13 +401,13 @@ class Explorer:
 
     @property
     def coverage(self) -> np.ndarray:
-        """(n,) raw coverage c̃ in the cloud's order (a copy)."""
-        return self._cov[self._rank]
+        """(n,) raw coverage c̃ in the cloud's order (a copy; on a thinned cloud, each point's field point's)."""
+        return self._cov[self._rank][self._field.rep]
 
     @property
     def neighbours(self) -> np.ndarray:
         """(N, n_N) each agent's fit patch: cloud point indices, nearest first (a copy)."""
-        return self._order[self._nbrs]
+        return self._field.sel[self._order[self._nbrs]]
 
     @property
     def evecs(self) -> np.ndarray:
@@ -364,8 +426,8 @@ class Explorer:
         return source_term(self.p, self.coverage, self.mass, norm=self.cfg.coverage_norm)
 
     def _sbar(self) -> np.ndarray:
-        """(n,) the injected source s/∫s as the step used it (running Z and ∫s), internal order."""
-        out = np.zeros(len(self.points))
+        """(m,) the injected source s/∫s as the step used it (running Z and ∫s), internal order."""
+        out = np.zeros(len(self._field.sel))
         Z, ms = self._fs[K.FS_Z], self._fs[K.FS_MASS_S]
         if ms > 0:
             T = self._T
@@ -378,6 +440,12 @@ class Explorer:
         """(n,) the potential u in the cloud's order (reconstructed: O(n nK))."""
         if not self._spectral:
             return self._u_orig.copy()
+        f = self._field
+        if f.thinned:  # the spectral part on every point; the residual from each one's field point
+            u = K.expand_rows(np.ascontiguousarray(self.evecs), self._sp[K.SP_A])
+            if self._mode == K.HEAT_CARRY:
+                u += self._sbar()[self._rank][f.rep]
+            return u
         u = K.expand_rows(self._phi, self._sp[K.SP_A])
         if self._mode == K.HEAT_CARRY:
             u += self._sbar()
@@ -402,8 +470,16 @@ class Explorer:
         else:
             coverage, source, coeffs, residual = out
         carry = self._spectral and self._mode == K.HEAT_CARRY
-        K.cloud_fields(self._pf[K.PF_PBAR], self._cov, self._T, self._rank, self._fs[K.FS_Z], self._fs[K.FS_MASS_S],
-                       carry, coverage, source, residual)  # one compiled pass: this runs in the explore loop
+        f = self._field
+        if f.thinned:  # computed on the field set, then each point takes its field point's values
+            m = len(f.sel)
+            cs, ss, rs = np.empty(m), np.empty(m), np.empty(m)
+            K.cloud_fields(self._pf[K.PF_PBAR], self._cov, self._T, self._rank, self._fs[K.FS_Z],
+                           self._fs[K.FS_MASS_S], carry, cs, ss, rs)
+            coverage[:], source[:], residual[:] = cs[f.rep], ss[f.rep], rs[f.rep]
+        else:
+            K.cloud_fields(self._pf[K.PF_PBAR], self._cov, self._T, self._rank, self._fs[K.FS_Z],
+                           self._fs[K.FS_MASS_S], carry, coverage, source, residual)  # one compiled pass
         if not self._spectral:
             residual[:] = self._u_orig
             return coverage, source, None, residual
@@ -414,7 +490,7 @@ class Explorer:
 
     def heat_at(self, idx: np.ndarray) -> np.ndarray:
         """u at the cloud points ``idx`` (m,) exactly as the agents' gradient fits see it, O(m nK)."""
-        idx = self._rank[np.asarray(idx, dtype=np.int64).ravel()]
+        idx = self._rank[self._field.rep[np.asarray(idx, dtype=np.int64).ravel()]]
         return np.array([K.heat_at(self._phi, self._pf, self._sp, self._fs, j, self._mode, self._u_full)
                          for j in idx])
 

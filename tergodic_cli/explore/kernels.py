@@ -1109,7 +1109,7 @@ def locate(P, perm, nodes, boxes, tpts, x, ref, k, out_xp, out_n, out_nb, d2buf)
 
 
 @njit
-def place_agent(P, perm, nodes, boxes, tpts, ag, nbrs, i, x0, ref, k, prm_reach):
+def place_agent(P, perm, nodes, boxes, tpts, full, ag, nbrs, i, x0, ref, k, prm_reach):
     """Project a start or reset position onto the surface (fit, project, re-query up to
     START_ITERATIONS times) and set agent ``i``'s position, normal, frame, tangent velocity."""
     x = x0.copy()
@@ -1126,7 +1126,7 @@ def place_agent(P, perm, nodes, boxes, tpts, ag, nbrs, i, x0, ref, k, prm_reach)
         r[:] = nn
         if moved < 1e-9:
             break
-    if _nearest_of(P, nb, k, x) > prm_reach * prm_reach:  # projected into a hole or past an edge
+    if not on_data(full, x, prm_reach):  # projected into a hole or past an edge
         j = nb[0]
         for d in range(3):
             x[d] = P[j, d]
@@ -1210,25 +1210,19 @@ def _dist2(a, b):
 
 
 @njit
-def _nearest_of(P, nb, k, x):
-    """Squared distance from ``x`` to the nearest of the points ``nb[:k]``."""
-    best = np.inf
-    for t in range(k):
-        j = nb[t]
-        d0, d1, d2 = P[j, 0] - x[0], P[j, 1] - x[1], P[j, 2] - x[2]
-        dd = d0 * d0 + d1 * d1 + d2 * d2
-        if dd < best:
-            best = dd
-    return best
+def on_data(full, x, reach):
+    """Whether ``x`` lies within ``reach`` (metres) of a point of the cloud whose tree is ``full``
+    (perm, nodes, boxes, points)."""
+    return nearest_distance(full[0], full[1], full[2], full[3], x) <= reach
 
 
 @njit
-def try_move(P, perm, nodes, boxes, tpts, x, disp, ref, k, prm, out_xp, out_n, out_nb, d2buf):
+def try_move(P, perm, nodes, boxes, tpts, full, x, disp, ref, k, prm, out_xp, out_n, out_nb, d2buf):
     """Move from ``x`` by ``disp`` (3,) and project onto the surface fitted there (eqs. 23-27),
     shrinking the step until the projected displacement is at most v_max dt (the projection can
-    lengthen it). Returns True when the result lies on the data: its nearest cloud point is
-    within PR_REACH (the fit, a plane past a sheet's edge or across a hole, extends beyond the
-    points, so a projection there is refused)."""
+    lengthen it). Returns True when the result lies on the data: its nearest point of the whole
+    cloud (``full``: its tree) is within PR_REACH (the fit, a plane past a sheet's edge or across
+    a hole, extends beyond the points, so a projection there is refused)."""
     limit = prm[PR_VMAX] * prm[PR_DT]
     xt = np.empty(3)
     scale = 1.0
@@ -1245,11 +1239,11 @@ def try_move(P, perm, nodes, boxes, tpts, x, disp, ref, k, prm, out_xp, out_n, o
         f = limit / moved
         for d in range(3):
             out_xp[d] = x[d] + (out_xp[d] - x[d]) * f
-    return _nearest_of(P, out_nb, k, out_xp) <= prm[PR_REACH] * prm[PR_REACH]
+    return on_data(full, out_xp, prm[PR_REACH])
 
 
 @njit
-def move_agent(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, sp, fs, is_, ag, nbrs, i, k, prm, mode, u_full):
+def move_agent(P, perm, nodes, boxes, tpts, full, Phi, pf, pb, pi, sp, fs, is_, ag, nbrs, i, k, prm, mode, u_full):
     """Gradient step of agent i (eq. 6, saturated), semi-implicit Euler within v_max, then the
     move onto the surface (:func:`try_move`). A move that would leave the data (an edge, a hole,
     a gap) is not made: the velocity is reflected off the boundary (its outward normal estimated
@@ -1289,7 +1283,7 @@ def move_agent(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, sp, fs, is_, ag, nb
     disp = np.empty(3)
     for d in range(3):
         disp[d] = v[d] * dt
-    ok = try_move(P, perm, nodes, boxes, tpts, x, disp, nrm, k, prm, xp, nn, nb, d2)
+    ok = try_move(P, perm, nodes, boxes, tpts, full, x, disp, nrm, k, prm, xp, nn, nb, d2)
     if not ok:
         # The move leaves the data (an edge, a hole, a gap). Slide instead: of the tangent
         # directions turned by ±30°, ±60°, ... from the intended one, take the nearest that stays
@@ -1312,7 +1306,7 @@ def move_agent(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, sp, fs, is_, ag, nb
                 for d in range(3):
                     v[d] = vs * (ca * t1[d] + sa * t2[d])
                     disp[d] = length * v[d] * dt
-                ok = try_move(P, perm, nodes, boxes, tpts, x, disp, nrm, k, prm, xp, nn, nb, d2)
+                ok = try_move(P, perm, nodes, boxes, tpts, full, x, disp, nrm, k, prm, xp, nn, nb, d2)
                 if ok:
                     break
             if ok:
@@ -1338,10 +1332,12 @@ def move_agent(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, sp, fs, is_, ag, nb
 
 # ---------------------------------------------------------------------------------- the step
 @njit
-def step_kernel(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, sp, hk, hi, fs, is_, prm, ag, nbrs, k,
+def step_kernel(P, perm, nodes, boxes, tpts, full, Phi, pf, pb, pi, sp, hk, hi, fs, is_, prm, ag, nbrs, k,
                 deposits, n_deposits, resets, reset_status, mode, resync_every, u_full, phase):
     """One explorer step (see explorer.py), or part of it.
 
+    ``P`` and the tree (perm, nodes, boxes, tpts) are the field's points (the cloud, or its
+    thinned field set); ``full`` is the whole cloud's tree, which decides what lies on the data.
     ``n_deposits`` < 0: deposit at the agents (kinematic); otherwise at the first ``n_deposits``
     rows of ``deposits`` (contact points; each projected onto the surface, skipped when farther
     than r_a from the cloud). ``resets`` (N, 3) with ``reset_status`` (N,): when
@@ -1382,10 +1378,10 @@ def step_kernel(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, sp, hk, hi, fs, is
                 reset_status[i] = -2
                 resets[i, 0] = d0
             else:
-                place_agent(P, perm, nodes, boxes, tpts, ag, nbrs, i, resets[i], ag[i, AG_NRM:AG_NRM + 3].copy(), k,
+                place_agent(P, perm, nodes, boxes, tpts, full, ag, nbrs, i, resets[i], ag[i, AG_NRM:AG_NRM + 3].copy(), k,
                             prm[PR_REACH])
     for i in range(N):
-        move_agent(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, sp, fs, is_, ag, nbrs, i, k, prm, mode, u_full)
+        move_agent(P, perm, nodes, boxes, tpts, full, Phi, pf, pb, pi, sp, fs, is_, ag, nbrs, i, k, prm, mode, u_full)
 
 
 # ---------------------------------------------------------------------------------- coverage score
