@@ -111,8 +111,15 @@ def explore(
 
         echo_err(f"interrupted: the robot was made safe; partial run written to {out}/")
         raise typer.Exit(143 if Terminated.received else 130)
+    from tergodic_cli.robot.safety import fault_exit_code
+
+    code = fault_exit_code(summary)  # a robot stopped on a fault, made safe: exit 3 with its reason
     if json_out:
         typer.echo(json.dumps(summary, indent=2))
+    if code:
+        echo_err(f"robot stopped: {summary.get('stop_reason')}")
+        raise typer.Exit(code)
+    if json_out:
         return
     typer.echo(f"explored {summary['steps']} steps ({robot}): ε {summary['ergodicity']:.3f} (unit-mass, 0 best), "
                f"touched {100 * summary['touched_fraction']:.1f}%, "

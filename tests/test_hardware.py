@@ -280,14 +280,16 @@ def test_force_spike_retreats_and_stops(plate, monkeypatch, franky, bota):
     assert samples[-1]["stop_reason"] == out["stop_reason"]
 
 
-def test_stale_sensor_holds(plate, monkeypatch, franky, bota):
+def test_stale_sensor_lifts_the_tool(plate, monkeypatch, franky, bota):
+    # In contact a fault never ends in a hold while pressed (issue 15): the tool lifts, then stops.
     def freeze(world, arm, dt):
         if world.t > 5.5:
             world.sensor_fault = "freeze"
     out, world, events, *_ = _run(plate, monkeypatch, ft="bota", inject=freeze, steps=30)
     assert out["final_state"] == "stopped"
-    assert "stopped updating" in out["stop_reason"] and "holding position" in out["stop_reason"]
-    assert world.robot._active is None and np.allclose(world.dq, 0.0)
+    assert "stopped updating" in out["stop_reason"] and "lifting the tool" in out["stop_reason"]
+    assert any("explore -> retreat" in e for e in events)
+    assert world.f_n == 0.0 and world.robot._active is None and np.allclose(world.dq, 0.0)
 
 
 def test_robot_reflex_is_reported_not_fought(plate, monkeypatch, franky):

@@ -31,7 +31,7 @@ from tergodic_cli.hardware.impedance import ForceLoop, LineImpedanceGains, hold_
 from tergodic_cli.robot import statemachine as S
 from tergodic_cli.robot.interfaces import ContactWrench, ToolLoad
 from tergodic_cli.robot.run import clamp_tilt
-from tergodic_cli.robot.safety import Fault, SafetyGuard
+from tergodic_cli.robot.safety import Fault, SafetyGuard, resolve_stop
 
 SETTLE_S = 0.3
 HOLD_S = 0.5
@@ -204,7 +204,7 @@ class HardwareRun:
             return Fault("robot", "stop", reason, st.t)
         g = self.guard
         v = st.jacobian[:3] @ st.dq
-        fault = (g.check_sensor(st.t, rd.t, rd.wrench) or g.check_force(st.t, w)
+        fault = (g.check_reading(st.t, rd, w)
                  or g.check_state(st.t, st.q, st.dq, st.pos, float(np.linalg.norm(v))))
         if fault is None and target_pos is not None:
             fault = g.check_target(st.t, np.asarray(target_pos))
@@ -240,15 +240,17 @@ class HardwareRun:
 
     # ------------------------------------------------------------------ faults
     def _stop(self, fault: Fault, step: int) -> None:
+        fault = resolve_stop(fault, self.sm.state)  # in contact every fault lifts the tool first
         self.fault = fault
         self.stop_reason = fault.reason
         try:
-            if fault.action == "retreat" and self.sm.state != S.RETREAT:
+            action = fault.action
+            if action == "retreat" and self.sm.state != S.RETREAT:
                 self.sm.go(S.RETREAT, self.t, step, fault.reason)
                 T = self.arm.read_state().ee_pose
                 self._retreat(T[:3, 3], T[:3, 2], step, checks=False)
                 self.sm.go(S.STOPPED, self.t, step, "retreated after a fault; stopped")
-            elif fault.action == "stop":  # the SDK already stopped the robot
+            elif action == "stop":  # the SDK already stopped the robot
                 self.sm.go(S.HOLD, self.t, step, fault.reason)
                 self.sm.go(S.STOPPED, self.t, step, "the robot stopped itself; stopped")
             else:

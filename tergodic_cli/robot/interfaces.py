@@ -77,10 +77,13 @@ class WrenchReading:
     """One F/T sample: time (s) and wrench (6,) ``fx fy fz tx ty tz`` in the sensor frame (N, N m).
 
     ``wrench`` is array-like: a (6,) array or a 6-tuple (the PyBullet backend's, cheaper at 1 kHz).
+    ``valid`` is False for a placeholder that is no measurement (a simulated sensor before its
+    first physics step reads 0): such a reading must not count.
     """
 
     t: float
     wrench: np.ndarray | tuple
+    valid: bool = True
 
 
 @runtime_checkable

@@ -361,6 +361,80 @@ def force_fault(w, limit):
     return (OK if f <= limit else F_FORCE), f
 
 
+# ----------------------------------------------------------------------------- every tick counts
+# Statistics of every 1 kHz tick (issue 15, item 4) in one float64 array, updated in place: running
+# max and sums, a fixed tilt histogram, nothing allocated per tick. Set by Python: the surface
+# normal at the contact (base frame, refreshed each explorer step), F_d, the contact threshold,
+# the settling ticks, and TS_COUNT (1: these ticks count towards steady contact, i.e. explore).
+TS_N, TS_FD, TS_THR, TS_SETTLE, TS_COUNT = 0, 3, 4, 5, 6
+TS_PEAK, TS_PEAK_PHASE, TS_RUN, TS_NSTEADY, TS_SQERR, TS_TILT_SUM, TS_NTICKS = 7, 8, 9, 10, 11, 12, 13
+TS_HIST = 14
+TILT_BIN_DEG = 0.05
+TILT_BINS = 1800  # 0..90 deg; the last bin also takes anything steeper
+N_TS = TS_HIST + TILT_BINS
+
+
+@njit
+def tick_stats(T, w, ts):
+    """Fold one tick into ``ts``: the contact force |f| of ``w`` (6,) into the peaks; in steady contact
+    (F/T force along the normal over the threshold for more than TS_SETTLE ticks, counted ticks only)
+    the force error (F_n - F_d)/F_d and the tilt of the tool axis (T's z) from the normal. NaN is skipped."""
+    f = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    ts[TS_NTICKS] += 1.0
+    if f > ts[TS_PEAK]:
+        ts[TS_PEAK] = f
+    if f > ts[TS_PEAK_PHASE]:
+        ts[TS_PEAK_PHASE] = f
+    if ts[TS_COUNT] == 0.0:
+        return
+    n0, n1, n2 = ts[TS_N], ts[TS_N + 1], ts[TS_N + 2]
+    # F_n = -(R f)·n: the force the tool presses into the surface.
+    fn = -((T[0, 0] * w[0] + T[0, 1] * w[1] + T[0, 2] * w[2]) * n0 + (T[1, 0] * w[0] + T[1, 1] * w[1] + T[1, 2] * w[2]) * n1
+           + (T[2, 0] * w[0] + T[2, 1] * w[1] + T[2, 2] * w[2]) * n2)
+    if fn >= ts[TS_THR]:
+        ts[TS_RUN] += 1.0
+    else:
+        ts[TS_RUN] = 0.0
+        return
+    if ts[TS_RUN] <= ts[TS_SETTLE]:
+        return
+    e = (fn - ts[TS_FD]) / ts[TS_FD]
+    ts[TS_SQERR] += e * e
+    ts[TS_NSTEADY] += 1.0
+    c = -(T[0, 2] * n0 + T[1, 2] * n1 + T[2, 2] * n2)
+    tilt = math.degrees(math.acos(min(1.0, max(-1.0, c))))
+    ts[TS_TILT_SUM] += tilt
+    b = int(tilt / TILT_BIN_DEG)
+    ts[TS_HIST + min(b, TILT_BINS - 1)] += 1.0
+
+
+def tick_quantile(ts: np.ndarray, q: float) -> float | None:
+    """The ``q`` quantile (0..1) of the steady-contact tilt (deg) from the histogram of ``ts`` (bin centre)."""
+    h = ts[TS_HIST:TS_HIST + TILT_BINS]
+    n = float(h.sum())
+    if n <= 0:
+        return None
+    k = int(np.searchsorted(np.cumsum(h), q * n))
+    return (min(k, TILT_BINS - 1) + 0.5) * TILT_BIN_DEG
+
+
+def tick_figures(ts: np.ndarray) -> dict:
+    """The figures of :func:`tick_stats` so far (cumulative; each robot sample carries them, so the
+    summary can be recomputed from the log): the 1 kHz force peak, the steady-contact ticks, their
+    RMS relative force error and tilt median / 95th percentile."""
+    n = int(ts[TS_NSTEADY])
+    return {"tick_force_peak_N": float(ts[TS_PEAK]), "tick_steady": n,
+            "tick_force_rms_rel": math.sqrt(ts[TS_SQERR] / n) if n else None,
+            "tick_tilt_median_deg": tick_quantile(ts, 0.5), "tick_tilt_p95_deg": tick_quantile(ts, 0.95)}
+
+
+def new_tick_stats(force_desired: float, threshold: float, settle_ticks: int) -> np.ndarray:
+    ts = np.zeros(N_TS)
+    ts[TS_N + 2] = 1.0
+    ts[TS_FD], ts[TS_THR], ts[TS_SETTLE] = force_desired, threshold, settle_ticks
+    return ts
+
+
 # ----------------------------------------------------------------------------- the PyBullet hot loop
 # numba's dispatcher costs ~0.2 µs per array argument, more for tuples, and most for nested tuples
 # of mixed types (typing and unboxing ``getJointStates``' tuple of (q, q̇, reaction 6-tuple, torque)
@@ -425,14 +499,14 @@ def _unpack_constants(cst):
 
 
 @njit
-def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io):
+def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io, ts):
     """One 1 kHz tick of the "track" loop after the joint read: FK + Jacobian, contact wrench, force
     check, controller, state checks, and the torque to send (task + ``bias``, clamped to tau_max).
 
     i : row of A, D (n, 3), the gliding target line. qs, dqs : joint positions (rad) and velocities
     (rad/s), flat tuples whose first 7 entries are the arm's (``zip(*getJointStates(...))``).
     reading : the sensor's 6 numbers (tare removed); bias : gravity + Coriolis (7 numbers).
-    kpk, mut : the controller's (``mut`` is updated).
+    kpk, mut : the controller's (``mut`` is updated). ts : :func:`tick_stats` (updated).
     Returns an F_* code (OK: send io[IO_TAU:IO_TAU + 7]). The separate kernels, chained.
     """
     q = io[IO_Q:IO_Q + 7]
@@ -451,6 +525,7 @@ def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io):
     for k in range(6):
         r[k] = reading[k]
     contact_wrench(r, T, R_se, p_se, mg, com, tare, w)
+    tick_stats(T, w, ts)
     code, _f = force_fault(w, force_limit)
     if code != OK:
         return code
@@ -470,13 +545,13 @@ def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io):
 
 
 @njit
-def pybullet_joint_tick(i, QD, DQD, qs, dqs, reading, bias, cst, kd, io):
+def pybullet_joint_tick(i, QD, DQD, qs, dqs, reading, bias, cst, kd, io, ts):
     """One 1 kHz tick of a joint-impedance move after the joint read (the set-up moves): FK + Jacobian,
     contact wrench, force check, τ = K (q_d - q) + D (q̇_d - q̇) (:class:`JointImpedance`), state
     checks (TCP speed from J q̇), and the torque to send (τ + ``bias``, clamped to tau_max).
 
     i : row of QD, DQD (n, 7), the desired joints (rad) and velocities (rad/s). qs, dqs, reading,
-    bias, cst, io : as :func:`pybullet_tick`. kd : (14,) joint stiffness (7) then damping (7).
+    bias, cst, io, ts : as :func:`pybullet_tick`. kd : (14,) joint stiffness (7) then damping (7).
     Returns an F_* code (OK: send io[IO_TAU:IO_TAU + 7]).
     """
     q = io[IO_Q:IO_Q + 7]
@@ -494,6 +569,7 @@ def pybullet_joint_tick(i, QD, DQD, qs, dqs, reading, bias, cst, kd, io):
     for k in range(6):
         r[k] = reading[k]
     contact_wrench(r, T, R_se, p_se, mg, com, tare, w)
+    tick_stats(T, w, ts)
     code, _f = force_fault(w, force_limit)
     if code != OK:
         return code

@@ -33,7 +33,9 @@ from tergodic_cli.robot.controller import JointImpedance, LineForceController, m
 from tergodic_cli.robot.ga import matrix_to_quat, point_line_distance, pose_matrix
 from tergodic_cli.robot.interfaces import ContactWrench
 from tergodic_cli.robot.pybullet_backend import PyBulletArm, PyBulletScene, PyBulletWrenchSensor
-from tergodic_cli.robot.safety import Fault, SafetyGuard
+from tergodic_cli.robot.safety import Fault, SafetyGuard, resolve_stop
+from tergodic_cli.robot.kernels import TS_COUNT as _TS_COUNT, TS_N as _TS_N, TS_PEAK_PHASE as _TS_PEAK_PHASE, \
+    TS_RUN as _TS_RUN, tick_figures, tick_stats as _tick_stats
 from tergodic_cli.robot.summary import summarize_robot
 from tergodic_cli.robot.surface import (check_reachable, default_object_pose, oriented_normals, parse_object_pose,
                                         reconstruct_mesh, resolve_side, sim_object_mesh, transform_points)
@@ -137,6 +139,9 @@ class RobotRun:
             self.arm.connect()
             self.scene.set_arm(np.array(cfg.picture_q))
             self.sensor = PyBulletWrenchSensor(self.scene, self.arm)
+            if not self.sensor.read().valid:  # PyBullet reads 0 until its first step: hold still for one
+                self.arm.command(np.zeros(7))
+                self.scene.step()
             self.contact = ContactWrench(self.scene.tool_load(), self.sensor.frame_in_ee)
             st = self.arm.read_state()
             self.model = FrankaModel()
@@ -145,6 +150,12 @@ class RobotRun:
             self.scene.close()
             raise
         self.guard = SafetyGuard(cfg.safety, self.arm.q_min, self.arm.q_max, self.arm.dq_max, self.F_d)
+        from tergodic_cli.robot import kernels as Kn
+        from tergodic_cli.robot.summary import SETTLE_S as STEADY_S
+
+        #: Every 1 kHz tick's force peak, steady-contact force error and tilt (kernels.tick_stats).
+        self.ts = Kn.new_tick_stats(self.F_d, self.threshold, int(round(STEADY_S / cfg.physics_dt)))
+        self.approach_peak: float | None = None
         self.sm = S.StateMachine(on_event=self.on_event)
         self.joint = JointImpedance()
         self.samples: list[dict] = []
@@ -195,11 +206,17 @@ class RobotRun:
 
     # ------------------------------------------------------------------ one control step
     def _tick(self, mode: str, a=None, d=None, q_d=None, dq_d=None, speed: float = 0.0, checks: bool = True,
-              force: float | None = None):
-        """Read, check, command, step. Returns (state, ee wrench, controller output or None, fault or None)."""
+              force: float | None = None, use_sensor: bool = True):
+        """Read, check, command, step. Returns (state, ee wrench, controller output or None, fault or None).
+        ``use_sensor`` False: the F/T is not read (w = 0; only for modes that do not use the force)."""
         st = self.arm.read_state()
-        rd = self.sensor.read()
-        w = self.contact(rd.wrench, st.ee_pose)
+        if use_sensor:
+            rd = self.sensor.read()
+            w = self.contact(rd.wrench, st.ee_pose)
+            if rd.valid:
+                _tick_stats(st.ee_pose, w, self.ts)
+        else:
+            rd, w = None, np.zeros(6)
         fault = None
         out = None
         if mode == "joint":
@@ -209,7 +226,7 @@ class RobotRun:
             tau = out.tau
         if checks:
             g = self.guard
-            fault = g.check_sensor(st.t, rd.t, rd.wrench) or g.check_force(st.t, w)
+            fault = g.check_reading(st.t, rd, w) if rd is not None else None
             if fault is None:
                 v = out.v_ee if out is not None else (st.jacobian[:3] @ st.dq).tolist()
                 fault = g.check_state(st.t, st.q, st.dq, st.pos, math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]))
@@ -251,7 +268,7 @@ class RobotRun:
         check_sensor, timeout = g.check_sensor, g.cfg.explorer_timeout
         cst = Kn.pack_constants(arm._chain, self.contact, g, arm.tau_max, self.F_d, v_ref)
         io = np.zeros(Kn.N_IO)
-        kpk, mut = ctrl.kpk, ctrl.mut
+        kpk, mut, ts = ctrl.kpk, ctrl.mut, self.ts
         A = np.ascontiguousarray(A, dtype=float)
         D = np.ascontiguousarray(D, dtype=float)
         zeros, every, realtime = arm._zeros, arm.dynamics_every, self.cfg.realtime
@@ -277,7 +294,7 @@ class RobotRun:
                 arm._bias_epoch = sc.teleports
             fault = check_sensor(t, rd.t, rd.wrench)
             if fault is None:
-                code = tick(i, A, D, qs, dqs, rd.wrench, arm._bias, cst, kpk, mut, io)
+                code = tick(i, A, D, qs, dqs, rd.wrench, arm._bias, cst, kpk, mut, io, ts)
                 if code != OK:
                     st = state()
                     if code == F_FORCE:
@@ -344,7 +361,7 @@ class RobotRun:
                 arm._bias_epoch = sc.teleports
             fault = check_sensor(t, rd.t, rd.wrench)
             if fault is None:
-                code = tick(i, QD, DQD, qs, dqs, rd.wrench, arm._bias, cst, kd, io)
+                code = tick(i, QD, DQD, qs, dqs, rd.wrench, arm._bias, cst, kd, io, self.ts)
                 if code == Kn.F_FORCE:
                     fault = g.check_force(t, io[Kn.IO_W:Kn.IO_W + 6])
                 elif code != OK:
@@ -378,7 +395,7 @@ class RobotRun:
         ctrl, command, physics = self.ctrl.step, self.arm.command, self.scene.step
         g = self.guard
         check_sensor, check_force, check_state, check_explorer = g.check_sensor, g.check_force, g.check_state, g.check_explorer
-        F_d, sqrt, realtime = self.F_d, math.sqrt, self.cfg.realtime
+        F_d, sqrt, realtime, ts = self.F_d, math.sqrt, self.cfg.realtime, self.ts
         hook = self._run_hook if self.contact_hook is not None else None
         st = w = a = d = None
         for a, d in zip(A, D):
@@ -386,6 +403,7 @@ class RobotRun:
             rd = sread()
             t = st.t
             w = contact(rd.wrench, st.ee_pose)
+            _tick_stats(st.ee_pose, w, ts)
             out = ctrl(st, a, d, w, "track", F_d, 0.0, v_ref)
             v = out.v_ee
             fault = (check_sensor(t, rd.t, rd.wrench) or check_force(t, w)
@@ -415,13 +433,18 @@ class RobotRun:
 
     # ------------------------------------------------------------------ faults and stops
     def _stop(self, fault: Fault, step: int) -> None:
-        """Make the robot safe after ``fault`` and end the run (raises :class:`_Stop`)."""
+        """Make the robot safe after ``fault`` and end the run (raises :class:`_Stop`).
+
+        In contact (approach, explore) every fault lifts the tool along its axis without reading
+        the sensor (:func:`~tergodic_cli.robot.safety.stop_action`), then holds, lifted."""
+        fault = resolve_stop(fault, self.sm.state)
+        self.ts[_TS_COUNT] = 0.0
         self.fault = fault
         self.stop_reason = fault.reason
         if fault.action == "retreat" and self.sm.state not in (S.RETREAT,):
             self.sm.go(S.RETREAT, self.scene.t, step, fault.reason)
             T = self.arm.read_state().ee_pose
-            self._retreat(T[:3, 3], T[:3, 2], step, checks=False)
+            self._retreat(T[:3, 3], T[:3, 2], step, checks=False, use_sensor=False)
             self._hold(HOLD_S)
             self.sm.go(S.STOPPED, self.scene.t, step, "retreated after a fault; holding still")
         else:
@@ -435,15 +458,17 @@ class RobotRun:
         for _ in range(int(round(seconds / self.cfg.physics_dt))):
             self._tick("joint", q_d=q, checks=False)
 
-    def _retreat(self, a: np.ndarray, d: np.ndarray, step: int, checks: bool = True) -> None:
-        """Back the tool off along its axis by ``retreat_distance`` (line fixed on (a, d))."""
+    def _retreat(self, a: np.ndarray, d: np.ndarray, step: int, checks: bool = True, use_sensor: bool = True) -> None:
+        """Back the tool off along its axis by ``retreat_distance`` (line fixed on (a, d)): at least
+        the hover height, so the tool ends lifted. The retreat mode never uses the force; with
+        ``use_sensor`` False it does not even read the sensor (a fault may have come from it)."""
         cfg = self.cfg
         start = self.arm.read_state().ee_pose[:3, 3].copy()
         for _ in range(int(round(RETREAT_TIMEOUT_S / cfg.physics_dt))):
-            st, w, out, fault = self._tick("retreat", a, d, speed=cfg.retreat_speed, checks=checks)
+            st, w, out, fault = self._tick("retreat", a, d, speed=cfg.retreat_speed, checks=checks, use_sensor=use_sensor)
             if fault is not None:
                 self._stop(fault, step)
-            if float((start - st.ee_pose[:3, 3]) @ d) >= cfg.retreat_distance:
+            if float((start - st.ee_pose[:3, 3]) @ d) >= max(cfg.retreat_distance, cfg.hover_height):
                 break
 
     # ------------------------------------------------------------------ phases
@@ -547,6 +572,7 @@ class RobotRun:
         step = self._step()
         self.sm.go(S.APPROACH, self.scene.t, step, f"approaching along the normal at {cfg.approach_speed * 1e3:.0f} mm/s")
         self.ctrl.reset()
+        self.ts[_TS_PEAK_PHASE] = 0.0  # the first touch's peak (every tick)
         timeout = (cfg.hover_height + 0.03) / cfg.approach_speed + 0.03 / cfg.contact_speed + 0.5
         n = int(round(timeout / cfg.physics_dt))
         contact_at = None
@@ -589,6 +615,7 @@ class RobotRun:
                     break
         else:
             self.on_event(step, f"robot: the force did not settle within {PRESS_TIMEOUT_S:.0f} s (now {out.force_filtered:.2f} N); exploring anyway")
+        self.approach_peak = max(self.approach_peak or 0.0, float(self.ts[_TS_PEAK_PHASE]))
         self.sm.go(S.EXPLORE, self.scene.t, step, f"in contact at {out.force_filtered:.2f} N; exploring")
 
     def _explore(self, steps: int, on_step, defer_last: bool = False) -> None:
@@ -604,8 +631,11 @@ class RobotRun:
         w = self.contact(self.sensor.read().wrench, st.ee_pose[:3, :3])
         self.guard.feed_target(self.scene.t)
         step = int(getattr(ex, "step_index", 0))
+        ts = self.ts
+        ts[_TS_COUNT], ts[_TS_RUN] = 1.0, 0.0  # explore ticks count towards steady contact
         for k in track(range(steps), total=steps, description="explore (pybullet)"):
             meas = self._measure(st)
+            ts[_TS_N:_TS_N + 3] = meas["normal"]  # the surface normal at the contact, for this interval's ticks
             deposit = self._to_obj(meas["contact_point"])[None, :] if meas["in_contact"] else np.zeros((0, 3))
             before = int(getattr(ex, "step_index", step))
             try:
@@ -642,6 +672,7 @@ class RobotRun:
                 self._deferred = (on_step, step)
             else:
                 self._emit(on_step, step)
+        ts[_TS_COUNT] = 0.0
         self._last_line = (a_cur, d_cur)
         self._start_line = self._last_line  # a further explore() continues from here
 
@@ -657,6 +688,7 @@ class RobotRun:
 
     def _fault_sample(self, fault: Fault, step: int, st, w, a, d, on_step, record: bool) -> None:
         """Record and emit the sample of the step a fault interrupted, then make the robot safe."""
+        fault = resolve_stop(fault, self.sm.state)  # the sample names what is done about it
         self.emit_deferred()
         if record:
             self.samples.append(self._sample(step, st, w, a, d, stop_reason=fault.reason))
@@ -728,6 +760,7 @@ class RobotRun:
             "agent_ergodicity": shadow.get("ergodicity"),
             "agent_touched_fraction": shadow.get("touched_fraction"),
             "step": int(step),
+            **tick_figures(self.ts),
         }
         if stop_reason:
             sample["stop_reason"] = stop_reason
@@ -827,8 +860,9 @@ class RobotRun:
         wall = time.perf_counter() - self._t0 - self._cb_s - self.paused_s
         # (the callback's and the pauses' wall time: a fair proxy for their CPU)
         cpu = time.process_time() - self._cpu0 - self._cb_s - self.paused_s
-        out = summarize_robot(self.samples, stop_reason=self.stop_reason)
+        out = summarize_robot(self.samples, stop_reason=self.stop_reason, ticks=tick_figures(self.ts))
         out.update({
+            "force_peak_approach_N": self.approach_peak,
             "final_state": self.sm.state,
             "interrupted": bool(self.interrupted),
             "sim_seconds": self.scene.t,

@@ -7,6 +7,10 @@ one-line reason and the action that makes the robot safe:
   off is what reduces it);
 - "hold": hold the present joint position, then stop (limits, workspace, a stalled
   explorer, a silent sensor: moving anywhere would act on bad information).
+
+:func:`stop_action` overrides "hold" while the tool may touch the object (approach, explore):
+the tool first lifts along its axis under position control, which needs no force reading, since
+a hold while pressed leaves a force nobody watches any more (issue 15).
 """
 
 from __future__ import annotations
@@ -55,6 +59,37 @@ class Fault:
     reason: str
     t: float = 0.0
     data: dict = field(default_factory=dict)
+
+
+#: States in which the tool may be pressed on the object.
+CONTACT_STATES = ("approach", "explore")
+#: Exit code of a run that ended on a fault, made safe.
+FAULT_EXIT_CODE = 3
+
+
+def stop_action(fault: Fault, state: str) -> str:
+    """How to make the robot safe after ``fault`` in state ``state``: "retreat", "hold" or "stop"
+    (the robot's own controller already stopped it). Never "hold" while the tool may be pressed."""
+    if fault.action == "stop":
+        return "stop"
+    if state in CONTACT_STATES:
+        return "retreat"
+    return fault.action
+
+
+def resolve_stop(fault: Fault, state: str) -> Fault:
+    """``fault`` with the action of :func:`stop_action` and, when that lifts instead of holding,
+    the reason saying so."""
+    action = stop_action(fault, state)
+    if action == fault.action:
+        return fault
+    reason = fault.reason.replace("; holding position", "") + "; lifting the tool off the surface"
+    return Fault(fault.kind, action, reason, fault.t, dict(fault.data))
+
+
+def fault_exit_code(summary: dict) -> int:
+    """0 for a run that ended normally, :data:`FAULT_EXIT_CODE` for one stopped on a fault (made safe)."""
+    return FAULT_EXIT_CODE if summary.get("final_state") == "stopped" and not summary.get("interrupted") else 0
 
 
 class SafetyGuard:
@@ -138,6 +173,12 @@ class SafetyGuard:
             return Fault("sensor", "hold", f"the force/torque sensor stopped updating (no new sample for "
                          f"{(t - self._sensor_seen_at) * 1e3:.0f} ms); holding position", t)
         return None
+
+    def check_reading(self, t: float, reading, wrench_ee) -> Fault | None:
+        """:meth:`check_sensor` on the sample, then :meth:`check_force` unless the sample is no
+        measurement (``reading.valid`` False: a simulated sensor before its first physics step)."""
+        return self.check_sensor(t, reading.t, reading.wrench) or (
+            self.check_force(t, wrench_ee) if getattr(reading, "valid", True) else None)
 
     # ------------------------------------------------------------------ targets and the explorer
     def inside(self, x: np.ndarray) -> bool:
