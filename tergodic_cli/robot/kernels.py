@@ -177,6 +177,96 @@ def contact_wrench(r, T, R_se, p_se, mg, com, tare_load, out):
     out[5] = m2 + p0 * g1 - p1 * g0
 
 
+# The inertial compensation's state (ContactWrench.dyn): the last sample time, the centre of mass's
+# velocity and the angular velocity then (base frame), whether they are set, and the last
+# accelerations (reused when the same tick is read twice).
+DY_T, DY_VC, DY_W, DY_HAS, DY_AC, DY_AL = 0, 1, 4, 7, 8, 11
+N_DY = 14
+#: Longest gap (s) between two samples that still gives an acceleration (longer: a restart, a = 0).
+DY_MAX_GAP = 0.005
+
+
+@njit
+def inertial_wrench(t, T, J, dq, R_se, p_se, com, m, inertia, dyn, out):
+    """The wrench (6,) that accelerates the tool, sensor frame, moment about the sensor origin:
+    (m a_c, c × m a_c + I α + ω × I ω), with a_c the centre of mass's acceleration and α the angular
+    one, backward differences of the arm's state (J q̇) between samples; ``inertia`` (3,) is the
+    tool's principal inertia about its centre of mass, along the sensor axes. Updates ``dyn``."""
+    v0 = v1 = v2 = w0 = w1 = w2 = 0.0
+    for j in range(dq.shape[0]):
+        qd = dq[j]
+        v0 += J[0, j] * qd
+        v1 += J[1, j] * qd
+        v2 += J[2, j] * qd
+        w0 += J[3, j] * qd
+        w1 += J[4, j] * qd
+        w2 += J[5, j] * qd
+    # The centre of mass from the TCP, base frame: R (p_se + R_se c).
+    e0 = p_se[0] + R_se[0, 0] * com[0] + R_se[0, 1] * com[1] + R_se[0, 2] * com[2]
+    e1 = p_se[1] + R_se[1, 0] * com[0] + R_se[1, 1] * com[1] + R_se[1, 2] * com[2]
+    e2 = p_se[2] + R_se[2, 0] * com[0] + R_se[2, 1] * com[1] + R_se[2, 2] * com[2]
+    c0 = T[0, 0] * e0 + T[0, 1] * e1 + T[0, 2] * e2
+    c1 = T[1, 0] * e0 + T[1, 1] * e1 + T[1, 2] * e2
+    c2 = T[2, 0] * e0 + T[2, 1] * e1 + T[2, 2] * e2
+    vc0, vc1, vc2 = v0 + w1 * c2 - w2 * c1, v1 + w2 * c0 - w0 * c2, v2 + w0 * c1 - w1 * c0
+    dt = t - dyn[DY_T]
+    if dyn[DY_HAS] != 0.0 and dt == 0.0:
+        pass  # the same sample again: the accelerations stand
+    elif dyn[DY_HAS] != 0.0 and 0.0 < dt <= DY_MAX_GAP:
+        dyn[DY_AC] = (vc0 - dyn[DY_VC]) / dt
+        dyn[DY_AC + 1] = (vc1 - dyn[DY_VC + 1]) / dt
+        dyn[DY_AC + 2] = (vc2 - dyn[DY_VC + 2]) / dt
+        dyn[DY_AL] = (w0 - dyn[DY_W]) / dt
+        dyn[DY_AL + 1] = (w1 - dyn[DY_W + 1]) / dt
+        dyn[DY_AL + 2] = (w2 - dyn[DY_W + 2]) / dt
+    else:
+        for k in range(3):
+            dyn[DY_AC + k] = 0.0
+            dyn[DY_AL + k] = 0.0
+    dyn[DY_T] = t
+    dyn[DY_VC], dyn[DY_VC + 1], dyn[DY_VC + 2] = vc0, vc1, vc2
+    dyn[DY_W], dyn[DY_W + 1], dyn[DY_W + 2] = w0, w1, w2
+    dyn[DY_HAS] = 1.0
+    # Into the sensor frame: x_s = R_seᵀ Rᵀ x_b.
+    a0, a1, a2 = dyn[DY_AC], dyn[DY_AC + 1], dyn[DY_AC + 2]
+    b0, b1, b2 = dyn[DY_AL], dyn[DY_AL + 1], dyn[DY_AL + 2]
+    ae0 = T[0, 0] * a0 + T[1, 0] * a1 + T[2, 0] * a2
+    ae1 = T[0, 1] * a0 + T[1, 1] * a1 + T[2, 1] * a2
+    ae2 = T[0, 2] * a0 + T[1, 2] * a1 + T[2, 2] * a2
+    be0 = T[0, 0] * b0 + T[1, 0] * b1 + T[2, 0] * b2
+    be1 = T[0, 1] * b0 + T[1, 1] * b1 + T[2, 1] * b2
+    be2 = T[0, 2] * b0 + T[1, 2] * b1 + T[2, 2] * b2
+    we0 = T[0, 0] * w0 + T[1, 0] * w1 + T[2, 0] * w2
+    we1 = T[0, 1] * w0 + T[1, 1] * w1 + T[2, 1] * w2
+    we2 = T[0, 2] * w0 + T[1, 2] * w1 + T[2, 2] * w2
+    f0 = m * (R_se[0, 0] * ae0 + R_se[1, 0] * ae1 + R_se[2, 0] * ae2)
+    f1 = m * (R_se[0, 1] * ae0 + R_se[1, 1] * ae1 + R_se[2, 1] * ae2)
+    f2 = m * (R_se[0, 2] * ae0 + R_se[1, 2] * ae1 + R_se[2, 2] * ae2)
+    al0 = R_se[0, 0] * be0 + R_se[1, 0] * be1 + R_se[2, 0] * be2
+    al1 = R_se[0, 1] * be0 + R_se[1, 1] * be1 + R_se[2, 1] * be2
+    al2 = R_se[0, 2] * be0 + R_se[1, 2] * be1 + R_se[2, 2] * be2
+    om0 = R_se[0, 0] * we0 + R_se[1, 0] * we1 + R_se[2, 0] * we2
+    om1 = R_se[0, 1] * we0 + R_se[1, 1] * we1 + R_se[2, 1] * we2
+    om2 = R_se[0, 2] * we0 + R_se[1, 2] * we1 + R_se[2, 2] * we2
+    h0, h1, h2 = inertia[0] * om0, inertia[1] * om1, inertia[2] * om2
+    out[0], out[1], out[2] = f0, f1, f2
+    out[3] = com[1] * f2 - com[2] * f1 + inertia[0] * al0 + om1 * h2 - om2 * h1
+    out[4] = com[2] * f0 - com[0] * f2 + inertia[1] * al1 + om2 * h0 - om0 * h2
+    out[5] = com[0] * f1 - com[1] * f0 + inertia[2] * al2 + om0 * h1 - om1 * h0
+
+
+@njit
+def contact_wrench_dyn(r, t, T, J, dq, R_se, p_se, mg, com, tare_load, m, inertia, dyn, out):
+    """:func:`contact_wrench` with the tool's inertial wrench (:func:`inertial_wrench`) removed from
+    the reading first: the contact wrench alone, also while the arm accelerates."""
+    iw = np.empty(6)
+    inertial_wrench(t, T, J, dq, R_se, p_se, com, m, inertia, dyn, iw)
+    rc = np.empty(6)
+    for k in range(6):
+        rc[k] = r[k] - iw[k]
+    contact_wrench(rc, T, R_se, p_se, mg, com, tare_load, out)
+
+
 # ----------------------------------------------------------------------------- the controller
 @njit
 def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use_vref, K, D, prm, state,
@@ -443,7 +533,7 @@ def new_tick_stats(force_desired: float, threshold: float, settle_ticks: int) ->
 # cst (built by :func:`pack_constants` once per explorer interval): header [m, F_d, use_vref],
 # v_ref (3), the chain (F (m, 4, 4), axis (m, 3), qidx (m,)), tcp offset (3), R_se (3, 3), p_se (3),
 # m g, com (3), tare load (6), guard q_lo (7), q_hi (7), dq_hi (7), tcp speed max, workspace lo (3),
-# hi (3), force limit, tau_max (7).
+# hi (3), force limit, tau_max (7), inertial compensation on (1/0), tool mass, principal inertia (3).
 # io (read back by RobotRun._track_fast): q (7), q̇ (7), w (6), tau (7, the total torque to send),
 # diag (N_CD), T (16), J (42).
 IO_Q, IO_DQ, IO_W, IO_TAU, IO_DIAG = 0, 7, 14, 20, 27
@@ -459,7 +549,8 @@ def pack_constants(chain, contact, guard, tau_max, force_desired: float, v_ref) 
     parts = [[len(qidx), float(force_desired), 1.0 if use else 0.0], v_ref if use else np.zeros(3),
              F.ravel(), axis.ravel(), qidx.astype(float), off, contact.R_se_m.ravel(), contact.p_se_v, [contact.mg],
              contact.com, contact.tare_load, guard.q_lo, guard.q_hi, guard.dq_hi, [guard.cfg.tcp_speed_max],
-             guard.ws_lo, guard.ws_hi, [guard.force_limit], tau_max]
+             guard.ws_lo, guard.ws_hi, [guard.force_limit], tau_max,
+             [1.0 if contact.inertial else 0.0, contact.load.mass], contact.inertia]
     return np.ascontiguousarray(np.concatenate([np.asarray(x, dtype=float).ravel() for x in parts]))
 
 
@@ -494,19 +585,23 @@ def _unpack_constants(cst):
     ws_hi = cst[o + 25:o + 28]
     force_limit = cst[o + 28]
     tau_max = cst[o + 29:o + 36]
+    inertial = cst[o + 36] != 0.0
+    mass = cst[o + 37]
+    inertia = cst[o + 38:o + 41]
     return (force_desired, use_vref, v_ref, F, axis, qidx, tcp_off, R_se, p_se, mg, com, tare, q_lo, q_hi, dq_hi,
-            tcp_max, ws_lo, ws_hi, force_limit, tau_max)
+            tcp_max, ws_lo, ws_hi, force_limit, tau_max, inertial, mass, inertia)
 
 
 @njit
-def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io, ts):
+def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io, ts, t, dyn):
     """One 1 kHz tick of the "track" loop after the joint read: FK + Jacobian, contact wrench, force
     check, controller, state checks, and the torque to send (task + ``bias``, clamped to tau_max).
 
     i : row of A, D (n, 3), the gliding target line. qs, dqs : joint positions (rad) and velocities
     (rad/s), flat tuples whose first 7 entries are the arm's (``zip(*getJointStates(...))``).
     reading : the sensor's 6 numbers (tare removed); bias : gravity + Coriolis (7 numbers).
-    kpk, mut : the controller's (``mut`` is updated). ts : :func:`tick_stats` (updated).
+    kpk, mut : the controller's (``mut`` is updated). ts : :func:`tick_stats` (updated). t : the
+    sample time, s; dyn : the inertial compensation's state (:func:`inertial_wrench`, updated).
     Returns an F_* code (OK: send io[IO_TAU:IO_TAU + 7]). The separate kernels, chained.
     """
     q = io[IO_Q:IO_Q + 7]
@@ -515,7 +610,7 @@ def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io, ts):
         q[j] = qs[j]
         dq[j] = dqs[j]
     (force_desired, use_vref, v_ref, F, axis, qidx, tcp_off, R_se, p_se, mg, com, tare, q_lo, q_hi, dq_hi, tcp_max,
-     ws_lo, ws_hi, force_limit, tau_max) = _unpack_constants(cst)
+     ws_lo, ws_hi, force_limit, tau_max, inertial, mass, inertia) = _unpack_constants(cst)
     T = io[IO_T:IO_T + 16].reshape((4, 4))
     J = io[IO_J:IO_J + 42].reshape((6, 7))
     w = io[IO_W:IO_W + 6]
@@ -524,7 +619,10 @@ def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io, ts):
     r = np.empty(6)
     for k in range(6):
         r[k] = reading[k]
-    contact_wrench(r, T, R_se, p_se, mg, com, tare, w)
+    if inertial:
+        contact_wrench_dyn(r, t, T, J, dq, R_se, p_se, mg, com, tare, mass, inertia, dyn, w)
+    else:
+        contact_wrench(r, T, R_se, p_se, mg, com, tare, w)
     tick_stats(T, w, ts)
     code, _f = force_fault(w, force_limit)
     if code != OK:
@@ -545,13 +643,13 @@ def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io, ts):
 
 
 @njit
-def pybullet_joint_tick(i, QD, DQD, qs, dqs, reading, bias, cst, kd, io, ts):
+def pybullet_joint_tick(i, QD, DQD, qs, dqs, reading, bias, cst, kd, io, ts, t, dyn):
     """One 1 kHz tick of a joint-impedance move after the joint read (the set-up moves): FK + Jacobian,
     contact wrench, force check, τ = K (q_d - q) + D (q̇_d - q̇) (:class:`JointImpedance`), state
     checks (TCP speed from J q̇), and the torque to send (τ + ``bias``, clamped to tau_max).
 
     i : row of QD, DQD (n, 7), the desired joints (rad) and velocities (rad/s). qs, dqs, reading,
-    bias, cst, io, ts : as :func:`pybullet_tick`. kd : (14,) joint stiffness (7) then damping (7).
+    bias, cst, io, ts, t, dyn : as :func:`pybullet_tick`. kd : (14,) joint stiffness (7) then damping (7).
     Returns an F_* code (OK: send io[IO_TAU:IO_TAU + 7]).
     """
     q = io[IO_Q:IO_Q + 7]
@@ -560,7 +658,7 @@ def pybullet_joint_tick(i, QD, DQD, qs, dqs, reading, bias, cst, kd, io, ts):
         q[j] = qs[j]
         dq[j] = dqs[j]
     (_fd, _use, _vref, F, axis, qidx, tcp_off, R_se, p_se, mg, com, tare, q_lo, q_hi, dq_hi, tcp_max,
-     ws_lo, ws_hi, force_limit, tau_max) = _unpack_constants(cst)
+     ws_lo, ws_hi, force_limit, tau_max, inertial, mass, inertia) = _unpack_constants(cst)
     T = io[IO_T:IO_T + 16].reshape((4, 4))
     J = io[IO_J:IO_J + 42].reshape((6, 7))
     w = io[IO_W:IO_W + 6]
@@ -568,7 +666,10 @@ def pybullet_joint_tick(i, QD, DQD, qs, dqs, reading, bias, cst, kd, io, ts):
     r = np.empty(6)
     for k in range(6):
         r[k] = reading[k]
-    contact_wrench(r, T, R_se, p_se, mg, com, tare, w)
+    if inertial:
+        contact_wrench_dyn(r, t, T, J, dq, R_se, p_se, mg, com, tare, mass, inertia, dyn, w)
+    else:
+        contact_wrench(r, T, R_se, p_se, mg, com, tare, w)
     tick_stats(T, w, ts)
     code, _f = force_fault(w, force_limit)
     if code != OK:

@@ -142,7 +142,8 @@ class RobotRun:
             if not self.sensor.read().valid:  # PyBullet reads 0 until its first step: hold still for one
                 self.arm.command(np.zeros(7))
                 self.scene.step()
-            self.contact = ContactWrench(self.scene.tool_load(), self.sensor.frame_in_ee)
+            # Gravity and inertia of the tool removed: the wrench is the contact's (issue 15, item 3).
+            self.contact = ContactWrench(self.scene.tool_load(), self.sensor.frame_in_ee, inertial=cfg.inertial_compensation)
             st = self.arm.read_state()
             self.model = FrankaModel()
             self.model.tool = tool_offset(self.model, st.q, st.ee_pose)
@@ -212,7 +213,7 @@ class RobotRun:
         st = self.arm.read_state()
         if use_sensor:
             rd = self.sensor.read()
-            w = self.contact(rd.wrench, st.ee_pose)
+            w = self.contact(rd.wrench, st.ee_pose, st)
             if rd.valid:
                 _tick_stats(st.ee_pose, w, self.ts)
         else:
@@ -268,7 +269,7 @@ class RobotRun:
         check_sensor, timeout = g.check_sensor, g.cfg.explorer_timeout
         cst = Kn.pack_constants(arm._chain, self.contact, g, arm.tau_max, self.F_d, v_ref)
         io = np.zeros(Kn.N_IO)
-        kpk, mut, ts = ctrl.kpk, ctrl.mut, self.ts
+        kpk, mut, ts, dyn = ctrl.kpk, ctrl.mut, self.ts, self.contact.dyn
         A = np.ascontiguousarray(A, dtype=float)
         D = np.ascontiguousarray(D, dtype=float)
         zeros, every, realtime = arm._zeros, arm.dynamics_every, self.cfg.realtime
@@ -294,7 +295,7 @@ class RobotRun:
                 arm._bias_epoch = sc.teleports
             fault = check_sensor(t, rd.t, rd.wrench)
             if fault is None:
-                code = tick(i, A, D, qs, dqs, rd.wrench, arm._bias, cst, kpk, mut, io, ts)
+                code = tick(i, A, D, qs, dqs, rd.wrench, arm._bias, cst, kpk, mut, io, ts, t, dyn)
                 if code != OK:
                     st = state()
                     if code == F_FORCE:
@@ -361,7 +362,7 @@ class RobotRun:
                 arm._bias_epoch = sc.teleports
             fault = check_sensor(t, rd.t, rd.wrench)
             if fault is None:
-                code = tick(i, QD, DQD, qs, dqs, rd.wrench, arm._bias, cst, kd, io, self.ts)
+                code = tick(i, QD, DQD, qs, dqs, rd.wrench, arm._bias, cst, kd, io, self.ts, t, self.contact.dyn)
                 if code == Kn.F_FORCE:
                     fault = g.check_force(t, io[Kn.IO_W:Kn.IO_W + 6])
                 elif code != OK:
@@ -402,7 +403,7 @@ class RobotRun:
             st = read()
             rd = sread()
             t = st.t
-            w = contact(rd.wrench, st.ee_pose)
+            w = contact(rd.wrench, st.ee_pose, st)
             _tick_stats(st.ee_pose, w, ts)
             out = ctrl(st, a, d, w, "track", F_d, 0.0, v_ref)
             v = out.v_ee
