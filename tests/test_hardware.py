@@ -270,7 +270,7 @@ def test_without_the_force_trim_friction_shows(plate, monkeypatch, franky):
 # ------------------------------------------------------------------------------------------- safety trips end safe
 def test_force_spike_retreats_and_stops(plate, monkeypatch, franky, bota):
     def spike(world, arm, dt):
-        if world.robot is not None and world.f_n > 0 and world.t > 5.0:
+        if world.robot is not None and world.f_n > 0 and world.t > 9.0:  # exploring (the guarded touch ends ~7.5 s)
             world.normal_force_bias = 30.0  # something pushes back hard
     out, world, events, samples, arm, _ = _run(plate, monkeypatch, ft="bota", inject=spike, steps=30)
     assert out["final_state"] == "stopped"
@@ -283,7 +283,7 @@ def test_force_spike_retreats_and_stops(plate, monkeypatch, franky, bota):
 def test_stale_sensor_lifts_the_tool(plate, monkeypatch, franky, bota):
     # In contact a fault never ends in a hold while pressed (issue 15): the tool lifts, then stops.
     def freeze(world, arm, dt):
-        if world.t > 5.5:
+        if world.t > 9.0:
             world.sensor_fault = "freeze"
     out, world, events, *_ = _run(plate, monkeypatch, ft="bota", inject=freeze, steps=30)
     assert out["final_state"] == "stopped"
@@ -294,7 +294,7 @@ def test_stale_sensor_lifts_the_tool(plate, monkeypatch, franky, bota):
 
 def test_robot_reflex_is_reported_not_fought(plate, monkeypatch, franky):
     def reflex(world, arm, dt):
-        if world.t > 5.5 and world.robot._active is not None:
+        if world.t > 9.0 and world.robot._active is not None:
             world.robot.stop()  # e.g. the user pressed the external activation device
     out, world, events, *_ = _run(plate, monkeypatch, inject=reflex, steps=30)
     assert out["final_state"] == "stopped"
@@ -303,7 +303,7 @@ def test_robot_reflex_is_reported_not_fought(plate, monkeypatch, franky):
 
 def test_ctrl_c_retreats_and_summarises(plate, monkeypatch, franky):
     def interrupt(world, arm, dt):
-        if world.t > 5.5 and not getattr(world, "_interrupted", False):
+        if world.t > 9.0 and not getattr(world, "_interrupted", False):
             world._interrupted = True
             raise KeyboardInterrupt
     out, world, events, samples, *_ = _run(plate, monkeypatch, inject=interrupt, steps=30)

@@ -29,6 +29,7 @@ import numpy as np
 from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.hardware.impedance import ForceLoop, LineImpedanceGains, hold_target, line_impedance_target, tool_rotation
 from tergodic_cli.robot import statemachine as S
+from tergodic_cli.robot.controller import guarded_approach_speed
 from tergodic_cli.robot.interfaces import ContactWrench, ToolLoad
 from tergodic_cli.robot.run import clamp_tilt
 from tergodic_cli.robot.safety import Fault, SafetyGuard, resolve_stop
@@ -321,16 +322,23 @@ class HardwareRun:
     def _approach(self) -> None:
         cfg = self.cfg
         a, d = self._start_line
-        self.sm.go(S.APPROACH, self.t, 0, f"approaching along the normal at {cfg.approach_speed * 1e3:.0f} mm/s")
-        limit = (cfg.hover_height + 0.03) / cfg.approach_speed + 0.5
+        v_touch = guarded_approach_speed(0.0, cfg.approach_speed, cfg.contact_speed, self.F_d)
+        self.sm.go(S.APPROACH, self.t, 0, f"approaching along the normal at {cfg.approach_speed * 1e3:.0f} mm/s, "
+                                          f"touching at {v_touch * 1e3:.1f} mm/s")
+        limit = (cfg.hover_height + 0.03) / cfg.approach_speed + 0.03 / v_touch + 0.5
         n = int(round(limit / self.dt))
         contact_at = None
         settled = 0
         t0 = self.t
-        s0 = float((self.arm.read_state().ee_pose[:3, 3] - a) @ d)
+        axial = float((self.arm.read_state().ee_pose[:3, 3] - a) @ d)
+        speed = cfg.approach_speed
         for i in range(n + int(round(2.0 / self.dt))):
             if contact_at is None:
-                st, w, fault = self._tick("move", a, d, speed=cfg.approach_speed, axial=s0 + cfg.approach_speed * self.dt * (i + 1))
+                # Guarded: the set-point slows down near the expected surface (the cloud's point a).
+                axial += speed * self.dt
+                st, w, fault = self._tick("move", a, d, speed=speed, axial=axial)
+                speed = guarded_approach_speed(-float((np.asarray(st.pos) - a) @ d), cfg.approach_speed,
+                                               cfg.contact_speed, self.F_d)
             else:
                 st, w, fault = self._tick("track", a, d)
             if fault is not None:

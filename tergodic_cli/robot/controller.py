@@ -262,6 +262,27 @@ class JointImpedance:
         return self.K * (q_d - q) + self.D * (dq_d - dq)
 
 
+#: The approach slows down to reach the expected surface in about this many seconds from where it is.
+APPROACH_TAU_S = 0.25
+#: Desired force (N) at and above which the tool touches at the full ``contact_speed``; below it the
+#: touch is slower in proportion, so the impact (the contact's damping × speed: 1 N at 2 mm/s on the
+#: simulated sponge) stays a fifth of F_d.
+TOUCH_REF_FORCE = 5.0
+
+
+#: The approach is at its touch speed this far (m) before the expected surface: the cloud is not
+#: the surface to the tenth of a millimetre.
+TOUCH_MARGIN = 0.001
+
+
+def guarded_approach_speed(gap: float, approach_speed: float, contact_speed: float, force: float) -> float:
+    """Speed (m/s) of a guarded approach ``gap`` metres before the expected surface (the cloud's point):
+    ``approach_speed`` far away, slowing down over the last few mm ((gap - TOUCH_MARGIN) / APPROACH_TAU_S)
+    to the touch speed, ``contact_speed`` scaled down below TOUCH_REF_FORCE, from TOUCH_MARGIN on."""
+    touch = contact_speed * min(1.0, max(force, 0.0) / TOUCH_REF_FORCE)
+    return min(approach_speed, max(touch, (gap - TOUCH_MARGIN) / APPROACH_TAU_S))
+
+
 def min_jerk(q0: np.ndarray, q1: np.ndarray, duration: float, t: float) -> tuple[np.ndarray, np.ndarray]:
     """Minimum-jerk interpolation from q0 to q1 over ``duration`` s: position and velocity at ``t``."""
     if duration <= 0 or t >= duration:

@@ -29,7 +29,7 @@ from tergodic_cli.capture.filters import mean_spacing
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.robot import statemachine as S
 from tergodic_cli.robot.config import RobotConfig, validate_robot_config
-from tergodic_cli.robot.controller import JointImpedance, LineForceController, min_jerk
+from tergodic_cli.robot.controller import JointImpedance, LineForceController, guarded_approach_speed, min_jerk
 from tergodic_cli.robot.ga import matrix_to_quat, point_line_distance, pose_matrix
 from tergodic_cli.robot.interfaces import ContactWrench
 from tergodic_cli.robot.pybullet_backend import PyBulletArm, PyBulletScene, PyBulletWrenchSensor
@@ -45,10 +45,12 @@ HOLD_S = 0.5
 SETTLE_S = 0.3
 PRESS_TIMEOUT_S = 2.0
 PRESS_RAMP_S = 0.5
-#: The approach slows down to reach the surface in about this many seconds from where it is.
-APPROACH_TAU_S = 0.25
-#: N/s by which the approach push grows once the tool is at the expected surface.
-PRESS_RATE = 10.0
+#: N/m of the approach's axial position servo: its set-point advances at the guarded speed, so a
+#: steady push on the tool (gravity-model error, posture torques) cannot make it touch faster (a
+#: pure velocity servo, D_z = 50 N s/m, let 0.17 N push it in at 5.5 mm/s against 2 commanded).
+APPROACH_K = 2000.0
+#: N s/m added to the approach's axial damping (the controller's D_z, 50) on the speed error.
+APPROACH_D = 100.0
 RETREAT_TIMEOUT_S = 3.0
 #: Metres above the object's highest point the tool passes on its way to and from the picture pose.
 CLEARANCE = 0.04
@@ -571,33 +573,38 @@ class RobotRun:
         cfg = self.cfg
         a, d = self._start_line
         step = self._step()
-        self.sm.go(S.APPROACH, self.scene.t, step, f"approaching along the normal at {cfg.approach_speed * 1e3:.0f} mm/s")
+        v_touch = guarded_approach_speed(0.0, cfg.approach_speed, cfg.contact_speed, self.F_d)
+        self.sm.go(S.APPROACH, self.scene.t, step, f"approaching along the normal at {cfg.approach_speed * 1e3:.0f} mm/s, "
+                                                   f"touching at {v_touch * 1e3:.1f} mm/s")
         self.ctrl.reset()
         self.ts[_TS_PEAK_PHASE] = 0.0  # the first touch's peak (every tick)
-        timeout = (cfg.hover_height + 0.03) / cfg.approach_speed + 0.03 / cfg.contact_speed + 0.5
+        timeout = (cfg.hover_height + 0.03) / cfg.approach_speed + 0.03 / v_touch + 0.5
         n = int(round(timeout / cfg.physics_dt))
         contact_at = None
         settled = 0
         t0 = self.scene.t
         f_ref = self.F_d
         speed = cfg.approach_speed
-        press = 0.0
+        push, s_set = 0.0, None
+        # Pressing before contact is registered only needs to cross the threshold: the push is capped.
+        push_cap = 2.0 * self.threshold
         for i in range(n + int(round(PRESS_TIMEOUT_S / cfg.physics_dt))):
             mode = "approach" if contact_at is None else "track"
             if contact_at is not None:  # ramp the set-point from the contact force to F_d: no overshoot
                 f_ref = min(self.F_d, f0 + (self.F_d - f0) * (self.scene.t - contact_at) / PRESS_RAMP_S)
             st, w, out, fault = self._tick(mode, a, d, speed=speed, force=f_ref)
-            # Slow down near the surface: the sponge meets it at contact_speed (the contact's damping
-            # and the arm's momentum at 20 mm/s gave 10-28 N impacts on the bowl's trimesh). At that
-            # speed the push D_z·v is ~0.1 N, too little to register, so while the tool is blocked
-            # (moving at under half the commanded speed) the push ramps up (PRESS_RATE) until the
-            # force crosses the threshold.
-            gap = float((a - st.ee_pose[:3, 3]) @ d)
-            v_cmd = min(cfg.approach_speed, max(cfg.contact_speed, gap / APPROACH_TAU_S))
+            # Guarded: slow down near the expected surface (the cloud gives the gap), touch at
+            # v_touch (the contact's damping and the arm's momentum at 20 mm/s gave 10-28 N impacts on
+            # the bowl's trimesh). A position servo along the axis keeps the speed; while the tool is
+            # blocked its set-point runs ahead and the push grows (APPROACH_K × v) until the force
+            # registers, capped at push_cap.
+            p_along = float(st.ee_pose[:3, 3] @ d)
+            gap = float(a @ d) - p_along
+            v_cmd = guarded_approach_speed(gap, cfg.approach_speed, cfg.contact_speed, self.F_d)
             if contact_at is None:
-                step_p = PRESS_RATE * cfg.physics_dt
-                press = min(1.5 * self.threshold, press + step_p) if out.v_ee[2] < 0.5 * v_cmd else max(0.0, press - step_p)
-            speed = v_cmd + press / self.ctrl.D[2]
+                s_set = p_along if s_set is None else min(s_set + v_cmd * cfg.physics_dt, p_along + push_cap / APPROACH_K)
+                push = APPROACH_K * (s_set - p_along) + APPROACH_D * (v_cmd - out.v_ee[2])
+            speed = v_cmd + push / self.ctrl.D[2]
             if fault is not None:
                 self._stop(fault, step)
             f = out.force_filtered
