@@ -244,6 +244,9 @@ def test_exploration_loop_runs_on_each_backend(plate, monkeypatch, franky, bota,
     assert out["force_mean_N"] == pytest.approx(5.0, rel=0.08)
     assert out["force_rms_error_rel"] < 0.1
     assert world.max_force < out["robot_config"]["safety"]["force_limit_factor"] * 5.0
+    # every streamed tick counts (issue 15): the peak against the fake world's own largest contact force
+    assert out["tick_steady"] > 0 and out["force_peak_N"] >= out["force_peak_5hz_N"]
+    assert out["force_peak_N"] == pytest.approx(world.max_force, rel=0.05)
     # geometry: the tool stays on the agent's line and normal to the plate; contact deposited coverage
     assert out["track_mm_median"] < 1.0
     assert out["tilt_deg_median"] < 2.0
