@@ -66,7 +66,7 @@ def _run(plate, mode: str, after: int = 4):
     ex = _ExplorerProxy(_explorer(cap, basis, cfg), after if mode in ("bump", "outside", "stall") else 10**6, mode, ref)
     run = RobotRun(cap, ex, cfg)
     ref.append(run)
-    if mode in ("frozen", "nan", "joint"):
+    if mode in ("frozen", "nan", "joint", "tcp_outside"):
         orig = run._explore
 
         def explore(steps, on_step, *a):  # the fault starts 0.8 s into the exploration
@@ -75,6 +75,9 @@ def _run(plate, mode: str, after: int = 4):
                 run.sensor = _FrozenSensor(run.sensor, t_f)
             elif mode == "nan":
                 run.sensor = _NaNSensor(run.sensor, t_f)
+            elif mode == "tcp_outside":  # the box's floor rises just over the tool: the TCP breaches it
+                run.guard.ws_lo[2] = run.arm.read_state().ee_pose[2, 3] + 1e-3
+                run.guard.check_target = lambda t, x: None  # (the targets on the surface would trip first)
             else:  # joint 7's upper limit drops just under where it is: a joint-limit stop in contact
                 run.guard.q_hi[6] = run.arm.read_state().q[6] - 1e-3
             return orig(steps, on_step, *a)
@@ -85,7 +88,7 @@ def _run(plate, mode: str, after: int = 4):
 
 @pytest.mark.parametrize("mode,needle", [("bump", "force"), ("outside", "workspace"), ("stall", "explorer stalled"),
                                          ("frozen", "sensor stopped updating"), ("nan", "non-finite"),
-                                         ("joint", "joint 7")])
+                                         ("joint", "joint 7"), ("tcp_outside", "the tool at")])
 def test_fault_in_contact_ends_lifted(plate, mode, needle):
     run = _run(plate, mode)
     with run:
