@@ -32,10 +32,10 @@ from tergodic_cli.robot.config import RobotConfig, validate_robot_config
 from tergodic_cli.robot.controller import JointImpedance, LineForceController, guarded_approach_speed, min_jerk
 from tergodic_cli.robot.ga import matrix_to_quat, point_line_distance, pose_matrix
 from tergodic_cli.robot.interfaces import ContactWrench
-from tergodic_cli.robot.pybullet_backend import PyBulletArm, PyBulletScene, PyBulletWrenchSensor
-from tergodic_cli.robot.safety import Fault, SafetyGuard, resolve_stop
 from tergodic_cli.robot.kernels import TS_COUNT as _TS_COUNT, TS_N as _TS_N, TS_PEAK_PHASE as _TS_PEAK_PHASE, \
     TS_RUN as _TS_RUN, tick_figures, tick_stats as _tick_stats
+from tergodic_cli.robot.pybullet_backend import PyBulletArm, PyBulletScene, PyBulletWrenchSensor
+from tergodic_cli.robot.safety import Fault, SafetyGuard, resolve_stop
 from tergodic_cli.robot.summary import summarize_robot
 from tergodic_cli.robot.surface import (check_reachable, default_object_pose, oriented_normals, parse_object_pose,
                                         reconstruct_mesh, resolve_side, sim_object_mesh, transform_points)
