@@ -40,7 +40,7 @@ def explore(
     max_start_distance: float = typer.Option(0.02, "--max-start-distance", help="Refuse a start farther than this (metres) from the cloud; closer ones are projected."),
     json_out: bool = typer.Option(False, "--json", help="Print summary.json to stdout."),
     force: Optional[float] = typer.Option(None, "--force", help="[robot] Desired contact force along the tool axis, N [default: 5]."),
-    force_limit: Optional[float] = typer.Option(None, "--force-limit", help="[robot] Contact force that makes the robot retreat and stop, N [default: 3 x --force]."),
+    force_limit: Optional[float] = typer.Option(None, "--force-limit", help="[robot] Contact force that makes the robot retreat and stop, N [default: 3 x --force, at least 5]."),
     contact_force: Optional[float] = typer.Option(None, "--contact-force", help="[robot] Force that counts as touching (coverage is deposited above it), N [default: 20% of --force]."),
     object_pose: Optional[str] = typer.Option(None, "--object-pose", help="[robot] Capture frame in the robot base frame: x,y,z[,roll,pitch,yaw] (m, deg) or x,y,z,qx,qy,qz,qw [default: 0.5 m in front of the base on a 0.2 m stand; identity for sim captures]."),
     workspace: Optional[str] = typer.Option(None, "--workspace", help="[robot] Workspace box xmin,ymin,zmin,xmax,ymax,zmax in the base frame, m."),

@@ -47,15 +47,15 @@ def test_no_reading_before_the_first_physics_step_counts(plate):
     finally:
         sc.close()
     cap, basis = plate
-    # 1 N: limit 3 N, under the old false 8.24 N; a --force-limit of 2.5 N too.
+    # 1 N (default limit 5 N) and a --force-limit of 2.5 N: both under the old false 8.24 N.
     for force, limit in ((1.0, None), (1.0, 2.5)):
         cfg = RobotConfig(force=force, **FAST)
         cfg.safety.force_limit = limit
         with RobotRun(cap, _explorer(cap, basis, cfg), cfg) as run:
             assert run.sensor.read().valid  # the run stepped once, holding still, before any check
             out = run.run(3)
+            assert out["force_peak_N"] < run.guard.force_limit == (limit or 5.0)
         assert out["stop_reason"] == "completed", out["stop_reason"]
-        assert out["force_peak_N"] < (limit or 3.0)
 
 
 def test_inertial_compensation_free_motion_and_contact(plate):

@@ -60,6 +60,9 @@ class ControllerGains:
     spin_stiffness : N m/rad holding the rotation about the tool axis (free for a line).
     nullspace_stiffness, nullspace_damping : posture spring (N m/rad, N m s/rad) in the null space.
     limit_stiffness : N m/rad pushing joints out of the last LIMIT_ZONE rad before a limit (null space).
+    guard_speed, guard_damping : while pressing ("track"), a tool moving into the surface faster than
+        guard_speed (m/s) gets guard_damping (N s/m) more damping on the excess: when contact is lost
+        the force PID's push no longer flies it into the surface (issue 15: 38 N at F_d = 1 N).
     """
 
     k_trans: tuple[float, float, float] = (3000.0, 3000.0, 300.0)
@@ -75,6 +78,8 @@ class ControllerGains:
     nullspace_stiffness: float = 10.0
     nullspace_damping: float = 3.0
     limit_stiffness: float = 30.0
+    guard_speed: float = 0.005
+    guard_damping: float = 1000.0
 
     def to_dict(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
@@ -132,6 +137,7 @@ class LineForceController:
         prm[Kn.CP_ALPHA], prm[Kn.CP_IMAX], prm[Kn.CP_SPIN] = self.alpha, gains.integral_max, gains.spin_stiffness
         prm[Kn.CP_NS_K], prm[Kn.CP_NS_D], prm[Kn.CP_LIM_K] = gains.nullspace_stiffness, gains.nullspace_damping, gains.limit_stiffness
         prm[Kn.CP_DT], prm[Kn.CP_LIMIT_ZONE] = self.dt, LIMIT_ZONE
+        prm[Kn.CP_VGUARD], prm[Kn.CP_DGUARD] = gains.guard_speed, gains.guard_damping
         #: Packed constants (kernels.KPK_*) and mutable state (kernels.MUT_*) of the compiled step.
         self.kpk = np.concatenate([self.K, self.D, prm, np.asarray(x_ref, dtype=float), np.asarray(q_rest, dtype=float),
                                    np.asarray(q_min, dtype=float), np.asarray(q_max, dtype=float)])

@@ -40,7 +40,8 @@ MODES = {"track": MODE_TRACK, "approach": MODE_APPROACH, "retreat": MODE_RETREAT
 
 # Controller parameters, one float64 array (CP_*), and state (CS_*).
 CP_KP, CP_KI, CP_KD, CP_ALPHA, CP_IMAX, CP_SPIN, CP_NS_K, CP_NS_D, CP_LIM_K, CP_DT, CP_LIMIT_ZONE = range(11)
-N_CP = 11
+CP_VGUARD, CP_DGUARD = 11, 12
+N_CP = 13
 CS_FFILT, CS_EPREV, CS_HAS_EPREV, CS_INTEGRAL, CS_AGE = range(5)
 N_CS = 5
 # Diagnostics of one controller step (CD_*): twist error (6), commanded wrench (6), filtered force, ee twist (6).
@@ -327,10 +328,12 @@ def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use
     # K_L V_L - D_V V_ee + W_C (eq. 47); along the line the damping acts on the tool's own velocity.
     wx = K[0] * tx - D[0] * ve0
     wy = K[1] * ty - D[1] * ve1
-    if use_vref:
-        wz = fz - D[2] * (ve2 + (r2 * v_ref[0] + r5 * v_ref[1] + r8 * v_ref[2]))
-    else:
-        wz = fz - D[2] * ve2
+    v_ax = ve2 + (r2 * v_ref[0] + r5 * v_ref[1] + r8 * v_ref[2]) if use_vref else ve2
+    wz = fz - D[2] * v_ax
+    if mode == MODE_TRACK and v_ax > prm[CP_VGUARD]:
+        # Contact lost: the PID's push (up to (K_p + integral_max) F_d) would fly the tool into the
+        # surface at push / D_z (0.1 m/s at 1 N: a 38 N impact). Past this speed it is damped hard.
+        wz -= prm[CP_DGUARD] * (v_ax - prm[CP_VGUARD])
     mx = K[3] * fx_ - D[3] * ve3
     my = K[4] * fy_ - D[4] * ve4
     mz = prm[CP_SPIN] * spin - D[5] * ve5
