@@ -109,7 +109,10 @@ def run_one(obj: str, steps: int, seed: int, nk: int, cache: str) -> dict:
         "touched_ratio": m["touched_fraction"] / kin_touched if kin_touched else None,
         "ergodicity_contact": m["ergodicity"], "ergodicity_kinematic": kin.metrics()["ergodicity"],
         "agent_touched_fraction": out["agent_touched_fraction"],
-        "force_max_N": out["force_max_N"], "tilt_deg_p95": out["tilt_deg_p95"], "track_mm_p95": out["track_mm_p95"],
+        "force_peak_N": out["force_peak_N"], "force_peak_approach_N": out.get("force_peak_approach_N"),
+        "force_rms_error_rel_5hz": out.get("force_rms_error_rel_5hz"), "tilt_deg_median_5hz": out.get("tilt_deg_median_5hz"),
+        "force_peak_5hz_N": out.get("force_peak_5hz_N"),
+        "tilt_deg_p95": out["tilt_deg_p95"], "track_mm_p95": out["track_mm_p95"],
         "stop_reason": out["stop_reason"], "sim_s": out["sim_seconds"], "wall_s_run": wall,
         "setup_s": out["setup_seconds"],
     }

@@ -43,7 +43,7 @@ def explore(
     json_out: bool = typer.Option(False, "--json", help="Print summary.json to stdout."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing run folder at --out (whole, once the new run is complete)."),
     force: Optional[float] = typer.Option(None, "--force", help="[robot] Desired contact force along the tool axis, N [default: 5]."),
-    force_limit: Optional[float] = typer.Option(None, "--force-limit", help="[robot] Contact force that makes the robot retreat and stop, N [default: 3 x --force]."),
+    force_limit: Optional[float] = typer.Option(None, "--force-limit", help="[robot] Contact force that makes the robot retreat and stop, N [default: 3 x --force, at least 5]."),
     contact_force: Optional[float] = typer.Option(None, "--contact-force", help="[robot] Force that counts as touching (coverage is deposited above it), N [default: 20% of --force]."),
     object_pose: Optional[str] = typer.Option(None, "--object-pose", help="[robot] Capture frame in the robot base frame: x,y,z[,roll,pitch,yaw] (m, deg) or x,y,z,qx,qy,qz,qw [default: 0.5 m in front of the base on a 0.2 m stand; identity for sim captures]."),
     workspace: Optional[str] = typer.Option(None, "--workspace", help="[robot] Workspace box xmin,ymin,zmin,xmax,ymax,zmax in the base frame, m."),
@@ -114,18 +114,22 @@ def explore(
 
         echo_err(f"interrupted: the robot was made safe; partial run written to {out}/")
         raise typer.Exit(143 if Terminated.received else 130)
-    fault = summary.get("final_state") == "stopped"  # the robot stopped on a fault and reached a safe state: exit 3
+    from tergodic_cli.robot.safety import fault_exit_code
+
+    code = fault_exit_code(summary)  # a robot stopped on a fault, made safe: exit 3 with its reason
     if json_out:
         typer.echo(json.dumps(summary, indent=2))
-        raise typer.Exit(3 if fault else 0)
+    if code:
+        echo_err(f"robot stopped: {summary.get('stop_reason')}")
+        raise typer.Exit(code)
+    if json_out:
+        return
     typer.echo(f"explored {summary['steps']} steps ({robot}): ε {summary['ergodicity']:.3f} (unit-mass, 0 best), "
                f"touched {100 * summary['touched_fraction']:.1f}%, "
                f"off-surface {100 * (summary.get('off_surface_fraction') or 0.0):.1f}%, "
                f"step max {1e3 * (summary.get('step_max_m') or 0.0):.2f} mm, "
                f"explorer step {summary['step_ms_median']:.3f} ms (median)")
     typer.echo(f"wrote {out}/ ({', '.join(summary['files'])})")
-    if fault:
-        raise typer.Exit(3)
 
 
 def _workspace(box: tuple[float, ...]) -> dict:

@@ -19,6 +19,12 @@ class TergodicError(Exception):
         super().__init__(f"{problem}; {fix}" if fix else problem)
 
 
+class RobotStopped(TergodicError):
+    """The robot stopped on a fault and was made safe (tool lifted, arm still): exit code 3."""
+
+    exit_code = 3
+
+
 def require(condition: bool, problem: str, fix: str | None = None) -> None:
     """Raise :class:`TergodicError` unless ``condition`` holds."""
     if not condition:

@@ -160,7 +160,7 @@ def test_matrix_control_law_equals_geometric_algebra(seed):
     d /= np.linalg.norm(d)
     W_meas = rng.normal(size=6)
     g = ControllerGains(spin_stiffness=0.0, nullspace_stiffness=0.0, nullspace_damping=0.0, limit_stiffness=0.0,
-                        force_filter_hz=0.0)
+                        force_filter_hz=0.0, guard_damping=0.0)  # (the speed guard is no part of eq. 47)
     ctrl = LineForceController(g, 1e-3, q_rest=q, x_ref=np.array([1.0, 0.0, 0.0]))
     ctrl.start_tracking(5.0, 3.0)
     out = ctrl.step(ArmState(0.0, q, dq, T, J), a.tolist(), d.tolist(), W_meas, "track", 5.0)

@@ -34,6 +34,9 @@ def test_force_limit_defaults_to_three_times_desired_and_retreats():
     assert f.kind == "force" and f.action == "retreat" and "15.1 N" in f.reason and "\n" not in f.reason
     assert g.check_force(1.0, np.array([np.nan, 0, 0, 0, 0, 0])).kind == "force"
     assert _guard(force_limit=30.0).check_force(0.0, np.array([0, 0, 20.0, 0, 0, 0])) is None
+    # at low desired forces the default keeps a floor above the contact's 1 kHz jitter
+    assert SafetyGuard(SafetyConfig(), np.full(7, -3.0), np.full(7, 3.0), np.full(7, 2.0), 1.0).force_limit == 5.0
+    assert SafetyGuard(SafetyConfig(force_limit=2.5), np.full(7, -3.0), np.full(7, 3.0), np.full(7, 2.0), 1.0).force_limit == 2.5
 
 
 def test_joint_limits_and_speeds_hold():

@@ -286,9 +286,11 @@ def _write_run(out: Path, explorer, cfg, user_cfg, basis, hit, capture, capture_
             robot_extra = robot_api[0](capture, explorer, robot_cfg, cfg.steps,
                                              on_step=lambda step, sample: after_step(step, sample),
                                              on_event=event_hook) or {}
-        require(recorder.count > 0,
-                f"the run made no explorer step (robot stopped: {robot_extra.get('stop_reason') or 'unknown reason'})",
-                "see the robot's events above; adjust --force, --object-pose or --workspace")
+        if recorder.count == 0:  # a robot fault before the first step: exit 3 (RobotStopped), as after one
+            from tergodic_cli.errors import RobotStopped
+
+            raise RobotStopped(f"the run made no explorer step (robot stopped: {robot_extra.get('stop_reason') or 'unknown reason'})",
+                               "see the robot's events above; adjust --force, --object-pose or --workspace")
         if runlog is not None and recorder.count % log_cloud_every and recorder.count != cfg.steps:
             _log_cloud(runlog, explorer, recorder.count, feed)  # a robot run that stopped early
 

@@ -29,9 +29,11 @@ import numpy as np
 from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.hardware.impedance import ForceLoop, LineImpedanceGains, hold_target, line_impedance_target, tool_rotation
 from tergodic_cli.robot import statemachine as S
+from tergodic_cli.robot import kernels as Kn
+from tergodic_cli.robot.controller import guarded_approach_speed
 from tergodic_cli.robot.interfaces import ContactWrench, ToolLoad
 from tergodic_cli.robot.run import clamp_tilt
-from tergodic_cli.robot.safety import Fault, SafetyGuard
+from tergodic_cli.robot.safety import Fault, SafetyGuard, resolve_stop
 
 SETTLE_S = 0.3
 HOLD_S = 0.5
@@ -136,6 +138,11 @@ class HardwareRun:
         self.kdtree = cKDTree(points)
         self.safety = hardware_safety(robot_cfg, arm.stream_hz)
         self.guard = SafetyGuard(self.safety, arm.q_min, arm.q_max, arm.dq_max, self.F_d)
+        from tergodic_cli.robot.summary import SETTLE_S as STEADY_S
+
+        #: Every streamed tick's force peak, steady-contact force error and tilt (kernels.tick_stats).
+        self.ts = Kn.new_tick_stats(self.F_d, self.threshold, int(round(STEADY_S / self.dt)))
+        self.approach_peak: float | None = None
         self.sm = S.StateMachine(on_event=self.on_event)
         self.force = ForceLoop(self.hw.gains, self.F_d)
         self.samples: list[dict] = []
@@ -193,6 +200,8 @@ class HardwareRun:
         st = self.arm.read_state()
         rd = self.sensor.read()
         w = self.contact(rd.wrench, st.rot)
+        if getattr(rd, "valid", True):
+            Kn.tick_stats(st.ee_pose, w, self.ts)
         if math.isfinite(float(w[2])):
             self._f_filt += self._alpha * (float(w[2]) - self._f_filt)
         self.t = st.t
@@ -204,7 +213,7 @@ class HardwareRun:
             return Fault("robot", "stop", reason, st.t)
         g = self.guard
         v = st.jacobian[:3] @ st.dq
-        fault = (g.check_sensor(st.t, rd.t, rd.wrench) or g.check_force(st.t, w)
+        fault = (g.check_reading(st.t, rd, w)
                  or g.check_state(st.t, st.q, st.dq, st.pos, float(np.linalg.norm(v))))
         if fault is None and target_pos is not None:
             fault = g.check_target(st.t, np.asarray(target_pos))
@@ -240,15 +249,18 @@ class HardwareRun:
 
     # ------------------------------------------------------------------ faults
     def _stop(self, fault: Fault, step: int) -> None:
+        fault = resolve_stop(fault, self.sm.state)  # in contact every fault lifts the tool first
+        self.ts[Kn.TS_COUNT] = 0.0
         self.fault = fault
         self.stop_reason = fault.reason
         try:
-            if fault.action == "retreat" and self.sm.state != S.RETREAT:
+            action = fault.action
+            if action == "retreat" and self.sm.state != S.RETREAT:
                 self.sm.go(S.RETREAT, self.t, step, fault.reason)
                 T = self.arm.read_state().ee_pose
                 self._retreat(T[:3, 3], T[:3, 2], step, checks=False)
                 self.sm.go(S.STOPPED, self.t, step, "retreated after a fault; stopped")
-            elif fault.action == "stop":  # the SDK already stopped the robot
+            elif action == "stop":  # the SDK already stopped the robot
                 self.sm.go(S.HOLD, self.t, step, fault.reason)
                 self.sm.go(S.STOPPED, self.t, step, "the robot stopped itself; stopped")
             else:
@@ -319,16 +331,24 @@ class HardwareRun:
     def _approach(self) -> None:
         cfg = self.cfg
         a, d = self._start_line
-        self.sm.go(S.APPROACH, self.t, 0, f"approaching along the normal at {cfg.approach_speed * 1e3:.0f} mm/s")
-        limit = (cfg.hover_height + 0.03) / cfg.approach_speed + 0.5
+        v_touch = guarded_approach_speed(0.0, cfg.approach_speed, cfg.contact_speed, self.F_d)
+        self.sm.go(S.APPROACH, self.t, 0, f"approaching along the normal at {cfg.approach_speed * 1e3:.0f} mm/s, "
+                                          f"touching at {v_touch * 1e3:.1f} mm/s")
+        limit = (cfg.hover_height + 0.03) / cfg.approach_speed + 0.03 / v_touch + 0.5
+        self.ts[Kn.TS_PEAK_PHASE] = 0.0  # the first touch's peak
         n = int(round(limit / self.dt))
         contact_at = None
         settled = 0
         t0 = self.t
-        s0 = float((self.arm.read_state().ee_pose[:3, 3] - a) @ d)
+        axial = float((self.arm.read_state().ee_pose[:3, 3] - a) @ d)
+        speed = cfg.approach_speed
         for i in range(n + int(round(2.0 / self.dt))):
             if contact_at is None:
-                st, w, fault = self._tick("move", a, d, speed=cfg.approach_speed, axial=s0 + cfg.approach_speed * self.dt * (i + 1))
+                # Guarded: the set-point slows down near the expected surface (the cloud's point a).
+                axial += speed * self.dt
+                st, w, fault = self._tick("move", a, d, speed=speed, axial=axial)
+                speed = guarded_approach_speed(-float((np.asarray(st.pos) - a) @ d), cfg.approach_speed,
+                                               cfg.contact_speed, self.F_d)
             else:
                 st, w, fault = self._tick("track", a, d)
             if fault is not None:
@@ -348,6 +368,7 @@ class HardwareRun:
                     break
         else:
             self.on_event(0, f"robot: the force did not settle within 2 s (now {self._f_filt:.2f} N); exploring anyway")
+        self.approach_peak = float(self.ts[Kn.TS_PEAK_PHASE])
         self.sm.go(S.EXPLORE, self.t, 0, f"in contact at {self._f_filt:.2f} N; exploring")
 
     def _explore(self, steps: int, on_step) -> None:
@@ -359,20 +380,25 @@ class HardwareRun:
         w = np.zeros(6)
         self.guard.feed_target(self.t)
         step = int(getattr(ex, "step_index", 0))
+        self.ts[Kn.TS_COUNT], self.ts[Kn.TS_RUN] = 1.0, 0.0  # explore ticks count towards steady contact
         for _ in track(range(steps), total=steps, description=f"explore ({self.arm.name})"):
             in_contact = self._f_filt >= self.threshold
             tcp = st.ee_pose[:3, 3]
+            self.ts[Kn.TS_N:Kn.TS_N + 3] = self._surface_normal(tcp)
             deposit = self._to_obj(tcp)[None, :] if in_contact else np.zeros((0, 3))
             before = int(getattr(ex, "step_index", step))
             try:
                 ex.step(deposit_at=deposit, agent_at=self._to_obj(tcp)[None, :])
             except TergodicError as exc:
-                self._record(before + 1, st, w, a_cur, d_cur, on_step, f"the explorer failed ({exc}); holding position")
-                self._stop(Fault("explorer", "hold", f"the explorer failed ({exc}); holding position", self.t), before + 1)
+                fault = resolve_stop(Fault("explorer", "hold", f"the explorer failed ({exc}); holding position", self.t),
+                                     self.sm.state)
+                self._record(before + 1, st, w, a_cur, d_cur, on_step, fault.reason)
+                self._stop(fault, before + 1)
             step = int(getattr(ex, "step_index", before + 1))
             a_next, d_next = self.agent_line()
             fault = self.guard.check_target(self.t, a_next)
             if fault is not None:
+                fault = resolve_stop(fault, self.sm.state)
                 self._record(step, st, w, a_cur, d_cur, on_step, fault.reason)
                 self._stop(fault, step)
             self.guard.feed_target(self.t)
@@ -387,10 +413,12 @@ class HardwareRun:
                 d = d / np.linalg.norm(d)
                 st, w, fault = self._tick("track", a, d, v_line=v_line)
                 if fault is not None:
+                    fault = resolve_stop(fault, self.sm.state)
                     self._record(step, st, w, a, d, on_step, fault.reason)
                     self._stop(fault, step)
             a_cur, d_cur = a_next, d_next
             self._record(step, st, w, a_cur, d_cur, on_step)
+        self.ts[Kn.TS_COUNT] = 0.0
         self._last_line = (a_cur, d_cur)
 
     # ------------------------------------------------------------------ samples
@@ -431,6 +459,7 @@ class HardwareRun:
             "contact_ergodicity": metrics.get("ergodicity"),
             "contact_touched_fraction": metrics.get("touched_fraction"),
             "step": int(step),
+            **Kn.tick_figures(self.ts),
         }
         if stop_reason:
             sample["stop_reason"] = stop_reason
@@ -465,8 +494,9 @@ class HardwareRun:
             self.arm.stop()
         except _Stop:
             pass
-        out = summarize_robot(self.samples, stop_reason=self.stop_reason)
+        out = summarize_robot(self.samples, stop_reason=self.stop_reason, ticks=Kn.tick_figures(self.ts))
         out.update({
+            "force_peak_approach_N": self.approach_peak,
             "backend": self.arm.name,
             "final_state": self.sm.state,
             "robot_seconds": self.t - self._t_start,

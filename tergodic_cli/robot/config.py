@@ -48,6 +48,8 @@ class RobotConfig:
         glide between explorer steps) instead of its absolute velocity (eq. 46): no damping lag.
     max_tool_tilt_deg : the commanded tool axis is kept within this angle of straight down; on
         steeper surface the sponge works tilted (the Panda's wrist cannot follow further).
+    inertial_compensation : remove the tool's inertial wrench (mass × acceleration from the arm's
+        state) from the F/T reading as well as its weight, so the wrench is the contact's.
     """
 
     backend: str = "pybullet"
@@ -71,6 +73,7 @@ class RobotConfig:
     dynamics_every: int = 4
     velocity_feedforward: bool = True
     max_tool_tilt_deg: float = 60.0
+    inertial_compensation: bool = True
     picture_q: tuple[float, ...] = PICTURE_Q
     sponge: SpongeSpec = field(default_factory=SpongeSpec)
     gains: ControllerGains = field(default_factory=ControllerGains)

@@ -60,6 +60,9 @@ class ControllerGains:
     spin_stiffness : N m/rad holding the rotation about the tool axis (free for a line).
     nullspace_stiffness, nullspace_damping : posture spring (N m/rad, N m s/rad) in the null space.
     limit_stiffness : N m/rad pushing joints out of the last LIMIT_ZONE rad before a limit (null space).
+    guard_speed, guard_damping : while pressing ("track"), a tool moving into the surface faster than
+        guard_speed (m/s) gets guard_damping (N s/m) more damping on the excess: when contact is lost
+        the force PID's push no longer flies it into the surface (issue 15: 38 N at F_d = 1 N).
     """
 
     k_trans: tuple[float, float, float] = (3000.0, 3000.0, 300.0)
@@ -75,6 +78,8 @@ class ControllerGains:
     nullspace_stiffness: float = 10.0
     nullspace_damping: float = 3.0
     limit_stiffness: float = 30.0
+    guard_speed: float = 0.005
+    guard_damping: float = 1000.0
 
     def to_dict(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
@@ -132,6 +137,7 @@ class LineForceController:
         prm[Kn.CP_ALPHA], prm[Kn.CP_IMAX], prm[Kn.CP_SPIN] = self.alpha, gains.integral_max, gains.spin_stiffness
         prm[Kn.CP_NS_K], prm[Kn.CP_NS_D], prm[Kn.CP_LIM_K] = gains.nullspace_stiffness, gains.nullspace_damping, gains.limit_stiffness
         prm[Kn.CP_DT], prm[Kn.CP_LIMIT_ZONE] = self.dt, LIMIT_ZONE
+        prm[Kn.CP_VGUARD], prm[Kn.CP_DGUARD] = gains.guard_speed, gains.guard_damping
         #: Packed constants (kernels.KPK_*) and mutable state (kernels.MUT_*) of the compiled step.
         self.kpk = np.concatenate([self.K, self.D, prm, np.asarray(x_ref, dtype=float), np.asarray(q_rest, dtype=float),
                                    np.asarray(q_min, dtype=float), np.asarray(q_max, dtype=float)])
@@ -260,6 +266,27 @@ class JointImpedance:
     def __call__(self, q: np.ndarray, dq: np.ndarray, q_d: np.ndarray, dq_d: np.ndarray | None = None) -> np.ndarray:
         dq_d = np.zeros_like(q) if dq_d is None else dq_d
         return self.K * (q_d - q) + self.D * (dq_d - dq)
+
+
+#: The approach slows down to reach the expected surface in about this many seconds from where it is.
+APPROACH_TAU_S = 0.25
+#: Desired force (N) at and above which the tool touches at the full ``contact_speed``; below it the
+#: touch is slower in proportion, so the impact (the contact's damping × speed: 1 N at 2 mm/s on the
+#: simulated sponge) stays a fifth of F_d.
+TOUCH_REF_FORCE = 5.0
+
+
+#: The approach is at its touch speed this far (m) before the expected surface: the cloud is not
+#: the surface to the tenth of a millimetre.
+TOUCH_MARGIN = 0.001
+
+
+def guarded_approach_speed(gap: float, approach_speed: float, contact_speed: float, force: float) -> float:
+    """Speed (m/s) of a guarded approach ``gap`` metres before the expected surface (the cloud's point):
+    ``approach_speed`` far away, slowing down over the last few mm ((gap - TOUCH_MARGIN) / APPROACH_TAU_S)
+    to the touch speed, ``contact_speed`` scaled down below TOUCH_REF_FORCE, from TOUCH_MARGIN on."""
+    touch = contact_speed * min(1.0, max(force, 0.0) / TOUCH_REF_FORCE)
+    return min(approach_speed, max(touch, (gap - TOUCH_MARGIN) / APPROACH_TAU_S))
 
 
 def min_jerk(q0: np.ndarray, q1: np.ndarray, duration: float, t: float) -> tuple[np.ndarray, np.ndarray]:

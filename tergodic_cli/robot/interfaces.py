@@ -77,10 +77,13 @@ class WrenchReading:
     """One F/T sample: time (s) and wrench (6,) ``fx fy fz tx ty tz`` in the sensor frame (N, N m).
 
     ``wrench`` is array-like: a (6,) array or a 6-tuple (the PyBullet backend's, cheaper at 1 kHz).
+    ``valid`` is False for a placeholder that is no measurement (a simulated sensor before its
+    first physics step reads 0): such a reading must not count.
     """
 
     t: float
     wrench: np.ndarray | tuple
+    valid: bool = True
 
 
 @runtime_checkable
@@ -128,10 +131,13 @@ class WrenchSensor(Protocol):
 
 @dataclass
 class ToolLoad:
-    """Mass (kg) and centre of mass (3,) in the sensor frame of everything beyond the sensor."""
+    """Mass (kg) and centre of mass (3,) in the sensor frame of everything beyond the sensor, and
+    its principal inertia (3,) about the centre of mass along the sensor axes, kg m² (for the
+    inertial compensation; zeros: forces only)."""
 
     mass: float
     com: np.ndarray
+    inertia: np.ndarray | None = None
 
     def wrench(self, R_base_sensor: np.ndarray) -> np.ndarray:
         """The wrench (6,) the arm must apply to hold the tool still against gravity, sensor frame."""
@@ -146,9 +152,15 @@ class ContactWrench:
     of the zeroed reading); ``__call__`` removes the change of tool load since, then moves the
     wrench from the sensor frame to the TCP: W'_m of eq. 39. The arithmetic is
     :func:`tergodic_cli.robot.kernels.contact_wrench` (compiled: it runs at 1 kHz).
+
+    With ``inertial`` and the arm's state given, the wrench that accelerates the tool (mass ×
+    acceleration of its centre of mass, I α + ω × I ω, from J q̇ differenced between samples) is
+    removed too (:func:`~tergodic_cli.robot.kernels.inertial_wrench`): the sensor then measures the
+    contact alone while the arm moves (issue 15: uncompensated, the hand's inertial forces read as
+    tens of newtons of "contact").
     """
 
-    def __init__(self, load: ToolLoad, frame_in_ee: np.ndarray):
+    def __init__(self, load: ToolLoad, frame_in_ee: np.ndarray, inertial: bool = False):
         from tergodic_cli.robot.kernels import contact_wrench
 
         self.load = load
@@ -160,6 +172,11 @@ class ContactWrench:
         self.com = np.ascontiguousarray(load.com, dtype=float)
         self.tare_load = np.zeros(6)
         self._kernel = contact_wrench
+        self.inertial = bool(inertial)
+        self.inertia = np.ascontiguousarray(load.inertia if load.inertia is not None else np.zeros(3), dtype=float)
+        from tergodic_cli.robot.kernels import N_DY
+
+        self.dyn = np.zeros(N_DY)  # the last sample's velocities (kernels.inertial_wrench)
 
     def _load(self, R_base_ee: np.ndarray) -> np.ndarray:
         """The tool load (6,) in the sensor frame at this orientation (the reading of a free, still tool, untared)."""
@@ -173,13 +190,23 @@ class ContactWrench:
         """Call right after :meth:`WrenchSensor.tare` with the tool at rest and free."""
         self.tare_load = self._load(np.asarray(R_base_ee, dtype=float).reshape(3, 3))
 
-    def __call__(self, reading, R_base_ee) -> np.ndarray:
+    def __call__(self, reading, R_base_ee, state=None) -> np.ndarray:
         """(6,) wrench (f, m) the tool applies to the environment, ee frame, moment about the TCP.
 
         ``reading`` is the sensor's (6,) wrench (array or 6-tuple); ``R_base_ee`` the (3, 3) TCP
-        rotation (or the (4, 4) pose, or 9 row-major floats).
+        rotation (or the (4, 4) pose, or 9 row-major floats); ``state`` the :class:`ArmState` of
+        the same tick (t, jacobian, dq), for the inertial compensation (ignored unless ``inertial``).
         """
         R = R_base_ee if isinstance(R_base_ee, np.ndarray) else np.asarray(R_base_ee, dtype=float).reshape(3, 3)
         out = np.empty(6)
-        self._kernel(np.asarray(reading, dtype=float), R, self.R_se_m, self.p_se_v, self.mg, self.com, self.tare_load, out)
+        r = np.asarray(reading, dtype=float)
+        if self.inertial and state is not None:
+            from tergodic_cli.robot.kernels import contact_wrench_dyn
+
+            T = state.ee_pose
+            contact_wrench_dyn(r, float(state.t), T, np.ascontiguousarray(state.jacobian, dtype=float),
+                               np.ascontiguousarray(state.dq, dtype=float), self.R_se_m, self.p_se_v, self.mg, self.com,
+                               self.tare_load, float(self.load.mass), self.inertia, self.dyn, out)
+            return out
+        self._kernel(r, R, self.R_se_m, self.p_se_v, self.mg, self.com, self.tare_load, out)
         return out

@@ -40,7 +40,8 @@ MODES = {"track": MODE_TRACK, "approach": MODE_APPROACH, "retreat": MODE_RETREAT
 
 # Controller parameters, one float64 array (CP_*), and state (CS_*).
 CP_KP, CP_KI, CP_KD, CP_ALPHA, CP_IMAX, CP_SPIN, CP_NS_K, CP_NS_D, CP_LIM_K, CP_DT, CP_LIMIT_ZONE = range(11)
-N_CP = 11
+CP_VGUARD, CP_DGUARD = 11, 12
+N_CP = 13
 CS_FFILT, CS_EPREV, CS_HAS_EPREV, CS_INTEGRAL, CS_AGE = range(5)
 N_CS = 5
 # Diagnostics of one controller step (CD_*): twist error (6), commanded wrench (6), filtered force, ee twist (6).
@@ -177,6 +178,96 @@ def contact_wrench(r, T, R_se, p_se, mg, com, tare_load, out):
     out[5] = m2 + p0 * g1 - p1 * g0
 
 
+# The inertial compensation's state (ContactWrench.dyn): the last sample time, the centre of mass's
+# velocity and the angular velocity then (base frame), whether they are set, and the last
+# accelerations (reused when the same tick is read twice).
+DY_T, DY_VC, DY_W, DY_HAS, DY_AC, DY_AL = 0, 1, 4, 7, 8, 11
+N_DY = 14
+#: Longest gap (s) between two samples that still gives an acceleration (longer: a restart, a = 0).
+DY_MAX_GAP = 0.005
+
+
+@njit
+def inertial_wrench(t, T, J, dq, R_se, p_se, com, m, inertia, dyn, out):
+    """The wrench (6,) that accelerates the tool, sensor frame, moment about the sensor origin:
+    (m a_c, c × m a_c + I α + ω × I ω), with a_c the centre of mass's acceleration and α the angular
+    one, backward differences of the arm's state (J q̇) between samples; ``inertia`` (3,) is the
+    tool's principal inertia about its centre of mass, along the sensor axes. Updates ``dyn``."""
+    v0 = v1 = v2 = w0 = w1 = w2 = 0.0
+    for j in range(dq.shape[0]):
+        qd = dq[j]
+        v0 += J[0, j] * qd
+        v1 += J[1, j] * qd
+        v2 += J[2, j] * qd
+        w0 += J[3, j] * qd
+        w1 += J[4, j] * qd
+        w2 += J[5, j] * qd
+    # The centre of mass from the TCP, base frame: R (p_se + R_se c).
+    e0 = p_se[0] + R_se[0, 0] * com[0] + R_se[0, 1] * com[1] + R_se[0, 2] * com[2]
+    e1 = p_se[1] + R_se[1, 0] * com[0] + R_se[1, 1] * com[1] + R_se[1, 2] * com[2]
+    e2 = p_se[2] + R_se[2, 0] * com[0] + R_se[2, 1] * com[1] + R_se[2, 2] * com[2]
+    c0 = T[0, 0] * e0 + T[0, 1] * e1 + T[0, 2] * e2
+    c1 = T[1, 0] * e0 + T[1, 1] * e1 + T[1, 2] * e2
+    c2 = T[2, 0] * e0 + T[2, 1] * e1 + T[2, 2] * e2
+    vc0, vc1, vc2 = v0 + w1 * c2 - w2 * c1, v1 + w2 * c0 - w0 * c2, v2 + w0 * c1 - w1 * c0
+    dt = t - dyn[DY_T]
+    if dyn[DY_HAS] != 0.0 and dt == 0.0:
+        pass  # the same sample again: the accelerations stand
+    elif dyn[DY_HAS] != 0.0 and 0.0 < dt <= DY_MAX_GAP:
+        dyn[DY_AC] = (vc0 - dyn[DY_VC]) / dt
+        dyn[DY_AC + 1] = (vc1 - dyn[DY_VC + 1]) / dt
+        dyn[DY_AC + 2] = (vc2 - dyn[DY_VC + 2]) / dt
+        dyn[DY_AL] = (w0 - dyn[DY_W]) / dt
+        dyn[DY_AL + 1] = (w1 - dyn[DY_W + 1]) / dt
+        dyn[DY_AL + 2] = (w2 - dyn[DY_W + 2]) / dt
+    else:
+        for k in range(3):
+            dyn[DY_AC + k] = 0.0
+            dyn[DY_AL + k] = 0.0
+    dyn[DY_T] = t
+    dyn[DY_VC], dyn[DY_VC + 1], dyn[DY_VC + 2] = vc0, vc1, vc2
+    dyn[DY_W], dyn[DY_W + 1], dyn[DY_W + 2] = w0, w1, w2
+    dyn[DY_HAS] = 1.0
+    # Into the sensor frame: x_s = R_seᵀ Rᵀ x_b.
+    a0, a1, a2 = dyn[DY_AC], dyn[DY_AC + 1], dyn[DY_AC + 2]
+    b0, b1, b2 = dyn[DY_AL], dyn[DY_AL + 1], dyn[DY_AL + 2]
+    ae0 = T[0, 0] * a0 + T[1, 0] * a1 + T[2, 0] * a2
+    ae1 = T[0, 1] * a0 + T[1, 1] * a1 + T[2, 1] * a2
+    ae2 = T[0, 2] * a0 + T[1, 2] * a1 + T[2, 2] * a2
+    be0 = T[0, 0] * b0 + T[1, 0] * b1 + T[2, 0] * b2
+    be1 = T[0, 1] * b0 + T[1, 1] * b1 + T[2, 1] * b2
+    be2 = T[0, 2] * b0 + T[1, 2] * b1 + T[2, 2] * b2
+    we0 = T[0, 0] * w0 + T[1, 0] * w1 + T[2, 0] * w2
+    we1 = T[0, 1] * w0 + T[1, 1] * w1 + T[2, 1] * w2
+    we2 = T[0, 2] * w0 + T[1, 2] * w1 + T[2, 2] * w2
+    f0 = m * (R_se[0, 0] * ae0 + R_se[1, 0] * ae1 + R_se[2, 0] * ae2)
+    f1 = m * (R_se[0, 1] * ae0 + R_se[1, 1] * ae1 + R_se[2, 1] * ae2)
+    f2 = m * (R_se[0, 2] * ae0 + R_se[1, 2] * ae1 + R_se[2, 2] * ae2)
+    al0 = R_se[0, 0] * be0 + R_se[1, 0] * be1 + R_se[2, 0] * be2
+    al1 = R_se[0, 1] * be0 + R_se[1, 1] * be1 + R_se[2, 1] * be2
+    al2 = R_se[0, 2] * be0 + R_se[1, 2] * be1 + R_se[2, 2] * be2
+    om0 = R_se[0, 0] * we0 + R_se[1, 0] * we1 + R_se[2, 0] * we2
+    om1 = R_se[0, 1] * we0 + R_se[1, 1] * we1 + R_se[2, 1] * we2
+    om2 = R_se[0, 2] * we0 + R_se[1, 2] * we1 + R_se[2, 2] * we2
+    h0, h1, h2 = inertia[0] * om0, inertia[1] * om1, inertia[2] * om2
+    out[0], out[1], out[2] = f0, f1, f2
+    out[3] = com[1] * f2 - com[2] * f1 + inertia[0] * al0 + om1 * h2 - om2 * h1
+    out[4] = com[2] * f0 - com[0] * f2 + inertia[1] * al1 + om2 * h0 - om0 * h2
+    out[5] = com[0] * f1 - com[1] * f0 + inertia[2] * al2 + om0 * h1 - om1 * h0
+
+
+@njit
+def contact_wrench_dyn(r, t, T, J, dq, R_se, p_se, mg, com, tare_load, m, inertia, dyn, out):
+    """:func:`contact_wrench` with the tool's inertial wrench (:func:`inertial_wrench`) removed from
+    the reading first: the contact wrench alone, also while the arm accelerates."""
+    iw = np.empty(6)
+    inertial_wrench(t, T, J, dq, R_se, p_se, com, m, inertia, dyn, iw)
+    rc = np.empty(6)
+    for k in range(6):
+        rc[k] = r[k] - iw[k]
+    contact_wrench(rc, T, R_se, p_se, mg, com, tare_load, out)
+
+
 # ----------------------------------------------------------------------------- the controller
 @njit
 def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use_vref, K, D, prm, state,
@@ -237,10 +328,12 @@ def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use
     # K_L V_L - D_V V_ee + W_C (eq. 47); along the line the damping acts on the tool's own velocity.
     wx = K[0] * tx - D[0] * ve0
     wy = K[1] * ty - D[1] * ve1
-    if use_vref:
-        wz = fz - D[2] * (ve2 + (r2 * v_ref[0] + r5 * v_ref[1] + r8 * v_ref[2]))
-    else:
-        wz = fz - D[2] * ve2
+    v_ax = ve2 + (r2 * v_ref[0] + r5 * v_ref[1] + r8 * v_ref[2]) if use_vref else ve2
+    wz = fz - D[2] * v_ax
+    if mode == MODE_TRACK and v_ax > prm[CP_VGUARD]:
+        # Contact lost: the PID's push (up to (K_p + integral_max) F_d) would fly the tool into the
+        # surface at push / D_z (0.1 m/s at 1 N: a 38 N impact). Past this speed it is damped hard.
+        wz -= prm[CP_DGUARD] * (v_ax - prm[CP_VGUARD])
     mx = K[3] * fx_ - D[3] * ve3
     my = K[4] * fy_ - D[4] * ve4
     mz = prm[CP_SPIN] * spin - D[5] * ve5
@@ -361,6 +454,80 @@ def force_fault(w, limit):
     return (OK if f <= limit else F_FORCE), f
 
 
+# ----------------------------------------------------------------------------- every tick counts
+# Statistics of every 1 kHz tick (issue 15, item 4) in one float64 array, updated in place: running
+# max and sums, a fixed tilt histogram, nothing allocated per tick. Set by Python: the surface
+# normal at the contact (base frame, refreshed each explorer step), F_d, the contact threshold,
+# the settling ticks, and TS_COUNT (1: these ticks count towards steady contact, i.e. explore).
+TS_N, TS_FD, TS_THR, TS_SETTLE, TS_COUNT = 0, 3, 4, 5, 6
+TS_PEAK, TS_PEAK_PHASE, TS_RUN, TS_NSTEADY, TS_SQERR, TS_TILT_SUM, TS_NTICKS = 7, 8, 9, 10, 11, 12, 13
+TS_HIST = 14
+TILT_BIN_DEG = 0.05
+TILT_BINS = 1800  # 0..90 deg; the last bin also takes anything steeper
+N_TS = TS_HIST + TILT_BINS
+
+
+@njit
+def tick_stats(T, w, ts):
+    """Fold one tick into ``ts``: the contact force |f| of ``w`` (6,) into the peaks; in steady contact
+    (F/T force along the normal over the threshold for more than TS_SETTLE ticks, counted ticks only)
+    the force error (F_n - F_d)/F_d and the tilt of the tool axis (T's z) from the normal. NaN is skipped."""
+    f = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    ts[TS_NTICKS] += 1.0
+    if f > ts[TS_PEAK]:
+        ts[TS_PEAK] = f
+    if f > ts[TS_PEAK_PHASE]:
+        ts[TS_PEAK_PHASE] = f
+    if ts[TS_COUNT] == 0.0:
+        return
+    n0, n1, n2 = ts[TS_N], ts[TS_N + 1], ts[TS_N + 2]
+    # F_n = -(R f)·n: the force the tool presses into the surface.
+    fn = -((T[0, 0] * w[0] + T[0, 1] * w[1] + T[0, 2] * w[2]) * n0 + (T[1, 0] * w[0] + T[1, 1] * w[1] + T[1, 2] * w[2]) * n1
+           + (T[2, 0] * w[0] + T[2, 1] * w[1] + T[2, 2] * w[2]) * n2)
+    if fn >= ts[TS_THR]:
+        ts[TS_RUN] += 1.0
+    else:
+        ts[TS_RUN] = 0.0
+        return
+    if ts[TS_RUN] <= ts[TS_SETTLE]:
+        return
+    e = (fn - ts[TS_FD]) / ts[TS_FD]
+    ts[TS_SQERR] += e * e
+    ts[TS_NSTEADY] += 1.0
+    c = -(T[0, 2] * n0 + T[1, 2] * n1 + T[2, 2] * n2)
+    tilt = math.degrees(math.acos(min(1.0, max(-1.0, c))))
+    ts[TS_TILT_SUM] += tilt
+    b = int(tilt / TILT_BIN_DEG)
+    ts[TS_HIST + min(b, TILT_BINS - 1)] += 1.0
+
+
+def tick_quantile(ts: np.ndarray, q: float) -> float | None:
+    """The ``q`` quantile (0..1) of the steady-contact tilt (deg) from the histogram of ``ts`` (bin centre)."""
+    h = ts[TS_HIST:TS_HIST + TILT_BINS]
+    n = float(h.sum())
+    if n <= 0:
+        return None
+    k = int(np.searchsorted(np.cumsum(h), q * n))
+    return (min(k, TILT_BINS - 1) + 0.5) * TILT_BIN_DEG
+
+
+def tick_figures(ts: np.ndarray) -> dict:
+    """The figures of :func:`tick_stats` so far (cumulative; each robot sample carries them, so the
+    summary can be recomputed from the log): the 1 kHz force peak, the steady-contact ticks, their
+    RMS relative force error and tilt median / 95th percentile."""
+    n = int(ts[TS_NSTEADY])
+    return {"tick_force_peak_N": float(ts[TS_PEAK]), "tick_steady": n,
+            "tick_force_rms_rel": math.sqrt(ts[TS_SQERR] / n) if n else None,
+            "tick_tilt_median_deg": tick_quantile(ts, 0.5), "tick_tilt_p95_deg": tick_quantile(ts, 0.95)}
+
+
+def new_tick_stats(force_desired: float, threshold: float, settle_ticks: int) -> np.ndarray:
+    ts = np.zeros(N_TS)
+    ts[TS_N + 2] = 1.0
+    ts[TS_FD], ts[TS_THR], ts[TS_SETTLE] = force_desired, threshold, settle_ticks
+    return ts
+
+
 # ----------------------------------------------------------------------------- the PyBullet hot loop
 # numba's dispatcher costs ~0.2 µs per array argument, more for tuples, and most for nested tuples
 # of mixed types (typing and unboxing ``getJointStates``' tuple of (q, q̇, reaction 6-tuple, torque)
@@ -369,7 +536,7 @@ def force_fault(w, limit):
 # cst (built by :func:`pack_constants` once per explorer interval): header [m, F_d, use_vref],
 # v_ref (3), the chain (F (m, 4, 4), axis (m, 3), qidx (m,)), tcp offset (3), R_se (3, 3), p_se (3),
 # m g, com (3), tare load (6), guard q_lo (7), q_hi (7), dq_hi (7), tcp speed max, workspace lo (3),
-# hi (3), force limit, tau_max (7).
+# hi (3), force limit, tau_max (7), inertial compensation on (1/0), tool mass, principal inertia (3).
 # io (read back by RobotRun._track_fast): q (7), q̇ (7), w (6), tau (7, the total torque to send),
 # diag (N_CD), T (16), J (42).
 IO_Q, IO_DQ, IO_W, IO_TAU, IO_DIAG = 0, 7, 14, 20, 27
@@ -385,7 +552,8 @@ def pack_constants(chain, contact, guard, tau_max, force_desired: float, v_ref) 
     parts = [[len(qidx), float(force_desired), 1.0 if use else 0.0], v_ref if use else np.zeros(3),
              F.ravel(), axis.ravel(), qidx.astype(float), off, contact.R_se_m.ravel(), contact.p_se_v, [contact.mg],
              contact.com, contact.tare_load, guard.q_lo, guard.q_hi, guard.dq_hi, [guard.cfg.tcp_speed_max],
-             guard.ws_lo, guard.ws_hi, [guard.force_limit], tau_max]
+             guard.ws_lo, guard.ws_hi, [guard.force_limit], tau_max,
+             [1.0 if contact.inertial else 0.0, contact.load.mass], contact.inertia]
     return np.ascontiguousarray(np.concatenate([np.asarray(x, dtype=float).ravel() for x in parts]))
 
 
@@ -420,19 +588,23 @@ def _unpack_constants(cst):
     ws_hi = cst[o + 25:o + 28]
     force_limit = cst[o + 28]
     tau_max = cst[o + 29:o + 36]
+    inertial = cst[o + 36] != 0.0
+    mass = cst[o + 37]
+    inertia = cst[o + 38:o + 41]
     return (force_desired, use_vref, v_ref, F, axis, qidx, tcp_off, R_se, p_se, mg, com, tare, q_lo, q_hi, dq_hi,
-            tcp_max, ws_lo, ws_hi, force_limit, tau_max)
+            tcp_max, ws_lo, ws_hi, force_limit, tau_max, inertial, mass, inertia)
 
 
 @njit
-def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io):
+def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io, ts, t, dyn):
     """One 1 kHz tick of the "track" loop after the joint read: FK + Jacobian, contact wrench, force
     check, controller, state checks, and the torque to send (task + ``bias``, clamped to tau_max).
 
     i : row of A, D (n, 3), the gliding target line. qs, dqs : joint positions (rad) and velocities
     (rad/s), flat tuples whose first 7 entries are the arm's (``zip(*getJointStates(...))``).
     reading : the sensor's 6 numbers (tare removed); bias : gravity + Coriolis (7 numbers).
-    kpk, mut : the controller's (``mut`` is updated).
+    kpk, mut : the controller's (``mut`` is updated). ts : :func:`tick_stats` (updated). t : the
+    sample time, s; dyn : the inertial compensation's state (:func:`inertial_wrench`, updated).
     Returns an F_* code (OK: send io[IO_TAU:IO_TAU + 7]). The separate kernels, chained.
     """
     q = io[IO_Q:IO_Q + 7]
@@ -441,7 +613,7 @@ def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io):
         q[j] = qs[j]
         dq[j] = dqs[j]
     (force_desired, use_vref, v_ref, F, axis, qidx, tcp_off, R_se, p_se, mg, com, tare, q_lo, q_hi, dq_hi, tcp_max,
-     ws_lo, ws_hi, force_limit, tau_max) = _unpack_constants(cst)
+     ws_lo, ws_hi, force_limit, tau_max, inertial, mass, inertia) = _unpack_constants(cst)
     T = io[IO_T:IO_T + 16].reshape((4, 4))
     J = io[IO_J:IO_J + 42].reshape((6, 7))
     w = io[IO_W:IO_W + 6]
@@ -450,7 +622,11 @@ def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io):
     r = np.empty(6)
     for k in range(6):
         r[k] = reading[k]
-    contact_wrench(r, T, R_se, p_se, mg, com, tare, w)
+    if inertial:
+        contact_wrench_dyn(r, t, T, J, dq, R_se, p_se, mg, com, tare, mass, inertia, dyn, w)
+    else:
+        contact_wrench(r, T, R_se, p_se, mg, com, tare, w)
+    tick_stats(T, w, ts)
     code, _f = force_fault(w, force_limit)
     if code != OK:
         return code
@@ -470,13 +646,13 @@ def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io):
 
 
 @njit
-def pybullet_joint_tick(i, QD, DQD, qs, dqs, reading, bias, cst, kd, io):
+def pybullet_joint_tick(i, QD, DQD, qs, dqs, reading, bias, cst, kd, io, ts, t, dyn):
     """One 1 kHz tick of a joint-impedance move after the joint read (the set-up moves): FK + Jacobian,
     contact wrench, force check, τ = K (q_d - q) + D (q̇_d - q̇) (:class:`JointImpedance`), state
     checks (TCP speed from J q̇), and the torque to send (τ + ``bias``, clamped to tau_max).
 
     i : row of QD, DQD (n, 7), the desired joints (rad) and velocities (rad/s). qs, dqs, reading,
-    bias, cst, io : as :func:`pybullet_tick`. kd : (14,) joint stiffness (7) then damping (7).
+    bias, cst, io, ts, t, dyn : as :func:`pybullet_tick`. kd : (14,) joint stiffness (7) then damping (7).
     Returns an F_* code (OK: send io[IO_TAU:IO_TAU + 7]).
     """
     q = io[IO_Q:IO_Q + 7]
@@ -485,7 +661,7 @@ def pybullet_joint_tick(i, QD, DQD, qs, dqs, reading, bias, cst, kd, io):
         q[j] = qs[j]
         dq[j] = dqs[j]
     (_fd, _use, _vref, F, axis, qidx, tcp_off, R_se, p_se, mg, com, tare, q_lo, q_hi, dq_hi, tcp_max,
-     ws_lo, ws_hi, force_limit, tau_max) = _unpack_constants(cst)
+     ws_lo, ws_hi, force_limit, tau_max, inertial, mass, inertia) = _unpack_constants(cst)
     T = io[IO_T:IO_T + 16].reshape((4, 4))
     J = io[IO_J:IO_J + 42].reshape((6, 7))
     w = io[IO_W:IO_W + 6]
@@ -493,7 +669,11 @@ def pybullet_joint_tick(i, QD, DQD, qs, dqs, reading, bias, cst, kd, io):
     r = np.empty(6)
     for k in range(6):
         r[k] = reading[k]
-    contact_wrench(r, T, R_se, p_se, mg, com, tare, w)
+    if inertial:
+        contact_wrench_dyn(r, t, T, J, dq, R_se, p_se, mg, com, tare, mass, inertia, dyn, w)
+    else:
+        contact_wrench(r, T, R_se, p_se, mg, com, tare, w)
+    tick_stats(T, w, ts)
     code, _f = force_fault(w, force_limit)
     if code != OK:
         return code

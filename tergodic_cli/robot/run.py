@@ -29,11 +29,13 @@ from tergodic_cli.capture.filters import mean_spacing
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.robot import statemachine as S
 from tergodic_cli.robot.config import RobotConfig, validate_robot_config
-from tergodic_cli.robot.controller import JointImpedance, LineForceController, min_jerk
+from tergodic_cli.robot.controller import JointImpedance, LineForceController, guarded_approach_speed, min_jerk
 from tergodic_cli.robot.ga import matrix_to_quat, point_line_distance, pose_matrix
 from tergodic_cli.robot.interfaces import ContactWrench
+from tergodic_cli.robot.kernels import TS_COUNT as _TS_COUNT, TS_N as _TS_N, TS_PEAK_PHASE as _TS_PEAK_PHASE, \
+    TS_RUN as _TS_RUN, tick_figures, tick_stats as _tick_stats
 from tergodic_cli.robot.pybullet_backend import PyBulletArm, PyBulletScene, PyBulletWrenchSensor
-from tergodic_cli.robot.safety import Fault, SafetyGuard
+from tergodic_cli.robot.safety import Fault, SafetyGuard, resolve_stop
 from tergodic_cli.robot.summary import summarize_robot
 from tergodic_cli.robot.surface import (check_reachable, default_object_pose, oriented_normals, parse_object_pose,
                                         reconstruct_mesh, resolve_side, sim_object_mesh, transform_points)
@@ -43,10 +45,12 @@ HOLD_S = 0.5
 SETTLE_S = 0.3
 PRESS_TIMEOUT_S = 2.0
 PRESS_RAMP_S = 0.5
-#: The approach slows down to reach the surface in about this many seconds from where it is.
-APPROACH_TAU_S = 0.25
-#: N/s by which the approach push grows once the tool is at the expected surface.
-PRESS_RATE = 10.0
+#: N/m of the approach's axial position servo: its set-point advances at the guarded speed, so a
+#: steady push on the tool (gravity-model error, posture torques) cannot make it touch faster (a
+#: pure velocity servo, D_z = 50 N s/m, let 0.17 N push it in at 5.5 mm/s against 2 commanded).
+APPROACH_K = 2000.0
+#: N s/m added to the approach's axial damping (the controller's D_z, 50) on the speed error.
+APPROACH_D = 100.0
 RETREAT_TIMEOUT_S = 3.0
 #: Metres above the object's highest point the tool passes on its way to and from the picture pose.
 CLEARANCE = 0.04
@@ -137,7 +141,11 @@ class RobotRun:
             self.arm.connect()
             self.scene.set_arm(np.array(cfg.picture_q))
             self.sensor = PyBulletWrenchSensor(self.scene, self.arm)
-            self.contact = ContactWrench(self.scene.tool_load(), self.sensor.frame_in_ee)
+            if not self.sensor.read().valid:  # PyBullet reads 0 until its first step: hold still for one
+                self.arm.command(np.zeros(7))
+                self.scene.step()
+            # Gravity and inertia of the tool removed: the wrench is the contact's (issue 15, item 3).
+            self.contact = ContactWrench(self.scene.tool_load(), self.sensor.frame_in_ee, inertial=cfg.inertial_compensation)
             st = self.arm.read_state()
             self.model = FrankaModel()
             self.model.tool = tool_offset(self.model, st.q, st.ee_pose)
@@ -145,6 +153,12 @@ class RobotRun:
             self.scene.close()
             raise
         self.guard = SafetyGuard(cfg.safety, self.arm.q_min, self.arm.q_max, self.arm.dq_max, self.F_d)
+        from tergodic_cli.robot import kernels as Kn
+        from tergodic_cli.robot.summary import SETTLE_S as STEADY_S
+
+        #: Every 1 kHz tick's force peak, steady-contact force error and tilt (kernels.tick_stats).
+        self.ts = Kn.new_tick_stats(self.F_d, self.threshold, int(round(STEADY_S / cfg.physics_dt)))
+        self.approach_peak: float | None = None
         self.sm = S.StateMachine(on_event=self.on_event)
         self.joint = JointImpedance()
         self.samples: list[dict] = []
@@ -195,11 +209,17 @@ class RobotRun:
 
     # ------------------------------------------------------------------ one control step
     def _tick(self, mode: str, a=None, d=None, q_d=None, dq_d=None, speed: float = 0.0, checks: bool = True,
-              force: float | None = None):
-        """Read, check, command, step. Returns (state, ee wrench, controller output or None, fault or None)."""
+              force: float | None = None, use_sensor: bool = True):
+        """Read, check, command, step. Returns (state, ee wrench, controller output or None, fault or None).
+        ``use_sensor`` False: the F/T is not read (w = 0; only for modes that do not use the force)."""
         st = self.arm.read_state()
-        rd = self.sensor.read()
-        w = self.contact(rd.wrench, st.ee_pose)
+        if use_sensor:
+            rd = self.sensor.read()
+            w = self.contact(rd.wrench, st.ee_pose, st)
+            if rd.valid:
+                _tick_stats(st.ee_pose, w, self.ts)
+        else:
+            rd, w = None, np.zeros(6)
         fault = None
         out = None
         if mode == "joint":
@@ -209,7 +229,7 @@ class RobotRun:
             tau = out.tau
         if checks:
             g = self.guard
-            fault = g.check_sensor(st.t, rd.t, rd.wrench) or g.check_force(st.t, w)
+            fault = g.check_reading(st.t, rd, w) if rd is not None else None
             if fault is None:
                 v = out.v_ee if out is not None else (st.jacobian[:3] @ st.dq).tolist()
                 fault = g.check_state(st.t, st.q, st.dq, st.pos, math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]))
@@ -251,7 +271,7 @@ class RobotRun:
         check_sensor, timeout = g.check_sensor, g.cfg.explorer_timeout
         cst = Kn.pack_constants(arm._chain, self.contact, g, arm.tau_max, self.F_d, v_ref)
         io = np.zeros(Kn.N_IO)
-        kpk, mut = ctrl.kpk, ctrl.mut
+        kpk, mut, ts, dyn = ctrl.kpk, ctrl.mut, self.ts, self.contact.dyn
         A = np.ascontiguousarray(A, dtype=float)
         D = np.ascontiguousarray(D, dtype=float)
         zeros, every, realtime = arm._zeros, arm.dynamics_every, self.cfg.realtime
@@ -277,7 +297,7 @@ class RobotRun:
                 arm._bias_epoch = sc.teleports
             fault = check_sensor(t, rd.t, rd.wrench)
             if fault is None:
-                code = tick(i, A, D, qs, dqs, rd.wrench, arm._bias, cst, kpk, mut, io)
+                code = tick(i, A, D, qs, dqs, rd.wrench, arm._bias, cst, kpk, mut, io, ts, t, dyn)
                 if code != OK:
                     st = state()
                     if code == F_FORCE:
@@ -344,7 +364,7 @@ class RobotRun:
                 arm._bias_epoch = sc.teleports
             fault = check_sensor(t, rd.t, rd.wrench)
             if fault is None:
-                code = tick(i, QD, DQD, qs, dqs, rd.wrench, arm._bias, cst, kd, io)
+                code = tick(i, QD, DQD, qs, dqs, rd.wrench, arm._bias, cst, kd, io, self.ts, t, self.contact.dyn)
                 if code == Kn.F_FORCE:
                     fault = g.check_force(t, io[Kn.IO_W:Kn.IO_W + 6])
                 elif code != OK:
@@ -378,14 +398,15 @@ class RobotRun:
         ctrl, command, physics = self.ctrl.step, self.arm.command, self.scene.step
         g = self.guard
         check_sensor, check_force, check_state, check_explorer = g.check_sensor, g.check_force, g.check_state, g.check_explorer
-        F_d, sqrt, realtime = self.F_d, math.sqrt, self.cfg.realtime
+        F_d, sqrt, realtime, ts = self.F_d, math.sqrt, self.cfg.realtime, self.ts
         hook = self._run_hook if self.contact_hook is not None else None
         st = w = a = d = None
         for a, d in zip(A, D):
             st = read()
             rd = sread()
             t = st.t
-            w = contact(rd.wrench, st.ee_pose)
+            w = contact(rd.wrench, st.ee_pose, st)
+            _tick_stats(st.ee_pose, w, ts)
             out = ctrl(st, a, d, w, "track", F_d, 0.0, v_ref)
             v = out.v_ee
             fault = (check_sensor(t, rd.t, rd.wrench) or check_force(t, w)
@@ -415,13 +436,18 @@ class RobotRun:
 
     # ------------------------------------------------------------------ faults and stops
     def _stop(self, fault: Fault, step: int) -> None:
-        """Make the robot safe after ``fault`` and end the run (raises :class:`_Stop`)."""
+        """Make the robot safe after ``fault`` and end the run (raises :class:`_Stop`).
+
+        In contact (approach, explore) every fault lifts the tool along its axis without reading
+        the sensor (:func:`~tergodic_cli.robot.safety.stop_action`), then holds, lifted."""
+        fault = resolve_stop(fault, self.sm.state)
+        self.ts[_TS_COUNT] = 0.0
         self.fault = fault
         self.stop_reason = fault.reason
         if fault.action == "retreat" and self.sm.state not in (S.RETREAT,):
             self.sm.go(S.RETREAT, self.scene.t, step, fault.reason)
             T = self.arm.read_state().ee_pose
-            self._retreat(T[:3, 3], T[:3, 2], step, checks=False)
+            self._retreat(T[:3, 3], T[:3, 2], step, checks=False, use_sensor=False)
             self._hold(HOLD_S)
             self.sm.go(S.STOPPED, self.scene.t, step, "retreated after a fault; holding still")
         else:
@@ -435,15 +461,17 @@ class RobotRun:
         for _ in range(int(round(seconds / self.cfg.physics_dt))):
             self._tick("joint", q_d=q, checks=False)
 
-    def _retreat(self, a: np.ndarray, d: np.ndarray, step: int, checks: bool = True) -> None:
-        """Back the tool off along its axis by ``retreat_distance`` (line fixed on (a, d))."""
+    def _retreat(self, a: np.ndarray, d: np.ndarray, step: int, checks: bool = True, use_sensor: bool = True) -> None:
+        """Back the tool off along its axis by ``retreat_distance`` (line fixed on (a, d)): at least
+        the hover height, so the tool ends lifted. The retreat mode never uses the force; with
+        ``use_sensor`` False it does not even read the sensor (a fault may have come from it)."""
         cfg = self.cfg
         start = self.arm.read_state().ee_pose[:3, 3].copy()
         for _ in range(int(round(RETREAT_TIMEOUT_S / cfg.physics_dt))):
-            st, w, out, fault = self._tick("retreat", a, d, speed=cfg.retreat_speed, checks=checks)
+            st, w, out, fault = self._tick("retreat", a, d, speed=cfg.retreat_speed, checks=checks, use_sensor=use_sensor)
             if fault is not None:
                 self._stop(fault, step)
-            if float((start - st.ee_pose[:3, 3]) @ d) >= cfg.retreat_distance:
+            if float((start - st.ee_pose[:3, 3]) @ d) >= max(cfg.retreat_distance, cfg.hover_height):
                 break
 
     # ------------------------------------------------------------------ phases
@@ -545,32 +573,38 @@ class RobotRun:
         cfg = self.cfg
         a, d = self._start_line
         step = self._step()
-        self.sm.go(S.APPROACH, self.scene.t, step, f"approaching along the normal at {cfg.approach_speed * 1e3:.0f} mm/s")
+        v_touch = guarded_approach_speed(0.0, cfg.approach_speed, cfg.contact_speed, self.F_d)
+        self.sm.go(S.APPROACH, self.scene.t, step, f"approaching along the normal at {cfg.approach_speed * 1e3:.0f} mm/s, "
+                                                   f"touching at {v_touch * 1e3:.1f} mm/s")
         self.ctrl.reset()
-        timeout = (cfg.hover_height + 0.03) / cfg.approach_speed + 0.03 / cfg.contact_speed + 0.5
+        self.ts[_TS_PEAK_PHASE] = 0.0  # the first touch's peak (every tick)
+        timeout = (cfg.hover_height + 0.03) / cfg.approach_speed + 0.03 / v_touch + 0.5
         n = int(round(timeout / cfg.physics_dt))
         contact_at = None
         settled = 0
         t0 = self.scene.t
         f_ref = self.F_d
         speed = cfg.approach_speed
-        press = 0.0
+        push, s_set = 0.0, None
+        # Pressing before contact is registered only needs to cross the threshold: the push is capped.
+        push_cap = 2.0 * self.threshold
         for i in range(n + int(round(PRESS_TIMEOUT_S / cfg.physics_dt))):
             mode = "approach" if contact_at is None else "track"
             if contact_at is not None:  # ramp the set-point from the contact force to F_d: no overshoot
                 f_ref = min(self.F_d, f0 + (self.F_d - f0) * (self.scene.t - contact_at) / PRESS_RAMP_S)
             st, w, out, fault = self._tick(mode, a, d, speed=speed, force=f_ref)
-            # Slow down near the surface: the sponge meets it at contact_speed (the contact's damping
-            # and the arm's momentum at 20 mm/s gave 10-28 N impacts on the bowl's trimesh). At that
-            # speed the push D_z·v is ~0.1 N, too little to register, so while the tool is blocked
-            # (moving at under half the commanded speed) the push ramps up (PRESS_RATE) until the
-            # force crosses the threshold.
-            gap = float((a - st.ee_pose[:3, 3]) @ d)
-            v_cmd = min(cfg.approach_speed, max(cfg.contact_speed, gap / APPROACH_TAU_S))
+            # Guarded: slow down near the expected surface (the cloud gives the gap), touch at
+            # v_touch (the contact's damping and the arm's momentum at 20 mm/s gave 10-28 N impacts on
+            # the bowl's trimesh). A position servo along the axis keeps the speed; while the tool is
+            # blocked its set-point runs ahead and the push grows (APPROACH_K × v) until the force
+            # registers, capped at push_cap.
+            p_along = float(st.ee_pose[:3, 3] @ d)
+            gap = float(a @ d) - p_along
+            v_cmd = guarded_approach_speed(gap, cfg.approach_speed, cfg.contact_speed, self.F_d)
             if contact_at is None:
-                step_p = PRESS_RATE * cfg.physics_dt
-                press = min(1.5 * self.threshold, press + step_p) if out.v_ee[2] < 0.5 * v_cmd else max(0.0, press - step_p)
-            speed = v_cmd + press / self.ctrl.D[2]
+                s_set = p_along if s_set is None else min(s_set + v_cmd * cfg.physics_dt, p_along + push_cap / APPROACH_K)
+                push = APPROACH_K * (s_set - p_along) + APPROACH_D * (v_cmd - out.v_ee[2])
+            speed = v_cmd + push / self.ctrl.D[2]
             if fault is not None:
                 self._stop(fault, step)
             f = out.force_filtered
@@ -589,6 +623,7 @@ class RobotRun:
                     break
         else:
             self.on_event(step, f"robot: the force did not settle within {PRESS_TIMEOUT_S:.0f} s (now {out.force_filtered:.2f} N); exploring anyway")
+        self.approach_peak = max(self.approach_peak or 0.0, float(self.ts[_TS_PEAK_PHASE]))
         self.sm.go(S.EXPLORE, self.scene.t, step, f"in contact at {out.force_filtered:.2f} N; exploring")
 
     def _explore(self, steps: int, on_step, defer_last: bool = False) -> None:
@@ -604,8 +639,11 @@ class RobotRun:
         w = self.contact(self.sensor.read().wrench, st.ee_pose[:3, :3])
         self.guard.feed_target(self.scene.t)
         step = int(getattr(ex, "step_index", 0))
+        ts = self.ts
+        ts[_TS_COUNT], ts[_TS_RUN] = 1.0, 0.0  # explore ticks count towards steady contact
         for k in track(range(steps), total=steps, description="explore (pybullet)"):
             meas = self._measure(st)
+            ts[_TS_N:_TS_N + 3] = meas["normal"]  # the surface normal at the contact, for this interval's ticks
             deposit = self._to_obj(meas["contact_point"])[None, :] if meas["in_contact"] else np.zeros((0, 3))
             before = int(getattr(ex, "step_index", step))
             try:
@@ -642,6 +680,7 @@ class RobotRun:
                 self._deferred = (on_step, step)
             else:
                 self._emit(on_step, step)
+        ts[_TS_COUNT] = 0.0
         self._last_line = (a_cur, d_cur)
         self._start_line = self._last_line  # a further explore() continues from here
 
@@ -657,6 +696,7 @@ class RobotRun:
 
     def _fault_sample(self, fault: Fault, step: int, st, w, a, d, on_step, record: bool) -> None:
         """Record and emit the sample of the step a fault interrupted, then make the robot safe."""
+        fault = resolve_stop(fault, self.sm.state)  # the sample names what is done about it
         self.emit_deferred()
         if record:
             self.samples.append(self._sample(step, st, w, a, d, stop_reason=fault.reason))
@@ -728,6 +768,7 @@ class RobotRun:
             "agent_ergodicity": shadow.get("ergodicity"),
             "agent_touched_fraction": shadow.get("touched_fraction"),
             "step": int(step),
+            **tick_figures(self.ts),
         }
         if stop_reason:
             sample["stop_reason"] = stop_reason
@@ -827,8 +868,9 @@ class RobotRun:
         wall = time.perf_counter() - self._t0 - self._cb_s - self.paused_s
         # (the callback's and the pauses' wall time: a fair proxy for their CPU)
         cpu = time.process_time() - self._cpu0 - self._cb_s - self.paused_s
-        out = summarize_robot(self.samples, stop_reason=self.stop_reason)
+        out = summarize_robot(self.samples, stop_reason=self.stop_reason, ticks=tick_figures(self.ts))
         out.update({
+            "force_peak_approach_N": self.approach_peak,
             "final_state": self.sm.state,
             "interrupted": bool(self.interrupted),
             "sim_seconds": self.scene.t,

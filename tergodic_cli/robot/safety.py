@@ -7,6 +7,10 @@ one-line reason and the action that makes the robot safe:
   off is what reduces it);
 - "hold": hold the present joint position, then stop (limits, workspace, a stalled
   explorer, a silent sensor: moving anywhere would act on bad information).
+
+:func:`stop_action` overrides "hold" while the tool may touch the object (approach, explore):
+the tool first lifts along its axis under position control, which needs no force reading, since
+a hold while pressed leaves a force nobody watches any more (issue 15).
 """
 
 from __future__ import annotations
@@ -23,7 +27,9 @@ from tergodic_cli.errors import require
 class SafetyConfig:
     """Limits, SI units.
 
-    force_limit : |F| of the contact force that triggers a retreat, N; None = force_limit_factor × F_d.
+    force_limit : |F| of the contact force that triggers a retreat, N; None = force_limit_factor × F_d,
+        at least force_limit_min (the contact's 1 kHz jitter on a trimesh reaches 2.5-3 × F_d: 3.0 N
+        at F_d = 1 N stopped a bowl run after 77 steps).
     joint_margin : rad kept inside the joint position limits.
     velocity_factor : share of the joint velocity limits allowed.
     tcp_speed_max : m/s allowed at the TCP.
@@ -34,6 +40,7 @@ class SafetyConfig:
 
     force_limit: float | None = None
     force_limit_factor: float = 3.0
+    force_limit_min: float = 5.0
     joint_margin: float = 0.02
     velocity_factor: float = 0.9
     tcp_speed_max: float = 0.5
@@ -57,6 +64,37 @@ class Fault:
     data: dict = field(default_factory=dict)
 
 
+#: States in which the tool may be pressed on the object.
+CONTACT_STATES = ("approach", "explore")
+#: Exit code of a run that ended on a fault, made safe.
+FAULT_EXIT_CODE = 3
+
+
+def stop_action(fault: Fault, state: str) -> str:
+    """How to make the robot safe after ``fault`` in state ``state``: "retreat", "hold" or "stop"
+    (the robot's own controller already stopped it). Never "hold" while the tool may be pressed."""
+    if fault.action == "stop":
+        return "stop"
+    if state in CONTACT_STATES:
+        return "retreat"
+    return fault.action
+
+
+def resolve_stop(fault: Fault, state: str) -> Fault:
+    """``fault`` with the action of :func:`stop_action` and, when that lifts instead of holding,
+    the reason saying so."""
+    action = stop_action(fault, state)
+    if action == fault.action:
+        return fault
+    reason = fault.reason.replace("; holding position", "") + "; lifting the tool off the surface"
+    return Fault(fault.kind, action, reason, fault.t, dict(fault.data))
+
+
+def fault_exit_code(summary: dict) -> int:
+    """0 for a run that ended normally, :data:`FAULT_EXIT_CODE` for one stopped on a fault (made safe)."""
+    return FAULT_EXIT_CODE if summary.get("final_state") == "stopped" and not summary.get("interrupted") else 0
+
+
 class SafetyGuard:
     """Checks states, sensor samples and targets against :class:`SafetyConfig`.
 
@@ -74,7 +112,8 @@ class SafetyGuard:
         require(lo.shape == (3,) and hi.shape == (3,) and bool(np.all(lo < hi)),
                 "the workspace box needs min < max on every axis", "e.g. min 0.15,-0.6,0 and max 0.85,0.6,0.9 (metres)")
         self.ws_lo, self.ws_hi = lo, hi
-        self.force_limit = float(cfg.force_limit) if cfg.force_limit is not None else cfg.force_limit_factor * force_desired
+        self.force_limit = (float(cfg.force_limit) if cfg.force_limit is not None
+                            else max(cfg.force_limit_factor * force_desired, cfg.force_limit_min))
         require(self.force_limit > max(force_desired, 0.0),
                 f"the force limit {self.force_limit:g} N is not above the desired force {force_desired:g} N",
                 "raise --force-limit or lower --force")
@@ -138,6 +177,12 @@ class SafetyGuard:
             return Fault("sensor", "hold", f"the force/torque sensor stopped updating (no new sample for "
                          f"{(t - self._sensor_seen_at) * 1e3:.0f} ms); holding position", t)
         return None
+
+    def check_reading(self, t: float, reading, wrench_ee) -> Fault | None:
+        """:meth:`check_sensor` on the sample, then :meth:`check_force` unless the sample is no
+        measurement (``reading.valid`` False: a simulated sensor before its first physics step)."""
+        return self.check_sensor(t, reading.t, reading.wrench) or (
+            self.check_force(t, wrench_ee) if getattr(reading, "valid", True) else None)
 
     # ------------------------------------------------------------------ targets and the explorer
     def inside(self, x: np.ndarray) -> bool:

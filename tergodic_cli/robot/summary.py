@@ -33,8 +33,13 @@ def _columns(samples) -> tuple[dict[str, list], int]:
     return {k: [r.get(k) for r in rows] for k in keys}, len(rows)
 
 
+#: The 1 kHz figures (from every control tick) and the 5 Hz ones (from the samples) they replace.
+TICK_KEYS = {"force_rms_error_rel": "tick_force_rms_rel", "tilt_deg_median": "tick_tilt_median_deg",
+             "tilt_deg_p95": "tick_tilt_p95_deg", "force_peak_N": "tick_force_peak_N"}
+
+
 def summarize_robot(samples: Iterable[Mapping] | Mapping[str, Iterable], settle_s: float = SETTLE_S,
-                    stop_reason: str | None = None) -> dict:
+                    stop_reason: str | None = None, ticks: Mapping | None = None) -> dict:
     """Robot extras of summary.json.
 
     Parameters
@@ -46,10 +51,15 @@ def summarize_robot(samples: Iterable[Mapping] | Mapping[str, Iterable], settle_
     settle_s : contact younger than this many simulated seconds is excluded from the force error.
     stop_reason : overrides the reason found in the samples (a fault outside the explore phase
         leaves no sample behind; the run log's last robot event carries it).
+    ticks : the run's final 1 kHz figures (:func:`~tergodic_cli.robot.kernels.tick_figures`); without
+        them the last sample's (cumulative) ones are used: the same up to the ticks after it.
 
     Returns
     -------
-    dict: force_rms_error_rel (RMS of |F_n - F_d| / F_d over steady contact), tilt_deg_median,
+    dict: force_rms_error_rel (RMS of |F_n - F_d| / F_d over the 1 kHz ticks in steady contact),
+    tilt_deg_median and tilt_deg_p95 (the same ticks), force_peak_N (largest |F| of the contact wrench
+    over every tick), each also over the 5 Hz samples as ``*_5hz`` (the samples only: the figure
+    itself when the samples carry no tick figures), force_max_N (force_peak_N, else the 5 Hz one),
     track_mm_median (tool contact point to the agent line), contact_fraction (share of explore
     samples in contact), realtime_factor (simulated / wall time), contact_* and agent_*
     ergodicity and touched fraction (coverage from the real contacts, and from the virtual
@@ -60,10 +70,14 @@ def summarize_robot(samples: Iterable[Mapping] | Mapping[str, Iterable], settle_
     if n == 0:
         out.update({k: None for k in ("force_rms_error_rel", "force_rms_error_rel_filtered", "force_desired_N",
                                       "force_mean_N", "force_max_N", "tilt_deg_median", "tilt_deg_p95",
+                                      "force_rms_error_rel_5hz", "tilt_deg_median_5hz", "tilt_deg_p95_5hz",
+                                      "force_peak_5hz_N", "tick_steady",
                                       "track_mm_median", "track_mm_p95", "contact_fraction", "realtime_factor",
                                       "contact_ergodicity", "contact_touched_fraction", "agent_ergodicity",
                                       "agent_touched_fraction")})
         out.update(explore_samples=0, steady_samples=0)
+        for key, tk in TICK_KEYS.items():
+            out[key] = _num((ticks or {}).get(tk))
         out["stop_reason"] = stop_reason
         return out
     state = np.array([str(s) for s in cols.get("state", ["explore"] * n)])
@@ -113,6 +127,21 @@ def summarize_robot(samples: Iterable[Mapping] | Mapping[str, Iterable], settle_
     for key in ("contact_ergodicity", "contact_touched_fraction", "agent_ergodicity", "agent_touched_fraction"):
         vals = [v for v in cols.get(key, []) if v is not None]
         out[key] = _num(vals[-1]) if vals else None
+    # Every tick counts: the 1 kHz figures replace the 5 Hz ones, which stay as *_5hz.
+    for key in ("force_rms_error_rel", "tilt_deg_median", "tilt_deg_p95"):
+        out[f"{key}_5hz"] = out[key]
+    out["force_peak_5hz_N"] = out["force_max_N"]
+    if ticks is None:
+        last = [v for v in cols.get("tick_steady", []) if v is not None]
+        ticks = {tk: cols[tk][-1] for tk in (*TICK_KEYS.values(), "tick_steady") if tk in cols} if last else None
+    out["force_peak_N"] = None
+    out["tick_steady"] = None
+    if ticks:
+        out["tick_steady"] = int(ticks.get("tick_steady") or 0)
+        for key, tk in TICK_KEYS.items():
+            out[key] = _num(ticks.get(tk))
+        if out["force_peak_N"] is not None:
+            out["force_max_N"] = out["force_peak_N"]
     reasons = [r for r in cols.get("stop_reason", []) if r]
     out["stop_reason"] = stop_reason or (reasons[-1] if reasons else "completed")
     return out

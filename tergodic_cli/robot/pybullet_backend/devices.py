@@ -173,7 +173,9 @@ class PyBulletWrenchSensor:
     def read(self) -> WrenchReading:
         """The latest sample; ``wrench`` is a 6-tuple (array-like), tare offset removed."""
         r, o = self._raw(), self._offset
-        return WrenchReading(self.scene.t, (r[0] - o[0], r[1] - o[1], r[2] - o[2], r[3] - o[3], r[4] - o[4], r[5] - o[5]))
+        # Before the first physics step PyBullet reports a zero reaction, not the tool's weight.
+        return WrenchReading(self.scene.t, (r[0] - o[0], r[1] - o[1], r[2] - o[2], r[3] - o[3], r[4] - o[4], r[5] - o[5]),
+                             self.scene.steps > 0)
 
     def tare(self) -> None:
         self._offset = tuple(self._raw())

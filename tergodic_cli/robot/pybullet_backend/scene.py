@@ -290,7 +290,9 @@ class PyBulletScene:
                 mc += m * com
         com_world = mc / total
         com_sensor = T_sensor[:3, :3].T @ (com_world - T_sensor[:3, 3])
-        return ToolLoad(total, com_sensor)
+        # The sensor frame is the hand's inertial frame: its principal inertia is along the sensor axes.
+        inertia = np.array(p.getDynamicsInfo(rob, self.link_index["panda_hand"], physicsClientId=cid)[2], dtype=float)
+        return ToolLoad(total, com_sensor, inertia)
 
     def _is_beyond(self, j: int, ancestor: int) -> bool:
         p = self.p
