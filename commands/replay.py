@@ -22,6 +22,7 @@ def replay(
     gui: bool = typer.Option(False, "--gui", help="Replay the logged joint states in the PyBullet GUI (robot runs; needs a display, else exit 2)."),
     speed: float = typer.Option(1.0, "--speed", help="--gui playback speed, times real time."),
     rerun: Optional[Path] = typer.Option(None, "--rerun", help="Write a Rerun recording (.rrd); needs rerun-sdk."),
+    html: Optional[Path] = typer.Option(None, "--html", help="Write an interactive HTML report (cloud with a time slider, trajectory, ε, touched, force); works offline."),
 ) -> None:
     """Recompute a run's summary from its log, and plot, export or re-drive it.
 
@@ -38,6 +39,8 @@ def replay(
       tergodic replay run/ --plot run/plots --export csv
 
       tergodic replay run/ --step 500
+
+      tergodic replay run/ --html run/report.html
     """
     import json
     import sys
@@ -65,8 +68,13 @@ def replay(
             raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)",
                                 "run it on a desktop, or use --plot OUT_DIR / open run.mcap in Foxglove")
 
+    if html is not None:  # fail before the (long) read when the page cannot be written
+        from tergodic_cli.runlog.report import check_html_target
+
+        check_html_target(html)
+
     path = resolve_log_path(run)
-    need_clouds = plot is not None or rerun is not None or step is not None or gui
+    need_clouds = plot is not None or rerun is not None or step is not None or gui or html is not None
     with Spinner(f"reading {path.name}"):
         data = read_run_log(path, clouds=need_clouds)
     # "wrote ..." notes go to stderr when stdout carries JSON
@@ -100,6 +108,10 @@ def replay(
         from tergodic_cli.runlog.viewers import write_rerun
 
         say(f"wrote {write_rerun(data, rerun)}")
+    if html is not None:
+        from tergodic_cli.runlog.report import write_html_report
+
+        say(f"wrote {write_html_report(data, html)}")
     if gui:
         from tergodic_cli.runlog.viewers import replay_gui
 
