@@ -101,10 +101,11 @@ def write_html_report(data: RunLogData, path: str | os.PathLike) -> Path:
     parts = [pio.to_html(fig, include_plotlyjs=False, full_html=False, config=config, div_id=div_id, auto_play=False)
              for fig, div_id in ((cloud_fig, "tergodic-cloud"), (series_fig, "tergodic-series"))
              if fig is not None]
+    log = data.path.resolve()  # "." has no name
     page = _PAGE.format(
-        title=html.escape(f"tergodic report: {data.path.parent.name or data.path.name}"),
+        title=html.escape(f"tergodic report: {log.parent.name}"),
         plotlyjs=get_plotlyjs(),
-        heading=html.escape(f"Run {data.path.parent.name}/{data.path.name}"),
+        heading=html.escape(f"Run {log.parent.name}/{log.name}"),
         meta=_meta_line(data),
         notes="".join(f"<p class='note'>{html.escape(n)}</p>" for n in notes),
         figures="\n".join(f"<section>{p}</section>" for p in parts),
@@ -203,7 +204,7 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
         for k in range(n_agents):
             colour = _AGENT_COLOURS[k % len(_AGENT_COLOURS)]
             fig.add_trace(go.Scatter3d(x=pos[:, k, 0], y=pos[:, k, 1], z=pos[:, k, 2], mode="lines",
-                                       name=f"agent {k} trajectory", line=dict(color=colour, width=4),
+                                       name=f"agent {k} trajectory", line=dict(color=colour, width=3),
                                        hoverinfo="skip"))
         at = pos[-1] if not clouds else pos[_row_of(steps, clouds[-1].step)]
         fig.add_trace(go.Scatter3d(x=at[:, 0], y=at[:, 1], z=at[:, 2], mode="markers", name="agents at the cloud's step",
@@ -375,7 +376,8 @@ _PAGE = """<!DOCTYPE html>
   h1 {{ font-size: 19px; margin: 0 0 2px; }}
   .meta {{ font-size: 13px; color: #555; margin: 0; }}
   .note {{ font-size: 13px; color: #8a5a00; margin: 2px 0 0; }}
-  main {{ display: grid; grid-template-columns: minmax(0, 58fr) minmax(0, 42fr); gap: 8px; padding: 8px; }}
+  main {{ display: grid; grid-template-columns: minmax(0, 58fr) minmax(0, 42fr); gap: 8px; padding: 8px;
+          align-items: start; }}
   section {{ background: white; border: 1px solid #e2e2e2; border-radius: 4px; min-width: 0; }}
   @media (max-width: 1000px) {{ main {{ grid-template-columns: 1fr; }} }}
 </style>
