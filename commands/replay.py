@@ -25,6 +25,7 @@ def replay(
     speed: float = typer.Option(1.0, "--speed", help="--gui playback speed, times real time."),
     rerun: Optional[Path] = typer.Option(None, "--rerun", help="Write a Rerun recording (.rrd); needs rerun-sdk."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --plot folder or --export file (whole, once the new one is complete)."),
+    html: Optional[Path] = typer.Option(None, "--html", help="Write an interactive HTML report (cloud with a time slider, trajectory, ε, touched, force); works offline."),
 ) -> None:
     """Recompute a run's summary from its log, and plot, export or re-drive it.
 
@@ -43,6 +44,8 @@ def replay(
       tergodic replay run/ --plot run/plots --export csv
 
       tergodic replay run/ --step 500
+
+      tergodic replay run/ --html run/report.html
     """
     import json
     import sys
@@ -70,6 +73,11 @@ def replay(
             raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)",
                                 "run it on a desktop, or use --plot OUT_DIR / open run.mcap in Foxglove")
 
+    if html is not None:  # fail before the (long) read when the page cannot be written
+        from tergodic_cli.runlog.report import check_html_target
+
+        check_html_target(html)
+
     path = resolve_log_path(run)
     # every output is checked before the (long) read, and built aside then renamed in
     from tergodic_cli.atomic import AtomicFolder, check_output_file
@@ -82,7 +90,7 @@ def replay(
                          owned=lambda name: name.endswith(".png")) if plot is not None else None
     if plots is not None:
         plots.check()
-    need_clouds = plot is not None or rerun is not None or step is not None or gui
+    need_clouds = plot is not None or rerun is not None or step is not None or gui or html is not None
     with Spinner(f"reading {path.name}"):
         data = read_run_log(path, clouds=need_clouds)
     # "wrote ..." notes go to stderr when stdout carries JSON
@@ -120,6 +128,10 @@ def replay(
         from tergodic_cli.runlog.viewers import write_rerun
 
         say(f"wrote {write_rerun(data, rerun)}")
+    if html is not None:
+        from tergodic_cli.runlog.report import write_html_report
+
+        say(f"wrote {write_html_report(data, html)}")
     if gui:
         from tergodic_cli.runlog.viewers import replay_gui
 

@@ -1,0 +1,400 @@
+"""A self-contained, interactive HTML report of a run, from its log alone (plotly, offline).
+
+The page holds plotly.js itself (no CDN, no network) and two figures:
+
+- the cloud in 3-D, coloured by target p, coverage c̃, heat u or source s (buttons), with a
+  slider over the logged clouds, the agents' trajectories as 3-D lines and their positions at
+  the cloud's step;
+- the time series: ε(t), the authors' residual on its own axis, touched(t), and for robot
+  runs the normal force against the desired one and the tool tilt.
+
+The numbers behind the figures are also embedded as JSON in
+``<script type="application/json" id="tergodic-data">``, for scripts and tests.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tergodic_cli.atomic import atomic_path
+from tergodic_cli.errors import TergodicError, os_error
+from tergodic_cli.runlog.plots import RESIDUAL_KEYS, _color_range
+from tergodic_cli.runlog.reader import RunLogData
+
+#: More points than this are subsampled on the page (evenly, deterministic); the page says so.
+MAX_POINTS = 40_000
+#: Budget of per-point values over all slider frames (float32: 4 bytes each, before base64).
+MAX_FRAME_VALUES = 6_000_000
+
+#: field -> (colour scale, colour bar title with units, button label)
+_FIELDS = {
+    "target": ("Cividis", "target p<br>(0-1, unitless)", "target p"),
+    "coverage": ("Viridis", "coverage c̃<br>(unitless)", "coverage c̃"),
+    "heat": ("Inferno", "heat u<br>(1/m²)", "heat u"),
+    "source": ("Magma", "source s<br>(1/m⁴)", "source s"),
+}
+_AGENT_COLOURS = ("#d62728", "#1f77b4", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b")
+_FIX = "choose another --html path"
+
+
+def check_html_target(path: str | os.PathLike) -> None:
+    """Refuse, before any work, a report path that cannot be written (one line, exit 2 in the CLI)."""
+    p = Path(path)
+    if p.is_dir():
+        raise TergodicError(f"cannot write {p}: it is a folder", _FIX)
+    parent = Path(os.path.abspath(p)).parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise TergodicError(f"cannot write {p}: {parent} is a file, not a folder", _FIX)
+    if not os.access(parent, os.W_OK | os.X_OK):
+        ro = bool(os.statvfs(parent).f_flag & os.ST_RDONLY)
+        raise TergodicError(f"cannot write {p}: {'read-only filesystem' if ro else 'permission denied'} at {parent}",
+                            _FIX)
+
+
+def write_html_report(data: RunLogData, path: str | os.PathLike) -> Path:
+    """Write an interactive, offline HTML report of a run.
+
+    Parameters
+    ----------
+    data : RunLogData
+        The run log, as :func:`tergodic_cli.runlog.read_run_log` returns it (with its clouds).
+    path : path-like
+        The ``.html`` file to write; written atomically (a temporary file renamed over it),
+        its folder created when missing.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    TergodicError
+        The file cannot be written (one line, exit 2 in the CLI).
+
+    Notes
+    -----
+    Clouds of more than :data:`MAX_POINTS` points are subsampled evenly, and the slider keeps
+    an even subset of the clouds when all of them would exceed :data:`MAX_FRAME_VALUES`
+    values; the page says when either happens. Otherwise the page's numbers are the log's:
+    positions and series in float64, cloud points and fields in float32, as logged.
+    """
+    import plotly.io as pio
+    from plotly.offline import get_plotlyjs
+
+    path = Path(path)
+    check_html_target(path)
+    notes: list[str] = []
+    cloud_fig, embedded = _cloud_figure(data, notes)
+    series_fig, series_rows = _series_figure(data)
+    embedded.update(series_rows)
+    config = {"displaylogo": False, "responsive": True,
+              "toImageButtonOptions": {"format": "png", "filename": "tergodic_report"}}
+    parts = [pio.to_html(fig, include_plotlyjs=False, full_html=False, config=config, div_id=div_id, auto_play=False)
+             for fig, div_id in ((cloud_fig, "tergodic-cloud"), (series_fig, "tergodic-series"))
+             if fig is not None]
+    log = data.path.resolve()  # "." has no name
+    page = _PAGE.format(
+        title=html.escape(f"tergodic report: {log.parent.name}"),
+        plotlyjs=get_plotlyjs(),
+        heading=html.escape(f"Run {log.parent.name}/{log.name}"),
+        meta=_meta_line(data),
+        notes="".join(f"<p class='note'>{html.escape(n)}</p>" for n in notes),
+        figures="\n".join(f"<section>{p}</section>" for p in parts),
+        data=_script_json(embedded),
+    )
+    try:
+        with atomic_path(path, suffix=".html") as tmp:
+            tmp.write_text(page, encoding="utf-8")
+    except OSError as exc:
+        raise os_error(exc, path, "write", _FIX) from None
+    except TergodicError as exc:  # atomic_path's own line: keep its cause, say which option to change
+        raise TergodicError(exc.problem, f"{exc.fix}; or {_FIX}" if exc.fix else _FIX) from None
+    return path
+
+
+def _meta_line(data: RunLogData) -> str:
+    s = data.series
+    bits = [f"{data.steps} steps"]
+    pos = s.get("positions")
+    if pos is not None and pos.dtype != object and pos.ndim == 3:
+        bits.append(f"{pos.shape[1]} agent{'s' if pos.shape[1] != 1 else ''}")
+    if data.clouds:
+        bits.append(f"{len(data.clouds[-1].points)} points, {len(data.clouds)} logged clouds")
+    if len(s.get("ergodicity", ())):
+        bits.append(f"final ε {s['ergodicity'][-1]:.4g}")
+    if len(s.get("touched_fraction", ())):
+        bits.append(f"touched {100 * s['touched_fraction'][-1]:.1f} %")
+    bits.append("robot run" if data.robot else "kinematic run")
+    if data.truncated:
+        bits.append("TRUNCATED log (the run was cut short)")
+    return html.escape(" · ".join(bits))
+
+
+def _positions(data: RunLogData) -> np.ndarray | None:
+    """(T, N, 3) agent positions; NaN-padded when the agent count changed mid-run."""
+    pos = data.series.get("positions")
+    if pos is None or len(pos) == 0:
+        return None
+    if pos.dtype == object:
+        n = max(len(p) for p in pos)
+        out = np.full((len(pos), n, 3), np.nan)
+        for i, p in enumerate(pos):
+            out[i, :len(p)] = p
+        return out
+    return pos
+
+
+def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
+    import plotly.graph_objects as go
+
+    embedded: dict[str, Any] = {}
+    pos = _positions(data)
+    steps = data.series["step"]
+    clouds = data.clouds
+    if not clouds and pos is None:
+        return None, embedded
+    fig = go.Figure()
+    idx = slice(None)
+    fields: list[str] = []
+    shown: list[int] = []
+    if clouds:
+        last = clouds[-1]
+        n = len(last.points)
+        if n > MAX_POINTS:
+            idx = np.linspace(0, n - 1, MAX_POINTS).round().astype(np.int64)
+            notes.append(f"The cloud has {n} points; the page shows {MAX_POINTS} of them, evenly subsampled.")
+            embedded["point_index"] = idx.tolist()
+        fields = [f for f in _FIELDS if f in last.fields] + [f for f in last.fields if f not in _FIELDS]
+        # which clouds get a slider frame: all of them, unless that exceeds the size budget
+        per_frame = max(1, len(fields) * len(last.points[idx]))
+        keep = max(2, MAX_FRAME_VALUES // per_frame)
+        shown = list(range(len(clouds)))
+        if len(clouds) > keep:
+            shown = sorted(set(np.linspace(0, len(clouds) - 1, keep).round().astype(int).tolist()))
+            notes.append(f"{len(clouds)} clouds were logged; the slider shows {len(shown)} of them, evenly spaced.")
+        pts = _f32(last.points[idx])
+        for j, f in enumerate(fields):
+            cmap, cbar, _ = _FIELDS.get(f, ("Viridis", f, f))
+            vmin, vmax = _color_range(np.concatenate([clouds[i].fields[f][idx] for i in shown if f in clouds[i].fields]))
+            fig.add_trace(go.Scatter3d(
+                x=pts[:, 0], y=pts[:, 1], z=pts[:, 2], mode="markers", name=_FIELDS.get(f, ("", "", f))[2],
+                visible=(j == min(1, len(fields) - 1)),  # coverage first: what the run did
+                marker=dict(size=2.6, color=_f32(last.fields[f][idx]), colorscale=cmap, cmin=vmin, cmax=vmax,
+                            colorbar=dict(title=dict(text=cbar), thickness=14, len=0.75, x=0.98)),
+                hovertemplate="x %{x:.4f} m<br>y %{y:.4f} m<br>z %{z:.4f} m<br>" + f + " %{marker.color:.4g}"
+                              "<extra></extra>",
+                showlegend=False))
+        embedded["points"] = _nested(pts)
+        # a cloud repeats its points only when they differ from the last cloud's
+        embedded["clouds"] = [{"step": int(clouds[i].step),
+                               **({} if np.array_equal(clouds[i].points, last.points)
+                                  else {"points": _nested(_f32(clouds[i].points[idx]))}),
+                               **{f: _nested(_f32(clouds[i].fields[f][idx])) for f in fields if f in clouds[i].fields}}
+                              for i in shown]
+    n_cloud_traces = len(fields)
+    n_agents = 0 if pos is None else pos.shape[1]
+    if pos is not None:
+        for k in range(n_agents):
+            colour = _AGENT_COLOURS[k % len(_AGENT_COLOURS)]
+            fig.add_trace(go.Scatter3d(x=pos[:, k, 0], y=pos[:, k, 1], z=pos[:, k, 2], mode="lines",
+                                       name=f"agent {k} trajectory", line=dict(color=colour, width=3),
+                                       hoverinfo="skip"))
+        at = pos[-1] if not clouds else pos[_row_of(steps, clouds[-1].step)]
+        fig.add_trace(go.Scatter3d(x=at[:, 0], y=at[:, 1], z=at[:, 2], mode="markers", name="agents at the cloud's step",
+                                   marker=dict(size=8, color="white", line=dict(color="black", width=3), symbol="diamond")))
+        embedded["positions"] = _nested(pos)
+    agent_trace = len(fig.data) - 1
+
+    if clouds:
+        moved = any(not np.array_equal(clouds[i].points, last.points) for i in shown)  # a re-capture moved them
+        varying = [j for j, f in enumerate(fields)
+                   if moved or any(f in clouds[i].fields and not np.array_equal(clouds[i].fields[f], last.fields[f])
+                                   for i in shown)]
+        frames, slider_steps = [], []
+        for i in shown:
+            c = clouds[i]
+            fdata = [go.Scatter3d(marker=dict(color=_f32(c.fields[fields[j]][idx]))) for j in varying]
+            if moved:
+                p = _f32(c.points[idx])
+                for d in fdata:
+                    d.update(x=p[:, 0], y=p[:, 1], z=p[:, 2])
+            traces = list(varying)
+            if pos is not None:
+                a = pos[_row_of(steps, c.step)]
+                fdata.append(go.Scatter3d(x=a[:, 0], y=a[:, 1], z=a[:, 2]))
+                traces.append(agent_trace)
+            name = str(i)
+            frames.append(go.Frame(name=name, data=fdata, traces=traces))
+            slider_steps.append(dict(method="animate", label=f"{c.step}",
+                                     args=[[name], dict(mode="immediate", frame=dict(duration=0, redraw=True),
+                                                        transition=dict(duration=0))]))
+        fig.frames = frames
+        vis = lambda j: [t == j for t in range(n_cloud_traces)] + [True] * (len(fig.data) - n_cloud_traces)  # noqa: E731
+        fig.add_annotation(text="colour by", x=0.0, y=0.985, xref="paper", yref="paper", xanchor="left",
+                           yanchor="top", showarrow=False, font=dict(size=13))
+        fig.update_layout(
+            sliders=[dict(active=len(shown) - 1, steps=slider_steps, x=0.04, len=0.92, y=0.0, pad=dict(t=10, b=4),
+                          transition=dict(duration=0),
+                          currentvalue=dict(prefix="cloud logged at explorer step ", font=dict(size=13)))],
+            updatemenus=[
+                dict(type="buttons", direction="right", x=0.09, y=1.0, xanchor="left", yanchor="top", showactive=True,
+                     active=min(1, len(fields) - 1), pad=dict(r=4, t=4), bgcolor="#f4f4f4",
+                     buttons=[dict(label=_FIELDS.get(f, ("", "", f))[2], method="restyle", args=[{"visible": vis(j)}])
+                              for j, f in enumerate(fields)]),
+                dict(type="buttons", direction="right", x=0.0, y=0.06, xanchor="left", yanchor="bottom",
+                     pad=dict(r=4), showactive=False, bgcolor="#f4f4f4",
+                     buttons=[dict(label="▶ play", method="animate",
+                                   args=[None, dict(frame=dict(duration=400, redraw=True), fromcurrent=True,
+                                                    transition=dict(duration=0), mode="immediate")]),
+                              dict(label="❚❚ pause", method="animate",
+                                   args=[[None], dict(frame=dict(duration=0, redraw=False), mode="immediate")])]),
+            ])
+    axis = dict(showbackground=True, backgroundcolor="#f7f7f7", gridcolor="#d0d0d0", tickformat=".3f")
+    fig.update_layout(
+        title=dict(text="Cloud and trajectory (object frame)", x=0.02, y=0.985, font=dict(size=16)),
+        height=820, margin=dict(l=0, r=0, t=40, b=10), paper_bgcolor="white",
+        scene=dict(aspectmode="data", xaxis=dict(title=dict(text="x (m)"), **axis),
+                   yaxis=dict(title=dict(text="y (m)"), **axis), zaxis=dict(title=dict(text="z (m)"), **axis),
+                   camera=dict(eye=dict(x=1.3, y=-1.3, z=1.0)), domain=dict(x=[0, 0.9], y=[0.1, 0.93])),
+        legend=dict(x=0.01, y=0.1, yanchor="bottom", bgcolor="rgba(255,255,255,0.7)"),
+    )
+    return fig, embedded
+
+
+def _series_figure(data: RunLogData) -> tuple[Any, dict]:
+    import plotly.graph_objects as go
+    from plotly.subplots import make_subplots
+
+    s = data.series
+    t = s["t"]
+    embedded: dict[str, Any] = {"step": s["step"].tolist(), "t": t.tolist()}
+    rows: list[tuple[str, str, list, dict]] = []  # (title, y title, traces, y axis options), explorer time
+    eps = np.asarray(s["ergodicity"], dtype=np.float64)
+    fin = eps[np.isfinite(eps)]
+    log = bool(fin.size and np.all(fin > 0) and fin.max() > 10 * fin.min())  # log only over more than a decade
+    rows.append(("Ergodicity ε over time", "ε (dimensionless)",
+                 [go.Scatter(x=t, y=eps, name="ε (eq. 48)", line=dict(color="#1f77b4"), showlegend=False)],
+                 dict(type="log") if log else dict(rangemode="tozero")))
+    embedded["ergodicity"] = _listed(eps)
+    ref = next((k for k in RESIDUAL_KEYS if k in s), None)
+    if ref:
+        rows.append(("Authors' residual: share of the target's heat not yet touched", f"{ref} (unitless)",
+                     [go.Scatter(x=t, y=s[ref], name=ref, line=dict(color="#ff7f0e"), showlegend=False)], dict(rangemode="tozero")))
+        embedded[ref] = _listed(s[ref])
+    if "touched_fraction" in s:
+        rows.append(("Target touched over time", "touched (% of target)",
+                     [go.Scatter(x=t, y=s["touched_fraction"], name="touched", line=dict(color="#2ca02c"), showlegend=False)],
+                     dict(range=[0, 1.02], tickformat=".0%")))
+        embedded["touched_fraction"] = _listed(s["touched_fraction"])
+    n_explorer = len(rows)
+
+    rs = data.robot_series()
+    if rs:
+        rt = rs["t_sim"] if "t_sim" in rs else t[:len(data.robot)]
+        robot: dict[str, Any] = {"t_sim": _listed(rt)}
+        force = []
+        if "force_normal" in rs:
+            force.append(go.Scatter(x=rt, y=rs["force_normal"], name="measured normal force", line=dict(color="#d62728")))
+            robot["force_normal"] = _listed(rs["force_normal"])
+        if "wrench_desired" in rs and rs["wrench_desired"].ndim == 2:
+            fd = rs["wrench_desired"][:, 2]  # the desired force along the tool axis, as plots.py draws it
+            force.append(go.Scatter(x=rt, y=fd, name="desired force", line=dict(color="black", dash="dash")))
+            robot["force_desired"] = _listed(fd)
+        if force:
+            rows.append(("Contact force against desired", "force (N)", force, {}))
+        if "tilt_deg" in rs:
+            rows.append(("Tool tilt from the surface normal", "tilt (°)",
+                         [go.Scatter(x=rt, y=rs["tilt_deg"], name="tilt", line=dict(color="#9467bd"), showlegend=False)],
+                         dict(rangemode="tozero")))
+            robot["tilt_deg"] = _listed(rs["tilt_deg"])
+        embedded["robot"] = robot
+
+    fig = make_subplots(rows=len(rows), cols=1, subplot_titles=[r[0] for r in rows], vertical_spacing=0.42 / len(rows))
+    for r, (_, ytitle, traces, yopts) in enumerate(rows, start=1):
+        for tr in traces:
+            fig.add_trace(tr, row=r, col=1)
+        fig.update_yaxes(title_text=ytitle, row=r, col=1, **yopts)
+        # the explorer's rows share one time axis, the robot's rows another (the physics clock)
+        fig.update_xaxes(matches="x" if r <= n_explorer else f"x{n_explorer + 1}", row=r, col=1,
+                         showticklabels=True)
+    fig.update_xaxes(title_text="simulated time t (s)", row=n_explorer, col=1)
+    if len(rows) > n_explorer:
+        fig.update_xaxes(title_text="robot simulated time (s)", row=len(rows), col=1)
+    fig.update_xaxes(gridcolor="#e5e5e5")
+    fig.update_yaxes(gridcolor="#e5e5e5")
+    fig.update_annotations(font_size=13)
+    fig.update_layout(height=max(820, 250 * len(rows)), margin=dict(l=70, r=20, t=40, b=50),
+                      paper_bgcolor="white", plot_bgcolor="white", hovermode="x unified",
+                      legend=dict(orientation="h", x=0, y=-0.08 if len(rows) < 4 else -0.05))
+    return fig, embedded
+
+
+def _row_of(steps: np.ndarray, step: int) -> int:
+    """Row of the last logged step at or before ``step`` (the cloud's step)."""
+    return max(0, int(np.searchsorted(steps, step, side="right")) - 1)
+
+
+def _f32(a: np.ndarray) -> np.ndarray:
+    # Cloud points and fields are float32 in the log: float32 on the page is exact and half the size.
+    return np.ascontiguousarray(a, dtype=np.float32)
+
+
+def _listed(a) -> list:
+    """Floats for JSON, NaN as null (JSON has no NaN)."""
+    return [None if not np.isfinite(v) else float(v) for v in np.asarray(a, dtype=np.float64)]
+
+
+def _nested(a: np.ndarray) -> list:
+    """Nested lists of floats, NaN as null."""
+    a = np.asarray(a, dtype=np.float64)
+    return np.where(np.isfinite(a), a, None).tolist()
+
+
+def _script_json(obj: Any) -> str:
+    """JSON safe inside <script>: '</' cannot close the element early."""
+    return json.dumps(obj, allow_nan=False, separators=(",", ":")).replace("</", "<\\/")
+
+
+_PAGE = """<!DOCTYPE html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<meta name="generator" content="tergodic replay --html">
+<title>{title}</title>
+<style>
+  body {{ font-family: system-ui, -apple-system, "Segoe UI", Roboto, "DejaVu Sans", sans-serif; margin: 0;
+         color: #222; background: #fafafa; }}
+  header {{ padding: 10px 18px 6px; border-bottom: 1px solid #e2e2e2; background: white; }}
+  h1 {{ font-size: 19px; margin: 0 0 2px; }}
+  .meta {{ font-size: 13px; color: #555; margin: 0; }}
+  .note {{ font-size: 13px; color: #8a5a00; margin: 2px 0 0; }}
+  main {{ display: grid; grid-template-columns: minmax(0, 58fr) minmax(0, 42fr); gap: 8px; padding: 8px;
+          align-items: start; }}
+  section {{ background: white; border: 1px solid #e2e2e2; border-radius: 4px; min-width: 0; }}
+  @media (max-width: 1000px) {{ main {{ grid-template-columns: 1fr; }} }}
+</style>
+<script type="text/javascript">{plotlyjs}</script>
+</head>
+<body>
+<header>
+<h1>{heading}</h1>
+<p class="meta">{meta}</p>
+{notes}
+</header>
+<main>
+{figures}
+</main>
+<script type="application/json" id="tergodic-data">{data}</script>
+</body>
+</html>
+"""

@@ -1,0 +1,200 @@
+"""``tergodic replay RUN --html``: the page's embedded data equals the log's, it works offline, bad paths are one line."""
+
+from __future__ import annotations
+
+import base64
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import REPO, assert_one_line_error, run_cli
+from test_replay import _make_run
+
+from tergodic_cli.runlog import read_run_log
+
+pytest.importorskip("plotly")
+
+
+@pytest.fixture(scope="module")
+def bowl_run(tmp_path_factory):
+    """A short kinematic explore on data/bowl, its log and its HTML report."""
+    root = tmp_path_factory.mktemp("report")
+    with pytest.MonkeyPatch.context() as mp:  # a module fixture runs before the per-test cache fixture
+        mp.setenv("TERGODIC_CACHE_DIR", str(root / "cache"))
+        res = run_cli("explore", REPO / "data" / "bowl", "--out", root / "run", "--steps", "60",
+                      "--log-cloud-every", "20", "--seed", "2")
+        assert res.code == 0, res.err
+        page = root / "out" / "report.html"  # a missing folder is created
+        res = run_cli("replay", root / "run", "--html", page)
+    assert res.code == 0, res.err
+    assert f"wrote {page}" in res.out
+    return root / "run", page, read_run_log(root / "run")
+
+
+def _decode(v):
+    """plotly's JSON array: a plain list or a base64 typed array {"dtype", "bdata", "shape"}."""
+    if isinstance(v, dict) and "bdata" in v:
+        a = np.frombuffer(base64.b64decode(v["bdata"]), dtype=np.dtype(v["dtype"]))
+        if "shape" in v:
+            a = a.reshape([int(n) for n in str(v["shape"]).split(",")])
+        return a.astype(np.float64)
+    return np.array([np.nan if x is None else x for x in v], dtype=np.float64)
+
+
+def _plotly_calls(html: str) -> dict[str, dict]:
+    """{div id: {"data": [...], "layout": {...}, "frames": [...]}} from the page's Plotly.newPlot/addFrames calls."""
+    dec = json.JSONDecoder()
+
+    def args(start: int, n: int) -> list:
+        out, i = [], start
+        while len(out) < n:
+            while html[i] in " \n\t,":
+                i += 1
+            obj, i = dec.raw_decode(html, i)
+            out.append(obj)
+        return out
+
+    figs: dict[str, dict] = {}
+    for m in re.finditer(r"Plotly\.newPlot\(", html):
+        div, data, layout = args(m.end(), 3)
+        figs[div] = {"data": data, "layout": layout, "frames": []}
+    for m in re.finditer(r"Plotly\.addFrames\('([^']+)',", html):
+        figs[m.group(1)]["frames"] = args(m.end(), 1)[0]
+    return figs
+
+
+def test_page_data_equals_the_log(bowl_run):
+    _, page, data = bowl_run
+    html = page.read_text(encoding="utf-8")
+    figs = _plotly_calls(html)
+    assert set(figs) == {"tergodic-cloud", "tergodic-series"}
+    s = data.series
+    pos = s["positions"]
+    assert pos.shape[1] == 1 and len(data.clouds) == 3  # steps 20, 40, 60
+
+    # the trajectory drawn in 3-D is the logged positions
+    cloud_fig = figs["tergodic-cloud"]
+    (traj,) = [t for t in cloud_fig["data"] if t.get("name") == "agent 0 trajectory"]
+    for k, axis in enumerate("xyz"):
+        np.testing.assert_allclose(_decode(traj[axis]), pos[:, 0, k], rtol=0, atol=1e-12)
+
+    # the cloud shown first is the last logged one: its points and its coverage, as logged (float32)
+    last = data.clouds[-1]
+    by_name = {t.get("name"): t for t in cloud_fig["data"]}
+    cov = by_name["coverage c̃"]
+    assert cov["visible"] is True and by_name["heat u"]["visible"] is False
+    np.testing.assert_allclose(_decode(cov["marker"]["color"]), last.fields["coverage"], rtol=1e-7, atol=0)
+    np.testing.assert_allclose(np.column_stack([_decode(cov[a]) for a in "xyz"]), last.points, rtol=1e-7, atol=0)
+    for f in ("target", "heat", "source"):
+        (tr,) = [t for t in cloud_fig["data"] if t.get("name", "").startswith(f)]
+        np.testing.assert_allclose(_decode(tr["marker"]["color"]), last.fields[f], rtol=1e-7, atol=0)
+
+    # one slider frame per logged cloud, each with that cloud's coverage and the agent at its step
+    frames = cloud_fig["frames"]
+    assert len(frames) == len(data.clouds)
+    steps = [st["label"] for st in cloud_fig["layout"]["sliders"][0]["steps"]]
+    assert steps == [str(c.step) for c in data.clouds]
+    cov_index = [t.get("name") for t in cloud_fig["data"]].index("coverage c̃")
+    for fr, c in zip(frames, data.clouds):
+        tr = fr["data"][fr["traces"].index(cov_index)]
+        np.testing.assert_allclose(_decode(tr["marker"]["color"]), c.fields["coverage"], rtol=1e-7, atol=0)
+        agent = fr["data"][-1]
+        np.testing.assert_allclose(_decode(agent["x"]), pos[data.index_of(c.step), :, 0], rtol=0, atol=1e-12)
+
+    # ε, the residual and touched against time
+    series = {t["name"]: t for t in figs["tergodic-series"]["data"]}
+    for name, key in (("ε (eq. 48)", "ergodicity"), ("residual_ref", "residual_ref"), ("touched", "touched_fraction")):
+        np.testing.assert_allclose(_decode(series[name]["y"]), s[key], rtol=0, atol=1e-15)
+        np.testing.assert_allclose(_decode(series[name]["x"]), s["t"], rtol=0, atol=1e-15)
+
+    # and the plain JSON block for scripts holds the same numbers
+    m = re.search(r'<script type="application/json" id="tergodic-data">(.*?)</script>', html, re.S)
+    block = json.loads(m.group(1))
+    np.testing.assert_allclose(np.array(block["positions"]), pos, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(block["ergodicity"], s["ergodicity"], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(block["touched_fraction"], s["touched_fraction"], rtol=0, atol=1e-15)
+    assert [c["step"] for c in block["clouds"]] == [c.step for c in data.clouds]
+    np.testing.assert_allclose(block["clouds"][-1]["coverage"], last.fields["coverage"], rtol=1e-7, atol=0)
+    np.testing.assert_allclose(np.array(block["points"]), last.points, rtol=1e-7, atol=0)
+
+
+def test_page_works_offline(bowl_run):
+    _, page, _ = bowl_run
+    html = page.read_text(encoding="utf-8")
+    tags = re.findall(r"<script\b[^>]*>", html, re.I)
+    assert tags and not [t for t in tags if "src=" in t.lower()], tags  # plotly.js is inline, nothing is fetched
+    assert not re.search(r"""<(script|link|img|iframe)\b[^>]*(src|href)\s*=\s*["']?(https?:)?//""", html, re.I)
+    assert "Plotly.newPlot" in html and len(html) > 1_000_000  # plotly.js itself is embedded
+    assert not list(page.parent.glob(".*.tmp"))  # written atomically: no temporary file left
+
+
+def test_robot_run_shows_force_and_tilt(tmp_path):
+    inp = _make_run(tmp_path / "run", steps=60, robot=True, n_points=300)
+    res = run_cli("replay", tmp_path / "run", "--html", tmp_path / "r.html")
+    assert res.code == 0, res.err
+    figs = _plotly_calls((tmp_path / "r.html").read_text(encoding="utf-8"))
+    series = {t["name"]: t for t in figs["tergodic-series"]["data"]}
+    f = np.array([s["force_normal"] for s in inp["robot"]])
+    fd = np.array([s["wrench_desired"][2] for s in inp["robot"]])
+    tilt = np.array([s["tilt_deg"] for s in inp["robot"]])
+    np.testing.assert_allclose(_decode(series["measured normal force"]["y"]), f, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(_decode(series["desired force"]["y"]), fd, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(_decode(series["tilt"]["y"]), tilt, rtol=0, atol=1e-15)
+    titles = [a["text"] for a in figs["tergodic-series"]["layout"]["annotations"]]
+    assert "Contact force against desired" in titles and "Tool tilt from the surface normal" in titles
+
+
+def test_big_clouds_are_subsampled_and_say_so(tmp_path, monkeypatch):
+    from tergodic_cli.runlog import report
+
+    _make_run(tmp_path / "run", steps=60, n_points=500)
+    monkeypatch.setattr(report, "MAX_POINTS", 200)
+    data = read_run_log(tmp_path / "run")
+    report.write_html_report(data, tmp_path / "r.html")
+    html = (tmp_path / "r.html").read_text(encoding="utf-8")
+    assert "the page shows 200 of them" in html
+    cov = [t for t in _plotly_calls(html)["tergodic-cloud"]["data"] if t.get("name") == "coverage c̃"][0]
+    idx = np.linspace(0, 499, 200).round().astype(int)
+    np.testing.assert_allclose(_decode(cov["marker"]["color"]), data.clouds[-1].fields["coverage"][idx], rtol=1e-7)
+
+
+@pytest.mark.parametrize("where, needle", [("folder", "it is a folder"), ("under_file", "is a file")])
+def test_unwritable_html_path_is_one_line(bowl_run, tmp_path, where, needle):
+    run, _, _ = bowl_run
+    (tmp_path / "afile").write_text("x")
+    target = tmp_path if where == "folder" else tmp_path / "afile" / "r.html"
+    res = run_cli("replay", run, "--html", target)
+    assert_one_line_error(res, needle, "--html")
+
+
+def test_read_only_folder_is_one_line(bowl_run, tmp_path):
+    import os
+
+    run, _, _ = bowl_run
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    try:
+        if os.access(ro, os.W_OK):
+            pytest.skip("running as a user who may write anywhere (root)")
+        assert_one_line_error(run_cli("replay", run, "--html", ro / "r.html"), "permission denied", "--html")
+        assert not list(ro.iterdir())
+    finally:
+        ro.chmod(0o700)
+
+
+def test_write_error_is_one_line(bowl_run, tmp_path, monkeypatch):
+    """An OS error while writing (disk full) is one line and leaves nothing behind."""
+    import errno
+
+    run, _, _ = bowl_run
+
+    def full(self, *a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full)
+    res = run_cli("replay", run, "--html", tmp_path / "r.html")
+    assert_one_line_error(res, "no space left on device", "--html")
+    assert not list(tmp_path.iterdir())
