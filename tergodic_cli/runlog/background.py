@@ -771,8 +771,13 @@ def _start_live(argv: list[str]) -> Any:
     to the parent at once (a bind failure is reported as the child's one error line)."""
     if "--live" not in argv:
         return None
+    import foxglove
+
     from tergodic_cli.runlog.live import LiveServer
 
+    # the SDK's own lines (a client gone, a bad request) would land in the middle of the run's output;
+    # FOXGLOVE_LOG_LEVEL=INFO brings them back
+    foxglove.set_log_level("CRITICAL")
     live = LiveServer.start(argv[argv.index("--live") + 1])
     sys.stdout.write(f"live\t{live.url}\n")
     sys.stdout.flush()
