@@ -233,8 +233,15 @@ class LogWriterProcess:
         while line.strip() == b"ready" or line.startswith(b"live\t"):  # its last line comes once the file is complete
             line = self.proc.stdout.readline()
         last = line.decode(errors="replace").strip()
-        if last == "ok":  # the file is finished: leave the child's exit to the system (it is reaped later)
+        if last == "ok" and self.live is None:  # the file is finished: leave the child's exit to the system
             self.proc.stdout.close()
+            return 0, last
+        if last == "ok":  # a live server: wait until its port is free again (a rerun may take it at once)
+            self.proc.stdout.close()
+            try:
+                self.proc.wait(timeout=10.0)
+            except subprocess.TimeoutExpired:
+                pass
             return 0, last
         self.proc.stdout.close()
         try:
