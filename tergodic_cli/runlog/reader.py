@@ -229,7 +229,7 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
                 metadata[rec.name] = dict(rec.metadata)
                 if rec.name == S.META_TERGODIC:
                     version = rec.metadata.get("log_schema_version")
-                    t0 = int(rec.metadata.get("time_origin_ns", "0") or 0)  # version 2: wall-clock log times
+                    t0 = _time_origin(rec.metadata)  # version 2: wall-clock log times
                     if version not in S.SUPPORTED_VERSIONS:
                         raise TergodicError(
                             f"{path} uses log schema version {version!r}; this tergodic reads {', '.join(S.SUPPORTED_VERSIONS)}",
@@ -325,9 +325,18 @@ def _stack_rows(rows: list[dict]) -> dict[str, np.ndarray]:
     return out
 
 
+def _time_origin(info: dict) -> int:
+    """The log's ``time_origin_ns`` (0 for version 1, which has none)."""
+    raw = info.get("time_origin_ns", "0") or "0"
+    if not raw.isdigit():
+        raise TergodicError(f"the log's time_origin_ns {raw[:40]!r} is not a whole number of nanoseconds",
+                            "the file is damaged; re-run 'tergodic explore'")
+    return int(raw)
+
+
 def _to_simulated_time(clouds: list[CloudFrame], info: dict) -> None:
     """Clouds' log times are wall-clock from version 2 on (``time_origin_ns`` + simulated t): back to simulated t."""
-    t0 = int(info.get("time_origin_ns", "0") or 0)
+    t0 = _time_origin(info)
     if not t0:
         return
     for c in clouds:
