@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Optional
 
@@ -38,6 +39,7 @@ def explore(
     neighbors: int = typer.Option(30, "--neighbors", help="Neighbours of the robust Laplacian (must match 'tergodic precompute'; the authors used 40)."),
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Basis cache root [default: $TERGODIC_CACHE_DIR or ~/.cache/tergodic]."),
     no_log: bool = typer.Option(False, "--no-log", help="Do not write the per-step MCAP log (for timing)."),
+    live: Optional[str] = typer.Option(None, "--live", metavar="[HOST:PORT]", help="Stream the log's channels to Foxglove over WebSocket while the run goes on (Open connection: ws://HOST:PORT); --live alone: 127.0.0.1:8765."),
     log_cloud_every: int = typer.Option(50, "--log-cloud-every", help="Log coverage/heat/source per point every N steps (and at the end)."),
     max_start_distance: float = typer.Option(0.02, "--max-start-distance", help="Refuse a start farther than this (metres) from the cloud; closer ones are projected."),
     json_out: bool = typer.Option(False, "--json", help="Print summary.json to stdout."),
@@ -82,7 +84,8 @@ def explore(
 
     from tergodic_cli.runlog.background import start_log_writer
 
-    log_writer = None if no_log or dry_run else start_log_writer()  # its imports overlap ours
+    live_at = _check_live(live, no_log or dry_run) if live is not None else None  # exit 2 before anything is written
+    log_writer = None if no_log or dry_run else start_log_writer(live=live_at)  # its imports overlap ours
     from tergodic_cli.explore import ExploreConfig
     from tergodic_cli.explore.run import StartSpec, run_explore
     from tergodic_cli.progress import echo as echo_err
@@ -102,6 +105,11 @@ def explore(
                    **(_workspace(parse_floats(workspace, 6, "--workspace", "0.15,-0.6,0,0.85,0.6,0.9")) if workspace else {})},
     }
     hardware = {"robot_ip": robot_ip, "ft": ft, "ft_address": ft_address}
+    if live_at is not None:
+        from tergodic_cli.errors import require
+
+        require(log_writer is not None, "--live: the log writer process did not start", "retry, or drop --live")
+        echo_err(f"live: {log_writer.wait_live()} (Foxglove: Open connection)")
     summary = run_explore(capture, cfg, out, spec, robot=robot, log=not no_log, log_cloud_every=log_cloud_every,
                           cache_dir=cache_dir, on_event=echo_err,
                           robot_options=robot_options, hardware=hardware, dry_run=dry_run, on_report=typer.echo,
@@ -130,6 +138,38 @@ def explore(
                f"step max {1e3 * (summary.get('step_max_m') or 0.0):.2f} mm, "
                f"explorer step {summary['step_ms_median']:.3f} ms (median)")
     typer.echo(f"wrote {out}/ ({', '.join(summary['files'])})")
+
+
+_HOST_PORT = re.compile(r"^(\[[0-9A-Fa-f:.]*\]|[^\s/]*):\d+$|^\d+$")
+
+
+def expand_live(argv: list[str]) -> list[str]:
+    """``--live`` takes an optional value (typer has no such option): ``--live`` followed by nothing,
+    an option or an existing path (the capture) becomes ``--live=127.0.0.1:8765``; anything else is
+    its value (HOST:PORT, checked later)."""
+    out = list(argv)
+    for i, arg in enumerate(out):
+        if arg == "--":
+            break
+        if arg != "--live":
+            continue
+        nxt = out[i + 1] if i + 1 < len(out) else None
+        if nxt is None or (not _HOST_PORT.match(nxt) and (nxt.startswith("-") or Path(nxt).exists())):
+            out[i] = "--live=127.0.0.1:8765"
+    return out
+
+
+def _check_live(live: str, no_log: bool) -> tuple[str, int]:
+    """--live's (host, port), checked now: a bad address or a port in use stops the run before it writes."""
+    from tergodic_cli.errors import require
+    from tergodic_cli.runlog.background import use_background_writer
+    from tergodic_cli.runlog.live import check_bindable, parse_live
+
+    host, port = parse_live(live)
+    require(not no_log, "--live streams the run log", "drop --no-log / --dry-run, or drop --live")
+    require(use_background_writer(), "--live needs the log writer process", "unset TERGODIC_LOG_WRITER")
+    check_bindable(host, port)
+    return host, port
 
 
 def _workspace(box: tuple[float, ...]) -> dict:

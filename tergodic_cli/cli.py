@@ -120,6 +120,9 @@ def main(argv: list[str] | None = None) -> int:
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
     except ValueError:  # not the main thread (an embedding caller): leave SIGTERM alone
         previous = None
+    from tergodic_cli.commands.explore import expand_live
+
+    argv = expand_live(sys.argv[1:] if argv is None else argv)  # --live [HOST:PORT]: an optional value
     try:
         result = app(args=argv, prog_name="tergodic", standalone_mode=False)
         return int(result) if isinstance(result, int) else 0

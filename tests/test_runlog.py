@@ -65,8 +65,14 @@ def demo_inputs(steps: int = 120, n_points: int = 400, n_agents: int = 2, robot:
             "sidecar": {"source": "synthetic bowl", "n_points": n_points, "h": 0.003}}
 
 
+#: The demo logs' wall-clock origin (whole seconds, so that log_time // 1e9 - T0_S is the step).
+T0_S = 1_795_000_000
+T0 = T0_S * 10**9
+
+
 def write_demo_log(path: Path, inp: dict, *, close: bool = True, summary: dict | None = None, **kwargs) -> RunLog:
     """Write ``inp`` through RunLog exactly as the explore command would."""
+    kwargs.setdefault("time_origin_ns", T0)
     log = RunLog(path, config=inp["config"], seed=inp["config"]["seed"], versions=inp["versions"],
                  capture_sidecar=inp["sidecar"], points=inp["points"], target=inp["target"], cloud_every=50,
                  **kwargs)
@@ -172,7 +178,7 @@ def test_every_channel_round_trips(robot_log):
     metrics = msgs[S.TOPIC_METRICS]  # decoded with the schema stored in the file, not tergodic's class
     assert len(metrics) == T
     for k, (m, rec) in enumerate(metrics):
-        assert rec.step == k + 1 and rec.t == k + 1 and m.log_time == (k + 1) * 10**9
+        assert rec.step == k + 1 and rec.t == k + 1 and m.log_time == T0 + (k + 1) * 10**9
         for name, series in inp["metrics"].items():
             assert getattr(rec, name) == series[k]  # exact float64
         assert rec.step_ms == inp["step_ms"][k] and rec.n_agents == A
@@ -184,7 +190,7 @@ def test_every_channel_round_trips(robot_log):
     assert len(poses) == T
     for k, (_, msg) in enumerate(poses):
         assert msg.frame_id == S.FRAME_OBJECT and len(msg.poses) == A
-        assert msg.timestamp.seconds == k + 1
+        assert msg.timestamp.seconds == T0_S + k + 1
         for a, pose in enumerate(msg.poses):
             assert [pose.position.x, pose.position.y, pose.position.z] == inp["P"][k, a].tolist()
             o = pose.orientation
@@ -216,7 +222,7 @@ def test_every_channel_round_trips(robot_log):
                 assert arrow.shaft_length == 0.0
 
     clouds = msgs[S.TOPIC_CLOUD]
-    assert [m.log_time // 10**9 for m, _ in clouds] == sorted(inp["clouds"])  # t = step s
+    assert [m.log_time // 10**9 - T0_S for m, _ in clouds] == sorted(inp["clouds"])  # t = step s
     for m, msg in clouds:
         names = [f.name for f in msg.fields]
         assert names == ["x", "y", "z", "target", "coverage", "heat", "source"]
@@ -225,7 +231,7 @@ def test_every_channel_round_trips(robot_log):
         np.testing.assert_array_equal(arr[:, :3], inp["points"].astype(np.float32))
         np.testing.assert_array_equal(arr[:, 3], inp["target"].astype(np.float32))
         for col, name in ((4, "coverage"), (5, "heat"), (6, "source")):
-            np.testing.assert_array_equal(arr[:, col], inp["clouds"][m.log_time // 10**9][name].astype(np.float32))
+            np.testing.assert_array_equal(arr[:, col], inp["clouds"][m.log_time // 10**9 - T0_S][name].astype(np.float32))
 
     samples = msgs[S.TOPIC_ROBOT_SAMPLE]
     assert len(samples) == T
@@ -247,7 +253,7 @@ def test_every_channel_round_trips(robot_log):
     tfs = msgs[S.TOPIC_TF]
     assert len(tfs) == T * (len(LINKS) + 1)
     for m, tf in tfs:
-        k = m.log_time // 10**9 - 1
+        k = m.log_time // 10**9 - T0_S - 1
         src = inp["robot"][k]
         expected = src["ee_pose"] if tf.child_frame_id == S.FRAME_EE else src["link_poses"][tf.child_frame_id]
         got = [tf.translation.x, tf.translation.y, tf.translation.z, tf.rotation.x, tf.rotation.y, tf.rotation.z,
@@ -276,7 +282,7 @@ def test_every_channel_round_trips(robot_log):
     assert arrow.shaft_length == pytest.approx(0.005 * 5.0)
 
     (ev_msg, ev), = msgs[S.TOPIC_EVENTS]
-    assert ev.message == "step 4: contact established" and ev_msg.log_time == 4 * 10**9
+    assert ev.message == "step 4: contact established" and ev_msg.log_time == T0 + 4 * 10**9
 
     from mcap.reader import make_reader
 
@@ -339,7 +345,7 @@ def test_chunks_are_flushed_every_flush_every_steps(tmp_path):
         chunks = make_reader(fh).get_summary().chunk_indexes
     # one chunk per 25 steps (+ the event's own step inside the first): 200 / 25 = 8
     assert len(chunks) == 8
-    assert [c.message_end_time // 10**9 for c in chunks] == list(range(25, 201, 25))
+    assert [c.message_end_time // 10**9 - T0_S for c in chunks] == list(range(25, 201, 25))
 
 
 def test_context_manager_finishes_the_file_on_error(tmp_path):
@@ -470,7 +476,8 @@ def test_batch_encoding_decodes_exactly_with_the_official_schemas(tmp_path, n_ag
     inp["metrics"]["ergodicity"][2] = np.inf
     inp["metrics"]["touched_fraction"][3] = -0.0
     times = np.cumsum(rng.random(steps) * 3.7)  # not whole seconds: nanos in the timestamps
-    log = RunLog(tmp_path / "run.mcap", config={}, seed=0, points=inp["points"], flush_every=10)
+    t0 = 1_795_000_000_987_654_321  # a wall-clock origin with nanos: multi-byte varints in the timestamps
+    log = RunLog(tmp_path / "run.mcap", config={}, seed=0, points=inp["points"], flush_every=10, time_origin_ns=t0)
     for k in range(steps):
         log.log_step(2**40 + k, times[k], positions=inp["P"][k], velocities=inp["V"][k], normals=inp["N"][k],
                      metrics={m: v[k] for m, v in inp["metrics"].items()}, step_ms=inp["step_ms"][k])
@@ -479,7 +486,7 @@ def test_batch_encoding_decodes_exactly_with_the_official_schemas(tmp_path, n_ag
     assert len(msgs[S.TOPIC_METRICS]) == len(msgs[S.TOPIC_AGENT_POSES]) == len(msgs[S.TOPIC_AGENT_SCENE]) == steps
     for k, ((m, rec), (_, poses), (_, scene)) in enumerate(zip(msgs[S.TOPIC_METRICS], msgs[S.TOPIC_AGENT_POSES],
                                                                 msgs[S.TOPIC_AGENT_SCENE])):
-        t_ns = round(times[k] * 1e9)
+        t_ns = t0 + round(times[k] * 1e9)
         assert m.log_time == t_ns and rec.step == 2**40 + k and rec.t == times[k] and rec.n_agents == n_agents
         for name, series in inp["metrics"].items():
             np.testing.assert_array_equal(getattr(rec, name), series[k])  # NaN == NaN here
@@ -530,7 +537,7 @@ def test_events_and_robot_messages_follow_their_step(tmp_path):
     from mcap.reader import make_reader
 
     with open(tmp_path / "run.mcap", "rb") as fh:
-        order = [(ch.topic, m.log_time) for _, ch, m in make_reader(fh).iter_messages(log_time_order=False)]
+        order = [(ch.topic, m.log_time - T0) for _, ch, m in make_reader(fh).iter_messages(log_time_order=False)]
     i_event = order.index((S.TOPIC_EVENTS, 4 * 10**9))
     assert order[i_event - 1][1] == 4 * 10**9 and (S.TOPIC_METRICS, 5 * 10**9) in order[i_event + 1:]
     step4 = [topic for topic, t in order if t == 4 * 10**9]

@@ -18,6 +18,12 @@ from tergodic_cli.runlog.writer import RunLog, SpectralField
 from test_runlog import CHILD, demo_inputs
 
 
+@pytest.fixture(autouse=True)
+def _fixed_wall_clock(monkeypatch):
+    """One wall-clock origin for every log a test writes, so logs written one after the other compare equal."""
+    monkeypatch.setattr(time, "time_ns", lambda: 1_795_000_000_123_456_789)
+
+
 def _write(cls, path, inp, *, lazy_heat: bool = False, **kwargs):
     """``inp`` through ``cls`` as the explore command logs it; agent count changes half-way when inp has 'P2'."""
     n = len(inp["points"])

@@ -111,10 +111,13 @@ class LogWriterProcess:
     win the GIL back from the explorer for every write.
     """
 
-    def __init__(self, max_pending_bytes: int = 64 << 20):
+    def __init__(self, max_pending_bytes: int = 64 << 20, live: tuple[str, int] | None = None):
         env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-        self.proc = subprocess.Popen([sys.executable, "-m", "tergodic_cli.runlog.background"], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, env=env, close_fds=True)
+        argv = [sys.executable, "-m", "tergodic_cli.runlog.background"]
+        if live is not None:  # the child starts the WebSocket server first thing (see wait_live)
+            argv += ["--live", f"{live[0]}:{live[1]}"]
+        self.live = live
+        self.proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, close_fds=True)
         self._fd = self.proc.stdin.fileno()
         _grow_pipe(self._fd)
         os.set_blocking(self._fd, False)
@@ -125,6 +128,17 @@ class LogWriterProcess:
         self._ended = False
         # a writer dropped unused (the run failed before logging) ends its child: end-of-file, nothing written
         self._finalizer = weakref.finalize(self, self.proc.stdin.close)
+
+    def wait_live(self, timeout: float = 30.0) -> str:
+        """Block until the child's live server listens; its ws:// URL. A TergodicError if it could not start."""
+        ready, _, _ = select.select([self.proc.stdout], [], [], timeout)
+        line = self.proc.stdout.readline().decode(errors="replace").strip() if ready else ""
+        if line.startswith("live\t"):
+            return line.split("\t", 1)[1]
+        self.finish(timeout=5.0)
+        raise _reported_error(line) or TergodicError(
+            "--live: the log writer process did not start its server" + ("" if ready else f" within {timeout:.0f} s"),
+            "retry, or run without --live")
 
     def wait_ready(self, timeout: float = 60.0) -> bool:
         """Block until the child has imported the MCAP stack (benchmarks use it to leave start-up out)."""
@@ -216,11 +230,18 @@ class LogWriterProcess:
             except OSError:
                 pass
         line = b"ready"
-        while line.strip() == b"ready":  # its last line comes once the file is complete
+        while line.strip() == b"ready" or line.startswith(b"live\t"):  # its last line comes once the file is complete
             line = self.proc.stdout.readline()
         last = line.decode(errors="replace").strip()
-        if last == "ok":  # the file is finished: leave the child's exit to the system (it is reaped later)
+        if last == "ok" and self.live is None:  # the file is finished: leave the child's exit to the system
             self.proc.stdout.close()
+            return 0, last
+        if last == "ok":  # a live server: wait until its port is free again (a rerun may take it at once)
+            self.proc.stdout.close()
+            try:
+                self.proc.wait(timeout=10.0)
+            except subprocess.TimeoutExpired:
+                pass
             return 0, last
         self.proc.stdout.close()
         try:
@@ -285,12 +306,13 @@ class StepBlock:
         self.head = _FRAME.pack(len(head), size) + head
 
 
-def start_log_writer() -> LogWriterProcess | None:
-    """Start a log writer child now (None when ``TERGODIC_LOG_WRITER=inline`` or it cannot start)."""
+def start_log_writer(live: tuple[str, int] | None = None) -> LogWriterProcess | None:
+    """Start a log writer child now (None when ``TERGODIC_LOG_WRITER=inline`` or it cannot start);
+    with ``live`` (host, port) it also serves the log's channels there (:meth:`LogWriterProcess.wait_live`)."""
     if not use_background_writer():
         return None
     try:
-        return LogWriterProcess()
+        return LogWriterProcess(live=live)
     except OSError:
         return None
 
@@ -322,8 +344,10 @@ class BackgroundRunLog(ClosesOnExit, AgentRows):
                  points: np.ndarray, target: np.ndarray | None = None, cloud_every: int = 50,
                  compression: str = "lz4", flush_every: int | None = None, flush_seconds: float = 2.0,
                  chunk_bytes: int = CHUNK_BYTES, backend: str = "auto", field_basis: np.ndarray | None = None,
-                 writer: LogWriterProcess | None = None, field_basis_file: Mapping[str, str] | None = None):
+                 writer: LogWriterProcess | None = None, field_basis_file: Mapping[str, str] | None = None,
+                 time_origin_ns: int | None = None):
         self.path = Path(path)
+        self.time_origin_ns = time.time_ns() if time_origin_ns is None else int(time_origin_ns)  # the run's start
         pts, target, backend = check_log_args(points, target, compression, cloud_every, backend)
         self._field_basis = check_field_basis(field_basis, len(pts))
         self.points, self.target, self.backend = pts, target, backend
@@ -363,7 +387,8 @@ class BackgroundRunLog(ClosesOnExit, AgentRows):
                          seed=None if seed is None else int(seed), versions=dict(versions or {}) or None,
                          capture_sidecar=None if capture_sidecar is None else dict(capture_sidecar),
                          cloud_every=self.cloud_every, compression=compression, flush_every=self.flush_every,
-                         flush_seconds=self.flush_seconds, chunk_bytes=int(chunk_bytes), backend=backend))
+                         flush_seconds=self.flush_seconds, chunk_bytes=int(chunk_bytes), backend=backend,
+                         time_origin_ns=self.time_origin_ns))
 
     # -- plumbing ------------------------------------------------------------------------------
     def _send(self, parts: list, reused: bool = False) -> None:
@@ -664,8 +689,9 @@ def _read_field_basis(ref: Mapping[str, Any], n: int) -> tuple[np.ndarray | None
 _ABANDONED: list = []
 
 
-def _serve(fh: Any) -> int:
-    """Run the writer on the frames in ``fh``; the exit code (0 closed, 3 abandoned by the parent)."""
+def _serve(fh: Any, live: Any = None) -> int:
+    """Run the writer on the frames in ``fh``; the exit code (0 closed, 3 abandoned by the parent).
+    ``live``: a :class:`~tergodic_cli.runlog.live.LiveServer` the log also streams to."""
     from tergodic_cli.runlog.writer import RunLog
 
     log = None
@@ -699,7 +725,8 @@ def _serve(fh: Any) -> int:
                          capture_sidecar=h["capture_sidecar"], points=a["points"], target=a["target"],
                          field_basis=field_basis,
                          cloud_every=h["cloud_every"], compression=h["compression"], flush_every=h["flush_every"],
-                         flush_seconds=h["flush_seconds"], chunk_bytes=h["chunk_bytes"], backend=h["backend"])
+                         flush_seconds=h["flush_seconds"], chunk_bytes=h["chunk_bytes"], backend=h["backend"],
+                         time_origin_ns=h.get("time_origin_ns"), live=live)
             if missing:
                 log.log_event(0, 0.0, f"warning: the heat field is not logged: {missing}", "warning")
         elif op == "close":
@@ -757,11 +784,32 @@ def _quiet_foxglove() -> None:
         pass
 
 
+def _start_live(argv: list[str]) -> Any:
+    """The live server ``--live HOST:PORT`` asks for, started before the heavy imports; its URL goes
+    to the parent at once (a bind failure is reported as the child's one error line). The SDK's
+    own lines stay quiet (:func:`_quiet_foxglove`)."""
+    if "--live" not in argv:
+        return None
+    from tergodic_cli.runlog.live import LiveServer
+
+    live = LiveServer.start(argv[argv.index("--live") + 1])
+    sys.stdout.write(f"live\t{live.url}\n")
+    sys.stdout.flush()
+    return live
+
+
 def main() -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the parent, which closes the log properly
     _quiet_foxglove()
+    live = None
+    try:
+        live = _start_live(sys.argv)
+    except TergodicError as exc:
+        sys.stdout.write(f"error\t{exc.problem}\t{exc.fix or ''}".replace("\n", " ") + "\n")
+        sys.stdout.flush()
+        os._exit(2)
     _yield_to_parent()
     try:
         from tergodic_cli.runlog import writer as _w  # the MCAP stack, before saying ready
@@ -776,7 +824,7 @@ def main() -> None:
             sys.stdout.flush()
         except OSError:  # the parent is gone already: still write what it sent
             pass
-        code = _serve(sys.stdin.buffer)
+        code = _serve(sys.stdin.buffer, live)
         msg = "ok" if code == 0 else "abandoned"
     except TergodicError as exc:
         code, msg = 2, f"error\t{exc.problem}\t{exc.fix or ''}"
@@ -787,6 +835,8 @@ def main() -> None:
         sys.stdout.flush()
     except OSError:
         pass
+    if live is not None:
+        live.stop()
     os._exit(code)  # no interpreter teardown: the MCAP writer must not finish a file the parent abandoned
 
 

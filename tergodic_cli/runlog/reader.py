@@ -195,6 +195,7 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
     version: str | None = None
     topic_of: dict[int, str] = {}
     PointCloud = Log = step_decoder = None
+    t0 = 0
 
     size = path.stat().st_size
     finished = _has_footer(path, size)
@@ -245,7 +246,7 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
                     msg = Log.FromString(rec.data)
                     m = _EVENT_RE.match(msg.message)
                     step, text = (int(m.group(1)), m.group(2)) if m else (int(rec.sequence), msg.message)
-                    events.append((step, rec.log_time / 1e9, text))
+                    events.append((step, (rec.log_time - t0) / 1e9, text))  # t0: metadata first
             elif isinstance(rec, Channel):
                 channels[rec.id] = rec
                 topic_of[rec.id] = rec.topic
@@ -255,6 +256,7 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
                 metadata[rec.name] = dict(rec.metadata)
                 if rec.name == S.META_TERGODIC:
                     version = rec.metadata.get("log_schema_version")
+                    t0 = _time_origin(rec.metadata)  # version 2: wall-clock log times
                     if version not in S.SUPPORTED_VERSIONS:
                         raise TergodicError(
                             f"{path} uses log schema version {version!r}; this tergodic reads {', '.join(S.SUPPORTED_VERSIONS)}",
@@ -297,6 +299,7 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
 
     seed_txt = metadata.get(S.META_SEED, {}).get("seed", "")
     series = _stack_rows(rows)
+    _to_simulated_time(cloud_frames, metadata.get(S.META_TERGODIC, {}))
     _assign_cloud_steps(cloud_frames, series)
     sidecar = attachments.get(S.ATTACHMENT_SIDECAR)
     return RunLogData(
@@ -418,6 +421,25 @@ def _stack_rows(rows: list[dict]) -> dict[str, np.ndarray]:
             continue
         out[key] = np.array([np.nan if v is None else v for v in vals], dtype=np.float64)
     return out
+
+
+def _time_origin(info: dict) -> int:
+    """The log's ``time_origin_ns`` (0 for version 1, which has none)."""
+    raw = info.get("time_origin_ns", "0") or "0"
+    if not raw.isdigit():
+        raise TergodicError(f"the log's time_origin_ns {raw[:40]!r} is not a whole number of nanoseconds",
+                            "the file is damaged; re-run 'tergodic explore'")
+    return int(raw)
+
+
+def _to_simulated_time(clouds: list[CloudFrame], info: dict) -> None:
+    """Clouds' log times are wall-clock from version 2 on (``time_origin_ns`` + simulated t): back to simulated t."""
+    t0 = _time_origin(info)
+    if not t0:
+        return
+    for c in clouds:
+        c.t_ns -= t0
+        c.t = c.t_ns / 1e9
 
 
 def _assign_cloud_steps(clouds: list[CloudFrame], series: dict[str, np.ndarray]) -> None:

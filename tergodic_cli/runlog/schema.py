@@ -9,8 +9,9 @@ of any version it does not list in :data:`SUPPORTED_VERSIONS`.
 from __future__ import annotations
 
 #: Version of the log layout, stored in metadata ``tergodic`` as ``log_schema_version``.
-LOG_SCHEMA_VERSION = "1"
-SUPPORTED_VERSIONS = ("1",)
+# 2: log times are wall-clock, metadata ``time_origin_ns`` + simulated t (1: simulated t alone)
+LOG_SCHEMA_VERSION = "2"
+SUPPORTED_VERSIONS = ("1", "2")
 
 #: MCAP profile string in the header ("" = no ROS profile; messages are protobuf and JSON).
 PROFILE = ""

@@ -111,8 +111,42 @@ def rerun_available() -> bool:
     return importlib.util.find_spec("rerun") is not None
 
 
+_FORCE_M_PER_N = 0.005  # arrow length per newton, as the log's /robot/wrench_scene
+
+
+def _transform(rr, pose) -> object:
+    """A Rerun transform from a pose x y z qx qy qz qw (parent frame: the robot base)."""
+    p = np.asarray(pose, dtype=np.float64)
+    return rr.Transform3D(translation=p[:3], quaternion=rr.Quaternion(xyzw=p[3:7]))
+
+
+def _log_robot_sample(rr, rec, sample: dict) -> None:
+    """One robot sample: link and tool transforms, the arm's skeleton, the object's pose, the wrench arrows."""
+    axes = getattr(rr, "TransformAxes3D", None)  # rerun >= 0.27 draws frame axes with its own archetype
+    links = sample.get("link_poses") or {}
+    for name, pose in links.items():
+        rec.log(f"arm/{name}", _transform(rr, pose))
+        if axes is not None:
+            rec.log(f"arm/{name}", axes(axis_length=0.05))
+    if len(links) > 1:
+        rec.log("arm/skeleton", rr.LineStrips3D([np.array([np.asarray(p)[:3] for p in links.values()])],
+                                                 colors=[200, 200, 200], radii=0.004))
+    if sample.get("object_pose") is not None:
+        rec.log("object", _transform(rr, sample["object_pose"]))
+    if sample.get("ee_pose") is None:
+        return
+    rec.log("arm/ee", _transform(rr, sample["ee_pose"]))
+    for key, colour in (("wrench_measured", [255, 50, 50]), ("wrench_desired", [50, 255, 50])):
+        w = sample.get(key)
+        if w is not None:  # force in the tool frame, as logged
+            f = np.asarray(w, dtype=np.float64)[:3] * _FORCE_M_PER_N
+            rec.log(f"arm/ee/{key}", rr.Arrows3D(origins=[[0.0, 0.0, 0.0]], vectors=[f], colors=[colour]))
+
+
 def write_rerun(data: RunLogData, dest: str | os.PathLike) -> Path:
-    """Write a Rerun recording (``.rrd``): the metrics over steps, the agents, and every cloud."""
+    """Write a Rerun recording (``.rrd``): the metrics over steps, the agents, and every cloud; for robot
+    runs also the arm (a transform per link and the tool ``arm/ee``, in the base frame = the root), the
+    cloud where the robot saw it (``object`` placed by ``object_pose``) and the wrench as arrows."""
     if not rerun_available():
         raise TergodicError("rerun-sdk is not installed", "pip install rerun-sdk  (or: pip install 'tergodic[rerun]')")
     import rerun as rr
@@ -152,6 +186,10 @@ def write_rerun(data: RunLogData, dest: str | os.PathLike) -> Path:
             g = np.clip(cov / (cov.max() or 1.0), 0, 1)
             colors = np.column_stack([tgt, g, 1 - g]) * 255
             rec.log("object/cloud", rr.Points3D(c.points, colors=colors.astype(np.uint8), radii=0.0008))
+    for sample in data.robot or ():
+        if "step" in sample:
+            at_step(int(sample["step"]))
+            _log_robot_sample(rr, rec, sample)
     rec.flush()  # blocks until everything is in the file
     rec.disconnect()
     os.replace(tmp, dest)

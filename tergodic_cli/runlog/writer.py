@@ -115,13 +115,20 @@ class _FoxgloveBackend:
 
     name = "foxglove-sdk"
 
-    def __init__(self, path: Path, compression: str, chunk_bytes: int, classes: dict[str, Any]):
+    def __init__(self, path: Path, compression: str, chunk_bytes: int, classes: dict[str, Any], live: Any = None):
         import foxglove
         from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 
+        from tergodic_cli.runlog.live import LiveServer
+
         self._foxglove = foxglove
         self._classes = classes
-        self.ctx = foxglove.Context()  # private to this log: channels never leak into another sink
+        self._own_live = None
+        if live is not None and not isinstance(live, LiveServer):  # "HOST:PORT": a server of our own
+            live = self._own_live = LiveServer.start(live)
+        # private to this log (channels never leak into another sink); with a live server, the
+        # server's context: every message goes to the file and to connected clients, encoded once
+        self.ctx = live.context if live is not None else foxglove.Context()
         comp = {"zstd": MCAPCompression.Zstd, "lz4": MCAPCompression.Lz4}[compression]
         # zstd level 1: clouds compress ~30% faster than at the default 3, for ~1% more bytes (measured)
         level = 1 if compression == "zstd" else 0
@@ -162,12 +169,16 @@ class _FoxgloveBackend:
         self.writer.close()
         for ch in self._channels.values():
             ch.close()
+        if self._own_live is not None:
+            self._own_live.stop()
 
     def abort(self) -> None:
         try:
             self.writer.close()
         except Exception:  # noqa: BLE001 - best effort on the error path
             pass
+        if self._own_live is not None:
+            self._own_live.stop()
 
 
 class _McapPythonBackend:
@@ -175,8 +186,11 @@ class _McapPythonBackend:
 
     name = "mcap-python"
 
-    def __init__(self, path: Path, compression: str, chunk_bytes: int, classes: dict[str, Any]):
+    def __init__(self, path: Path, compression: str, chunk_bytes: int, classes: dict[str, Any], live: Any = None):
         from mcap.writer import CompressionType, IndexType, Writer
+
+        if live is not None:
+            raise TergodicError("a live view needs foxglove-sdk's writer", "pip install foxglove-sdk, or drop --live")
 
         from tergodic_cli import __version__ as tergodic_version
 
@@ -426,6 +440,12 @@ class RunLog(ClosesOnExit, AgentRows):
         The MCAP writer; "auto" takes foxglove-sdk when installed.
     field_basis : (n, nK) float array or None
         The basis of :class:`SpectralField` cloud fields (``Explorer.evecs``).
+    time_origin_ns : int or None
+        Unix time (ns) of simulated time 0: every log time is this plus the simulated time
+        (default: now). Stored in metadata ``tergodic`` as ``time_origin_ns``.
+    live : str, LiveServer or None
+        Also stream every message to Foxglove over WebSocket: ``"HOST:PORT"`` starts a server
+        for this log (stopped at close), a :class:`~tergodic_cli.runlog.live.LiveServer` is used as is.
 
     Notes
     -----
@@ -440,7 +460,8 @@ class RunLog(ClosesOnExit, AgentRows):
                  versions: Mapping[str, Any] | None = None, capture_sidecar: Mapping[str, Any] | None = None,
                  points: np.ndarray, target: np.ndarray | None = None, cloud_every: int = 50,
                  compression: str = "lz4", flush_every: int | None = None, flush_seconds: float = 2.0,
-                 chunk_bytes: int = CHUNK_BYTES, backend: str = "auto", field_basis: np.ndarray | None = None):
+                 chunk_bytes: int = CHUNK_BYTES, backend: str = "auto", field_basis: np.ndarray | None = None,
+                 time_origin_ns: int | None = None, live: Any = None):
         from tergodic_cli import __version__ as tergodic_version
 
         self.path = Path(path)
@@ -458,6 +479,8 @@ class RunLog(ClosesOnExit, AgentRows):
         self._closed = False
         self._last_t = 0.0
         self._last_flush = time.monotonic()
+        # log times are wall-clock (viewers place the run in real time): origin + simulated t
+        self.time_origin_ns = time.time_ns() if time_origin_ns is None else int(time_origin_ns)
         self._classes = _proto_classes()
         extent = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
         self._line_half = 0.25 * extent  # half-length of the drawn normal line
@@ -475,14 +498,15 @@ class RunLog(ClosesOnExit, AgentRows):
 
         self.path.parent.mkdir(parents=True, exist_ok=True)
         try:
-            self._b = BACKENDS[backend](self.path, compression, int(chunk_bytes), self._classes)
+            self._b = BACKENDS[backend](self.path, compression, int(chunk_bytes), self._classes, live)
         except OSError as exc:
             raise TergodicError(f"cannot write {self.path}: {exc}", "check the folder exists and is writable") from None
 
         info = {"log_schema_version": S.LOG_SCHEMA_VERSION, "writer": f"tergodic {tergodic_version}",
                 "frame_object": S.FRAME_OBJECT, "frame_base": S.FRAME_BASE, "cloud_every": str(self.cloud_every),
                 "flush_every": str(self.flush_every), "n_points": str(n), "compression": compression,
-                "backend": backend, "created_unix": repr(time.time())}
+                "backend": backend, "created_unix": repr(time.time()),
+                "time_origin_ns": str(self.time_origin_ns)}
         versions = {str(k): str(v) for k, v in (versions or {}).items()} or {"tergodic": tergodic_version}
         try:
             self._b.metadata(S.META_TERGODIC, info)
@@ -490,7 +514,8 @@ class RunLog(ClosesOnExit, AgentRows):
             self._b.metadata(S.META_SEED, {"seed": "none" if seed is None else str(int(seed))})
             self._b.metadata(S.META_VERSIONS, versions)
             if capture_sidecar is not None:
-                self._b.attach(S.ATTACHMENT_SIDECAR, "application/json", _dumps(dict(capture_sidecar)).encode(), 0)
+                self._b.attach(S.ATTACHMENT_SIDECAR, "application/json", _dumps(dict(capture_sidecar)).encode(),
+                               self.time_origin_ns)
             self._b.flush()  # the version marker and config are on disk before the first step
         except (OSError, RuntimeError) as exc:
             self._fail(exc)
@@ -581,6 +606,7 @@ class RunLog(ClosesOnExit, AgentRows):
         from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 
         msg = self._classes[S.TOPIC_CLOUD](frame_id=S.FRAME_OBJECT, point_stride=4 * (3 + len(S.CLOUD_FIELDS)))
+        msg.pose.position.SetInParent()  # a full pose: viewers (Rerun) need the position present
         msg.pose.orientation.w = 1.0
         for i, name in enumerate(("x", "y", "z") + S.CLOUD_FIELDS):
             msg.fields.add(name=name, offset=4 * i, type=PackedElementField.FLOAT32)
@@ -597,7 +623,8 @@ class RunLog(ClosesOnExit, AgentRows):
         step : int
             Explorer step index (>= 0).
         t : float
-            Simulated time of the step, s (>= 0); the log time of its messages.
+            Simulated time of the step, s (>= 0), kept in the step record; the messages' log time is
+            ``time_origin_ns`` plus this.
         positions, velocities, normals : (N, 3) float arrays
             Agent positions (m), velocities (m/s) and unit surface normals, object frame.
         metrics : dict
@@ -621,7 +648,7 @@ class RunLog(ClosesOnExit, AgentRows):
         if not fast:
             positions, velocities, normals = self._agent_arrays(positions, velocities, normals)
         i = len(self._rows)
-        t_ns = round(t * 1e9)
+        t_ns = self.time_origin_ns + round(t * 1e9)
         if metrics.keys() == _METRIC_FIELDS:  # the standard names: a fixed layout, encoded in bulk
             self._rows.append((step, t, metrics["ergodicity"], metrics["residual_ref"], metrics["touched_fraction"],
                                step_ms))
@@ -670,7 +697,8 @@ class RunLog(ClosesOnExit, AgentRows):
         cap = self.flush_every
         for a in range(0, K, cap):  # the encoder holds flush_every steps
             b = min(K, a + cap)
-            t_ns = [round(x * 1e9) for x in t[a:b].tolist()]  # as log_step: Python's round of t * 1e9
+            t0 = self.time_origin_ns
+            t_ns = [t0 + round(x * 1e9) for x in t[a:b].tolist()]  # as log_step: Python's round of t * 1e9
             scalars = np.column_stack((t[a:b], metrics[a:b], step_ms[a:b]))
             records, poses, scenes = self._enc.encode(step[a:b].astype(np.uint64), t_ns, scalars, P[a:b],
                                                       velocities[a:b], normals[a:b])
@@ -786,7 +814,7 @@ class RunLog(ClosesOnExit, AgentRows):
                                     "pass one value per point")
             buf[:, col] = values
         t = self._last_t if t is None else float(t)
-        t_ns = int(round(t * 1e9))
+        t_ns = self.time_origin_ns + int(round(t * 1e9))
         msg = self._cloud_msg
         _set_time(msg.timestamp, t_ns)
         msg.data = buf.tobytes()
@@ -805,7 +833,7 @@ class RunLog(ClosesOnExit, AgentRows):
         self._require_open()
         Log = self._classes[S.TOPIC_EVENTS]
         levels = {"debug": Log.DEBUG, "info": Log.INFO, "warning": Log.WARNING, "error": Log.ERROR}
-        t_ns = int(round(float(t) * 1e9))
+        t_ns = self.time_origin_ns + int(round(float(t) * 1e9))
         msg = Log(level=levels.get(level, Log.INFO), message=f"step {int(step)}: {text}", name="tergodic")
         _set_time(msg.timestamp, t_ns)
         item = (S.TOPIC_EVENTS, t_ns, int(step), msg.SerializeToString())
