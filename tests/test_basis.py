@@ -247,9 +247,9 @@ def test_spacing_is_the_mean_distance_to_three_nearest_neighbours():
     assert basis.h == pytest.approx(expected, rel=1e-12)
 
 
-def test_entry_recording_an_older_laplacian_choice_still_loads(isolated_cache):
-    """Entries written while a re-implementation could make L record it in basis.json; the key never
-    held it and the matrices were the library's to round-off, so such an entry is a plain hit."""
+def test_an_entry_from_an_older_tergodic_is_recomputed_once_with_a_message(isolated_cache):
+    """Entries written before basis.json carried its own checksum (e.g. those that recorded the
+    removed re-implementation's "laplacian") cannot be told from edited ones: one recompute, said."""
     pts = generate_synthetic("plate", "X", seed=0, spacing=0.006).points
     cfg = BasisConfig(nk=10, neighbors=20)
     basis, _ = get_basis(pts, cfg)
@@ -257,8 +257,30 @@ def test_entry_recording_an_older_laplacian_choice_still_loads(isolated_cache):
     meta = json.loads(meta_path.read_text())
     assert "laplacian" not in meta
     meta["laplacian"] = "tergodic.fast_laplacian"
+    del meta["sidecar_sha256"]
     meta_path.write_text(json.dumps(meta))
     messages = []
     again, hit = get_basis(pts, cfg, on_event=messages.append)
-    assert hit and not messages
-    np.testing.assert_array_equal(again.evecs, basis.evecs)
+    assert not hit and any("older tergodic" in m for m in messages), messages
+    np.testing.assert_allclose(again.evecs, basis.evecs, atol=1e-12)
+    assert get_basis(pts, cfg)[1]
+
+
+def test_an_edited_basis_json_is_a_reported_miss_and_is_recomputed(tmp_path):
+    import json
+
+    from tergodic_cli.basis import BasisConfig, get_basis
+    from tergodic_cli.capture.synthetic import generate_synthetic
+
+    pts = generate_synthetic("plate", "X", seed=0, spacing=0.006).points
+    basis, hit = get_basis(pts, BasisConfig(nk=10, neighbors=30), tmp_path)
+    assert not hit
+    side = tmp_path / "basis" / basis.meta["key"] / "basis.json"
+    meta = json.loads(side.read_text())
+    meta["h_m"] *= 2.0  # an edit that changes no array: the sidecar's own checksum must catch it
+    side.write_text(json.dumps(meta))
+    said = []
+    again, hit = get_basis(pts, BasisConfig(nk=10, neighbors=30), tmp_path, on_event=said.append)
+    assert not hit and any("edited" in m for m in said), said
+    assert again.h == pytest.approx(basis.h) and json.loads(side.read_text())["h_m"] == pytest.approx(basis.h)
+    assert get_basis(pts, BasisConfig(nk=10, neighbors=30), tmp_path)[1]  # a clean hit after the recompute

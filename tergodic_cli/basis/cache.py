@@ -41,6 +41,7 @@ import scipy.sparse as sp
 
 from tergodic_cli import FORMAT_VERSION
 from tergodic_cli.basis.core import Basis, compute_basis
+from tergodic_cli.capture.artefact import SIDECAR_SHA, sidecar_checksum
 from tergodic_cli.checked_npy import CacheMiss, array_checksum, read_checked, read_checked_array  # noqa: F401
 
 __all__ = ["BasisConfig", "CacheMiss", "array_checksum", "default_cache_dir", "geometry_key", "get_basis",
@@ -186,6 +187,8 @@ def _load_entry(entry: Path, points: np.ndarray, order: np.ndarray, canon: np.nd
             raise TypeError("checksums")
     except Exception as exc:
         raise CacheMiss(f"unreadable ({type(exc).__name__})") from None
+    if meta.get(SIDECAR_SHA) != sidecar_checksum(meta):  # an edited h_m or n_points must not load
+        raise CacheMiss("basis.json was edited or is from an older tergodic (its checksum does not match)")
     if set(checksums) != set(_ARRAY_NAMES):
         raise CacheMiss("checksum mismatch (corrupt or modified)")
     arrays = {name: read_checked(entry / f"{name}.npy", checksums[name]) for name in _ARRAY_NAMES}
@@ -257,6 +260,8 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
         "versions": library_versions(),
         "checksums": {name: array_checksum(a) for name, a in arrays.items()},
     }
+    meta = json.loads(json.dumps(meta))  # what a reader will see
+    meta[SIDECAR_SHA] = sidecar_checksum(meta)
     try:
         _write_entry(entry, arrays, meta)
     except OSError as exc:  # a full disk or a vanished permission: one line, nothing partial (see _write_entry)
@@ -264,7 +269,7 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
 
         raise os_error(exc, entry.parent.parent, "write the basis cache",
                        f"free space or choose another {_CACHE_OPTION}") from None
-    timings["write_ms"] = 1e3 * (time.perf_counter() - t)
+    meta["timings"]["write_ms"] = 1e3 * (time.perf_counter() - t)  # in memory only (after the write)
     meta["path"] = str(entry)
     meta["evecs_file"] = {"path": str(entry / "evecs.npy"), "checksum": meta["checksums"]["evecs"]}
     basis.meta = meta
