@@ -110,7 +110,10 @@ def capture(
         cap = capture_realsense(cfg, serial=serial, width=width, height=height,
                                 camera_pose=_floats(camera_pose, "--camera-pose", "0.3,0,0.6,1,0,0,0"))
     else:
-        cap = capture_cloud(cfg)
+        from tergodic_cli.progress import Spinner
+
+        with Spinner("capture: reading, filtering and segmenting the cloud"):  # seconds for millions of points
+            cap = capture_cloud(cfg)
     # What the camera saw goes beside the artefact (not part of it), inside the same atomic folder.
     extra = (lambda folder: _write_image(folder / "camera_rgb.png", frame.rgb)) if frame is not None else None
     sidecar = save_capture(cap, out, overwrite=overwrite, extra=extra)

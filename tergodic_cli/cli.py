@@ -140,7 +140,12 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:
         # Usage errors and --help/Exit from typer's (vendored) click carry their own exit code.
         if hasattr(exc, "exit_code"):
-            if hasattr(exc, "show"):
+            fmt = getattr(exc, "format_message", None)
+            if fmt is not None and int(exc.exit_code) == 2 and type(exc).__name__ != "NoArgsIsHelpError":
+                ctx = getattr(exc, "ctx", None)  # a usage error: one line, like every other bad input
+                where = ctx.command_path if ctx is not None else "tergodic"
+                print(f"tergodic: error: {' '.join(fmt().split()).rstrip('.')}; see '{where} --help'", file=sys.stderr)
+            elif hasattr(exc, "show"):
                 exc.show()
             return int(exc.exit_code)
         raise
