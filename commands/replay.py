@@ -24,7 +24,7 @@ def replay(
     gui: bool = typer.Option(False, "--gui", help="Replay the logged joint states in the PyBullet GUI (robot runs; needs a display, else exit 2)."),
     speed: float = typer.Option(1.0, "--speed", help="--gui playback speed, times real time."),
     rerun: Optional[Path] = typer.Option(None, "--rerun", help="Write a Rerun recording (.rrd); needs rerun-sdk."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --plot folder or --export file (whole, once the new one is complete)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --plot folder, --export or --rerun file (whole, once the new one is complete)."),
     html: Optional[Path] = typer.Option(None, "--html", help="Write an interactive HTML report (cloud with a time slider, trajectory, ε, touched, force); works offline."),
 ) -> None:
     """Recompute a run's summary from its log, and plot, export or re-drive it.
@@ -86,6 +86,8 @@ def replay(
     if export is not None:
         dest = export_out or path.parent / f"series.{export}"
         check_output_file(dest, overwrite, "--export-out")
+    if rerun is not None:
+        check_output_file(rerun, overwrite, "--rerun")
     plots = AtomicFolder(plot, overwrite=overwrite, option="--plot", what="set of plots",
                          owned=lambda name: name.endswith(".png")) if plot is not None else None
     if plots is not None:
