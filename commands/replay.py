@@ -24,7 +24,7 @@ def replay(
     gui: bool = typer.Option(False, "--gui", help="Replay the logged joint states in the PyBullet GUI (robot runs; needs a display, else exit 2)."),
     speed: float = typer.Option(1.0, "--speed", help="--gui playback speed, times real time."),
     rerun: Optional[Path] = typer.Option(None, "--rerun", help="Write a Rerun recording (.rrd); needs rerun-sdk."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --plot folder, --export or --rerun file (whole, once the new one is complete)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --plot folder, --export, --rerun or --html file (whole, once the new one is complete)."),
     html: Optional[Path] = typer.Option(None, "--html", help="Write an interactive HTML report (cloud with a time slider, trajectory, ε, touched, force); works offline."),
 ) -> None:
     """Recompute a run's summary from its log, and plot, export or re-drive it.
@@ -74,9 +74,9 @@ def replay(
                                 "run it on a desktop, or use --plot OUT_DIR / open run.mcap in Foxglove")
 
     if html is not None:  # fail before the (long) read when the page cannot be written
-        from tergodic_cli.runlog.report import check_html_target
+        from tergodic_cli.atomic import check_output_file
 
-        check_html_target(html)
+        check_output_file(html, overwrite, "--html")
 
     path = resolve_log_path(run)
     # every output is checked before the (long) read, and built aside then renamed in

@@ -6,6 +6,7 @@ A crash or an error half-way never leaves a partial artefact behind.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import tempfile
@@ -67,6 +68,15 @@ def check_output_file(path: str | os.PathLike, overwrite: bool, option: str) -> 
                             f" at {parent}", other)
     if target.exists() and not overwrite:
         raise TergodicError(f"{option} {shown} already exists", f"pass --overwrite to replace it, or {other}")
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """sha256 of a file's bytes, read in 1 MiB blocks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def _umask() -> int:

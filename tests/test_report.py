@@ -160,7 +160,7 @@ def test_big_clouds_are_subsampled_and_say_so(tmp_path, monkeypatch):
     np.testing.assert_allclose(_decode(cov["marker"]["color"]), data.clouds[-1].fields["coverage"][idx], rtol=1e-7)
 
 
-@pytest.mark.parametrize("where, needle", [("folder", "it is a folder"), ("under_file", "is a file")])
+@pytest.mark.parametrize("where, needle", [("folder", "is a folder"), ("under_file", "is a file")])
 def test_unwritable_html_path_is_one_line(bowl_run, tmp_path, where, needle):
     run, _, _ = bowl_run
     (tmp_path / "afile").write_text("x")

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tergodic_cli.atomic import _json_default
+from tergodic_cli.atomic import _json_default, file_sha256
 from tergodic_cli.errors import TergodicError, os_cause, os_error, require_writable
 
 SIDECAR = "capture.json"
@@ -107,7 +107,7 @@ def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, 
             extra(tmp)
         meta = dict(capture.meta)
         meta.pop(SIDECAR_SHA, None)
-        meta["arrays"] = {"file": ARRAYS, "sha256": _sha256(tmp / ARRAYS)}
+        meta["arrays"] = {"file": ARRAYS, "sha256": file_sha256(tmp / ARRAYS)}
         meta = json.loads(json.dumps(meta, default=_json_default))  # what a reader will see
         meta[SIDECAR_SHA] = sidecar_checksum(meta)
         (tmp / SIDECAR).write_text(json.dumps(meta, indent=2) + "\n")
@@ -165,7 +165,7 @@ def load_capture(path: str | Path) -> Capture:
     if not arrays.exists():
         raise TergodicError(f"{folder} has no {ARRAYS}", rerun)
     try:
-        actual = _sha256(arrays)
+        actual = file_sha256(arrays)
     except OSError as exc:
         raise os_error(exc, arrays, "read", "check the capture folder's permissions") from None
     if meta["arrays"].get("sha256") != actual:
@@ -187,14 +187,6 @@ def sidecar_checksum(meta: dict) -> str:
     body = {k: v for k, v in meta.items() if k != SIDECAR_SHA}
     text = json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
     return hashlib.sha256(text.encode()).hexdigest()
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _umask() -> int:

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from tergodic_cli.atomic import atomic_path
+from tergodic_cli.atomic import atomic_path, check_output_file
 from tergodic_cli.errors import TergodicError, os_error
 from tergodic_cli.runlog.plots import RESIDUAL_KEYS, _color_range
 from tergodic_cli.runlog.reader import RunLogData
@@ -41,22 +41,6 @@ _FIELDS = {
 }
 _AGENT_COLOURS = ("#d62728", "#1f77b4", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b")
 _FIX = "choose another --html path"
-
-
-def check_html_target(path: str | os.PathLike) -> None:
-    """Refuse, before any work, a report path that cannot be written (one line, exit 2 in the CLI)."""
-    p = Path(path)
-    if p.is_dir():
-        raise TergodicError(f"cannot write {p}: it is a folder", _FIX)
-    parent = Path(os.path.abspath(p)).parent
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if not parent.is_dir():
-        raise TergodicError(f"cannot write {p}: {parent} is a file, not a folder", _FIX)
-    if not os.access(parent, os.W_OK | os.X_OK):
-        ro = bool(os.statvfs(parent).f_flag & os.ST_RDONLY)
-        raise TergodicError(f"cannot write {p}: {'read-only filesystem' if ro else 'permission denied'} at {parent}",
-                            _FIX)
 
 
 def write_html_report(data: RunLogData, path: str | os.PathLike) -> Path:
@@ -91,7 +75,7 @@ def write_html_report(data: RunLogData, path: str | os.PathLike) -> Path:
     from plotly.offline import get_plotlyjs
 
     path = Path(path)
-    check_html_target(path)
+    check_output_file(path, True, "--html")  # the verb asked for --overwrite already
     notes: list[str] = []
     cloud_fig, embedded = _cloud_figure(data, notes)
     series_fig, series_rows = _series_figure(data)

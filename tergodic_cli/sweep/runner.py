@@ -33,6 +33,7 @@ from typing import Callable
 
 import numpy as np
 
+from tergodic_cli.atomic import file_sha256
 from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.sweep.grid import Grid, ObjectSpec, load_grid, run_config, run_id
 
@@ -297,7 +298,7 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
                     continue
                 write_npz(runs_dir / f"{rec['run_id']}.npz", **rec["series"])
                 record = _record(by_id[rec["run_id"]], rec)
-                record["series_sha256"] = _sha256(runs_dir / f"{rec['run_id']}.npz")
+                record["series_sha256"] = file_sha256(runs_dir / f"{rec['run_id']}.npz")
                 record[RECORD_SHA] = record_checksum(record)
                 write_json(runs_dir / f"{rec['run_id']}.json", record)
                 finished[rec["run_id"]] = (json.loads(json.dumps(record, default=_jsonable)),
@@ -403,21 +404,13 @@ def load_record(runs_dir: Path, rid: str):
     if rec.get(RECORD_SHA) != record_checksum(rec) or rec["run_id"] != rid:
         return f"{name}: edited (its checksum does not match)"
     try:
-        if _sha256(npath) != rec["series_sha256"]:
+        if file_sha256(npath) != rec["series_sha256"]:
             return f"runs/{rid}.npz: changed (its checksum does not match the record)"
         with np.load(npath, allow_pickle=False) as z:
             series = {k: np.asarray(z[k]) for k in SERIES}
     except (OSError, ValueError, KeyError):
         return f"runs/{rid}.npz: missing or unreadable"
     return rec, series
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _jsonable(obj):
