@@ -188,13 +188,10 @@ DY_MAX_GAP = 0.005
 
 
 @njit
-def inertial_wrench(t, T, J, dq, R_se, p_se, com, m, inertia, dyn, out):
-    """The wrench (6,) that accelerates the tool, sensor frame, moment about the sensor origin:
-    (m a_c, c × m a_c + I α + ω × I ω), with a_c the centre of mass's acceleration and α the angular
-    one, backward differences of the arm's state (J q̇) between samples; ``inertia`` (3,) is the
-    tool's principal inertia about its centre of mass, along the sensor axes. Updates ``dyn``."""
+def tcp_twist(J, dq, n):
+    """The TCP twist J q̇ (v, ω) over the first ``n`` joints, base frame, as six scalars."""
     v0 = v1 = v2 = w0 = w1 = w2 = 0.0
-    for j in range(dq.shape[0]):
+    for j in range(n):
         qd = dq[j]
         v0 += J[0, j] * qd
         v1 += J[1, j] * qd
@@ -202,6 +199,16 @@ def inertial_wrench(t, T, J, dq, R_se, p_se, com, m, inertia, dyn, out):
         w0 += J[3, j] * qd
         w1 += J[4, j] * qd
         w2 += J[5, j] * qd
+    return v0, v1, v2, w0, w1, w2
+
+
+@njit
+def inertial_wrench(t, T, J, dq, R_se, p_se, com, m, inertia, dyn, out):
+    """The wrench (6,) that accelerates the tool, sensor frame, moment about the sensor origin:
+    (m a_c, c × m a_c + I α + ω × I ω), with a_c the centre of mass's acceleration and α the angular
+    one, backward differences of the arm's state (J q̇) between samples; ``inertia`` (3,) is the
+    tool's principal inertia about its centre of mass, along the sensor axes. Updates ``dyn``."""
+    v0, v1, v2, w0, w1, w2 = tcp_twist(J, dq, dq.shape[0])
     # The centre of mass from the TCP, base frame: R (p_se + R_se c).
     e0 = p_se[0] + R_se[0, 0] * com[0] + R_se[0, 1] * com[1] + R_se[0, 2] * com[2]
     e1 = p_se[1] + R_se[1, 0] * com[0] + R_se[1, 1] * com[1] + R_se[1, 2] * com[2]
@@ -290,15 +297,7 @@ def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use
         r0 * vx + r3 * vy + r6 * vz, r1 * vx + r4 * vy + r7 * vz, r2 * vx + r5 * vy + r8 * vz,
         r0 * dx + r3 * dy + r6 * dz, r1 * dx + r4 * dy + r7 * dz, r2 * dx + r5 * dy + r8 * dz)
     spin = math.atan2(r1 * x_ref[0] + r4 * x_ref[1] + r7 * x_ref[2], r0 * x_ref[0] + r3 * x_ref[1] + r6 * x_ref[2])
-    V0 = V1 = V2 = V3 = V4 = V5 = 0.0
-    for j in range(7):  # base-frame TCP twist J q̇
-        qd = dq[j]
-        V0 += J[0, j] * qd
-        V1 += J[1, j] * qd
-        V2 += J[2, j] * qd
-        V3 += J[3, j] * qd
-        V4 += J[4, j] * qd
-        V5 += J[5, j] * qd
+    V0, V1, V2, V3, V4, V5 = tcp_twist(J, dq, 7)  # base-frame TCP twist J q̇
     if use_vref:
         V0 -= v_ref[0]
         V1 -= v_ref[1]
