@@ -157,7 +157,7 @@ def _lockstep(make, cap, basis, cfg, steps: int, cloud_every: int, compression: 
     """
     from tergodic_cli.provenance import library_versions
     from tergodic_cli.runlog.background import BackgroundRunLog, LogWriterProcess
-    from tergodic_cli.explore.run import LogFeed, RunRecorder
+    from tergodic_cli.run import LogFeed, RunRecorder
     from tergodic_cli.runlog.writer import RunLog
 
     def proc_cpu(pid: int) -> float:  # utime + stime of a live process (Linux)

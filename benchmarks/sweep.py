@@ -87,7 +87,7 @@ def main() -> int:
         return 0
     from tergodic_cli.sweep import load_grid, run_sweep
     from tergodic_cli.sweep.runner import materialise
-    from tergodic_cli.explore.run import find_basis
+    from tergodic_cli.run import find_basis
 
     out = Path(args.out or tempfile.mkdtemp(prefix="tergodic-sweep-"))
     out.mkdir(parents=True, exist_ok=True)

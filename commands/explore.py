@@ -87,7 +87,7 @@ def explore(
     live_at = _check_live(live, no_log or dry_run) if live is not None else None  # exit 2 before anything is written
     log_writer = None if no_log or dry_run else start_log_writer(live=live_at)  # its imports overlap ours
     from tergodic_cli.explore import ExploreConfig
-    from tergodic_cli.explore.run import StartSpec, run_explore
+    from tergodic_cli.run import StartSpec, run_explore
     from tergodic_cli.progress import echo as echo_err
 
     cfg = ExploreConfig(steps=steps, alpha=alpha, nk=nk, agent_radius=agent_radius, n_agents=agents, v_max=v_max,

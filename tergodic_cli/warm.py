@@ -22,7 +22,7 @@ def compile_robot() -> float:
     """Compile or load the robot's kernels: a two-step simulated (PyBullet) run on a tiny capture; returns seconds."""
     from tergodic_cli.capture import CaptureConfig, capture_cloud, save_capture
     from tergodic_cli.explore import ExploreConfig
-    from tergodic_cli.explore.run import run_explore
+    from tergodic_cli.run import run_explore
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="tergodic-warm-") as tmp:

@@ -434,7 +434,7 @@ def test_help_lists_the_exit_codes(verb):
 @pytest.mark.parametrize("json_out", [False, True])
 def test_robot_fault_stop_exits_3(cap, tmp_path, monkeypatch, json_out):
     """A run the library reports as stopped on a fault (final_state 'stopped', safe) exits 3, also with --json."""
-    import tergodic_cli.explore.run as run_mod
+    import tergodic_cli.run as run_mod
 
     summary = {"steps": 21, "ergodicity": 0.9, "touched_fraction": 0.1, "step_ms_median": 0.1, "files": [],
                "final_state": "stopped", "stop_reason": "joint 4 near its limit", "interrupted": False}

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from conftest import REPO, assert_one_line_error, run_cli
 
-from tergodic_cli.explore.run import make_robot_config
+from tergodic_cli.run import make_robot_config
 from tergodic_cli.robot import RobotConfig
 
 BOWL = REPO / "data" / "bowl"

@@ -36,7 +36,7 @@ def bowl_log(tmp_path_factory):
     if not (BOWL / "cloud.npz").is_file():
         pytest.skip("data/bowl is missing")
     from tergodic_cli.explore import ExploreConfig
-    from tergodic_cli.explore.run import run_explore
+    from tergodic_cli.run import run_explore
     from tergodic_cli.runlog import read_run_log
 
     tmp = tmp_path_factory.mktemp("plots")

@@ -79,7 +79,7 @@ def test_tiny_sweep_in_process_and_on_a_process_pool_agree_and_resume(grid, tmp_
     assert all(r["steps"] == 40 and 0 < r["residual_ref"] <= 1 for r in rows)
     assert _series(tmp_path / "one")["ergodicity"].shape == (16, 40)
     pool = run_sweep(grid, tmp_path / "pool", jobs=2, plots=True)
-    assert pool.computed == 16
+    assert pool.computed == 16, pool.failed
     _same(tmp_path / "one", tmp_path / "pool")
     for name in ("eps_vs_nk.png", "eps_t.png", "eps_t_alpha.png"):
         assert (tmp_path / "pool" / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name

@@ -70,7 +70,7 @@ def test_no_compile_inside_a_timed_step(tmp_path):
         import json
         from tergodic_cli.explore import ExploreConfig, kernels
         from tergodic_cli.explore.explorer import Explorer
-        from tergodic_cli.explore.run import run_explore
+        from tergodic_cli.run import run_explore
 
         import numpy as np
         seen = []

@@ -1,8 +1,10 @@
 """Exploration: paper-faithful HEDAC on point clouds (section IV-A) and its metrics.
 
-Entry points: :class:`ExploreConfig`, :class:`Explorer` (one object per run; ``step()`` per
-explorer step), :func:`summarize_run` (summary.json from the per-step series, pure), and
-:func:`run_explore` (the whole ``tergodic explore`` run: basis, starts, loop, artefacts).
+The pure core: it imports nothing from the robot, hardware, log or sweep stages and runs
+without a simulator. Entry points: :class:`ExploreConfig`, :class:`Explorer` (one object per run;
+``step()`` per explorer step), :func:`metrics.coverage_score` (the neutral score of a trajectory),
+:func:`summarize_run` (summary.json from the per-step series, pure). A whole ``tergodic explore``
+run (capture, basis, starts, a backend, the log) is :func:`tergodic_cli.run.run_explore`.
 """
 
 from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_config
@@ -10,11 +12,3 @@ from tergodic_cli.explore.explorer import Explorer
 from tergodic_cli.explore.summary import summarize_run
 
 __all__ = ["ExploreConfig", "Explorer", "parse_alpha", "summarize_run", "validate_config"]
-
-
-def __getattr__(name):  # run_explore pulls in the capture/basis stack; load it on first use
-    if name in ("run_explore", "resolve_starts", "find_basis"):
-        from tergodic_cli.explore import run
-
-        return getattr(run, name)
-    raise AttributeError(name)

@@ -171,7 +171,8 @@ class Explorer:
     target : (n,) target weight p >= 0 per cloud point (any scale; normalised internally).
     cfg : :class:`ExploreConfig`.
     starts : (N, 3) start positions, metres, N = cfg.n_agents; projected onto the surface.
-    on_event : callable(str) for warnings (default: :func:`warnings.warn`).
+    on_event : callable(str) for warnings (default: :func:`warnings.warn`); a public attribute, so a
+        run may route them to its log once it has one.
 
     Attributes (read-only, updated by every step)
     ----------
@@ -194,7 +195,7 @@ class Explorer:
                  on_event: Callable[[str], None] | None = None):
         validate_config(cfg)
         self.cfg = cfg
-        self._say = on_event or (lambda msg: warnings.warn(msg, stacklevel=3))
+        self.on_event = on_event or (lambda msg: warnings.warn(msg, stacklevel=3))
         n = len(basis.points)
         require(basis.nk >= cfg.nk, f"nK = {cfg.nk} is larger than the basis ({basis.nk} eigenpairs)",
                 f"compute a basis with --nk {cfg.nk} or use --nk <= {basis.nk}")
@@ -221,7 +222,7 @@ class Explorer:
         self._phi = _internal_phi(basis.evecs, cfg.nk, fset.sel[self._order])
         n = len(fset.sel)
         if self.r_a < self.h:
-            self._say(f"warning: agent radius {self.r_a * 1e3:.2f} mm is below the point spacing h = "
+            self.on_event(f"warning: agent radius {self.r_a * 1e3:.2f} mm is below the point spacing h = "
                       f"{self.h * 1e3:.2f} mm; the footprint may miss points (use --agent-radius >= h)")
         self._spectral = cfg.integrator in ("spectral", "resolvent")
         self._mode = (K.HEAT_FULL if not self._spectral else
@@ -290,7 +291,7 @@ class Explorer:
             K.place_agent(self._P, *self._tree, self._full.tree, self._ag, self._nbrs, i, x0, hint, self._k,
                           self._prm[K.PR_REACH])
             if d0 > self.h:
-                self._say(f"warning: start {np.array2string(x0, precision=4)} is {d0 * 1e3:.1f} mm off the cloud; "
+                self.on_event(f"warning: start {np.array2string(x0, precision=4)} is {d0 * 1e3:.1f} mm off the cloud; "
                           f"projected onto the surface at {np.array2string(self.positions[i], precision=4)}")
             self._to_target_part(i, hint)
 
@@ -306,7 +307,7 @@ class Explorer:
         j = reachable[np.argmin(np.linalg.norm(self.points[reachable] - x, axis=1))]
         K.place_agent(self._P, *self._tree, self._full.tree, self._ag, self._nbrs, i, self.points[j].copy(), hint,
                       self._k, self._prm[K.PR_REACH])
-        self._say(f"warning: start {np.array2string(x, precision=4)} is on a part of the cloud the target is not on "
+        self.on_event(f"warning: start {np.array2string(x, precision=4)} is on a part of the cloud the target is not on "
                   f"(a gap wider than {2 * K.SURFACE_REACH * self.h * 1e3:.1f} mm); starting at the nearest point "
                   f"of the target's part, {np.linalg.norm(self.points[j] - x) * 1e3:.1f} mm away")
 
@@ -560,7 +561,7 @@ class Explorer:
             K.step_kernel(*self._state, deposits, n_dep, self._resets, status, self._mode, self._resync, self._u_full, 2)
         if agent_at is not None:
             for i in np.flatnonzero(status == -2):
-                self._say(f"warning: step {self.step_index}: agent {i} reset point is "
+                self.on_event(f"warning: step {self.step_index}: agent {i} reset point is "
                           f"{self._resets[i, 0] * 1e3:.1f} mm off the cloud; ignored")
         self.step_index += 1
         if self._is[K.IS_PHAT] == 0:

@@ -77,7 +77,7 @@ class _Object:
 def materialise(spec: ObjectSpec, starts: list[int], seed: int, out: Path) -> _Object:
     """Capture (or load) one object, save it under ``out/objects/NAME`` and resolve its starts."""
     from tergodic_cli.capture import CaptureConfig, capture_cloud, load_capture, save_capture
-    from tergodic_cli.explore.run import StartSpec, resolve_starts
+    from tergodic_cli.run import StartSpec, resolve_starts
 
     if spec.source == "capture":
         cap = load_capture(spec.location)
@@ -114,7 +114,7 @@ def _basis_for(key: str, points, neighbors: int, max_nk: int, nk: int, cache_dir
     """The (object, nK) basis in this process: loaded once from the cache (largest nK), then truncated."""
     full = _BASES.get((key, max_nk))
     if full is None:
-        from tergodic_cli.explore.run import find_basis
+        from tergodic_cli.run import find_basis
 
         full, _ = find_basis(points, max_nk, neighbors, cache_dir)
         _BASES[(key, max_nk)] = full
@@ -248,7 +248,7 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
     objects = []
     for spec in grid.objects:
         obj = materialise(spec, grid.starts, grid.seed, out)
-        from tergodic_cli.explore.run import find_basis
+        from tergodic_cli.run import find_basis
 
         require(grid.max_nk < len(obj.points), f"object {spec.name}: nK = {grid.max_nk} is not below its "
                 f"{len(obj.points)} points", f"use nk values below {len(obj.points)}")

@@ -244,7 +244,7 @@ def _write_run(out: Path, explorer, cfg, user_cfg, basis, hit, capture, capture_
 
         event_hook = log_event if runlog else (lambda step, msg: say(msg))
         if runlog is not None:
-            explorer._say = lambda msg: event_hook(explorer.step_index, msg)
+            explorer.on_event = lambda msg: event_hook(explorer.step_index, msg)
 
         def after_step(step: int, robot_sample: dict | None) -> None:
             recorder.record(step, robot_sample)
