@@ -16,6 +16,7 @@ def register(app: typer.Typer) -> None:
 
 
 def explore(
+    ctx: typer.Context,
     capture: Path = typer.Argument(..., help="Capture folder written by 'tergodic capture'."),
     out: Path = typer.Option(..., "--out", "-o", help="Run folder: trajectory.npz, summary.json, run.mcap."),
     robot: str = typer.Option("kinematic", "--robot", help="'kinematic' (virtual agent only), 'pybullet' (simulated Franka Panda, 1 kHz torque control) or 'franka' (real arm through franky)."),
@@ -42,6 +43,7 @@ def explore(
     live: Optional[str] = typer.Option(None, "--live", metavar="[HOST:PORT]", help="Stream the log's channels to Foxglove over WebSocket while the run goes on (Open connection: ws://HOST:PORT); --live alone: 127.0.0.1:8765."),
     log_cloud_every: int = typer.Option(50, "--log-cloud-every", help="Log coverage/heat/source per point every N steps (and at the end)."),
     max_start_distance: float = typer.Option(0.02, "--max-start-distance", help="Refuse a start farther than this (metres) from the cloud; closer ones are projected."),
+    config: Optional[Path] = typer.Option(None, "--config", help="Repeat a run: its RUN/config.json (explore config, start, seed, robot); options given beside it override it."),
     json_out: bool = typer.Option(False, "--json", help="Print summary.json to stdout."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing run folder at --out (whole, once the new run is complete)."),
     force: Optional[float] = typer.Option(None, "--force", help="[robot] Desired contact force along the tool axis, N [default: 5]."),
@@ -74,6 +76,8 @@ def explore(
 
       tergodic explore cap/ --alpha 50:10@200 --agents 3 --seed 1 --no-log --json --out run/
 
+      tergodic explore cap/ --config run/config.json --steps 2000 --out run2/
+
       tergodic explore data/bowl --robot pybullet --force 5 --steps 300 --out run/
 
       tergodic explore simcap/ --robot pybullet --recapture-every 200 --until-clean 0.05 --max-steps 1000 --out run/
@@ -90,11 +94,26 @@ def explore(
     from tergodic_cli.run import StartSpec, run_explore
     from tergodic_cli.progress import echo as echo_err
 
-    cfg = ExploreConfig(steps=steps, alpha=alpha, nk=nk, agent_radius=agent_radius, n_agents=agents, v_max=v_max,
-                        a_max=a_max, dt=dt, diffusion=diffusion, integrator=integrator, coverage_norm=coverage_norm, seed=seed,
-                        n_neighbors=fit_neighbors, epsilon=epsilon, basis_neighbors=neighbors,
-                        max_start_distance=max_start_distance)
+    given = {name for name in ctx.params if _on_command_line(ctx, name)}
+    fields = {"steps": steps, "alpha": alpha, "nk": nk, "agent_radius": agent_radius, "n_agents": agents, "v_max": v_max,
+              "a_max": a_max, "dt": dt, "diffusion": diffusion, "integrator": integrator, "coverage_norm": coverage_norm,
+              "seed": seed, "n_neighbors": fit_neighbors, "epsilon": epsilon, "basis_neighbors": neighbors,
+              "max_start_distance": max_start_distance}
     spec = StartSpec(start=start, starts_file=str(starts) if starts is not None else None, start_index=start_index)
+    saved = None
+    if config is not None:  # the saved run, with the options given on this command line on top
+        from dataclasses import replace
+
+        from tergodic_cli.run import load_run_config
+
+        saved = load_run_config(config)
+        cfg = replace(saved["explore"], **{k: v for k, v in fields.items() if OPTION_OF.get(k, k) in given})
+        if not given & {"start", "starts", "start_index"}:
+            spec = saved["starts"]
+        robot = robot if "robot" in given else saved["robot"]
+        log_cloud_every = log_cloud_every if "log_cloud_every" in given else saved["log_cloud_every"]
+    else:
+        cfg = ExploreConfig(**fields)
     from tergodic_cli.commands._common import parse_floats
 
     robot_options = {
@@ -104,6 +123,8 @@ def explore(
         "safety": {"force_limit": force_limit,
                    **(_workspace(parse_floats(workspace, 6, "--workspace", "0.15,-0.6,0,0.85,0.6,0.9")) if workspace else {})},
     }
+    if saved is not None:  # the saved robot options, then those given now
+        robot_options = _merge_options(saved["robot_options"], robot_options)
     hardware = {"robot_ip": robot_ip, "ft": ft, "ft_address": ft_address}
     if live_at is not None:
         from tergodic_cli.errors import require
@@ -170,6 +191,26 @@ def _check_live(live: str, no_log: bool) -> tuple[str, int]:
     require(use_background_writer(), "--live needs the log writer process", "unset TERGODIC_LOG_WRITER")
     check_bindable(host, port)
     return host, port
+
+
+#: The verb's option (parameter) name of each ExploreConfig field, where they differ.
+OPTION_OF = {"n_agents": "agents", "n_neighbors": "fit_neighbors", "basis_neighbors": "neighbors"}
+
+
+def _on_command_line(ctx: typer.Context, name: str) -> bool:
+    source = ctx.get_parameter_source(name)
+    return source is not None and source.name == "COMMANDLINE"
+
+
+def _merge_options(saved: dict, now: dict) -> dict:
+    """``now``'s options where given (not None), else ``saved``'s; ``safety`` merged the same way."""
+    out = dict(saved)
+    for key, value in now.items():
+        if key == "safety":
+            out["safety"] = {**(saved.get("safety") or {}), **{k: v for k, v in (value or {}).items() if v is not None}}
+        elif value is not None:
+            out[key] = value
+    return out
 
 
 def _workspace(box: tuple[float, ...]) -> dict:

@@ -27,7 +27,7 @@ from tergodic_cli.explore.summary import summarize_run
 
 ROBOTS = ("kinematic", "pybullet", "franka")
 #: What a run folder may hold: explore's files and replay's default outputs (--overwrite replaces only these).
-RUN_FILES = frozenset({"run.mcap", "summary.json", "trajectory.npz", "series.npz", "series.csv", "plots", "run.rrd"})
+RUN_FILES = frozenset({"run.mcap", "summary.json", "config.json", "trajectory.npz", "series.npz", "series.csv", "plots", "run.rrd"})
 
 
 @dataclass
@@ -38,6 +38,41 @@ class StartSpec:
     start: str | None = None
     starts_file: str | None = None
     start_index: int | None = None
+
+
+#: ``config.json``: what repeats a run (``tergodic explore CAPTURE --config RUN/config.json``).
+RUN_CONFIG_KIND = "tergodic.run_config"
+
+
+def run_config(capture_dir, cfg: ExploreConfig, starts: StartSpec | None, robot: str, robot_options: dict | None,
+               log_cloud_every: int) -> dict:
+    """A run's loadable config: the explore config as asked for, the start spec (the seed in ``cfg``
+    makes a random start the same), the backend and its options."""
+    spec = starts or StartSpec()
+    return {"kind": RUN_CONFIG_KIND, "version": 1, "capture": str(Path(capture_dir).resolve()),
+            "explore": cfg.to_dict(),
+            "starts": {"start": spec.start, "start_index": spec.start_index,
+                       "starts_file": str(Path(spec.starts_file).resolve()) if spec.starts_file else None},
+            "robot": robot, "robot_options": robot_options or {}, "log_cloud_every": int(log_cloud_every)}
+
+
+def load_run_config(path: str | Path) -> dict:
+    """``config.json`` of an earlier run, checked: {"explore": ExploreConfig, "starts": StartSpec, "robot",
+    "robot_options", "log_cloud_every"}."""
+    path = Path(path)
+    fix = "give the config.json that 'tergodic explore' wrote beside a run"
+    require(path.is_file(), f"--config {path} does not exist", fix)
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise TergodicError(f"--config {path} is not readable JSON ({type(exc).__name__})", fix) from None
+    require(isinstance(d, dict) and d.get("kind") == RUN_CONFIG_KIND and isinstance(d.get("explore"), dict),
+            f"--config {path} is not a run config", fix)
+    st = d.get("starts") or {}
+    return {"explore": ExploreConfig.from_dict(d["explore"]),
+            "starts": StartSpec(start=st.get("start"), starts_file=st.get("starts_file"), start_index=st.get("start_index")),
+            "robot": d.get("robot", "kinematic"), "robot_options": d.get("robot_options") or {},
+            "log_cloud_every": int(d.get("log_cloud_every", 50))}
 
 
 def resolve_starts(spec: StartSpec, points: np.ndarray, n_agents: int, seed: int) -> np.ndarray:
@@ -207,12 +242,13 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     if robot_api is not None and (line := robot_kernels_line()):
         say(line)
     explorer = Explorer(basis, capture.target, cfg, start_xyz, on_event=event)
+    run_conf = run_config(capture_dir, user_cfg, starts, robot, robot_options, log_cloud_every)
 
     try:
         with folder as tmp:
             return _write_run(tmp, explorer, cfg, user_cfg, basis, hit, capture, capture_dir, start_xyz, starts, robot,
                               robot_api, robot_cfg if robot_api is not None else None, devices, log, log_cloud_every,
-                              writer, events, say, recapture_every, until_clean, max_steps)
+                              writer, events, say, recapture_every, until_clean, max_steps, run_conf)
     except KeyboardInterrupt as exc:
         if folder.kept:
             from tergodic_cli.errors import Interrupted
@@ -224,7 +260,7 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
 
 def _write_run(out: Path, explorer, cfg, user_cfg, basis, hit, capture, capture_dir, start_xyz, starts, robot,
                robot_api, robot_cfg, devices, log, log_cloud_every, writer, events, say, recapture_every,
-               until_clean, max_steps) -> dict:
+               until_clean, max_steps, run_conf: dict) -> dict:
     """The explorer loop and the artefacts, written into ``out`` (the temporary run folder)."""
     recorder = RunRecorder(explorer, cfg.steps)
     runlog = _open_log(out, cfg, basis, capture, log_cloud_every, writer) if log else None
@@ -309,6 +345,7 @@ def _write_run(out: Path, explorer, cfg, user_cfg, basis, hit, capture, capture_
         from tergodic_cli.atomic import write_json
 
         write_json(out / "summary.json", summary)
+        write_json(out / "config.json", run_conf)
         if runlog is not None:
             runlog.close(summary, status=status)
             runlog = None
@@ -560,7 +597,7 @@ def _provenance(capture_dir, capture, basis, hit, explorer: Explorer, cfg: Explo
         "step_max_m": explorer.score()["step_max_m"],
         "starts": {"start": starts.start, "starts_file": starts.starts_file, "start_index": starts.start_index,
                    "xyz": np.asarray(start_xyz).tolist()},
-        "files": ["trajectory.npz", "summary.json"] + (["run.mcap"] if logged else []),
+        "files": ["trajectory.npz", "summary.json", "config.json"] + (["run.mcap"] if logged else []),
         "versions": library_versions(),
     }
     for key, value in (robot_extra or {}).items():  # the robot's summary extras, merged in (CONTRACTS.md)

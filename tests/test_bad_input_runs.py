@@ -47,7 +47,7 @@ def template(cap, tmp_path_factory) -> Path:
     run = tmp_path_factory.mktemp("template") / "run"
     res = run_cli("explore", cap, "--steps", STEPS, "--nk", "30", "--out", run)
     assert res.code == 0, res.err
-    assert sorted(p.name for p in run.iterdir()) == ["run.mcap", "summary.json", "trajectory.npz"]
+    assert sorted(p.name for p in run.iterdir()) == ["config.json", "run.mcap", "summary.json", "trajectory.npz"]
     return run
 
 
@@ -128,7 +128,7 @@ def test_overwrite_with_no_log_replaces_the_run_whole(cap, good):
     (good.path / "plots" / "old.png").write_bytes(b"old")
     res = explore(cap, good.path, "--no-log", "--overwrite", "--seed", "5")
     assert res.code == 0, res.err
-    assert sorted(p.name for p in good.path.iterdir()) == ["summary.json", "trajectory.npz"]  # no old run.mcap
+    assert sorted(p.name for p in good.path.iterdir()) == ["config.json", "summary.json", "trajectory.npz"]  # no old run.mcap
     assert json.loads((good.path / "summary.json").read_text())["config"]["seed"] == 5
     assert leftovers(good.path.parent) == []
 
@@ -137,7 +137,7 @@ def test_overwrite_replaces_the_run_whole(cap, good):
     (good.path / "series.csv").write_text("step,t\n1,1.0\n")  # the old run's export: replaced with it
     res = explore(cap, good.path, "--overwrite", "--seed", "7")
     assert res.code == 0, res.err
-    assert sorted(p.name for p in good.path.iterdir()) == ["run.mcap", "summary.json", "trajectory.npz"]
+    assert sorted(p.name for p in good.path.iterdir()) == ["config.json", "run.mcap", "summary.json", "trajectory.npz"]
     assert hashes(good.path)["run.mcap"] != good.before["run.mcap"]
     assert run_cli("replay", good.path).code == 0
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -284,3 +285,24 @@ def test_an_edited_basis_json_is_a_reported_miss_and_is_recomputed(tmp_path):
     assert not hit and any("edited" in m for m in said), said
     assert again.h == pytest.approx(basis.h) and json.loads(side.read_text())["h_m"] == pytest.approx(basis.h)
     assert get_basis(pts, BasisConfig(nk=10, neighbors=30), tmp_path)[1]  # a clean hit after the recompute
+
+
+def test_an_entry_another_process_wrote_meanwhile_stands(tmp_path, monkeypatch):
+    """Two sweep workers computing one basis: the later rename meets the earlier one's entry."""
+    import errno
+    import os
+
+    entry = tmp_path / "basis" / "k"
+    real = os.replace
+
+    def first_wins(src, dst):
+        if Path(dst) == entry:  # the other writer got there between our check and our rename
+            entry.mkdir(parents=True)
+            (entry / "basis.json").write_text("{}")
+            raise OSError(errno.ENOTEMPTY, "Directory not empty", str(dst))
+        return real(src, dst)
+
+    monkeypatch.setattr(cache_mod.os, "replace", first_wins)
+    cache_mod._write_entry(entry, {"h": np.zeros(())}, {"kind": "tergodic.basis"})
+    assert (entry / "basis.json").read_text() == "{}"  # theirs stands
+    assert [p.name for p in entry.parent.iterdir()] == ["k"]  # ours is gone

@@ -208,3 +208,32 @@ def test_reference_bunny_start_0(reference, tmp_path):
     assert summary["touched_fraction"] >= 0.98
     assert summary["ergodicity"] < 0.468  # the authors' code under the same score (issue 13)
     assert summary["off_surface_fraction"] == 0.0 and summary["step_max_m"] <= 0.003 * (1 + 1e-9)
+
+
+def test_a_run_repeats_exactly_from_its_config_and_options_given_beside_it_override(cap, tmp_path):
+    res = _explore(cap, tmp_path / "a", "--steps", "120", "--seed", "7", "--alpha", "20")
+    assert res.code == 0, res.err
+    conf = json.loads((tmp_path / "a" / "config.json").read_text())
+    assert conf["explore"]["seed"] == 7 and conf["explore"]["alpha"] == "20" and conf["starts"]["start"] is None
+    res = run_cli("explore", cap, "--config", tmp_path / "a" / "config.json", "--out", tmp_path / "b", "--no-log")
+    assert res.code == 0, res.err
+    res = run_cli("explore", cap, "--config", tmp_path / "a" / "config.json", "--out", tmp_path / "c", "--no-log",
+                  "--steps", "60")
+    assert res.code == 0, res.err
+    with np.load(tmp_path / "a" / "trajectory.npz") as a, np.load(tmp_path / "b" / "trajectory.npz") as b, \
+            np.load(tmp_path / "c" / "trajectory.npz") as c:
+        assert np.array_equal(a["positions"], b["positions"])  # the same trajectory, bit for bit
+        assert len(c["positions"]) == 60 and np.array_equal(a["positions"][:60], c["positions"])
+    assert json.loads((tmp_path / "c" / "config.json").read_text())["explore"]["steps"] == 60
+
+
+@pytest.mark.parametrize("content, needle", [(None, "does not exist"), ("{not json", "not readable JSON"),
+                                             ('{"kind": "other"}', "not a run config"),
+                                             ('{"kind": "tergodic.run_config", "explore": {"stepz": 3}}', "unknown keys")])
+def test_a_bad_config_is_one_line(cap, tmp_path, content, needle):
+    path = tmp_path / "config.json"
+    if content is not None:
+        path.write_text(content)
+    res = run_cli("explore", cap, "--config", path, "--out", tmp_path / "run", "--no-log")
+    assert_one_line_error(res, needle)
+    assert not (tmp_path / "run").exists()

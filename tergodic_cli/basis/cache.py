@@ -26,6 +26,7 @@ in the CPU cache), so a warm load is one pass over the bytes; see
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -285,8 +286,15 @@ def _write_entry(entry: Path, arrays: dict[str, np.ndarray], meta: dict) -> None
             np.save(tmp / f"{name}.npy", np.require(array, requirements="C"), allow_pickle=False)
         (tmp / "basis.json").write_text(json.dumps(meta, indent=2) + "\n")
         if entry.exists():
-            shutil.rmtree(entry)
-        os.replace(tmp, entry)
+            shutil.rmtree(entry, ignore_errors=True)
+        try:
+            os.replace(tmp, entry)
+        except OSError as exc:
+            # Another process (a sweep's workers) put the same entry in place meanwhile: same key,
+            # same content, so theirs stands and ours goes.
+            if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) or not (entry / "basis.json").exists():
+                raise
+            shutil.rmtree(tmp, ignore_errors=True)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -86,6 +86,20 @@ class ExploreConfig:
         d["normal_hint"] = list(self.normal_hint)
         return d
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "ExploreConfig":
+        """The config :meth:`to_dict` wrote (a run's ``config.json``); unknown keys are refused."""
+        from dataclasses import fields
+
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        require(not unknown, f"the explore config has unknown keys: {', '.join(unknown)}",
+                "use a config.json written by 'tergodic explore', or remove them")
+        d = dict(d)
+        if "normal_hint" in d:
+            d["normal_hint"] = tuple(d["normal_hint"])
+        return cls(**d)
+
     @property
     def footprint_epsilon(self) -> float:
         """ε in 1/m actually used."""
