@@ -21,7 +21,7 @@ def explore(
     out: Path = typer.Option(..., "--out", "-o", help="Run folder: trajectory.npz, summary.json, run.mcap."),
     robot: str = typer.Option("kinematic", "--robot", help="'kinematic' (virtual agent only), 'pybullet' (simulated Franka Panda, 1 kHz torque control) or 'franka' (real arm through franky)."),
     steps: int = typer.Option(1000, "--steps", help="Explorer steps (one step = --dt seconds)."),
-    alpha: str = typer.Option("10", "--alpha", help="α of δt = α h² (eq. 21), or a schedule A0:A1@S1, e.g. 50:10@200 (50 for 200 steps, then 10)."),
+    alpha: str = typer.Option("10", "--alpha", help="α of δt = α h₀² (eq. 21, h₀ = 2.5 mm fixed), or a schedule A0:A1@S1, e.g. 50:10@200 (50 for 200 steps, then 10)."),
     nk: int = typer.Option(200, "--nk", help="Eigenpairs used by the spectral diffusion (a larger cached basis is truncated)."),
     agent_radius: float = typer.Option(0.0075, "--agent-radius", help="Footprint radius r_a in METRES (paper: 0.0075 bunny/cup, 0.015 plate)."),
     start: Optional[str] = typer.Option(None, "--start", help="Start: x,y,z in metres, a point index, or 'random' [default: random]."),
