@@ -63,13 +63,16 @@ def cloud():
     return syn.points[idx], np.rint(syn.colors[idx] * 255).astype(np.int64)
 
 
+def _bowl_capture(out: Path, voxel: str) -> Path:
+    code, _, err = run("capture", "--synthetic", "bowl", "--voxel", voxel, "--out", out)
+    assert code == 0, err
+    return out
+
+
 @pytest.fixture
 def good(tmp_path):
     """A good capture folder; each test checks it is byte-identical after the bad run."""
-    out = tmp_path / "good"
-    code, _, err = run("capture", "--synthetic", "bowl", "--voxel", "0.006", "--out", out)
-    assert code == 0, err
-    return out
+    return _bowl_capture(tmp_path / "good", "0.006")
 
 
 def bad_capture(good: Path, *args, needles=(), absent=()):
@@ -553,10 +556,7 @@ def test_out_on_a_full_disk_leaves_nothing_new(tmp_path, mount):
 @pytest.fixture
 def small(tmp_path):
     """A small capture (a few hundred points) for precompute."""
-    out = tmp_path / "small"
-    code, _, err = run("capture", "--synthetic", "bowl", "--voxel", "0.008", "--out", out)
-    assert code == 0, err
-    return out
+    return _bowl_capture(tmp_path / "small", "0.008")
 
 
 def test_cache_dir_is_a_file(tmp_path, small):

@@ -135,15 +135,27 @@ def fk_jacobian(q, F, axis, qidx, tcp_off, T, J):
 
 # ----------------------------------------------------------------------------- the contact wrench
 @njit
+def rot(R, x0, x1, x2):
+    """R x for the 3x3 block of ``R`` (a rotation or a 4x4 pose), as three scalars."""
+    return (R[0, 0] * x0 + R[0, 1] * x1 + R[0, 2] * x2, R[1, 0] * x0 + R[1, 1] * x1 + R[1, 2] * x2,
+            R[2, 0] * x0 + R[2, 1] * x1 + R[2, 2] * x2)
+
+
+@njit
+def rot_t(R, x0, x1, x2):
+    """Rᵀ x for the 3x3 block of ``R``, as three scalars."""
+    return (R[0, 0] * x0 + R[1, 0] * x1 + R[2, 0] * x2, R[0, 1] * x0 + R[1, 1] * x1 + R[2, 1] * x2,
+            R[0, 2] * x0 + R[1, 2] * x1 + R[2, 2] * x2)
+
+
+@njit
 def tool_load(T, R_se, mg, com, out):
     """The wrench (6,) that holds the tool still against gravity, sensor frame (what a tared-at-zero
     sensor reads for a free tool). T (4, 4) or (3, 3): the TCP rotation; R_se (3, 3): the sensor in
     the ee frame; mg: weight, N; com (3,): centre of mass, sensor frame."""
     # Rᵀ_base_sensor (0, 0, m g) = R_seᵀ (row 3 of R_base_ee) m g.
     z0, z1, z2 = T[2, 0] * mg, T[2, 1] * mg, T[2, 2] * mg
-    f0 = R_se[0, 0] * z0 + R_se[1, 0] * z1 + R_se[2, 0] * z2
-    f1 = R_se[0, 1] * z0 + R_se[1, 1] * z1 + R_se[2, 1] * z2
-    f2 = R_se[0, 2] * z0 + R_se[1, 2] * z1 + R_se[2, 2] * z2
+    f0, f1, f2 = rot_t(R_se, z0, z1, z2)
     c0, c1, c2 = com[0], com[1], com[2]
     out[0], out[1], out[2] = f0, f1, f2
     out[3], out[4], out[5] = c1 * f2 - c2 * f1, c2 * f0 - c0 * f2, c0 * f1 - c1 * f0
@@ -165,12 +177,8 @@ def contact_wrench(r, T, R_se, p_se, mg, com, tare_load, out):
     w3 = r[3] + tare_load[3] - ld[3]
     w4 = r[4] + tare_load[4] - ld[4]
     w5 = r[5] + tare_load[5] - ld[5]
-    g0 = R_se[0, 0] * w0 + R_se[0, 1] * w1 + R_se[0, 2] * w2
-    g1 = R_se[1, 0] * w0 + R_se[1, 1] * w1 + R_se[1, 2] * w2
-    g2 = R_se[2, 0] * w0 + R_se[2, 1] * w1 + R_se[2, 2] * w2
-    m0 = R_se[0, 0] * w3 + R_se[0, 1] * w4 + R_se[0, 2] * w5
-    m1 = R_se[1, 0] * w3 + R_se[1, 1] * w4 + R_se[1, 2] * w5
-    m2 = R_se[2, 0] * w3 + R_se[2, 1] * w4 + R_se[2, 2] * w5
+    g0, g1, g2 = rot(R_se, w0, w1, w2)
+    m0, m1, m2 = rot(R_se, w3, w4, w5)
     p0, p1, p2 = p_se[0], p_se[1], p_se[2]  # moment about the TCP: m_B = m_A + (A - B) × f
     out[0], out[1], out[2] = g0, g1, g2
     out[3] = m0 + p1 * g2 - p2 * g1
@@ -210,12 +218,8 @@ def inertial_wrench(t, T, J, dq, R_se, p_se, com, m, inertia, dyn, out):
     tool's principal inertia about its centre of mass, along the sensor axes. Updates ``dyn``."""
     v0, v1, v2, w0, w1, w2 = tcp_twist(J, dq, dq.shape[0])
     # The centre of mass from the TCP, base frame: R (p_se + R_se c).
-    e0 = p_se[0] + R_se[0, 0] * com[0] + R_se[0, 1] * com[1] + R_se[0, 2] * com[2]
-    e1 = p_se[1] + R_se[1, 0] * com[0] + R_se[1, 1] * com[1] + R_se[1, 2] * com[2]
-    e2 = p_se[2] + R_se[2, 0] * com[0] + R_se[2, 1] * com[1] + R_se[2, 2] * com[2]
-    c0 = T[0, 0] * e0 + T[0, 1] * e1 + T[0, 2] * e2
-    c1 = T[1, 0] * e0 + T[1, 1] * e1 + T[1, 2] * e2
-    c2 = T[2, 0] * e0 + T[2, 1] * e1 + T[2, 2] * e2
+    e0, e1, e2 = rot(R_se, com[0], com[1], com[2])
+    c0, c1, c2 = rot(T, p_se[0] + e0, p_se[1] + e1, p_se[2] + e2)
     vc0, vc1, vc2 = v0 + w1 * c2 - w2 * c1, v1 + w2 * c0 - w0 * c2, v2 + w0 * c1 - w1 * c0
     dt = t - dyn[DY_T]
     if dyn[DY_HAS] != 0.0 and dt == 0.0:
@@ -238,24 +242,13 @@ def inertial_wrench(t, T, J, dq, R_se, p_se, com, m, inertia, dyn, out):
     # Into the sensor frame: x_s = R_seᵀ Rᵀ x_b.
     a0, a1, a2 = dyn[DY_AC], dyn[DY_AC + 1], dyn[DY_AC + 2]
     b0, b1, b2 = dyn[DY_AL], dyn[DY_AL + 1], dyn[DY_AL + 2]
-    ae0 = T[0, 0] * a0 + T[1, 0] * a1 + T[2, 0] * a2
-    ae1 = T[0, 1] * a0 + T[1, 1] * a1 + T[2, 1] * a2
-    ae2 = T[0, 2] * a0 + T[1, 2] * a1 + T[2, 2] * a2
-    be0 = T[0, 0] * b0 + T[1, 0] * b1 + T[2, 0] * b2
-    be1 = T[0, 1] * b0 + T[1, 1] * b1 + T[2, 1] * b2
-    be2 = T[0, 2] * b0 + T[1, 2] * b1 + T[2, 2] * b2
-    we0 = T[0, 0] * w0 + T[1, 0] * w1 + T[2, 0] * w2
-    we1 = T[0, 1] * w0 + T[1, 1] * w1 + T[2, 1] * w2
-    we2 = T[0, 2] * w0 + T[1, 2] * w1 + T[2, 2] * w2
-    f0 = m * (R_se[0, 0] * ae0 + R_se[1, 0] * ae1 + R_se[2, 0] * ae2)
-    f1 = m * (R_se[0, 1] * ae0 + R_se[1, 1] * ae1 + R_se[2, 1] * ae2)
-    f2 = m * (R_se[0, 2] * ae0 + R_se[1, 2] * ae1 + R_se[2, 2] * ae2)
-    al0 = R_se[0, 0] * be0 + R_se[1, 0] * be1 + R_se[2, 0] * be2
-    al1 = R_se[0, 1] * be0 + R_se[1, 1] * be1 + R_se[2, 1] * be2
-    al2 = R_se[0, 2] * be0 + R_se[1, 2] * be1 + R_se[2, 2] * be2
-    om0 = R_se[0, 0] * we0 + R_se[1, 0] * we1 + R_se[2, 0] * we2
-    om1 = R_se[0, 1] * we0 + R_se[1, 1] * we1 + R_se[2, 1] * we2
-    om2 = R_se[0, 2] * we0 + R_se[1, 2] * we1 + R_se[2, 2] * we2
+    ae0, ae1, ae2 = rot_t(T, a0, a1, a2)
+    be0, be1, be2 = rot_t(T, b0, b1, b2)
+    we0, we1, we2 = rot_t(T, w0, w1, w2)
+    f0, f1, f2 = rot_t(R_se, ae0, ae1, ae2)
+    f0, f1, f2 = m * f0, m * f1, m * f2
+    al0, al1, al2 = rot_t(R_se, be0, be1, be2)
+    om0, om1, om2 = rot_t(R_se, we0, we1, we2)
     h0, h1, h2 = inertia[0] * om0, inertia[1] * om1, inertia[2] * om2
     out[0], out[1], out[2] = f0, f1, f2
     out[3] = com[1] * f2 - com[2] * f1 + inertia[0] * al0 + om1 * h2 - om2 * h1
