@@ -39,6 +39,7 @@ import numpy as np  # noqa: E402
 REFERENCE_BARE_STEPS_PER_S = 36000.0
 #: (figure, label, format, goal (op, value) or None). "F_d" in a goal scales by the desired force.
 ROWS = (
+    ("steps_done", "explorer steps done", "{:d}", ("==", "steps")),
     ("force_rms_error_rel", "force RMS error", "{:.1%}", ("<=", 0.10)),
     ("force_peak_N", "force peak, 1 kHz (N)", "{:.1f}", None),
     ("force_peak_approach_N", "  during approach (N)", "{:.1f}", ("<=", "1.5 F_d")),
@@ -145,16 +146,17 @@ def table(rows: list[dict]) -> str:
             cell = fmt.format(v)
             if goal is not None:
                 op, target = goal
-                target = 1.5 * r["force_N"] if target == "1.5 F_d" else target
-                ok = v <= target if op == "<=" else v >= target
+                target = {"1.5 F_d": 1.5 * r["force_N"], "steps": r["steps"]}.get(target, target)
+                ok = v <= target if op == "<=" else (v >= target if op == ">=" else v == target)
                 cell += " met" if ok else " MISSED"
             cells.append(cell)
         g = f"{goal[0]} {goal[1]:.0%}" if goal and key in ("force_rms_error_rel", "contact_fraction") else \
             (f"{goal[0]} {goal[1]}" if goal else "")
+        g = g.replace("== steps", f"= {rows[0]['steps']}") if rows else g
         lines.append(f"| {label} | {g} | " + " | ".join(cells) + " |")
     lines.append("| ε sponge, ε kinematic | | " + " | ".join(f"{r['eps_sponge']:.3f}, {r['eps_kinematic']:.3f}"
                                                          for r in rows) + " |")
-    lines.append("| stop | | " + " | ".join(f"{r['stop_reason']} ({r['steps_done']} steps)" for r in rows) + " |")
+    lines.append("| stop | | " + " | ".join(str(r["stop_reason"]) for r in rows) + " |")
     return "\n".join(lines)
 
 
