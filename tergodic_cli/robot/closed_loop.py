@@ -180,7 +180,7 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, recapture_every:
     The robot summary extras (:func:`~tergodic_cli.robot.summarize_robot` and the run's figures, as
     :func:`~tergodic_cli.robot.explore_with_robot`), plus ``marking_remaining`` (camera-seen share of
     the initial marking at the end), ``marking_remaining_true``, ``recaptures``, ``recapture_ms_median``,
-    ``recapture_ms_max``, ``recapture_log`` (one record per re-capture: step, t_sim, shares, timings,
+    ``recapture_ms_max``, ``recapture_log`` (one record per re-capture: step, t_sim, mass Σp, shares, timings,
     ``basis_cache_hit``), ``basis_recomputed`` (always False), ``clean_reached``, ``loop_stop`` and
     ``closed_loop`` (the settings).
     """
@@ -209,7 +209,7 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, recapture_every:
     require(float(np.sum(capture.target)) > 0, "the initial capture sees no marking",
             "capture an object with a marking (e.g. --marking X)")
     pipe = replace(pipe, voxel_rule="intensity")  # faint ink counts: the loop's captures weigh ink by intensity
-    mass0 = 0.0  # Σp of capture 0, taken below
+    mass0 = None  # Σp of capture 0, taken below
 
     own_camera = camera is None
     if own_camera:
@@ -247,7 +247,8 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, recapture_every:
             t3 = time.perf_counter()
             timing = cap.meta["sim"]["timing_ms"]
             rec = {"step": int(step), "t_sim": float(run.scene.t),
-                   "marking_remaining": float(np.sum(cap.target)) / (mass0 or float(np.sum(cap.target))),
+                   "mass": float(np.sum(cap.target)),
+                   "marking_remaining": float(np.sum(cap.target)) / mass0 if mass0 else 1.0,
                    "marking_remaining_true": float(obj.marking_remaining()),
                    "target_points": int(np.count_nonzero(cap.target > 0)),
                    "target_points_on_basis": int(np.count_nonzero(p > 0)),
@@ -262,7 +263,8 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, recapture_every:
         cpu = time.process_time()
         rec0, p0 = recapture(0, check_key=True)
         rec0["cpu_ms"] = 1e3 * (time.process_time() - cpu)
-        mass0 = float(np.sum(p0))
+        mass0 = rec0["mass"]
+        require(mass0 > 0, "the loop's first picture sees no marking", "check the capture's camera and --target colour")
         # the full marking weighs 1 under both rules: capture 0 sees at least the capture's marking
         if mass0 < 0.98 * float(np.sum(capture.target)) or not rec0["basis_cache_hit"]:
             say(0, f"closed loop: warning: the rebuilt scene differs from the capture (marking seen "
