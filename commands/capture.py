@@ -33,7 +33,7 @@ def capture(
     noise: float = typer.Option(0.0, "--noise", help="Synthetic: Gaussian noise along the surface normal, σ in METRES (e.g. 0.0015 = 1.5 mm; 0 = none)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder for the capture (cloud.npz, cloud.ply, capture.json)."),
     voxel: float = typer.Option(0.003, "--voxel", help="Voxel edge in METRES (0 disables). The paper uses 0.003."),
-    voxel_rule: str = typer.Option("fraction", "--voxel-rule", help="p per voxel: 'fraction' of target points (default), or 'all' (target only if every point is; the authors' code)."),
+    voxel_rule: str = typer.Option("fraction", "--voxel-rule", help="p per voxel: 'fraction' of target points (default), 'all' (target only if every point is; the authors' code), or 'intensity' (mean ink intensity: faint ink counts; needs a noise-free colour, e.g. --source sim)."),
     crop: Optional[str] = typer.Option(None, "--crop", help="Passthrough box xmin,ymin,zmin,xmax,ymax,zmax in metres."),
     outliers: Optional[str] = typer.Option(None, "--outliers", help="Statistical outlier removal NB,STD, e.g. 20,2.0."),
     target: str = typer.Option("red", "--target", help="Target colour: red, green, blue, yellow, orange, magenta, cyan, black, white; hsv:H1-H2,SMIN,VMIN; or 'all' for uniform coverage."),

@@ -157,7 +157,10 @@ def explore(
                f"touched {100 * summary['touched_fraction']:.1f}%, "
                f"off-surface {100 * (summary.get('off_surface_fraction') or 0.0):.1f}%, "
                f"step max {1e3 * (summary.get('step_max_m') or 0.0):.2f} mm, "
-               f"explorer step {summary['step_ms_median']:.3f} ms (median)")
+               f"explorer step {summary['step_ms_median']:.3f} ms (median)"
+               + (f"; {'clean' if summary.get('clean_reached') else 'not clean'}: the camera sees "
+                  f"{100 * summary['marking_remaining']:.1f}% of the marking, true ink left "
+                  f"{100 * summary['marking_remaining_true']:.1f}%" if summary.get("marking_remaining") is not None else ""))
     typer.echo(f"wrote {out}/ ({', '.join(summary['files'])})")
 
 

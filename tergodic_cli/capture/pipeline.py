@@ -14,7 +14,7 @@ import numpy as np
 
 from tergodic_cli.capture.artefact import Capture
 from tergodic_cli.capture.filters import VOXEL_RULES, crop_box, mean_spacing, remove_statistical_outliers, voxel_downsample
-from tergodic_cli.capture.segment import parse_target, segment_target
+from tergodic_cli.capture.segment import parse_target, target_weight
 from tergodic_cli.errors import TergodicError, require
 
 MIN_POINTS = 10
@@ -45,7 +45,7 @@ class CaptureConfig:
     noise: float = 0.0  # synthetic only: σ (m) of Gaussian noise along the surface normal
     units: str = "m"  # units of the input coordinates: "m" or "mm"
     voxel: float = 0.003  # metres; 0 disables the voxel grid
-    voxel_rule: str = "fraction"
+    voxel_rule: str = "fraction"  # "fraction" | "all" | "intensity" (faint ink weighs in too; the closed loop's)
     crop: tuple[float, float, float, float, float, float] | None = None  # xmin,ymin,zmin,xmax,ymax,zmax (m)
     outliers: tuple[int, float] | None = None  # (nb_neighbors, std_ratio)
     target: str = "red"
@@ -134,14 +134,16 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     colors = colors[keep] if colors is not None else None
     truth = truth[keep] if truth is not None else None
 
-    is_target = segment_target(colors, target_range, len(points))
+    weight = target_weight(colors, target_range, len(points))
+    if cfg.voxel_rule != "intensity":  # the marking only: faint ink (and colour noise on the surface) weighs 0
+        weight = (weight >= 1.0).astype(np.float64)
     if cfg.voxel > 0:
-        points, colors, p = voxel_downsample(points, colors, is_target, cfg.voxel, cfg.voxel_rule)
+        points, colors, p = voxel_downsample(points, colors, weight, cfg.voxel, cfg.voxel_rule)
         report.add(f"voxel {cfg.voxel * 1e3:g} mm", len(points))
     if len(points) > cfg.max_points:  # before the duplicate check and the k-d tree
         on_event(size_warning(len(points), cfg.max_points))
     if cfg.voxel <= 0:
-        p = is_target.astype(np.float64)
+        p = weight
         n_unique = len(np.unique(points, axis=0))
         require(n_unique == len(points), f"the cloud has {len(points) - n_unique} duplicate points",
                 "merge them with a voxel filter (--voxel 0.003) or remove them from the file")
