@@ -12,9 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from tergodic_cli.capture.artefact import Capture
+from tergodic_cli.capture.artefact import CAPTURE_CONFIG_KIND, Capture
 from tergodic_cli.capture.filters import VOXEL_RULES, crop_box, mean_spacing, remove_statistical_outliers, voxel_downsample
 from tergodic_cli.capture.segment import parse_target, segment_target
+from tergodic_cli.config import Config
 from tergodic_cli.errors import TergodicError, require
 
 MIN_POINTS = 10
@@ -34,8 +35,8 @@ SECONDS_PER_POINT = 2.3e-4
 
 
 @dataclass
-class CaptureConfig:
-    """Everything that determines a capture; saved in ``capture.json``."""
+class CaptureConfig(Config):
+    """Everything that determines a capture; saved in ``capture.json`` and ``config.json``."""
 
     source: str = "synthetic"  # "file" | "synthetic" | "sim" | "realsense" (the last two pass raw arrays)
     path: str | None = None
@@ -53,6 +54,28 @@ class CaptureConfig:
     colour_depth: int | None = None  # 8 or 16 bits per channel when the file does not say; None: by the values
     max_points: int = MAX_POINTS  # more points after filtering get a size warning
     allow_empty_target: bool = False  # re-captures of a cleaned object may have no marking left
+
+
+def load_capture_config(path: str | Path) -> tuple[CaptureConfig, dict]:
+    """Read a capture's ``config.json``.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``CAP/config.json``.
+
+    Returns
+    -------
+    cfg : CaptureConfig
+        The pipeline's config.
+    sections : dict
+        The other sections as written (``object`` and ``camera`` of a simulated capture).
+    """
+    from tergodic_cli.config import read_config
+
+    d = read_config(path, CAPTURE_CONFIG_KIND, "give the config.json that 'tergodic capture' wrote beside a capture")
+    cfg = CaptureConfig.from_dict(d.get("capture"), f"--config {path}: capture")
+    return cfg, {k: v for k, v in d.items() if k not in ("kind", "version", "capture")}
 
 
 @dataclass

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
+from tergodic_cli.config import Config
 from tergodic_cli.errors import TergodicError, require
 
 DIFFUSIONS = ("carry", "source")
@@ -20,8 +21,8 @@ MIN_NEIGHBORS = 10
 
 
 @dataclass
-class ExploreConfig:
-    """Everything that determines an exploration run; saved in ``summary.json["config"]``.
+class ExploreConfig(Config):
+    """Everything that determines an exploration run; saved in ``summary.json["config"]`` and a run's ``config.json``.
 
     Attributes
     ----------
@@ -80,25 +81,6 @@ class ExploreConfig:
     heat_weight: float = 0.02
     gain_weight: float = 1.0
     gain_width: float = 1.5
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["normal_hint"] = list(self.normal_hint)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "ExploreConfig":
-        """The config :meth:`to_dict` wrote (a run's ``config.json``); unknown keys are refused."""
-        from dataclasses import fields
-
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        require(not unknown, f"the explore config has unknown keys: {', '.join(unknown)}",
-                "use a config.json written by 'tergodic explore', or remove them")
-        d = dict(d)
-        if "normal_hint" in d:
-            d["normal_hint"] = tuple(d["normal_hint"])
-        return cls(**d)
 
     @property
     def footprint_epsilon(self) -> float:
