@@ -92,7 +92,13 @@ def load_basis_config(path: str | Path) -> BasisConfig:
 
 
 def default_cache_dir() -> Path:
-    """``$TERGODIC_CACHE_DIR``, else ``$XDG_CACHE_HOME/tergodic``, else ``~/.cache/tergodic``."""
+    """The cache root.
+
+    Returns
+    -------
+    Path
+        ``$TERGODIC_CACHE_DIR``, else ``$XDG_CACHE_HOME/tergodic``, else ``~/.cache/tergodic``.
+    """
     if os.environ.get("TERGODIC_CACHE_DIR"):
         return Path(os.environ["TERGODIC_CACHE_DIR"])
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
@@ -100,8 +106,22 @@ def default_cache_dir() -> Path:
 
 
 def canonical_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
-    """Centroid (3,), rotation R (3, 3) whose rows are the canonical axes, and whether
-    the frame is well defined (rigid-motion invariant)."""
+    """The cloud's canonical frame: principal axes, each signed by its third moment.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Metres.
+
+    Returns
+    -------
+    centroid : (3,) float
+        Metres.
+    R : (3, 3) float
+        Rotation whose rows are the canonical axes.
+    invariant : bool
+        Whether the frame is well defined (rigid-motion invariant).
+    """
     centroid = points.mean(axis=0)
     centred = points - centroid
     cov = centred.T @ centred / len(points)
@@ -120,7 +140,23 @@ def canonical_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
 
 
 def geometry_key(points: np.ndarray, cfg: BasisConfig) -> tuple[str, np.ndarray, bool]:
-    """Cache key, the permutation that puts ``points`` into canonical order, and rigid invariance."""
+    """The cache key of a cloud and basis parameters.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Metres.
+    cfg : BasisConfig
+
+    Returns
+    -------
+    key : str
+        Hex digest.
+    order : (n,) int
+        The permutation that puts ``points`` into canonical order.
+    invariant : bool
+        Whether the key is invariant to rigid motions.
+    """
     key, order, invariant, _ = _geometry(points, cfg)
     return key, order, invariant
 

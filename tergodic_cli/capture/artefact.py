@@ -55,7 +55,15 @@ _OUT_FIX = "choose another --out"
 
 def check_out_folder(out: str | Path, overwrite: bool) -> None:
     """Refuse an ``--out`` that cannot take a capture, before any work: a file, a folder of
-    other files, an existing capture without ``overwrite``, or an unwritable parent."""
+    other files, an existing capture without ``overwrite``, or an unwritable parent.
+
+    Parameters
+    ----------
+    out : str or Path
+        The capture folder to be.
+    overwrite : bool
+        An existing capture there may be replaced.
+    """
     import os
 
     out = Path(out)
@@ -171,7 +179,18 @@ def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, 
 
 
 def load_capture(path: str | Path) -> Capture:
-    """Load a capture folder (or its ``capture.json``), verifying the sidecar and its arrays."""
+    """Load a capture folder, verifying the sidecar and its arrays.
+
+    Parameters
+    ----------
+    path : str or Path
+        The capture folder, or its ``capture.json``.
+
+    Returns
+    -------
+    Capture
+        Points (n, 3) m, colours (n, 3) in [0, 1] or None, target p (n,) in [0, 1], and the sidecar.
+    """
     path = Path(path)
     folder = path.parent if path.name == SIDECAR else path
     sidecar = folder / SIDECAR
@@ -210,7 +229,18 @@ def load_capture(path: str | Path) -> Capture:
 
 
 def sidecar_checksum(meta: dict) -> str:
-    """sha256 of the sidecar's content without its own checksum field (canonical JSON)."""
+    """The sidecar's checksum.
+
+    Parameters
+    ----------
+    meta : dict
+        The sidecar's content.
+
+    Returns
+    -------
+    str
+        sha256 (hex) of the content without its own checksum field, as canonical JSON.
+    """
     body = {k: v for k, v in meta.items() if k != SIDECAR_SHA}
     text = json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
     return hashlib.sha256(text.encode()).hexdigest()

@@ -7,7 +7,7 @@ voxel rule can give p as the share of target-coloured points in each voxel.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -85,6 +85,15 @@ class CaptureReport:
     stages: list[tuple[str, int]] = field(default_factory=list)
 
     def add(self, name: str, n: int) -> None:
+        """Record a stage.
+
+        Parameters
+        ----------
+        name : str
+            The stage.
+        n : int
+            Points left after it.
+        """
         self.stages.append((name, int(n)))
 
 
@@ -92,8 +101,19 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
                   on_event=None) -> Capture:
     """Run the capture pipeline for ``cfg``.
 
-    ``raw`` bypasses the source (points, colours) for sources that produce arrays
-    themselves (simulated or real cameras). ``on_event(str)`` gets warnings (the size guard).
+    Parameters
+    ----------
+    cfg : CaptureConfig
+    raw : tuple, optional
+        (points (n, 3) m, colours (n, 3) in [0, 1] or None), bypassing the source: for sources that
+        produce arrays themselves (simulated or real cameras).
+    on_event : callable, optional
+        ``on_event(str)`` gets warnings (the size guard); default: stderr.
+
+    Returns
+    -------
+    Capture
+        The filtered cloud, its target weight p (n,) in [0, 1] and the sidecar ``meta``.
     """
     _validate_config(cfg)
     if on_event is None:
@@ -182,7 +202,7 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
         "units": "m",
         "input_units": cfg.units,
         "provenance": provenance,
-        "config": _config_dict(cfg),
+        "config": cfg.to_dict(),
         "filters": [{"stage": name, "points": n} for name, n in report.stages],
         "counts": {"input": report.stages[0][1], "output": len(points), "target": n_target},
         "target": {
@@ -246,27 +266,54 @@ def _check_extent(points: np.ndarray, units: str, label: str = "") -> None:
 
 
 def size_estimate(n: int) -> str:
-    """What precompute would roughly need for ``n`` points (nK = 200)."""
+    """What precompute would roughly need.
+
+    Parameters
+    ----------
+    n : int
+        Points of the capture.
+
+    Returns
+    -------
+    str
+        Memory and time at nK = 200, e.g. "~1.6 GB and over 28 s".
+    """
     gb, seconds = n * BYTES_PER_POINT / 1e9, n * SECONDS_PER_POINT
     memory = f"~{gb:.1f} GB" if gb >= 1 else f"~{max(gb * 1e3, 1):.0f} MB"
     return f"{memory} and over {seconds / 60:.0f} min" if seconds >= 60 else f"{memory} and over {max(seconds, 1):.0f} s"
 
 
 def size_warning(n: int, limit: int) -> str:
+    """The warning for a capture above the point limit.
+
+    Parameters
+    ----------
+    n : int
+        Points after filtering.
+    limit : int
+        The ``--max-points`` limit.
+
+    Returns
+    -------
+    str
+        One line.
+    """
     return (f"warning: {n:,} points after filtering, above the {limit:,}-point limit: precompute would need "
             f"{size_estimate(n)}; use a coarser --voxel (e.g. 0.003), or --max-points {n} to accept")
 
 
-def _config_dict(cfg: CaptureConfig) -> dict:
-    d = asdict(cfg)
-    for key in ("crop", "outliers"):
-        if d[key] is not None:
-            d[key] = list(d[key])
-    return d
-
-
 def format_report(cap: Capture) -> str:
-    """A readable multi-line summary of a capture."""
+    """A readable summary of a capture.
+
+    Parameters
+    ----------
+    cap : Capture
+
+    Returns
+    -------
+    str
+        Several lines: stages with counts, target share, spacing and extent.
+    """
     m = cap.meta
     lines = ["stage               points"]
     lines += [f"  {f['stage']:<17} {f['points']:>7}" for f in m["filters"]]

@@ -94,6 +94,16 @@ def parse_alpha(text: str | float) -> list[tuple[int, float]]:
     "10" -> [(0, 10.0)]; "50:10@200" -> [(0, 50.0), (200, 10.0)];
     "100:50@100:10@300" -> [(0, 100.0), (100, 50.0), (300, 10.0)].
     Steps count from 0, so "@200" takes effect for the 201st step.
+
+    Parameters
+    ----------
+    text : str or float
+        α, or a schedule "A0:A1@S1[:A2@S2...]".
+
+    Returns
+    -------
+    list of (int, float)
+        (first step, α), first steps ascending from 0.
     """
     fix = "use a positive number, or a schedule like 50:10@200 (α = 50 for 200 steps, then 10)"
     parts = str(text).strip().split(":")
@@ -115,7 +125,12 @@ def parse_alpha(text: str | float) -> list[tuple[int, float]]:
 
 
 def validate_config(cfg: ExploreConfig) -> None:
-    """Refuse impossible settings with a one-line problem; fix message."""
+    """Refuse impossible settings with a one-line problem; fix message.
+
+    Parameters
+    ----------
+    cfg : ExploreConfig
+    """
     require(int(cfg.steps) >= 1, f"--steps must be >= 1, got {cfg.steps}", "e.g. --steps 1000")
     parse_alpha(cfg.alpha)
     require(int(cfg.nk) >= 1, f"--nk must be >= 1, got {cfg.nk}", "e.g. --nk 200")
