@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from tergodic_cli.commands._common import parse_floats
+from tergodic_cli.commands._common import given_options, parse_floats
 
 SOURCES = ("file", "synthetic", "sim", "realsense")
 
@@ -74,7 +74,7 @@ def capture(
     from tergodic_cli.capture import CaptureConfig, capture_cloud, save_capture
     from tergodic_cli.capture.pipeline import format_report, load_capture_config
 
-    given = {n for n in ctx.params if (src := ctx.get_parameter_source(n)) is not None and src.name == "COMMANDLINE"}
+    given = given_options(ctx)
     saved, sections = load_capture_config(config) if config is not None else (None, {})
     if saved is not None and not given & {"source", "from_file", "synthetic", "sim_object"}:
         kind = saved.source
@@ -128,7 +128,6 @@ def capture(
         from tergodic_cli.hardware.realsense.capture import capture_realsense
 
         configs = {"capture": cfg}  # the camera's settings are in capture.json; a repeat takes them from the options
-
         cap = capture_realsense(cfg, serial=serial, width=width, height=height,
                                 camera_pose=_floats(camera_pose, "--camera-pose", "0.3,0,0.6,1,0,0,0"))
     else:

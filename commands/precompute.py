@@ -45,8 +45,9 @@ def precompute(
     if config is not None:  # the saved config, with --nk / --neighbors given on this command line on top
         from tergodic_cli.basis.cache import load_basis_config
 
-        given = {n for n in ("nk", "neighbors") if ctx.get_parameter_source(n).name == "COMMANDLINE"}
-        bcfg = replace(load_basis_config(config), **{n: getattr(bcfg, n) for n in given})
+        from tergodic_cli.commands._common import given_options
+
+        bcfg = replace(load_basis_config(config), **{n: getattr(bcfg, n) for n in given_options(ctx) & {"nk", "neighbors"}})
     cap = load_capture(capture)
     _check_size(capture, cap.n_points, max_points)
     basis, hit = get_basis(cap.points, bcfg, cache_dir, force=force, on_event=echo_err)

@@ -94,7 +94,7 @@ def _plain(value):
     return value
 
 
-_FIX = "use a config.json written by tergodic, or correct the key"
+_FIX = "use a config.json written by tergodic, or correct it"
 
 
 def _build(cls, d, where: str):
