@@ -441,7 +441,7 @@ def make_robot_config(robot_config_cls, options: dict | None):
     options = {k: v for k, v in (options or {}).items() if v is not None}
     if isinstance(options.get("safety"), dict):
         options["safety"] = {k: v for k, v in options["safety"].items() if v is not None}
-    return robot_config_cls.from_dict(options, "the robot config")
+    return robot_config_cls.from_dict(options, "robot_options")
 
 
 def _robot_backend():
