@@ -16,6 +16,11 @@ def parse_floats(text: str, n: int | None, option: str, example: str) -> tuple[f
     return values
 
 
+def given_options(ctx) -> set[str]:
+    """The parameters given on the command line (not defaults): they override a ``--config``."""
+    return {n for n in ctx.params if (src := ctx.get_parameter_source(n)) is not None and src.name == "COMMANDLINE"}
+
+
 #: The ``--help`` epilog of every verb ("\b": click prints the lines as they are).
 EXIT_CODES = ("Exit codes:\n\n\b\n  0    complete\n  2    bad input, or an output that cannot be written\n"
               "  3    the robot stopped on a fault and reached a safe state\n  130  interrupted (Ctrl-C)\n"

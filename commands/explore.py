@@ -92,9 +92,10 @@ def explore(
     log_writer = None if no_log or dry_run else start_log_writer(live=live_at)  # its imports overlap ours
     from tergodic_cli.explore import ExploreConfig
     from tergodic_cli.run import StartSpec, run_explore
+    from tergodic_cli.commands._common import given_options, parse_floats
     from tergodic_cli.progress import echo as echo_err
 
-    given = {name for name in ctx.params if _on_command_line(ctx, name)}
+    given = given_options(ctx)
     fields = {"steps": steps, "alpha": alpha, "nk": nk, "agent_radius": agent_radius, "n_agents": agents, "v_max": v_max,
               "a_max": a_max, "dt": dt, "diffusion": diffusion, "integrator": integrator, "coverage_norm": coverage_norm,
               "seed": seed, "n_neighbors": fit_neighbors, "epsilon": epsilon, "basis_neighbors": neighbors,
@@ -114,8 +115,6 @@ def explore(
         log_cloud_every = log_cloud_every if "log_cloud_every" in given else saved["log_cloud_every"]
     else:
         cfg = ExploreConfig(**fields)
-    from tergodic_cli.commands._common import parse_floats
-
     robot_options = {
         "force": force, "contact_force": contact_force, "explore_dt": explore_dt, "normal_side": normal_side,
         "gui": gui or None, "realtime": realtime or None,
@@ -198,11 +197,6 @@ def _check_live(live: str, no_log: bool) -> tuple[str, int]:
 
 #: The verb's option (parameter) name of each ExploreConfig field, where they differ.
 OPTION_OF = {"n_agents": "agents", "n_neighbors": "fit_neighbors", "basis_neighbors": "neighbors"}
-
-
-def _on_command_line(ctx: typer.Context, name: str) -> bool:
-    source = ctx.get_parameter_source(name)
-    return source is not None and source.name == "COMMANDLINE"
 
 
 def _merge_options(saved: dict, now: dict) -> dict:

@@ -44,35 +44,67 @@ class StartSpec:
 RUN_CONFIG_KIND = "tergodic.run_config"
 
 
-def run_config(capture_dir, cfg: ExploreConfig, starts: StartSpec | None, robot: str, robot_options: dict | None,
-               log_cloud_every: int) -> dict:
-    """A run's loadable config: the explore config as asked for, the start spec (the seed in ``cfg``
-    makes a random start the same), the backend and its options."""
+def run_config(capture_dir, cfg: ExploreConfig, starts: StartSpec | None, robot: str, robot_cfg, log_cloud_every: int) -> dict:
+    """A run's loadable config (the sections of its ``config.json``).
+
+    Parameters
+    ----------
+    capture_dir : str or Path
+        The capture explored.
+    cfg : ExploreConfig
+        The explore config as asked for (before a robot's time scaling).
+    starts : StartSpec or None
+        Where the agents start (the seed in ``cfg`` makes a random start the same).
+    robot : str
+        The backend, one of :data:`ROBOTS`.
+    robot_cfg : RobotConfig or None
+        The robot's whole config (None for ``"kinematic"``); saved without the GUI.
+    log_cloud_every : int
+        Steps between logged clouds.
+
+    Returns
+    -------
+    dict
+        Section name -> JSON-ready value, for :func:`~tergodic_cli.config.write_config`.
+    """
+    from dataclasses import replace
+
     spec = starts or StartSpec()
-    return {"kind": RUN_CONFIG_KIND, "version": 1, "capture": str(Path(capture_dir).resolve()),
-            "explore": cfg.to_dict(),
+    return {"capture": str(Path(capture_dir).resolve()), "explore": cfg.to_dict(),
             "starts": {"start": spec.start, "start_index": spec.start_index,
                        "starts_file": str(Path(spec.starts_file).resolve()) if spec.starts_file else None},
-            "robot": robot, "robot_options": robot_options or {}, "log_cloud_every": int(log_cloud_every)}
+            "robot": robot,
+            "robot_options": replace(robot_cfg, gui=False, realtime=False).to_dict() if robot_cfg is not None else {},
+            "log_cloud_every": int(log_cloud_every)}
 
 
 def load_run_config(path: str | Path) -> dict:
-    """``config.json`` of an earlier run, checked: {"explore": ExploreConfig, "starts": StartSpec, "robot",
-    "robot_options", "log_cloud_every"}."""
-    path = Path(path)
-    fix = "give the config.json that 'tergodic explore' wrote beside a run"
-    require(path.is_file(), f"--config {path} does not exist", fix)
-    try:
-        d = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise TergodicError(f"--config {path} is not readable JSON ({type(exc).__name__})", fix) from None
-    require(isinstance(d, dict) and d.get("kind") == RUN_CONFIG_KIND and isinstance(d.get("explore"), dict),
-            f"--config {path} is not a run config", fix)
-    st = d.get("starts") or {}
-    return {"explore": ExploreConfig.from_dict(d["explore"]),
-            "starts": StartSpec(start=st.get("start"), starts_file=st.get("starts_file"), start_index=st.get("start_index")),
+    """Read the ``config.json`` of an earlier run.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``RUN/config.json``.
+
+    Returns
+    -------
+    dict
+        ``explore`` (:class:`ExploreConfig`), ``starts`` (:class:`StartSpec`), ``robot`` (str),
+        ``robot_options`` (dict of :class:`~tergodic_cli.robot.RobotConfig` fields, checked when the
+        robot is built) and ``log_cloud_every`` (int). A missing, corrupt or foreign file, or an
+        unknown key, raises :class:`TergodicError` (exit 2).
+    """
+    from tergodic_cli.config import from_dict, read_config
+
+    d = read_config(path, RUN_CONFIG_KIND, "give the config.json that 'tergodic explore' wrote beside a run")
+    where = f"--config {path}"
+    fix = "use a config.json written by 'tergodic explore'"
+    require(isinstance(d.get("robot_options") or {}, dict), f"{where}: robot_options is not a JSON object", fix)
+    require(isinstance(d.get("log_cloud_every", 50), int), f"{where}: log_cloud_every is not an int", fix)
+    return {"explore": ExploreConfig.from_dict(d.get("explore"), f"{where}: explore"),
+            "starts": from_dict(StartSpec, d.get("starts") or {}, f"{where}: starts"),
             "robot": d.get("robot", "kinematic"), "robot_options": d.get("robot_options") or {},
-            "log_cloud_every": int(d.get("log_cloud_every", 50))}
+            "log_cloud_every": d.get("log_cloud_every", 50)}
 
 
 def resolve_starts(spec: StartSpec, points: np.ndarray, n_agents: int, seed: int) -> np.ndarray:
@@ -242,7 +274,8 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     if robot_api is not None and (line := robot_kernels_line()):
         say(line)
     explorer = Explorer(basis, capture.target, cfg, start_xyz, on_event=event)
-    run_conf = run_config(capture_dir, user_cfg, starts, robot, robot_options, log_cloud_every)
+    run_conf = run_config(capture_dir, user_cfg, starts, robot, robot_cfg if robot_api is not None else None,
+                          log_cloud_every)
 
     try:
         with folder as tmp:
@@ -343,9 +376,10 @@ def _write_run(out: Path, explorer, cfg, user_cfg, basis, hit, capture, capture_
                 runlog.begin_close(summary, status=status)
         recorder.write(out / "trajectory.npz", start_xyz)
         from tergodic_cli.atomic import write_json
+        from tergodic_cli.config import CONFIG_FILE, write_config
 
         write_json(out / "summary.json", summary)
-        write_json(out / "config.json", run_conf)
+        write_config(out / CONFIG_FILE, RUN_CONFIG_KIND, **run_conf)
         if runlog is not None:
             runlog.close(summary, status=status)
             runlog = None
@@ -402,20 +436,12 @@ def check_robot(robot: str, robot_cfg, capture, recapture_every, until_clean, ma
 
 
 def make_robot_config(robot_config_cls, options: dict | None):
-    """A RobotConfig from CLI-level options (None values keep the defaults)."""
-    from dataclasses import fields, replace
-
-    from tergodic_cli.robot.safety import SafetyConfig
-
+    """A RobotConfig from options: its fields (None keeps the default; ``safety``, ``gains`` and
+    ``sponge`` as dicts of their fields), from the command line or a saved run."""
     options = {k: v for k, v in (options or {}).items() if v is not None}
-    safety = {k: v for k, v in options.pop("safety", {}).items() if v is not None}
-    known = {f.name for f in fields(robot_config_cls)}
-    unknown = sorted(set(options) - known)
-    require(not unknown, f"unknown robot option(s): {', '.join(unknown)}", "see 'tergodic explore --help'")
-    cfg = robot_config_cls(**options)
-    if safety:
-        cfg = replace(cfg, safety=replace(cfg.safety if isinstance(cfg.safety, SafetyConfig) else SafetyConfig(), **safety))
-    return cfg
+    if isinstance(options.get("safety"), dict):
+        options["safety"] = {k: v for k, v in options["safety"].items() if v is not None}
+    return robot_config_cls.from_dict(options, "robot_options")
 
 
 def _robot_backend():

@@ -8,7 +8,20 @@ VOXEL_RULES = ("fraction", "all", "intensity")
 
 
 def crop_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Passthrough filter: mask (n,) of points inside the axis-aligned box [lo, hi] (metres)."""
+    """Passthrough filter.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Metres.
+    lo, hi : (3,) float
+        Corners of the axis-aligned box, metres.
+
+    Returns
+    -------
+    (n,) bool
+        True for the points inside [lo, hi].
+    """
     return np.all((points >= lo) & (points <= hi), axis=1)
 
 
@@ -16,6 +29,20 @@ def remove_statistical_outliers(points: np.ndarray, nb_neighbors: int, std_ratio
     """Mask (n,) of inliers: a point is an outlier when its mean distance to its
     ``nb_neighbors`` nearest neighbours exceeds mean + ``std_ratio`` * std over the cloud
     (the rule of PCL's StatisticalOutlierRemoval and open3d's remove_statistical_outlier).
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Metres.
+    nb_neighbors : int
+        Neighbours of the mean distance.
+    std_ratio : float
+        Standard deviations above the mean that make an outlier.
+
+    Returns
+    -------
+    (n,) bool
+        True for the inliers.
     """
     from scipy.spatial import cKDTree
 

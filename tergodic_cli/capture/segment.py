@@ -32,6 +32,17 @@ class HsvRange:
     any_hue: bool = False
 
     def contains(self, hsv: np.ndarray) -> np.ndarray:
+        """Which colours are in the range.
+
+        Parameters
+        ----------
+        hsv : (n, 3) float
+            Hue in degrees [0, 360), saturation and value in [0, 1].
+
+        Returns
+        -------
+        (n,) bool
+        """
         h, s, v = hsv[:, 0], hsv[:, 1], hsv[:, 2]
         if self.any_hue:
             hue_ok = np.ones(len(h), dtype=bool)
@@ -64,7 +75,18 @@ NAMED["white"] = HsvRange(0.0, 360.0, s_max=0.2, v_min=0.8, any_hue=True)
 
 
 def parse_target(spec: str) -> HsvRange | None:
-    """Parse a ``--target`` spec; ``None`` means ``all`` (uniform target)."""
+    """Parse a ``--target`` spec.
+
+    Parameters
+    ----------
+    spec : str
+        A colour name, ``hsv:H1-H2,SMIN,VMIN`` or ``all``.
+
+    Returns
+    -------
+    HsvRange or None
+        None means ``all`` (uniform target).
+    """
     spec = spec.strip().lower()
     if spec == "all":
         return None
@@ -91,7 +113,18 @@ def parse_target(spec: str) -> HsvRange | None:
 
 
 def rgb_to_hsv(rgb: np.ndarray) -> np.ndarray:
-    """Vectorised RGB in [0, 1] (n, 3) -> HSV (n, 3) with hue in degrees [0, 360)."""
+    """Vectorised RGB -> HSV.
+
+    Parameters
+    ----------
+    rgb : (n, 3) float
+        In [0, 1].
+
+    Returns
+    -------
+    (n, 3) float
+        Hue in degrees [0, 360), saturation and value in [0, 1].
+    """
     r, g, b = rgb[:, 0], rgb[:, 1], rgb[:, 2]
     cmax = rgb.max(axis=1)
     cmin = rgb.min(axis=1)
@@ -109,15 +142,41 @@ def rgb_to_hsv(rgb: np.ndarray) -> np.ndarray:
 
 
 def segment_target(colors: np.ndarray | None, target: HsvRange | None, n: int) -> np.ndarray:
-    """Boolean mask (n,) of target-coloured points (weight 1); every point when ``target`` is None (``all``)."""
+    """The target-coloured points (weight 1).
+
+    Parameters
+    ----------
+    colors : (n, 3) float or None
+        RGB in [0, 1].
+    target : HsvRange or None
+        None (``all``) selects every point.
+    n : int
+        Number of points.
+
+    Returns
+    -------
+    (n,) bool
+    """
     return target_weight(colors, target, n) >= 1.0
 
 
 def target_weight(colors: np.ndarray | None, target: HsvRange | None, n: int) -> np.ndarray:
-    """Target weight (n,) in [0, 1] of each colour (n, 3): 1 on the marking, a ramp on faint ink, 0 elsewhere.
+    """Target weight in [0, 1] of each colour: 1 on the marking, a ramp on faint ink, 0 elsewhere.
 
-    Every point weighs 1 when ``target`` is None (``all``). A saturated marking on a plain surface
-    gets exactly the binary mask of :func:`segment_target`.
+    A saturated marking on a plain surface gets exactly the binary mask of :func:`segment_target`.
+
+    Parameters
+    ----------
+    colors : (n, 3) float or None
+        RGB in [0, 1].
+    target : HsvRange or None
+        None (``all``): every point weighs 1.
+    n : int
+        Number of points.
+
+    Returns
+    -------
+    (n,) float
     """
     if target is None:
         return np.ones(n)

@@ -33,7 +33,12 @@ def _cached(dispatcher) -> bool:
 
 
 def explorer_kernels_cached() -> bool:
-    """Whether the explorer's step kernel (the bulk of the compile) is in numba's disk cache."""
+    """Whether the explorer's step kernel (the bulk of the compile) is in numba's disk cache.
+
+    Returns
+    -------
+    bool
+    """
     from tergodic_cli.explore import kernels
 
     if not kernels.HAVE_NUMBA:
@@ -75,7 +80,16 @@ def compile_explorer(say: Callable[[str], None] | None = None) -> float:
 
     A few steps of a tiny explorer take every kernel through the paths a run uses: the spectral and
     the implicit step, the robot's deposits and resets, the logged cloud fields and the heat.
-    ``say`` gets :data:`COLD_LINE` first when the disk cache is cold.
+
+    Parameters
+    ----------
+    say : callable, optional
+        Gets :data:`COLD_LINE` first when the disk cache is cold.
+
+    Returns
+    -------
+    float
+        Seconds spent.
     """
     from tergodic_cli.explore import ExploreConfig, Explorer, kernels
 

@@ -106,10 +106,22 @@ class Arm(Protocol):
         """Open the connection (idempotent)."""
 
     def read_state(self) -> ArmState:
-        """The current :class:`ArmState`."""
+        """The arm's state now.
+
+        Returns
+        -------
+        ArmState
+            Joint positions (rad), velocities (rad/s), the TCP pose and Jacobian.
+        """
 
     def command(self, tau: np.ndarray) -> None:
-        """Send joint torques (dof,) N m, on top of the backend's gravity/Coriolis compensation."""
+        """Send joint torques, on top of the backend's gravity/Coriolis compensation.
+
+        Parameters
+        ----------
+        tau : (dof,) float
+            Joint torques, N m.
+        """
 
     def disconnect(self) -> None:
         """Close the connection; the arm is left holding still (brakes, or zero velocity)."""
@@ -123,7 +135,13 @@ class WrenchSensor(Protocol):
     frame_in_ee: np.ndarray
 
     def read(self) -> WrenchReading:
-        """The latest sample, tare offset removed (see the module docstring for the sign)."""
+        """The latest sample, tare offset removed (see the module docstring for the sign).
+
+        Returns
+        -------
+        WrenchReading
+            Force (N) and torque (N m) in the sensor frame, with its timestamp.
+        """
 
     def tare(self) -> None:
         """Zero the reading: subtract the present wrench from every later sample."""
@@ -140,7 +158,18 @@ class ToolLoad:
     inertia: np.ndarray | None = None
 
     def wrench(self, R_base_sensor: np.ndarray) -> np.ndarray:
-        """The wrench (6,) the arm must apply to hold the tool still against gravity, sensor frame."""
+        """The wrench the arm must apply to hold the tool still against gravity.
+
+        Parameters
+        ----------
+        R_base_sensor : (3, 3) float
+            The sensor frame's rotation in the base frame.
+
+        Returns
+        -------
+        (6,) float
+            Force (N) and torque (N m), sensor frame.
+        """
         f = R_base_sensor[2, :] * (self.mass * GRAVITY)  # Rᵀ (0, 0, m g)
         return np.concatenate([f, np.cross(self.com, f)])
 
@@ -187,7 +216,13 @@ class ContactWrench:
         return out
 
     def tare_at(self, R_base_ee: np.ndarray) -> None:
-        """Call right after :meth:`WrenchSensor.tare` with the tool at rest and free."""
+        """Record the tool's orientation at the tare; call right after :meth:`WrenchSensor.tare`, tool at rest and free.
+
+        Parameters
+        ----------
+        R_base_ee : (3, 3) float
+            The end effector's rotation in the base frame.
+        """
         self.tare_load = self._load(np.asarray(R_base_ee, dtype=float).reshape(3, 3))
 
     def __call__(self, reading, R_base_ee, state=None) -> np.ndarray:
