@@ -53,7 +53,17 @@ class HsvRange:
         return hue_ok & (s >= self.s_min) & (s <= self.s_max) & (v >= self.v_min) & (v <= self.v_max)
 
     def weight(self, hsv: np.ndarray) -> np.ndarray:
-        """Continuous target weight (n,) in [0, 1]: 1 inside the box, the saturation ramp below SMIN (module doc)."""
+        """Continuous target weight: 1 inside the box, the saturation ramp below SMIN (module doc).
+
+        Parameters
+        ----------
+        hsv : (n, 3) float
+            Hue (degrees), saturation and value in [0, 1].
+
+        Returns
+        -------
+        (n,) float in [0, 1]
+        """
         inside = self.contains(hsv)
         if self.any_hue or self.s_min <= FAINT_S:  # no saturation to ramp on (black, white, grey ranges)
             return inside.astype(np.float64)
