@@ -36,8 +36,6 @@ def explorer_kernels_cached() -> bool:
     """Whether the explorer's step kernel (the bulk of the compile) is in numba's disk cache."""
     from tergodic_cli.explore import kernels
 
-    if not kernels.HAVE_NUMBA:
-        return True  # plain Python: nothing to compile
     return _cached(kernels.step_kernel)
 
 
@@ -79,7 +77,7 @@ def compile_explorer(say: Callable[[str], None] | None = None) -> float:
     """
     from tergodic_cli.explore import ExploreConfig, Explorer, kernels
 
-    if not kernels.HAVE_NUMBA or _compiled_here():
+    if _compiled_here():
         return 0.0
     if say is not None and not explorer_kernels_cached():
         say(COLD_LINE)

@@ -176,7 +176,6 @@ class RunLog:
         self.live = None
         if live is not None and not isinstance(live, LiveServer):  # "HOST:PORT": a server of our own, stopped at close
             live = self.live = LiveServer.start(live)
-        self.live_server = live
         # a context private to this log (channels never leak into another sink); with a live server, the
         # server's: each message is encoded once and goes to the file and to connected clients
         ctx = live.context if live is not None else foxglove.Context()
