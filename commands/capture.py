@@ -109,8 +109,8 @@ def capture(
 
         sim = SimCaptureConfig(
             object=SimObjectConfig(object=sim_object or "bowl", marking=marking, units=units, seed=seed,
-                                   pose=_floats(object_pose, "--object-pose", "0.5,0,0")),
-            camera=SimCameraConfig(pose=_floats(camera_pose, "--camera-pose", "0.3,0,0.6,0.5,0,0.03"), width=width, height=height,
+                                   pose=parse_floats(object_pose, None, "--object-pose", "0.5,0,0")),
+            camera=SimCameraConfig(pose=parse_floats(camera_pose, None, "--camera-pose", "0.3,0,0.6,0.5,0,0.03"), width=width, height=height,
                                    fov_deg=fov, renderer=renderer, seed=seed),
             pipeline=cfg,
         )
@@ -129,7 +129,7 @@ def capture(
 
         configs = {"capture": cfg}  # the camera's settings are in capture.json; a repeat takes them from the options
         cap = capture_realsense(cfg, serial=serial, width=width, height=height,
-                                camera_pose=_floats(camera_pose, "--camera-pose", "0.3,0,0.6,1,0,0,0"))
+                                camera_pose=parse_floats(camera_pose, None, "--camera-pose", "0.3,0,0.6,1,0,0,0"))
     else:
         configs = {"capture": cfg}
         from tergodic_cli.progress import Spinner
@@ -183,18 +183,6 @@ def _resolve_source(source: Optional[str], from_file, synthetic, sim_object) -> 
     if source == "synthetic" and synthetic is None:
         raise TergodicError("--source synthetic needs --synthetic OBJECT", usage)
     return source
-
-
-def _floats(text: Optional[str], option: str, example: str) -> Optional[tuple[float, ...]]:
-    """Comma-separated numbers (any count; the stage checks how many it needs), or None."""
-    from tergodic_cli.errors import TergodicError
-
-    if text is None:
-        return None
-    try:
-        return tuple(float(x) for x in text.split(","))
-    except ValueError:
-        raise TergodicError(f"{option} '{text}' is not comma-separated numbers", f"e.g. {option} {example}") from None
 
 
 def _write_image(path: Path, rgb) -> None:

@@ -41,8 +41,6 @@ def explorer_kernels_cached() -> bool:
     """
     from tergodic_cli.explore import kernels
 
-    if not kernels.HAVE_NUMBA:
-        return True  # plain Python: nothing to compile
     return _cached(kernels.step_kernel)
 
 
@@ -93,7 +91,7 @@ def compile_explorer(say: Callable[[str], None] | None = None) -> float:
     """
     from tergodic_cli.explore import ExploreConfig, Explorer, kernels
 
-    if not kernels.HAVE_NUMBA or _compiled_here():
+    if _compiled_here():
         return 0.0
     if say is not None and not explorer_kernels_cached():
         say(COLD_LINE)
