@@ -702,6 +702,11 @@ class RobotRun:
                     self._told_unreachable = True
                     self.on_event(step, f"robot: the agent entered the unreachable part at {_fmt(a_new)} m; the tool "
                                         "waits on the last reachable point")
+                off = math.degrees(math.acos(min(1.0, float(-d_next @ self._surface_normal(a_next)))))
+                if off > CONTACT_TILT_MAX_DEG:  # never press at a large angle: lift before tilting
+                    self._fault_sample(Fault("reach", "retreat", f"the commanded tool axis is {off:.0f} deg off the "
+                                             f"surface normal (limit {CONTACT_TILT_MAX_DEG:.0f}); lifting the tool off "
+                                             "the surface", self.scene.t), step, st, w, a_cur, d_cur, on_step, record=True)
                 # <<< reach
                 self.guard.feed_target(self.scene.t)
                 self._update_spin_ref(d_next)
