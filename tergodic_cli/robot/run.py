@@ -525,6 +525,8 @@ class RobotRun:
         return pose_matrix(tool_rotation(d, self._x_down), a - self.cfg.hover_height * d)
 
     def _move_to_hover(self) -> None:
+        from tergodic_cli.robot.reach import posture as reach_posture
+
         cfg = self.cfg
         a, d = self._agent_line()
         q0 = self.arm.read_state().q
@@ -541,7 +543,7 @@ class RobotRun:
         if not self.guard.inside(T_hover[:3, 3]) or not self.guard.inside(a):
             self._unreachable(f"the start point {_fmt(a)} m or its hover pose is outside the workspace box",
                               "move the object with --object-pose, or choose another start")
-        q_h, pe, oe = self.model.ik(T_hover, q0, q_rest=np.array(cfg.picture_q))
+        q_h, pe, oe = reach_posture(self.arm._chain, T_hover, np.array(cfg.picture_q), self.arm.q_min, self.arm.q_max)  # reach
         if pe > 1e-3 or oe > 1e-2:
             self._unreachable(f"the robot cannot reach the hover pose above the agent at {_fmt(a)} m "
                               f"(inverse kinematics off by {pe * 1e3:.1f} mm, {math.degrees(oe):.1f} deg)",
@@ -725,8 +727,9 @@ class RobotRun:
             a_cur, d_cur = a_next, d_next
             sample = self._sample(step, st, w, a_cur, d_cur)
             # >>> reach: never press at a large angle to the surface
-            if sample["in_contact"] and sample["tilt_deg"] > CONTACT_TILT_MAX_DEG:
-                self._fault_sample(Fault("reach", "retreat", f"the tool is {sample['tilt_deg']:.0f} deg off the surface "
+            press = self._measure(st)["press_angle_deg"]
+            if sample["in_contact"] and press > CONTACT_TILT_MAX_DEG:
+                self._fault_sample(Fault("reach", "retreat", f"the tool presses {press:.0f} deg off the surface "
                                          f"normal in contact (limit {CONTACT_TILT_MAX_DEG:.0f}); lifting the tool off the "
                                          "surface", self.scene.t), step, st, w, a_cur, d_cur, on_step, record=True)
             # <<< reach
@@ -781,8 +784,13 @@ class RobotRun:
         tcp = st.ee_pose[:3, 3]
         cp = sum(c[2] * c[0] for c in contacts) / fsum if fsum > 0 else None
         x = cp if cp is not None else tcp
+        # reach: the angle the sponge presses at, from the contacts' own normals (a ball's contact normal
+        # is the surface's there, edges included; the cloud's normal is not at an edge)
+        nc = sum(c[2] * c[1] for c in contacts) if fsum > 0 else np.zeros(3)
+        nn = float(np.linalg.norm(nc))
+        press = math.degrees(math.acos(min(1.0, abs(float(nc @ st.ee_pose[:3, 2])) / nn))) if nn > 0 else 0.0
         return {"contact_point": cp, "force_contact": fsum, "in_contact": bool(cp is not None and fsum >= self.threshold),
-                "normal": self._surface_normal(x), "at": x}
+                "normal": self._surface_normal(x), "at": x, "press_angle_deg": press}
 
     def _sample(self, step: int, st, w: np.ndarray, a: np.ndarray, d: np.ndarray, stop_reason: str | None = None) -> dict:
         """The robot_sample_dict of CONTRACTS.md (plus extras) at the end of an explorer interval."""
