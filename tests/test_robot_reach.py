@@ -137,3 +137,35 @@ def test_no_press_at_a_large_angle(mug):
         assert fault_exit_code(out) == 3
         assert sum(c[2] for c in run.scene.sponge_contacts()) == 0.0  # lifted
     assert len(tilts) > 50 and max(tilts) <= 10.0  # it never pressed tilted: it lifted first
+
+
+def test_hover_posture_is_not_a_twisted_elbow():
+    """The bowl's far wall, 45 deg (seen in a run): from the picture pose alone the inverse kinematics
+    settles with joints 1 and 3 counter-rotated and joint 4 near its limit; the multi-seed posture
+    finds the untwisted arm."""
+    from tergodic_cli.robot.config import PICTURE_Q
+    from tergodic_cli.robot.ga import pose_matrix
+    from tergodic_cli.robot.pybullet_backend import PyBulletArm, PyBulletScene
+    from tergodic_cli.robot.reach import ik, posture
+
+    scene = PyBulletScene(None)
+    try:
+        arm = PyBulletArm(scene)
+        arm.connect()
+        scene.set_arm(np.array(PICTURE_Q))
+        x_down = arm.read_state().ee_pose[:3, 0]
+        d = np.array([0.5949687, 0.4077826, -0.69262226])
+        T = pose_matrix(tool_rotation(d, x_down), np.array([0.54756738, 0.03264705, 0.22460225]) - 0.04 * d)
+        q0 = np.array(PICTURE_Q)
+        margin = lambda q: float(np.min(np.minimum(q - arm.q_min, arm.q_max - q)))  # noqa: E731
+        q1, _, _ = ik(arm._chain, T, q0, arm.q_min, arm.q_max, q_rest=q0)
+        q, pe, oe = posture(arm._chain, T, q0, arm.q_min, arm.q_max)
+        T_got = np.empty((4, 4))
+        from tergodic_cli.robot.kernels import fk_jacobian
+
+        fk_jacobian(q, *arm._chain, T_got, np.empty((6, 7)))
+        assert np.linalg.norm(T_got[:3, 3] - T[:3, 3]) < 1e-3 and np.allclose(T_got[:3, :3], T[:3, :3], atol=1e-2)
+        assert abs(q1[0] + q1[2]) < 0.2 and abs(q1[0]) > 1.0  # the single seed's twist (the expectation's premise)
+        assert abs(q[0]) < 0.3 and abs(q[2]) < 0.3 and margin(q) > margin(q1) + 0.1
+    finally:
+        scene.close()

@@ -13,6 +13,9 @@ each) for a sample of the cloud's normals and marks every point by its nearest s
 reachable when the arm holds the tool along its normal, at the point and ``hover`` back along the
 normal, with every joint ``margin`` rad inside its limits. The robot run drops the unreachable
 part from the explorer's target before it starts and says so (issue 15, item 1).
+:func:`plan_reach` also places an object whose pose the capture does not give (0.5 or 0.4 m in
+front of the base, turned about the vertical) where the arm reaches the most of its target, and
+:func:`posture` picks the arm's start posture (the line controller's null-space rest posture).
 """
 
 from __future__ import annotations
@@ -167,7 +170,8 @@ def plan_reach(chain, points: np.ndarray, normals: np.ndarray, target: np.ndarra
     -------
     (T_obj (4, 4), reachable (n,) bool).
     """
-    from tergodic_cli.robot.surface import default_object_pose, transform_points
+    from tergodic_cli.errors import TergodicError
+    from tergodic_cli.robot.surface import check_reachable, default_object_pose, transform_points
 
     def mask_at(T, samples=REACH_SAMPLES):
         return reach_map(chain, transform_points(T, points), normals @ T[:3, :3].T, x_down, q0, q_min, q_max, hover,
@@ -179,6 +183,11 @@ def plan_reach(chain, points: np.ndarray, normals: np.ndarray, target: np.ndarra
     best = None
     for reach, yaw in PLACEMENTS:
         T = default_object_pose(points, reach, yaw)
+        if best is not None:  # the first (the usual stand) is checked by the caller; others must fit too
+            try:
+                check_reachable(transform_points(T, points))
+            except TergodicError:
+                continue
         m = mask_at(T, REACH_SAMPLES // 2)
         share = float(p @ m) / float(p.sum())
         if best is None or share > best[0] + 1e-9:
