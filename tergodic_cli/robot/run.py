@@ -52,6 +52,9 @@ APPROACH_K = 2000.0
 #: N s/m added to the approach's axial damping (the controller's D_z, 50) on the speed error.
 APPROACH_D = 100.0
 RETREAT_TIMEOUT_S = 3.0
+#: Degrees between the tool axis and the surface normal in contact above which the run lifts the tool
+#: and stops (issue 15: never press at a large angle; following the normal, the median is ~1 deg).
+CONTACT_TILT_MAX_DEG = 15.0
 #: Metres above the object's highest point the tool passes on its way to and from the picture pose.
 CLEARANCE = 0.04
 
@@ -96,14 +99,13 @@ class RobotRun:
         points = np.asarray(capture.points, dtype=float)
         self.points = points
         meta = getattr(capture, "meta", {}) or {}
+        self._pose_given = cfg.object_pose is not None or meta.get("frame") == "robot_base"
         if cfg.object_pose is not None:
             self.T_obj = parse_object_pose(cfg.object_pose)
         elif meta.get("frame") == "robot_base":  # a calibrated (or simulated) camera: the cloud is in the base frame
             self.T_obj = np.eye(4)
         else:
             self.T_obj = default_object_pose(points)
-            self.on_event(0, "robot: no --object-pose given; the cloud's footprint centre is placed 0.5 m in front "
-                             f"of the base on a 0.2 m stand (object pose {_fmt(self.T_obj[:3, 3])} m)")
         self.points_base = transform_points(self.T_obj, points)
         check_reachable(self.points_base)
         side = resolve_side(cfg.normal_side, getattr(capture, "meta", {}) or {})
@@ -121,7 +123,8 @@ class RobotRun:
             h = float(meta.get("spacing_h_m") or mean_spacing(points))
             self.mesh, T_mesh = reconstruct_mesh(points, self.normals, h, cfg.mesh_edge), np.eye(4)
             self.mesh_source = "cloud"
-        self.T_mesh = self.T_obj @ np.asarray(T_mesh, dtype=float)  # mesh frame -> base frame
+        self._T_mesh_obj = np.asarray(T_mesh, dtype=float)
+        self.T_mesh = self.T_obj @ self._T_mesh_obj  # mesh frame -> base frame
         self._mesh_top = float(transform_points(self.T_mesh, self.mesh.vertices)[:, 2].max())
         self.kdtree = cKDTree(points)
         #: Called as contact_hook(contacts, dt) every ``hook_every`` physics steps with the sponge's
@@ -149,6 +152,10 @@ class RobotRun:
             st = self.arm.read_state()
             self.model = FrankaModel()
             self.model.tool = tool_offset(self.model, st.q, st.ee_pose)
+            # >>> reach (issue 15, item 1): object pose, reachable mask, unreachable target dropped
+            self._x_down = st.ee_pose[:3, 0].copy()  # the tool's spin pointing straight down (reach.tool_rotation)
+            self._plan_reach(capture)
+            # <<< reach
         except BaseException:
             self.scene.close()
             raise
@@ -171,6 +178,7 @@ class RobotRun:
         self._deferred = None
         self._meas_cache = None
         self.interrupted = False
+        self._told_unreachable = False
         #: The compiled 1 kHz loop (PyBullet arm); False: the generic loop through the protocols.
         self.fast_loop = True
         self._t0 = None
@@ -189,6 +197,42 @@ class RobotRun:
         n = self.normals[np.atleast_1d(idx)].mean(axis=0)
         return self.T_obj[:3, :3] @ (n / np.linalg.norm(n))
 
+    # >>> reach (issue 15, item 1)
+    def _plan_reach(self, capture) -> None:
+        """Choose the object pose (when not given), mark where the tool can follow the normal, and drop
+        the rest of the target from the explorer (reach.plan_reach), saying so before any contact."""
+        from tergodic_cli.robot.reach import plan_reach
+
+        target = np.asarray(getattr(self.explorer, "p", getattr(capture, "target", np.ones(len(self.points)))), dtype=float)
+        T, self.reachable = plan_reach(self.arm._chain, self.points, self.normals, target, self._x_down,
+                                       np.array(self.cfg.picture_q), self.arm.q_min, self.arm.q_max,
+                                       self.T_obj if self._pose_given else None, self.cfg.hover_height)
+        if not self._pose_given:
+            self.T_obj = T
+            self.points_base = transform_points(T, self.points)
+            self.T_mesh = T @ self._T_mesh_obj
+            self._mesh_top = float(transform_points(self.T_mesh, self.mesh.vertices)[:, 2].max())
+            self.scene.move_object(self.T_mesh)
+            yaw = math.degrees(math.atan2(T[1, 0], T[0, 0]))
+            self.on_event(0, "robot: no --object-pose given; the object stands on a 0.2 m stand, its footprint centre "
+                             f"{float(np.hypot(*T[:2, 3])):.2f} m in front of the base, turned {yaw:.0f} deg so the arm "
+                             f"reaches its target (object pose {_fmt(T[:3, 3])} m)")
+        total = float(target.sum())
+        kept = target * self.reachable
+        lost = 1.0 - float(kept.sum()) / total if total > 0 else 0.0
+        if lost > 1e-3:
+            if float(kept.sum()) <= 0:
+                raise TergodicError("the tool cannot follow the surface normal anywhere on the target (the arm's wrist "
+                                    "cannot reach those orientations)", "move or turn the object with --object-pose")
+            self.on_event(0, f"robot: {100 * lost:.0f} % of the target is where the tool cannot follow the normal "
+                             f"({100 * (1 - self.reachable.mean()):.0f} % of the surface); dropped from the target")
+            if hasattr(self.explorer, "set_target"):
+                self.explorer.set_target(kept)
+
+    def _reachable_at(self, x_base: np.ndarray) -> bool:
+        return bool(self.reachable[self.kdtree.query(self._to_obj(x_base))[1]])
+    # <<< reach
+
     def _agent_line(self) -> tuple[np.ndarray, np.ndarray]:
         """The explorer's line L_a⊥ in the base frame: point and unit direction into the surface."""
         x = np.asarray(self.explorer.positions[0], dtype=float)
@@ -197,14 +241,13 @@ class RobotRun:
         n_b = self.T_obj[:3, :3] @ n
         if n_b @ self._surface_normal(a) < 0:  # the explorer's normal sign is arbitrary; ours faces the tool
             n_b = -n_b
-        return a, clamp_tilt(-n_b / np.linalg.norm(n_b), self.cfg.max_tool_tilt_deg)
+        return a, -n_b / np.linalg.norm(n_b)  # reach: the tool follows the normal (unreachable parts are dropped)
 
     def _update_spin_ref(self, d: np.ndarray) -> None:
-        # Parallel-transport the spin reference so it stays perpendicular to the tool axis.
-        x = self._x_ref - (self._x_ref @ d) * d
-        nx = float(np.linalg.norm(x))
-        if nx > 1e-3:
-            self._x_ref = x / nx
+        # reach: the spin is a continuous function of the tool axis (no flips, wrist mid-range)
+        from tergodic_cli.robot.reach import tool_rotation
+
+        self._x_ref = tool_rotation(d, self._x_down)[:, 0]
         self.ctrl.x_ref = self._x_ref
 
     # ------------------------------------------------------------------ one control step
@@ -477,39 +520,34 @@ class RobotRun:
     # ------------------------------------------------------------------ phases
     def _hover_pose(self, a: np.ndarray, d: np.ndarray) -> np.ndarray:
         """(4, 4) TCP pose ``hover_height`` back from ``a`` along the tool axis ``d``."""
-        z = d
-        x = None
-        for c in (self._x_ref, np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0])):
-            if abs(float(c @ z)) < 0.9:
-                x = c - (c @ z) * z
-                x /= np.linalg.norm(x)
-                break
-        return pose_matrix(np.column_stack([x, np.cross(z, x), z]), a - self.cfg.hover_height * d)
+        from tergodic_cli.robot.reach import tool_rotation
+
+        return pose_matrix(tool_rotation(d, self._x_down), a - self.cfg.hover_height * d)
 
     def _move_to_hover(self) -> None:
+        from tergodic_cli.robot.reach import posture as reach_posture
+
         cfg = self.cfg
-        a, d_normal = self._agent_line()
+        a, d = self._agent_line()
         q0 = self.arm.read_state().q
-        # Along the normal if the arm can get there; on a steep wall the wrist may not: then come in
-        # less tilted (the sponge is a ball; the line controller tilts it back as far as it can).
-        for tilt in (cfg.max_tool_tilt_deg, 45.0, 30.0, 15.0, 0.0):
-            if tilt > cfg.max_tool_tilt_deg:
-                continue
-            d = clamp_tilt(d_normal, tilt)
-            T_hover = self._hover_pose(a, d)
-            if not self.guard.inside(T_hover[:3, 3]) or not self.guard.inside(a):
-                self._unreachable(f"the start point {_fmt(a)} m or its hover pose is outside the workspace box",
-                                  "move the object with --object-pose, or choose another start")
-            q_h, pe, oe = self.model.ik(T_hover, q0, q_rest=np.array(cfg.picture_q))
-            if pe <= 1e-3 and oe <= 1e-2:
-                break
-        else:
+        # >>> reach: an unreachable start -> the nearest reachable target point (the first step moves the agent there)
+        if not self._reachable_at(a):
+            ok = np.flatnonzero(self.reachable & (np.asarray(getattr(self.explorer, "p", self.reachable), float) > 0))
+            j = ok[np.argmin(np.linalg.norm(self.points_base[ok] - a, axis=1))]
+            self.on_event(self._step(), f"robot: the tool cannot follow the normal at the start {_fmt(a)} m; starting at "
+                                        f"the nearest reachable target point {_fmt(self.points_base[j])} m")
+            a = self.points_base[j]
+            d = -self._surface_normal(a)
+        # <<< reach
+        T_hover = self._hover_pose(a, d)
+        if not self.guard.inside(T_hover[:3, 3]) or not self.guard.inside(a):
+            self._unreachable(f"the start point {_fmt(a)} m or its hover pose is outside the workspace box",
+                              "move the object with --object-pose, or choose another start")
+        q_h, pe, oe = reach_posture(self.arm._chain, T_hover, np.array(cfg.picture_q), self.arm.q_min, self.arm.q_max)  # reach
+        if pe > 1e-3 or oe > 1e-2:
             self._unreachable(f"the robot cannot reach the hover pose above the agent at {_fmt(a)} m "
                               f"(inverse kinematics off by {pe * 1e3:.1f} mm, {math.degrees(oe):.1f} deg)",
                               "move the object closer with --object-pose, or choose another start")
-        if tilt < cfg.max_tool_tilt_deg and float(d @ d_normal) < 0.9999:
-            self.on_event(self._step(), f"robot: the hover pose along the normal is out of reach; approaching "
-                                        f"tilted at most {tilt:.0f} deg instead")
         self._start_line = (a, d)
         self.q_hover = q_h
         self._x_ref = T_hover[:3, 0].copy()
@@ -659,7 +697,19 @@ class RobotRun:
                 if fault is not None:
                     self._fault_sample(fault, step, st, w, a_cur, d_cur, on_step, record=True)
                 a_new, d_new = self._agent_line()
-                a_next, d_next = a_new, d_new
+                # >>> reach: where the tool cannot follow the normal the line stays on the last reachable one
+                if self._reachable_at(a_new):
+                    a_next, d_next = a_new, d_new
+                elif not self._told_unreachable:
+                    self._told_unreachable = True
+                    self.on_event(step, f"robot: the agent entered the unreachable part at {_fmt(a_new)} m; the tool "
+                                        "waits on the last reachable point")
+                off = math.degrees(math.acos(min(1.0, float(-d_next @ self._surface_normal(a_next)))))
+                if off > CONTACT_TILT_MAX_DEG:  # never press at a large angle: lift before tilting
+                    self._fault_sample(Fault("reach", "retreat", f"the commanded tool axis is {off:.0f} deg off the "
+                                             f"surface normal (limit {CONTACT_TILT_MAX_DEG:.0f}); lifting the tool off "
+                                             "the surface", self.scene.t), step, st, w, a_cur, d_cur, on_step, record=True)
+                # <<< reach
                 self.guard.feed_target(self.scene.t)
                 self._update_spin_ref(d_next)
             self._shadow.deposit()
@@ -675,7 +725,15 @@ class RobotRun:
                     fresh = fault.kind != "explorer" and step > (self.samples[-1]["step"] if self.samples else 0)
                     self._fault_sample(fault, step, st, w, np.array(a), np.array(d), on_step, record=fresh)
             a_cur, d_cur = a_next, d_next
-            self.samples.append(self._sample(step, st, w, a_cur, d_cur))
+            sample = self._sample(step, st, w, a_cur, d_cur)
+            # >>> reach: never press at a large angle to the surface
+            press = self._measure(st)["press_angle_deg"]
+            if sample["in_contact"] and press > CONTACT_TILT_MAX_DEG:
+                self._fault_sample(Fault("reach", "retreat", f"the tool presses {press:.0f} deg off the surface "
+                                         f"normal in contact (limit {CONTACT_TILT_MAX_DEG:.0f}); lifting the tool off the "
+                                         "surface", self.scene.t), step, st, w, a_cur, d_cur, on_step, record=True)
+            # <<< reach
+            self.samples.append(sample)
             if defer_last and k == steps - 1:
                 self._deferred = (on_step, step)
             else:
@@ -683,6 +741,7 @@ class RobotRun:
         ts[_TS_COUNT] = 0.0
         self._last_line = (a_cur, d_cur)
         self._start_line = self._last_line  # a further explore() continues from here
+        self._told_unreachable = False
 
     def emit_deferred(self, extra: dict | None = None) -> None:
         """Hand the deferred last sample (see :meth:`_explore`) to its ``on_step``, updated with ``extra``."""
@@ -725,8 +784,13 @@ class RobotRun:
         tcp = st.ee_pose[:3, 3]
         cp = sum(c[2] * c[0] for c in contacts) / fsum if fsum > 0 else None
         x = cp if cp is not None else tcp
+        # reach: the angle the sponge presses at, from the contacts' own normals (a ball's contact normal
+        # is the surface's there, edges included; the cloud's normal is not at an edge)
+        nc = sum(c[2] * c[1] for c in contacts) if fsum > 0 else np.zeros(3)
+        nn = float(np.linalg.norm(nc))
+        press = math.degrees(math.acos(min(1.0, abs(float(nc @ st.ee_pose[:3, 2])) / nn))) if nn > 0 else 0.0
         return {"contact_point": cp, "force_contact": fsum, "in_contact": bool(cp is not None and fsum >= self.threshold),
-                "normal": self._surface_normal(x), "at": x}
+                "normal": self._surface_normal(x), "at": x, "press_angle_deg": press}
 
     def _sample(self, step: int, st, w: np.ndarray, a: np.ndarray, d: np.ndarray, stop_reason: str | None = None) -> dict:
         """The robot_sample_dict of CONTRACTS.md (plus extras) at the end of an explorer interval."""
