@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import errno
 import socket
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -91,8 +92,19 @@ class LiveServer:
     def url(self) -> str:
         return f"ws://{self.host}:{self.port}"
 
-    def stop(self) -> None:
+    def stop(self, wait_s: float = 2.0) -> None:
+        """Stop the server and wait (up to ``wait_s`` seconds) until its port is free: the SDK
+        shuts its listener down on its own thread, and a next run may want the same port."""
         try:
             self.server.stop()
         except Exception:  # noqa: BLE001 - best effort at the end of a run
-            pass
+            return
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline:
+            with socket.socket() as s:
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                try:
+                    s.bind((self.host, self.port))
+                    return
+                except OSError:
+                    time.sleep(0.02)
