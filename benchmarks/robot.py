@@ -77,7 +77,8 @@ def run_one(obj: str, steps: int, seed: int, nk: int, cache: str) -> dict:
     from tergodic_cli.basis import BasisConfig, get_basis
     from tergodic_cli.capture import CaptureConfig, capture_cloud
     from tergodic_cli.explore import ExploreConfig, Explorer
-    from tergodic_cli.robot import RobotConfig, explore_with_robot, robot_explore_config
+    from tergodic_cli.backends.pybullet import explore_with_robot
+    from tergodic_cli.robot import RobotConfig, robot_explore_config
 
     cap = capture_cloud(CaptureConfig(source="synthetic", synthetic=obj, seed=0))
     basis, _ = get_basis(cap.points, BasisConfig(nk=nk, neighbors=30), cache_dir=cache)

@@ -92,7 +92,7 @@ def capture(
     check_out_folder(out, overwrite)  # before any work: a refused --out costs nothing
     frame = None
     if kind == "sim":
-        from tergodic_cli.capture.sim_camera import SimCameraConfig, SimCaptureConfig, capture_sim
+        from tergodic_cli.backends.pybullet.camera import SimCameraConfig, SimCaptureConfig, capture_sim
         from tergodic_cli.capture.textured import SimObjectConfig
 
         sim = SimCaptureConfig(
@@ -105,7 +105,7 @@ def capture(
         cap = capture_sim(sim)
         frame = getattr(cap, "frame", None)
     elif kind == "realsense":
-        from tergodic_cli.hardware.realsense.capture import capture_realsense
+        from tergodic_cli.backends.realsense.capture import capture_realsense
 
         cap = capture_realsense(cfg, serial=serial, width=width, height=height,
                                 camera_pose=_floats(camera_pose, "--camera-pose", "0.3,0,0.6,1,0,0,0"))

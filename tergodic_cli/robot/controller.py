@@ -123,7 +123,7 @@ class LineForceController:
 
     def __init__(self, gains: ControllerGains, dt: float, q_rest: np.ndarray, x_ref: np.ndarray, q_limits=None):
         from tergodic_cli.robot import kernels as Kn
-        from tergodic_cli.robot.pybullet_backend.scene import Q_MAX, Q_MIN
+        from tergodic_cli.robot.kinematics import Q_MAX, Q_MIN
 
         self._Kn = Kn
         self.g = gains
@@ -193,11 +193,6 @@ class LineForceController:
     @property
     def integral(self) -> float:
         return float(self.mut[self._Kn.CS_INTEGRAL])
-
-    @property
-    def e_prev(self) -> float | None:
-        Kn = self._Kn
-        return float(self.mut[Kn.CS_EPREV]) if self.mut[Kn.CS_HAS_EPREV] else None
 
     def reset(self, force_now: float = 0.0) -> None:
         """Clear the PID state."""

@@ -1,18 +1,15 @@
-"""Hardware-shaped interfaces: an :class:`Arm` and a :class:`WrenchSensor`.
+"""The backends' interfaces: an :class:`Arm` driven by line targets, and a :class:`WrenchSensor`.
 
 Small Protocols in the style of lerobot's ``robots/robot.py``: a backend connects, is read,
-is commanded, disconnects. The controller, the safety guard and the state machine speak
-only these, so a real Franka (libfranka/franky) or a real F/T sensor (Bota) can replace the
-PyBullet backend without touching them.
+is commanded, disconnects. The state machine and the safety guard speak only these, so a real
+Franka (franky) with a real F/T sensor (Bota, Net F/T) replaces the PyBullet backend without
+touching them.
 
 Conventions every backend honours
 ---------------------------------
 - Frames: "base" is the robot base; "ee" is the tool centre point (TCP), z along the tool
   axis pointing out of the flange; the sensor frame is fixed in the ee frame
   (:attr:`WrenchSensor.frame_in_ee`).
-- Torques given to :meth:`Arm.command` are *on top of* gravity and Coriolis compensation,
-  which the backend adds itself (libfranka compensates gravity in firmware; the PyBullet
-  backend adds ``calculateInverseDynamics``).
 - :meth:`WrenchSensor.read` returns the wrench the arm applies to the tool through the
   sensor, in the sensor frame, moment about the sensor origin, minus the tare offset. With
   the tool at rest and free it is the tool's weight; pressing on a surface adds the force
@@ -22,9 +19,12 @@ Conventions every backend honours
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from tergodic_cli.robot.safety import Fault
 
 GRAVITY = 9.81
 
@@ -86,33 +86,106 @@ class WrenchReading:
     valid: bool = True
 
 
+class LineTarget(NamedTuple):
+    """The action the contact loop sends an :class:`Arm`: a line-impedance target (paper eq. 47).
+
+    a, d : (3,) a point of the agent's line L_a⊥ and its unit direction into the surface, base frame.
+    mode : "press" holds the tool on the line and presses ``force`` N along d (the wrench PID);
+        "move" holds it on the line and moves it along d at ``speed`` m/s (negative: back off), a
+        set-point advancing at that speed, so a steady push cannot make it touch faster.
+    force : N, desired force along d ("press").
+    speed : m/s along d ("move").
+    v_line : (3,) velocity of the line point a, m/s (feed-forward), or None.
+    """
+
+    a: np.ndarray
+    d: np.ndarray
+    mode: str
+    force: float = 0.0
+    speed: float = 0.0
+    v_line: np.ndarray | None = None
+
+
+class Observation(NamedTuple):
+    """One control period's reading: the arm's state, the F/T reading (None: not read) and the
+    contact wrench (6,) the tool applies, ee frame, moment about the TCP (N, N m)."""
+
+    state: ArmState
+    reading: WrenchReading | None
+    wrench: np.ndarray
+
+
 @runtime_checkable
 class Arm(Protocol):
-    """A torque-controlled arm."""
+    """An arm with its F/T sensor, driven by the contact loop (:mod:`tergodic_cli.robot.run`).
+
+    In the style of lerobot's ``Robot``: connected on construction, read with
+    :meth:`get_observation`, commanded with :meth:`send_action` (one control period of ``dt``
+    seconds), closed with :meth:`disconnect`. The free-space moves and holds are the backend's
+    own (joint impedance in simulation, the SDK's planner on hardware); every period they run is
+    checked by the loop's ``check`` (the one :class:`~tergodic_cli.robot.safety.SafetyGuard`).
+    A backend with ``fast`` True runs a whole explorer interval of "press" targets itself,
+    ``follow(A, D, v_line)`` (the simulation's compiled 1 kHz loop, the same checks), returning
+    as the loop's own ``_follow``.
+    """
 
     name: str
-    dof: int
     joint_names: list[str]
-    #: (dof,) lower/upper joint position limits, rad; (dof,) velocity limits, rad/s; (dof,) torque limits, N m.
+    #: s, one control period; (dof,) joint limits (rad, rad/s) for the guard.
+    dt: float
     q_min: np.ndarray
     q_max: np.ndarray
     dq_max: np.ndarray
-    tau_max: np.ndarray
+    #: s, the arm's clock now and at the start; N, the filtered force along the tool axis;
+    #: (dof,) the last joint torques (commanded or measured), N m; (3,) the spin reference
+    #: (base frame) the tool's x-axis is held near.
+    t: float
+    t_origin: float
+    force: float
+    tau: np.ndarray
+    spin_ref: np.ndarray
 
-    @property
-    def is_connected(self) -> bool: ...
+    def bind(self, guard, tick_stats: np.ndarray, force_desired: float, threshold: float) -> None:
+        """Share the loop's guard and per-tick statistics (kernels.tick_stats), F_d and the contact threshold (N)."""
 
-    def connect(self) -> None:
-        """Open the connection (idempotent)."""
+    def get_observation(self, sensor: bool = True) -> Observation:
+        """Read the arm (and the sensor, unless ``sensor`` is False)."""
 
-    def read_state(self) -> ArmState:
-        """The current :class:`ArmState`."""
+    def send_action(self, target: LineTarget) -> None:
+        """Realise ``target`` for one control period (from the last observation)."""
 
-    def command(self, tau: np.ndarray) -> None:
-        """Send joint torques (dof,) N m, on top of the backend's gravity/Coriolis compensation."""
+    def reach(self, T: np.ndarray) -> str | None:
+        """None if the TCP can reach pose ``T`` (4, 4), else why not (one line)."""
+
+    def move_to(self, T: np.ndarray, check) -> Fault | None:
+        """Move the TCP to pose ``T`` (4, 4) through free space, checking every period; the first fault or None."""
+
+    def to_picture(self, check) -> Fault | None:
+        """Move to the picture pose through free space; the first fault or None."""
+
+    def hold(self, seconds: float) -> None:
+        """Hold the present pose for ``seconds`` (no checks, no force)."""
+
+    def tare(self) -> None:
+        """Tare the F/T sensor (tool at rest, free): its load at this orientation becomes the zero."""
+
+    def contact(self, obs: Observation) -> tuple[np.ndarray | None, float]:
+        """The contact point (3,) base frame (None: no contact) and the contact force, N."""
+
+    def link_poses(self) -> dict:
+        """Poses of the arm's links for the log ({} when unknown)."""
+
+    def fault(self) -> str | None:
+        """A one-line reason if the arm reports an error of its own, else None."""
+
+    def stop(self) -> None:
+        """End any running controller, the arm at rest."""
+
+    def summary(self) -> dict:
+        """The backend's own summary extras."""
 
     def disconnect(self) -> None:
-        """Close the connection; the arm is left holding still (brakes, or zero velocity)."""
+        """Close the connection; the arm is left holding still."""
 
 
 @runtime_checkable

@@ -529,7 +529,7 @@ def new_tick_stats(force_desired: float, threshold: float, settle_ticks: int) ->
 # v_ref (3), the chain (F (m, 4, 4), axis (m, 3), qidx (m,)), tcp offset (3), R_se (3, 3), p_se (3),
 # m g, com (3), tare load (6), guard q_lo (7), q_hi (7), dq_hi (7), tcp speed max, workspace lo (3),
 # hi (3), force limit, tau_max (7), inertial compensation on (1/0), tool mass, principal inertia (3).
-# io (read back by RobotRun._track_fast): q (7), q̇ (7), w (6), tau (7, the total torque to send),
+# io (read back by SimArm.follow): q (7), q̇ (7), w (6), tau (7, the total torque to send),
 # diag (N_CD), T (16), J (42).
 IO_Q, IO_DQ, IO_W, IO_TAU, IO_DIAG = 0, 7, 14, 20, 27
 IO_T = IO_DIAG + N_CD
