@@ -2,7 +2,7 @@
 
 Usage:
     OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/robot.py [--steps 500] [--seeds 1]
-        [--objects bowl,plate] [--json out.json]
+        [--objects bowl,plate] [--gains tuned|paper] [--json out.json]
 
 For each object and seed it runs the robot (PyBullet, DIRECT, 1 kHz torque control) for ``--steps``
 explorer steps at 5 N, and the kinematic explorer (same cloud, same config, same seed) for the same
@@ -73,7 +73,7 @@ def bare_pybullet_rate(n: int = 3000) -> float:
         p.disconnect(cid)
 
 
-def run_one(obj: str, steps: int, seed: int, nk: int, cache: str) -> dict:
+def run_one(obj: str, steps: int, seed: int, nk: int, cache: str, gains: str = "tuned") -> dict:
     from tergodic_cli.basis import BasisConfig, get_basis
     from tergodic_cli.capture import CaptureConfig, capture_cloud
     from tergodic_cli.explore import ExploreConfig, Explorer
@@ -85,7 +85,9 @@ def run_one(obj: str, steps: int, seed: int, nk: int, cache: str) -> dict:
     rng = np.random.default_rng(seed)
     start = cap.points[rng.integers(len(cap.points))][None]
     base_cfg = ExploreConfig(nk=nk, seed=seed)
-    rcfg = RobotConfig(force=5.0)
+    from tergodic_cli.robot import PAPER_GAINS
+
+    rcfg = RobotConfig(force=5.0, **({"gains": PAPER_GAINS} if gains == "paper" else {}))
     # Kinematic reference: the same explorer, the agent deposits its own footprint.
     kin = Explorer(basis, cap.target, base_cfg, start, on_event=lambda m: None)
     for _ in range(steps):
@@ -126,12 +128,13 @@ def main(argv=None) -> int:
     ap.add_argument("--objects", default="bowl,plate")
     ap.add_argument("--nk", type=int, default=200)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--gains", choices=("tuned", "paper"), default="tuned", help="the tuned gains or the paper's (V-A3)")
     args = ap.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as cache:
         for obj in args.objects.split(","):
             for seed in range(args.seeds):
-                r = run_one(obj, args.steps, seed, args.nk, cache)
+                r = run_one(obj, args.steps, seed, args.nk, cache, args.gains)
                 rows.append(r)
                 print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}), flush=True)
     ok_all = True

@@ -403,6 +403,13 @@ def make_robot_config(robot_config_cls, options: dict | None):
 
     options = {k: v for k, v in (options or {}).items() if v is not None}
     safety = {k: v for k, v in options.pop("safety", {}).items() if v is not None}
+    if isinstance(options.get("gains"), str):  # --gains tuned | paper
+        from tergodic_cli.robot.controller import PAPER_GAINS
+
+        name = options.pop("gains")
+        require(name in ("tuned", "paper"), f"unknown --gains {name!r}", "use --gains tuned or --gains paper")
+        if name == "paper":
+            options["gains"] = PAPER_GAINS
     known = {f.name for f in fields(robot_config_cls)}
     unknown = sorted(set(options) - known)
     require(not unknown, f"unknown robot option(s): {', '.join(unknown)}", "see 'tergodic explore --help'")

@@ -215,3 +215,27 @@ def test_first_touch_on_the_default_sim_capture_is_gentle(bowl_on_table, force, 
     assert out["stop_reason"] == "completed"
     assert peak[0] <= 1.5 * force  # PyBullet's contact force, every tick of the approach
     assert out["force_peak_approach_N"] <= 1.5 * force  # the run's own 1 kHz figure
+
+
+# ---------------------------------------------------------------------------------- item 3: the paper's gains
+def test_paper_gains_press_steadily_with_the_full_wrench_pid(plate):
+    """K, D and the PID of the paper (V-A3), the PID on the full wrench: the first touch no longer trips
+    the force stop (it did at 25 N), and the pressed force holds F_d in steady contact."""
+    from tergodic_cli.robot import PAPER_GAINS
+
+    cap, basis = plate
+    cfg = RobotConfig(gains=PAPER_GAINS, **FAST)
+    with RobotRun(cap, _explorer(cap, basis, cfg), cfg) as run:
+        peak = [0.0]
+        step = run.scene.step
+
+        def watched():
+            step()
+            peak[0] = max(peak[0], _contact_force(run))
+
+        run.scene.step = watched
+        out = run.run(10)
+    assert out["stop_reason"] == "completed", out["stop_reason"]
+    assert out["tick_steady"] > 500 and out["force_rms_error_rel"] < 0.1
+    assert peak[0] < run.guard.force_limit and out["force_peak_approach_N"] <= 1.5 * cfg.force
+    assert out["track_mm_median"] < 2.0  # the tool follows the agent (it stuck 3 mm behind with a lateral integral)
