@@ -1,6 +1,6 @@
 """Resolution independence (issue 13, item 5): one object sampled at about 3k, 30k and 100k points.
 
-The synthetic bowl with its X (the project's own object), sampled densely and voxel-filtered to
+The synthetic bowl with its X (the project's own object; ``--object torus``: two patches), sampled densely and voxel-filtered to
 three sizes; the default explorer (nK 200, α 10, δt = α h₀² with a fixed h₀, r_a 7.5 mm), the same
 three starts (the points nearest three fixed positions), 1000 steps. Prints ε, touched,
 off-surface share, step max and the median step time per size, and the ratios to the 3k row.
@@ -44,6 +44,10 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", default="3000,30000,100000")
     ap.add_argument("--steps", type=int, default=1000)
+    ap.add_argument("--starts", type=int, default=3, help="starts per size: the three fixed ones, then seeded "
+                    "points of the first size's cloud (the same positions at every size) [default: 3]")
+    ap.add_argument("--object", default="bowl", help="synthetic object: bowl (X marking) or torus (two patches)")
+    ap.add_argument("--cache", default=None, help="basis cache folder to reuse between runs [default: a new temp one]")
     ap.add_argument("--voxel-rule", default="all", help="all (binary p: the same target at every size; default) or "
                     "fraction (p = the share of marked points in a voxel: softer edges on coarse grids)")
     args = ap.parse_args()
@@ -53,14 +57,19 @@ def main() -> int:
 
     sizes = [int(s) for s in args.sizes.split(",")]
     # Raw samples dense enough for the largest size (about 3 raw points per kept point).
-    area_per_point = 0.0012**2 * 6548 / max(sizes)  # the default bowl keeps ~6.5k points at 3 mm
-    syn = generate_synthetic("bowl", "X", seed=0, spacing=float(np.sqrt(area_per_point / 3.0)))
+    marking = {"bowl": "X", "torus": "patches"}[args.object]
+    area = 0.0012**2 * len(generate_synthetic(args.object, marking, seed=0).points)  # default spacing 1.2 mm
+    area_per_point = area / max(sizes)
+    syn = generate_synthetic(args.object, marking, seed=0, spacing=float(np.sqrt(area_per_point / 3.0)))
     raw = (syn.points, syn.colors)
-    cache = tempfile.mkdtemp(prefix="tergodic-resolution-")
+    cache = args.cache or tempfile.mkdtemp(prefix="tergodic-resolution-")
     fixed = np.array([[0.0, 0.0, 0.0], [0.03, 0.02, 0.01], [-0.04, 0.0, 0.02]])
     rows = []
     for n in sizes:
         cap = capture_at(n, raw, args.voxel_rule)
+        if len(fixed) < args.starts:  # seeded extra starts, fixed positions from the first size's cloud
+            pick = np.random.default_rng(0).choice(cap.n_points, args.starts - len(fixed), replace=False)
+            fixed = np.vstack([fixed[:3], cap.points[pick]])
         t0 = time.perf_counter()
         basis, _ = get_basis(cap.points, BasisConfig(nk=200, neighbors=30), cache)
         t_basis = time.perf_counter() - t0

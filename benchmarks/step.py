@@ -152,12 +152,8 @@ def main() -> int:
     args = ap.parse_args()
 
     from tergodic_cli.basis import BasisConfig, get_basis
-    from tergodic_cli.explore import kernels as K
 
-    if not K.HAVE_NUMBA:
-        print("numba is not installed: the kernels run as plain Python (expect ~100x slower steps)", file=sys.stderr)
-    results: dict = {"setup": {"steps": args.steps, "starts": args.starts, "nk": 200, "alpha": 10, "blas_threads": 1,
-                               "numba": K.HAVE_NUMBA}}
+    results: dict = {"setup": {"steps": args.steps, "starts": args.starts, "nk": 200, "alpha": 10, "blas_threads": 1}}
     rows = []
 
     def run(name, basis, target, starts, radius, published=None):

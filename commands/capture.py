@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from tergodic_cli.commands._common import parse_floats
+from tergodic_cli.commands._common import given_options, parse_floats
 
 SOURCES = ("file", "synthetic", "sim", "realsense")
 
@@ -17,6 +17,7 @@ def register(app: typer.Typer) -> None:
 
 
 def capture(
+    ctx: typer.Context,
     from_file: Optional[Path] = typer.Option(None, "--from", help="Point-cloud file: .ply, .pcd, .xyz/.xyzrgb/.txt (x y z [r g b]) or .npz (points, colors)."),
     synthetic: Optional[str] = typer.Option(None, "--synthetic", help="Generate an object instead: bowl, plate, mug, sphere, holed-plate (3 cm hole), thin-mug (walls 4 mm apart), torus, box (sharp edges) or partial (one side missing)."),
     source: Optional[str] = typer.Option(None, "--source", help="file, synthetic, sim or realsense; inferred from --from / --synthetic / --object when omitted."),
@@ -33,7 +34,7 @@ def capture(
     noise: float = typer.Option(0.0, "--noise", help="Synthetic: Gaussian noise along the surface normal, σ in METRES (e.g. 0.0015 = 1.5 mm; 0 = none)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder for the capture (cloud.npz, cloud.ply, capture.json)."),
     voxel: float = typer.Option(0.003, "--voxel", help="Voxel edge in METRES (0 disables). The paper uses 0.003."),
-    voxel_rule: str = typer.Option("fraction", "--voxel-rule", help="p per voxel: 'fraction' of target points (default), or 'all' (target only if every point is; the authors' code)."),
+    voxel_rule: str = typer.Option("fraction", "--voxel-rule", help="p per voxel: 'fraction' of target points (default), 'all' (target only if every point is; the authors' code), or 'intensity' (mean ink intensity: faint ink counts; needs a noise-free colour, e.g. --source sim)."),
     crop: Optional[str] = typer.Option(None, "--crop", help="Passthrough box xmin,ymin,zmin,xmax,ymax,zmax in metres."),
     outliers: Optional[str] = typer.Option(None, "--outliers", help="Statistical outlier removal NB,STD, e.g. 20,2.0."),
     target: str = typer.Option("red", "--target", help="Target colour: red, green, blue, yellow, orange, magenta, cyan, black, white; hsv:H1-H2,SMIN,VMIN; or 'all' for uniform coverage."),
@@ -43,6 +44,7 @@ def capture(
     max_points: int = typer.Option(500_000, "--max-points", help="Warn when more points than this remain after filtering (precompute refuses them)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing capture folder at --out."),
     json_out: bool = typer.Option(False, "--json", help="Print the sidecar as JSON instead of the table."),
+    config: Optional[Path] = typer.Option(None, "--config", help="Repeat a capture: its CAP/config.json; options given beside it override it."),
 ) -> None:
     """Capture a coloured point cloud and segment its target marking.
 
@@ -63,13 +65,21 @@ def capture(
       tergodic capture --from scan.ply --voxel 0.003 --target red --out cap/
 
       tergodic capture --from scan.pcd --units mm --crop -0.2,-0.2,0,0.2,0.2,0.3 --outliers 20,2 --out cap/
+
+      tergodic capture --config cap/config.json --seed 3 --out cap2/
     """
     import json
+    from dataclasses import replace
 
     from tergodic_cli.capture import CaptureConfig, capture_cloud, save_capture
-    from tergodic_cli.capture.pipeline import format_report
+    from tergodic_cli.capture.pipeline import format_report, load_capture_config
 
-    kind = _resolve_source(source, from_file, synthetic, sim_object)
+    given = given_options(ctx)
+    saved, sections = load_capture_config(config) if config is not None else (None, {})
+    if saved is not None and not given & {"source", "from_file", "synthetic", "sim_object"}:
+        kind = saved.source
+    else:
+        kind = _resolve_source(source, from_file, synthetic, sim_object)
     cfg = CaptureConfig(
         source=kind,
         path=str(from_file) if from_file is not None else (sim_object if kind == "sim" and sim_object not in _BUILTIN else None),
@@ -87,6 +97,8 @@ def capture(
         colour_depth=colour_depth,
         max_points=max_points,
     )
+    if saved is not None:  # the saved capture, with the options given on this command line on top
+        cfg = replace(saved, **{f: getattr(cfg, f) for opt in given for f in _PIPELINE_OF.get(opt, (opt,)) if hasattr(cfg, f)})
     from tergodic_cli.capture.artefact import check_out_folder
 
     check_out_folder(out, overwrite)  # before any work: a refused --out costs nothing
@@ -97,26 +109,36 @@ def capture(
 
         sim = SimCaptureConfig(
             object=SimObjectConfig(object=sim_object or "bowl", marking=marking, units=units, seed=seed,
-                                   pose=_floats(object_pose, "--object-pose", "0.5,0,0")),
-            camera=SimCameraConfig(pose=_floats(camera_pose, "--camera-pose", "0.3,0,0.6,0.5,0,0.03"), width=width, height=height,
+                                   pose=parse_floats(object_pose, None, "--object-pose", "0.5,0,0")),
+            camera=SimCameraConfig(pose=parse_floats(camera_pose, None, "--camera-pose", "0.3,0,0.6,0.5,0,0.03"), width=width, height=height,
                                    fov_deg=fov, renderer=renderer, seed=seed),
             pipeline=cfg,
         )
+        if saved is not None:
+            from tergodic_cli.config import from_dict
+
+            for part, of in (("object", _OBJECT_OF), ("camera", _CAMERA_OF)):
+                now = getattr(sim, part)
+                old = from_dict(type(now), sections.get(part) or {}, f"--config {config}: {part}")
+                setattr(sim, part, replace(old, **{f: getattr(now, f) for opt in given for f in of.get(opt, ())}))
+        configs = {"capture": cfg, "object": sim.object, "camera": sim.camera}
         cap = capture_sim(sim)
         frame = getattr(cap, "frame", None)
     elif kind == "realsense":
         from tergodic_cli.backends.realsense.capture import capture_realsense
 
+        configs = {"capture": cfg}  # the camera's settings are in capture.json; a repeat takes them from the options
         cap = capture_realsense(cfg, serial=serial, width=width, height=height,
-                                camera_pose=_floats(camera_pose, "--camera-pose", "0.3,0,0.6,1,0,0,0"))
+                                camera_pose=parse_floats(camera_pose, None, "--camera-pose", "0.3,0,0.6,1,0,0,0"))
     else:
+        configs = {"capture": cfg}
         from tergodic_cli.progress import Spinner
 
         with Spinner("capture: reading, filtering and segmenting the cloud"):  # seconds for millions of points
             cap = capture_cloud(cfg)
     # What the camera saw goes beside the artefact (not part of it), inside the same atomic folder.
     extra = (lambda folder: _write_image(folder / "camera_rgb.png", frame.rgb)) if frame is not None else None
-    sidecar = save_capture(cap, out, overwrite=overwrite, extra=extra)
+    sidecar = save_capture(cap, out, overwrite=overwrite, extra=extra, config=configs)
     if json_out:
         typer.echo(json.dumps(cap.meta, indent=2))
         return
@@ -130,10 +152,16 @@ def capture(
         t = s["timing_ms"]
         typer.echo(f"sim camera ({s['camera']['renderer']}): render {t['render_ms']:.0f} ms, back-projection {t['back_project_ms']:.0f} ms, "
                    f"filters+segmentation {t['pipeline_ms']:.0f} ms; marking remaining {100 * s['marking_remaining']:.0f}%")
-    typer.echo(f"wrote {sidecar.parent}/ (cloud.npz, cloud.ply, capture.json{', camera_rgb.png' if frame is not None else ''})")
+    typer.echo(f"wrote {sidecar.parent}/ (cloud.npz, cloud.ply, capture.json, config.json{', camera_rgb.png' if frame is not None else ''})")
 
 
 _BUILTIN = ("bowl", "plate", "mug")
+#: The config fields each option sets, where they differ from its name: CaptureConfig, SimObjectConfig, SimCameraConfig.
+_PIPELINE_OF = {"from_file": ("path",), "sim_object": ("path", "synthetic")}
+_OBJECT_OF = {"sim_object": ("object",), "marking": ("marking",), "object_pose": ("pose",), "units": ("units",),
+              "seed": ("seed",)}
+_CAMERA_OF = {"camera_pose": ("pose",), "width": ("width",), "height": ("height",), "fov": ("fov_deg",),
+              "renderer": ("renderer",), "seed": ("seed",)}
 
 
 def _resolve_source(source: Optional[str], from_file, synthetic, sim_object) -> str:
@@ -155,18 +183,6 @@ def _resolve_source(source: Optional[str], from_file, synthetic, sim_object) -> 
     if source == "synthetic" and synthetic is None:
         raise TergodicError("--source synthetic needs --synthetic OBJECT", usage)
     return source
-
-
-def _floats(text: Optional[str], option: str, example: str) -> Optional[tuple[float, ...]]:
-    """Comma-separated numbers (any count; the stage checks how many it needs), or None."""
-    from tergodic_cli.errors import TergodicError
-
-    if text is None:
-        return None
-    try:
-        return tuple(float(x) for x in text.split(","))
-    except ValueError:
-        raise TergodicError(f"{option} '{text}' is not comma-separated numbers", f"e.g. {option} {example}") from None
 
 
 def _write_image(path: Path, rgb) -> None:

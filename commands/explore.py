@@ -87,15 +87,13 @@ def explore(
     """
     import json
 
-    from tergodic_cli.runlog.background import start_log_writer
-
     live_at = _check_live(live, no_log or dry_run) if live is not None else None  # exit 2 before anything is written
-    log_writer = None if no_log or dry_run else start_log_writer(live=live_at)  # its imports overlap ours
     from tergodic_cli.explore import ExploreConfig
     from tergodic_cli.run import StartSpec, run_explore
+    from tergodic_cli.commands._common import given_options, parse_floats
     from tergodic_cli.progress import echo as echo_err
 
-    given = {name for name in ctx.params if _on_command_line(ctx, name)}
+    given = given_options(ctx)
     fields = {"steps": steps, "alpha": alpha, "nk": nk, "agent_radius": agent_radius, "n_agents": agents, "v_max": v_max,
               "a_max": a_max, "dt": dt, "diffusion": diffusion, "integrator": integrator, "coverage_norm": coverage_norm,
               "seed": seed, "n_neighbors": fit_neighbors, "epsilon": epsilon, "basis_neighbors": neighbors,
@@ -115,8 +113,6 @@ def explore(
         log_cloud_every = log_cloud_every if "log_cloud_every" in given else saved["log_cloud_every"]
     else:
         cfg = ExploreConfig(**fields)
-    from tergodic_cli.commands._common import parse_floats
-
     robot_options = {
         "force": force, "contact_force": contact_force, "explore_dt": explore_dt, "normal_side": normal_side,
         "gains": gains, "gui": gui or None, "realtime": realtime or None,
@@ -127,15 +123,10 @@ def explore(
     if saved is not None:  # the saved robot options, then those given now
         robot_options = _merge_options(saved["robot_options"], robot_options)
     hardware = {"robot_ip": robot_ip, "ft": ft, "ft_address": ft_address}
-    if live_at is not None:
-        from tergodic_cli.errors import require
-
-        require(log_writer is not None, "--live: the log writer process did not start", "retry, or drop --live")
-        echo_err(f"live: {log_writer.wait_live()} (Foxglove: Open connection)")
     summary = run_explore(capture, cfg, out, spec, robot=robot, log=not no_log, log_cloud_every=log_cloud_every,
                           cache_dir=cache_dir, on_event=echo_err,
                           robot_options=robot_options, hardware=hardware, dry_run=dry_run, on_report=typer.echo,
-                          log_writer=log_writer, overwrite=overwrite,
+                          live=live_at, overwrite=overwrite,
                           recapture_every=recapture_every, until_clean=until_clean, max_steps=max_steps)
     if dry_run:
         return
@@ -158,7 +149,10 @@ def explore(
                f"touched {100 * summary['touched_fraction']:.1f}%, "
                f"off-surface {100 * (summary.get('off_surface_fraction') or 0.0):.1f}%, "
                f"step max {1e3 * (summary.get('step_max_m') or 0.0):.2f} mm, "
-               f"explorer step {summary['step_ms_median']:.3f} ms (median)")
+               f"explorer step {summary['step_ms_median']:.3f} ms (median)"
+               + (f"; {'clean' if summary.get('clean_reached') else 'not clean'}: the camera sees "
+                  f"{100 * summary['marking_remaining']:.1f}% of the marking, true ink left "
+                  f"{100 * summary['marking_remaining_true']:.1f}%" if summary.get("marking_remaining") is not None else ""))
     typer.echo(f"wrote {out}/ ({', '.join(summary['files'])})")
 
 
@@ -181,26 +175,19 @@ def expand_live(argv: list[str]) -> list[str]:
     return out
 
 
-def _check_live(live: str, no_log: bool) -> tuple[str, int]:
-    """--live's (host, port), checked now: a bad address or a port in use stops the run before it writes."""
+def _check_live(live: str, no_log: bool) -> str:
+    """--live's HOST:PORT, checked now: a bad address or a port in use stops the run before it writes."""
     from tergodic_cli.errors import require
-    from tergodic_cli.runlog.background import use_background_writer
     from tergodic_cli.runlog.live import check_bindable, parse_live
 
     host, port = parse_live(live)
     require(not no_log, "--live streams the run log", "drop --no-log / --dry-run, or drop --live")
-    require(use_background_writer(), "--live needs the log writer process", "unset TERGODIC_LOG_WRITER")
     check_bindable(host, port)
-    return host, port
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
 
 
 #: The verb's option (parameter) name of each ExploreConfig field, where they differ.
 OPTION_OF = {"n_agents": "agents", "n_neighbors": "fit_neighbors", "basis_neighbors": "neighbors"}
-
-
-def _on_command_line(ctx: typer.Context, name: str) -> bool:
-    source = ctx.get_parameter_source(name)
-    return source is not None and source.name == "COMMANDLINE"
 
 
 def _merge_options(saved: dict, now: dict) -> dict:

@@ -13,6 +13,7 @@ def register(app: typer.Typer) -> None:
 
 
 def precompute(
+    ctx: typer.Context,
     capture: Path = typer.Argument(..., help="Capture folder written by 'tergodic capture'."),
     nk: int = typer.Option(200, "--nk", help="Number of eigenpairs nK (paper: 100 is a good trade-off, 200 the best)."),
     neighbors: int = typer.Option(30, "--neighbors", help="Neighbours for robust_laplacian. 40 bridges scan gaps (the bunny's ear joins the body)."),
@@ -20,6 +21,7 @@ def precompute(
     force: bool = typer.Option(False, "--force", help="Recompute even when the cache holds this basis."),
     max_points: int = typer.Option(500_000, "--max-points", help="Refuse captures with more points than this (GBs and minutes of work)."),
     json_out: bool = typer.Option(False, "--json", help="Print the basis metadata as JSON."),
+    config: Optional[Path] = typer.Option(None, "--config", help="Repeat a basis: the config.json of its cache entry (nK, neighbours, solver); --nk/--neighbors given beside it override it."),
 ) -> None:
     """Compute (or load from cache) the spectral basis of a capture.
 
@@ -29,17 +31,26 @@ def precompute(
     Example:
 
       tergodic precompute cap/ --nk 200 --neighbors 30
+
+      tergodic precompute cap2/ --config ~/.cache/tergodic/basis/KEY/config.json
     """
     import json
+    from dataclasses import replace
 
     from tergodic_cli.basis import BasisConfig, get_basis
     from tergodic_cli.capture import load_capture
     from tergodic_cli.progress import echo as echo_err
 
+    bcfg = BasisConfig(nk=nk, neighbors=neighbors)
+    if config is not None:  # the saved config, with --nk / --neighbors given on this command line on top
+        from tergodic_cli.basis.cache import load_basis_config
+
+        from tergodic_cli.commands._common import given_options
+
+        bcfg = replace(load_basis_config(config), **{n: getattr(bcfg, n) for n in given_options(ctx) & {"nk", "neighbors"}})
     cap = load_capture(capture)
     _check_size(capture, cap.n_points, max_points)
-    basis, hit = get_basis(cap.points, BasisConfig(nk=nk, neighbors=neighbors), cache_dir, force=force,
-                           on_event=echo_err)
+    basis, hit = get_basis(cap.points, bcfg, cache_dir, force=force, on_event=echo_err)
     if json_out:
         typer.echo(json.dumps({**basis.meta, "cache_hit": hit}, indent=2))
         return
@@ -49,7 +60,7 @@ def precompute(
     else:
         t = basis.meta["timings"]
         typer.echo("computed basis: " + ", ".join(f"{k.removesuffix('_ms')} {v:.0f} ms" for k, v in t.items()))
-    typer.echo(f"  {cap.n_points} points, nK = {basis.nk}, neighbours = {neighbors}, h = {basis.h * 1e3:.3f} mm, "
+    typer.echo(f"  {cap.n_points} points, nK = {basis.nk}, neighbours = {bcfg.neighbors}, h = {basis.h * 1e3:.3f} mm, "
                f"λ = {basis.evals[0]:.3g} .. {basis.evals[-1]:.4g} 1/m²")
     typer.echo(f"  {basis.meta['path']}")
 

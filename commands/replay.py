@@ -47,13 +47,13 @@ def replay(
 
       tergodic replay run/ --html run/report.html
     """
-    import json
     import sys
 
     from tergodic_cli.errors import TergodicError
     from tergodic_cli.progress import Spinner, echo as echo_err
     from tergodic_cli.runlog import read_run_log, resolve_log_path
-    from tergodic_cli.runlog.summary import compare_with_file, format_table, recompute_summary
+    from tergodic_cli.runlog.summary import (compare_with_file, format_state, format_table, recompute_summary,
+                                             state_at, to_json)
 
     if export is not None and export not in ("npz", "csv"):
         raise TergodicError(f"--export '{export}' is not a format", "use --export npz or --export csv")
@@ -105,12 +105,12 @@ def replay(
                    f"it holds the {data.steps} steps before it", err=True)
 
     if step is not None:
-        state = _state_at(data, step)
-        typer.echo(json.dumps(state, indent=2, default=_jsonable) if json_out else _format_state(state))
+        state = state_at(data, step)
+        typer.echo(to_json(state) if json_out else format_state(state))
     else:
         summary = recompute_summary(data)
         if json_out:
-            typer.echo(json.dumps({**summary, "truncated": data.truncated, "status": data.status}, indent=2, default=_jsonable))
+            typer.echo(to_json({**summary, "truncated": data.truncated, "status": data.status}))
         else:
             typer.echo(format_table(summary, data, compare_with_file(summary, path.parent / "summary.json")))
 
@@ -139,71 +139,3 @@ def replay(
 
         replay_gui(data, speed=speed)
     sys.stdout.flush()
-
-
-def _jsonable(obj):
-    import numpy as np
-
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    raise TypeError(type(obj).__name__)
-
-
-def _state_at(data, step: int) -> dict:
-    """The logged state after explorer step ``step``."""
-    import numpy as np
-
-    i = data.index_of(step)
-    s = data.series
-    state: dict = {"step": int(s["step"][i]), "t": float(s["t"][i])}
-    for k, v in s.items():
-        if k in ("step", "t"):
-            continue
-        state[k] = v[i].tolist() if isinstance(v[i], np.ndarray) else float(v[i])
-    if data.robot and i < len(data.robot):
-        state["robot"] = {k: v for k, v in data.robot[i].items() if k != "step"}
-    cloud = data.cloud_at(step)
-    if cloud is not None:
-        cov = cloud.fields.get("coverage")
-        tgt = cloud.fields.get("target")
-        info = {"step": cloud.step, "n_points": len(cloud.points)}
-        for name, values in cloud.fields.items():
-            info[f"{name}_min"], info[f"{name}_max"] = float(values.min()), float(values.max())
-        if cov is not None and tgt is not None:
-            info["coverage_on_target_sum"] = float(cov[tgt > 0].sum())
-        state["cloud"] = info
-    state["events_so_far"] = [{"step": e[0], "text": e[2]} for e in data.events if e[0] <= step]
-    return state
-
-
-def _format_state(state: dict) -> str:
-    import numpy as np
-
-    lines = [f"step {state['step']}  (t = {state['t']:.6g} s)"]
-    for k, v in state.items():
-        if k in ("step", "t", "robot", "cloud", "events_so_far"):
-            continue
-        if isinstance(v, list):
-            arr = np.asarray(v)
-            lines.append(f"  {k:<18} " + "; ".join(np.array2string(r, precision=6, separator=", ", max_line_width=200) for r in arr.reshape(-1, 3)))
-        else:
-            lines.append(f"  {k:<18} {v:.9g}")
-    if "robot" in state:
-        lines.append("  robot:")
-        for k, v in state["robot"].items():
-            if k == "link_poses":
-                lines.append(f"    {k:<16} {len(v)} links")
-            elif isinstance(v, np.ndarray):
-                lines.append(f"    {k:<16} {np.array2string(v, precision=5, separator=', ', max_line_width=200)}")
-            else:
-                lines.append(f"    {k:<16} {v}")
-    if "cloud" in state:
-        c = state["cloud"]
-        extra = ", ".join(f"{k} {v:.4g}" for k, v in c.items() if k not in ("step", "n_points"))
-        lines.append(f"  cloud (logged at step {c['step']}, {c['n_points']} points): {extra}")
-    ev = state["events_so_far"]
-    if ev:
-        lines.append(f"  last event: step {ev[-1]['step']}: {ev[-1]['text']}")
-    return "\n".join(lines)

@@ -71,37 +71,17 @@ def sweep(
         from tergodic_cli.errors import Interrupted
 
         raise Interrupted("interrupted; rerun the same command to resume", exc) from None
-    summary = {"out": str(res.out), "runs": res.n_runs, "computed": res.computed, "skipped": res.skipped,
-               "failed": len(res.failed), "wall_s": round(res.wall_s, 2), "files": res.files}
     if json_out:
-        typer.echo(json.dumps(summary, indent=2))
+        typer.echo(json.dumps(res.summary(), indent=2))
     else:
         typer.echo(f"sweep: {res.n_runs} runs ({res.computed} computed, {res.skipped} already done, "
                    f"{len(res.failed)} failed) in {res.wall_s:.1f} s")
         typer.echo(f"wrote {out}/ ({', '.join(res.files)})")
-        _print_table(res.table)
+        if res.table:
+            typer.echo(res.ergodicity_tables())
     if res.failed:
         from tergodic_cli.errors import TergodicError
 
         first = res.failed[0]
         raise TergodicError(f"{len(res.failed)} run(s) failed, e.g. {first['run_id']}: {first['error']}",
                             "fix the cause and run the same command again: finished runs are kept")
-
-
-def _print_table(rows: list[dict]) -> None:
-    """Mean final ε (the neutral unit-mass ergodicity) over starts per object, nK (rows) and α (columns)."""
-    import statistics
-
-    for obj in sorted({r["object"] for r in rows}):
-        sel = [r for r in rows if r["object"] == obj and r["ergodicity"] is not None]
-        nks = sorted({r["nk"] for r in sel})
-        alphas = sorted({str(r["alpha"]) for r in sel}, key=lambda a: (len(a), a))
-        typer.echo(f"\n{obj}: mean ε at the last step (over starts and other options)")
-        typer.echo("| nK \\ α | " + " | ".join(alphas) + " |")
-        typer.echo("|---|" + "---|" * len(alphas))
-        for nk in nks:
-            cells = []
-            for a in alphas:
-                v = [r["ergodicity"] for r in sel if r["nk"] == nk and str(r["alpha"]) == a]
-                cells.append(f"{statistics.fmean(v):.3f}" if v else "")
-            typer.echo(f"| {nk} | " + " | ".join(cells) + " |")

@@ -93,13 +93,7 @@ class _Command(typer.core.TyperCommand):
 
 
 for _verb in VERBS:
-    try:
-        _module = importlib.import_module(f"tergodic_cli.commands.{_verb}")
-    except ModuleNotFoundError as _exc:  # a verb not built yet
-        if _exc.name != f"tergodic_cli.commands.{_verb}":
-            raise
-        continue
-    _module.register(app)
+    importlib.import_module(f"tergodic_cli.commands.{_verb}").register(app)
 for _info in app.registered_commands:
     if _info.cls in (None, typer.core.TyperCommand):
         _info.cls = _Command

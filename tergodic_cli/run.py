@@ -44,35 +44,67 @@ class StartSpec:
 RUN_CONFIG_KIND = "tergodic.run_config"
 
 
-def run_config(capture_dir, cfg: ExploreConfig, starts: StartSpec | None, robot: str, robot_options: dict | None,
-               log_cloud_every: int) -> dict:
-    """A run's loadable config: the explore config as asked for, the start spec (the seed in ``cfg``
-    makes a random start the same), the backend and its options."""
+def run_config(capture_dir, cfg: ExploreConfig, starts: StartSpec | None, robot: str, robot_cfg, log_cloud_every: int) -> dict:
+    """A run's loadable config (the sections of its ``config.json``).
+
+    Parameters
+    ----------
+    capture_dir : str or Path
+        The capture explored.
+    cfg : ExploreConfig
+        The explore config as asked for (before a robot's time scaling).
+    starts : StartSpec or None
+        Where the agents start (the seed in ``cfg`` makes a random start the same).
+    robot : str
+        The backend, one of :data:`ROBOTS`.
+    robot_cfg : RobotConfig or None
+        The robot's whole config (None for ``"kinematic"``); saved without the GUI.
+    log_cloud_every : int
+        Steps between logged clouds.
+
+    Returns
+    -------
+    dict
+        Section name -> JSON-ready value, for :func:`~tergodic_cli.config.write_config`.
+    """
+    from dataclasses import replace
+
     spec = starts or StartSpec()
-    return {"kind": RUN_CONFIG_KIND, "version": 1, "capture": str(Path(capture_dir).resolve()),
-            "explore": cfg.to_dict(),
+    return {"capture": str(Path(capture_dir).resolve()), "explore": cfg.to_dict(),
             "starts": {"start": spec.start, "start_index": spec.start_index,
                        "starts_file": str(Path(spec.starts_file).resolve()) if spec.starts_file else None},
-            "robot": robot, "robot_options": robot_options or {}, "log_cloud_every": int(log_cloud_every)}
+            "robot": robot,
+            "robot_options": replace(robot_cfg, gui=False, realtime=False).to_dict() if robot_cfg is not None else {},
+            "log_cloud_every": int(log_cloud_every)}
 
 
 def load_run_config(path: str | Path) -> dict:
-    """``config.json`` of an earlier run, checked: {"explore": ExploreConfig, "starts": StartSpec, "robot",
-    "robot_options", "log_cloud_every"}."""
-    path = Path(path)
-    fix = "give the config.json that 'tergodic explore' wrote beside a run"
-    require(path.is_file(), f"--config {path} does not exist", fix)
-    try:
-        d = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise TergodicError(f"--config {path} is not readable JSON ({type(exc).__name__})", fix) from None
-    require(isinstance(d, dict) and d.get("kind") == RUN_CONFIG_KIND and isinstance(d.get("explore"), dict),
-            f"--config {path} is not a run config", fix)
-    st = d.get("starts") or {}
-    return {"explore": ExploreConfig.from_dict(d["explore"]),
-            "starts": StartSpec(start=st.get("start"), starts_file=st.get("starts_file"), start_index=st.get("start_index")),
+    """Read the ``config.json`` of an earlier run.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``RUN/config.json``.
+
+    Returns
+    -------
+    dict
+        ``explore`` (:class:`ExploreConfig`), ``starts`` (:class:`StartSpec`), ``robot`` (str),
+        ``robot_options`` (dict of :class:`~tergodic_cli.robot.RobotConfig` fields, checked when the
+        robot is built) and ``log_cloud_every`` (int). A missing, corrupt or foreign file, or an
+        unknown key, raises :class:`TergodicError` (exit 2).
+    """
+    from tergodic_cli.config import from_dict, read_config
+
+    d = read_config(path, RUN_CONFIG_KIND, "give the config.json that 'tergodic explore' wrote beside a run")
+    where = f"--config {path}"
+    fix = "use a config.json written by 'tergodic explore'"
+    require(isinstance(d.get("robot_options") or {}, dict), f"{where}: robot_options is not a JSON object", fix)
+    require(isinstance(d.get("log_cloud_every", 50), int), f"{where}: log_cloud_every is not an int", fix)
+    return {"explore": ExploreConfig.from_dict(d.get("explore"), f"{where}: explore"),
+            "starts": from_dict(StartSpec, d.get("starts") or {}, f"{where}: starts"),
             "robot": d.get("robot", "kinematic"), "robot_options": d.get("robot_options") or {},
-            "log_cloud_every": int(d.get("log_cloud_every", 50))}
+            "log_cloud_every": d.get("log_cloud_every", 50)}
 
 
 def resolve_starts(spec: StartSpec, points: np.ndarray, n_agents: int, seed: int) -> np.ndarray:
@@ -160,7 +192,7 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
                 on_event: Callable[[str], None] | None = None, robot_options: dict | None = None,
                 hardware: dict | None = None, dry_run: bool = False, on_report: Callable[[str], None] | None = None,
                 recapture_every: int | None = None, until_clean: float = 0.05, max_steps: int | None = None,
-                log_writer=None, overwrite: bool = False) -> dict:
+                live: str | None = None, overwrite: bool = False) -> dict:
     """Run one exploration and write its artefacts; returns the summary dict.
 
     ``robot_options`` are :class:`~tergodic_cli.robot.RobotConfig` fields (``safety`` as a dict of
@@ -171,8 +203,7 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     ``recapture_every`` (robot "pybullet", a ``--source sim`` capture) runs the closed outer loop:
     every K steps re-capture with the simulated camera, update p on the same basis, and stop once the
     camera sees less than ``until_clean`` of the initial marking or ``max_steps`` are spent.
-    ``log_writer``: a :func:`~tergodic_cli.runlog.background.start_log_writer` the caller started
-    earlier (the CLI starts it before its own imports); otherwise one is started here.
+    ``live`` ("HOST:PORT") also streams the log to Foxglove over WebSocket while the run goes on.
 
     The run folder is built in a temporary sibling and renamed into place when complete; an
     existing ``out_dir`` holding files is refused up front unless ``overwrite`` (then replaced
@@ -229,8 +260,6 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
                                   DryRunPlan(capture, robot_cfg, start=tuple(start_xyz[0])))
         (on_report or say)(report)
         return {"dry_run": report}
-    # the log's writer process starts now, so its imports overlap loading the basis
-    writer = (log_writer or _start_log_writer()) if log else None
     basis, hit = find_basis(capture.points, cfg.nk, cfg.basis_neighbors, cache_dir, on_event=event)
     require(basis.points.shape == capture.points.shape and np.array_equal(basis.points, capture.points),
             "the basis does not match the capture's points", "recompute it: tergodic precompute CAPTURE --force")
@@ -242,13 +271,14 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     if robot_api is not None and (line := robot_kernels_line()):
         say(line)
     explorer = Explorer(basis, capture.target, cfg, start_xyz, on_event=event)
-    run_conf = run_config(capture_dir, user_cfg, starts, robot, robot_options, log_cloud_every)
+    run_conf = run_config(capture_dir, user_cfg, starts, robot, robot_cfg if robot_api is not None else None,
+                          log_cloud_every)
 
     try:
         with folder as tmp:
             return _write_run(tmp, explorer, cfg, user_cfg, basis, hit, capture, capture_dir, start_xyz, starts, robot,
                               robot_api, robot_cfg if robot_api is not None else None, devices, log, log_cloud_every,
-                              writer, events, say, recapture_every, until_clean, max_steps, run_conf)
+                              live, events, say, recapture_every, until_clean, max_steps, run_conf)
     except KeyboardInterrupt as exc:
         if folder.kept:
             from tergodic_cli.errors import Interrupted
@@ -259,23 +289,20 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
 
 
 def _write_run(out: Path, explorer, cfg, user_cfg, basis, hit, capture, capture_dir, start_xyz, starts, robot,
-               robot_api, robot_cfg, devices, log, log_cloud_every, writer, events, say, recapture_every,
+               robot_api, robot_cfg, devices, log, log_cloud_every, live, events, say, recapture_every,
                until_clean, max_steps, run_conf: dict) -> dict:
     """The explorer loop and the artefacts, written into ``out`` (the temporary run folder)."""
     recorder = RunRecorder(explorer, cfg.steps)
-    runlog = _open_log(out, cfg, basis, capture, log_cloud_every, writer) if log else None
-    # kinematic runs: the log takes the recorder's rows in blocks (no per-step logging work);
-    # robot steps carry a sample each and are logged one by one
-    feed = LogFeed(runlog, recorder) if runlog is not None and robot_api is None else None
+    runlog = _open_log(out, cfg, basis, capture, log_cloud_every, live) if log else None
     try:
         if runlog is not None:
+            if runlog.live is not None:
+                say(f"live: {runlog.live.url} (Foxglove: Open connection)")
             for msg in events:
                 runlog.log_event(0, 0.0, msg)
 
         def log_event(step: int, msg: str) -> None:
             say(msg)
-            if feed is not None:
-                feed.flush()  # the event follows the steps before it
             runlog.log_event(step, step * cfg.dt, msg)
 
         event_hook = log_event if runlog else (lambda step, msg: say(msg))
@@ -285,15 +312,11 @@ def _write_run(out: Path, explorer, cfg, user_cfg, basis, hit, capture, capture_
         def after_step(step: int, robot_sample: dict | None) -> None:
             recorder.record(step, robot_sample)
             if runlog is not None:
-                cloud_now = step % log_cloud_every == 0 or step == cfg.steps
-                if feed is not None:  # the block and its cloud in one frame
-                    feed.after_step(cloud=cloud_now)
-                else:
-                    runlog.log_step(step, step * cfg.dt, positions=explorer.positions, velocities=explorer.velocities,
-                                    normals=explorer.normals, metrics=explorer.metrics(),
-                                    step_ms=explorer.last_step_ms, robot=robot_sample)
-                    if cloud_now:
-                        _log_cloud(runlog, explorer, step)
+                runlog.log_step(step, step * cfg.dt, positions=explorer.positions, velocities=explorer.velocities,
+                                normals=explorer.normals, metrics=explorer.metrics(), step_ms=explorer.last_step_ms,
+                                robot=robot_sample)
+                if step % log_cloud_every == 0 or step == cfg.steps:
+                    _log_cloud(runlog, explorer, step)
 
         robot_extra = {}
         if robot_api is None:
@@ -328,35 +351,25 @@ def _write_run(out: Path, explorer, cfg, user_cfg, basis, hit, capture, capture_
             raise RobotStopped(f"the run made no explorer step (robot stopped: {robot_extra.get('stop_reason') or 'unknown reason'})",
                                "see the robot's events above; adjust --force, --object-pose or --workspace")
         if runlog is not None and recorder.count % log_cloud_every and recorder.count != cfg.steps:
-            _log_cloud(runlog, explorer, recorder.count, feed)  # a robot run that stopped early
+            _log_cloud(runlog, explorer, recorder.count)  # a robot run that stopped early
 
         extra = _provenance(capture_dir, capture, basis, hit, explorer, cfg, start_xyz, robot, starts, robot_extra,
                             logged=runlog is not None)
         if cfg is not user_cfg:
             extra["requested_config"] = user_cfg.to_dict()  # before the robot's time scaling
         summary = summarize_run(recorder.series(), cfg.to_dict(), extra)
-        if runlog is not None:
-            if feed is not None:
-                feed.flush()
-            status = "interrupted" if summary.get("interrupted") else "ok"  # a robot made safe after Ctrl-C
-            if hasattr(runlog, "begin_close"):  # the writer child finishes the file while we write ours
-                runlog.begin_close(summary, status=status)
         recorder.write(out / "trajectory.npz", start_xyz)
         from tergodic_cli.atomic import write_json
+        from tergodic_cli.config import CONFIG_FILE, write_config
 
         write_json(out / "summary.json", summary)
-        write_json(out / "config.json", run_conf)
+        write_config(out / CONFIG_FILE, RUN_CONFIG_KIND, **run_conf)
         if runlog is not None:
-            runlog.close(summary, status=status)
+            runlog.close(summary, status="interrupted" if summary.get("interrupted") else "ok")  # robot made safe
             runlog = None
         return summary
     except BaseException as exc:
         if runlog is not None:
-            if feed is not None:
-                try:
-                    feed.flush()  # the steps so far, before the log is closed as interrupted
-                except TergodicError:
-                    pass
             runlog.__exit__(type(exc), exc, None)  # marks the log "interrupted" (Ctrl-C) or "error: ..."
         raise
 
@@ -396,27 +409,19 @@ def check_robot(robot: str, robot_cfg, capture, recapture_every, until_clean, ma
 
 
 def make_robot_config(robot_config_cls, options: dict | None):
-    """A RobotConfig from CLI-level options (None values keep the defaults)."""
-    from dataclasses import fields, replace
-
-    from tergodic_cli.robot.safety import SafetyConfig
-
+    """A RobotConfig from options: its fields (None keeps the default; ``safety``, ``gains`` and
+    ``sponge`` as dicts of their fields), from the command line or a saved run."""
     options = {k: v for k, v in (options or {}).items() if v is not None}
-    safety = {k: v for k, v in options.pop("safety", {}).items() if v is not None}
+    if isinstance(options.get("safety"), dict):
+        options["safety"] = {k: v for k, v in options["safety"].items() if v is not None}
     if isinstance(options.get("gains"), str):  # --gains tuned | paper
         from tergodic_cli.robot.controller import PAPER_GAINS
 
         name = options.pop("gains")
         require(name in ("tuned", "paper"), f"unknown --gains {name!r}", "use --gains tuned or --gains paper")
         if name == "paper":
-            options["gains"] = PAPER_GAINS
-    known = {f.name for f in fields(robot_config_cls)}
-    unknown = sorted(set(options) - known)
-    require(not unknown, f"unknown robot option(s): {', '.join(unknown)}", "see 'tergodic explore --help'")
-    cfg = robot_config_cls(**options)
-    if safety:
-        cfg = replace(cfg, safety=replace(cfg.safety if isinstance(cfg.safety, SafetyConfig) else SafetyConfig(), **safety))
-    return cfg
+            options["gains"] = PAPER_GAINS.to_dict()
+    return robot_config_cls.from_dict(options, "robot_options")
 
 
 def _robot_backend():
@@ -437,100 +442,27 @@ def _robot_backend():
     return explore_with_robot, robot_config, scale
 
 
-def _start_log_writer():
-    try:
-        from tergodic_cli.runlog.background import start_log_writer
-    except ImportError:
-        return None  # _open_log says what is missing
-    return start_log_writer()
-
-
-def _open_log(out: Path, cfg: ExploreConfig, basis, capture, cloud_every: int, writer=None):
-    try:
-        from tergodic_cli.runlog.background import open_run_log
-    except ImportError as exc:
-        raise TergodicError(f"run logging is not available ({str(exc).splitlines()[0][:80]})",
-                            "use --no-log, or install tergodic with its logging dependencies (mcap)") from None
+def _open_log(out: Path, cfg: ExploreConfig, basis, capture, cloud_every: int, live: str | None = None):
     from tergodic_cli.provenance import library_versions
+    from tergodic_cli.runlog import RunLog
 
-    out.mkdir(parents=True, exist_ok=True)
-    log = open_run_log(out / "run.mcap", writer=writer, config=cfg.to_dict(), seed=cfg.seed, versions=library_versions(),
-                 capture_sidecar=capture.meta, points=basis.points, target=capture.target, cloud_every=cloud_every,
-                 field_basis=basis.evecs[:, : cfg.nk], field_basis_file=basis.meta.get("evecs_file"))
-    return log.__enter__()
-
-
-class LogFeed:
-    """Hands the recorder's per-step rows to the run log, ``every`` steps at a time (see RunLog.log_steps).
-
-    With a log written by a child process the rows and the cloud's fields are written
-    straight into a reusable frame (:class:`~tergodic_cli.runlog.background.StepBlock`):
-    a few array copies and one system call every ``every`` steps.
-    """
-
-    def __init__(self, runlog, recorder: "RunRecorder", every: int | None = None):
-        self.log, self.rec, self.sent = runlog, recorder, 0
-        self.every = int(every or getattr(runlog, "flush_every", 50))
-        self.blocks = hasattr(runlog, "step_block")
-        self.target_sent = runlog.target if self.blocks else None  # the target the log repeats
-
-    def after_step(self, cloud: bool = False) -> None:
-        """After each recorded step: hand over the block when it is full, or with the cloud (``cloud``)."""
-        if cloud or self.rec.count - self.sent >= self.every:
-            self.flush(cloud)
-
-    def flush(self, cloud: bool = False) -> None:
-        a, b = self.sent, self.rec.count
-        ex = self.rec.ex
-        if b <= a:
-            if cloud:
-                self.log.log_cloud(int(self.rec.step[b - 1]) if b else 0, **_cloud_fields(ex))
-            return
-        r = self.rec
-        if not self.blocks:
-            metrics = np.column_stack([r.sca[k][a:b] for k in ("ergodicity", "residual_ref", "touched_fraction")])
-            self.log.log_steps(r.step[a:b], r.sca["time"][a:b], positions=r.vec["positions"][a:b],
-                               velocities=r.vec["velocities"][a:b], normals=r.vec["normals"][a:b], metrics=metrics,
-                               step_ms=r.sca["step_ms"][a:b], cloud=_cloud_fields(ex) if cloud else None)
-            self.sent = b
-            return
-        spectral = ex.evecs.shape[1] if cloud and ex.heat_is_spectral else 0
-        new_target = cloud and ex.p is not self.target_sent  # the target changes only on a re-capture
-        blk = self.log.step_block(b - a, r.vecs.shape[2], cloud, spectral, with_target=new_target)
-        blk.rows[:] = r.rows[a:b]
-        blk.PVN[:] = r.vecs[:3, a:b]
-        if cloud:
-            ex.cloud_fields(out=(blk.coverage, blk.source, blk.heat_coeffs, blk.heat_residual))
-            if new_target:
-                blk.target[:] = ex.p
-                self.target_sent = ex.p
-        self.log.send_block(blk)
-        self.sent = b
+    return RunLog(out / "run.mcap", config=cfg.to_dict(), seed=cfg.seed, versions=library_versions(),
+                  capture_sidecar=capture.meta, points=basis.points, target=capture.target, cloud_every=cloud_every,
+                  live=live)
 
 
-def _cloud_fields(explorer: Explorer) -> dict:
-    """log_cloud's fields from one O(n) pass; u = Φ a + r is rebuilt (O(n nK)) by the log's writer."""
-    from tergodic_cli.runlog.writer import SpectralField
-
-    coverage, source, coeffs, residual = explorer.cloud_fields()
-    return {"coverage": coverage, "heat": SpectralField(coeffs, residual), "source": source, "target": explorer.p}
+def _log_cloud(runlog, explorer: Explorer, step: int) -> None:
+    runlog.log_cloud(step, coverage=explorer.coverage, heat=explorer.heat, source=explorer.source, target=explorer.p)
 
 
-def _log_cloud(runlog, explorer: Explorer, step: int, feed: LogFeed | None = None) -> None:
-    if feed is not None:
-        feed.flush()  # the cloud follows the steps before it
-    runlog.log_cloud(step, **_cloud_fields(explorer))
-
-
-ROW_FIELDS = ("step", "time", "ergodicity", "residual_ref", "touched_fraction", "step_ms")  # the run log's rows
-VEC_FIELDS = ("positions", "velocities", "normals", "accelerations")  # the first three: the run log's P, V, N
+ROW_FIELDS = ("step", "time", "ergodicity", "residual_ref", "touched_fraction", "step_ms")
+VEC_FIELDS = ("positions", "velocities", "normals", "accelerations")
 
 
 class RunRecorder:
     """Per-step arrays, preallocated for the planned steps (grown if a backend runs longer).
 
-    Scalars live in one (steps, 6) array in the run log's row layout and vectors in one
-    (4, steps, N, 3) array, so a block of steps goes to the log in two copies.
+    Scalars live in one (steps, 6) array and vectors in one (4, steps, N, 3) array.
     """
 
     def __init__(self, explorer: Explorer, steps: int):

@@ -303,6 +303,6 @@ def test_an_entry_another_process_wrote_meanwhile_stands(tmp_path, monkeypatch):
         return real(src, dst)
 
     monkeypatch.setattr(cache_mod.os, "replace", first_wins)
-    cache_mod._write_entry(entry, {"h": np.zeros(())}, {"kind": "tergodic.basis"})
+    cache_mod._write_entry(entry, {"h": np.zeros(())}, {"kind": "tergodic.basis"}, BasisConfig())
     assert (entry / "basis.json").read_text() == "{}"  # theirs stands
     assert [p.name for p in entry.parent.iterdir()] == ["k"]  # ours is gone

@@ -11,7 +11,7 @@ from conftest import assert_one_line_error, run_cli, run_cli_subprocess
 from tergodic_cli.capture import CaptureConfig, capture_cloud, load_capture
 from tergodic_cli.capture.filters import voxel_downsample
 from tergodic_cli.capture.readers import read_cloud, write_ply
-from tergodic_cli.capture.segment import parse_target, rgb_to_hsv, segment_target
+from tergodic_cli.capture.segment import parse_target, rgb_to_hsv, segment_target, target_weight
 from tergodic_cli.capture.synthetic import MARKINGS, OBJECTS, generate_synthetic
 
 
@@ -99,6 +99,30 @@ def test_hsv_conversion_and_targets():
     assert custom.contains(rgb_to_hsv(np.array([[1.0, 0.05, 0.1]])))[0]
     assert not custom.contains(rgb_to_hsv(np.array([[0.1, 1.0, 0.1]])))[0]
     assert parse_target("all") is None
+
+
+def test_faint_ink_weighs_in_by_its_intensity(bowl):
+    # ink of intensity m blended with the glazed surface, as the simulated texture renders it
+    from tergodic_cli.capture.synthetic import MARKING_RGB, SURFACE_RGB
+
+    m = np.linspace(0.0, 1.0, 101)
+    colours = SURFACE_RGB + m[:, None] * (MARKING_RGB - SURFACE_RGB)
+    red = parse_target("red")
+    w = target_weight(colours * 0.6, red, len(m))  # shading scales the colour: the weight does not change
+    np.testing.assert_allclose(w, target_weight(colours, red, len(m)))
+    assert w[0] == 0.0 and w[-1] == 1.0 and np.all(np.diff(w) >= 0)
+    faint = (m >= 0.1) & ~segment_target(colours, red, len(m))  # below the threshold: 0 as a mask
+    assert faint.sum() >= 40 and np.all(w[faint] > 0) and np.all(w[faint] < 1)
+    assert np.all(w[m < 0.04] == 0)  # the plain surface and the faintest trace carry no ink
+    # a saturated marking on a noisy plain surface: the mask rules are unchanged, 'intensity' sees more
+    cloud = dict(source="synthetic", synthetic="plate", voxel=0.003)
+    frac = capture_cloud(CaptureConfig(**cloud))
+    ink = capture_cloud(CaptureConfig(**cloud, voxel_rule="intensity"))
+    np.testing.assert_array_equal(ink.points, frac.points)
+    assert np.all(ink.target >= frac.target) and ink.meta["target"]["voxel_rule"] == "intensity"
+    mask = segment_target(bowl.colors, red, len(bowl.colors))
+    np.testing.assert_array_equal(mask, target_weight(bowl.colors, red, len(mask)) >= 1)
+    np.testing.assert_array_equal(mask, bowl.mask)
 
 
 def test_target_all_gives_uniform_weight_without_colours(tmp_path, bowl):

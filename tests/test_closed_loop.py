@@ -154,6 +154,9 @@ def test_loop_cleans_the_spot_without_recomputing_the_basis(scene, monkeypatch, 
         log.close(out)
 
     assert out["clean_reached"] and out["marking_remaining"] <= 0.05, out["recapture_log"]
+    # "clean" means clean: the simulator's own ink left is within 3 points of --until-clean (issue 15 item 6)
+    assert out["marking_remaining_true"] <= 0.05 + 0.03, out["recapture_log"]
+    assert out["loop_stop"].startswith("clean") and f"true ink left {out['marking_remaining_true']:.1%}" in out["loop_stop"]
     assert out["final_state"] == "done" and out["stop_reason"] == "completed" and not out["interrupted"]
     n = out["recaptures"]
     assert 1 <= n <= 6 and len(recs) == n and out["steps_done"] == 10 * n

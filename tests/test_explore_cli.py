@@ -229,7 +229,7 @@ def test_a_run_repeats_exactly_from_its_config_and_options_given_beside_it_overr
 
 @pytest.mark.parametrize("content, needle", [(None, "does not exist"), ("{not json", "not readable JSON"),
                                              ('{"kind": "other"}', "not a run config"),
-                                             ('{"kind": "tergodic.run_config", "explore": {"stepz": 3}}', "unknown keys")])
+                                             ('{"kind": "tergodic.run_config", "explore": {"stepz": 3}}', "unknown key 'stepz'")])
 def test_a_bad_config_is_one_line(cap, tmp_path, content, needle):
     path = tmp_path / "config.json"
     if content is not None:

@@ -16,7 +16,7 @@ from test_runlog import demo_inputs
 
 from tergodic_cli.commands.explore import expand_live
 from tergodic_cli.runlog import schema as S
-from tergodic_cli.runlog.background import BackgroundRunLog, LogWriterProcess
+from tergodic_cli.runlog import RunLog
 from tergodic_cli.runlog.live import parse_live
 
 BOWL = REPO / "data" / "bowl"
@@ -107,10 +107,9 @@ def test_a_client_sees_the_channels_and_decodes_a_point_cloud(tmp_path):
 
     inp = demo_inputs(steps=120, robot=True, n_agents=2, seed=3)
     port = _free_port()
-    writer = LogWriterProcess(live=("127.0.0.1", port))
-    assert writer.wait_live(timeout=DEADLINE_S) == f"ws://127.0.0.1:{port}"
-    log = BackgroundRunLog(tmp_path / "run.mcap", writer=writer, config=inp["config"], seed=1, points=inp["points"],
-                           target=inp["target"], cloud_every=50, flush_every=10)
+    log = RunLog(tmp_path / "run.mcap", config=inp["config"], seed=1, points=inp["points"], target=inp["target"],
+                 cloud_every=50, flush_every=10, live=("127.0.0.1", port))
+    assert log.live.url == f"ws://127.0.0.1:{port}"
     client = None
 
     def steps(a: int, b: int) -> None:

@@ -92,16 +92,36 @@ class ImpedanceArm(Protocol):
         """Close the connection, the arm at rest."""
 
     def move_joints(self, q: np.ndarray, speed: float | None = None) -> None:
-        """Blocking joint-space move to q (rad), planned by the SDK; speed in (0, 1] of its limits (None = default)."""
+        """Blocking joint-space move, planned by the SDK.
+
+        Parameters
+        ----------
+        q : (7,) float
+            Joint positions, rad.
+        speed : float, optional
+            Share in (0, 1] of the SDK's speed limits; None = its default.
+        """
 
     def command_impedance(self, target: ImpedanceTarget) -> None:
-        """Start, or update, the Cartesian impedance controller with a new reference."""
+        """Start, or update, the Cartesian impedance controller with a new reference.
+
+        Parameters
+        ----------
+        target : ImpedanceTarget
+            Pose, stiffness, damping, feed-forward twist and wrench (base frame, SI units).
+        """
 
     def stop(self) -> None:
         """Bring the arm to rest and end any running controller (blocking)."""
 
     def fault(self) -> str | None:
-        """A one-line reason if the SDK reports an error (reflex, lost connection), else None."""
+        """The SDK's error, if any.
+
+        Returns
+        -------
+        str or None
+            A one-line reason (reflex, lost connection), or None.
+        """
 
 
 @dataclass
@@ -127,11 +147,31 @@ class LineImpedanceGains:
     force_trim_max: float = 1.0
 
     def to_dict(self) -> dict:
+        """The gains as a dict.
+
+        Returns
+        -------
+        dict
+            Field name -> value (N/m, N m/rad, N s/m, N m s/rad, 1/s).
+        """
         return dict(self.__dict__)
 
 
 def rotated_gains(R: np.ndarray, trans: tuple[float, float, float], rot: tuple[float, float, float]) -> np.ndarray:
-    """(6, 6) blockdiag(R diag(trans) Rᵀ, R diag(rot) Rᵀ): gains given in the tool frame, expressed in the base frame."""
+    """Gains given in the tool frame, expressed in the base frame.
+
+    Parameters
+    ----------
+    R : (3, 3) float
+        The tool frame's rotation in the base frame.
+    trans, rot : (3,) float
+        Translational (N/m or N s/m) and rotational (N m/rad or N m s/rad) gains along the tool's x, y, z.
+
+    Returns
+    -------
+    (6, 6) float
+        blockdiag(R diag(trans) Rᵀ, R diag(rot) Rᵀ).
+    """
     G = np.zeros((6, 6))
     G[:3, :3] = R @ np.diag(trans) @ R.T
     G[3:, 3:] = R @ np.diag(rot) @ R.T
@@ -153,6 +193,11 @@ def line_impedance_target(p_tcp: np.ndarray, a: np.ndarray, d: np.ndarray, x_ref
     axial : position along the line (m from a, along d) for the target instead of riding with the TCP
         (approach and retreat: a target that advances at ``axial_speed`` m/s finds the surface whatever
         the joint friction, the spring force building up k_n · overshoot); ``force`` is then ignored.
+
+    Returns
+    -------
+    ImpedanceTarget
+        Pose (4, 4), stiffness and damping (6, 6), twist and wrench (6,), base frame.
     """
     g = gains
     R = tool_rotation(d, x_ref)
@@ -175,7 +220,18 @@ def line_impedance_target(p_tcp: np.ndarray, a: np.ndarray, d: np.ndarray, x_ref
 
 
 def hold_target(pose: np.ndarray, gains: LineImpedanceGains) -> ImpedanceTarget:
-    """Hold ``pose`` (4, 4) with the line gains in every direction (k_normal along the tool axis)."""
+    """A reference that holds a pose with the line gains in every direction (k_normal along the tool axis).
+
+    Parameters
+    ----------
+    pose : (4, 4) float
+        The TCP pose to hold, base frame, m.
+    gains : LineImpedanceGains
+
+    Returns
+    -------
+    ImpedanceTarget
+    """
     R = np.asarray(pose, dtype=float)[:3, :3]
     K = rotated_gains(R, (gains.k_lateral, gains.k_lateral, gains.k_normal), (gains.k_tilt, gains.k_tilt, gains.k_spin))
     D = rotated_gains(R, (gains.d_lateral, gains.d_lateral, gains.d_normal), (gains.d_tilt, gains.d_tilt, gains.d_spin))
@@ -197,6 +253,11 @@ class ForceLoop:
         """Bumpless start: the command continues from the force pressed now (e.g. at first contact).
 
         Without an integrator (force_ki = 0) there is nothing to ramp the trim back: the command is F_d.
+
+        Parameters
+        ----------
+        f_now : float
+            The measured contact force, N.
         """
         if self.g.force_ki <= 0:
             self.trim = 0.0
@@ -205,6 +266,20 @@ class ForceLoop:
         self.trim = min(max(float(f_now) - self.F_d, -lim), lim)
 
     def track(self, f_meas: float, dt: float) -> float:
+        """One step of the integral trim.
+
+        Parameters
+        ----------
+        f_meas : float
+            Measured contact force along the tool axis, N (NaN: no sample, the trim holds).
+        dt : float
+            Seconds since the last step.
+
+        Returns
+        -------
+        float
+            The force to command, N (>= 0).
+        """
         if math.isfinite(f_meas):
             lim = self.g.force_trim_max * self.F_d
             self.trim = min(max(self.trim + self.g.force_ki * (self.F_d - f_meas) * dt, -lim), lim)

@@ -43,9 +43,10 @@ import scipy.sparse as sp
 from tergodic_cli import FORMAT_VERSION
 from tergodic_cli.basis.core import Basis, compute_basis
 from tergodic_cli.capture.artefact import SIDECAR_SHA, sidecar_checksum
+from tergodic_cli.config import CONFIG_FILE, Config, write_config
 from tergodic_cli.checked_npy import CacheMiss, array_checksum, read_checked, read_checked_array  # noqa: F401
 
-__all__ = ["BasisConfig", "CacheMiss", "array_checksum", "default_cache_dir", "geometry_key", "get_basis",
+__all__ = ["BasisConfig", "CacheMiss", "load_basis_config", "array_checksum", "default_cache_dir", "geometry_key", "get_basis",
            "read_checked_array"]
 
 QUANTUM_M = 1e-6
@@ -54,20 +55,50 @@ _DEGENERATE = 1e-7
 #: older layout are never read: they are recomputed under their new key.
 CACHE_LAYOUT = 3
 _CACHE_OPTION = "--cache-dir (or $TERGODIC_CACHE_DIR)"
+#: The kind of a basis entry's ``config.json`` (``tergodic precompute CAPTURE --config`` repeats it).
+BASIS_CONFIG_KIND = "tergodic.basis_config"
 _BITS = 21  # per axis in the packed sort key: 2**21 µm = 2.1 m of extent
 
 
 @dataclass(frozen=True)
-class BasisConfig:
-    """Parameters of a basis; all of them are part of the cache key."""
+class BasisConfig(Config):
+    """Parameters of a basis; all of them are part of the cache key. Saved as the entry's ``config.json``.
+
+    nk : number of eigenpairs. neighbors : neighbours of the robust Laplacian.
+    solver : the eigensolver (:func:`~tergodic_cli.basis.eigensolvers.smallest_eigenpairs`).
+    """
 
     nk: int = 200
     neighbors: int = 30
     solver: str = "lanczos-interior-shift"
 
 
+def load_basis_config(path: str | Path) -> BasisConfig:
+    """Read a basis entry's ``config.json``.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``<cache>/basis/<key>/config.json``.
+
+    Returns
+    -------
+    BasisConfig
+    """
+    from tergodic_cli.config import read_config
+
+    d = read_config(path, BASIS_CONFIG_KIND, "give the config.json of a basis cache entry (see 'tergodic precompute --json')")
+    return BasisConfig.from_dict(d.get("basis"), f"--config {path}: basis")
+
+
 def default_cache_dir() -> Path:
-    """``$TERGODIC_CACHE_DIR``, else ``$XDG_CACHE_HOME/tergodic``, else ``~/.cache/tergodic``."""
+    """The cache root.
+
+    Returns
+    -------
+    Path
+        ``$TERGODIC_CACHE_DIR``, else ``$XDG_CACHE_HOME/tergodic``, else ``~/.cache/tergodic``.
+    """
     if os.environ.get("TERGODIC_CACHE_DIR"):
         return Path(os.environ["TERGODIC_CACHE_DIR"])
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
@@ -75,8 +106,22 @@ def default_cache_dir() -> Path:
 
 
 def canonical_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
-    """Centroid (3,), rotation R (3, 3) whose rows are the canonical axes, and whether
-    the frame is well defined (rigid-motion invariant)."""
+    """The cloud's canonical frame: principal axes, each signed by its third moment.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Metres.
+
+    Returns
+    -------
+    centroid : (3,) float
+        Metres.
+    R : (3, 3) float
+        Rotation whose rows are the canonical axes.
+    invariant : bool
+        Whether the frame is well defined (rigid-motion invariant).
+    """
     centroid = points.mean(axis=0)
     centred = points - centroid
     cov = centred.T @ centred / len(points)
@@ -95,7 +140,23 @@ def canonical_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
 
 
 def geometry_key(points: np.ndarray, cfg: BasisConfig) -> tuple[str, np.ndarray, bool]:
-    """Cache key, the permutation that puts ``points`` into canonical order, and rigid invariance."""
+    """The cache key of a cloud and basis parameters.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Metres.
+    cfg : BasisConfig
+
+    Returns
+    -------
+    key : str
+        Hex digest.
+    order : (n,) int
+        The permutation that puts ``points`` into canonical order.
+    invariant : bool
+        Whether the key is invariant to rigid motions.
+    """
     key, order, invariant, _ = _geometry(points, cfg)
     return key, order, invariant
 
@@ -252,7 +313,7 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
         "format_version": FORMAT_VERSION,
         "layout": CACHE_LAYOUT,
         "key": key,
-        "config": asdict(cfg),
+        "config": cfg.to_dict(),
         "n_points": len(points),
         "rigid_invariant": invariant,
         "h_m": basis.h,
@@ -264,7 +325,7 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
     meta = json.loads(json.dumps(meta))  # what a reader will see
     meta[SIDECAR_SHA] = sidecar_checksum(meta)
     try:
-        _write_entry(entry, arrays, meta)
+        _write_entry(entry, arrays, meta, cfg)
     except OSError as exc:  # a full disk or a vanished permission: one line, nothing partial (see _write_entry)
         from tergodic_cli.errors import os_error
 
@@ -277,7 +338,7 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
     return basis, False
 
 
-def _write_entry(entry: Path, arrays: dict[str, np.ndarray], meta: dict) -> None:
+def _write_entry(entry: Path, arrays: dict[str, np.ndarray], meta: dict, cfg: BasisConfig) -> None:
     """Write into a temporary sibling folder, then rename it into place (atomic)."""
     entry.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{entry.name}.", dir=entry.parent))
@@ -285,6 +346,7 @@ def _write_entry(entry: Path, arrays: dict[str, np.ndarray], meta: dict) -> None
         for name, array in arrays.items():
             np.save(tmp / f"{name}.npy", np.require(array, requirements="C"), allow_pickle=False)
         (tmp / "basis.json").write_text(json.dumps(meta, indent=2) + "\n")
+        write_config(tmp / CONFIG_FILE, BASIS_CONFIG_KIND, basis=cfg)
         if entry.exists():
             shutil.rmtree(entry, ignore_errors=True)
         try:

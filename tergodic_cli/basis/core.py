@@ -46,14 +46,30 @@ class Basis:
         return cKDTree(self.points)
 
     def truncated(self, nk: int) -> "Basis":
-        """The first ``nk`` eigenpairs of this basis (a view, no copy of L)."""
+        """The first eigenpairs of this basis (a view, no copy of L).
+
+        Parameters
+        ----------
+        nk : int
+            Eigenpairs kept, <= ``self.nk``.
+
+        Returns
+        -------
+        Basis
+        """
         require(nk <= self.nk, f"nK = {nk} is larger than the basis ({self.nk} eigenpairs)",
                 f"run 'tergodic precompute CAPTURE --nk {nk}' or use --nk <= {self.nk}")
         return Basis(self.points, self.L, self.mass, self.evals[:nk], self.evecs[:, :nk], self.h, dict(self.meta))
 
 
 def check_geometry(points: np.ndarray) -> None:
-    """Refuse clouds robust_laplacian cannot handle: collinear/coplanar-degenerate or duplicate points."""
+    """Refuse clouds robust_laplacian cannot handle: collinear/coplanar-degenerate or duplicate points.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Metres.
+    """
     centred = points - points.mean(axis=0)
     sv = np.linalg.svd(centred, compute_uv=False)
     require(sv[0] > 0, "all points are identical", "give a cloud that spans a surface")
@@ -104,6 +120,15 @@ def solve_eigenpairs(L: sp.csr_matrix, mass: np.ndarray, nk: int) -> tuple[np.nd
     :mod:`tergodic_cli.basis.eigensolvers`. Eigenvalues agree with ARPACK shift-invert
     (the authors' ``eigsh(L, nK, M, sigma=1e-12)``) to ~1e-12 relative.
 
+    Parameters
+    ----------
+    L : (n, n) sparse
+        The Laplacian in stiffness form (dimensionless cotangent weights).
+    mass : (n,) float
+        Lumped mass M, m².
+    nk : int
+        Eigenpairs wanted.
+
     Returns
     -------
     evals : (nk,) ascending, exactly 0 for each connected component.
@@ -122,7 +147,24 @@ def solve_eigenpairs(L: sp.csr_matrix, mass: np.ndarray, nk: int) -> tuple[np.nd
 
 
 def compute_basis(points: np.ndarray, nk: int, n_neighbors: int, timings: dict | None = None) -> Basis:
-    """Laplacian, eigenpairs and spacing for ``points`` (n, 3) metres."""
+    """Laplacian, eigenpairs and spacing of a cloud.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Metres.
+    nk : int
+        Eigenpairs.
+    n_neighbors : int
+        Neighbours of the robust Laplacian.
+    timings : dict, optional
+        Filled with the stages' times, ms.
+
+    Returns
+    -------
+    Basis
+        L (n, n), mass (n,) m², evals (nk,) 1/m², evecs (n, nk), spacing h in metres.
+    """
     from tergodic_cli.capture.filters import mean_spacing
 
     timings = {} if timings is None else timings

@@ -6,7 +6,8 @@ A capture folder holds:
   (absent for colourless clouds), ``target`` (n,) float64, the per-point target weight p in [0, 1];
 - ``cloud.ply``: the same points and colours, for any point-cloud viewer;
 - ``capture.json``: the sidecar: provenance, units, filters with counts, target rule,
-  target share, spacing h, extent, seed, library versions, and the sha256 of ``cloud.npz``.
+  target share, spacing h, extent, seed, library versions, and the sha256 of ``cloud.npz``;
+- ``config.json``: the configs that made it (``tergodic capture --config CAP/config.json`` repeats it).
 
 The folder is built beside its target and renamed into place when complete.
 ``capture.json`` carries ``sidecar_sha256``, a checksum of its own content, so a stub or
@@ -46,13 +47,23 @@ class Capture:
 
 
 #: The files a capture folder may hold; --overwrite replaces only a folder of these.
-CAPTURE_FILES = frozenset({ARRAYS, "cloud.ply", SIDECAR, "camera_rgb.png"})
+CAPTURE_FILES = frozenset({ARRAYS, "cloud.ply", SIDECAR, "camera_rgb.png", "config.json"})
+#: The kind of a capture's ``config.json``.
+CAPTURE_CONFIG_KIND = "tergodic.capture_config"
 _OUT_FIX = "choose another --out"
 
 
 def check_out_folder(out: str | Path, overwrite: bool) -> None:
     """Refuse an ``--out`` that cannot take a capture, before any work: a file, a folder of
-    other files, an existing capture without ``overwrite``, or an unwritable parent."""
+    other files, an existing capture without ``overwrite``, or an unwritable parent.
+
+    Parameters
+    ----------
+    out : str or Path
+        The capture folder to be.
+    overwrite : bool
+        An existing capture there may be replaced.
+    """
     import os
 
     out = Path(out)
@@ -74,12 +85,32 @@ def check_out_folder(out: str | Path, overwrite: bool) -> None:
     require_writable(out, "--out", sibling=True)
 
 
-def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, extra=None) -> Path:
-    """Write ``capture`` into ``out_dir``; returns the sidecar path.
+def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, extra=None,
+                 config: dict | None = None) -> Path:
+    """Write ``capture`` into ``out_dir``.
 
     The folder is built in a temporary sibling and renamed into place when complete, so an
     error leaves no partial folder and an existing capture untouched (replaced only with
-    ``overwrite``). ``extra(folder)`` may add files (e.g. the camera image) before the rename.
+    ``overwrite``).
+
+    Parameters
+    ----------
+    capture : Capture
+        The cloud, its target and its sidecar ``meta``.
+    out_dir : str or Path
+        The capture folder.
+    overwrite : bool
+        Replace an existing capture folder.
+    extra : callable, optional
+        ``extra(folder)`` adds files (e.g. the camera image) before the rename.
+    config : dict, optional
+        Sections of a loadable ``config.json`` (section name -> config dataclass), written with
+        :data:`CAPTURE_CONFIG_KIND`.
+
+    Returns
+    -------
+    Path
+        The sidecar ``out_dir/capture.json``.
     """
     import os
     import shutil
@@ -105,6 +136,10 @@ def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, 
         write_ply(tmp / "cloud.ply", capture.points, capture.colors)
         if extra is not None:
             extra(tmp)
+        if config is not None:
+            from tergodic_cli.config import CONFIG_FILE, write_config
+
+            write_config(tmp / CONFIG_FILE, CAPTURE_CONFIG_KIND, **config)
         meta = dict(capture.meta)
         meta.pop(SIDECAR_SHA, None)
         meta["arrays"] = {"file": ARRAYS, "sha256": file_sha256(tmp / ARRAYS)}
@@ -144,7 +179,18 @@ def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, 
 
 
 def load_capture(path: str | Path) -> Capture:
-    """Load a capture folder (or its ``capture.json``), verifying the sidecar and its arrays."""
+    """Load a capture folder, verifying the sidecar and its arrays.
+
+    Parameters
+    ----------
+    path : str or Path
+        The capture folder, or its ``capture.json``.
+
+    Returns
+    -------
+    Capture
+        Points (n, 3) m, colours (n, 3) in [0, 1] or None, target p (n,) in [0, 1], and the sidecar.
+    """
     path = Path(path)
     folder = path.parent if path.name == SIDECAR else path
     sidecar = folder / SIDECAR
@@ -183,7 +229,18 @@ def load_capture(path: str | Path) -> Capture:
 
 
 def sidecar_checksum(meta: dict) -> str:
-    """sha256 of the sidecar's content without its own checksum field (canonical JSON)."""
+    """The sidecar's checksum.
+
+    Parameters
+    ----------
+    meta : dict
+        The sidecar's content.
+
+    Returns
+    -------
+    str
+        sha256 (hex) of the content without its own checksum field, as canonical JSON.
+    """
     body = {k: v for k, v in meta.items() if k != SIDECAR_SHA}
     text = json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
     return hashlib.sha256(text.encode()).hexdigest()

@@ -4,11 +4,24 @@ from __future__ import annotations
 
 import numpy as np
 
-VOXEL_RULES = ("fraction", "all")
+VOXEL_RULES = ("fraction", "all", "intensity")
 
 
 def crop_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Passthrough filter: mask (n,) of points inside the axis-aligned box [lo, hi] (metres)."""
+    """Passthrough filter.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Metres.
+    lo, hi : (3,) float
+        Corners of the axis-aligned box, metres.
+
+    Returns
+    -------
+    (n,) bool
+        True for the points inside [lo, hi].
+    """
     return np.all((points >= lo) & (points <= hi), axis=1)
 
 
@@ -16,6 +29,20 @@ def remove_statistical_outliers(points: np.ndarray, nb_neighbors: int, std_ratio
     """Mask (n,) of inliers: a point is an outlier when its mean distance to its
     ``nb_neighbors`` nearest neighbours exceeds mean + ``std_ratio`` * std over the cloud
     (the rule of PCL's StatisticalOutlierRemoval and open3d's remove_statistical_outlier).
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Metres.
+    nb_neighbors : int
+        Neighbours of the mean distance.
+    std_ratio : float
+        Standard deviations above the mean that make an outlier.
+
+    Returns
+    -------
+    (n,) bool
+        True for the inliers.
     """
     from scipy.spatial import cKDTree
 
@@ -27,7 +54,7 @@ def remove_statistical_outliers(points: np.ndarray, nb_neighbors: int, std_ratio
 
 def voxel_downsample(points: np.ndarray, colors: np.ndarray | None, target: np.ndarray,
                      voxel: float, rule: str = "fraction"):
-    """Average points, colours and target membership per voxel.
+    """Average points, colours and target weight per voxel.
 
     The grid is open3d's ``voxel_down_sample`` grid (origin at the bounding-box minimum
     minus half a voxel), so point counts match open3d's exactly. Output is ordered by
@@ -37,10 +64,11 @@ def voxel_downsample(points: np.ndarray, colors: np.ndarray | None, target: np.n
     ----------
     points : (n, 3) float64, metres.
     colors : (n, 3) float64 in [0, 1], or None.
-    target : (n,) bool, target-coloured points.
+    target : (n,) target weight in [0, 1] (bool: target-coloured points).
     voxel : voxel edge length in metres (> 0).
-    rule : ``"fraction"``: p is the share of target points in the voxel;
-        ``"all"``: p is 1 only when every point in the voxel is target (the
+    rule : ``"fraction"`` or ``"intensity"``: p is the mean target weight in the voxel (the share of
+        target points for a bool ``target``);
+        ``"all"``: p is 1 only when every point in the voxel weighs 1 (the
         authors' public code), else 0.
 
     Returns
@@ -63,7 +91,7 @@ def voxel_downsample(points: np.ndarray, colors: np.ndarray | None, target: np.n
     p = mean_of(target.astype(np.float64))
     if rule == "all":
         p = (p >= 1.0).astype(np.float64)
-    elif rule != "fraction":
+    elif rule not in ("fraction", "intensity"):
         raise ValueError(f"unknown voxel rule {rule!r}")
     return mean_of(points), (mean_of(colors) if colors is not None else None), p
 

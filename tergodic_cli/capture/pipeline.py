@@ -7,14 +7,15 @@ voxel rule can give p as the share of target-coloured points in each voxel.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from tergodic_cli.capture.artefact import Capture
+from tergodic_cli.capture.artefact import CAPTURE_CONFIG_KIND, Capture
 from tergodic_cli.capture.filters import VOXEL_RULES, crop_box, mean_spacing, remove_statistical_outliers, voxel_downsample
-from tergodic_cli.capture.segment import parse_target, segment_target
+from tergodic_cli.capture.segment import parse_target, target_weight
+from tergodic_cli.config import Config
 from tergodic_cli.errors import TergodicError, require
 
 MIN_POINTS = 10
@@ -34,8 +35,8 @@ SECONDS_PER_POINT = 2.3e-4
 
 
 @dataclass
-class CaptureConfig:
-    """Everything that determines a capture; saved in ``capture.json``."""
+class CaptureConfig(Config):
+    """Everything that determines a capture; saved in ``capture.json`` and ``config.json``."""
 
     source: str = "synthetic"  # "file" | "synthetic" | "sim" | "realsense" (the last two pass raw arrays)
     path: str | None = None
@@ -45,7 +46,7 @@ class CaptureConfig:
     noise: float = 0.0  # synthetic only: σ (m) of Gaussian noise along the surface normal
     units: str = "m"  # units of the input coordinates: "m" or "mm"
     voxel: float = 0.003  # metres; 0 disables the voxel grid
-    voxel_rule: str = "fraction"
+    voxel_rule: str = "fraction"  # "fraction" | "all" | "intensity" (faint ink weighs in too; the closed loop's)
     crop: tuple[float, float, float, float, float, float] | None = None  # xmin,ymin,zmin,xmax,ymax,zmax (m)
     outliers: tuple[int, float] | None = None  # (nb_neighbors, std_ratio)
     target: str = "red"
@@ -55,6 +56,28 @@ class CaptureConfig:
     allow_empty_target: bool = False  # re-captures of a cleaned object may have no marking left
 
 
+def load_capture_config(path: str | Path) -> tuple[CaptureConfig, dict]:
+    """Read a capture's ``config.json``.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``CAP/config.json``.
+
+    Returns
+    -------
+    cfg : CaptureConfig
+        The pipeline's config.
+    sections : dict
+        The other sections as written (``object`` and ``camera`` of a simulated capture).
+    """
+    from tergodic_cli.config import read_config
+
+    d = read_config(path, CAPTURE_CONFIG_KIND, "give the config.json that 'tergodic capture' wrote beside a capture")
+    cfg = CaptureConfig.from_dict(d.get("capture"), f"--config {path}: capture")
+    return cfg, {k: v for k, v in d.items() if k not in ("kind", "version", "capture")}
+
+
 @dataclass
 class CaptureReport:
     """Counts after each stage, for the printed summary."""
@@ -62,6 +85,15 @@ class CaptureReport:
     stages: list[tuple[str, int]] = field(default_factory=list)
 
     def add(self, name: str, n: int) -> None:
+        """Record a stage.
+
+        Parameters
+        ----------
+        name : str
+            The stage.
+        n : int
+            Points left after it.
+        """
         self.stages.append((name, int(n)))
 
 
@@ -69,8 +101,19 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
                   on_event=None) -> Capture:
     """Run the capture pipeline for ``cfg``.
 
-    ``raw`` bypasses the source (points, colours) for sources that produce arrays
-    themselves (simulated or real cameras). ``on_event(str)`` gets warnings (the size guard).
+    Parameters
+    ----------
+    cfg : CaptureConfig
+    raw : tuple, optional
+        (points (n, 3) m, colours (n, 3) in [0, 1] or None), bypassing the source: for sources that
+        produce arrays themselves (simulated or real cameras).
+    on_event : callable, optional
+        ``on_event(str)`` gets warnings (the size guard); default: stderr.
+
+    Returns
+    -------
+    Capture
+        The filtered cloud, its target weight p (n,) in [0, 1] and the sidecar ``meta``.
     """
     _validate_config(cfg)
     if on_event is None:
@@ -134,14 +177,16 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     colors = colors[keep] if colors is not None else None
     truth = truth[keep] if truth is not None else None
 
-    is_target = segment_target(colors, target_range, len(points))
+    weight = target_weight(colors, target_range, len(points))
+    if cfg.voxel_rule != "intensity":  # the marking only: faint ink (and colour noise on the surface) weighs 0
+        weight = (weight >= 1.0).astype(np.float64)
     if cfg.voxel > 0:
-        points, colors, p = voxel_downsample(points, colors, is_target, cfg.voxel, cfg.voxel_rule)
+        points, colors, p = voxel_downsample(points, colors, weight, cfg.voxel, cfg.voxel_rule)
         report.add(f"voxel {cfg.voxel * 1e3:g} mm", len(points))
     if len(points) > cfg.max_points:  # before the duplicate check and the k-d tree
         on_event(size_warning(len(points), cfg.max_points))
     if cfg.voxel <= 0:
-        p = is_target.astype(np.float64)
+        p = weight
         n_unique = len(np.unique(points, axis=0))
         require(n_unique == len(points), f"the cloud has {len(points) - n_unique} duplicate points",
                 "merge them with a voxel filter (--voxel 0.003) or remove them from the file")
@@ -159,7 +204,7 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
         "units": "m",
         "input_units": cfg.units,
         "provenance": provenance,
-        "config": _config_dict(cfg),
+        "config": cfg.to_dict(),
         "filters": [{"stage": name, "points": n} for name, n in report.stages],
         "counts": {"input": report.stages[0][1], "output": len(points), "target": n_target},
         "target": {
@@ -223,27 +268,54 @@ def _check_extent(points: np.ndarray, units: str, label: str = "") -> None:
 
 
 def size_estimate(n: int) -> str:
-    """What precompute would roughly need for ``n`` points (nK = 200)."""
+    """What precompute would roughly need.
+
+    Parameters
+    ----------
+    n : int
+        Points of the capture.
+
+    Returns
+    -------
+    str
+        Memory and time at nK = 200, e.g. "~1.6 GB and over 28 s".
+    """
     gb, seconds = n * BYTES_PER_POINT / 1e9, n * SECONDS_PER_POINT
     memory = f"~{gb:.1f} GB" if gb >= 1 else f"~{max(gb * 1e3, 1):.0f} MB"
     return f"{memory} and over {seconds / 60:.0f} min" if seconds >= 60 else f"{memory} and over {max(seconds, 1):.0f} s"
 
 
 def size_warning(n: int, limit: int) -> str:
+    """The warning for a capture above the point limit.
+
+    Parameters
+    ----------
+    n : int
+        Points after filtering.
+    limit : int
+        The ``--max-points`` limit.
+
+    Returns
+    -------
+    str
+        One line.
+    """
     return (f"warning: {n:,} points after filtering, above the {limit:,}-point limit: precompute would need "
             f"{size_estimate(n)}; use a coarser --voxel (e.g. 0.003), or --max-points {n} to accept")
 
 
-def _config_dict(cfg: CaptureConfig) -> dict:
-    d = asdict(cfg)
-    for key in ("crop", "outliers"):
-        if d[key] is not None:
-            d[key] = list(d[key])
-    return d
-
-
 def format_report(cap: Capture) -> str:
-    """A readable multi-line summary of a capture."""
+    """A readable summary of a capture.
+
+    Parameters
+    ----------
+    cap : Capture
+
+    Returns
+    -------
+    str
+        Several lines: stages with counts, target share, spacing and extent.
+    """
     m = cap.meta
     lines = ["stage               points"]
     lines += [f"  {f['stage']:<17} {f['points']:>7}" for f in m["filters"]]

@@ -30,9 +30,22 @@ def read_cloud(path: str | Path, drop_invalid: bool = False,
                colour_depth: int | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     """Read a coloured point cloud from ``path`` (format from the extension).
 
-    ``drop_invalid``: keep rows with NaN/inf (the pipeline drops them) instead of refusing.
-    ``colour_depth``: 8 or 16 bits per channel for integer colours whose depth the file
-    does not say (text, NPZ); None reads 0..1 as floats, 0..255 as 8-bit and refuses more.
+    Parameters
+    ----------
+    path : str or Path
+        .ply, .pcd, .xyz/.xyzrgb/.txt or .npz.
+    drop_invalid : bool
+        Keep rows with NaN/inf (the pipeline drops them) instead of refusing.
+    colour_depth : int, optional
+        8 or 16 bits per channel for integer colours whose depth the file does not say (text,
+        NPZ); None reads 0..1 as floats, 0..255 as 8-bit and refuses more.
+
+    Returns
+    -------
+    points : (n, 3) float64
+        In the file's units.
+    colors : (n, 3) float or None
+        In [0, 1]; None for a colourless cloud.
     """
     path = Path(path)
     if colour_depth is not None and colour_depth not in COLOUR_DEPTHS:
@@ -479,7 +492,16 @@ def _lzf_decompress(data: bytes, size: int) -> bytes | None:
 
 
 def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None) -> None:
-    """Write a binary little-endian PLY (double xyz, uchar rgb), the reference clouds' layout."""
+    """Write a binary little-endian PLY (double xyz, uchar rgb), the reference clouds' layout.
+
+    Parameters
+    ----------
+    path : str or Path
+    points : (n, 3) float
+        Metres.
+    colors : (n, 3) float or None
+        In [0, 1].
+    """
     from tergodic_cli.atomic import atomic_path
 
     n = len(points)

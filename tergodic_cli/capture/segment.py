@@ -4,6 +4,10 @@ A target spec is a named colour (``red``, ``green``, ``blue``, ``yellow``,
 ``orange``, ``magenta``, ``cyan``, ``black``, ``white``), ``all`` for uniform
 coverage, or an explicit range ``hsv:H1-H2,SMIN,VMIN`` (hue in degrees, wrapping
 when H1 > H2; saturation and value in [0, 1]).
+
+The target weight of a colour (:func:`target_weight`) is continuous: 1 inside the HSV box, and for
+a colour of the box's hue but paler than SMIN (partly wiped ink blended with the surface), the
+saturation ramp (s - FAINT_S) / (SMIN - FAINT_S), so faint ink still draws the agent.
 """
 
 from __future__ import annotations
@@ -28,6 +32,17 @@ class HsvRange:
     any_hue: bool = False
 
     def contains(self, hsv: np.ndarray) -> np.ndarray:
+        """Which colours are in the range.
+
+        Parameters
+        ----------
+        hsv : (n, 3) float
+            Hue in degrees [0, 360), saturation and value in [0, 1].
+
+        Returns
+        -------
+        (n,) bool
+        """
         h, s, v = hsv[:, 0], hsv[:, 1], hsv[:, 2]
         if self.any_hue:
             hue_ok = np.ones(len(h), dtype=bool)
@@ -37,7 +52,30 @@ class HsvRange:
             hue_ok = (h >= self.hue_lo) | (h <= self.hue_hi)
         return hue_ok & (s >= self.s_min) & (s <= self.s_max) & (v >= self.v_min) & (v <= self.v_max)
 
+    def weight(self, hsv: np.ndarray) -> np.ndarray:
+        """Continuous target weight: 1 inside the box, the saturation ramp below SMIN (module doc).
 
+        Parameters
+        ----------
+        hsv : (n, 3) float
+            Hue (degrees), saturation and value in [0, 1].
+
+        Returns
+        -------
+        (n,) float in [0, 1]
+        """
+        inside = self.contains(hsv)
+        if self.any_hue or self.s_min <= FAINT_S:  # no saturation to ramp on (black, white, grey ranges)
+            return inside.astype(np.float64)
+        pale = HsvRange(self.hue_lo, self.hue_hi, FAINT_S, self.s_min, self.v_min, self.v_max).contains(hsv)
+        ramp = np.clip((hsv[:, 1] - FAINT_S) / (self.s_min - FAINT_S), 0.0, 1.0)
+        return np.where(inside, 1.0, np.where(pale, ramp, 0.0))
+
+
+#: Saturation at and below which a colour carries no ink: above a plain surface's (glazed ceramic
+#: 0.07, white 0) and its 8-bit shading noise. Red ink blended to m with the glaze weighs in from
+#: m ~ 0.08, where its hue enters the red band (docs/sim_camera.md).
+FAINT_S = 0.1
 _CHROMATIC = {"red": 0.0, "orange": 30.0, "yellow": 60.0, "green": 120.0, "cyan": 180.0, "blue": 240.0, "magenta": 300.0}
 HUE_TOLERANCE_DEG = 20.0
 NAMED = {name: HsvRange((c - HUE_TOLERANCE_DEG) % 360.0, (c + HUE_TOLERANCE_DEG) % 360.0, s_min=0.5, v_min=0.25)
@@ -47,7 +85,18 @@ NAMED["white"] = HsvRange(0.0, 360.0, s_max=0.2, v_min=0.8, any_hue=True)
 
 
 def parse_target(spec: str) -> HsvRange | None:
-    """Parse a ``--target`` spec; ``None`` means ``all`` (uniform target)."""
+    """Parse a ``--target`` spec.
+
+    Parameters
+    ----------
+    spec : str
+        A colour name, ``hsv:H1-H2,SMIN,VMIN`` or ``all``.
+
+    Returns
+    -------
+    HsvRange or None
+        None means ``all`` (uniform target).
+    """
     spec = spec.strip().lower()
     if spec == "all":
         return None
@@ -74,7 +123,18 @@ def parse_target(spec: str) -> HsvRange | None:
 
 
 def rgb_to_hsv(rgb: np.ndarray) -> np.ndarray:
-    """Vectorised RGB in [0, 1] (n, 3) -> HSV (n, 3) with hue in degrees [0, 360)."""
+    """Vectorised RGB -> HSV.
+
+    Parameters
+    ----------
+    rgb : (n, 3) float
+        In [0, 1].
+
+    Returns
+    -------
+    (n, 3) float
+        Hue in degrees [0, 360), saturation and value in [0, 1].
+    """
     r, g, b = rgb[:, 0], rgb[:, 1], rgb[:, 2]
     cmax = rgb.max(axis=1)
     cmin = rgb.min(axis=1)
@@ -92,10 +152,45 @@ def rgb_to_hsv(rgb: np.ndarray) -> np.ndarray:
 
 
 def segment_target(colors: np.ndarray | None, target: HsvRange | None, n: int) -> np.ndarray:
-    """Boolean mask (n,) of target-coloured points; every point when ``target`` is None (``all``)."""
+    """The target-coloured points (weight 1).
+
+    Parameters
+    ----------
+    colors : (n, 3) float or None
+        RGB in [0, 1].
+    target : HsvRange or None
+        None (``all``) selects every point.
+    n : int
+        Number of points.
+
+    Returns
+    -------
+    (n,) bool
+    """
+    return target_weight(colors, target, n) >= 1.0
+
+
+def target_weight(colors: np.ndarray | None, target: HsvRange | None, n: int) -> np.ndarray:
+    """Target weight in [0, 1] of each colour: 1 on the marking, a ramp on faint ink, 0 elsewhere.
+
+    A saturated marking on a plain surface gets exactly the binary mask of :func:`segment_target`.
+
+    Parameters
+    ----------
+    colors : (n, 3) float or None
+        RGB in [0, 1].
+    target : HsvRange or None
+        None (``all``): every point weighs 1.
+    n : int
+        Number of points.
+
+    Returns
+    -------
+    (n,) float
+    """
     if target is None:
-        return np.ones(n, dtype=bool)
+        return np.ones(n)
     if colors is None:
         raise TergodicError("the cloud has no colours, so no target can be segmented",
                             "give a coloured cloud, or pass --target all for uniform coverage")
-    return target.contains(rgb_to_hsv(colors))
+    return target.weight(rgb_to_hsv(colors))

@@ -88,7 +88,13 @@ COVERAGE_OBJECTS: tuple[TestObject, ...] = (
 
 
 def test_objects() -> list[TestObject]:
-    """The (object, marking, noise σ in metres) combinations of the coverage tests and benchmark."""
+    """The combinations of the coverage tests and benchmark.
+
+    Returns
+    -------
+    list of TestObject
+        (object, marking, noise σ in metres).
+    """
     return list(COVERAGE_OBJECTS)
 
 
@@ -130,7 +136,18 @@ def generate_synthetic(kind: str, marking: str = "X", seed: int = 0, spacing: fl
 
 
 def check_noise(noise: float) -> float:
-    """``noise`` as a float σ in metres; a one-line :class:`TergodicError` unless 0 ≤ σ < MAX_NOISE."""
+    """Check a noise level.
+
+    Parameters
+    ----------
+    noise : float
+        σ in metres.
+
+    Returns
+    -------
+    float
+        σ; a one-line :class:`TergodicError` unless 0 ≤ σ < MAX_NOISE.
+    """
     try:
         noise = float(noise)
     except (TypeError, ValueError):  # e.g. a string in a sweep grid

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
+from tergodic_cli.config import Config
 from tergodic_cli.errors import TergodicError, require
 
 DIFFUSIONS = ("carry", "source")
@@ -20,8 +21,8 @@ MIN_NEIGHBORS = 10
 
 
 @dataclass
-class ExploreConfig:
-    """Everything that determines an exploration run; saved in ``summary.json["config"]``.
+class ExploreConfig(Config):
+    """Everything that determines an exploration run; saved in ``summary.json["config"]`` and a run's ``config.json``.
 
     Attributes
     ----------
@@ -81,25 +82,6 @@ class ExploreConfig:
     gain_weight: float = 1.0
     gain_width: float = 1.5
 
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["normal_hint"] = list(self.normal_hint)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "ExploreConfig":
-        """The config :meth:`to_dict` wrote (a run's ``config.json``); unknown keys are refused."""
-        from dataclasses import fields
-
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        require(not unknown, f"the explore config has unknown keys: {', '.join(unknown)}",
-                "use a config.json written by 'tergodic explore', or remove them")
-        d = dict(d)
-        if "normal_hint" in d:
-            d["normal_hint"] = tuple(d["normal_hint"])
-        return cls(**d)
-
     @property
     def footprint_epsilon(self) -> float:
         """ε in 1/m actually used."""
@@ -112,6 +94,16 @@ def parse_alpha(text: str | float) -> list[tuple[int, float]]:
     "10" -> [(0, 10.0)]; "50:10@200" -> [(0, 50.0), (200, 10.0)];
     "100:50@100:10@300" -> [(0, 100.0), (100, 50.0), (300, 10.0)].
     Steps count from 0, so "@200" takes effect for the 201st step.
+
+    Parameters
+    ----------
+    text : str or float
+        α, or a schedule "A0:A1@S1[:A2@S2...]".
+
+    Returns
+    -------
+    list of (int, float)
+        (first step, α), first steps ascending from 0.
     """
     fix = "use a positive number, or a schedule like 50:10@200 (α = 50 for 200 steps, then 10)"
     parts = str(text).strip().split(":")
@@ -133,7 +125,12 @@ def parse_alpha(text: str | float) -> list[tuple[int, float]]:
 
 
 def validate_config(cfg: ExploreConfig) -> None:
-    """Refuse impossible settings with a one-line problem; fix message."""
+    """Refuse impossible settings with a one-line problem; fix message.
+
+    Parameters
+    ----------
+    cfg : ExploreConfig
+    """
     require(int(cfg.steps) >= 1, f"--steps must be >= 1, got {cfg.steps}", "e.g. --steps 1000")
     parse_alpha(cfg.alpha)
     require(int(cfg.nk) >= 1, f"--nk must be >= 1, got {cfg.nk}", "e.g. --nk 200")

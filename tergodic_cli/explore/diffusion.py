@@ -23,7 +23,18 @@ H0 = 0.0025
 
 
 def time_step(alpha: float) -> float:
-    """δt = α h₀² (eq. 21 with a fixed reference spacing h₀ = :data:`H0`), m²."""
+    """The diffusion time step δt = α h₀² (eq. 21 with a fixed reference spacing h₀ = :data:`H0`).
+
+    Parameters
+    ----------
+    alpha : float
+        The diffusion scalar α.
+
+    Returns
+    -------
+    float
+        δt, m².
+    """
     return float(alpha) * H0 ** 2
 
 
@@ -35,19 +46,58 @@ class SpectralDiffusion:
         self.set_dt(dt)
 
     def set_dt(self, dt: float) -> None:
+        """Change the time step.
+
+        Parameters
+        ----------
+        dt : float
+            δt, m².
+        """
         self.dt = float(dt)
         self.decay = np.exp(-self.evals * self.dt)
 
     def coefficients(self, u: np.ndarray) -> np.ndarray:
-        """Spectral coefficients Φᵀ M u (nK,)."""
+        """Spectral coefficients Φᵀ M u.
+
+        Parameters
+        ----------
+        u : (n,) float
+            A field on the cloud.
+
+        Returns
+        -------
+        (nK,) float
+        """
         return self.evecs.T @ (self.mass * u)
 
     def apply(self, u: np.ndarray) -> np.ndarray:
-        """One step of eq. 19 on ``u`` (n,)."""
+        """One step of eq. 19.
+
+        Parameters
+        ----------
+        u : (n,) float
+
+        Returns
+        -------
+        (n,) float
+            Φ e^{-λδt} Φᵀ M u.
+        """
         return self.evecs @ (self.decay * self.coefficients(u))
 
     def kernel(self, i: int, t: float | None = None) -> np.ndarray:
-        """Heat kernel k_t(·, x_i) (n,): the field at time ``t`` (default δt) from a unit mass at point i."""
+        """Heat kernel k_t(·, x_i): the field at time ``t`` from a unit mass at point i.
+
+        Parameters
+        ----------
+        i : int
+            Point index.
+        t : float, optional
+            m²; default δt.
+
+        Returns
+        -------
+        (n,) float
+        """
         decay = self.decay if t is None else np.exp(-self.evals * float(t))
         return self.evecs @ (decay * self.evecs[i])
 
@@ -66,5 +116,15 @@ class ImplicitDiffusion:
                         options={"SymmetricMode": True})
 
     def apply(self, u: np.ndarray) -> np.ndarray:
-        """One implicit step on ``u`` (n,)."""
+        """One implicit step.
+
+        Parameters
+        ----------
+        u : (n,) float
+
+        Returns
+        -------
+        (n,) float
+            (M + δt L)⁻¹ M u.
+        """
         return self._lu.solve(self.mass * u)

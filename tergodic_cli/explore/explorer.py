@@ -83,14 +83,38 @@ class CloudIndex:
 
 
 def cloud_index(points: np.ndarray) -> CloudIndex:
-    """The :class:`CloudIndex` of ``points`` (n, 3), built once per array."""
+    """The :class:`CloudIndex` of a cloud, built once per array.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Metres.
+
+    Returns
+    -------
+    CloudIndex
+    """
     return _cached(_TREES, points, lambda: CloudIndex(points))
 
 
 def surface_parts(points: np.ndarray, h: float) -> np.ndarray:
-    """(n,) label of the part of the cloud each point is on, in the cloud's order: points closer
-    than 2 x SURFACE_REACH h are joined, so an agent that stays within SURFACE_REACH h of the
-    data can cross between any two points of one part and no others (built once per array)."""
+    """The part of the cloud each point is on (built once per array).
+
+    Points closer than 2 x SURFACE_REACH h are joined, so an agent that stays within
+    SURFACE_REACH h of the data can cross between any two points of one part and no others.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Metres.
+    h : float
+        The cloud's spacing, metres.
+
+    Returns
+    -------
+    (n,) int
+        Part labels, in the cloud's order.
+    """
 
     def build():
         from scipy.sparse import coo_matrix
@@ -158,7 +182,21 @@ class FieldSet:
 
 
 def field_set(points: np.ndarray, mass: np.ndarray, h: float) -> FieldSet:
-    """The :class:`FieldSet` of a cloud (built once per array)."""
+    """The :class:`FieldSet` of a cloud (built once per array).
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Metres.
+    mass : (n,) float
+        Lumped mass, m².
+    h : float
+        Spacing, metres.
+
+    Returns
+    -------
+    FieldSet
+    """
     return _cached(_FIELDS, points, lambda: FieldSet(points, mass, h))
 
 
@@ -315,8 +353,15 @@ class Explorer:
     def set_target(self, target: np.ndarray, reset_coverage: bool = False) -> None:
         """Use a new target p (n,) from a re-capture; the basis is unchanged.
 
-        Coverage is kept unless ``reset_coverage``; the heat restarts from the new p̄ (eq. 5) and
-        the reference heat p̂ of ``residual_ref`` is re-taken after the next step.
+        The heat restarts from the new p̄ (eq. 5) and the reference heat p̂ of ``residual_ref``
+        is re-taken after the next step.
+
+        Parameters
+        ----------
+        target : (n,) float
+            p in [0, 1], in the cloud's order.
+        reset_coverage : bool
+            Start the coverage from zero (else it is kept).
         """
         p = np.asarray(target, dtype=np.float64)
         n = len(self.points)
@@ -460,9 +505,18 @@ class Explorer:
         ``coeffs`` is None when u has no spectral form, ``--integrator implicit``). s uses the
         running normaliser of the last step, so it equals :attr:`source` up to round-off.
 
-        ``out``: arrays to fill instead, ``(coverage (n,), source (n,), coeffs (nK,) or None,
-        residual (n,))``; coverage and source may be float32 (rounded as ``astype`` would),
-        which saves the run log a conversion pass.
+        Parameters
+        ----------
+        out : tuple, optional
+            Arrays to fill instead, ``(coverage (n,), source (n,), coeffs (nK,) or None,
+            residual (n,))``; coverage and source may be float32 (rounded as ``astype`` would),
+            which saves the run log a conversion pass.
+
+        Returns
+        -------
+        coverage, source : (n,) float
+        coeffs : (nK,) float or None
+        residual : (n,) float
         """
         n = len(self.points)
         if out is None:
@@ -490,18 +544,41 @@ class Explorer:
         return coverage, source, coeffs, residual
 
     def heat_at(self, idx: np.ndarray) -> np.ndarray:
-        """u at the cloud points ``idx`` (m,) exactly as the agents' gradient fits see it, O(m nK)."""
+        """The heat exactly as the agents' gradient fits see it, O(m nK).
+
+        Parameters
+        ----------
+        idx : (m,) int
+            Cloud point indices.
+
+        Returns
+        -------
+        (m,) float
+            u at those points.
+        """
         idx = self._rank[self._field.rep[np.asarray(idx, dtype=np.int64).ravel()]]
         return np.array([K.heat_at(self._phi, self._pf, self._sp, self._fs, j, self._mode, self._u_full)
                          for j in idx])
 
     def metrics(self) -> dict:
-        """{"ergodicity", "residual_ref", "touched_fraction"} after the last step (see docs/explore.md):
-        the neutral score of :func:`metrics.coverage_score` and the authors' residual."""
+        """The metrics after the last step (see docs/explore.md).
+
+        Returns
+        -------
+        dict
+            ``ergodicity`` and ``touched_fraction`` (the neutral score of
+            :func:`metrics.coverage_score`) and ``residual_ref`` (the authors' residual), floats.
+        """
         return dict(self._metrics)
 
     def score(self) -> dict:
-        """The neutral score so far: ergodicity, touched_fraction, off_surface_fraction, step_max_m."""
+        """The neutral score so far.
+
+        Returns
+        -------
+        dict
+            ``ergodicity``, ``touched_fraction``, ``off_surface_fraction`` and ``step_max_m`` (metres).
+        """
         return self._score.metrics()
 
     @property

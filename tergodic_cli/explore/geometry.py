@@ -58,7 +58,18 @@ class Primitive:
 
 
 def conformal_rows(points: np.ndarray) -> np.ndarray:
-    """Rows w_i = (x, y, z, -1, -½|x|²) of eq. 25 for ``points`` (k, 3); returns (k, 5)."""
+    """The conformal rows of eq. 25.
+
+    Parameters
+    ----------
+    points : (k, 3) float
+        Metres.
+
+    Returns
+    -------
+    (k, 5) float
+        Rows w_i = (x, y, z, -1, -½|x|²).
+    """
     w = np.empty((len(points), 5))
     w[:, :3] = points
     w[:, 3] = -1.0
@@ -67,9 +78,17 @@ def conformal_rows(points: np.ndarray) -> np.ndarray:
 
 
 def fit_primitive(points: np.ndarray) -> Primitive:
-    """Least-squares plane or sphere through ``points`` (k, 3), k >= 4 (eqs. 23-26).
+    """Least-squares plane or sphere through points (eqs. 23-26).
 
-    Returns a :class:`Primitive` in the input frame (metres).
+    Parameters
+    ----------
+    points : (k, 3) float
+        Metres, k >= 4.
+
+    Returns
+    -------
+    Primitive
+        In the input frame (metres).
     """
     centroid = points.sum(axis=0) / len(points)
     y = points - centroid
@@ -110,6 +129,19 @@ def project_onto(prim: Primitive, x: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
     For a sphere the normal points away from the centre; for a plane it is the fitted
     normal. Orientation is the caller's business (see :func:`orient`).
+
+    Parameters
+    ----------
+    prim : Primitive
+    x : (3,) float
+        Metres.
+
+    Returns
+    -------
+    x_proj : (3,) float
+        Metres.
+    normal : (3,) float
+        Unit.
     """
     if prim.kind == "plane":
         n = prim.normal
@@ -123,12 +155,32 @@ def project_onto(prim: Primitive, x: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 def orient(normal: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """``normal`` flipped, if needed, to have a non-negative dot product with ``reference``."""
+    """``normal`` flipped, if needed, to have a non-negative dot product with ``reference``.
+
+    Parameters
+    ----------
+    normal, reference : (3,) float
+
+    Returns
+    -------
+    (3,) float
+    """
     return -normal if normal @ reference < 0 else normal
 
 
 def tangent_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors t1, t2 with (t1, t2, normal) a right-handed orthonormal frame."""
+    """A tangent frame.
+
+    Parameters
+    ----------
+    normal : (3,) float
+        Unit.
+
+    Returns
+    -------
+    t1, t2 : (3,) float
+        Unit vectors with (t1, t2, normal) a right-handed orthonormal frame.
+    """
     # Cross with the world axis least aligned with the normal: never degenerate.
     # (Written out: np.cross costs ~30 µs per call, a real share of an explorer step.)
     nx, ny, nz = float(normal[0]), float(normal[1]), float(normal[2])
@@ -146,13 +198,42 @@ def tangent_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def normal_line(point: np.ndarray, normal: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """Points point + s·normal of the line L_a⊥ (eq. 28) for parameters ``s`` (m,); returns (m, 3)."""
+    """Points of the normal line L_a⊥ (eq. 28).
+
+    Parameters
+    ----------
+    point : (3,) float
+        Metres.
+    normal : (3,) float
+        Unit.
+    s : (m,) float
+        Line parameters, metres.
+
+    Returns
+    -------
+    (m, 3) float
+        point + s·normal.
+    """
     return point[None, :] + np.asarray(s, dtype=float)[:, None] * normal[None, :]
 
 
 def tangent_distances(points: np.ndarray, origin: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """Distances (k,) from ``origin`` to ``points`` (k, 3) projected onto the tangent plane
-    through ``origin`` with unit ``normal`` (eqs. 29 and 31), metres."""
+    """Distances in the tangent plane (eqs. 29 and 31).
+
+    Parameters
+    ----------
+    points : (k, 3) float
+        Metres.
+    origin : (3,) float
+        Metres.
+    normal : (3,) float
+        Unit normal of the plane through ``origin``.
+
+    Returns
+    -------
+    (k,) float
+        Distances from ``origin`` to the projected points, metres.
+    """
     d = points - origin
     off = d @ normal
     r2 = np.einsum("ij,ij->i", d, d) - off * off

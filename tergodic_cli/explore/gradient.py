@@ -19,20 +19,46 @@ _DEGREES = np.array([0, 1, 1, 2, 2, 2, 3, 3, 3, 3], dtype=float)
 
 
 def cubic_design(uv: np.ndarray) -> np.ndarray:
-    """Monomials (k, 10) of the cubic above at tangent coordinates ``uv`` (k, 2)."""
+    """Monomials of the cubic above.
+
+    Parameters
+    ----------
+    uv : (k, 2) float
+        Tangent coordinates, metres.
+
+    Returns
+    -------
+    (k, 10) float
+    """
     u, v = uv[:, 0], uv[:, 1]
     uu, vv, uv_ = u * u, v * v, u * v
     return np.column_stack([np.ones_like(u), u, v, uu, uv_, vv, uu * u, uu * v, u * vv, vv * v])
 
 
 def fit_cubic(uv: np.ndarray, values: np.ndarray, weights: np.ndarray | None = None, degree: int = 3) -> np.ndarray:
-    """Weighted least-squares cubic coefficients (10,) for samples ``values`` (k,) at ``uv`` (k, 2) metres.
+    """Weighted least-squares cubic through samples on a tangent patch.
 
     Coordinates are scaled by the patch radius before solving so the normal equations stay
     well conditioned; the returned coefficients are for unscaled (metre) coordinates. With
     fewer than 10 well-placed samples the minimum-norm solution is returned. ``degree=1``
     fits a plane instead (the higher coefficients are zero): the safe choice when the
     evaluation point lies outside the samples, where a cubic extrapolates wildly.
+
+    Parameters
+    ----------
+    uv : (k, 2) float
+        Tangent coordinates, metres.
+    values : (k,) float
+        Samples.
+    weights : (k,) float, optional
+        Least-squares weights; None = 1.
+    degree : int
+        3 (cubic) or 1 (plane).
+
+    Returns
+    -------
+    (10,) float
+        Coefficients for metre coordinates.
     """
     rho = float(np.sqrt(np.max(np.einsum("ij,ij->i", uv, uv)))) if len(uv) else 0.0
     if rho == 0.0:
@@ -56,7 +82,19 @@ def fit_cubic(uv: np.ndarray, values: np.ndarray, weights: np.ndarray | None = N
 
 
 def cubic_gradient(coef: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Analytic gradient (k, 2) = (∂f/∂u, ∂f/∂v) of the cubic ``coef`` (10,) at ``uv`` (k, 2)."""
+    """Analytic gradient of a cubic.
+
+    Parameters
+    ----------
+    coef : (10,) float
+    uv : (k, 2) float
+        Metres.
+
+    Returns
+    -------
+    (k, 2) float
+        (∂f/∂u, ∂f/∂v), per metre.
+    """
     c = coef
     u, v = uv[:, 0], uv[:, 1]
     du = c[1] + 2 * c[3] * u + c[4] * v + 3 * c[6] * u * u + 2 * c[7] * u * v + c[8] * v * v
@@ -65,5 +103,16 @@ def cubic_gradient(coef: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 
 def cubic_value(coef: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Values (k,) of the cubic ``coef`` at ``uv`` (k, 2)."""
+    """Values of a cubic.
+
+    Parameters
+    ----------
+    coef : (10,) float
+    uv : (k, 2) float
+        Metres.
+
+    Returns
+    -------
+    (k,) float
+    """
     return cubic_design(uv) @ coef

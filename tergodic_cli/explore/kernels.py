@@ -27,35 +27,23 @@ step, until the footprint leaves it: only then is its threshold final and worth 
 The spectral coefficients of the injected source s/∫s follow in O(nK); the heat u = Φ a + s̄
 is evaluated only at the agents' n_N neighbours. A full recompute (:func:`resync`) every K
 steps bounds the round-off of the running sums.
-
-Without numba the same functions run as plain Python: correct, but about 100x slower.
 """
 
 from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 
-try:  # numba is a declared dependency; the fallback keeps the library importable without it
-    import numba
 
-    def njit(fn):
-        return numba.njit(cache=True, nogil=True)(fn)
-
-    HAVE_NUMBA = True
-except ImportError:  # pragma: no cover - exercised only where numba is missing
-    def njit(fn):
-        return fn
-
-    HAVE_NUMBA = False
+def njit(fn):
+    return numba.njit(cache=True, nogil=True)(fn)
 
 
 def _make_prefetch():
     """``prefetch(A, i, q)``: ask the CPU to start loading the cache line of A[i, q] (A a 2-D
-    float64 array) and go on without waiting for it. A no-op without numba."""
-    if not HAVE_NUMBA:
-        return lambda A, i, q: None
+    float64 array) and go on without waiting for it."""
     from llvmlite import ir
     from numba.core import cgutils, types
     from numba.extending import intrinsic

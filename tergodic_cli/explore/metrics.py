@@ -12,13 +12,38 @@ import numpy as np
 
 
 def footprint(r: np.ndarray, epsilon: float) -> np.ndarray:
-    """Gaussian RBF footprint φ(r) = exp(-ε² r²) (eq. 30); ``r`` in metres, ε in 1/m."""
+    """Gaussian RBF footprint φ(r) = exp(-ε² r²) (eq. 30).
+
+    Parameters
+    ----------
+    r : array of float
+        Distances, metres.
+    epsilon : float
+        ε, 1/m.
+
+    Returns
+    -------
+    array of float
+        φ(r) in (0, 1], shaped like ``r``.
+    """
     r = np.asarray(r, dtype=float)
     return np.exp(-(epsilon * epsilon) * (r * r))
 
 
 def normalise(f: np.ndarray, mass: np.ndarray) -> np.ndarray:
-    """``f`` scaled to unit mass, f / ∫f with ∫f = Σ M_i f_i (eq. 2); zeros stay zeros."""
+    """``f`` scaled to unit mass, f / ∫f with ∫f = Σ M_i f_i (eq. 2); zeros stay zeros.
+
+    Parameters
+    ----------
+    f : (n,) float
+    mass : (n,) float
+        Lumped mass, m².
+
+    Returns
+    -------
+    (n,) float
+        1/m².
+    """
     total = float(mass @ f)
     return f / total if total > 0 else np.zeros_like(f, dtype=float)
 
@@ -27,8 +52,24 @@ def source_term(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray, norm: str
     """s = max(p̄ - c̄, 0)² (eq. 1) with p̄ the target normalised to unit mass.
 
     ``norm`` "cloud": c̄ = c̃ / ∫_Ω c̃, the raw coverage normalised over the whole cloud (eq. 2);
-    "target": c̄ = c̃ / ∫_T c̃ over the target's support T = {p > 0} (the explorer's default, see
-    docs/explore.md), so that coverage falling beside the target does not count towards it.
+    "target": c̄ = c̃ / ∫_T c̃ over the target's support T = {p > 0}, so that coverage falling
+    beside the target does not count towards it (docs/explore.md).
+
+    Parameters
+    ----------
+    p : (n,) float
+        Target weight in [0, 1].
+    coverage : (n,) float
+        Raw coverage c̃.
+    mass : (n,) float
+        Lumped mass, m².
+    norm : str
+        "cloud" or "target".
+
+    Returns
+    -------
+    (n,) float
+        s, 1/m⁴.
     """
     if norm == "target":
         on_target = np.where(np.asarray(p) > 0, coverage, 0.0)
@@ -45,6 +86,20 @@ def ergodicity(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray) -> float:
     Units 1/m (a density difference in L2 on the surface); it is √∫s of the source with the
     cloud's normalisation. Not the reported score: that is :func:`coverage_score` (unit masses in
     plain sums, dimensionless), which compares any trajectory with any other.
+
+    Parameters
+    ----------
+    p : (n,) float
+        Target weight.
+    coverage : (n,) float
+        Raw coverage c̃.
+    mass : (n,) float
+        Lumped mass, m².
+
+    Returns
+    -------
+    float
+        1/m.
     """
     e = np.maximum(normalise(p, mass) - normalise(coverage, mass), 0.0)
     return float(np.sqrt(mass @ (e * e)))
@@ -53,8 +108,20 @@ def ergodicity(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray) -> float:
 def residual_ref(first_heat: np.ndarray, coverage: np.ndarray) -> float:
     """The authors' residual: ‖p̂ · [c̃ = 0]‖₂ / ‖p̂‖₂ with p̂ = u₁ / Σu₁ (plain sums and norms).
 
-    ``first_heat`` is the heat u after the first step; [c̃ = 0] marks points the footprint
-    never reached. Raw, unnormalised coverage makes any touched point count as done.
+    [c̃ = 0] marks points the footprint never reached. Raw, unnormalised coverage makes any
+    touched point count as done.
+
+    Parameters
+    ----------
+    first_heat : (n,) float
+        The heat u after the first step.
+    coverage : (n,) float
+        Raw coverage c̃.
+
+    Returns
+    -------
+    float
+        Dimensionless, in [0, 1].
     """
     p_hat = first_heat / first_heat.sum()
     untouched = coverage == 0
@@ -62,7 +129,19 @@ def residual_ref(first_heat: np.ndarray, coverage: np.ndarray) -> float:
 
 
 def touched_fraction(p: np.ndarray, coverage: np.ndarray) -> float:
-    """Share of target points (p > 0) whose coverage is > 0."""
+    """Share of target points (p > 0) whose coverage is > 0.
+
+    Parameters
+    ----------
+    p : (n,) float
+        Target weight.
+    coverage : (n,) float
+
+    Returns
+    -------
+    float
+        In [0, 1].
+    """
     target = p > 0
     return float(np.count_nonzero(coverage[target] > 0) / max(np.count_nonzero(target), 1))
 
@@ -144,7 +223,15 @@ class CoverageScore:
         self.set_target(target, index)
 
     def set_target(self, target: np.ndarray, index) -> None:
-        """A new target p (a re-capture): the coverage so far is kept, touched is re-counted."""
+        """A new target p (a re-capture): the coverage so far is kept, touched is re-counted.
+
+        Parameters
+        ----------
+        target : (n,) float
+            p in [0, 1].
+        index : CloudIndex
+            The cloud's index (:func:`~tergodic_cli.explore.explorer.cloud_index`).
+        """
         p = np.asarray(target, dtype=np.float64)[index.order]
         self._tlist = np.flatnonzero(p > 0)
         self._target = (p > 0).astype(np.int8)
@@ -152,7 +239,13 @@ class CoverageScore:
         self._ss[self._K.SS_TOUCHED] = float(np.count_nonzero(self._touched[self._tlist]))
 
     def add(self, positions: np.ndarray) -> None:
-        """Score one step: the agents' positions (N, 3), metres."""
+        """Score one step.
+
+        Parameters
+        ----------
+        positions : (N, 3) float
+            The agents' positions, metres.
+        """
         K, ss = self._K, self._ss
         has_prev = ss[K.SS_N] > 0
         for i, x in enumerate(positions):
@@ -161,7 +254,13 @@ class CoverageScore:
             self._prev[i] = x
 
     def metrics(self) -> dict:
-        """{"ergodicity", "touched_fraction", "off_surface_fraction", "step_max_m"} so far."""
+        """The score so far.
+
+        Returns
+        -------
+        dict
+            ``ergodicity`` (dimensionless), ``touched_fraction``, ``off_surface_fraction``, ``step_max_m`` (metres).
+        """
         K, ss = self._K, self._ss
         n = max(ss[K.SS_N], 1.0)
         return {"ergodicity": K.score_epsilon(self._cov, self._tlist, self._pplain, ss) if ss[K.SS_N] else 1.0,

@@ -33,11 +33,14 @@ def _cached(dispatcher) -> bool:
 
 
 def explorer_kernels_cached() -> bool:
-    """Whether the explorer's step kernel (the bulk of the compile) is in numba's disk cache."""
+    """Whether the explorer's step kernel (the bulk of the compile) is in numba's disk cache.
+
+    Returns
+    -------
+    bool
+    """
     from tergodic_cli.explore import kernels
 
-    if not kernels.HAVE_NUMBA:
-        return True  # plain Python: nothing to compile
     return _cached(kernels.step_kernel)
 
 
@@ -75,11 +78,20 @@ def compile_explorer(say: Callable[[str], None] | None = None) -> float:
 
     A few steps of a tiny explorer take every kernel through the paths a run uses: the spectral and
     the implicit step, the robot's deposits and resets, the logged cloud fields and the heat.
-    ``say`` gets :data:`COLD_LINE` first when the disk cache is cold.
+
+    Parameters
+    ----------
+    say : callable, optional
+        Gets :data:`COLD_LINE` first when the disk cache is cold.
+
+    Returns
+    -------
+    float
+        Seconds spent.
     """
     from tergodic_cli.explore import ExploreConfig, Explorer, kernels
 
-    if not kernels.HAVE_NUMBA or _compiled_here():
+    if _compiled_here():
         return 0.0
     if say is not None and not explorer_kernels_cached():
         say(COLD_LINE)

@@ -1,10 +1,11 @@
-"""The robot stage's configuration (saved in summary.json beside the explorer's)."""
+"""The robot stage's configuration (saved in summary.json and config.json beside the explorer's)."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 
+from tergodic_cli.config import Config
 from tergodic_cli.errors import require
 from tergodic_cli.robot.controller import ControllerGains
 from tergodic_cli.robot.safety import SafetyConfig
@@ -34,8 +35,8 @@ class SpongeSpec:
 
 
 @dataclass
-class RobotConfig:
-    """Everything that determines a robot run.
+class RobotConfig(Config):
+    """Everything that determines a robot run; saved in a run's ``config.json`` (``robot_config``).
 
     backend : "pybullet" (real backends come later behind the same Arm/WrenchSensor protocols).
     force : desired contact force F_d along the tool axis, N.
@@ -105,16 +106,6 @@ class RobotConfig:
     def substeps(self) -> int:
         """Control steps per explorer step."""
         return int(round(self.explore_dt / self.physics_dt))
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["gains"] = self.gains.to_dict()
-        d["safety"] = self.safety.to_dict()
-        d["object_pose"] = list(self.object_pose) if self.object_pose is not None else None
-        d["picture_q"] = list(self.picture_q)
-        d["contact_threshold"] = self.contact_threshold
-        d["substeps"] = self.substeps
-        return d
 
     def with_(self, **changes) -> "RobotConfig":
         return replace(self, **changes)

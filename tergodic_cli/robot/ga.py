@@ -142,9 +142,21 @@ def line_transform(T: np.ndarray, d: np.ndarray, m: np.ndarray) -> tuple[np.ndar
 
 
 def tool_rotation(d: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation [x, y, z] with z = d and x the part of x_ref perpendicular to d.
+    """The tool's rotation for a line direction.
 
     Falls back to base +z, then +y, when x_ref is (nearly) parallel to d.
+
+    Parameters
+    ----------
+    d : (3,) float
+        Unit tool axis (into the surface), base frame.
+    x_ref : (3,) float
+        Reference for the tool's x-axis.
+
+    Returns
+    -------
+    (3, 3) float
+        Rotation [x, y, z] with z = d and x the part of x_ref perpendicular to d.
     """
     z = np.asarray(d, dtype=float)
     z = z / np.linalg.norm(z)

@@ -146,43 +146,142 @@ class Arm(Protocol):
     spin_ref: np.ndarray
 
     def bind(self, guard, tick_stats: np.ndarray, force_desired: float, threshold: float) -> None:
-        """Share the loop's guard and per-tick statistics (kernels.tick_stats), F_d and the contact threshold (N)."""
+        """Share the loop's guard and per-tick statistics.
+
+        Parameters
+        ----------
+        guard : SafetyGuard
+            The loop's one guard (its limits also run inside a compiled interval).
+        tick_stats : (N_TS,) float
+            The loop's per-tick statistics (``kernels.tick_stats``), updated at every valid reading.
+        force_desired, threshold : float
+            F_d and the contact threshold, N.
+        """
 
     def get_observation(self, sensor: bool = True) -> Observation:
-        """Read the arm (and the sensor, unless ``sensor`` is False)."""
+        """Read the arm, and the F/T sensor.
+
+        Parameters
+        ----------
+        sensor : bool
+            False: the sensor is not read (``reading`` None, wrench 0; after a sensor fault).
+
+        Returns
+        -------
+        Observation
+            State, reading and contact wrench (ee frame, N and N m) of this period.
+        """
 
     def send_action(self, target: LineTarget) -> None:
-        """Realise ``target`` for one control period (from the last observation)."""
+        """Realise ``target`` for one control period, from the last observation.
+
+        Parameters
+        ----------
+        target : LineTarget
+            The line (base frame, m), "press" with a force (N) or "move" at a speed (m/s).
+        """
 
     def reach(self, T: np.ndarray) -> str | None:
-        """None if the TCP can reach pose ``T`` (4, 4), else why not (one line)."""
+        """Whether the TCP can reach a pose.
+
+        Parameters
+        ----------
+        T : (4, 4) float
+            TCP pose, base frame (m).
+
+        Returns
+        -------
+        str or None
+            None if reachable, else why not (one line).
+        """
 
     def move_to(self, T: np.ndarray, check) -> Fault | None:
-        """Move the TCP to pose ``T`` (4, 4) through free space, checking every period; the first fault or None."""
+        """Move the TCP to a pose through free space, every period checked.
+
+        Parameters
+        ----------
+        T : (4, 4) float
+            TCP pose, base frame (m).
+        check : callable
+            ``check(observation) -> Fault | None``, the loop's guard.
+
+        Returns
+        -------
+        Fault or None
+            The first fault (the move stops there), or None.
+        """
 
     def to_picture(self, check) -> Fault | None:
-        """Move to the picture pose through free space; the first fault or None."""
+        """Move to the picture pose through free space.
+
+        Parameters
+        ----------
+        check : callable
+            ``check(observation) -> Fault | None``, the loop's guard.
+
+        Returns
+        -------
+        Fault or None
+            The first fault, or None.
+        """
 
     def hold(self, seconds: float) -> None:
-        """Hold the present pose for ``seconds`` (no checks, no force)."""
+        """Hold the present pose, without checks and without the force.
+
+        Parameters
+        ----------
+        seconds : float
+            How long, s.
+        """
 
     def tare(self) -> None:
         """Tare the F/T sensor (tool at rest, free): its load at this orientation becomes the zero."""
 
     def contact(self, obs: Observation) -> tuple[np.ndarray | None, float]:
-        """The contact point (3,) base frame (None: no contact) and the contact force, N."""
+        """Where and how hard the tool touches.
+
+        Parameters
+        ----------
+        obs : Observation
+            This period's observation.
+
+        Returns
+        -------
+        point : (3,) float or None
+            Contact point, base frame (m); None: no contact.
+        force : float
+            Contact force, N.
+        """
 
     def link_poses(self) -> dict:
-        """Poses of the arm's links for the log ({} when unknown)."""
+        """Poses of the arm's links for the log.
+
+        Returns
+        -------
+        dict
+            Link name -> (7,) position (m) and quaternion (x, y, z, w); {} when unknown.
+        """
 
     def fault(self) -> str | None:
-        """A one-line reason if the arm reports an error of its own, else None."""
+        """The arm's own error.
+
+        Returns
+        -------
+        str or None
+            A one-line reason if the arm reports an error (a reflex, a lost connection), else None.
+        """
 
     def stop(self) -> None:
         """End any running controller, the arm at rest."""
 
     def summary(self) -> dict:
-        """The backend's own summary extras."""
+        """The backend's own summary extras.
+
+        Returns
+        -------
+        dict
+            Name -> JSON-able value.
+        """
 
     def disconnect(self) -> None:
         """Close the connection; the arm is left holding still."""
@@ -196,7 +295,13 @@ class WrenchSensor(Protocol):
     frame_in_ee: np.ndarray
 
     def read(self) -> WrenchReading:
-        """The latest sample, tare offset removed (see the module docstring for the sign)."""
+        """The latest sample, tare offset removed (see the module docstring for the sign).
+
+        Returns
+        -------
+        WrenchReading
+            Force (N) and torque (N m) in the sensor frame, with its timestamp.
+        """
 
     def tare(self) -> None:
         """Zero the reading: subtract the present wrench from every later sample."""
@@ -213,7 +318,18 @@ class ToolLoad:
     inertia: np.ndarray | None = None
 
     def wrench(self, R_base_sensor: np.ndarray) -> np.ndarray:
-        """The wrench (6,) the arm must apply to hold the tool still against gravity, sensor frame."""
+        """The wrench the arm must apply to hold the tool still against gravity.
+
+        Parameters
+        ----------
+        R_base_sensor : (3, 3) float
+            The sensor frame's rotation in the base frame.
+
+        Returns
+        -------
+        (6,) float
+            Force (N) and torque (N m), sensor frame.
+        """
         f = R_base_sensor[2, :] * (self.mass * GRAVITY)  # Rᵀ (0, 0, m g)
         return np.concatenate([f, np.cross(self.com, f)])
 
@@ -260,7 +376,13 @@ class ContactWrench:
         return out
 
     def tare_at(self, R_base_ee: np.ndarray) -> None:
-        """Call right after :meth:`WrenchSensor.tare` with the tool at rest and free."""
+        """Record the tool's orientation at the tare; call right after :meth:`WrenchSensor.tare`, tool at rest and free.
+
+        Parameters
+        ----------
+        R_base_ee : (3, 3) float
+            The end effector's rotation in the base frame.
+        """
         self.tare_load = self._load(np.asarray(R_base_ee, dtype=float).reshape(3, 3))
 
     def __call__(self, reading, R_base_ee, state=None) -> np.ndarray:

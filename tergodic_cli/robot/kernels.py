@@ -7,30 +7,22 @@ call them, and :func:`pybullet_tick` chains them for the hot loop of a PyBullet 
 replaces ~400 Python-level float operations per control step (docs/robot.md, "Timing").
 
 Arrays are float64 and C-contiguous; small matrix products are written out (numba's ``@`` on 3×3
-goes through BLAS, slower at this size). Without numba the same functions run as plain Python:
-correct, about 30× slower.
+goes through BLAS, slower at this size).
 """
 
 from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 
 from tergodic_cli.robot.ga import line_motor_z_scalar
 
-try:  # numba is a declared dependency (the explorer's kernels need it too)
-    import numba
 
-    def njit(fn):
-        return numba.njit(cache=True, nogil=True, fastmath=False)(fn)
+def njit(fn):
+    return numba.njit(cache=True, nogil=True, fastmath=False)(fn)
 
-    HAVE_NUMBA = True
-except ImportError:  # pragma: no cover - exercised only where numba is missing
-    def njit(fn):
-        return fn
-
-    HAVE_NUMBA = False
 
 line_motor_z = njit(line_motor_z_scalar)
 

@@ -13,6 +13,6 @@ def robot_kernels_line() -> str | None:
         from tergodic_cli.robot import kernels
     except ImportError:
         return None  # the run says what is missing
-    if not kernels.HAVE_NUMBA or _cached(kernels.pybullet_tick):
+    if _cached(kernels.pybullet_tick):
         return None
     return f"compiling the robot's kernels (first run only, ~{ROBOT_COMPILE_S} s)"

@@ -8,7 +8,7 @@ schema record, so any protobuf-aware viewer (Foxglove's Plot panel, Rerun, the
 
     syntax = "proto2";  package tergodic;
     message StepRecord {
-      optional fixed64 step = 1;            // explorer step index (fixed width: see wire.py)
+      optional fixed64 step = 1;            // explorer step index
       optional double t = 2;                // simulated time, s
       optional double ergodicity = 3;       // ε after the step
       optional double residual_ref = 4;   // residual against the reference heat

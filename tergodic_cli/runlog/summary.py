@@ -15,6 +15,8 @@ import math
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.runlog import schema as S
 from tergodic_cli.runlog.reader import RunLogData
@@ -23,23 +25,12 @@ from tergodic_cli.runlog.reader import RunLogData
 SERIES_KEYS = S.SERIES_METRICS + ("step_ms",)
 
 
-def _summarize_run():
-    try:
-        from tergodic_cli.explore import summarize_run
-    except ImportError as exc:
-        raise TergodicError(f"cannot recompute the summary: tergodic_cli.explore.summarize_run is unavailable ({exc})",
-                            "reinstall tergodic (pip install -e .)") from None
-    return summarize_run
-
-
 def robot_extras(data: RunLogData) -> dict[str, Any]:
-    """``summarize_robot`` over the logged robot samples ({} for kinematic runs or when unavailable)."""
+    """``summarize_robot`` over the logged robot samples ({} for kinematic runs)."""
     if not data.robot:
         return {}
-    try:
-        from tergodic_cli.robot import summarize_robot
-    except ImportError:
-        return {}
+    from tergodic_cli.robot import summarize_robot
+
     # a fault outside the explore phase leaves no sample behind: the run's own stop reason is in its summary
     stop = (data.stored_summary or {}).get("stop_reason")
     return dict(summarize_robot(data.robot, stop_reason=stop) if stop else summarize_robot(data.robot))
@@ -47,7 +38,8 @@ def robot_extras(data: RunLogData) -> dict[str, Any]:
 
 def recompute_summary(data: RunLogData) -> dict[str, Any]:
     """The summary.json dict, recomputed from the log (without the ``truncated`` flag)."""
-    summarize_run = _summarize_run()
+    from tergodic_cli.explore import summarize_run
+
     missing = [k for k in SERIES_KEYS if k not in data.series]
     if missing:
         raise TergodicError(f"{data.path} has no series {', '.join(missing)}", "the log was not written by 'tergodic explore'")
@@ -158,4 +150,70 @@ def format_table(summary: dict[str, Any], data: RunLogData, comparison: tuple[st
         lines.append(f"  note: the log is truncated ({data.truncation_note}); read up to the last complete chunk")
     elif data.status == "interrupted":
         lines.append("  note: the run was interrupted (Ctrl-C or SIGTERM); the log holds the steps before it")
+    return "\n".join(lines)
+
+
+def to_json(obj: Any) -> str:
+    """``obj`` (a summary or :func:`state_at` dict; numpy values allowed) as indented JSON."""
+    def default(x: Any) -> Any:
+        if isinstance(x, (np.ndarray, np.generic)):
+            return x.tolist()
+        raise TypeError(type(x).__name__)
+
+    return json.dumps(obj, indent=2, default=default)
+
+
+def state_at(data: RunLogData, step: int) -> dict[str, Any]:
+    """The logged state after explorer step ``step``: its series values (agent vectors as nested
+    lists), the robot sample, the ranges of the last cloud logged at or before it, and the events so far."""
+    i = data.index_of(step)
+    s = data.series
+    state: dict = {"step": int(s["step"][i]), "t": float(s["t"][i])}
+    for k, v in s.items():
+        if k in ("step", "t"):
+            continue
+        state[k] = v[i].tolist() if isinstance(v[i], np.ndarray) else float(v[i])
+    if data.robot and i < len(data.robot):
+        state["robot"] = {k: v for k, v in data.robot[i].items() if k != "step"}
+    cloud = data.cloud_at(step)
+    if cloud is not None:
+        cov = cloud.fields.get("coverage")
+        tgt = cloud.fields.get("target")
+        info = {"step": cloud.step, "n_points": len(cloud.points)}
+        for name, values in cloud.fields.items():
+            info[f"{name}_min"], info[f"{name}_max"] = float(values.min()), float(values.max())
+        if cov is not None and tgt is not None:
+            info["coverage_on_target_sum"] = float(cov[tgt > 0].sum())
+        state["cloud"] = info
+    state["events_so_far"] = [{"step": e[0], "text": e[2]} for e in data.events if e[0] <= step]
+    return state
+
+
+def format_state(state: dict[str, Any]) -> str:
+    """:func:`state_at`'s dict as the text ``tergodic replay --step N`` prints."""
+    lines = [f"step {state['step']}  (t = {state['t']:.6g} s)"]
+    for k, v in state.items():
+        if k in ("step", "t", "robot", "cloud", "events_so_far"):
+            continue
+        if isinstance(v, list):
+            arr = np.asarray(v)
+            lines.append(f"  {k:<18} " + "; ".join(np.array2string(r, precision=6, separator=", ", max_line_width=200) for r in arr.reshape(-1, 3)))
+        else:
+            lines.append(f"  {k:<18} {v:.9g}")
+    if "robot" in state:
+        lines.append("  robot:")
+        for k, v in state["robot"].items():
+            if k == "link_poses":
+                lines.append(f"    {k:<16} {len(v)} links")
+            elif isinstance(v, np.ndarray):
+                lines.append(f"    {k:<16} {np.array2string(v, precision=5, separator=', ', max_line_width=200)}")
+            else:
+                lines.append(f"    {k:<16} {v}")
+    if "cloud" in state:
+        c = state["cloud"]
+        extra = ", ".join(f"{k} {v:.4g}" for k, v in c.items() if k not in ("step", "n_points"))
+        lines.append(f"  cloud (logged at step {c['step']}, {c['n_points']} points): {extra}")
+    ev = state["events_so_far"]
+    if ev:
+        lines.append(f"  last event: step {ev[-1]['step']}: {ev[-1]['text']}")
     return "\n".join(lines)

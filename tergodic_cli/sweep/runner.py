@@ -26,6 +26,7 @@ import hashlib
 import json
 import math
 import os
+import statistics
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -62,6 +63,25 @@ class SweepResult:
     wall_s: float = 0.0
     files: list[str] = field(default_factory=list)
     table: list[dict] = field(default_factory=list)
+
+    def summary(self) -> dict:
+        """The counts, wall time (s) and files: what ``tergodic sweep --json`` prints."""
+        return {"out": str(self.out), "runs": self.n_runs, "computed": self.computed, "skipped": self.skipped,
+                "failed": len(self.failed), "wall_s": round(self.wall_s, 2), "files": self.files}
+
+    def ergodicity_tables(self) -> str:
+        """Mean final ε (the neutral unit-mass ergodicity) over starts and other options, per object:
+        one Markdown table each, nK down and α across."""
+        out = []
+        for obj in sorted({r["object"] for r in self.table}):
+            sel = [r for r in self.table if r["object"] == obj and r["ergodicity"] is not None]
+            alphas = sorted({str(r["alpha"]) for r in sel}, key=lambda a: (len(a), a))
+            out += [f"\n{obj}: mean ε at the last step (over starts and other options)",
+                    "| nK \\ α | " + " | ".join(alphas) + " |", "|---|" + "---|" * len(alphas)]
+            for nk in sorted({r["nk"] for r in sel}):
+                cells = [[r["ergodicity"] for r in sel if r["nk"] == nk and str(r["alpha"]) == a] for a in alphas]
+                out.append(f"| {nk} | " + " | ".join(f"{statistics.fmean(v):.3f}" if v else "" for v in cells) + " |")
+        return "\n".join(out)
 
 
 @dataclass

@@ -22,12 +22,13 @@ import os
 import sys
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from tergodic_cli.capture.textured import SimObjectConfig, TexturedObject
+from tergodic_cli.config import Config
 from tergodic_cli.rotations import matrix_to_quat, quat_to_matrix
 from tergodic_cli.errors import TergodicError, require
 
@@ -46,7 +47,7 @@ DEFAULT_EYE = (0.30, 0.0, 0.60)
 
 
 @dataclass
-class SimCameraConfig:
+class SimCameraConfig(Config):
     """The simulated camera.
 
     pose : None = look from DEFAULT_EYE at the object's bounding-box centre; 6 numbers = eye x,y,z and
@@ -77,10 +78,6 @@ class SimCameraConfig:
         require(self.renderer in RENDERERS, f"unknown renderer '{self.renderer}'", f"use one of {', '.join(RENDERERS)}")
         require(self.depth_noise >= 0 and self.color_noise >= 0, "noise levels must be >= 0", "e.g. --depth-noise 0.001")
 
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["pose"] = list(self.pose) if self.pose is not None else None
-        return d
 
 
 @dataclass
@@ -94,17 +91,43 @@ class SimCaptureConfig:
 
 # ----------------------------------------------------------------------------- camera model (pure)
 def intrinsics(width: int, height: int, fov_deg: float) -> tuple[float, float, float, float]:
-    """Pinhole intrinsics (fx, fy, cx, cy) in pixels of a vertical field of view, square pixels.
+    """Pinhole intrinsics of a vertical field of view, square pixels.
 
     fy = (height / 2) / tan(fov / 2), fx = fy, cx = width / 2, cy = height / 2 (pixel (0, 0)'s
     top-left corner is the origin, so pixel j's centre is at j + 0.5).
+
+    Parameters
+    ----------
+    width, height : int
+        Image size, pixels.
+    fov_deg : float
+        Vertical field of view, degrees.
+
+    Returns
+    -------
+    (fx, fy, cx, cy) : tuple of float
+        Pixels.
     """
     fy = 0.5 * height / np.tan(0.5 * np.deg2rad(fov_deg))
     return float(fy), float(fy), 0.5 * width, 0.5 * height
 
 
 def projection_matrix(width: int, height: int, fov_deg: float, near: float, far: float) -> np.ndarray:
-    """The OpenGL perspective projection (4, 4) (what ``computeProjectionMatrixFOV`` builds)."""
+    """The OpenGL perspective projection (what ``computeProjectionMatrixFOV`` builds).
+
+    Parameters
+    ----------
+    width, height : int
+        Image size, pixels.
+    fov_deg : float
+        Vertical field of view, degrees.
+    near, far : float
+        Clipping planes, metres.
+
+    Returns
+    -------
+    (4, 4) float
+    """
     f = 1.0 / np.tan(0.5 * np.deg2rad(fov_deg))
     aspect = width / height
     return np.array([[f / aspect, 0, 0, 0],
@@ -114,9 +137,16 @@ def projection_matrix(width: int, height: int, fov_deg: float, near: float, far:
 
 
 def view_matrix(T_base_cam: np.ndarray) -> np.ndarray:
-    """OpenGL view matrix (4, 4): base frame -> OpenGL eye frame (x right, y up, z backwards).
+    """OpenGL view matrix: base frame -> OpenGL eye frame (x right, y up, z backwards).
 
-    T_base_cam is the optical frame (x right, y down, z forward) in the base frame.
+    Parameters
+    ----------
+    T_base_cam : (4, 4) float
+        The optical frame (x right, y down, z forward) in the base frame, metres.
+
+    Returns
+    -------
+    (4, 4) float
     """
     T_gl = T_base_cam.copy()
     T_gl[:3, 1:3] *= -1.0  # optical -> OpenGL eye axes
@@ -127,9 +157,21 @@ def view_matrix(T_base_cam: np.ndarray) -> np.ndarray:
 
 
 def linearize_depth(d: np.ndarray, near: float, far: float) -> np.ndarray:
-    """OpenGL depth-buffer values d in [0, 1] -> distance along the optical axis z, metres.
+    """OpenGL depth-buffer values -> distance along the optical axis.
 
     z = far * near / (far - (far - near) * d)   (d = 0 at the near plane, 1 at the far plane)
+
+    Parameters
+    ----------
+    d : array of float
+        Depth-buffer values in [0, 1].
+    near, far : float
+        Clipping planes, metres.
+
+    Returns
+    -------
+    array of float
+        z, metres, shaped like ``d``.
     """
     return far * near / (far - (far - near) * np.asarray(d, dtype=np.float64))
 
@@ -139,7 +181,25 @@ def back_project(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, K: tuple[flo
     """Pixels (row, col) with optical depth z (metres) -> points (n, 3) in the base frame.
 
     X = (col + o_u - cx) z / fx, Y = (row + o_v - cy) z / fy, Z = z in the optical frame, then
-    p_base = R p_cam + t. ``sample`` = (o_u, o_v): where the renderer samples a pixel (PIXEL_SAMPLE).
+    p_base = R p_cam + t.
+
+    Parameters
+    ----------
+    z : (n,) float
+        Optical depth, metres.
+    rows, cols : (n,) int
+        Pixel indices.
+    K : (fx, fy, cx, cy)
+        Intrinsics, pixels (:func:`intrinsics`).
+    T_base_cam : (4, 4) float
+        The optical frame in the base frame.
+    sample : (o_u, o_v)
+        Where the renderer samples a pixel (PIXEL_SAMPLE).
+
+    Returns
+    -------
+    (n, 3) float
+        Points in the base frame, metres.
     """
     fx, fy, cx, cy = K
     o_u, o_v = sample
@@ -148,9 +208,19 @@ def back_project(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, K: tuple[flo
 
 
 def look_at(eye, target) -> np.ndarray:
-    """Optical-frame pose (4, 4) at ``eye`` looking at ``target`` (base frame, metres).
+    """The optical frame at ``eye`` looking at ``target``.
 
     Image up is towards base +z; when looking (nearly) straight down or up, towards base +x.
+
+    Parameters
+    ----------
+    eye, target : (3,) float
+        Base frame, metres.
+
+    Returns
+    -------
+    (4, 4) float
+        The optical frame's pose in the base frame.
     """
     eye, target = np.asarray(eye, dtype=float), np.asarray(target, dtype=float)
     z = target - eye
@@ -168,7 +238,19 @@ def look_at(eye, target) -> np.ndarray:
 
 
 def camera_pose(pose, target_default: np.ndarray) -> np.ndarray:
-    """The optical frame in the base frame from a :class:`SimCameraConfig` ``pose`` (see there)."""
+    """The optical frame in the base frame from a :class:`SimCameraConfig` ``pose``.
+
+    Parameters
+    ----------
+    pose : sequence of 6 or 7 float, or None
+        See :class:`SimCameraConfig`.
+    target_default : (3,) float
+        Where a default camera looks, metres.
+
+    Returns
+    -------
+    (4, 4) float
+    """
     fix = "give --camera-pose ex,ey,ez,tx,ty,tz (eye, target; m) or x,y,z,qx,qy,qz,qw (optical frame z forward)"
     if pose is None:
         return look_at(DEFAULT_EYE, target_default)
@@ -193,6 +275,10 @@ def quiet_native_output():
 
     PyBullet prints from C straight to file descriptors 1 and 2, which would break ``--json``
     output and the one-line error contract. C's stdio buffer is flushed before the descriptors return.
+
+    Yields
+    ------
+    None
     """
     try:
         sys.stdout.flush()
@@ -301,7 +387,13 @@ class SimCamera:
         return 1e3 * (time.perf_counter() - t0)
 
     def render(self) -> Frame:
-        """Render one RGB-D frame of the current scene (reloading the object's texture if it changed)."""
+        """Render one RGB-D frame of the current scene (reloading the object's texture if it changed).
+
+        Returns
+        -------
+        Frame
+            RGB (h, w, 3) in [0, 1], depth (h, w) metres (inf on background), body ids (h, w).
+        """
         self.last_texture_ms = self._sync_object()
         cfg, p = self.cfg, self._p
         t0 = time.perf_counter()
@@ -318,7 +410,15 @@ class SimCamera:
         return Frame(rgb, z, seg, ms)
 
     def capture(self) -> tuple[np.ndarray, np.ndarray]:
-        """Render and back-project: points (n, 3) base frame metres and colours (n, 3) in [0, 1] of every object pixel."""
+        """Render and back-project every object pixel.
+
+        Returns
+        -------
+        points : (n, 3) float
+            Base frame, metres.
+        colors : (n, 3) float
+            In [0, 1].
+        """
         frame = self.render()
         self.last_frame = frame
         t0 = time.perf_counter()
@@ -328,7 +428,19 @@ class SimCamera:
         return points, colors
 
     def frame_to_cloud(self, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
-        """Back-project the finite-depth pixels of ``frame`` (with the configured noise)."""
+        """Back-project the finite-depth pixels of ``frame`` (with the configured noise).
+
+        Parameters
+        ----------
+        frame : Frame
+
+        Returns
+        -------
+        points : (n, 3) float
+            Base frame, metres.
+        colors : (n, 3) float
+            In [0, 1].
+        """
         rows, cols = np.nonzero(np.isfinite(frame.depth))
         z = frame.depth[rows, cols]
         colors = frame.rgb[rows, cols]
@@ -339,7 +451,13 @@ class SimCamera:
         return back_project(z, rows, cols, self.K, self.T_base_cam, PIXEL_SAMPLE[self.renderer]), colors
 
     def describe(self) -> dict:
-        """Camera model for the capture sidecar: intrinsics, extrinsics, renderer."""
+        """The camera model for the capture sidecar.
+
+        Returns
+        -------
+        dict
+            Intrinsics (pixels), extrinsics (the optical frame in the base frame) and renderer.
+        """
         fx, fy, cx, cy = self.K
         return {"renderer": self.renderer, "width": self.cfg.width, "height": self.cfg.height, "fov_deg": self.cfg.fov_deg,
                 "near": self.cfg.near, "far": self.cfg.far, "fx": fx, "fy": fy, "cx": cx, "cy": cy,
@@ -368,14 +486,22 @@ def capture_sim(cfg: SimCaptureConfig | None = None, camera: SimCamera | None = 
                 allow_empty_target: bool = False) -> Capture:
     """Render the textured object, back-project, then run the file-capture filters and segmentation.
 
-    cfg : the scene, camera and pipeline settings (defaults: bowl with an X, default camera).
-    camera : an open camera to reuse (its object, possibly cleaned, is captured; ``cfg.object`` and
+    Parameters
+    ----------
+    cfg : SimCaptureConfig, optional
+        The scene, camera and pipeline settings (defaults: bowl with an X, default camera).
+    camera : SimCamera, optional
+        An open camera to reuse (its object, possibly cleaned, is captured; ``cfg.object`` and
         ``cfg.camera`` are then only recorded). Without it a camera is built from ``cfg`` and closed.
-    allow_empty_target : a cloud with no target-coloured point gets p = 0 everywhere instead of
-        the file pipeline's "no points match" error (re-captures of a cleaned object).
+    allow_empty_target : bool
+        A cloud with no target-coloured point gets p = 0 everywhere instead of the file
+        pipeline's "no points match" error (re-captures of a cleaned object).
 
-    Returns a :class:`~tergodic_cli.capture.Capture` in the robot base frame.
-    ``meta["sim"]`` holds the object and camera settings, the true ``marking_remaining`` and timings.
+    Returns
+    -------
+    Capture
+        In the robot base frame; ``meta["sim"]`` holds the object and camera settings, the true
+        ``marking_remaining`` and timings.
     """
     from tergodic_cli.capture import CaptureConfig, capture_cloud
 
@@ -425,7 +551,20 @@ def target_on_points(points: np.ndarray, capture: Capture, max_distance: float |
     """Transfer a capture's target p onto other points (m, 3), e.g. a basis built from an earlier capture.
 
     Each point takes the p of its nearest capture point; points farther than ``max_distance``
-    (default: 3 x the capture's spacing h) get 0. Same frame as the capture (robot base for sim).
+    get 0.
+
+    Parameters
+    ----------
+    points : (m, 3) float
+        Metres, the capture's frame (robot base for sim).
+    capture : Capture
+    max_distance : float, optional
+        Metres; default 3 x the capture's spacing h.
+
+    Returns
+    -------
+    (m,) float
+        p in [0, 1].
     """
     from scipy.spatial import cKDTree
 

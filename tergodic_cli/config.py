@@ -1,0 +1,180 @@
+"""Stage configs as JSON: one dataclass per stage, saved as ``config.json`` beside its artefact.
+
+:class:`Config` gives a dataclass ``to_dict`` (tuples as lists, nested dataclasses as dicts) and
+``from_dict`` (the reverse, with unknown keys and wrong types refused in one line); nested
+dataclasses need not derive from it. :func:`write_config` / :func:`read_config` put such dicts
+into a file under a ``kind`` that names the verb able to repeat it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import types
+import typing
+from pathlib import Path
+
+from tergodic_cli.errors import TergodicError, require
+
+CONFIG_FILE = "config.json"
+
+
+class Config:
+    """Mixin for config dataclasses: ``to_dict`` / ``from_dict`` round-trip through JSON."""
+
+    def to_dict(self) -> dict:
+        """The config as JSON-ready values.
+
+        Returns
+        -------
+        dict
+            Field name -> value; tuples become lists and nested dataclasses dicts.
+        """
+        return to_dict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict, what: str | None = None):
+        """The config :meth:`to_dict` wrote; missing keys keep their defaults.
+
+        Parameters
+        ----------
+        d : dict
+            Field name -> value, as :meth:`to_dict` returns.
+        what : str, optional
+            How the config is named in an error (default: the class name).
+
+        Returns
+        -------
+        Config
+            An instance of ``cls``; an unknown key or a value of the wrong type raises
+            :class:`~tergodic_cli.errors.TergodicError` naming it.
+        """
+        return from_dict(cls, d, what)
+
+
+def to_dict(config) -> dict:
+    """:meth:`Config.to_dict` for any config dataclass (one that does not derive from :class:`Config`).
+
+    Parameters
+    ----------
+    config : dataclass instance
+
+    Returns
+    -------
+    dict
+        Field name -> JSON-ready value.
+    """
+    return _plain(config)
+
+
+def from_dict(cls, d: dict, what: str | None = None):
+    """:meth:`Config.from_dict` for any config dataclass ``cls``.
+
+    Parameters
+    ----------
+    cls : dataclass type
+    d : dict
+        Field name -> value.
+    what : str, optional
+        How the config is named in an error (default: the class name).
+
+    Returns
+    -------
+    object
+        An instance of ``cls``.
+    """
+    return _build(cls, d, what or cls.__name__)
+
+
+def _plain(value):
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, (tuple, list)):
+        return [_plain(v) for v in value]
+    return value
+
+
+_FIX = "use a config.json written by tergodic, or correct it"
+
+
+def _build(cls, d, where: str):
+    require(isinstance(d, dict), f"{where} is not a JSON object", _FIX)
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(d) - names)
+    if unknown:
+        raise TergodicError(f"{where} has an unknown key '{unknown[0]}'", _FIX)
+    return cls(**{k: _coerce(hints[k], v, f"{where}.{k}") for k, v in d.items()})
+
+
+def _coerce(hint, value, where: str):
+    """``value`` as the type ``hint`` says: None where optional, tuples, nested dataclasses, numbers."""
+    args = typing.get_args(hint)
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        options = [a for a in args if a is not type(None)]
+        hint = options[0] if len(options) == 1 else hint
+        if len(options) > 1:
+            return value  # a free union: the stage's validation checks it
+        args = typing.get_args(hint)
+    if dataclasses.is_dataclass(hint):
+        return _build(hint, value, where)
+    origin = typing.get_origin(hint)
+    if origin is tuple:
+        require(isinstance(value, (list, tuple)), f"{where} is not a list", _FIX)
+        kinds = args[:1] * len(value) if len(args) == 2 and args[1] is Ellipsis else args
+        require(not kinds or len(kinds) == len(value), f"{where} needs {len(kinds)} values, got {len(value)}", _FIX)
+        return tuple(_coerce(k, v, f"{where}[{i}]") for i, (k, v) in enumerate(zip(kinds or [typing.Any] * len(value), value)))
+    if hint is float:
+        require(isinstance(value, (int, float)) and not isinstance(value, bool), f"{where} is not a number", _FIX)
+        return float(value)
+    if hint in (int, bool, str):
+        require(isinstance(value, hint) and (hint is bool or not isinstance(value, bool)),
+                f"{where} is not {'an' if hint is int else 'a'} {hint.__name__}", _FIX)
+    return value
+
+
+def write_config(path: str | Path, kind: str, **sections) -> None:
+    """Write a loadable ``config.json`` atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file to write.
+    kind : str
+        What the config repeats (``"tergodic.capture_config"``, ...), checked on load.
+    **sections
+        Named parts: :class:`Config` instances or JSON-ready values.
+    """
+    from tergodic_cli.atomic import write_json
+
+    write_json(Path(path), {"kind": kind, "version": 1, **{k: _plain(v) for k, v in sections.items()}})
+
+
+def read_config(path: str | Path, kind: str, fix: str) -> dict:
+    """Read a ``config.json`` that :func:`write_config` wrote with ``kind``.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file given to ``--config``.
+    kind : str
+        The kind it must have.
+    fix : str
+        What to do instead, for the one-line error.
+
+    Returns
+    -------
+    dict
+        The file's sections (still plain dicts; each stage's ``from_dict`` checks its own).
+    """
+    path = Path(path)
+    require(path.is_file(), f"--config {path} does not exist", fix)
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise TergodicError(f"--config {path} is not readable JSON ({type(exc).__name__})", fix) from None
+    require(isinstance(d, dict) and d.get("kind") == kind, f"--config {path} is not a {kind.split('.')[-1].replace('_', ' ')}",
+            fix)
+    return d
