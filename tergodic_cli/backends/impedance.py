@@ -83,10 +83,22 @@ class ImpedanceArm(Protocol):
         """Open the connection (idempotent)."""
 
     def read_state(self) -> ArmState:
-        """The current :class:`~tergodic_cli.robot.interfaces.ArmState`."""
+        """The arm's state now.
+
+        Returns
+        -------
+        ArmState
+            Joint positions (rad), velocities (rad/s), the TCP pose and Jacobian (base frame).
+        """
 
     def command(self, tau: np.ndarray) -> None:
-        """Joint torques (dof,) N m on top of the SDK's gravity compensation."""
+        """Send joint torques on top of the SDK's gravity compensation.
+
+        Parameters
+        ----------
+        tau : (dof,) float
+            Joint torques, N m.
+        """
 
     def disconnect(self) -> None:
         """Close the connection, the arm at rest."""
