@@ -196,10 +196,11 @@ class StreamedArm:
         self.contact_wrench.tare_at(self.dev.read_state().ee_pose[:3, :3])
         self.force = 0.0
 
-    def contact(self, obs) -> tuple[np.ndarray | None, float]:
-        """The TCP when the filtered axial force is at or above the contact threshold, and that force."""
+    def contact(self, obs) -> tuple[np.ndarray | None, float, float]:
+        """The TCP when the filtered axial force is at or above the contact threshold, that force, and
+        the press angle (0: the F/T sensor cannot tell it)."""
         tcp = obs.state.ee_pose[:3, 3]
-        return (tcp.copy() if self.force >= self.threshold else None), float(self.force)
+        return (tcp.copy() if self.force >= self.threshold else None), float(self.force), 0.0
 
     def link_poses(self) -> dict:
         return {}

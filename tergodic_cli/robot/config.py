@@ -65,8 +65,9 @@ class RobotConfig(Config):
         tracking figures, docs/robot.md).
     velocity_feedforward : damp the tool's velocity relative to the moving target line (its
         glide between explorer steps) instead of its absolute velocity (eq. 46): no damping lag.
-    max_tool_tilt_deg : the commanded tool axis is kept within this angle of straight down; on
-        steeper surface the sponge works tilted (the Panda's wrist cannot follow further).
+    max_tool_tilt_deg : hardware runs only: the commanded tool axis is kept within this angle of
+        straight down. The simulated run follows the normal and drops what the arm cannot reach
+        (:mod:`tergodic_cli.robot.reach`).
     inertial_compensation : remove the tool's inertial wrench (mass × acceleration from the arm's
         state) from the F/T reading as well as its weight, so the wrench is the contact's.
     """

@@ -237,8 +237,8 @@ class Arm(Protocol):
     def tare(self) -> None:
         """Tare the F/T sensor (tool at rest, free): its load at this orientation becomes the zero."""
 
-    def contact(self, obs: Observation) -> tuple[np.ndarray | None, float]:
-        """Where and how hard the tool touches.
+    def contact(self, obs: Observation) -> tuple[np.ndarray | None, float, float]:
+        """Where, how hard and at what angle the tool touches.
 
         Parameters
         ----------
@@ -251,6 +251,8 @@ class Arm(Protocol):
             Contact point, base frame (m); None: no contact.
         force : float
             Contact force, N.
+        press_angle : float
+            Degrees between the tool axis and the contact normal (0 when the backend cannot tell).
         """
 
     def link_poses(self) -> dict:

@@ -31,7 +31,8 @@ from tergodic_cli.errors import TergodicError
 from tergodic_cli.robot import kernels as Kn
 from tergodic_cli.robot import statemachine as S
 from tergodic_cli.robot.controller import guarded_approach_speed
-from tergodic_cli.robot.ga import matrix_to_quat, point_line_distance, pose_matrix, tool_rotation
+from tergodic_cli.robot.ga import matrix_to_quat, point_line_distance, pose_matrix
+from tergodic_cli.robot.reach import tool_rotation
 from tergodic_cli.robot.interfaces import LineTarget
 from tergodic_cli.robot.safety import Fault, SafetyGuard, resolve_stop
 from tergodic_cli.robot.summary import SETTLE_S as STEADY_S, summarize_robot
@@ -45,6 +46,9 @@ PRESS_RAMP_S = 0.5
 #: Seconds the force must stay within 10 % of F_d before the approach hands over to exploring.
 SETTLED_S = 0.05
 RETREAT_TIMEOUT_S = 3.0
+#: Degrees between the tool axis and the surface normal in contact above which the run lifts the tool
+#: and stops (issue 15: never press at a large angle; following the normal, the median is ~1 deg).
+CONTACT_TILT_MAX_DEG = 15.0
 
 
 def robot_explore_config(cfg, explore_dt: float):
@@ -140,6 +144,14 @@ class ContactRun:
         self.fault: Fault | None = None
         self._shadow = _AgentCoverage(explorer)
         self._x_ref = arm.get_observation(sensor=False).state.ee_pose[:3, 0].copy()
+        #: The tool's spin pointing straight down (reach.tool_rotation): the arm's at the start.
+        self._x_down = self._x_ref.copy()
+        #: (N,) where the tool can follow the normal (a backend that plans its reach narrows it).
+        self.reachable = np.ones(len(self.points), dtype=bool)
+        #: The commanded tool axis is kept within this many degrees of straight down (None: it
+        #: follows the normal; the simulation plans its reach instead, robot/reach.py).
+        self.max_tilt_deg = cfg.max_tool_tilt_deg
+        self._told_unreachable = False
         self._cb_s = 0.0
         self._deferred = None
         self.interrupted = False
@@ -172,14 +184,15 @@ class ContactRun:
         n_b = self.T_obj[:3, :3] @ np.asarray(self.explorer.normals[0], dtype=float)
         if n_b @ self._surface_normal(a) < 0:  # the explorer's normal sign is arbitrary; ours faces the tool
             n_b = -n_b
-        return a, clamp_tilt(-n_b / np.linalg.norm(n_b), self.cfg.max_tool_tilt_deg)
+        d = -n_b / np.linalg.norm(n_b)
+        return a, (d if self.max_tilt_deg is None else clamp_tilt(d, self.max_tilt_deg))
+
+    def _reachable_at(self, x_base: np.ndarray) -> bool:
+        return bool(self.reachable[self.kdtree.query(self._to_obj(x_base))[1]])
 
     def _update_spin_ref(self, d: np.ndarray) -> None:
-        # Parallel-transport the spin reference so it stays perpendicular to the tool axis.
-        x = self._x_ref - (self._x_ref @ d) * d
-        nx = float(np.linalg.norm(x))
-        if nx > 1e-3:
-            self._x_ref = x / nx
+        # The spin is a continuous function of the tool axis (no flips, the wrist mid-range).
+        self._x_ref = tool_rotation(d, self._x_down)[:, 0]
         self.arm.spin_ref = self._x_ref
 
     # ------------------------------------------------------------------ one control period
@@ -271,31 +284,26 @@ class ContactRun:
     # ------------------------------------------------------------------ phases
     def _hover_pose(self, a: np.ndarray, d: np.ndarray) -> np.ndarray:
         """(4, 4) TCP pose ``hover_height`` back from ``a`` along the tool axis ``d``."""
-        return pose_matrix(tool_rotation(d, self._x_ref), a - self.cfg.hover_height * d)
+        return pose_matrix(tool_rotation(d, self._x_down), a - self.cfg.hover_height * d)
 
     def _move_to_hover(self) -> None:
         cfg = self.cfg
-        a, d_normal = self._agent_line()
-        # Along the normal if the arm can get there; on a steep wall the wrist may not: then come in
-        # less tilted (the sponge is a ball; the line controller tilts it back as far as it can).
-        err = None
-        for tilt in (cfg.max_tool_tilt_deg, 45.0, 30.0, 15.0, 0.0):
-            if tilt > cfg.max_tool_tilt_deg:
-                continue
-            d = clamp_tilt(d_normal, tilt)
-            T_hover = self._hover_pose(a, d)
-            if not self.guard.inside(T_hover[:3, 3]) or not self.guard.inside(a):
-                self._unreachable(f"the start point {_fmt(a)} m or its hover pose is outside the workspace box",
-                                  "move the object with --object-pose, or choose another start")
-            err = self.arm.reach(T_hover)
-            if err is None:
-                break
-        else:
+        a, d = self._agent_line()
+        if not self._reachable_at(a):  # the nearest reachable target point (the first step moves the agent there)
+            ok = np.flatnonzero(self.reachable & (np.asarray(getattr(self.explorer, "p", self.reachable), float) > 0))
+            j = ok[np.argmin(np.linalg.norm(self.points_base[ok] - a, axis=1))]
+            self.on_event(self._step(), f"robot: the tool cannot follow the normal at the start {_fmt(a)} m; starting at "
+                                        f"the nearest reachable target point {_fmt(self.points_base[j])} m")
+            a = self.points_base[j]
+            d = -self._surface_normal(a)
+        T_hover = self._hover_pose(a, d)
+        if not self.guard.inside(T_hover[:3, 3]) or not self.guard.inside(a):
+            self._unreachable(f"the start point {_fmt(a)} m or its hover pose is outside the workspace box",
+                              "move the object with --object-pose, or choose another start")
+        err = self.arm.reach(T_hover)
+        if err is not None:
             self._unreachable(f"the robot cannot reach the hover pose above the agent at {_fmt(a)} m ({err})",
                               "move the object closer with --object-pose, or choose another start")
-        if tilt < cfg.max_tool_tilt_deg and float(d @ d_normal) < 0.9999:
-            self.on_event(self._step(), f"robot: the hover pose along the normal is out of reach; approaching "
-                                        f"tilted at most {tilt:.0f} deg instead")
         self._start_line = (a, d)
         self._x_ref = T_hover[:3, 0].copy()
         self.arm.spin_ref = self._x_ref
@@ -387,7 +395,19 @@ class ContactRun:
                 fault = self.guard.check_target(self.t, a_new)
                 if fault is not None:
                     self._fault_sample(fault, step, obs, a_cur, d_cur, on_step, record=True)
-                a_next, d_next = self._agent_line()
+                a_new, d_new = self._agent_line()
+                # Where the tool cannot follow the normal the line stays on the last reachable one.
+                if self._reachable_at(a_new):
+                    a_next, d_next = a_new, d_new
+                elif not self._told_unreachable:
+                    self._told_unreachable = True
+                    self.on_event(step, f"robot: the agent entered the unreachable part at {_fmt(a_new)} m; the tool "
+                                        "waits on the last reachable point")
+                off = math.degrees(math.acos(min(1.0, float(-d_next @ self._surface_normal(a_next)))))
+                if self.max_tilt_deg is None and off > CONTACT_TILT_MAX_DEG:  # never press at a large angle
+                    self._fault_sample(Fault("reach", "retreat", f"the commanded tool axis is {off:.0f} deg off the "
+                                             f"surface normal (limit {CONTACT_TILT_MAX_DEG:.0f}); lifting the tool off "
+                                             "the surface", self.t), step, obs, a_cur, d_cur, on_step, record=True)
                 self.guard.feed_target(self.t)
                 self._update_spin_ref(d_next)
             self._shadow.deposit()
@@ -402,7 +422,13 @@ class ContactRun:
                 fresh = fault.kind != "explorer" and step > (self.samples[-1]["step"] if self.samples else 0)
                 self._fault_sample(fault, step, obs, np.array(a), np.array(d), on_step, record=fresh)
             a_cur, d_cur = a_next, d_next
-            self.samples.append(self._sample(step, obs, a_cur, d_cur))
+            sample = self._sample(step, obs, a_cur, d_cur)
+            press = self._measure(obs)["press_angle_deg"]
+            if sample["in_contact"] and press > CONTACT_TILT_MAX_DEG:  # never press at a large angle
+                self._fault_sample(Fault("reach", "retreat", f"the tool presses {press:.0f} deg off the surface "
+                                         f"normal in contact (limit {CONTACT_TILT_MAX_DEG:.0f}); lifting the tool off the "
+                                         "surface", self.t), step, obs, a_cur, d_cur, on_step, record=True)
+            self.samples.append(sample)
             if defer_last and k == steps - 1:
                 self._deferred = (on_step, step)
             else:
@@ -410,6 +436,7 @@ class ContactRun:
         ts[Kn.TS_COUNT] = 0.0
         self._last_line = (a_cur, d_cur)
         self._start_line = self._last_line  # a further explore() continues from here
+        self._told_unreachable = False
 
     def emit_deferred(self, extra: dict | None = None) -> None:
         """Hand the deferred last sample (see :meth:`_explore`) to its ``on_step``, updated with ``extra``."""
@@ -438,11 +465,11 @@ class ContactRun:
 
     # ------------------------------------------------------------------ samples
     def _measure(self, obs) -> dict:
-        """The backend's contact point and force, and the surface normal there."""
-        cp, fsum = self.arm.contact(obs)
+        """The backend's contact point, force and press angle, and the surface normal there."""
+        cp, fsum, press = self.arm.contact(obs)
         x = cp if cp is not None else obs.state.ee_pose[:3, 3]
         return {"contact_point": cp, "force_contact": fsum, "in_contact": bool(cp is not None and fsum >= self.threshold),
-                "normal": self._surface_normal(x), "at": x}
+                "normal": self._surface_normal(x), "at": x, "press_angle_deg": press}
 
     def _sample(self, step: int, obs, a: np.ndarray, d: np.ndarray, stop_reason: str | None = None) -> dict:
         """The robot_sample_dict of CONTRACTS.md (plus extras) at the end of an explorer interval."""

@@ -140,11 +140,13 @@ def parse_object_pose(values) -> np.ndarray:
     return pose_matrix(R, np.array(v[:3]))
 
 
-def default_object_pose(points: np.ndarray) -> np.ndarray:
-    """Translation putting the cloud's footprint centre at (DEFAULT_REACH, 0) and its lowest point at DEFAULT_HEIGHT."""
+def default_object_pose(points: np.ndarray, reach: float = DEFAULT_REACH, yaw_deg: float = 0.0) -> np.ndarray:
+    """Pose putting the cloud's footprint centre at (reach, 0) and its lowest point at DEFAULT_HEIGHT,
+    turned ``yaw_deg`` about the vertical through that centre."""
     lo, hi = points.min(axis=0), points.max(axis=0)
     centre = 0.5 * (lo + hi)
-    return pose_matrix(np.eye(3), np.array([DEFAULT_REACH - centre[0], -centre[1], DEFAULT_HEIGHT - lo[2]]))
+    R = rotvec_to_matrix(np.array([0.0, 0.0, math.radians(yaw_deg)]))
+    return pose_matrix(R, np.array([reach, 0.0, DEFAULT_HEIGHT]) - R @ np.array([centre[0], centre[1], lo[2]]))
 
 
 def transform_points(T: np.ndarray, x: np.ndarray) -> np.ndarray:

@@ -24,7 +24,7 @@ from tergodic_cli.robot import kernels as Kn
 from tergodic_cli.robot.config import RobotConfig, validate_robot_config
 from tergodic_cli.robot.controller import JointImpedance, LineForceController, min_jerk
 from tergodic_cli.robot.interfaces import ArmState, ContactWrench, LineTarget, Observation
-from tergodic_cli.robot.run import SETTLE_S, ContactRun, object_pose
+from tergodic_cli.robot.run import SETTLE_S, ContactRun, _fmt, object_pose
 from tergodic_cli.robot.surface import check_reachable, reconstruct_mesh, sim_object_mesh, transform_points
 
 #: N/m of the approach's axial position servo: its set-point advances at the guarded speed, so a
@@ -189,10 +189,18 @@ class SimArm:
             f"inverse kinematics off by {pe * 1e3:.1f} mm, {math.degrees(oe):.1f} deg"
 
     def _ik_hover(self, T: np.ndarray):
+        """The hover posture (reach.posture: several seeds, no twisted elbow), the line controller's rest posture."""
+        from tergodic_cli.robot.reach import posture
+
         key = T.tobytes()
         if key not in self._ik:
-            self._ik[key] = self.model.ik(T, self.dev.read_state().q, q_rest=np.array(self.cfg.picture_q))
+            self._ik[key] = posture(self.dev._chain, T, np.array(self.cfg.picture_q), self.q_min, self.q_max)
         return self._ik[key]
+
+    def set_object_pose(self, T_mesh: np.ndarray) -> None:
+        """Move the object (its mesh frame to ``T_mesh`` (4, 4), base frame) before the run."""
+        self.scene.move_object(T_mesh)
+        self._mesh_top = float(transform_points(T_mesh, self.mesh.vertices)[:, 2].max())
 
     def move_to(self, T: np.ndarray, check):
         """Come down from above the object (a joint-space path straight to a hover pose low in a bowl
@@ -255,14 +263,20 @@ class SimArm:
         self.sensor.tare()
         self.contact_wrench.tare_at(self.dev.read_state().ee_pose[:3, :3])
 
-    def contact(self, obs) -> tuple[np.ndarray | None, float]:
-        """Force-weighted mean of the sponge/object contact points (PyBullet's) and their total normal force."""
+    def contact(self, obs) -> tuple[np.ndarray | None, float, float]:
+        """Force-weighted mean of the sponge/object contact points (PyBullet's), their total normal force,
+        and the angle (deg) the sponge presses at from the contacts' own normals (a ball's contact normal
+        is the surface's there, edges included; the cloud's normal is not at an edge)."""
         key = (id(obs), self.scene.steps)
         if self._meas is None or self._meas[0] != key:  # the sample's, reused at the next step
             contacts = self.scene.sponge_contacts()
             fsum = float(sum(c[2] for c in contacts))
             cp = sum(c[2] * c[0] for c in contacts) / fsum if fsum > 0 else None
-            self._meas = (key, (cp, fsum))
+            nc = sum(c[2] * c[1] for c in contacts) if fsum > 0 else np.zeros(3)
+            nn = float(np.linalg.norm(nc))
+            z = obs.state.ee_pose[:3, 2]
+            press = math.degrees(math.acos(min(1.0, abs(float(nc @ z)) / nn))) if nn > 0 else 0.0
+            self._meas = (key, (cp, fsum, press))
         return self._meas[1]
 
     def link_poses(self) -> dict:
@@ -385,7 +399,8 @@ class RobotRun(ContactRun):
         say = on_event or (lambda step, msg: None)
         points = np.asarray(capture.points, dtype=float)
         meta = getattr(capture, "meta", {}) or {}
-        T_obj = object_pose(capture, cfg, on_event=say)
+        pose_given = cfg.object_pose is not None or meta.get("frame") == "robot_base"
+        T_obj = object_pose(capture, cfg)
         check_reachable(transform_points(T_obj, points))
         sim = meta.get("sim") if isinstance(meta.get("sim"), dict) else None
         if scene_mesh is not None:
@@ -402,14 +417,49 @@ class RobotRun(ContactRun):
             mesh, T_mesh = reconstruct_mesh(points, normals, h, cfg.mesh_edge), np.eye(4)
             self.mesh_source = "cloud"
         self.mesh = mesh
-        self.T_mesh = T_obj @ np.asarray(T_mesh, dtype=float)  # mesh frame -> base frame
+        self._T_mesh_obj = np.asarray(T_mesh, dtype=float)
+        self.T_mesh = T_obj @ self._T_mesh_obj  # mesh frame -> base frame
         arm = SimArm(cfg, mesh, self.T_mesh)
         try:
             super().__init__(capture, explorer, cfg, arm, T_obj, on_event=say)
+            self.max_tilt_deg = None  # the tool follows the normal; what the arm cannot reach is dropped
+            self._plan_reach(capture, pose_given)
         except BaseException:
             arm.disconnect()
             raise
         self.setup_s = time.perf_counter() - t_setup
+
+    def _plan_reach(self, capture, pose_given: bool) -> None:
+        """Choose the object pose (when not given), mark where the tool can follow the normal, and drop
+        the rest of the target from the explorer (reach.plan_reach), saying so before any contact."""
+        from tergodic_cli.errors import TergodicError
+        from tergodic_cli.robot.reach import plan_reach
+
+        arm = self.arm
+        target = np.asarray(getattr(self.explorer, "p", getattr(capture, "target", np.ones(len(self.points)))), dtype=float)
+        T, self.reachable = plan_reach(arm.dev._chain, self.points, self.normals, target, self._x_down,
+                                       np.array(self.cfg.picture_q), arm.q_min, arm.q_max,
+                                       self.T_obj if pose_given else None, self.cfg.hover_height)
+        if not pose_given:
+            self.T_obj = T
+            self.points_base = transform_points(T, self.points)
+            self.T_mesh = T @ self._T_mesh_obj
+            arm.set_object_pose(self.T_mesh)
+            yaw = math.degrees(math.atan2(T[1, 0], T[0, 0]))
+            self.on_event(0, "robot: no --object-pose given; the object stands on a 0.2 m stand, its footprint centre "
+                             f"{float(np.hypot(*T[:2, 3])):.2f} m in front of the base, turned {yaw:.0f} deg so the arm "
+                             f"reaches its target (object pose {_fmt(T[:3, 3])} m)")
+        total = float(target.sum())
+        kept = target * self.reachable
+        lost = 1.0 - float(kept.sum()) / total if total > 0 else 0.0
+        if lost > 1e-3:
+            if float(kept.sum()) <= 0:
+                raise TergodicError("the tool cannot follow the surface normal anywhere on the target (the arm's wrist "
+                                    "cannot reach those orientations)", "move or turn the object with --object-pose")
+            self.on_event(0, f"robot: {100 * lost:.0f} % of the target is where the tool cannot follow the normal "
+                             f"({100 * (1 - self.reachable.mean()):.0f} % of the surface); dropped from the target")
+            if hasattr(self.explorer, "set_target"):
+                self.explorer.set_target(kept)
 
     @property
     def scene(self) -> PyBulletScene:

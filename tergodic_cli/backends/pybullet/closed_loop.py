@@ -290,6 +290,7 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, recapture_every:
                 t_pause = time.perf_counter()
                 cpu = time.process_time()
                 rec, p = recapture(step)
+                p = p * run.reachable  # reach: the part the tool cannot follow stays dropped (robot/reach.py)
                 rec["cpu_ms"] = 1e3 * (time.process_time() - cpu)
                 run.paused_s += time.perf_counter() - t_pause
                 log.append(rec)
