@@ -42,10 +42,11 @@ REMOVED_GOAL = 0.95
 def run_one(k: int, until: float, budget: int, seed: int, nk: int, cache: str, renderer: str, width: int, height: int,
             pose: tuple) -> dict:
     from tergodic_cli.basis import BasisConfig, get_basis
-    from tergodic_cli.capture.sim_camera import SimCamera, SimCameraConfig, SimCaptureConfig, capture_sim
+    from tergodic_cli.backends.pybullet.camera import SimCamera, SimCameraConfig, SimCaptureConfig, capture_sim
     from tergodic_cli.capture.textured import SimObjectConfig, TexturedObject
     from tergodic_cli.explore import ExploreConfig, Explorer
-    from tergodic_cli.robot import CleaningLoopConfig, RobotConfig, clean_with_robot, robot_explore_config
+    from tergodic_cli.backends.pybullet import CleaningLoopConfig, clean_with_robot
+    from tergodic_cli.robot import RobotConfig, robot_explore_config
 
     obj_cfg = SimObjectConfig(object="bowl", marking="X", pose=pose)
     cam = SimCamera(SimCameraConfig(renderer=renderer, width=width, height=height), TexturedObject(obj_cfg))

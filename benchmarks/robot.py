@@ -2,7 +2,7 @@
 
 Usage (a few minutes with the defaults; the full run of docs/robot.md uses --steps 1000):
     OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/robot.py [--steps 300]
-        [--objects bowl,plate,mug,box] [--force 5] [--seed 0] [--json out.json]
+        [--objects bowl,plate,mug,box] [--force 5] [--seed 0] [--gains tuned|paper] [--json out.json]
 
 For each built-in synthetic object (the box is the shape with sharp edges and vertical walls) it
 runs the robot (PyBullet, DIRECT, 1 kHz torque control) for ``--steps`` explorer steps at
@@ -92,18 +92,19 @@ def sponge_path(samples: list[dict]) -> np.ndarray:
     return np.array(out).reshape(-1, 3)
 
 
-def run_one(obj: str, steps: int, seed: int, force: float, nk: int, cache: str) -> dict:
+def run_one(obj: str, steps: int, seed: int, force: float, nk: int, cache: str, gains: str = "tuned") -> dict:
     from tergodic_cli.basis import BasisConfig, get_basis
     from tergodic_cli.capture import CaptureConfig, capture_cloud
     from tergodic_cli.capture.filters import mean_spacing
     from tergodic_cli.explore import ExploreConfig, Explorer
     from tergodic_cli.explore.metrics import coverage_score
-    from tergodic_cli.robot import RobotConfig, explore_with_robot, robot_explore_config
+    from tergodic_cli.backends.pybullet import explore_with_robot
+    from tergodic_cli.robot import PAPER_GAINS, RobotConfig, robot_explore_config
 
     cap = capture_cloud(CaptureConfig(source="synthetic", synthetic=obj, seed=0), on_event=lambda m: None)
     basis, _ = get_basis(cap.points, BasisConfig(nk=nk, neighbors=30), cache_dir=cache)
     start = cap.points[np.random.default_rng(seed).integers(len(cap.points))][None]
-    rcfg = RobotConfig(force=force)
+    rcfg = RobotConfig(force=force, **({"gains": PAPER_GAINS} if gains == "paper" else {}))
     cfg = robot_explore_config(ExploreConfig(nk=nk, seed=seed), rcfg.explore_dt)
     # Kinematic reference: the same explorer and config from the same start, the agent's own path.
     kin = Explorer(basis, cap.target, cfg, start, on_event=lambda m: None)
@@ -168,11 +169,12 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="seeds the start [default: 0]")
     ap.add_argument("--nk", type=int, default=200)
     ap.add_argument("--json", default=None, help="write every row to this JSON file")
+    ap.add_argument("--gains", choices=("tuned", "paper"), default="tuned", help="the tuned gains or the paper's (V-A3)")
     args = ap.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as cache:
         for obj in args.objects.split(","):
-            rows.append(run_one(obj, args.steps, args.seed, args.force, args.nk, cache))
+            rows.append(run_one(obj, args.steps, args.seed, args.force, args.nk, cache, args.gains))
             print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in rows[-1].items()}),
                   file=sys.stderr, flush=True)
     print(f"{args.steps} explorer steps at {args.force:g} N, seed {args.seed}; "

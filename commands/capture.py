@@ -104,7 +104,7 @@ def capture(
     check_out_folder(out, overwrite)  # before any work: a refused --out costs nothing
     frame = None
     if kind == "sim":
-        from tergodic_cli.capture.sim_camera import SimCameraConfig, SimCaptureConfig, capture_sim
+        from tergodic_cli.backends.pybullet.camera import SimCameraConfig, SimCaptureConfig, capture_sim
         from tergodic_cli.capture.textured import SimObjectConfig
 
         sim = SimCaptureConfig(
@@ -125,7 +125,7 @@ def capture(
         cap = capture_sim(sim)
         frame = getattr(cap, "frame", None)
     elif kind == "realsense":
-        from tergodic_cli.hardware.realsense.capture import capture_realsense
+        from tergodic_cli.backends.realsense.capture import capture_realsense
 
         configs = {"capture": cfg}  # the camera's settings are in capture.json; a repeat takes them from the options
         cap = capture_realsense(cfg, serial=serial, width=width, height=height,

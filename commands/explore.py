@@ -53,6 +53,7 @@ def explore(
     workspace: Optional[str] = typer.Option(None, "--workspace", help="[robot] Workspace box xmin,ymin,zmin,xmax,ymax,zmax in the base frame, m."),
     explore_dt: Optional[float] = typer.Option(None, "--explore-dt", help="[robot] Simulated seconds per explorer step [default: 0.2; agent limits are rescaled so a step moves the same path]."),
     normal_side: Optional[str] = typer.Option(None, "--normal-side", help="[robot] Side of the sheet the tool works on: auto, up or out."),
+    gains: Optional[str] = typer.Option(None, "--gains", help="[pybullet] Controller gains: tuned (default) or paper (the paper's K, D and wrench PID on the full wrench, V-A3)."),
     gui: bool = typer.Option(False, "--gui", help="[pybullet] Open the PyBullet GUI (needs a display)."),
     realtime: bool = typer.Option(False, "--realtime", help="[pybullet] Pace the simulation to wall-clock time (with --gui)."),
     robot_ip: Optional[str] = typer.Option(None, "--robot-ip", help="[franka] IP address of the Franka controller."),
@@ -114,7 +115,7 @@ def explore(
         cfg = ExploreConfig(**fields)
     robot_options = {
         "force": force, "contact_force": contact_force, "explore_dt": explore_dt, "normal_side": normal_side,
-        "gui": gui or None, "realtime": realtime or None,
+        "gains": gains, "gui": gui or None, "realtime": realtime or None,
         "object_pose": parse_floats(object_pose, None, "--object-pose", "0.5,0,0.2") if object_pose else None,
         "safety": {"force_limit": force_limit,
                    **(_workspace(parse_floats(workspace, 6, "--workspace", "0.15,-0.6,0,0.85,0.6,0.9")) if workspace else {})},

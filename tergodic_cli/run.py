@@ -197,7 +197,7 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
 
     ``robot_options`` are :class:`~tergodic_cli.robot.RobotConfig` fields (``safety`` as a dict of
     :class:`~tergodic_cli.robot.safety.SafetyConfig` fields). ``hardware`` holds the
-    :func:`~tergodic_cli.hardware.factory.make_hardware` arguments for ``robot="franka"``;
+    :func:`~tergodic_cli.backends.factory.make_hardware` arguments for ``robot="franka"``;
     with ``dry_run`` the devices are connected and read, the plan is passed to ``on_report``,
     nothing moves and nothing is written (the returned dict is then ``{"dry_run": report}``).
     ``recapture_every`` (robot "pybullet", a ``--source sim`` capture) runs the closed outer loop:
@@ -241,7 +241,7 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
 
     devices = None
     if robot == "franka":  # fail fast (missing SDK: one-line install hint) before any heavy work
-        from tergodic_cli.hardware.factory import make_hardware
+        from tergodic_cli.backends.factory import make_hardware
 
         devices = make_hardware(robot="franka", **(hardware or {}))
     robot_api = _robot_backend() if robot != "kinematic" else None
@@ -254,7 +254,7 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
         cfg = scale(cfg, robot_cfg.explore_dt) if scale is not None else cfg
     if dry_run:
         require(devices is not None, "--dry-run needs a real robot", "use it with --robot franka")
-        from tergodic_cli.hardware.run import DryRunPlan, dry_run as hardware_dry_run
+        from tergodic_cli.backends.streamed import DryRunPlan, dry_run as hardware_dry_run
 
         report = hardware_dry_run(devices[0], devices[1], None,
                                   DryRunPlan(capture, robot_cfg, start=tuple(start_xyz[0])))
@@ -326,7 +326,7 @@ def _write_run(out: Path, explorer, cfg, user_cfg, basis, hit, capture, capture_
                 explorer.step()
                 after_step(k + 1, None)
         elif recapture_every is not None:
-            from tergodic_cli.robot import CleaningLoopConfig, clean_with_robot, log_recapture
+            from tergodic_cli.backends.pybullet.closed_loop import CleaningLoopConfig, clean_with_robot, log_recapture
 
             loop = CleaningLoopConfig(recapture_every=recapture_every, until_clean=until_clean,
                                       max_steps=max_steps or cfg.steps)
@@ -336,7 +336,7 @@ def _write_run(out: Path, explorer, cfg, user_cfg, basis, hit, capture, capture_
                                            on_step=lambda step, sample: after_step(step, sample),
                                            on_event=event_hook, on_recapture=on_recapture) or {}
         elif devices is not None:
-            from tergodic_cli.hardware.run import explore_with_hardware
+            from tergodic_cli.backends.streamed import explore_with_hardware
 
             robot_extra = explore_with_hardware(capture, explorer, robot_cfg, cfg.steps, devices[0], devices[1],
                                                 on_step=lambda step, sample: after_step(step, sample),
@@ -390,17 +390,11 @@ def check_robot(robot: str, robot_cfg, capture, recapture_every, until_clean, ma
     if getattr(robot_cfg, "gui", False) and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)", "run without --gui, or on a desktop")
     if robot == "pybullet":
-        from tergodic_cli.robot.surface import (check_reachable, default_object_pose, parse_object_pose,
-                                                transform_points)
+        from tergodic_cli.robot.run import object_pose
+        from tergodic_cli.robot.surface import check_reachable, transform_points
 
-        # the same placement as RobotRun, so an unreachable pose is refused before the run folder
-        meta = getattr(capture, "meta", {}) or {}
-        if robot_cfg.object_pose is not None:
-            T_obj = parse_object_pose(robot_cfg.object_pose)
-        elif meta.get("frame") == "robot_base":
-            T_obj = np.eye(4)
-        else:
-            T_obj = default_object_pose(np.asarray(capture.points, dtype=float))
+        # the same placement as the run, so an unreachable pose is refused before the run folder
+        T_obj = object_pose(capture, robot_cfg)
         check_reachable(transform_points(T_obj, capture.points))
         ws = robot_cfg.safety
         for a in ([] if start_xyz is None else transform_points(T_obj, np.atleast_2d(start_xyz))):
@@ -408,7 +402,7 @@ def check_robot(robot: str, robot_cfg, capture, recapture_every, until_clean, ma
                 raise TergodicError(f"the start point ({', '.join(f'{v:.3f}' for v in a)}) m is outside the workspace box",
                                     "move the object with --object-pose, widen --workspace, or choose another start")
     if recapture_every is not None:
-        from tergodic_cli.robot.closed_loop import CleaningLoopConfig, validate_loop_config
+        from tergodic_cli.backends.pybullet.closed_loop import CleaningLoopConfig, validate_loop_config
 
         validate_loop_config(CleaningLoopConfig(recapture_every=recapture_every, until_clean=until_clean,
                                                 max_steps=max_steps))
@@ -420,6 +414,13 @@ def make_robot_config(robot_config_cls, options: dict | None):
     options = {k: v for k, v in (options or {}).items() if v is not None}
     if isinstance(options.get("safety"), dict):
         options["safety"] = {k: v for k, v in options["safety"].items() if v is not None}
+    if isinstance(options.get("gains"), str):  # --gains tuned | paper
+        from tergodic_cli.robot.controller import PAPER_GAINS
+
+        name = options.pop("gains")
+        require(name in ("tuned", "paper"), f"unknown --gains {name!r}", "use --gains tuned or --gains paper")
+        if name == "paper":
+            options["gains"] = PAPER_GAINS.to_dict()
     return robot_config_cls.from_dict(options, "robot_options")
 
 
@@ -429,7 +430,7 @@ def _robot_backend():
 
     try:
         robot_pkg = importlib.import_module("tergodic_cli.robot")
-        explore_with_robot = robot_pkg.explore_with_robot
+        explore_with_robot = importlib.import_module("tergodic_cli.backends.pybullet").explore_with_robot
         robot_config = robot_pkg.RobotConfig
     except (ImportError, AttributeError) as exc:
         raise TergodicError(f"the robot backend is not available ({str(exc).splitlines()[0][:80]})",

@@ -81,6 +81,7 @@ REJECTED = [
     (("--robot", "pybullet", "--force", "nan"), "--force"),
     (("--robot", "pybullet", "--contact-force", "10"), "contact threshold"),
     (("--robot", "pybullet", "--force-limit", "1"), "force limit"),
+    (("--robot", "pybullet", "--gains", "stiff"), "--gains"),
     (("--robot", "pybullet", "--explore-dt", "0.0005"), "whole number"),
     (("--robot", "pybullet", "--object-pose", "2.5,0,0"), "reach"),
     (("--robot", "pybullet", "--object-pose", "0,0,0"), "overlaps the robot's base"),

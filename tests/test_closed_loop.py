@@ -17,12 +17,13 @@ pytest.importorskip("pygafro")
 
 from tergodic_cli.basis import BasisConfig, get_basis  # noqa: E402
 from tergodic_cli.capture import load_capture, save_capture  # noqa: E402
-from tergodic_cli.capture.sim_camera import SimCamera, SimCameraConfig, SimCaptureConfig, capture_sim  # noqa: E402
+from tergodic_cli.backends.pybullet.camera import SimCamera, SimCameraConfig, SimCaptureConfig, capture_sim  # noqa: E402
 from tergodic_cli.capture.textured import SimObjectConfig, TexturedObject  # noqa: E402
 from tergodic_cli.errors import TergodicError  # noqa: E402
 from tergodic_cli.explore import ExploreConfig, Explorer  # noqa: E402
-from tergodic_cli.robot import (CleaningLoopConfig, RobotConfig, RobotRun, clean_with_robot, explore_with_robot,  # noqa: E402
-                                log_recapture, robot_explore_config, sim_scene_configs)
+from tergodic_cli.backends.pybullet import (CleaningLoopConfig, RobotRun, clean_with_robot, explore_with_robot,  # noqa: E402
+                                           log_recapture, sim_scene_configs)
+from tergodic_cli.robot import RobotConfig, robot_explore_config  # noqa: E402
 
 FAST = dict(move_speed=1.6, hover_height=0.02)
 POSE = (0.5, 0.0, 0.2)  # on a 20 cm stand: every wall direction is reachable with the sponge tilted
@@ -65,7 +66,7 @@ def _explorer(cap, basis, rcfg: RobotConfig) -> Explorer:
 
 
 def _at_rest(run: RobotRun) -> float:
-    return float(np.max(np.abs(run.arm.read_state().dq)))
+    return float(np.max(np.abs(run.arm.dev.read_state().dq)))
 
 
 # ---------------------------------------------------------------------------------- the scene record

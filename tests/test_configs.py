@@ -11,7 +11,7 @@ from conftest import REPO, assert_one_line_error, run_cli
 from tergodic_cli.basis import BasisConfig
 from tergodic_cli.capture import CaptureConfig
 from tergodic_cli.config import from_dict, to_dict
-from tergodic_cli.capture.sim_camera import SimCameraConfig
+from tergodic_cli.backends.pybullet.camera import SimCameraConfig
 from tergodic_cli.capture.textured import SimObjectConfig
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.explore import ExploreConfig

@@ -17,7 +17,7 @@ import pytest
 import tergodic_cli
 
 PACKAGES = ("capture", "basis", "explore")
-MODULES = ("robot.interfaces", "hardware.impedance", "config")
+MODULES = ("robot.interfaces", "backends.impedance", "config")
 #: Left out, with the reason.
 SKIP = {
     "explore.kernels": "compiled internals of Explorer.step; their numpy reference forms (geometry, gradient, metrics) are documented",

@@ -2,7 +2,7 @@
 
 The fakes are shaped like the installed SDKs (see tests/fakes/); the physics behind them is a
 quasi-static fake world (tests/fakes/world.py). Every backend runs the same exploration loop
-(:func:`tergodic_cli.hardware.explore_with_hardware`), with the one SafetyGuard.
+(:func:`tergodic_cli.backends.explore_with_hardware`), with the one SafetyGuard.
 """
 
 from __future__ import annotations
@@ -17,10 +17,11 @@ pytest.importorskip("pygafro")
 from fakes import install, scenario, uninstall  # noqa: E402
 
 from tergodic_cli.errors import TergodicError  # noqa: E402
-from tergodic_cli.hardware import (DryRunPlan, HardwareRunConfig, LineImpedanceGains, dry_run,  # noqa: E402
+from tergodic_cli.backends import (DryRunPlan, HardwareRunConfig, LineImpedanceGains, dry_run,  # noqa: E402
                                    explore_with_hardware, line_impedance_target, make_hardware)
-from tergodic_cli.hardware.extras import import_sdk  # noqa: E402
-from tergodic_cli.robot.interfaces import Arm, WrenchSensor  # noqa: E402
+from tergodic_cli.backends.extras import import_sdk  # noqa: E402
+from tergodic_cli.backends.impedance import ImpedanceArm  # noqa: E402
+from tergodic_cli.robot.interfaces import WrenchSensor  # noqa: E402
 
 FAST = HardwareRunConfig(move_speed=0.3)
 
@@ -131,7 +132,7 @@ def test_line_target_presses_the_force_and_holds_the_line():
 def test_franky_arm_state_and_protocols(plate, monkeypatch, franky):
     world = scenario.world(plate, monkeypatch)
     arm, sensor = make_hardware("franka", scenario.ROBOT_IP)
-    assert isinstance(arm, Arm) and isinstance(sensor, WrenchSensor)
+    assert isinstance(arm, ImpedanceArm) and isinstance(sensor, WrenchSensor)
     arm.connect()
     st = arm.read_state()
     np.testing.assert_allclose(st.ee_pose, world.T, atol=1e-12)
@@ -193,7 +194,7 @@ def test_move_joints_then_impedance(plate, monkeypatch, franky):
     with pytest.raises(TergodicError, match="outside the joint limits"):
         arm.move_joints(arm.q_max + 0.1)
     # hold a pose 1 cm away: the impedance loop in the "SDK" pulls the TCP there
-    from tergodic_cli.hardware.impedance import hold_target
+    from tergodic_cli.backends.impedance import hold_target
 
     goal = world.T.copy()
     goal[:3, 3] += [0.01, 0.0, -0.01]
@@ -326,7 +327,7 @@ def test_unknown_object_pose_is_refused(plate, monkeypatch, franky):
 
 # ------------------------------------------------------------------------------------------- dry run
 def test_dry_run_reads_everything_and_moves_nothing(plate, monkeypatch, franky, bota):
-    from tergodic_cli.hardware import make_camera
+    from tergodic_cli.backends import make_camera
 
     world = scenario.world(plate, monkeypatch, noise=0.0)
     monkeypatch.setattr(bota, "_WORLD", world)

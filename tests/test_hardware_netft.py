@@ -16,7 +16,7 @@ from fakes import install, scenario
 from fakes.netft_server import NetFTServer
 
 from tergodic_cli.errors import TergodicError
-from tergodic_cli.hardware.netft import NetFTConfig, NetFTSensor, rdt
+from tergodic_cli.backends.netft import NetFTConfig, NetFTSensor, rdt
 from tergodic_cli.robot.safety import SafetyConfig, SafetyGuard
 
 W = np.array([1.5, -2.25, 10.0, 0.1, -0.2, 0.05])
@@ -160,7 +160,7 @@ def plate():
 
 
 def test_exploration_loop_with_netft(plate, monkeypatch):
-    from tergodic_cli.hardware import HardwareRunConfig, explore_with_hardware, make_hardware
+    from tergodic_cli.backends import HardwareRunConfig, explore_with_hardware, make_hardware
 
     install(monkeypatch, "franky")
     world = scenario.world(plate, monkeypatch, normal_force_bias=-1.0)

@@ -12,8 +12,8 @@ from fakes import install, uninstall
 
 from tergodic_cli.capture import CaptureConfig
 from tergodic_cli.errors import TergodicError
-from tergodic_cli.hardware import Camera, Intrinsics, deproject, make_camera
-from tergodic_cli.hardware.realsense.capture import capture_realsense
+from tergodic_cli.backends import Camera, Intrinsics, deproject, make_camera
+from tergodic_cli.backends.realsense.capture import capture_realsense
 
 # librealsense 2.59.1's own rs2_deproject_pixel_to_point (pyrealsense2 wheel), for
 # 640x480, fx 600, fy 610, ppx 320.5, ppy 240.25, coeffs (0.1, -0.05, 0.001, 0.002, 0.01):

@@ -17,10 +17,11 @@ from test_robot_sim import FAST, _explorer, plate  # noqa: E402,F401
 
 from tergodic_cli.basis import compute_basis  # noqa: E402
 from tergodic_cli.explore import ExploreConfig, Explorer  # noqa: E402
-from tergodic_cli.robot import RobotConfig, RobotRun, robot_explore_config  # noqa: E402
+from tergodic_cli.backends.pybullet import RobotRun  # noqa: E402
+from tergodic_cli.robot import RobotConfig, robot_explore_config  # noqa: E402
 from tergodic_cli.robot import kernels as Kn  # noqa: E402
 from tergodic_cli.robot.interfaces import ContactWrench  # noqa: E402
-from tergodic_cli.robot.pybullet_backend import PyBulletArm, PyBulletScene, PyBulletWrenchSensor  # noqa: E402
+from tergodic_cli.backends.pybullet import PyBulletArm, PyBulletScene, PyBulletWrenchSensor  # noqa: E402
 from tergodic_cli.robot.summary import summarize_robot  # noqa: E402
 
 
@@ -65,21 +66,22 @@ def test_inertial_compensation_free_motion_and_contact(plate):
     cap, basis = plate
     cfg = RobotConfig(**FAST)
     with RobotRun(cap, _explorer(cap, basis, cfg), cfg) as run:
-        run.fast_loop = False  # every tick through _tick / _track_generic, where we can watch it
+        run.arm.fast = False  # every tick through get_observation / send_action, where we can watch it
         plain = ContactWrench(run.scene.tool_load(), run.sensor.frame_in_ee)  # weight only, as before
         rec = []
-        tick = run._tick
+        observe = run.arm.get_observation
 
-        def watched(*a, **k):
-            st, w, out, fault = tick(*a, **k)
-            if k.get("use_sensor", True):
-                plain.tare_load = run.contact.tare_load
+        def watched(sensor=True):
+            obs = observe(sensor=sensor)
+            if sensor:
+                st, w = obs.state, obs.wrench
+                plain.tare_load = run.arm.contact_wrench.tare_load
                 wp = plain(run.sensor.read().wrench, st.ee_pose)
                 rec.append((run.sm.state, float(np.linalg.norm(w[:3])), float(np.linalg.norm(wp[:3])),
                             float(np.linalg.norm(w[3:])), _contact_force(run), float(-(st.ee_pose[:3, :3] @ w[:3])[2])))
-            return st, w, out, fault
+            return obs
 
-        run._tick = watched
+        run.arm.get_observation = watched
         out = run.run(2)
     assert out["stop_reason"] == "completed"
     state = np.array([r[0] for r in rec])
@@ -163,7 +165,7 @@ def test_run_peak_is_every_ticks_maximum(plate):
     cap, basis = plate
     cfg = RobotConfig(**FAST)
     with RobotRun(cap, _explorer(cap, basis, cfg), cfg) as run:
-        run.fast_loop = False
+        run.arm.fast = False
         peak = [0.0]
         step = run.scene.step
 
@@ -184,7 +186,7 @@ def test_run_peak_is_every_ticks_maximum(plate):
 @pytest.fixture(scope="module")
 def bowl_on_table():
     """``capture --source sim --object bowl --marking X`` at its default pose: the bowl on the table."""
-    from tergodic_cli.capture.sim_camera import SimCameraConfig, SimCaptureConfig, capture_sim
+    from tergodic_cli.backends.pybullet.camera import SimCameraConfig, SimCaptureConfig, capture_sim
     from tergodic_cli.capture.textured import SimObjectConfig
 
     cap = capture_sim(SimCaptureConfig(object=SimObjectConfig(object="bowl", marking="X", texture_size=64),
@@ -213,3 +215,27 @@ def test_first_touch_on_the_default_sim_capture_is_gentle(bowl_on_table, force, 
     assert out["stop_reason"] == "completed"
     assert peak[0] <= 1.5 * force  # PyBullet's contact force, every tick of the approach
     assert out["force_peak_approach_N"] <= 1.5 * force  # the run's own 1 kHz figure
+
+
+# ---------------------------------------------------------------------------------- item 3: the paper's gains
+def test_paper_gains_press_steadily_with_the_full_wrench_pid(plate):
+    """K, D and the PID of the paper (V-A3), the PID on the full wrench: the first touch no longer trips
+    the force stop (it did at 25 N), and the pressed force holds F_d in steady contact."""
+    from tergodic_cli.robot import PAPER_GAINS
+
+    cap, basis = plate
+    cfg = RobotConfig(gains=PAPER_GAINS, **FAST)
+    with RobotRun(cap, _explorer(cap, basis, cfg), cfg) as run:
+        peak = [0.0]
+        step = run.scene.step
+
+        def watched():
+            step()
+            peak[0] = max(peak[0], _contact_force(run))
+
+        run.scene.step = watched
+        out = run.run(10)
+    assert out["stop_reason"] == "completed", out["stop_reason"]
+    assert out["tick_steady"] > 500 and out["force_rms_error_rel"] < 0.1
+    assert peak[0] < run.guard.force_limit and out["force_peak_approach_N"] <= 1.5 * cfg.force
+    assert out["track_mm_median"] < 2.0  # the tool follows the agent (it stuck 3 mm behind with a lateral integral)

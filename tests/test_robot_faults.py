@@ -16,7 +16,8 @@ pytest.importorskip("pygafro")
 from conftest import REPO, run_cli  # noqa: E402
 from test_robot_sim import FAST, _ExplorerProxy, _explorer, _FrozenSensor, plate  # noqa: E402,F401
 
-from tergodic_cli.robot import RobotConfig, RobotRun  # noqa: E402
+from tergodic_cli.backends.pybullet import RobotRun  # noqa: E402
+from tergodic_cli.robot import RobotConfig  # noqa: E402
 from tergodic_cli.robot.interfaces import WrenchReading  # noqa: E402
 from tergodic_cli.robot.safety import FAULT_EXIT_CODE, Fault, fault_exit_code, resolve_stop  # noqa: E402
 
@@ -76,10 +77,10 @@ def _run(plate, mode: str, after: int = 4):
             elif mode == "nan":
                 run.sensor = _NaNSensor(run.sensor, t_f)
             elif mode == "tcp_outside":  # the box's floor rises just over the tool: the TCP breaches it
-                run.guard.ws_lo[2] = run.arm.read_state().ee_pose[2, 3] + 1e-3
+                run.guard.ws_lo[2] = run.arm.dev.read_state().ee_pose[2, 3] + 1e-3
                 run.guard.check_target = lambda t, x: None  # (the targets on the surface would trip first)
             else:  # joint 7's upper limit drops just under where it is: a joint-limit stop in contact
-                run.guard.q_hi[6] = run.arm.read_state().q[6] - 1e-3
+                run.guard.q_hi[6] = run.arm.dev.read_state().q[6] - 1e-3
             return orig(steps, on_step, *a)
 
         run._explore = explore
@@ -100,7 +101,7 @@ def test_fault_in_contact_ends_lifted(plate, mode, needle):
         assert rec["state"] == "explore" and rec["at_fault"] > 0.5 * run.F_d  # it happened while pressing
         assert [t["to"] for t in out["transitions"][-2:]] == ["retreat", "stopped"]
         assert run.scene.sponge_contacts() == []  # lifted: no contact at the end
-        assert float(np.max(np.abs(run.arm.read_state().dq))) < 0.05  # at rest
+        assert float(np.max(np.abs(run.arm.dev.read_state().dq))) < 0.05  # at rest
         # The lift only unloads: the largest contact force after the fault is the one it found.
         assert rec["peak_after"] <= max(rec["at_fault"], 1.5 * run.F_d) + 0.5, rec
         if mode != "bump":

@@ -121,7 +121,7 @@ def test_line_motor_of_parallel_lines_is_the_offset():
     np.testing.assert_allclose(ga.gafro_motor_matrix(Mg)[:3, 3], [0.01, -0.02, 0.0], atol=1e-12)
 
 
-def _ga_control_law(T, J_base, dq, a, d, W_meas, g: ControllerGains, f_cmd_z: float) -> np.ndarray:
+def _ga_control_law(T, J_base, dq, a, d, W_meas, g: ControllerGains, f_cmd_z) -> np.ndarray:
     """Eq. 47 written with pygafro objects only (motors, lines, MotorLogarithm, sandwiches, GA inner products)."""
     M = ga.gafro_motor(T)
     Mr = pygafro.Motor(M.reverse())  # M̃
@@ -142,7 +142,8 @@ def _ga_control_law(T, J_base, dq, a, d, W_meas, g: ControllerGains, f_cmd_z: fl
         cols.append(Bg)
     V_ee = sum((ga.twist_from_gafro(np.asarray(c.vector())) * dq[i] for i, c in enumerate(cols)), np.zeros(6))
     W_V = np.array(g.d_trans + g.d_rot) * V_ee  # eq. 46
-    W_C = np.array([0.0, 0.0, f_cmd_z, 0.0, 0.0, 0.0])  # eq. 40 output on the tool axis
+    # eq. 40's output: on the tool axis (a float), or the full wrench (6,)
+    W_C = np.array([0.0, 0.0, f_cmd_z, 0.0, 0.0, 0.0]) if np.ndim(f_cmd_z) == 0 else np.asarray(f_cmd_z)
     W = W_L - W_V + W_C
     Wg = pygafro.Wrench(ga.wrench_to_gafro(W)).multivector()
     # τ_i = -B_i^ee · W (III-B: B · W = -τ)
@@ -170,6 +171,29 @@ def test_matrix_control_law_equals_geometric_algebra(seed):
     expected = _ga_control_law(T, J, dq, a, d, W_meas, g, f_cmd)
     # (pygafro's logarithm adds 1e-10 to a denominator: agreement to ~1e-9 relative)
     np.testing.assert_allclose(out.tau, expected, rtol=1e-7, atol=1e-6)
+
+
+@pytest.mark.parametrize("full", [False, True])
+def test_wrench_pid_on_the_full_wrench(full):
+    """Eqs. 40-41: W_C = K_p W_e + K_i ∫ W_e, W_e = W_d - W'_m, W_d = (0, 0, F_d, 0, 0, 0) (zero desired
+    torque): K_p on all six components with ``pid_wrench`` (K_i on the axial one), else on the axial force only."""
+    rng = _rng(40)
+    T = _random_motor(rng, 0.3)
+    J = rng.normal(size=(6, 7)) * 0.5
+    q, dq = rng.normal(size=7), rng.normal(size=7) * 0.3
+    a = T[:3, 3] + rng.normal(size=3) * 0.01
+    d = T[:3, :3] @ np.array([0.0, 0.0, 1.0]) + rng.normal(size=3) * 0.1
+    d /= np.linalg.norm(d)
+    W_meas = rng.normal(size=6)
+    g = ControllerGains(spin_stiffness=0.0, nullspace_stiffness=0.0, nullspace_damping=0.0, limit_stiffness=0.0,
+                        force_filter_hz=0.0, guard_damping=0.0, pid_wrench=full, kp=0.5, ki=5.0, kd=0.0)
+    ctrl = LineForceController(g, 1e-3, q_rest=q, x_ref=np.array([1.0, 0.0, 0.0]))
+    ctrl.start_tracking(5.0, 3.0)
+    out = ctrl.step(ArmState(0.0, q, dq, T, J), a.tolist(), d.tolist(), W_meas, "track", 5.0)
+    e = np.array([0.0, 0.0, 5.0, 0.0, 0.0, 0.0]) - W_meas
+    W_C = g.kp * e * full  # the integral acts on the axial force only
+    W_C[2] = g.kp * e[2] + g.ki * ctrl.integral
+    np.testing.assert_allclose(out.tau, _ga_control_law(T, J, dq, a, d, W_meas, g, W_C), rtol=1e-7, atol=1e-6)
 
 
 def test_force_pid_integrates_to_the_desired_force():

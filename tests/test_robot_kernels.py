@@ -16,9 +16,10 @@ from tergodic_cli.basis import compute_basis  # noqa: E402
 from tergodic_cli.capture import CaptureConfig, capture_cloud  # noqa: E402
 from tergodic_cli.explore import ExploreConfig, Explorer  # noqa: E402
 from tergodic_cli.robot import kernels as Kn  # noqa: E402
-from tergodic_cli.robot import RobotConfig, RobotRun, SafetyConfig, SafetyGuard, robot_explore_config  # noqa: E402
-from tergodic_cli.robot.pybullet_backend import PyBulletArm, PyBulletScene  # noqa: E402
-from tergodic_cli.robot.pybullet_backend.scene import DQ_MAX, Q_MAX, Q_MIN  # noqa: E402
+from tergodic_cli.backends.pybullet import RobotRun  # noqa: E402
+from tergodic_cli.robot import RobotConfig, SafetyConfig, SafetyGuard, robot_explore_config  # noqa: E402
+from tergodic_cli.backends.pybullet import PyBulletArm, PyBulletScene  # noqa: E402
+from tergodic_cli.robot.kinematics import DQ_MAX, Q_MAX, Q_MIN  # noqa: E402
 
 
 def test_compiled_kinematics_match_pybullet():
@@ -44,7 +45,7 @@ def test_compiled_kinematics_match_pybullet():
         # the chain calibration leaves the arm where it was
         q0 = np.array([0.1, -0.5, 0.2, -2.0, 0.1, 1.6, 0.7])
         sc.set_arm(q0)
-        from tergodic_cli.robot.pybullet_backend.devices import kinematic_chain
+        from tergodic_cli.backends.pybullet.devices import kinematic_chain
 
         kinematic_chain(sc)
         np.testing.assert_allclose([s[0] for s in p.getJointStates(sc.robot, sc.arm_joints, physicsClientId=sc.cid)], q0)
@@ -116,7 +117,7 @@ def _run(plate, fast: bool, steps: int = 4, **cfg):
     start = cap.points[np.argmin(np.linalg.norm(cap.points[:, :2] - [0.03, 0.02], axis=1))][None]
     ex = Explorer(basis, cap.target, ec, start, on_event=lambda m: None)
     with RobotRun(cap, ex, rcfg) as run:
-        run.fast_loop = fast
+        run.arm.fast = fast
         out = run.run(steps)
         return out, run.samples
 

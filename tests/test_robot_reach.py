@@ -20,7 +20,8 @@ from tergodic_cli.basis import compute_basis  # noqa: E402
 from tergodic_cli.capture import CaptureConfig, capture_cloud  # noqa: E402
 from tergodic_cli.errors import TergodicError  # noqa: E402
 from tergodic_cli.explore import ExploreConfig, Explorer  # noqa: E402
-from tergodic_cli.robot import RobotConfig, RobotRun, robot_explore_config  # noqa: E402
+from tergodic_cli.backends.pybullet import RobotRun  # noqa: E402
+from tergodic_cli.robot import RobotConfig, robot_explore_config  # noqa: E402
 from tergodic_cli.robot.reach import tool_rotation  # noqa: E402
 from tergodic_cli.robot.safety import fault_exit_code  # noqa: E402
 
@@ -73,10 +74,10 @@ def test_the_tool_follows_the_normal_on_a_vertical_wall(mug):
             f = sum(c[2] for c in contacts)
             if run.sm.state == "explore" and f > 1.0:
                 cp = sum(c[2] * c[0] for c in contacts) / f
-                z = run.arm.read_state().ee_pose[:3, 2]
+                z = run.arm.dev.read_state().ee_pose[:3, 2]
                 tilts.append(math.degrees(math.acos(min(1.0, float(-z @ _mug_normal(run, cp))))))
 
-        run.contact_hook, run.hook_every = watch, 10
+        run.arm.contact_hook, run.arm.hook_every = watch, 10
         out = run.run(15)
     assert out["stop_reason"] == "completed"
     assert len(tilts) > 200
@@ -115,10 +116,10 @@ def test_no_press_at_a_large_angle(mug):
             f = sum(c[2] for c in contacts)
             if f > 0.5:
                 cp = sum(c[2] * c[0] for c in contacts) / f
-                z = run.arm.read_state().ee_pose[:3, 2]
+                z = run.arm.dev.read_state().ee_pose[:3, 2]
                 tilts.append(math.degrees(math.acos(min(1.0, float(-z @ _mug_normal(run, cp))))))
 
-        run.contact_hook, run.hook_every = watch, 5
+        run.arm.contact_hook, run.arm.hook_every = watch, 5
         run.begin()
         with run.guarded():
             run.engage()
@@ -145,7 +146,7 @@ def test_hover_posture_is_not_a_twisted_elbow():
     finds the untwisted arm."""
     from tergodic_cli.robot.config import PICTURE_Q
     from tergodic_cli.robot.ga import pose_matrix
-    from tergodic_cli.robot.pybullet_backend import PyBulletArm, PyBulletScene
+    from tergodic_cli.backends.pybullet import PyBulletArm, PyBulletScene
     from tergodic_cli.robot.reach import ik, posture
 
     scene = PyBulletScene(None)

@@ -14,9 +14,11 @@ from tergodic_cli.basis import compute_basis  # noqa: E402
 from tergodic_cli.capture import CaptureConfig, capture_cloud  # noqa: E402
 from tergodic_cli.errors import TergodicError  # noqa: E402
 from tergodic_cli.explore import ExploreConfig, Explorer  # noqa: E402
-from tergodic_cli.robot import RobotConfig, RobotRun, explore_with_robot, robot_explore_config  # noqa: E402
+from tergodic_cli.backends.pybullet import RobotRun, explore_with_robot  # noqa: E402
+from tergodic_cli.robot import RobotConfig, robot_explore_config  # noqa: E402
+from tergodic_cli.robot.interfaces import LineTarget  # noqa: E402
 from tergodic_cli.robot.kinematics import FrankaModel, tool_offset  # noqa: E402
-from tergodic_cli.robot.pybullet_backend import PyBulletArm, PyBulletScene  # noqa: E402
+from tergodic_cli.backends.pybullet import PyBulletArm, PyBulletScene  # noqa: E402
 from tergodic_cli.robot.surface import mesh_distance, oriented_normals, reconstruct_mesh  # noqa: E402
 
 #: Quick runs: a faster set-up move and a lower hover than the defaults.
@@ -39,7 +41,7 @@ def _explorer(cap, basis, cfg: RobotConfig, seed=0):
 
 
 def _at_rest(run: RobotRun) -> float:
-    st = run.arm.read_state()
+    st = run.arm.dev.read_state()
     return float(np.max(np.abs(st.dq)))
 
 
@@ -117,20 +119,20 @@ def test_ft_sensor_matches_contact_points_and_applied_force(plate):
         run._move_to_hover()
         # In free space, after the tare, a known external force at an offset point on the sponge:
         sc = run.scene
-        T = run.arm.read_state().ee_pose
+        T = run.arm.dev.read_state().ee_pose
         F = np.array([2.0, -1.0, 3.0])
         r_ee = np.array([0.03, -0.02, -0.01])  # point of application in the ee frame (on the holder)
         readings = []
-        q_hold = run.arm.read_state().q.copy()
+        q_hold = run.arm.dev.read_state().q.copy()
         for _ in range(800):
-            st = run.arm.read_state()
+            st = run.arm.dev.read_state()
             T = st.ee_pose
             point = T[:3, :3] @ r_ee + T[:3, 3]
             sc.p.applyExternalForce(sc.robot, sc.sponge_link, F.tolist(), point.tolist(), sc.p.WORLD_FRAME,
                                     physicsClientId=sc.cid)
-            run.arm.command(run.joint(st.q, st.dq, q_hold))
+            run.arm.dev.command(run.arm.joint(st.q, st.dq, q_hold))
             sc.step()
-            readings.append(run.contact(run.sensor.read().wrench, run.arm.read_state().rot))
+            readings.append(run.arm.contact_wrench(run.sensor.read().wrench, run.arm.dev.read_state().rot))
         w = np.mean(readings[-500:], axis=0)
         R = T[:3, :3]
         f_ee = -(R.T @ F)  # the tool "applies" the reaction of what pushes it
@@ -141,12 +143,12 @@ def test_ft_sensor_matches_contact_points_and_applied_force(plate):
         run._approach()
         a, d = run._start_line
         for f_d in (5.0, 8.0):
-            run.F_d = f_d
             ft, cp = [], []
             for i in range(1500):
-                st, wee, out, fault = run._tick("track", a.tolist(), d.tolist(), checks=False)
+                obs, fault = run._tick(LineTarget(a, d, "press", force=f_d), checks=False)
+                st, wee = obs.state, obs.wrench
                 if i >= 1000:
-                    meas = run._measure(st)
+                    meas = run._measure(obs)
                     n = meas["normal"]
                     ft.append(float(-(st.ee_pose[:3, :3] @ wee[:3]) @ n))
                     cp.append(meas["force_contact"])
@@ -293,11 +295,10 @@ def test_frozen_sensor_holds_position(plate):
         assert "sensor stopped updating" in out["stop_reason"]
         assert out["transitions"][-2]["to"] == "retreat"  # lifted first, without the sensor
         assert run.scene.sponge_contacts() == []
-        q_end = run.arm.read_state().q
+        q_end = run.arm.dev.read_state().q
         assert _at_rest(run) < 0.05
-        for _ in range(200):  # the hold keeps the arm where it stopped
-            run._tick("joint", q_d=q_end, checks=False)
-        assert np.max(np.abs(run.arm.read_state().q - q_end)) < 2e-3
+        run.arm.hold(0.2)  # the hold keeps the arm where it stopped
+        assert np.max(np.abs(run.arm.dev.read_state().q - q_end)) < 2e-3
 
 
 def test_unreachable_object_is_refused(plate):
@@ -343,7 +344,7 @@ def test_bowl_run_meets_the_control_goals():
 @pytest.fixture(scope="module")
 def sim_bowl():
     """The textured bowl on a 20 cm stand, as a small simulated capture, and its basis."""
-    from tergodic_cli.capture.sim_camera import SimCameraConfig, SimCaptureConfig, capture_sim
+    from tergodic_cli.backends.pybullet.camera import SimCameraConfig, SimCaptureConfig, capture_sim
     from tergodic_cli.capture.textured import SimObjectConfig
 
     cap = capture_sim(SimCaptureConfig(object=SimObjectConfig(object="bowl", marking="X", pose=(0.5, 0.0, 0.2),

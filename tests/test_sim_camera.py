@@ -11,7 +11,7 @@ from conftest import assert_one_line_error, run_cli, run_cli_subprocess
 from tergodic_cli.capture import CaptureConfig, capture_cloud, load_capture
 from tergodic_cli.capture import synthetic
 from tergodic_cli.capture.segment import parse_target, segment_target
-from tergodic_cli.capture.sim_camera import (PIXEL_SAMPLE, SimCamera, SimCameraConfig, SimCaptureConfig, back_project,
+from tergodic_cli.backends.pybullet.camera import (PIXEL_SAMPLE, SimCamera, SimCameraConfig, SimCaptureConfig, back_project,
                                              capture_sim, intrinsics, linearize_depth, look_at, projection_matrix,
                                              target_on_points, view_matrix)
 from tergodic_cli.capture.textured import (CleaningModel, SimObjectConfig, TexturedObject, builtin_mesh, chart_to_uv,

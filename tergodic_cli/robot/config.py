@@ -8,12 +8,30 @@ from dataclasses import dataclass, field, replace
 from tergodic_cli.config import Config
 from tergodic_cli.errors import require
 from tergodic_cli.robot.controller import ControllerGains
-from tergodic_cli.robot.pybullet_backend.scene import SpongeSpec
 from tergodic_cli.robot.safety import SafetyConfig
 
 BACKENDS = ("pybullet",)
 #: The Panda's "ready" pose, from which a wrist camera sees the table in front of the robot.
 PICTURE_Q = (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785)
+
+
+@dataclass
+class SpongeSpec:
+    """The sponge: a compliant ball on a stiff holder beyond the hand.
+
+    offset : hand origin -> ball centre along the hand's z, metres (beyond the closed fingertips).
+    radius : ball radius, metres; the TCP is the ball's tip, offset + radius from the hand.
+    stiffness, damping : contact stiffness (N/m) and damping (N s/m) of the ball.
+    friction : Coulomb friction coefficient sponge/object.
+    mass : kg.
+    """
+
+    offset: float = 0.13
+    radius: float = 0.012
+    stiffness: float = 5000.0
+    damping: float = 500.0
+    friction: float = 0.3
+    mass: float = 0.03
 
 
 @dataclass

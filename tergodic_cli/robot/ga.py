@@ -141,9 +141,32 @@ def line_transform(T: np.ndarray, d: np.ndarray, m: np.ndarray) -> tuple[np.ndar
     return d2, R @ m + np.cross(t, d2)
 
 
-def line_point(d: np.ndarray, m: np.ndarray) -> np.ndarray:
-    """The point of the line (d, m) nearest the origin: d × m (|d| = 1)."""
-    return np.cross(d, m)
+def tool_rotation(d: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
+    """The tool's rotation for a line direction.
+
+    Falls back to base +z, then +y, when x_ref is (nearly) parallel to d.
+
+    Parameters
+    ----------
+    d : (3,) float
+        Unit tool axis (into the surface), base frame.
+    x_ref : (3,) float
+        Reference for the tool's x-axis.
+
+    Returns
+    -------
+    (3, 3) float
+        Rotation [x, y, z] with z = d and x the part of x_ref perpendicular to d.
+    """
+    z = np.asarray(d, dtype=float)
+    z = z / np.linalg.norm(z)
+    for c in (np.asarray(x_ref, dtype=float), np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0])):
+        x = c - (c @ z) * z
+        n = float(np.linalg.norm(x))
+        if n > 1e-3:
+            x = x / n
+            return np.column_stack([x, np.cross(z, x), z])
+    raise ValueError("no spin reference perpendicular to the tool axis")
 
 
 def point_line_distance(x: np.ndarray, a: np.ndarray, d: np.ndarray) -> float:
@@ -202,12 +225,6 @@ def line_motor_z_scalar(ax: float, ay: float, az: float, dx: float, dy: float, d
     # Rotation by θ about u through c1 = σ e_z, then slide δ along u: t = c1 - R c1 + δ u,
     # and R e_z = d (the rotation maps the ee axis onto the target direction), so R c1 = σ d.
     return (-sigma * dx + delta * ux, -sigma * dy + delta * uy, sigma - sigma * dz, theta * ux, theta * uy, 0.0)
-
-
-def line_error_twist(a: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """The twist V_{L_a⊥} = log(M_{L_ee L_a⊥}) (eq. 37) in the ee frame, (6,) = (v, ω)."""
-    t, phi = line_motor_z(a, d)
-    return np.concatenate([t, phi])
 
 
 # ---------------------------------------------------------------------------------- pygafro bridges

@@ -1,18 +1,15 @@
-"""Hardware-shaped interfaces: an :class:`Arm` and a :class:`WrenchSensor`.
+"""The backends' interfaces: an :class:`Arm` driven by line targets, and a :class:`WrenchSensor`.
 
 Small Protocols in the style of lerobot's ``robots/robot.py``: a backend connects, is read,
-is commanded, disconnects. The controller, the safety guard and the state machine speak
-only these, so a real Franka (libfranka/franky) or a real F/T sensor (Bota) can replace the
-PyBullet backend without touching them.
+is commanded, disconnects. The state machine and the safety guard speak only these, so a real
+Franka (franky) with a real F/T sensor (Bota, Net F/T) replaces the PyBullet backend without
+touching them.
 
 Conventions every backend honours
 ---------------------------------
 - Frames: "base" is the robot base; "ee" is the tool centre point (TCP), z along the tool
   axis pointing out of the flange; the sensor frame is fixed in the ee frame
   (:attr:`WrenchSensor.frame_in_ee`).
-- Torques given to :meth:`Arm.command` are *on top of* gravity and Coriolis compensation,
-  which the backend adds itself (libfranka compensates gravity in firmware; the PyBullet
-  backend adds ``calculateInverseDynamics``).
 - :meth:`WrenchSensor.read` returns the wrench the arm applies to the tool through the
   sensor, in the sensor frame, moment about the sensor origin, minus the tare offset. With
   the tool at rest and free it is the tool's weight; pressing on a surface adds the force
@@ -22,9 +19,12 @@ Conventions every backend honours
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from tergodic_cli.robot.safety import Fault
 
 GRAVITY = 9.81
 
@@ -86,45 +86,207 @@ class WrenchReading:
     valid: bool = True
 
 
+class LineTarget(NamedTuple):
+    """The action the contact loop sends an :class:`Arm`: a line-impedance target (paper eq. 47).
+
+    a, d : (3,) a point of the agent's line L_a⊥ and its unit direction into the surface, base frame.
+    mode : "press" holds the tool on the line and presses ``force`` N along d (the wrench PID);
+        "move" holds it on the line and moves it along d at ``speed`` m/s (negative: back off), a
+        set-point advancing at that speed, so a steady push cannot make it touch faster.
+    force : N, desired force along d ("press").
+    speed : m/s along d ("move").
+    v_line : (3,) velocity of the line point a, m/s (feed-forward), or None.
+    """
+
+    a: np.ndarray
+    d: np.ndarray
+    mode: str
+    force: float = 0.0
+    speed: float = 0.0
+    v_line: np.ndarray | None = None
+
+
+class Observation(NamedTuple):
+    """One control period's reading: the arm's state, the F/T reading (None: not read) and the
+    contact wrench (6,) the tool applies, ee frame, moment about the TCP (N, N m)."""
+
+    state: ArmState
+    reading: WrenchReading | None
+    wrench: np.ndarray
+
+
 @runtime_checkable
 class Arm(Protocol):
-    """A torque-controlled arm."""
+    """An arm with its F/T sensor, driven by the contact loop (:mod:`tergodic_cli.robot.run`).
+
+    In the style of lerobot's ``Robot``: connected on construction, read with
+    :meth:`get_observation`, commanded with :meth:`send_action` (one control period of ``dt``
+    seconds), closed with :meth:`disconnect`. The free-space moves and holds are the backend's
+    own (joint impedance in simulation, the SDK's planner on hardware); every period they run is
+    checked by the loop's ``check`` (the one :class:`~tergodic_cli.robot.safety.SafetyGuard`).
+    A backend with ``fast`` True runs a whole explorer interval of "press" targets itself,
+    ``follow(A, D, v_line)`` (the simulation's compiled 1 kHz loop, the same checks), returning
+    as the loop's own ``_follow``.
+    """
 
     name: str
-    dof: int
     joint_names: list[str]
-    #: (dof,) lower/upper joint position limits, rad; (dof,) velocity limits, rad/s; (dof,) torque limits, N m.
+    #: s, one control period; (dof,) joint limits (rad, rad/s) for the guard.
+    dt: float
     q_min: np.ndarray
     q_max: np.ndarray
     dq_max: np.ndarray
-    tau_max: np.ndarray
+    #: s, the arm's clock now and at the start; N, the filtered force along the tool axis;
+    #: (dof,) the last joint torques (commanded or measured), N m; (3,) the spin reference
+    #: (base frame) the tool's x-axis is held near.
+    t: float
+    t_origin: float
+    force: float
+    tau: np.ndarray
+    spin_ref: np.ndarray
 
-    @property
-    def is_connected(self) -> bool: ...
-
-    def connect(self) -> None:
-        """Open the connection (idempotent)."""
-
-    def read_state(self) -> ArmState:
-        """The arm's state now.
-
-        Returns
-        -------
-        ArmState
-            Joint positions (rad), velocities (rad/s), the TCP pose and Jacobian.
-        """
-
-    def command(self, tau: np.ndarray) -> None:
-        """Send joint torques, on top of the backend's gravity/Coriolis compensation.
+    def bind(self, guard, tick_stats: np.ndarray, force_desired: float, threshold: float) -> None:
+        """Share the loop's guard and per-tick statistics.
 
         Parameters
         ----------
-        tau : (dof,) float
-            Joint torques, N m.
+        guard : SafetyGuard
+            The loop's one guard (its limits also run inside a compiled interval).
+        tick_stats : (N_TS,) float
+            The loop's per-tick statistics (``kernels.tick_stats``), updated at every valid reading.
+        force_desired, threshold : float
+            F_d and the contact threshold, N.
+        """
+
+    def get_observation(self, sensor: bool = True) -> Observation:
+        """Read the arm, and the F/T sensor.
+
+        Parameters
+        ----------
+        sensor : bool
+            False: the sensor is not read (``reading`` None, wrench 0; after a sensor fault).
+
+        Returns
+        -------
+        Observation
+            State, reading and contact wrench (ee frame, N and N m) of this period.
+        """
+
+    def send_action(self, target: LineTarget) -> None:
+        """Realise ``target`` for one control period, from the last observation.
+
+        Parameters
+        ----------
+        target : LineTarget
+            The line (base frame, m), "press" with a force (N) or "move" at a speed (m/s).
+        """
+
+    def reach(self, T: np.ndarray) -> str | None:
+        """Whether the TCP can reach a pose.
+
+        Parameters
+        ----------
+        T : (4, 4) float
+            TCP pose, base frame (m).
+
+        Returns
+        -------
+        str or None
+            None if reachable, else why not (one line).
+        """
+
+    def move_to(self, T: np.ndarray, check) -> Fault | None:
+        """Move the TCP to a pose through free space, every period checked.
+
+        Parameters
+        ----------
+        T : (4, 4) float
+            TCP pose, base frame (m).
+        check : callable
+            ``check(observation) -> Fault | None``, the loop's guard.
+
+        Returns
+        -------
+        Fault or None
+            The first fault (the move stops there), or None.
+        """
+
+    def to_picture(self, check) -> Fault | None:
+        """Move to the picture pose through free space.
+
+        Parameters
+        ----------
+        check : callable
+            ``check(observation) -> Fault | None``, the loop's guard.
+
+        Returns
+        -------
+        Fault or None
+            The first fault, or None.
+        """
+
+    def hold(self, seconds: float) -> None:
+        """Hold the present pose, without checks and without the force.
+
+        Parameters
+        ----------
+        seconds : float
+            How long, s.
+        """
+
+    def tare(self) -> None:
+        """Tare the F/T sensor (tool at rest, free): its load at this orientation becomes the zero."""
+
+    def contact(self, obs: Observation) -> tuple[np.ndarray | None, float, float]:
+        """Where, how hard and at what angle the tool touches.
+
+        Parameters
+        ----------
+        obs : Observation
+            This period's observation.
+
+        Returns
+        -------
+        point : (3,) float or None
+            Contact point, base frame (m); None: no contact.
+        force : float
+            Contact force, N.
+        press_angle : float
+            Degrees between the tool axis and the contact normal (0 when the backend cannot tell).
+        """
+
+    def link_poses(self) -> dict:
+        """Poses of the arm's links for the log.
+
+        Returns
+        -------
+        dict
+            Link name -> (7,) position (m) and quaternion (x, y, z, w); {} when unknown.
+        """
+
+    def fault(self) -> str | None:
+        """The arm's own error.
+
+        Returns
+        -------
+        str or None
+            A one-line reason if the arm reports an error (a reflex, a lost connection), else None.
+        """
+
+    def stop(self) -> None:
+        """End any running controller, the arm at rest."""
+
+    def summary(self) -> dict:
+        """The backend's own summary extras.
+
+        Returns
+        -------
+        dict
+            Name -> JSON-able value.
         """
 
     def disconnect(self) -> None:
-        """Close the connection; the arm is left holding still (brakes, or zero velocity)."""
+        """Close the connection; the arm is left holding still."""
 
 
 @runtime_checkable

@@ -32,10 +32,12 @@ MODES = {"track": MODE_TRACK, "approach": MODE_APPROACH, "retreat": MODE_RETREAT
 
 # Controller parameters, one float64 array (CP_*), and state (CS_*).
 CP_KP, CP_KI, CP_KD, CP_ALPHA, CP_IMAX, CP_SPIN, CP_NS_K, CP_NS_D, CP_LIM_K, CP_DT, CP_LIMIT_ZONE = range(11)
-CP_VGUARD, CP_DGUARD = 11, 12
-N_CP = 13
-CS_FFILT, CS_EPREV, CS_HAS_EPREV, CS_INTEGRAL, CS_AGE = range(5)
-N_CS = 5
+CP_VGUARD, CP_DGUARD, CP_WRENCH, CP_DALPHA = 11, 12, 13, 14
+N_CP = 15
+# PID state: the filtered wrench (6), the previous error of the derivative (6), whether it is set, the
+# integral (6), the step count, the wrench filtered again for the derivative (6).
+CS_FFILT, CS_EPREV, CS_HAS_EPREV, CS_INTEGRAL, CS_AGE, CS_DFILT = 0, 6, 12, 13, 19, 20
+N_CS = 26
 # Diagnostics of one controller step (CD_*): twist error (6), commanded wrench (6), filtered force, ee twist (6).
 CD_TWIST, CD_WRENCH, CD_FFILT, CD_VEE = 0, 6, 12, 13
 N_CD = 19
@@ -293,34 +295,46 @@ def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use
     ve3 = r0 * V3 + r3 * V4 + r6 * V5
     ve4 = r1 * V3 + r4 * V4 + r7 * V5
     ve5 = r2 * V3 + r5 * V4 + r8 * V5
-    # Wrench PID on the force along the tool axis (eqs. 40-41), on the filtered measurement.
-    state[CS_FFILT] += prm[CP_ALPHA] * (w[2] - state[CS_FFILT])
+    # Wrench PID (eqs. 40-41) on the filtered measured wrench W'_m, ee frame: W_e = W_d - W'_m with
+    # W_d = (0, 0, F_d, 0, 0, 0). P and D on the full wrench (CP_WRENCH) or on the axial force alone;
+    # the integral on the axial force.
+    alpha, dalpha = prm[CP_ALPHA], prm[CP_DALPHA]
+    for k in range(6):
+        state[CS_FFILT + k] += alpha * (w[k] - state[CS_FFILT + k])
+        state[CS_DFILT + k] += dalpha * (state[CS_FFILT + k] - state[CS_DFILT + k])
+    c = np.zeros(6)
     if mode == MODE_TRACK:
-        e = force_desired - state[CS_FFILT]
-        de = 0.0 if state[CS_HAS_EPREV] == 0.0 else (e - state[CS_EPREV]) / prm[CP_DT]
-        state[CS_EPREV] = e
-        state[CS_HAS_EPREV] = 1.0
         ki = prm[CP_KI]
-        if ki > 0:
-            cap = prm[CP_IMAX] * max(force_desired, 0.0) / ki
-            state[CS_INTEGRAL] = min(max(state[CS_INTEGRAL] + e * prm[CP_DT], 0.0), cap)
-        fz = prm[CP_KP] * e + ki * state[CS_INTEGRAL] + prm[CP_KD] * de
+        cap = prm[CP_IMAX] * max(force_desired, 0.0) / ki if ki > 0 else 0.0
+        for k in range(6):
+            if k != 2 and prm[CP_WRENCH] == 0.0:
+                continue
+            e = (force_desired if k == 2 else 0.0) - state[CS_FFILT + k]
+            # The derivative on a slower filter: the contact's 1 kHz jitter, differentiated, is hundreds of N/s.
+            e_d = (force_desired if k == 2 else 0.0) - state[CS_DFILT + k]
+            de = 0.0 if state[CS_HAS_EPREV] == 0.0 else (e_d - state[CS_EPREV + k]) / prm[CP_DT]
+            state[CS_EPREV + k] = e_d
+            if ki > 0 and k == 2:  # (across the line the integral would wind up against the friction)
+                state[CS_INTEGRAL + k] = min(max(state[CS_INTEGRAL + k] + e * prm[CP_DT], 0.0), cap)
+            c[k] = prm[CP_KP] * e + ki * state[CS_INTEGRAL + k] + prm[CP_KD] * de
+        state[CS_HAS_EPREV] = 1.0
+        fz = c[2]
     elif mode == MODE_APPROACH:
         fz = D[2] * speed
     else:
         fz = -D[2] * speed
     # K_L V_L - D_V V_ee + W_C (eq. 47); along the line the damping acts on the tool's own velocity.
-    wx = K[0] * tx - D[0] * ve0
-    wy = K[1] * ty - D[1] * ve1
+    wx = K[0] * tx - D[0] * ve0 + c[0]
+    wy = K[1] * ty - D[1] * ve1 + c[1]
     v_ax = ve2 + (r2 * v_ref[0] + r5 * v_ref[1] + r8 * v_ref[2]) if use_vref else ve2
     wz = fz - D[2] * v_ax
     if mode == MODE_TRACK and v_ax > prm[CP_VGUARD]:
         # Contact lost: the PID's push (up to (K_p + integral_max) F_d) would fly the tool into the
         # surface at push / D_z (0.1 m/s at 1 N: a 38 N impact). Past this speed it is damped hard.
         wz -= prm[CP_DGUARD] * (v_ax - prm[CP_VGUARD])
-    mx = K[3] * fx_ - D[3] * ve3
-    my = K[4] * fy_ - D[4] * ve4
-    mz = prm[CP_SPIN] * spin - D[5] * ve5
+    mx = K[3] * fx_ - D[3] * ve3 + c[3]
+    my = K[4] * fy_ - D[4] * ve4 + c[4]
+    mz = prm[CP_SPIN] * spin - D[5] * ve5 + c[5]
     W0 = r0 * wx + r1 * wy + r2 * wz
     W1 = r3 * wx + r4 * wy + r5 * wz
     W2 = r6 * wx + r7 * wy + r8 * wz
@@ -336,7 +350,7 @@ def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use
         tau[j] = acc
     diag[0], diag[1], diag[2], diag[3], diag[4], diag[5] = tx, ty, tz, fx_, fy_, spin
     diag[6], diag[7], diag[8], diag[9], diag[10], diag[11] = wx, wy, wz, mx, my, mz
-    diag[12] = state[CS_FFILT]
+    diag[12] = state[CS_FFILT + 2]
     diag[13], diag[14], diag[15], diag[16], diag[17], diag[18] = ve0, ve1, ve2, ve3, ve4, ve5
 
 
@@ -521,7 +535,7 @@ def new_tick_stats(force_desired: float, threshold: float, settle_ticks: int) ->
 # v_ref (3), the chain (F (m, 4, 4), axis (m, 3), qidx (m,)), tcp offset (3), R_se (3, 3), p_se (3),
 # m g, com (3), tare load (6), guard q_lo (7), q_hi (7), dq_hi (7), tcp speed max, workspace lo (3),
 # hi (3), force limit, tau_max (7), inertial compensation on (1/0), tool mass, principal inertia (3).
-# io (read back by RobotRun._track_fast): q (7), q̇ (7), w (6), tau (7, the total torque to send),
+# io (read back by SimArm.follow): q (7), q̇ (7), w (6), tau (7, the total torque to send),
 # diag (N_CD), T (16), J (42).
 IO_Q, IO_DQ, IO_W, IO_TAU, IO_DIAG = 0, 7, 14, 20, 27
 IO_T = IO_DIAG + N_CD

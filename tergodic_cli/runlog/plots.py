@@ -147,7 +147,7 @@ def _plot_cleaning(plt, data: RunLogData, out: Path) -> list[Path]:
     """Closed-loop runs: the share of the initial marking left after each re-capture, against steps.
 
     The robot sample of each cycle's last step carries ``marking_remaining`` (what the camera sees)
-    and ``marking_remaining_true`` (the texture's ink), see :mod:`tergodic_cli.robot.closed_loop`.
+    and ``marking_remaining_true`` (the texture's ink), see :mod:`tergodic_cli.backends.pybullet.closed_loop`.
     """
     rows = [s for s in (data.robot or []) if s.get("marking_remaining") is not None]
     if not rows:

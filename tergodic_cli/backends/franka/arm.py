@@ -12,7 +12,7 @@ API used (franky-control 2.0, checked against its type stubs ``franky/_franky.py
 - ``CartesianImpedanceTrackingMotion`` + ``set_gains(CartesianImpedanceGains)`` +
   ``set_reference(CartesianReference(target=Affine, target_twist=Twist))``: franky's client-side
   Cartesian impedance controller, computed in its 1 kHz real-time thread; Python streams
-  references (:mod:`tergodic_cli.hardware.impedance` explains the mapping).
+  references (:mod:`tergodic_cli.backends.impedance` explains the mapping).
 - ``SimpleTorqueMotion.set_torque(tau)`` for :meth:`FrankyArm.command` (raw torques, on top of
   libfranka's gravity compensation, with Coriolis compensation on), and ``TorqueStopMotion`` to
   end either torque-mode controller gracefully.
@@ -25,8 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from tergodic_cli.errors import TergodicError, require
-from tergodic_cli.hardware.extras import import_sdk
-from tergodic_cli.hardware.impedance import ImpedanceTarget
+from tergodic_cli.backends.extras import import_sdk
+from tergodic_cli.backends.impedance import ImpedanceTarget
 from tergodic_cli.robot.interfaces import ArmState
 
 #: Joint limits (rad, rad/s, N m) from Franka's datasheets.
@@ -93,7 +93,7 @@ class FrankaConfig:
 
 class FrankyArm:
     """A Franka arm behind :class:`~tergodic_cli.robot.interfaces.Arm` and
-    :class:`~tergodic_cli.hardware.impedance.ImpedanceArm`.
+    :class:`~tergodic_cli.backends.impedance.ImpedanceArm`.
 
     ``command(tau)`` streams joint torques through franky's ``SimpleTorqueMotion`` (a zero-order
     hold between Python updates, stopped by franky when no torque arrives for ``torque_timeout``).

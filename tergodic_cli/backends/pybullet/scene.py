@@ -17,11 +17,11 @@ import math
 import os
 import re
 import tempfile
-from dataclasses import dataclass
 
 import numpy as np
 
 from tergodic_cli.errors import TergodicError
+from tergodic_cli.robot.config import SpongeSpec
 from tergodic_cli.robot.ga import pose_matrix, quat_to_matrix
 
 ARM_JOINTS = tuple(f"panda_joint{i}" for i in range(1, 8))
@@ -29,30 +29,6 @@ SENSOR_JOINT = "panda_hand_joint"  # fixed joint flange -> hand: the wrist F/T s
 #: The link carrying the sponge ball (part of the hand: see :func:`_hand_with_sponge`).
 SPONGE_LINK = "panda_hand"
 
-#: Franka Emika datasheet limits (stricter than the pybullet URDF's).
-Q_MIN = np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973])
-Q_MAX = np.array([2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973])
-DQ_MAX = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])
-TAU_MAX = np.array([87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0])
-
-
-@dataclass
-class SpongeSpec:
-    """The sponge: a compliant ball on a stiff holder beyond the hand.
-
-    offset : hand origin -> ball centre along the hand's z, metres (beyond the closed fingertips).
-    radius : ball radius, metres; the TCP is the ball's tip, offset + radius from the hand.
-    stiffness, damping : contact stiffness (N/m) and damping (N s/m) of the ball.
-    friction : Coulomb friction coefficient sponge/object.
-    mass : kg.
-    """
-
-    offset: float = 0.13
-    radius: float = 0.012
-    stiffness: float = 5000.0
-    damping: float = 500.0
-    friction: float = 0.3
-    mass: float = 0.03
 
 
 #: The stock hand's inertial (panda.urdf): 0.81 kg, centre of mass 40 mm along the hand's z.
@@ -350,17 +326,6 @@ class PyBulletScene:
             return []
         cps = self.p.getContactPoints(self.robot, self.object, self.sponge_link, -1, physicsClientId=self.cid)
         return [(np.array(c[6]), np.array(c[7]), float(c[9])) for c in cps]
-
-    def robot_object_contacts(self) -> int:
-        """Number of contact points between any robot link other than the sponge and the object or table."""
-        n = 0
-        for body in (self.object, self.table):
-            if body is None:
-                continue
-            for c in self.p.getContactPoints(self.robot, body, physicsClientId=self.cid):
-                if c[3] != self.sponge_link:
-                    n += 1
-        return n
 
     # ------------------------------------------------------------------ time
     def step(self) -> None:

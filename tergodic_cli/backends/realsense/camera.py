@@ -10,7 +10,7 @@ returning a ``pipeline_profile`` (``get_device().first_depth_sensor().get_depth_
 ``pipeline.stop()``.
 
 Depth is aligned to the colour image, so one set of intrinsics (the colour stream's, with its
-distortion model) back-projects every pixel (:func:`~tergodic_cli.hardware.camera.deproject`).
+distortion model) back-projects every pixel (:func:`~tergodic_cli.backends.camera.deproject`).
 """
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from tergodic_cli.errors import TergodicError, require
-from tergodic_cli.hardware.camera import Intrinsics, RGBDFrame, frame_to_cloud
-from tergodic_cli.hardware.extras import import_sdk
+from tergodic_cli.backends.camera import Intrinsics, RGBDFrame, frame_to_cloud
+from tergodic_cli.backends.extras import import_sdk
 
 
 @dataclass
@@ -62,7 +62,7 @@ class RealSenseConfig:
 
 
 class RealSenseCamera:
-    """A RealSense camera behind :class:`~tergodic_cli.hardware.camera.Camera`."""
+    """A RealSense camera behind :class:`~tergodic_cli.backends.camera.Camera`."""
 
     def __init__(self, cfg: RealSenseConfig | None = None):
         self.cfg = cfg or RealSenseConfig()

@@ -15,7 +15,7 @@ from tergodic_cli.robot.interfaces import WrenchReading
 
 
 class FrankaWrenchEstimate:
-    """``-K_F_ext_hat_K`` of a connected :class:`~tergodic_cli.hardware.franka.FrankyArm`, minus the tare."""
+    """``-K_F_ext_hat_K`` of a connected :class:`~tergodic_cli.backends.franka.FrankyArm`, minus the tare."""
 
     def __init__(self, arm, tare_samples: int = 20):
         self.arm = arm

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tergodic_cli.errors import TergodicError, require
-from tergodic_cli.hardware.netft import rdt
+from tergodic_cli.backends.netft import rdt
 from tergodic_cli.robot.interfaces import WrenchReading
 
 

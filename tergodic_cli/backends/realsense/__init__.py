@@ -1,5 +1,5 @@
 """Intel RealSense RGB-D cameras through ``pyrealsense2`` (optional extra ``tergodic[realsense]``)."""
 
-from tergodic_cli.hardware.realsense.camera import RealSenseCamera, RealSenseConfig
+from tergodic_cli.backends.realsense.camera import RealSenseCamera, RealSenseConfig
 
 __all__ = ["RealSenseCamera", "RealSenseConfig"]

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from tergodic_cli.errors import TergodicError, require
-from tergodic_cli.hardware.extras import import_sdk
+from tergodic_cli.backends.extras import import_sdk
 from tergodic_cli.robot.interfaces import WrenchReading
 
 WRAP_US = 2**32

@@ -16,7 +16,8 @@ from tergodic_cli.errors import TergodicError
 from tergodic_cli.robot.ga import motor_inverse
 from tergodic_cli.robot.interfaces import ArmState, WrenchReading
 from tergodic_cli.robot.kernels import fk_jacobian
-from tergodic_cli.robot.pybullet_backend.scene import ARM_JOINTS, DQ_MAX, Q_MAX, Q_MIN, TAU_MAX, PyBulletScene
+from tergodic_cli.backends.pybullet.scene import ARM_JOINTS, PyBulletScene
+from tergodic_cli.robot.kinematics import DQ_MAX, Q_MAX, Q_MIN, TAU_MAX
 
 
 def kinematic_chain(scene: PyBulletScene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

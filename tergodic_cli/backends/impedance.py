@@ -2,8 +2,8 @@
 
 Why not joint torques
 ---------------------
-The :class:`~tergodic_cli.robot.interfaces.Arm` protocol speaks joint torques, which the PyBullet
-backend applies every 1 ms. A Python process on a real robot cannot close that loop: libfranka
+The simulated arm turns a line target into joint torques every 1 ms. A Python process on a real
+robot cannot close that loop: libfranka
 needs a torque every 1 ms with hard real-time guarantees, and Python's garbage collector and
 scheduler jitter alone exceed that. The real backend therefore runs the stiffness and damping of
 the line controller inside the SDK's 1 kHz loop (franky's client-side Cartesian impedance, C++,
@@ -39,7 +39,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from tergodic_cli.robot.interfaces import Arm
+from tergodic_cli.robot.ga import tool_rotation
+from tergodic_cli.robot.interfaces import ArmState
 
 
 @dataclass
@@ -60,15 +61,47 @@ class ImpedanceTarget:
 
 
 @runtime_checkable
-class ImpedanceArm(Arm, Protocol):
-    """An :class:`Arm` whose real-time loop runs in the SDK: references instead of torques.
+class ImpedanceArm(Protocol):
+    """An arm whose real-time loop runs in the SDK: references instead of torques (the device behind
+    :class:`~tergodic_cli.backends.streamed.StreamedArm`).
 
-    ``command(tau)`` still works (a torque hold between Python updates), but the exploration loop
+    ``command(tau)`` still works (a torque hold between Python updates), but the contact loop
     on hardware uses :meth:`command_impedance`, which the SDK tracks at 1 kHz.
     """
 
+    name: str
+    joint_names: list[str]
+    #: (dof,) joint limits: rad, rad, rad/s, N m
+    q_min: np.ndarray
+    q_max: np.ndarray
+    dq_max: np.ndarray
+    tau_max: np.ndarray
     #: rate (Hz) at which the host streams references to the SDK
     stream_hz: float
+
+    def connect(self) -> None:
+        """Open the connection (idempotent)."""
+
+    def read_state(self) -> ArmState:
+        """The arm's state now.
+
+        Returns
+        -------
+        ArmState
+            Joint positions (rad), velocities (rad/s), the TCP pose and Jacobian (base frame).
+        """
+
+    def command(self, tau: np.ndarray) -> None:
+        """Send joint torques on top of the SDK's gravity compensation.
+
+        Parameters
+        ----------
+        tau : (dof,) float
+            Joint torques, N m.
+        """
+
+    def disconnect(self) -> None:
+        """Close the connection, the arm at rest."""
 
     def move_joints(self, q: np.ndarray, speed: float | None = None) -> None:
         """Blocking joint-space move, planned by the SDK.
@@ -134,34 +167,6 @@ class LineImpedanceGains:
             Field name -> value (N/m, N m/rad, N s/m, N m s/rad, 1/s).
         """
         return dict(self.__dict__)
-
-
-def tool_rotation(d: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
-    """The tool's rotation for a line direction.
-
-    Falls back to base +z, then +y, when x_ref is (nearly) parallel to d.
-
-    Parameters
-    ----------
-    d : (3,) float
-        Unit tool axis (into the surface), base frame.
-    x_ref : (3,) float
-        Reference for the tool's x-axis.
-
-    Returns
-    -------
-    (3, 3) float
-        Rotation [x, y, z] with z = d and x the part of x_ref perpendicular to d.
-    """
-    z = np.asarray(d, dtype=float)
-    z = z / np.linalg.norm(z)
-    for c in (np.asarray(x_ref, dtype=float), np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0])):
-        x = c - (c @ z) * z
-        n = float(np.linalg.norm(x))
-        if n > 1e-3:
-            x = x / n
-            return np.column_stack([x, np.cross(z, x), z])
-    raise ValueError("no spin reference perpendicular to the tool axis")
 
 
 def rotated_gains(R: np.ndarray, trans: tuple[float, float, float], rot: tuple[float, float, float]) -> np.ndarray:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from tergodic_cli.errors import TergodicError, require
-from tergodic_cli.hardware.extras import import_sdk
+from tergodic_cli.backends.extras import import_sdk
 
 ROBOTS = ("franka",)
 FT_SENSORS = ("franka", "bota", "netft")
@@ -23,7 +23,7 @@ def make_hardware(robot: str = "franka", robot_ip: str | None = None, ft: str | 
     ft : "bota" (bota_driver; ``ft_address`` = the sensor's JSON configuration, or "dummy"), "netft" (ATI
         Net F/T over UDP; ``ft_address`` = host[:port]), or "franka"/None (the arm's own external
         wrench estimate: no extra sensor).
-    model, stream_hz, move_speed, ne_t_ee, realtime : see :class:`~tergodic_cli.hardware.franka.FrankaConfig`.
+    model, stream_hz, move_speed, ne_t_ee, realtime : see :class:`~tergodic_cli.backends.franka.FrankaConfig`.
     sensor_in_ee : (4, 4) pose of the F/T sensor frame in the TCP frame (identity by default).
     counts_per_force, counts_per_torque : Net F/T scaling (None = read from the box's web page).
 
@@ -33,7 +33,7 @@ def make_hardware(robot: str = "franka", robot_ip: str | None = None, ft: str | 
     require(robot in ROBOTS, f"unknown --robot '{robot}' for hardware", f"use one of {', '.join(ROBOTS)}")
     ft = ft or "franka"
     require(ft in FT_SENSORS, f"unknown --ft '{ft}'", f"use one of {', '.join(FT_SENSORS)}")
-    from tergodic_cli.hardware.franka import FrankaConfig, FrankaWrenchEstimate, FrankyArm
+    from tergodic_cli.backends.franka import FrankaConfig, FrankaWrenchEstimate, FrankyArm
 
     import_sdk("franky")
     arm = FrankyArm(FrankaConfig(ip=str(robot_ip or ""), model=model, stream_hz=stream_hz, move_speed=move_speed,
@@ -43,13 +43,13 @@ def make_hardware(robot: str = "franka", robot_ip: str | None = None, ft: str | 
         require(ft_address is None, "--ft-address does not go with the arm's own force estimate", "drop --ft-address, or choose --ft bota|netft")
         sensor = FrankaWrenchEstimate(arm)
     elif ft == "bota":
-        from tergodic_cli.hardware.bota import BotaConfig, BotaSensor
+        from tergodic_cli.backends.bota import BotaConfig, BotaSensor
 
         require(ft_address is not None, "--ft bota needs --ft-address", "give the sensor's JSON configuration file, or 'dummy'")
         import_sdk("bota_driver")
         sensor = BotaSensor(BotaConfig(address=str(ft_address), frame_in_ee=frame))
     else:
-        from tergodic_cli.hardware.netft import NetFTConfig, NetFTSensor
+        from tergodic_cli.backends.netft import NetFTConfig, NetFTSensor
 
         require(ft_address is not None, "--ft netft needs --ft-address", "give the Net F/T box's address, e.g. 192.168.1.1")
         sensor = NetFTSensor(NetFTConfig(address=str(ft_address), counts_per_force=counts_per_force,
@@ -59,10 +59,10 @@ def make_hardware(robot: str = "franka", robot_ip: str | None = None, ft: str | 
 
 def make_camera(source: str = "realsense", serial: str | None = None, width: int = 640, height: int = 480, fps: int = 30,
                 T_base_cam=None, depth_min: float = 0.1, depth_max: float = 1.5):
-    """A :class:`~tergodic_cli.hardware.camera.Camera`, not yet connected (the SDK is checked now)."""
+    """A :class:`~tergodic_cli.backends.camera.Camera`, not yet connected (the SDK is checked now)."""
     require(source in CAMERAS, f"unknown camera source '{source}'", f"use one of {', '.join(CAMERAS)}")
     import_sdk("pyrealsense2")
-    from tergodic_cli.hardware.realsense import RealSenseCamera, RealSenseConfig
+    from tergodic_cli.backends.realsense import RealSenseCamera, RealSenseConfig
 
     return RealSenseCamera(RealSenseConfig(serial=serial, width=width, height=height, fps=fps, depth_min=depth_min,
                                            depth_max=depth_max, T_base_cam=T_base_cam))

@@ -11,7 +11,7 @@ on a ``--source sim`` capture. One cycle:
    normal force, the measured contact force;
 3. retreat, move to the picture pose, re-capture with the simulated camera (render, back-project,
    the capture pipeline's filters and colour segmentation), transfer the new p onto the basis
-   points (:func:`~tergodic_cli.capture.sim_camera.target_on_points`) and give it to the explorer
+   points (:func:`~tergodic_cli.backends.pybullet.camera.target_on_points`) and give it to the explorer
    (:meth:`Explorer.set_target`). The geometry has not changed, so the basis is reused, never
    recomputed: each re-capture checks that its cloud has the basis' cache key (a cache hit);
 4. stop when the marking the camera sees is at most ``until_clean`` of what it saw at first, or
@@ -86,7 +86,7 @@ def sim_scene_configs(meta: dict):
     the renderer actually used) and the pipeline's ``config``.
     """
     from tergodic_cli.capture import CaptureConfig
-    from tergodic_cli.capture.sim_camera import SimCameraConfig
+    from tergodic_cli.backends.pybullet.camera import SimCameraConfig
     from tergodic_cli.capture.textured import CleaningModel, SimObjectConfig
 
     sim = meta.get("sim")
@@ -165,7 +165,7 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, recapture_every:
     robot_cfg : :class:`RobotConfig` (``object_pose`` None or the identity: the sim capture says where the object is).
     recapture_every, until_clean, max_steps : K, the remaining-marking threshold and the step budget
         (see :class:`CleaningLoopConfig`; ``loop_cfg``, when given, overrides them).
-    camera : an open :class:`~tergodic_cli.capture.sim_camera.SimCamera` whose ``obj`` is the scene
+    camera : an open :class:`~tergodic_cli.backends.pybullet.camera.SimCamera` whose ``obj`` is the scene
         (tests: a small image); None = built from the capture's record and closed at the end.
     on_step : on_step(step, robot_sample_dict) after each explorer step. The last step of a cycle is
         handed over after its re-capture, with ``marking_remaining`` (camera), ``marking_remaining_true``
@@ -184,9 +184,9 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, recapture_every:
     ``basis_cache_hit``), ``basis_recomputed`` (always False), ``clean_reached``, ``loop_stop`` and
     ``closed_loop`` (the settings).
     """
-    from tergodic_cli.capture.sim_camera import SimCamera, SimCaptureConfig, capture_sim, target_on_points
+    from tergodic_cli.backends.pybullet.camera import SimCamera, SimCaptureConfig, capture_sim, target_on_points
     from tergodic_cli.capture.textured import TexturedObject
-    from tergodic_cli.robot.run import RobotRun
+    from tergodic_cli.backends.pybullet.arm import RobotRun
     from tergodic_cli.robot.surface import sim_object_mesh
 
     lc = loop_cfg or CleaningLoopConfig(recapture_every=int(recapture_every), until_clean=float(until_clean),
@@ -224,8 +224,8 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, recapture_every:
         scene_mesh = sim_object_mesh({"object": obj.cfg.to_dict(), "object_pose": obj.pose.tolist()}, robot_cfg.mesh_edge)
         run = RobotRun(capture, explorer, robot_cfg, on_event=say, scene_mesh=scene_mesh)
         cleaner = _Cleaner(obj)
-        run.contact_hook = cleaner
-        run.hook_every = max(1, int(round(lc.clean_every / robot_cfg.physics_dt)))
+        run.arm.contact_hook = cleaner
+        run.arm.hook_every = max(1, int(round(lc.clean_every / robot_cfg.physics_dt)))
         log: list[dict] = []
 
         def recapture(step: int, check_key: bool = False) -> tuple[dict, np.ndarray]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from dataclasses import replace
 
-from tergodic_cli.hardware.camera import capture_with_camera
+from tergodic_cli.backends.camera import capture_with_camera
 
 
 def capture_realsense(cfg, serial: str | None = None, width: int = 640, height: int = 480, fps: int = 30,
@@ -23,7 +23,7 @@ def capture_realsense(cfg, serial: str | None = None, width: int = 640, height: 
     Returns the :class:`~tergodic_cli.capture.Capture`; ``meta["frame"]`` is "robot_base" or
     "camera_optical", ``meta["realsense"]`` the device, its intrinsics and the timings.
     """
-    from tergodic_cli.hardware.factory import camera_pose_matrix, make_camera
+    from tergodic_cli.backends.factory import camera_pose_matrix, make_camera
 
     T = camera_pose_matrix(camera_pose) if camera_pose is not None else None
     cam = make_camera("realsense", serial=serial, width=width, height=height, fps=fps, T_base_cam=T,

@@ -1,0 +1,510 @@
+"""The simulated Panda with its sponge and wrist F/T sensor behind the contact loop's :class:`Arm`.
+
+The line target becomes joint torques inside the 1 kHz tick: the line-impedance law with the
+wrench PID (eq. 47, :class:`~tergodic_cli.robot.controller.LineForceController`), on top of
+gravity and Coriolis compensation. Free-space moves are joint-impedance min-jerk moves planned
+with inverse kinematics. An explorer interval (200 ticks) runs in one compiled call per tick
+(:func:`~tergodic_cli.robot.kernels.pybullet_tick`, the same checks as the loop's), which keeps
+the run at tens of times real time.
+
+:func:`explore_with_robot` runs the explorer on it (``tergodic explore --robot pybullet``).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Callable
+
+import numpy as np
+
+from tergodic_cli.backends.pybullet.devices import PyBulletArm, PyBulletWrenchSensor
+from tergodic_cli.backends.pybullet.scene import PyBulletScene
+from tergodic_cli.robot import kernels as Kn
+from tergodic_cli.robot.config import RobotConfig, validate_robot_config
+from tergodic_cli.robot.controller import JointImpedance, LineForceController, min_jerk
+from tergodic_cli.robot.interfaces import ArmState, ContactWrench, LineTarget, Observation
+from tergodic_cli.robot.run import SETTLE_S, ContactRun, _fmt, object_pose
+from tergodic_cli.robot.surface import check_reachable, reconstruct_mesh, sim_object_mesh, transform_points
+
+#: N/m of the approach's axial position servo: its set-point advances at the guarded speed, so a
+#: steady push on the tool (gravity-model error, posture torques) cannot make it touch faster (a
+#: pure velocity servo, D_z = 50 N s/m, let 0.17 N push it in at 5.5 mm/s against 2 commanded).
+APPROACH_K = 2000.0
+#: N s/m added to the approach's axial damping (the controller's D_z, 50) on the speed error.
+APPROACH_D = 100.0
+#: Metres above the object's highest point the tool passes on its way to and from the picture pose.
+CLEARANCE = 0.04
+
+
+class SimArm:
+    """The PyBullet scene's Panda, sponge and sensor as one :class:`~tergodic_cli.robot.interfaces.Arm`.
+
+    Parameters
+    ----------
+    cfg : the RobotConfig (gains, physics_dt, picture_q, sponge, ...).
+    mesh : the object's collision mesh (vertices (V, 3), triangles (F, 3)) and T_mesh (4, 4), its
+        pose in the base frame.
+    """
+
+    name = "pybullet"
+
+    def __init__(self, cfg: RobotConfig, mesh, T_mesh: np.ndarray):
+        from tergodic_cli.robot.kinematics import FrankaModel, tool_offset
+
+        self.cfg = cfg
+        self.mesh = mesh
+        self.scene = PyBulletScene(cfg.sponge, gui=cfg.gui, dt=cfg.physics_dt, solver_iterations=cfg.solver_iterations)
+        try:
+            self.scene.add_object(mesh.vertices, mesh.triangles, T_mesh)
+            self.dev = PyBulletArm(self.scene)
+            self.dev.jacobian_every = int(cfg.jacobian_every)
+            self.dev.dynamics_every = int(cfg.dynamics_every)
+            self.dev.connect()
+            self.scene.set_arm(np.array(cfg.picture_q))
+            self.sensor = PyBulletWrenchSensor(self.scene, self.dev)
+            if not self.sensor.read().valid:  # PyBullet reads 0 until its first step: hold still for one
+                self.dev.command(np.zeros(7))
+                self.scene.step()
+            # Gravity and inertia of the tool removed: the wrench is the contact's (issue 15, item 3).
+            self.contact_wrench = ContactWrench(self.scene.tool_load(), self.sensor.frame_in_ee,
+                                                inertial=cfg.inertial_compensation)
+            st = self.dev.read_state()
+            self.model = FrankaModel()
+            self.model.tool = tool_offset(self.model, st.q, st.ee_pose)
+        except BaseException:
+            self.scene.close()
+            raise
+        self._mesh_top = float(transform_points(T_mesh, mesh.vertices)[:, 2].max())
+        self.joint_names = list(self.dev.joint_names)
+        self.dt = float(cfg.physics_dt)
+        self.q_min, self.q_max, self.dq_max = self.dev.q_min, self.dev.q_max, self.dev.dq_max
+        self.t_origin = 0.0
+        self.joint = JointImpedance()
+        self.ctrl = LineForceController(cfg.gains, cfg.physics_dt, q_rest=np.array(cfg.picture_q), x_ref=st.ee_pose[:3, 0])
+        #: The compiled 1 kHz loops (:meth:`follow`); False: every tick through get_observation / send_action.
+        self.fast = True
+        #: Called as contact_hook(contacts, dt) every ``hook_every`` physics steps with the sponge's
+        #: contacts [(point on the object (3,) base frame, normal (3,), normal force N)] and the
+        #: simulated seconds they stand for (the closed loop's cleaning model). None: no calls.
+        self.contact_hook: Callable[[list, float], None] | None = None
+        self.hook_every = 20
+        self._hook_age = 0
+        self.hook_s = 0.0  # wall seconds spent in contact_hook
+        self.wall0 = time.perf_counter()  # realtime pacing: wall clock at simulated time 0 (the run resets it)
+        self._obs = None
+        self._mode = None
+        self._speed = 0.0
+        self._s_set = None
+        self._ik: dict = {}
+        self._meas = None
+        self.guard = self.ts = None
+        self.F_d, self.threshold = float(cfg.force), float(cfg.contact_threshold)
+
+    # ------------------------------------------------------------------ the Arm interface
+    @property
+    def t(self) -> float:
+        return self.scene.t
+
+    @property
+    def force(self) -> float:
+        return self.ctrl.f_filt
+
+    @property
+    def tau(self) -> list:
+        return self.dev.last_tau
+
+    @property
+    def spin_ref(self) -> np.ndarray:
+        return self.ctrl.x_ref
+
+    @spin_ref.setter
+    def spin_ref(self, x) -> None:
+        self.ctrl.x_ref = x
+
+    def bind(self, guard, tick_stats, force_desired: float, threshold: float) -> None:
+        self.guard, self.ts, self.F_d, self.threshold = guard, tick_stats, float(force_desired), float(threshold)
+
+    def get_observation(self, sensor: bool = True) -> Observation:
+        st = self.dev.read_state()
+        if sensor:
+            rd = self.sensor.read()
+            w = self.contact_wrench(rd.wrench, st.ee_pose, st)
+            if rd.valid and self.ts is not None:
+                Kn.tick_stats(st.ee_pose, w, self.ts)
+        else:
+            rd, w = None, np.zeros(6)
+        self._obs = Observation(st, rd, w)
+        return self._obs
+
+    def send_action(self, target: LineTarget) -> None:
+        """The torque law for one tick towards ``target``, then one physics step."""
+        st, w = self._obs.state, self._obs.wrench
+        ctrl = self.ctrl
+        approach = target.mode == "move" and target.speed > 0
+        if target.mode == "press":
+            if self._mode == "approach":  # first contact: the PID continues from the push it replaces
+                ctrl.start_tracking(target.force, ctrl.D[2] * self._speed)
+            out = ctrl.step(st, target.a, target.d, w, "track", target.force, 0.0, target.v_line)
+        elif approach:
+            # A position servo along the axis whose set-point advances at the commanded speed: while
+            # the tool is blocked the set-point runs ahead and the push grows (APPROACH_K × v) until
+            # the force registers, capped at twice the contact threshold.
+            d = target.d
+            p_along = float(st.ee_pose[:3, 3] @ d)
+            if self._mode != "approach":
+                ctrl.reset()
+                self._s_set = p_along
+            self._s_set = min(self._s_set + target.speed * self.dt, p_along + 2.0 * self.threshold / APPROACH_K)
+            push = APPROACH_K * (self._s_set - p_along) + APPROACH_D * (target.speed - float(d @ (st.jacobian[:3] @ st.dq)))
+            self._speed = target.speed + push / ctrl.D[2]
+            out = ctrl.step(st, target.a, d, w, "approach", self.F_d, self._speed)
+        else:
+            out = ctrl.step(st, target.a, target.d, w, "retreat", self.F_d, -target.speed)
+        self._mode = "approach" if approach else target.mode
+        self.dev.command(out.tau)
+        self._physics()
+
+    def _physics(self) -> None:
+        self.scene.step()
+        if self.contact_hook is not None:
+            self._run_hook()
+        if self.cfg.realtime:
+            lag = self.scene.t - (time.perf_counter() - self.wall0)
+            if lag > 0:
+                time.sleep(lag)
+
+    def _run_hook(self) -> None:
+        """Every ``hook_every`` physics steps: hand the sponge's contacts to ``contact_hook``."""
+        self._hook_age += 1
+        if self._hook_age >= self.hook_every:
+            self._hook_age = 0
+            t = time.perf_counter()
+            self.contact_hook(self.scene.sponge_contacts(), self.hook_every * self.cfg.physics_dt)
+            self.hook_s += time.perf_counter() - t
+
+    def reach(self, T: np.ndarray) -> str | None:
+        q_h, pe, oe = self._ik_hover(T)
+        return None if pe <= 1e-3 and oe <= 1e-2 else \
+            f"inverse kinematics off by {pe * 1e3:.1f} mm, {math.degrees(oe):.1f} deg"
+
+    def _ik_hover(self, T: np.ndarray):
+        """The hover posture (reach.posture: several seeds, no twisted elbow), the line controller's rest posture."""
+        from tergodic_cli.robot.reach import posture
+
+        key = T.tobytes()
+        if key not in self._ik:
+            self._ik[key] = posture(self.dev._chain, T, np.array(self.cfg.picture_q), self.q_min, self.q_max)
+        return self._ik[key]
+
+    def set_object_pose(self, T_mesh: np.ndarray) -> None:
+        """Move the object (its mesh frame to ``T_mesh`` (4, 4), base frame) before the run."""
+        self.scene.move_object(T_mesh)
+        self._mesh_top = float(transform_points(T_mesh, self.mesh.vertices)[:, 2].max())
+
+    def move_to(self, T: np.ndarray, check):
+        """Come down from above the object (a joint-space path straight to a hover pose low in a bowl
+        can sweep the sponge through the rim), then to ``T``; the posture spring rests there."""
+        q_h = self._ik_hover(T)[0]
+        self._ik.clear()
+        self.ctrl = LineForceController(self.cfg.gains, self.cfg.physics_dt, q_rest=q_h, x_ref=self.ctrl.x_ref.copy())
+        self._mode = None
+        return self._move_joints(self._above(T, q_h), check) or self._move_joints(q_h, check)
+
+    def to_picture(self, check):
+        """Straight up to clear the object first, then the picture pose (joint space)."""
+        st = self.dev.read_state()
+        return self._move_joints(self._above(st.ee_pose, st.q), check) or \
+            self._move_joints(np.array(self.cfg.picture_q, dtype=float), check)
+
+    def _above(self, T: np.ndarray, q_near: np.ndarray) -> np.ndarray:
+        """Joints that put the TCP at ``T``'s orientation and x, y, lifted to ``CLEARANCE`` above the
+        object's top (or ``q_near`` when ``T`` is that high already or the lift is out of reach)."""
+        z_top = self._mesh_top + CLEARANCE
+        if T[2, 3] >= z_top - 1e-3:
+            return q_near
+        T_up = T.copy()
+        T_up[2, 3] = z_top
+        q_up, pe, oe = self.model.ik(T_up, q_near, q_rest=np.asarray(q_near, dtype=float))
+        return q_up if pe < 1e-3 and oe < 1e-2 and self.guard.inside(T_up[:3, 3]) else q_near
+
+    def _move_joints(self, q_target: np.ndarray, check):
+        """Joint-impedance min-jerk move from the present joints to ``q_target`` (7,), then settle."""
+        cfg = self.cfg
+        q0 = self.dev.read_state().q.copy()
+        # Min-jerk peaks at 1.875 × the mean speed: keep the joints under move_speed and the TCP
+        # under half the guard's speed limit.
+        dist = float(np.max(np.abs(q_target - q0)))
+        path = np.array([self.model.fk(q0 + s * (q_target - q0))[:3, 3] for s in np.linspace(0, 1, 21)])
+        length = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
+        duration = max(1.0, 1.875 * dist / cfg.move_speed, 1.875 * length / (0.5 * self.guard.cfg.tcp_speed_max))
+        n = int(round(duration / self.dt))
+        path = [min_jerk(q0, q_target, duration, (i + 1) * self.dt) for i in range(n + int(round(SETTLE_S / self.dt)))]
+        QD, DQD = np.array([a for a, _ in path]), np.array([b for _, b in path])
+        if self.fast:
+            return self._joint_fast(QD, DQD)
+        for qd, dqd in zip(QD, DQD):
+            obs = self.get_observation()
+            fault = check(obs)
+            if fault is not None:
+                return fault
+            self.dev.command(self.joint(obs.state.q, obs.state.dq, qd, dqd))
+            self._physics()
+        return None
+
+    def hold(self, seconds: float) -> None:
+        q = self.dev.read_state().q.copy()
+        for _ in range(int(round(seconds / self.dt))):
+            st = self.dev.read_state()
+            self.dev.command(self.joint(st.q, st.dq, q))
+            self._physics()
+
+    def tare(self) -> None:
+        self.sensor.tare()
+        self.contact_wrench.tare_at(self.dev.read_state().ee_pose[:3, :3])
+
+    def contact(self, obs) -> tuple[np.ndarray | None, float, float]:
+        """Force-weighted mean of the sponge/object contact points (PyBullet's), their total normal force,
+        and the angle (deg) the sponge presses at from the contacts' own normals (a ball's contact normal
+        is the surface's there, edges included; the cloud's normal is not at an edge)."""
+        key = (id(obs), self.scene.steps)
+        if self._meas is None or self._meas[0] != key:  # the sample's, reused at the next step
+            contacts = self.scene.sponge_contacts()
+            fsum = float(sum(c[2] for c in contacts))
+            cp = sum(c[2] * c[0] for c in contacts) / fsum if fsum > 0 else None
+            nc = sum(c[2] * c[1] for c in contacts) if fsum > 0 else np.zeros(3)
+            nn = float(np.linalg.norm(nc))
+            z = obs.state.ee_pose[:3, 2]
+            press = math.degrees(math.acos(min(1.0, abs(float(nc @ z)) / nn))) if nn > 0 else 0.0
+            self._meas = (key, (cp, fsum, press))
+        return self._meas[1]
+
+    def link_poses(self) -> dict:
+        return self.scene.link_poses()
+
+    def fault(self) -> str | None:
+        return None
+
+    def stop(self) -> None:
+        pass
+
+    def summary(self) -> dict:
+        return {"mesh_triangles": int(len(self.mesh.triangles))}
+
+    def disconnect(self) -> None:
+        try:
+            self.dev.disconnect()
+        finally:
+            self.scene.close()
+
+    # ------------------------------------------------------------------ the compiled loops
+    def follow(self, A: np.ndarray, D: np.ndarray, v_line=None):
+        """The loop's ``_follow`` with the arithmetic in one compiled call per tick
+        (:func:`~tergodic_cli.robot.kernels.pybullet_tick`): the same checks in the same order,
+        the same arithmetic as get_observation / check / send_action."""
+        cst = Kn.pack_constants(self.dev._chain, self.contact_wrench, self.guard, self.dev.tau_max, self.F_d,
+                                None if v_line is None else np.asarray(v_line, dtype=float).tolist())
+        A, D = np.ascontiguousarray(A, dtype=float), np.ascontiguousarray(D, dtype=float)
+        tick, kpk, mut, ts, dyn = Kn.pybullet_tick, self.ctrl.kpk, self.ctrl.mut, self.ts, self.contact_wrench.dyn
+        self._mode = "press"
+        i, t, io, rd, fault = self._compiled(
+            len(A), lambda i, qs, dqs, w, bias, io, t: tick(i, A, D, qs, dqs, w, bias, cst, kpk, mut, io, ts, t, dyn), True)
+        if i < 0:
+            return self.get_observation(), None, None, None
+        st = ArmState(t, io[Kn.IO_Q:Kn.IO_Q + 7].copy(), io[Kn.IO_DQ:Kn.IO_DQ + 7].copy(),
+                      io[Kn.IO_T:Kn.IO_T + 16].reshape(4, 4).copy(), io[Kn.IO_J:Kn.IO_J + 42].reshape(6, 7).copy())
+        return Observation(st, rd, io[Kn.IO_W:Kn.IO_W + 6].copy()), A[i], D[i], fault
+
+    def _joint_fast(self, QD: np.ndarray, DQD: np.ndarray):
+        """:meth:`_move_joints` with every check, one compiled call per tick
+        (:func:`~tergodic_cli.robot.kernels.pybullet_joint_tick`). Returns the first fault or None."""
+        cst = Kn.pack_constants(self.dev._chain, self.contact_wrench, self.guard, self.dev.tau_max, self.F_d, None)
+        kd = np.ascontiguousarray(np.concatenate([self.joint.K, self.joint.D]), dtype=float)
+        QD, DQD = np.ascontiguousarray(QD, dtype=float), np.ascontiguousarray(DQD, dtype=float)
+        tick, ts, dyn = Kn.pybullet_joint_tick, self.ts, self.contact_wrench.dyn
+        return self._compiled(len(QD), lambda i, qs, dqs, w, bias, io, t: tick(i, QD, DQD, qs, dqs, w, bias, cst, kd, io, ts, t, dyn),
+                              False)[-1]
+
+    def _compiled(self, n: int, step, explorer: bool):
+        """``n`` ticks, each: one joint read, the sensor read, gravity + Coriolis every ``dynamics_every``
+        ticks, ``step(i, q, q̇, wrench, bias, io, t)`` (one compiled call: the control law, the contact
+        wrench, the guard's limits; a nonzero code names the fault), one torque command, the physics step.
+        Returns (last tick, its time, io, its reading, fault or None); a faulty tick is not commanded."""
+        arm, sc, g = self.dev, self.scene, self.guard
+        p, cid, rob, idx = sc.p, sc.cid, sc.robot, arm._read_idx
+        get_states, inv_dyn, send, physics = p.getJointStates, p.calculateInverseDynamics, p.setJointMotorControlArray, \
+            p.stepSimulation
+        joints, mode_torque, dt, sread = sc.arm_joints, p.TORQUE_CONTROL, sc.dt, self.sensor.read
+        check_sensor, timeout = g.check_sensor, g.cfg.explorer_timeout
+        io = np.zeros(Kn.N_IO)
+        zeros, every, realtime = arm._zeros, arm.dynamics_every, self.cfg.realtime
+        hook = self._run_hook if self.contact_hook is not None else None
+        OK, F_FORCE, tau_sl = Kn.OK, Kn.F_FORCE, slice(Kn.IO_TAU, Kn.IO_TAU + 7)
+        i, t, rd, fault = -1, sc.t, None, None
+        for i in range(n):
+            # Flat tuples: q, q̇ and reactions of the movable joints, then the sensor joint's (last).
+            qs, dqs, rs, _ = zip(*get_states(rob, idx, physicsClientId=cid))
+            arm.reaction, arm.reaction_step = rs[-1], sc.steps
+            rd = sread()
+            t = sc.t
+            arm._bias_age += 1
+            if arm._bias is None or arm._bias_age >= every or arm._bias_epoch != sc.teleports:
+                arm._bias = inv_dyn(rob, qs[:-1], dqs[:-1], zeros, physicsClientId=cid)
+                arm._bias_age = 0
+                arm._bias_epoch = sc.teleports
+            fault = check_sensor(t, rd.t, rd.wrench)
+            if fault is None:
+                code = step(i, qs, dqs, rd.wrench, arm._bias, io, t)
+                if code == F_FORCE:
+                    fault = g.check_force(t, io[Kn.IO_W:Kn.IO_W + 6])
+                elif code != OK:
+                    v = io[Kn.IO_DIAG + Kn.CD_VEE:Kn.IO_DIAG + Kn.CD_VEE + 3]
+                    fault = g.check_state(t, io[Kn.IO_Q:Kn.IO_Q + 7].copy(), io[Kn.IO_DQ:Kn.IO_DQ + 7].copy(),
+                                          io[Kn.IO_T:Kn.IO_T + 16].reshape(4, 4)[:3, 3].copy(), float(np.sqrt(v @ v)))
+                elif explorer and g._target_t is not None and t - g._target_t > timeout:
+                    fault = g.check_explorer(t)
+            if fault is not None:
+                break
+            tot = io[tau_sl].tolist()
+            arm.last_tau = tot
+            send(rob, joints, mode_torque, forces=tot, physicsClientId=cid)
+            physics(physicsClientId=cid)
+            sc.steps += 1
+            sc.t = sc.steps * dt
+            if hook is not None:
+                hook()
+            if realtime:
+                lag = sc.t - (time.perf_counter() - self.wall0)
+                if lag > 0:
+                    time.sleep(lag)
+        arm._q9 = arm._dq9 = None  # stale: the next command() reads the state first
+        return i, t, io, rd, fault
+
+
+class RobotRun(ContactRun):
+    """The contact loop on the simulated arm, its scene built from the capture.
+
+    ``scene_mesh`` : (mesh, pose (4, 4) in the capture frame) of the object to press on (the closed
+    loop's textured object); None: the simulated capture's own object, or a mesh rebuilt from the cloud.
+    Tests reach in through ``run.arm`` (a :class:`SimArm`: ``scene``, ``sensor``, ``fast``).
+    """
+
+    def __init__(self, capture, explorer, cfg: RobotConfig, on_event: Callable[[int, str], None] | None = None,
+                 scene_mesh=None):
+        from tergodic_cli.capture.filters import mean_spacing
+        from tergodic_cli.robot.surface import oriented_normals, resolve_side
+
+        validate_robot_config(cfg)
+        t_setup = time.perf_counter()
+        say = on_event or (lambda step, msg: None)
+        points = np.asarray(capture.points, dtype=float)
+        meta = getattr(capture, "meta", {}) or {}
+        pose_given = cfg.object_pose is not None or meta.get("frame") == "robot_base"
+        T_obj = object_pose(capture, cfg)
+        check_reachable(transform_points(T_obj, points))
+        sim = meta.get("sim") if isinstance(meta.get("sim"), dict) else None
+        if scene_mesh is not None:
+            mesh, T_mesh = scene_mesh
+            self.mesh_source = "given"
+        elif sim is not None and sim.get("object"):
+            # A simulated capture: press on the object the camera rendered (its own surface), not on a
+            # mesh rebuilt from the cloud; the cleaning model fades exactly that surface.
+            mesh, T_mesh = sim_object_mesh(sim, cfg.mesh_edge)
+            self.mesh_source = "sim_object"
+        else:
+            h = float(meta.get("spacing_h_m") or mean_spacing(points))
+            normals = oriented_normals(points, resolve_side(cfg.normal_side, meta))
+            mesh, T_mesh = reconstruct_mesh(points, normals, h, cfg.mesh_edge), np.eye(4)
+            self.mesh_source = "cloud"
+        self.mesh = mesh
+        self._T_mesh_obj = np.asarray(T_mesh, dtype=float)
+        self.T_mesh = T_obj @ self._T_mesh_obj  # mesh frame -> base frame
+        arm = SimArm(cfg, mesh, self.T_mesh)
+        try:
+            super().__init__(capture, explorer, cfg, arm, T_obj, on_event=say)
+            self.max_tilt_deg = None  # the tool follows the normal; what the arm cannot reach is dropped
+            self._plan_reach(capture, pose_given)
+        except BaseException:
+            arm.disconnect()
+            raise
+        self.setup_s = time.perf_counter() - t_setup
+
+    def _plan_reach(self, capture, pose_given: bool) -> None:
+        """Choose the object pose (when not given), mark where the tool can follow the normal, and drop
+        the rest of the target from the explorer (reach.plan_reach), saying so before any contact."""
+        from tergodic_cli.errors import TergodicError
+        from tergodic_cli.robot.reach import plan_reach
+
+        arm = self.arm
+        target = np.asarray(getattr(self.explorer, "p", getattr(capture, "target", np.ones(len(self.points)))), dtype=float)
+        T, self.reachable = plan_reach(arm.dev._chain, self.points, self.normals, target, self._x_down,
+                                       np.array(self.cfg.picture_q), arm.q_min, arm.q_max,
+                                       self.T_obj if pose_given else None, self.cfg.hover_height)
+        if not pose_given:
+            self.T_obj = T
+            self.points_base = transform_points(T, self.points)
+            self.T_mesh = T @ self._T_mesh_obj
+            arm.set_object_pose(self.T_mesh)
+            yaw = math.degrees(math.atan2(T[1, 0], T[0, 0]))
+            self.on_event(0, "robot: no --object-pose given; the object stands on a 0.2 m stand, its footprint centre "
+                             f"{float(np.hypot(*T[:2, 3])):.2f} m in front of the base, turned {yaw:.0f} deg so the arm "
+                             f"reaches its target (object pose {_fmt(T[:3, 3])} m)")
+        total = float(target.sum())
+        kept = target * self.reachable
+        lost = 1.0 - float(kept.sum()) / total if total > 0 else 0.0
+        if lost > 1e-3:
+            if float(kept.sum()) <= 0:
+                raise TergodicError("the tool cannot follow the surface normal anywhere on the target (the arm's wrist "
+                                    "cannot reach those orientations)", "move or turn the object with --object-pose")
+            self.on_event(0, f"robot: {100 * lost:.0f} % of the target is where the tool cannot follow the normal "
+                             f"({100 * (1 - self.reachable.mean()):.0f} % of the surface); dropped from the target")
+            if hasattr(self.explorer, "set_target"):
+                self.explorer.set_target(kept)
+
+    @property
+    def scene(self) -> PyBulletScene:
+        return self.arm.scene
+
+    @property
+    def sensor(self):
+        return self.arm.sensor
+
+    @sensor.setter
+    def sensor(self, s) -> None:  # fault injection: a wrapped sensor
+        self.arm.sensor = s
+
+    def begin(self) -> None:
+        super().begin()
+        self.arm.wall0 = self._t0
+        self.on_event(0, f"robot: collision mesh from the {self.mesh_source}")
+
+    def result(self) -> dict:
+        out = super().result()
+        out.update({"setup_seconds": self.setup_s, "mesh_source": self.mesh_source})
+        return out
+
+
+def explore_with_robot(capture, explorer, robot_cfg: RobotConfig, steps: int,
+                       on_step: Callable[[int, dict], None] | None = None,
+                       on_event: Callable[[int, str], None] | None = None) -> dict:
+    """Run ``steps`` explorer steps on the simulated robot (see :mod:`tergodic_cli.robot.run`).
+
+    Parameters
+    ----------
+    capture : the :class:`~tergodic_cli.capture.Capture` (its object, or its cloud, becomes the collision mesh).
+    explorer : an :class:`~tergodic_cli.explore.Explorer` built with ``robot_explore_config``.
+    robot_cfg : :class:`RobotConfig`.
+    steps : explorer steps in contact.
+    on_step : called as on_step(step, robot_sample_dict) after each explorer step.
+    on_event : called as on_event(step, text) at every state transition and warning.
+
+    Returns
+    -------
+    dict : the robot summary extras (:func:`~tergodic_cli.robot.summary.summarize_robot`) plus
+        final_state, stop_reason, transitions, timings and the robot config.
+    """
+    with RobotRun(capture, explorer, robot_cfg, on_event=on_event) as run:
+        return run.run(steps, on_step)
+
+
+__all__ = ["RobotRun", "SimArm", "explore_with_robot"]
