@@ -162,7 +162,8 @@ def test_ctrl_c_on_a_sweep_is_one_line_with_how_to_resume_and_exit_130(tmp_path)
 @pytest.mark.parametrize("sig, code, word", [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated")])
 def test_interrupting_explore_is_one_line(tmp_path, sig, code, word):
     cap = Path(__file__).resolve().parents[1] / "data" / "bowl"
-    proc, _ = _start(["explore", cap, "--steps", "400000", "--out", tmp_path / "run",
+    # three agents: a step costs ~3x, so the run is surely mid-loop at 4 s even on a fast, idle machine
+    proc, _ = _start(["explore", cap, "--steps", "400000", "--agents", "3", "--out", tmp_path / "run",
                       "--cache-dir", tmp_path / "cache"], None, 4.0)
     got, out, err = _stop(proc, sig, group=sig == signal.SIGINT)
     assert got == code, (got, err)
