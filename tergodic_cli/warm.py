@@ -22,14 +22,14 @@ def compile_robot() -> float:
     """Compile or load the robot's kernels: a two-step simulated (PyBullet) run on a tiny capture; returns seconds."""
     from tergodic_cli.capture import CaptureConfig, capture_cloud, save_capture
     from tergodic_cli.explore import ExploreConfig
-    from tergodic_cli.run import run_explore
+    from tergodic_cli.run import make_backend, run_explore
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="tergodic-warm-") as tmp:
         cap = capture_cloud(CaptureConfig(source="synthetic", synthetic="bowl", marking="X", seed=0))
         save_capture(cap, Path(tmp) / "cap")
-        run_explore(Path(tmp) / "cap", ExploreConfig(steps=2, nk=10), Path(tmp) / "run", robot="pybullet",
-                    log=False, cache_dir=Path(tmp) / "cache")
+        run_explore(Path(tmp) / "cap", ExploreConfig(steps=2, nk=10), Path(tmp) / "run", make_backend("pybullet"),
+                    log=None, cache_dir=Path(tmp) / "cache")
     return time.perf_counter() - t0
 
 

@@ -81,7 +81,7 @@ def test_no_compile_inside_a_timed_step(tmp_path):
                 seen.append(len(kernels.step_kernel.signatures))
             return step(self, *a, **k)
         Explorer.step = probe
-        run_explore({str(cap)!r}, ExploreConfig(steps=5, nk=20), {str(tmp_path / 'run')!r}, log=False,
+        run_explore({str(cap)!r}, ExploreConfig(steps=5, nk=20), {str(tmp_path / 'run')!r}, log=None,
                     cache_dir={str(tmp_path / 'cache')!r})
         print(json.dumps({{"seen": seen, "after": len(kernels.step_kernel.signatures)}}))
     """)
