@@ -527,18 +527,6 @@ class TexturedObject:
         rgb = base + self.intensity[..., None].astype(np.float32) * delta
         return np.clip(rgb, 0, 255).astype(np.uint8)  # +0.5 above makes the cast round
 
-    def write_assets(self, folder: str | Path, stem: str = "object", image_format: str = "png") -> Path:
-        """Write ``stem``.obj, ``stem``.mtl and the current texture ``stem``.png into ``folder``; returns the .obj path.
-
-        The geometry is in the object frame (place it with ``pose``); front and back faces are both
-        written. Any OBJ viewer (or PyBullet's GUI) shows the textured object.
-        """
-        folder = Path(folder)
-        image = self.write_texture(folder / f"{stem}.{image_format}")
-        (folder / f"{stem}.mtl").write_text(f"newmtl marked\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nmap_Kd {image.name}\n")
-        (folder / f"{stem}.obj").write_text(f"mtllib {stem}.mtl\n" + self._obj_body_text())
-        return folder / f"{stem}.obj"
-
     def write_texture(self, path: str | Path) -> Path:
         """Write the current texture to ``path`` (.png, or .bmp: uncompressed, about 20x faster to write)."""
         from PIL import Image

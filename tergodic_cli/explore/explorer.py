@@ -461,11 +461,6 @@ class Explorer:
         return self._basis.evecs[:, : self.cfg.nk]
 
     @property
-    def heat_is_spectral(self) -> bool:
-        """Whether u = evecs @ a (+ a residual), so :meth:`cloud_fields` returns coefficients."""
-        return self._spectral
-
-    @property
     def source(self) -> np.ndarray:
         from tergodic_cli.explore.metrics import source_term
 
