@@ -135,6 +135,29 @@ def _coerce(hint, value, where: str):
     return value
 
 
+def override(saved, now, given, renamed: dict | None = None):
+    """``saved`` with the fields of the options ``given`` on the command line taken from ``now``.
+
+    Parameters
+    ----------
+    saved, now : dataclass
+        The loaded config and the one the command line built (same class).
+    given : set of str
+        The verb's option names given on the command line.
+    renamed : dict, optional
+        Option name -> the fields it sets, where they differ from its name.
+
+    Returns
+    -------
+    dataclass
+        A copy of ``saved``.
+    """
+    from dataclasses import replace
+
+    fields = {f for opt in given for f in (renamed or {}).get(opt, (opt,)) if hasattr(now, f)}
+    return replace(saved, **{f: getattr(now, f) for f in fields})
+
+
 def write_config(path: str | Path, kind: str, **sections) -> None:
     """Write a loadable ``config.json`` atomically.
 

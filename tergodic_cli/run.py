@@ -105,8 +105,8 @@ def load_run_config(path: str | Path) -> dict:
             "log_cloud_every": d.get("log_cloud_every", 50)}
 
 
-#: The verb's option (parameter) name of each ExploreConfig field, where they differ.
-OPTION_OF = {"n_agents": "agents", "n_neighbors": "fit_neighbors", "basis_neighbors": "neighbors"}
+#: The ExploreConfig field each ``tergodic explore`` option sets, where they differ.
+RENAMED = {"agents": ("n_agents",), "fit_neighbors": ("n_neighbors",), "neighbors": ("basis_neighbors",)}
 
 
 def apply_saved(path, fields: dict, given: set, starts: StartSpec, robot: str, robot_options: dict,
@@ -129,10 +129,10 @@ def apply_saved(path, fields: dict, given: set, starts: StartSpec, robot: str, r
     tuple
         (ExploreConfig, StartSpec, robot, robot_options, log_cloud_every).
     """
-    from dataclasses import replace
+    from tergodic_cli.config import override
 
     saved = load_run_config(path)
-    cfg = replace(saved["explore"], **{k: v for k, v in fields.items() if OPTION_OF.get(k, k) in given})
+    cfg = override(saved["explore"], ExploreConfig(**fields), given, RENAMED)
     options = dict(saved["robot_options"])
     for key, value in robot_options.items():
         if key == "safety":
