@@ -1,23 +1,11 @@
 """Textured objects for the simulated camera, and the cleaning model that fades their marking.
 
-An object is a UV-mapped triangle mesh (metres, object frame) with a texture whose texels carry a
-marking intensity ``m`` in [0, 1]. The texel colour is the clean surface colour blended towards
-the ink colour by ``m``, so a camera that renders the texture sees the marking fade as it is cleaned.
-
-Built-in objects (``bowl``, ``plate``, ``mug``) are the surfaces of
-:mod:`tergodic_cli.capture.synthetic`, and their UVs come from the same 2-D chart (``u, v`` in
-metres) in which the generator draws its markings, so X/ring/dots land where the generator puts them.
-A user mesh (``.obj``) keeps its own UVs for an image marking; without UVs, or for X/ring/dots, it
-gets the top-down chart ``(u, v) = (x - x_c, y - y_c)`` (suits open, height-field-like objects).
-
-The texture has ``RESERVED_ROWS`` extra rows at the bottom (v near 0) painted in the clean colour:
-the back faces of built-in objects map there, so a thin bowl seen from outside looks unmarked.
-
-Cleaning model (see docs/sim_camera.md)::
-
-    dm/dt = -k * F * m    for every texel within r_s (3-D distance) of a contact pressing with F > F_min
-
-integrated exactly over a step: ``m <- m * exp(-k * F * dt)``.
+An object is a UV-mapped triangle mesh (metres, object frame) whose texels carry a marking intensity
+m in [0, 1], blended from the clean colour towards the ink colour. Built-in objects share the 2-D
+chart of :mod:`tergodic_cli.capture.synthetic`, so their markings land where the generator draws
+them; a user ``.obj`` keeps its UVs or gets a top-down chart. ``RESERVED_ROWS`` clean rows take the
+built-in objects' back faces. Cleaning: m <- m exp(-k F dt) within r_s of a contact pressing with
+F > F_min (docs/sim_camera.md).
 """
 
 from __future__ import annotations
