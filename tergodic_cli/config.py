@@ -91,7 +91,7 @@ def _plain(value):
         return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
     if isinstance(value, (tuple, list)):
         return [_plain(v) for v in value]
-    return value
+    return value.tolist() if hasattr(value, "tolist") else value  # numpy arrays and scalars
 
 
 _FIX = "use a config.json written by tergodic, or correct it"

@@ -13,9 +13,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from tergodic_cli.explore.warm import (COLD_LINE, COMPILE_S, _cached, compile_explorer,  # noqa: F401
-                                       explorer_kernels_cached)
-from tergodic_cli.robot.warm import ROBOT_COMPILE_S, robot_kernels_line  # noqa: F401
+
+from tergodic_cli.explore.warm import compile_explorer, explorer_kernels_cached
 
 
 def compile_robot() -> float:

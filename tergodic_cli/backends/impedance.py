@@ -15,11 +15,14 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from tergodic_cli.config import Config
 from tergodic_cli.robot.ga import tool_rotation
 from tergodic_cli.robot.interfaces import ArmState
 
 
 @dataclass
+
+
 class ImpedanceTarget:
     """One impedance reference, base frame, SI units.
 
@@ -37,6 +40,8 @@ class ImpedanceTarget:
 
 
 @runtime_checkable
+
+
 class ImpedanceArm(Protocol):
     """An arm whose real-time loop runs in the SDK: references instead of torques (the device behind
     :class:`~tergodic_cli.backends.streamed.StreamedArm`).
@@ -113,7 +118,9 @@ class ImpedanceArm(Protocol):
 
 
 @dataclass
-class LineImpedanceGains:
+
+
+class LineImpedanceGains(Config):
     """The line controller's stiffness and damping for an SDK impedance loop (defaults = the simulation's).
 
     k_lateral, k_normal : N/m across the line and along it (the normal value sets the spring offset
@@ -133,16 +140,6 @@ class LineImpedanceGains:
     d_spin: float = 1.0
     force_ki: float = 2.0
     force_trim_max: float = 1.0
-
-    def to_dict(self) -> dict:
-        """The gains as a dict.
-
-        Returns
-        -------
-        dict
-            Field name -> value (N/m, N m/rad, N s/m, N m s/rad, 1/s).
-        """
-        return dict(self.__dict__)
 
 
 def rotated_gains(R: np.ndarray, trans: tuple[float, float, float], rot: tuple[float, float, float]) -> np.ndarray:

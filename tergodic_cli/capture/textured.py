@@ -11,11 +11,12 @@ F > F_min (docs/sim_camera.md).
 from __future__ import annotations
 
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from tergodic_cli.config import Config
 from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.rotations import euler_xyz_matrix, matrix_to_quat, quat_to_matrix
 
@@ -35,6 +36,8 @@ WHITE_LEVEL = 0.94
 
 
 @dataclass
+
+
 class CleaningModel:
     """How a pressing sponge removes the marking.
 
@@ -60,7 +63,9 @@ class CleaningModel:
 
 
 @dataclass
-class SimObjectConfig:
+
+
+class SimObjectConfig(Config):
     """What the simulated scene holds: an object, its marking and its pose in the robot base frame.
 
     object : "bowl", "plate", "mug", or a path to a Wavefront .obj (metres unless ``units`` is "mm").
@@ -84,11 +89,6 @@ class SimObjectConfig:
     seed: int = 0
     cleaning: CleaningModel = field(default_factory=CleaningModel)
 
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["pose"] = list(self.pose) if self.pose is not None else None
-        return d
-
 
 def default_pose(kind: str) -> tuple[float, ...]:
     """The default object pose x,y,z,roll,pitch,yaw (m, deg) in the robot base frame."""
@@ -96,6 +96,8 @@ def default_pose(kind: str) -> tuple[float, ...]:
 
 
 # ----------------------------------------------------------------------------- geometry
+
+
 @dataclass
 class ChartMesh:
     """A triangle mesh with a 2-D chart per vertex.
@@ -271,6 +273,8 @@ def _file_mesh(path: str, units: str, use_uvs: bool) -> ChartMesh:
 
 
 # ----------------------------------------------------------------------------- texture space
+
+
 def chart_to_uv(chart: np.ndarray, box: np.ndarray, height: int) -> np.ndarray:
     """Chart coordinates (n, 2) -> OBJ texture coordinates (n, 2) for a texture of ``height`` chart rows.
 
@@ -366,6 +370,8 @@ def read_marking_image(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ----------------------------------------------------------------------------- the object
+
+
 class TexturedObject:
     """A textured mesh whose marking can be cleaned; everything in metres.
 
