@@ -44,27 +44,9 @@ class StartSpec:
 RUN_CONFIG_KIND = "tergodic.run_config"
 
 
-def run_config(capture_dir, cfg: ExploreConfig, starts: StartSpec | None, backend, log_cloud_every: int) -> dict:
-    """A run's loadable config (the sections of its ``config.json``).
-
-    Parameters
-    ----------
-    capture_dir : str or Path
-        The capture explored.
-    cfg : ExploreConfig
-        The explore config as asked for (before a robot's time scaling).
-    starts : StartSpec or None
-        Where the agents start (the seed in ``cfg`` makes a random start the same).
-    backend : Kinematic, PyBullet or Franka
-        What moved; a robot's whole config is saved without the GUI.
-    log_cloud_every : int
-        Steps between logged clouds.
-
-    Returns
-    -------
-    dict
-        Section name -> JSON-ready value, for :func:`~tergodic_cli.config.write_config`.
-    """
+def _run_config(capture_dir, cfg: ExploreConfig, starts: StartSpec | None, backend, log_cloud_every: int) -> dict:
+    """The sections of a run's ``config.json``: ``cfg`` as asked for (before a robot's time scaling),
+    the starts (the seed in ``cfg`` makes a random start the same), the robot's config without the GUI."""
     from dataclasses import replace
 
     spec, rc = starts or StartSpec(), backend.robot_cfg
@@ -74,35 +56,6 @@ def run_config(capture_dir, cfg: ExploreConfig, starts: StartSpec | None, backen
             "robot": backend.name,
             "robot_options": replace(rc, gui=False, realtime=False).to_dict() if rc is not None else {},
             "log_cloud_every": int(log_cloud_every)}
-
-
-def load_run_config(path: str | Path) -> dict:
-    """Read the ``config.json`` of an earlier run.
-
-    Parameters
-    ----------
-    path : str or Path
-        ``RUN/config.json``.
-
-    Returns
-    -------
-    dict
-        ``explore`` (:class:`ExploreConfig`), ``starts`` (:class:`StartSpec`), ``robot`` (str),
-        ``robot_options`` (dict of :class:`~tergodic_cli.robot.RobotConfig` fields, checked when the
-        robot is built) and ``log_cloud_every`` (int). A missing, corrupt or foreign file, or an
-        unknown key, raises :class:`TergodicError` (exit 2).
-    """
-    from tergodic_cli.config import from_dict, read_config
-
-    d = read_config(path, RUN_CONFIG_KIND, "give the config.json that 'tergodic explore' wrote beside a run")
-    where = f"--config {path}"
-    fix = "use a config.json written by 'tergodic explore'"
-    require(isinstance(d.get("robot_options") or {}, dict), f"{where}: robot_options is not a JSON object", fix)
-    require(isinstance(d.get("log_cloud_every", 50), int), f"{where}: log_cloud_every is not an int", fix)
-    return {"explore": ExploreConfig.from_dict(d.get("explore"), f"{where}: explore"),
-            "starts": from_dict(StartSpec, d.get("starts") or {}, f"{where}: starts"),
-            "robot": d.get("robot", "kinematic"), "robot_options": d.get("robot_options") or {},
-            "log_cloud_every": d.get("log_cloud_every", 50)}
 
 
 #: The ExploreConfig field each ``tergodic explore`` option sets, where they differ.
@@ -116,7 +69,8 @@ def apply_saved(path, fields: dict, given: set, starts: StartSpec, robot: str, r
     Parameters
     ----------
     path : str or Path
-        ``RUN/config.json``.
+        ``RUN/config.json``; a missing, corrupt or foreign file, or an unknown key, raises
+        :class:`TergodicError` (exit 2).
     fields : dict
         :class:`ExploreConfig` fields from the command line.
     given : set of str
@@ -129,19 +83,23 @@ def apply_saved(path, fields: dict, given: set, starts: StartSpec, robot: str, r
     tuple
         (ExploreConfig, StartSpec, robot, robot_options, log_cloud_every).
     """
-    from tergodic_cli.config import override
+    from tergodic_cli.config import from_dict, override, read_config
 
-    saved = load_run_config(path)
-    cfg = override(saved["explore"], ExploreConfig(**fields), given, RENAMED)
-    options = dict(saved["robot_options"])
+    d = read_config(path, RUN_CONFIG_KIND, "give the config.json that 'tergodic explore' wrote beside a run")
+    where, fix = f"--config {path}", "use a config.json written by 'tergodic explore'"
+    require(isinstance(d.get("robot_options") or {}, dict), f"{where}: robot_options is not a JSON object", fix)
+    require(isinstance(d.get("log_cloud_every", 50), int), f"{where}: log_cloud_every is not an int", fix)
+    saved_starts = from_dict(StartSpec, d.get("starts") or {}, f"{where}: starts")
+    cfg = override(ExploreConfig.from_dict(d.get("explore"), f"{where}: explore"), ExploreConfig(**fields), given, RENAMED)
+    options = dict(d.get("robot_options") or {})
     for key, value in robot_options.items():
         if key == "safety":
             options["safety"] = {**(options.get("safety") or {}), **{k: v for k, v in (value or {}).items() if v is not None}}
         elif value is not None:
             options[key] = value
-    return (cfg, starts if given & {"start", "starts", "start_index"} else saved["starts"],
-            robot if "robot" in given else saved["robot"], options,
-            log_cloud_every if "log_cloud_every" in given else saved["log_cloud_every"])
+    return (cfg, starts if given & {"start", "starts", "start_index"} else saved_starts,
+            robot if "robot" in given else d.get("robot", "kinematic"), options,
+            log_cloud_every if "log_cloud_every" in given else d.get("log_cloud_every", 50))
 
 
 def resolve_starts(spec: StartSpec, points: np.ndarray, n_agents: int, seed: int) -> np.ndarray:
@@ -377,7 +335,7 @@ def _write_run(out: Path, run: _Run) -> dict:
         from tergodic_cli.config import CONFIG_FILE, write_config
 
         write_json(out / "summary.json", summary)
-        write_config(out / CONFIG_FILE, RUN_CONFIG_KIND, **run_config(run.capture_dir, run.user_cfg, run.starts,
+        write_config(out / CONFIG_FILE, RUN_CONFIG_KIND, **_run_config(run.capture_dir, run.user_cfg, run.starts,
                                                                         run.backend, spec.cloud_every))
         if runlog is not None:
             runlog.close(summary, status="interrupted" if summary.get("interrupted") else "ok")  # robot made safe
@@ -407,19 +365,22 @@ def make_robot_config(robot_config_cls, options: dict | None):
 
 # ----------------------------------------------------------------------------- backends
 class Kinematic:
-    """The virtual agent alone: no robot (``--robot kinematic``)."""
+    """The virtual agent alone (``--robot kinematic``). Every backend has a ``name``, a ``robot_cfg``
+    (None here), ``check(capture, start_xyz)`` (its preconditions, before anything is written),
+    ``explore_config(cfg)`` (the explorer config it runs) and ``drive(...)`` (the run)."""
 
     name = "kinematic"
     robot_cfg = None
 
     def check(self, capture, start_xyz) -> None:
-        """Nothing to check without a robot."""
+        pass
 
     def explore_config(self, cfg: ExploreConfig) -> ExploreConfig:
         return cfg
 
     def drive(self, capture, explorer, steps: int, on_step, on_event, runlog=None) -> dict:
-        """Run ``steps`` explorer steps; ``on_step(step, None)`` after each. Returns no extras."""
+        """Run ``steps`` explorer steps, calling ``on_step(step, robot_sample or None)`` after each and
+        ``on_event(step, text)``; returns the robot's summary extras."""
         from tergodic_cli.progress import track
 
         for k in track(range(steps), total=steps, description="exploring"):
@@ -429,19 +390,9 @@ class Kinematic:
 
 
 class PyBullet(Kinematic):
-    """The simulated Panda (``--robot pybullet``), optionally in the closed re-capture loop.
-
-    Parameters
-    ----------
-    robot_cfg : RobotConfig
-        The robot's config.
-    recapture_every : int or None
-        Explorer steps between re-captures (the closed loop, a ``--source sim`` capture); None: open loop.
-    until_clean : float
-        The closed loop stops once the camera sees less than this share of the initial marking.
-    max_steps : int or None
-        The closed loop's step budget (None: the run's steps).
-    """
+    """The simulated Panda (``--robot pybullet``) with ``robot_cfg`` (a RobotConfig); with
+    ``recapture_every`` the closed loop (a ``--source sim`` capture): re-capture every K steps and stop
+    once the camera sees less than ``until_clean`` of the marking or ``max_steps`` (default: the run's) are spent."""
 
     name = "pybullet"
 
@@ -451,8 +402,6 @@ class PyBullet(Kinematic):
         self.recapture_every, self.until_clean, self.max_steps = recapture_every, until_clean, max_steps
 
     def check(self, capture, start_xyz) -> None:
-        """The robot's preconditions, before anything is written: its config, the safety limits, a
-        display for --gui, a reachable object pose, starts inside the workspace box, the closed loop."""
         _check_robot(self.robot_cfg)
         from tergodic_cli.robot.run import object_pose
         from tergodic_cli.robot.surface import check_reachable, transform_points
@@ -473,7 +422,6 @@ class PyBullet(Kinematic):
         return robot_explore_config(cfg, self.robot_cfg.explore_dt)
 
     def drive(self, capture, explorer, steps: int, on_step, on_event, runlog=None) -> dict:
-        """Run the robot for ``steps`` explorer steps (the closed loop: until clean or its budget)."""
         if self.recapture_every is None:
             from tergodic_cli.backends.pybullet import explore_with_robot
 
@@ -493,16 +441,8 @@ class PyBullet(Kinematic):
 
 
 class Franka(PyBullet):
-    """A Franka arm through franky with a force source (``--robot franka``).
-
-    Parameters
-    ----------
-    robot_cfg : RobotConfig
-        The robot's config.
-    hardware : dict
-        :func:`~tergodic_cli.backends.factory.make_hardware` arguments (``robot_ip``, ``ft``, ``ft_address``);
-        the SDKs are imported now, so a missing one fails before any heavy work.
-    """
+    """A Franka arm through franky with a force source (``--robot franka``); ``hardware`` holds the
+    :func:`~tergodic_cli.backends.factory.make_hardware` arguments, whose SDKs are imported now."""
 
     name = "franka"
 
@@ -513,8 +453,7 @@ class Franka(PyBullet):
         self.arm, self.sensor = make_hardware(robot="franka", **(hardware or {}))
 
     def check(self, capture, start_xyz) -> None:
-        """The config, the safety limits and a display for --gui (the hardware plans its own reach)."""
-        _check_robot(self.robot_cfg)
+        _check_robot(self.robot_cfg)  # the hardware plans its own reach
 
     def drive(self, capture, explorer, steps: int, on_step, on_event, runlog=None) -> dict:
         from tergodic_cli.backends.streamed import explore_with_hardware
