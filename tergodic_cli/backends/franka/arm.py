@@ -189,13 +189,6 @@ class FrankyArm:
             return self._error
         return None
 
-    def recover(self) -> bool:
-        """franky's automatic error recovery; clears the recorded fault when it succeeds."""
-        ok = bool(self._require().recover_from_errors())
-        if ok:
-            self._error = None
-        return ok
-
     # ------------------------------------------------------------------ commands
     def command(self, tau: np.ndarray) -> None:
         """Joint torques (7,) N m on top of gravity (libfranka) and Coriolis (franky) compensation.
