@@ -9,9 +9,6 @@ import typer
 
 from tergodic_cli.commands._common import given_options, parse_floats
 
-SOURCES = ("file", "synthetic", "sim", "realsense")
-
-
 def register(app: typer.Typer) -> None:
     app.command("capture", no_args_is_help=True)(capture)
 
@@ -69,17 +66,17 @@ def capture(
       tergodic capture --config cap/config.json --seed 3 --out cap2/
     """
     import json
-    from dataclasses import replace
 
     from tergodic_cli.capture import CaptureConfig, capture_cloud, save_capture
-    from tergodic_cli.capture.pipeline import format_report, load_capture_config
+    from tergodic_cli.capture.pipeline import format_report, load_capture_config, resolve_source
+    from tergodic_cli.config import override
 
     given = given_options(ctx)
     saved, sections = load_capture_config(config) if config is not None else (None, {})
     if saved is not None and not given & {"source", "from_file", "synthetic", "sim_object"}:
         kind = saved.source
     else:
-        kind = _resolve_source(source, from_file, synthetic, sim_object)
+        kind = resolve_source(source, from_file, synthetic, sim_object)
     cfg = CaptureConfig(
         source=kind,
         path=str(from_file) if from_file is not None else (sim_object if kind == "sim" and sim_object not in _BUILTIN else None),
@@ -98,7 +95,8 @@ def capture(
         max_points=max_points,
     )
     if saved is not None:  # the saved capture, with the options given on this command line on top
-        cfg = replace(saved, **{f: getattr(cfg, f) for opt in given for f in _PIPELINE_OF.get(opt, (opt,)) if hasattr(cfg, f)})
+        cfg = override(saved, cfg, given, {"from_file": ("path",), "sim_object": ("path", "synthetic")})
+    from tergodic_cli.atomic import write_png
     from tergodic_cli.capture.artefact import check_out_folder
 
     check_out_folder(out, overwrite)  # before any work: a refused --out costs nothing
@@ -117,10 +115,11 @@ def capture(
         if saved is not None:
             from tergodic_cli.config import from_dict
 
-            for part, of in (("object", _OBJECT_OF), ("camera", _CAMERA_OF)):
+            for part, renamed in (("object", {"sim_object": ("object",), "object_pose": ("pose",)}),
+                                  ("camera", {"camera_pose": ("pose",), "fov": ("fov_deg",)})):
                 now = getattr(sim, part)
                 old = from_dict(type(now), sections.get(part) or {}, f"--config {config}: {part}")
-                setattr(sim, part, replace(old, **{f: getattr(now, f) for opt in given for f in of.get(opt, ())}))
+                setattr(sim, part, override(old, now, given, renamed))
         configs = {"capture": cfg, "object": sim.object, "camera": sim.camera}
         cap = capture_sim(sim)
         frame = getattr(cap, "frame", None)
@@ -137,7 +136,7 @@ def capture(
         with Spinner("capture: reading, filtering and segmenting the cloud"):  # seconds for millions of points
             cap = capture_cloud(cfg)
     # What the camera saw goes beside the artefact (not part of it), inside the same atomic folder.
-    extra = (lambda folder: _write_image(folder / "camera_rgb.png", frame.rgb)) if frame is not None else None
+    extra = (lambda folder: write_png(folder / "camera_rgb.png", frame.rgb)) if frame is not None else None
     sidecar = save_capture(cap, out, overwrite=overwrite, extra=extra, config=configs)
     if json_out:
         typer.echo(json.dumps(cap.meta, indent=2))
@@ -156,45 +155,6 @@ def capture(
 
 
 _BUILTIN = ("bowl", "plate", "mug")
-#: The config fields each option sets, where they differ from its name: CaptureConfig, SimObjectConfig, SimCameraConfig.
-_PIPELINE_OF = {"from_file": ("path",), "sim_object": ("path", "synthetic")}
-_OBJECT_OF = {"sim_object": ("object",), "marking": ("marking",), "object_pose": ("pose",), "units": ("units",),
-              "seed": ("seed",)}
-_CAMERA_OF = {"camera_pose": ("pose",), "width": ("width",), "height": ("height",), "fov": ("fov_deg",),
-              "renderer": ("renderer",), "seed": ("seed",)}
-
-
-def _resolve_source(source: Optional[str], from_file, synthetic, sim_object) -> str:
-    """The capture source, from --source or from whichever of --from / --synthetic / --object is given."""
-    from tergodic_cli.errors import TergodicError
-
-    given = [name for name, value in (("file", from_file), ("synthetic", synthetic), ("sim", sim_object)) if value is not None]
-    usage = "use --from FILE, --synthetic OBJECT (see --help) or --source sim --object bowl|plate|mug|FILE.obj"
-    if source is None:
-        if len(given) != 1:
-            raise TergodicError("give exactly one source", usage)
-        return given[0]
-    if source not in SOURCES:
-        raise TergodicError(f"unknown --source '{source}'", f"use one of {', '.join(SOURCES)}")
-    if any(g != source for g in given):
-        raise TergodicError(f"--source {source} does not go with {', '.join('--' + ('from' if g == 'file' else 'object' if g == 'sim' else g) for g in given if g != source)}", usage)
-    if source == "file" and from_file is None:
-        raise TergodicError("--source file needs --from FILE", usage)
-    if source == "synthetic" and synthetic is None:
-        raise TergodicError("--source synthetic needs --synthetic OBJECT", usage)
-    return source
-
-
-def _write_image(path: Path, rgb) -> None:
-    """The camera's RGB image (h, w, 3) in [0, 1] as a PNG, atomically."""
-    import numpy as np
-    from PIL import Image
-
-    from tergodic_cli.atomic import atomic_path
-
-    with atomic_path(path, suffix=".png") as tmp:
-        Image.fromarray(np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)).save(tmp, format="PNG")
-
 
 def _parse_outliers(text: str) -> tuple[int, float]:
     nb, std = parse_floats(text, 2, "--outliers", "20,2.0")

@@ -89,30 +89,15 @@ def explore(
 
     live_at = _check_live(live, no_log or dry_run) if live is not None else None  # exit 2 before anything is written
     from tergodic_cli.explore import ExploreConfig
-    from tergodic_cli.run import StartSpec, run_explore
+    from tergodic_cli.run import LogSpec, StartSpec, apply_saved, dry_run_report, make_backend, run_explore
     from tergodic_cli.commands._common import given_options, parse_floats
     from tergodic_cli.progress import echo as echo_err
 
-    given = given_options(ctx)
     fields = {"steps": steps, "alpha": alpha, "nk": nk, "agent_radius": agent_radius, "n_agents": agents, "v_max": v_max,
               "a_max": a_max, "dt": dt, "diffusion": diffusion, "integrator": integrator, "coverage_norm": coverage_norm,
               "seed": seed, "n_neighbors": fit_neighbors, "epsilon": epsilon, "basis_neighbors": neighbors,
               "max_start_distance": max_start_distance}
     spec = StartSpec(start=start, starts_file=str(starts) if starts is not None else None, start_index=start_index)
-    saved = None
-    if config is not None:  # the saved run, with the options given on this command line on top
-        from dataclasses import replace
-
-        from tergodic_cli.run import load_run_config
-
-        saved = load_run_config(config)
-        cfg = replace(saved["explore"], **{k: v for k, v in fields.items() if OPTION_OF.get(k, k) in given})
-        if not given & {"start", "starts", "start_index"}:
-            spec = saved["starts"]
-        robot = robot if "robot" in given else saved["robot"]
-        log_cloud_every = log_cloud_every if "log_cloud_every" in given else saved["log_cloud_every"]
-    else:
-        cfg = ExploreConfig(**fields)
     robot_options = {
         "force": force, "contact_force": contact_force, "explore_dt": explore_dt, "normal_side": normal_side,
         "gains": gains, "gui": gui or None, "realtime": realtime or None,
@@ -120,16 +105,18 @@ def explore(
         "safety": {"force_limit": force_limit,
                    **(_workspace(parse_floats(workspace, 6, "--workspace", "0.15,-0.6,0,0.85,0.6,0.9")) if workspace else {})},
     }
-    if saved is not None:  # the saved robot options, then those given now
-        robot_options = _merge_options(saved["robot_options"], robot_options)
-    hardware = {"robot_ip": robot_ip, "ft": ft, "ft_address": ft_address}
-    summary = run_explore(capture, cfg, out, spec, robot=robot, log=not no_log, log_cloud_every=log_cloud_every,
-                          cache_dir=cache_dir, on_event=echo_err,
-                          robot_options=robot_options, hardware=hardware, dry_run=dry_run, on_report=typer.echo,
-                          live=live_at, overwrite=overwrite,
-                          recapture_every=recapture_every, until_clean=until_clean, max_steps=max_steps)
+    if config is not None:  # the saved run, with the options given on this command line on top
+        cfg, spec, robot, robot_options, log_cloud_every = apply_saved(
+            config, fields, given_options(ctx), spec, robot, robot_options, log_cloud_every)
+    else:
+        cfg = ExploreConfig(**fields)
+    backend = make_backend(robot, robot_options, {"robot_ip": robot_ip, "ft": ft, "ft_address": ft_address},
+                           recapture_every, until_clean, max_steps, dry_run)
     if dry_run:
+        typer.echo(dry_run_report(capture, cfg, backend, spec))
         return
+    summary = run_explore(capture, cfg, out, backend, spec, None if no_log else LogSpec(log_cloud_every, live_at),
+                          cache_dir, on_event=echo_err, overwrite=overwrite)
     if summary.get("interrupted"):
         from tergodic_cli.errors import Terminated
 
@@ -184,21 +171,6 @@ def _check_live(live: str, no_log: bool) -> str:
     require(not no_log, "--live streams the run log", "drop --no-log / --dry-run, or drop --live")
     check_bindable(host, port)
     return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
-
-
-#: The verb's option (parameter) name of each ExploreConfig field, where they differ.
-OPTION_OF = {"n_agents": "agents", "n_neighbors": "fit_neighbors", "basis_neighbors": "neighbors"}
-
-
-def _merge_options(saved: dict, now: dict) -> dict:
-    """``now``'s options where given (not None), else ``saved``'s; ``safety`` merged the same way."""
-    out = dict(saved)
-    for key, value in now.items():
-        if key == "safety":
-            out["safety"] = {**(saved.get("safety") or {}), **{k: v for k, v in (value or {}).items() if v is not None}}
-        elif value is not None:
-            out[key] = value
-    return out
 
 
 def _workspace(box: tuple[float, ...]) -> dict:

@@ -35,21 +35,22 @@ def precompute(
       tergodic precompute cap2/ --config ~/.cache/tergodic/basis/KEY/config.json
     """
     import json
-    from dataclasses import replace
 
     from tergodic_cli.basis import BasisConfig, get_basis
     from tergodic_cli.capture import load_capture
+    from tergodic_cli.capture.pipeline import check_size
     from tergodic_cli.progress import echo as echo_err
 
     bcfg = BasisConfig(nk=nk, neighbors=neighbors)
     if config is not None:  # the saved config, with --nk / --neighbors given on this command line on top
         from tergodic_cli.basis.cache import load_basis_config
+        from tergodic_cli.config import override
 
         from tergodic_cli.commands._common import given_options
 
-        bcfg = replace(load_basis_config(config), **{n: getattr(bcfg, n) for n in given_options(ctx) & {"nk", "neighbors"}})
+        bcfg = override(load_basis_config(config), bcfg, given_options(ctx) & {"nk", "neighbors"})
     cap = load_capture(capture)
-    _check_size(capture, cap.n_points, max_points)
+    check_size(capture, cap.n_points, max_points)
     basis, hit = get_basis(cap.points, bcfg, cache_dir, force=force, on_event=echo_err)
     if json_out:
         typer.echo(json.dumps({**basis.meta, "cache_hit": hit}, indent=2))
@@ -64,12 +65,3 @@ def precompute(
                f"λ = {basis.evals[0]:.3g} .. {basis.evals[-1]:.4g} 1/m²")
     typer.echo(f"  {basis.meta['path']}")
 
-
-def _check_size(capture: Path, n: int, limit: int) -> None:
-    """Refuse a cloud too large to precompute in reasonable memory and time, unless --max-points allows it."""
-    from tergodic_cli.capture.pipeline import size_estimate
-    from tergodic_cli.errors import TergodicError
-
-    if n > limit:
-        raise TergodicError(f"{capture} has {n:,} points, above the {limit:,}-point limit: precompute would need "
-                            f"{size_estimate(n)}", f"re-capture with a coarser --voxel (e.g. 0.003), or pass --max-points {n}")

@@ -266,3 +266,11 @@ class AtomicFolder:
 
         fix = ("free space or " if _full(exc) else "") + f"choose another {self.option}"
         return TergodicError(f"cannot write the {self.what} {self.shown}: {os_cause(exc)}", fix)
+
+
+def write_png(path: str | Path, rgb: np.ndarray) -> None:
+    """Write an RGB image (h, w, 3) in [0, 1] as a PNG, atomically."""
+    from PIL import Image
+
+    with atomic_path(path, suffix=".png") as tmp:
+        Image.fromarray(np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)).save(tmp, format="PNG")

@@ -10,12 +10,8 @@ import sys
 
 import typer
 
-import importlib
-
 from tergodic_cli.errors import TergodicError
 
-#: The verbs, in pipeline order; each is a module in tergodic_cli.commands with a ``register(app)``.
-VERBS = ("capture", "precompute", "explore", "replay", "sweep")
 
 app = typer.Typer(
     name="tergodic",
@@ -92,8 +88,10 @@ class _Command(typer.core.TyperCommand):
             raise typer.Exit(_interrupted(exc)) from None
 
 
-for _verb in VERBS:
-    importlib.import_module(f"tergodic_cli.commands.{_verb}").register(app)
+from tergodic_cli.commands import capture, explore, precompute, replay, sweep  # noqa: E402  (after app)
+
+for _verb in (capture, precompute, explore, replay, sweep):
+    _verb.register(app)
 for _info in app.registered_commands:
     if _info.cls in (None, typer.core.TyperCommand):
         _info.cls = _Command

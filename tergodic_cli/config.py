@@ -91,7 +91,7 @@ def _plain(value):
         return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
     if isinstance(value, (tuple, list)):
         return [_plain(v) for v in value]
-    return value
+    return value.tolist() if hasattr(value, "tolist") else value  # numpy arrays and scalars
 
 
 _FIX = "use a config.json written by tergodic, or correct it"
@@ -133,6 +133,29 @@ def _coerce(hint, value, where: str):
         require(isinstance(value, hint) and (hint is bool or not isinstance(value, bool)),
                 f"{where} is not {'an' if hint is int else 'a'} {hint.__name__}", _FIX)
     return value
+
+
+def override(saved, now, given, renamed: dict | None = None):
+    """``saved`` with the fields of the options ``given`` on the command line taken from ``now``.
+
+    Parameters
+    ----------
+    saved, now : dataclass
+        The loaded config and the one the command line built (same class).
+    given : set of str
+        The verb's option names given on the command line.
+    renamed : dict, optional
+        Option name -> the fields it sets, where they differ from its name.
+
+    Returns
+    -------
+    dataclass
+        A copy of ``saved``.
+    """
+    from dataclasses import replace
+
+    fields = {f for opt in given for f in (renamed or {}).get(opt, (opt,)) if hasattr(now, f)}
+    return replace(saved, **{f: getattr(now, f) for f in fields})
 
 
 def write_config(path: str | Path, kind: str, **sections) -> None:

@@ -44,67 +44,62 @@ class StartSpec:
 RUN_CONFIG_KIND = "tergodic.run_config"
 
 
-def run_config(capture_dir, cfg: ExploreConfig, starts: StartSpec | None, robot: str, robot_cfg, log_cloud_every: int) -> dict:
-    """A run's loadable config (the sections of its ``config.json``).
-
-    Parameters
-    ----------
-    capture_dir : str or Path
-        The capture explored.
-    cfg : ExploreConfig
-        The explore config as asked for (before a robot's time scaling).
-    starts : StartSpec or None
-        Where the agents start (the seed in ``cfg`` makes a random start the same).
-    robot : str
-        The backend, one of :data:`ROBOTS`.
-    robot_cfg : RobotConfig or None
-        The robot's whole config (None for ``"kinematic"``); saved without the GUI.
-    log_cloud_every : int
-        Steps between logged clouds.
-
-    Returns
-    -------
-    dict
-        Section name -> JSON-ready value, for :func:`~tergodic_cli.config.write_config`.
-    """
+def _run_config(capture_dir, cfg: ExploreConfig, starts: StartSpec | None, backend, log_cloud_every: int) -> dict:
+    """The sections of a run's ``config.json``: ``cfg`` as asked for (before a robot's time scaling),
+    the starts (the seed in ``cfg`` makes a random start the same), the robot's config without the GUI."""
     from dataclasses import replace
 
-    spec = starts or StartSpec()
+    spec, rc = starts or StartSpec(), backend.robot_cfg
     return {"capture": str(Path(capture_dir).resolve()), "explore": cfg.to_dict(),
             "starts": {"start": spec.start, "start_index": spec.start_index,
                        "starts_file": str(Path(spec.starts_file).resolve()) if spec.starts_file else None},
-            "robot": robot,
-            "robot_options": replace(robot_cfg, gui=False, realtime=False).to_dict() if robot_cfg is not None else {},
+            "robot": backend.name,
+            "robot_options": replace(rc, gui=False, realtime=False).to_dict() if rc is not None else {},
             "log_cloud_every": int(log_cloud_every)}
 
 
-def load_run_config(path: str | Path) -> dict:
-    """Read the ``config.json`` of an earlier run.
+#: The ExploreConfig field each ``tergodic explore`` option sets, where they differ.
+RENAMED = {"agents": ("n_agents",), "fit_neighbors": ("n_neighbors",), "neighbors": ("basis_neighbors",)}
+
+
+def apply_saved(path, fields: dict, given: set, starts: StartSpec, robot: str, robot_options: dict,
+                log_cloud_every: int) -> tuple:
+    """A saved run's ``config.json`` with the options given on the command line on top.
 
     Parameters
     ----------
     path : str or Path
-        ``RUN/config.json``.
+        ``RUN/config.json``; a missing, corrupt or foreign file, or an unknown key, raises
+        :class:`TergodicError` (exit 2).
+    fields : dict
+        :class:`ExploreConfig` fields from the command line.
+    given : set of str
+        The verb's option names given on the command line (they win over the saved ones).
+    starts, robot, robot_options, log_cloud_every
+        The command line's starts, backend name, robot options (None: not given) and cloud interval.
 
     Returns
     -------
-    dict
-        ``explore`` (:class:`ExploreConfig`), ``starts`` (:class:`StartSpec`), ``robot`` (str),
-        ``robot_options`` (dict of :class:`~tergodic_cli.robot.RobotConfig` fields, checked when the
-        robot is built) and ``log_cloud_every`` (int). A missing, corrupt or foreign file, or an
-        unknown key, raises :class:`TergodicError` (exit 2).
+    tuple
+        (ExploreConfig, StartSpec, robot, robot_options, log_cloud_every).
     """
-    from tergodic_cli.config import from_dict, read_config
+    from tergodic_cli.config import from_dict, override, read_config
 
     d = read_config(path, RUN_CONFIG_KIND, "give the config.json that 'tergodic explore' wrote beside a run")
-    where = f"--config {path}"
-    fix = "use a config.json written by 'tergodic explore'"
+    where, fix = f"--config {path}", "use a config.json written by 'tergodic explore'"
     require(isinstance(d.get("robot_options") or {}, dict), f"{where}: robot_options is not a JSON object", fix)
     require(isinstance(d.get("log_cloud_every", 50), int), f"{where}: log_cloud_every is not an int", fix)
-    return {"explore": ExploreConfig.from_dict(d.get("explore"), f"{where}: explore"),
-            "starts": from_dict(StartSpec, d.get("starts") or {}, f"{where}: starts"),
-            "robot": d.get("robot", "kinematic"), "robot_options": d.get("robot_options") or {},
-            "log_cloud_every": d.get("log_cloud_every", 50)}
+    saved_starts = from_dict(StartSpec, d.get("starts") or {}, f"{where}: starts")
+    cfg = override(ExploreConfig.from_dict(d.get("explore"), f"{where}: explore"), ExploreConfig(**fields), given, RENAMED)
+    options = dict(d.get("robot_options") or {})
+    for key, value in robot_options.items():
+        if key == "safety":
+            options["safety"] = {**(options.get("safety") or {}), **{k: v for k, v in (value or {}).items() if v is not None}}
+        elif value is not None:
+            options[key] = value
+    return (cfg, starts if given & {"start", "starts", "start_index"} else saved_starts,
+            robot if "robot" in given else d.get("robot", "kinematic"), options,
+            log_cloud_every if "log_cloud_every" in given else d.get("log_cloud_every", 50))
 
 
 def resolve_starts(spec: StartSpec, points: np.ndarray, n_agents: int, seed: int) -> np.ndarray:
@@ -187,125 +182,129 @@ def find_basis(points: np.ndarray, nk: int, neighbors: int, cache_dir=None,
     return get_basis(points, BasisConfig(nk=nk, neighbors=neighbors), cache_dir, on_event=on_event)
 
 
-def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path, starts: StartSpec | None = None,
-                robot: str = "kinematic", log: bool = True, log_cloud_every: int = 50, cache_dir=None,
-                on_event: Callable[[str], None] | None = None, robot_options: dict | None = None,
-                hardware: dict | None = None, dry_run: bool = False, on_report: Callable[[str], None] | None = None,
-                recapture_every: int | None = None, until_clean: float = 0.05, max_steps: int | None = None,
-                live: str | None = None, overwrite: bool = False) -> dict:
-    """Run one exploration and write its artefacts; returns the summary dict.
+@dataclass
+class LogSpec:
+    """The run log: the per-point cloud every ``cloud_every`` steps (and at the end); ``live``
+    ("HOST:PORT") also streams the log to Foxglove over WebSocket while the run goes on."""
 
-    ``robot_options`` are :class:`~tergodic_cli.robot.RobotConfig` fields (``safety`` as a dict of
-    :class:`~tergodic_cli.robot.safety.SafetyConfig` fields). ``hardware`` holds the
-    :func:`~tergodic_cli.backends.factory.make_hardware` arguments for ``robot="franka"``;
-    with ``dry_run`` the devices are connected and read, the plan is passed to ``on_report``,
-    nothing moves and nothing is written (the returned dict is then ``{"dry_run": report}``).
-    ``recapture_every`` (robot "pybullet", a ``--source sim`` capture) runs the closed outer loop:
-    every K steps re-capture with the simulated camera, update p on the same basis, and stop once the
-    camera sees less than ``until_clean`` of the initial marking or ``max_steps`` are spent.
-    ``live`` ("HOST:PORT") also streams the log to Foxglove over WebSocket while the run goes on.
+    cloud_every: int = 50
+    live: str | None = None
 
-    The run folder is built in a temporary sibling and renamed into place when complete; an
-    existing ``out_dir`` holding files is refused up front unless ``overwrite`` (then replaced
-    whole). On Ctrl-C/SIGTERM the partial run (log marked interrupted) is renamed into place and
-    :class:`~tergodic_cli.errors.Interrupted` is raised with a one-line message.
+
+def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path, backend=None,
+                starts: StartSpec | None = None, log: LogSpec | None = LogSpec(), cache_dir=None,
+                on_event: Callable[[str], None] | None = None, overwrite: bool = False) -> dict:
+    """Run one exploration through ``backend`` and write its artefacts.
+
+    Parameters
+    ----------
+    capture_dir : str or Path
+        The capture to explore.
+    cfg : ExploreConfig
+        The explore config (a robot backend rescales its time, :meth:`PyBullet.explore_config`).
+    out_dir : str or Path
+        The run folder: built in a temporary sibling and renamed into place when complete; an
+        existing one holding files is refused up front unless ``overwrite`` (then replaced whole).
+    backend : Kinematic, PyBullet or Franka, optional
+        What moves (:func:`make_backend`); default :class:`Kinematic`.
+    starts : StartSpec, optional
+        Where the agents start (default: random, with ``cfg.seed``).
+    log : LogSpec or None
+        The per-step MCAP log; None: none.
+    cache_dir : str or Path, optional
+        The basis cache root.
+    on_event : callable, optional
+        ``on_event(text)`` for each event line.
+    overwrite : bool
+        Replace an existing run folder.
+
+    Returns
+    -------
+    dict
+        The summary (``summary.json``). On Ctrl-C/SIGTERM the partial run (log marked interrupted)
+        is renamed into place and :class:`~tergodic_cli.errors.Interrupted` is raised.
     """
-    from tergodic_cli.capture import load_capture
-
-    say = on_event or (lambda msg: None)
-    events: list[str] = []
-
-    def event(msg: str) -> None:
-        events.append(msg)
-        say(msg)
-
-    validate_config(cfg)
-    require(robot in ROBOTS, f"--robot '{robot}' is unknown", f"use one of {', '.join(ROBOTS)}")
-    require(recapture_every is None or robot == "pybullet", "--recapture-every needs the simulated robot",
-            "add --robot pybullet (with a 'tergodic capture --source sim' capture)")
-    require(recapture_every is None or recapture_every >= 1, f"--recapture-every must be >= 1, got {recapture_every}", "e.g. 200")
-    require(0.0 <= until_clean < 1.0, f"--until-clean must be in [0, 1), got {until_clean}", "e.g. 0.05 (5% of the marking left)")
-    require(log_cloud_every >= 1, f"--log-cloud-every must be >= 1, got {log_cloud_every}", "e.g. 50")
-    out = Path(out_dir)
     from tergodic_cli.atomic import AtomicFolder
-
-    folder = AtomicFolder(out, overwrite=overwrite, what="run", keep_partial=True, owned=RUN_FILES.__contains__)
-    if not dry_run:
-        folder.check()  # before any work: a refused --out costs nothing and touches nothing
-    capture = load_capture(capture_dir)
-    require(bool(np.any(capture.target > 0)), f"the target of {capture_dir} is empty (no point has p > 0)",
-            "re-capture with the right --target colour, or --target all for uniform coverage")
-    require(cfg.nk < capture.n_points, f"--nk {cfg.nk} is not below the number of points ({capture.n_points})",
-            f"use --nk < {capture.n_points}")
-    start_xyz = resolve_starts(starts or StartSpec(), capture.points, cfg.n_agents, cfg.seed)
-
-    devices = None
-    if robot == "franka":  # fail fast (missing SDK: one-line install hint) before any heavy work
-        from tergodic_cli.backends.factory import make_hardware
-
-        devices = make_hardware(robot="franka", **(hardware or {}))
-    robot_api = _robot_backend() if robot != "kinematic" else None
-    user_cfg = cfg
-    if robot_api is not None:
-        # The robot runs the explorer at its own step period with the same path per step.
-        robot_cfg = make_robot_config(robot_api[1], robot_options)
-        check_robot(robot, robot_cfg, capture, recapture_every, until_clean, max_steps or cfg.steps, start_xyz)
-        scale = robot_api[2]
-        cfg = scale(cfg, robot_cfg.explore_dt) if scale is not None else cfg
-    if dry_run:
-        require(devices is not None, "--dry-run needs a real robot", "use it with --robot franka")
-        from tergodic_cli.backends.streamed import DryRunPlan, dry_run as hardware_dry_run
-
-        report = hardware_dry_run(devices[0], devices[1], None,
-                                  DryRunPlan(capture, robot_cfg, start=tuple(start_xyz[0])))
-        (on_report or say)(report)
-        return {"dry_run": report}
-    basis, hit = find_basis(capture.points, cfg.nk, cfg.basis_neighbors, cache_dir, on_event=event)
-    require(basis.points.shape == capture.points.shape and np.array_equal(basis.points, capture.points),
-            "the basis does not match the capture's points", "recompute it: tergodic precompute CAPTURE --force")
     from tergodic_cli.explore.warm import compile_explorer
     from tergodic_cli.robot.warm import robot_kernels_line
 
-    # numba compiles on first call: done here, so no compile lands in a timed step (step_ms)
-    compile_explorer(say)
-    if robot_api is not None and (line := robot_kernels_line()):
-        say(line)
-    explorer = Explorer(basis, capture.target, cfg, start_xyz, on_event=event)
-    run_conf = run_config(capture_dir, user_cfg, starts, robot, robot_cfg if robot_api is not None else None,
-                          log_cloud_every)
-
+    run = _Run(capture_dir, cfg, backend or Kinematic(), starts, log, on_event or (lambda msg: None))
+    require(log is None or log.cloud_every >= 1, f"--log-cloud-every must be >= 1, got {log and log.cloud_every}", "e.g. 50")
+    folder = AtomicFolder(Path(out_dir), overwrite=overwrite, what="run", keep_partial=True, owned=RUN_FILES.__contains__)
+    folder.check()  # before any work: a refused --out costs nothing and touches nothing
+    run.capture, run.start_xyz = load_for_run(capture_dir, cfg, starts)
+    run.backend.check(run.capture, run.start_xyz)
+    run.cfg = run.backend.explore_config(cfg)
+    run.basis, run.hit = find_basis(run.capture.points, cfg.nk, cfg.basis_neighbors, cache_dir, on_event=run.event)
+    require(np.array_equal(run.basis.points, run.capture.points),
+            "the basis does not match the capture's points", "recompute it: tergodic precompute CAPTURE --force")
+    compile_explorer(run.say)  # numba compiles on first call: here, so no compile lands in a timed step
+    if run.backend.robot_cfg is not None and (line := robot_kernels_line()):
+        run.say(line)
+    run.explorer = Explorer(run.basis, run.capture.target, run.cfg, run.start_xyz, on_event=run.event)
     try:
         with folder as tmp:
-            return _write_run(tmp, explorer, cfg, user_cfg, basis, hit, capture, capture_dir, start_xyz, starts, robot,
-                              robot_api, robot_cfg if robot_api is not None else None, devices, log, log_cloud_every,
-                              live, events, say, recapture_every, until_clean, max_steps, run_conf)
+            return _write_run(tmp, run)
     except KeyboardInterrupt as exc:
         if folder.kept:
             from tergodic_cli.errors import Interrupted
 
             word = "terminated" if getattr(exc, "exit_code", 130) == 143 else "interrupted"
-            raise Interrupted(f"{word}; the partial run is in {out}/ (its log is marked interrupted)", exc) from None
+            raise Interrupted(f"{word}; the partial run is in {out_dir}/ (its log is marked interrupted)", exc) from None
         raise
 
 
-def _write_run(out: Path, explorer, cfg, user_cfg, basis, hit, capture, capture_dir, start_xyz, starts, robot,
-               robot_api, robot_cfg, devices, log, log_cloud_every, live, events, say, recapture_every,
-               until_clean, max_steps, run_conf: dict) -> dict:
+def dry_run_report(capture_dir: str | Path, cfg: ExploreConfig, backend, starts: StartSpec | None = None) -> str:
+    """What a run on the hardware ``backend`` (:class:`Franka`) would do: the devices are connected
+    and read, nothing moves and nothing is written. Returns the report (several lines)."""
+    capture, start_xyz = load_for_run(capture_dir, cfg, starts)
+    backend.check(capture, start_xyz)
+    return backend.dry_run(capture, start_xyz[0])
+
+
+def load_for_run(capture_dir, cfg: ExploreConfig, starts: StartSpec | None):
+    """The checked capture and the start positions (n_agents, 3) m of a run."""
+    from tergodic_cli.capture import load_capture
+
+    validate_config(cfg)
+    capture = load_capture(capture_dir)
+    require(bool(np.any(capture.target > 0)), f"the target of {capture_dir} is empty (no point has p > 0)",
+            "re-capture with the right --target colour, or --target all for uniform coverage")
+    require(cfg.nk < capture.n_points, f"--nk {cfg.nk} is not below the number of points ({capture.n_points})",
+            f"use --nk < {capture.n_points}")
+    return capture, resolve_starts(starts or StartSpec(), capture.points, cfg.n_agents, cfg.seed)
+
+
+class _Run:
+    """What one run carries from its set-up to its artefacts."""
+
+    def __init__(self, capture_dir, cfg, backend, starts, log, say):
+        self.capture_dir, self.user_cfg, self.cfg, self.backend, self.starts = capture_dir, cfg, cfg, backend, starts
+        self.log, self.say, self.events = log, say, []
+        self.capture = self.start_xyz = self.basis = self.hit = self.explorer = None
+
+    def event(self, msg: str) -> None:
+        self.events.append(msg)
+        self.say(msg)
+
+
+def _write_run(out: Path, run: _Run) -> dict:
     """The explorer loop and the artefacts, written into ``out`` (the temporary run folder)."""
+    cfg, explorer, say, spec = run.cfg, run.explorer, run.say, run.log or LogSpec()
     recorder = RunRecorder(explorer, cfg.steps)
-    runlog = _open_log(out, cfg, basis, capture, log_cloud_every, live) if log else None
+    runlog = _open_log(out, cfg, run.basis, run.capture, spec) if run.log else None
     try:
         if runlog is not None:
             if runlog.live is not None:
                 say(f"live: {runlog.live.url} (Foxglove: Open connection)")
-            for msg in events:
+            for msg in run.events:
                 runlog.log_event(0, 0.0, msg)
 
-        def log_event(step: int, msg: str) -> None:
+        def event_hook(step: int, msg: str) -> None:
             say(msg)
-            runlog.log_event(step, step * cfg.dt, msg)
+            if runlog is not None:
+                runlog.log_event(step, step * cfg.dt, msg)
 
-        event_hook = log_event if runlog else (lambda step, msg: say(msg))
         if runlog is not None:
             explorer.on_event = lambda msg: event_hook(explorer.step_index, msg)
 
@@ -315,55 +314,29 @@ def _write_run(out: Path, explorer, cfg, user_cfg, basis, hit, capture, capture_
                 runlog.log_step(step, step * cfg.dt, positions=explorer.positions, velocities=explorer.velocities,
                                 normals=explorer.normals, metrics=explorer.metrics(), step_ms=explorer.last_step_ms,
                                 robot=robot_sample)
-                if step % log_cloud_every == 0 or step == cfg.steps:
+                if step % spec.cloud_every == 0 or step == cfg.steps:
                     _log_cloud(runlog, explorer, step)
 
-        robot_extra = {}
-        if robot_api is None:
-            from tergodic_cli.progress import track
-
-            for k in track(range(cfg.steps), total=cfg.steps, description="exploring"):
-                explorer.step()
-                after_step(k + 1, None)
-        elif recapture_every is not None:
-            from tergodic_cli.backends.pybullet.closed_loop import CleaningLoopConfig, clean_with_robot, log_recapture
-
-            loop = CleaningLoopConfig(recapture_every=recapture_every, until_clean=until_clean,
-                                      max_steps=max_steps or cfg.steps)
-            on_recapture = ((lambda step, rec: log_recapture(runlog, explorer, step, step * cfg.dt, rec))
-                            if runlog is not None else None)
-            robot_extra = clean_with_robot(capture, explorer, robot_cfg, loop_cfg=loop,
-                                           on_step=lambda step, sample: after_step(step, sample),
-                                           on_event=event_hook, on_recapture=on_recapture) or {}
-        elif devices is not None:
-            from tergodic_cli.backends.streamed import explore_with_hardware
-
-            robot_extra = explore_with_hardware(capture, explorer, robot_cfg, cfg.steps, devices[0], devices[1],
-                                                on_step=lambda step, sample: after_step(step, sample),
-                                                on_event=event_hook) or {}
-        else:
-            robot_extra = robot_api[0](capture, explorer, robot_cfg, cfg.steps,
-                                             on_step=lambda step, sample: after_step(step, sample),
-                                             on_event=event_hook) or {}
+        robot_extra = run.backend.drive(run.capture, explorer, cfg.steps, after_step, event_hook, runlog) or {}
         if recorder.count == 0:  # a robot fault before the first step: exit 3 (RobotStopped), as after one
             from tergodic_cli.errors import RobotStopped
 
             raise RobotStopped(f"the run made no explorer step (robot stopped: {robot_extra.get('stop_reason') or 'unknown reason'})",
                                "see the robot's events above; adjust --force, --object-pose or --workspace")
-        if runlog is not None and recorder.count % log_cloud_every and recorder.count != cfg.steps:
+        if runlog is not None and recorder.count % spec.cloud_every and recorder.count != cfg.steps:
             _log_cloud(runlog, explorer, recorder.count)  # a robot run that stopped early
 
-        extra = _provenance(capture_dir, capture, basis, hit, explorer, cfg, start_xyz, robot, starts, robot_extra,
-                            logged=runlog is not None)
-        if cfg is not user_cfg:
-            extra["requested_config"] = user_cfg.to_dict()  # before the robot's time scaling
+        extra = _provenance(run, robot_extra, logged=runlog is not None)
+        if cfg is not run.user_cfg:
+            extra["requested_config"] = run.user_cfg.to_dict()  # before the robot's time scaling
         summary = summarize_run(recorder.series(), cfg.to_dict(), extra)
-        recorder.write(out / "trajectory.npz", start_xyz)
+        recorder.write(out / "trajectory.npz", run.start_xyz)
         from tergodic_cli.atomic import write_json
         from tergodic_cli.config import CONFIG_FILE, write_config
 
         write_json(out / "summary.json", summary)
-        write_config(out / CONFIG_FILE, RUN_CONFIG_KIND, **run_conf)
+        write_config(out / CONFIG_FILE, RUN_CONFIG_KIND, **_run_config(run.capture_dir, run.user_cfg, run.starts,
+                                                                        run.backend, spec.cloud_every))
         if runlog is not None:
             runlog.close(summary, status="interrupted" if summary.get("interrupted") else "ok")  # robot made safe
             runlog = None
@@ -372,40 +345,6 @@ def _write_run(out: Path, explorer, cfg, user_cfg, basis, hit, capture, capture_
         if runlog is not None:
             runlog.__exit__(type(exc), exc, None)  # marks the log "interrupted" (Ctrl-C) or "error: ..."
         raise
-
-
-def check_robot(robot: str, robot_cfg, capture, recapture_every, until_clean, max_steps, start_xyz=None) -> None:
-    """The robot's preconditions, before anything is written: its config (force range, ...), the
-    safety limits, a display for --gui, a reachable object pose, starts inside the workspace box
-    and the closed loop's settings."""
-    import os
-    from dataclasses import replace
-
-    from tergodic_cli.robot.config import validate_robot_config
-    from tergodic_cli.robot.safety import SafetyGuard
-
-    validate_robot_config(robot_cfg if robot == "pybullet" else replace(robot_cfg, backend="pybullet"))
-    # the guard's own checks (workspace box, force limit above --force); joint limits do not matter here
-    SafetyGuard(robot_cfg.safety, np.zeros(7), np.ones(7), np.ones(7), float(robot_cfg.force))
-    if getattr(robot_cfg, "gui", False) and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)", "run without --gui, or on a desktop")
-    if robot == "pybullet":
-        from tergodic_cli.robot.run import object_pose
-        from tergodic_cli.robot.surface import check_reachable, transform_points
-
-        # the same placement as the run, so an unreachable pose is refused before the run folder
-        T_obj = object_pose(capture, robot_cfg)
-        check_reachable(transform_points(T_obj, capture.points))
-        ws = robot_cfg.safety
-        for a in ([] if start_xyz is None else transform_points(T_obj, np.atleast_2d(start_xyz))):
-            if not (np.all(a >= np.asarray(ws.workspace_min)) and np.all(a <= np.asarray(ws.workspace_max))):
-                raise TergodicError(f"the start point ({', '.join(f'{v:.3f}' for v in a)}) m is outside the workspace box",
-                                    "move the object with --object-pose, widen --workspace, or choose another start")
-    if recapture_every is not None:
-        from tergodic_cli.backends.pybullet.closed_loop import CleaningLoopConfig, validate_loop_config
-
-        validate_loop_config(CleaningLoopConfig(recapture_every=recapture_every, until_clean=until_clean,
-                                                max_steps=max_steps))
 
 
 def make_robot_config(robot_config_cls, options: dict | None):
@@ -424,31 +363,177 @@ def make_robot_config(robot_config_cls, options: dict | None):
     return robot_config_cls.from_dict(options, "robot_options")
 
 
-def _robot_backend():
-    """(explore_with_robot, RobotConfig, robot_explore_config or None), imported on demand."""
-    import importlib
+# ----------------------------------------------------------------------------- backends
+class Kinematic:
+    """The virtual agent alone (``--robot kinematic``). Every backend has a ``name``, a ``robot_cfg``
+    (None here), ``check(capture, start_xyz)`` (its preconditions, before anything is written),
+    ``explore_config(cfg)`` (the explorer config it runs) and ``drive(...)`` (the run)."""
 
+    name = "kinematic"
+    robot_cfg = None
+
+    def check(self, capture, start_xyz) -> None:
+        pass
+
+    def explore_config(self, cfg: ExploreConfig) -> ExploreConfig:
+        return cfg
+
+    def drive(self, capture, explorer, steps: int, on_step, on_event, runlog=None) -> dict:
+        """Run ``steps`` explorer steps, calling ``on_step(step, robot_sample or None)`` after each and
+        ``on_event(step, text)``; returns the robot's summary extras."""
+        from tergodic_cli.progress import track
+
+        for k in track(range(steps), total=steps, description="exploring"):
+            explorer.step()
+            on_step(k + 1, None)
+        return {}
+
+
+class PyBullet(Kinematic):
+    """The simulated Panda (``--robot pybullet``) with ``robot_cfg`` (a RobotConfig); with
+    ``recapture_every`` the closed loop (a ``--source sim`` capture): re-capture every K steps and stop
+    once the camera sees less than ``until_clean`` of the marking or ``max_steps`` (default: the run's) are spent."""
+
+    name = "pybullet"
+
+    def __init__(self, robot_cfg, recapture_every: int | None = None, until_clean: float = 0.05,
+                 max_steps: int | None = None):
+        self.robot_cfg = robot_cfg
+        self.recapture_every, self.until_clean, self.max_steps = recapture_every, until_clean, max_steps
+
+    def check(self, capture, start_xyz) -> None:
+        _check_robot(self.robot_cfg)
+        from tergodic_cli.robot.run import object_pose
+        from tergodic_cli.robot.surface import check_reachable, transform_points
+
+        # the same placement as the run, so an unreachable pose is refused before the run folder
+        T_obj = object_pose(capture, self.robot_cfg)
+        check_reachable(transform_points(T_obj, capture.points))
+        ws = self.robot_cfg.safety
+        for a in transform_points(T_obj, np.atleast_2d(start_xyz)):
+            if not (np.all(a >= np.asarray(ws.workspace_min)) and np.all(a <= np.asarray(ws.workspace_max))):
+                raise TergodicError(f"the start point ({', '.join(f'{v:.3f}' for v in a)}) m is outside the workspace box",
+                                    "move the object with --object-pose, widen --workspace, or choose another start")
+
+    def explore_config(self, cfg: ExploreConfig) -> ExploreConfig:
+        """The robot runs the explorer at its own step period with the same path per step."""
+        from tergodic_cli.robot.run import robot_explore_config
+
+        return robot_explore_config(cfg, self.robot_cfg.explore_dt)
+
+    def drive(self, capture, explorer, steps: int, on_step, on_event, runlog=None) -> dict:
+        if self.recapture_every is None:
+            from tergodic_cli.backends.pybullet import explore_with_robot
+
+            return explore_with_robot(capture, explorer, self.robot_cfg, steps, on_step=on_step, on_event=on_event)
+        from tergodic_cli.backends.pybullet.closed_loop import clean_with_robot, log_recapture
+
+        dt = explorer.cfg.dt
+        on_recapture = (lambda step, rec: log_recapture(runlog, explorer, step, step * dt, rec)) if runlog else None
+        return clean_with_robot(capture, explorer, self.robot_cfg, loop_cfg=self._loop(steps), on_step=on_step,
+                                on_event=on_event, on_recapture=on_recapture)
+
+    def _loop(self, steps: int):
+        from tergodic_cli.backends.pybullet.closed_loop import CleaningLoopConfig
+
+        return CleaningLoopConfig(recapture_every=self.recapture_every, until_clean=self.until_clean,
+                                  max_steps=self.max_steps or steps)
+
+
+class Franka(PyBullet):
+    """A Franka arm through franky with a force source (``--robot franka``); ``hardware`` holds the
+    :func:`~tergodic_cli.backends.factory.make_hardware` arguments, whose SDKs are imported now."""
+
+    name = "franka"
+
+    def __init__(self, robot_cfg, hardware: dict | None = None):
+        from tergodic_cli.backends.factory import make_hardware
+
+        self.robot_cfg = robot_cfg
+        self.arm, self.sensor = make_hardware(robot="franka", **(hardware or {}))
+
+    def check(self, capture, start_xyz) -> None:
+        _check_robot(self.robot_cfg)  # the hardware plans its own reach
+
+    def drive(self, capture, explorer, steps: int, on_step, on_event, runlog=None) -> dict:
+        from tergodic_cli.backends.streamed import explore_with_hardware
+
+        return explore_with_hardware(capture, explorer, self.robot_cfg, steps, self.arm, self.sensor,
+                                     on_step=on_step, on_event=on_event)
+
+    def dry_run(self, capture, start_xyz) -> str:
+        """Connect, read the devices and say what a run from ``start_xyz`` (3,) m would do; nothing moves."""
+        from tergodic_cli.backends.streamed import DryRunPlan, dry_run
+
+        return dry_run(self.arm, self.sensor, None, DryRunPlan(capture, self.robot_cfg, start=tuple(start_xyz)))
+
+
+def make_backend(robot: str = "kinematic", robot_options: dict | None = None, hardware: dict | None = None,
+                 recapture_every: int | None = None, until_clean: float = 0.05, max_steps: int | None = None,
+                 dry_run: bool = False):
+    """The backend a run drives, from the verb's options; bad options raise :class:`TergodicError` (exit 2).
+
+    Parameters
+    ----------
+    robot : str
+        One of :data:`ROBOTS`.
+    robot_options : dict or None
+        :class:`~tergodic_cli.robot.RobotConfig` fields (see :func:`make_robot_config`).
+    hardware : dict or None
+        ``robot="franka"``: the :func:`~tergodic_cli.backends.factory.make_hardware` arguments.
+    recapture_every, until_clean, max_steps : int or None, float, int or None
+        ``robot="pybullet"``: the closed re-capture loop (see :class:`PyBullet`).
+    dry_run : bool
+        Only to plan (``robot="franka"``).
+
+    Returns
+    -------
+    Kinematic, PyBullet or Franka
+    """
+    require(robot in ROBOTS, f"--robot '{robot}' is unknown", f"use one of {', '.join(ROBOTS)}")
+    require(recapture_every is None or robot == "pybullet", "--recapture-every needs the simulated robot",
+            "add --robot pybullet (with a 'tergodic capture --source sim' capture)")
+    require(recapture_every is None or recapture_every >= 1, f"--recapture-every must be >= 1, got {recapture_every}", "e.g. 200")
+    require(0.0 <= until_clean < 1.0, f"--until-clean must be in [0, 1), got {until_clean}", "e.g. 0.05 (5% of the marking left)")
+    require(not dry_run or robot == "franka", "--dry-run needs a real robot", "use it with --robot franka")
+    if robot == "kinematic":
+        return Kinematic()
     try:
-        robot_pkg = importlib.import_module("tergodic_cli.robot")
-        explore_with_robot = importlib.import_module("tergodic_cli.backends.pybullet").explore_with_robot
-        robot_config = robot_pkg.RobotConfig
-    except (ImportError, AttributeError) as exc:
+        from tergodic_cli.robot import RobotConfig
+    except ImportError as exc:
         raise TergodicError(f"the robot backend is not available ({str(exc).splitlines()[0][:80]})",
                             "use --robot kinematic, or install tergodic with its robot dependencies") from None
-    try:
-        scale = robot_pkg.robot_explore_config
-    except (ImportError, AttributeError):
-        scale = None
-    return explore_with_robot, robot_config, scale
+    robot_cfg = make_robot_config(RobotConfig, robot_options)
+    if robot == "franka":
+        return Franka(robot_cfg, hardware)
+    backend = PyBullet(robot_cfg, recapture_every, until_clean, max_steps)
+    if recapture_every is not None:
+        from tergodic_cli.backends.pybullet.closed_loop import validate_loop_config
+
+        validate_loop_config(backend._loop(max_steps or 1))
+    return backend
 
 
-def _open_log(out: Path, cfg: ExploreConfig, basis, capture, cloud_every: int, live: str | None = None):
+def _check_robot(robot_cfg) -> None:
+    import os
+
+    from tergodic_cli.robot.config import validate_robot_config
+    from tergodic_cli.robot.safety import SafetyGuard
+
+    validate_robot_config(robot_cfg)
+    # the guard's own checks (workspace box, force limit above --force); joint limits do not matter here
+    SafetyGuard(robot_cfg.safety, np.zeros(7), np.ones(7), np.ones(7), float(robot_cfg.force))
+    if robot_cfg.gui and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)", "run without --gui, or on a desktop")
+
+
+def _open_log(out: Path, cfg: ExploreConfig, basis, capture, spec: LogSpec):
     from tergodic_cli.provenance import library_versions
     from tergodic_cli.runlog import RunLog
 
     return RunLog(out / "run.mcap", config=cfg.to_dict(), seed=cfg.seed, versions=library_versions(),
-                  capture_sidecar=capture.meta, points=basis.points, target=capture.target, cloud_every=cloud_every,
-                  live=live)
+                  capture_sidecar=capture.meta, points=basis.points, target=capture.target, cloud_every=spec.cloud_every,
+                  live=spec.live)
 
 
 def _log_cloud(runlog, explorer: Explorer, step: int) -> None:
@@ -510,17 +595,16 @@ class RunRecorder:
                   target=ex.p, points=ex.points)
 
 
-def _provenance(capture_dir, capture, basis, hit, explorer: Explorer, cfg: ExploreConfig, start_xyz, robot,
-                starts: StartSpec | None, robot_extra: dict, logged: bool) -> dict:
+def _provenance(run: _Run, robot_extra: dict, logged: bool) -> dict:
     from tergodic_cli.provenance import library_versions
 
-    starts = starts or StartSpec()
+    starts, capture, basis, explorer, cfg = run.starts or StartSpec(), run.capture, run.basis, run.explorer, run.cfg
     extra = {
-        "robot": robot,
-        "capture": {"path": str(Path(capture_dir)), "n_points": int(capture.n_points),
+        "robot": run.backend.name,
+        "capture": {"path": str(Path(run.capture_dir)), "n_points": int(capture.n_points),
                     "n_target": int(np.count_nonzero(capture.target > 0)),
                     "sha256": capture.meta.get("arrays", {}).get("sha256")},
-        "basis": {"key": basis.meta.get("key"), "path": basis.meta.get("path"), "cache_hit": bool(hit),
+        "basis": {"key": basis.meta.get("key"), "path": basis.meta.get("path"), "cache_hit": bool(run.hit),
                   "nk_used": int(cfg.nk), "neighbors": int(cfg.basis_neighbors), "h_m": float(basis.h)},
         "explorer": {"alpha_schedule": [[s, a] for s, a in parse_alpha(cfg.alpha)],
                      "epsilon_per_m": cfg.footprint_epsilon, "edge_events": int(explorer.edge_events),
@@ -529,7 +613,7 @@ def _provenance(capture_dir, capture, basis, hit, explorer: Explorer, cfg: Explo
         "off_surface_fraction": explorer.score()["off_surface_fraction"],
         "step_max_m": explorer.score()["step_max_m"],
         "starts": {"start": starts.start, "starts_file": starts.starts_file, "start_index": starts.start_index,
-                   "xyz": np.asarray(start_xyz).tolist()},
+                   "xyz": np.asarray(run.start_xyz).tolist()},
         "files": ["trajectory.npz", "summary.json", "config.json"] + (["run.mcap"] if logged else []),
         "versions": library_versions(),
     }

@@ -13,23 +13,22 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from tergodic_cli.explore.warm import (COLD_LINE, COMPILE_S, _cached, compile_explorer,  # noqa: F401
-                                       explorer_kernels_cached)
-from tergodic_cli.robot.warm import ROBOT_COMPILE_S, robot_kernels_line  # noqa: F401
+
+from tergodic_cli.explore.warm import compile_explorer, explorer_kernels_cached
 
 
 def compile_robot() -> float:
     """Compile or load the robot's kernels: a two-step simulated (PyBullet) run on a tiny capture; returns seconds."""
     from tergodic_cli.capture import CaptureConfig, capture_cloud, save_capture
     from tergodic_cli.explore import ExploreConfig
-    from tergodic_cli.run import run_explore
+    from tergodic_cli.run import make_backend, run_explore
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="tergodic-warm-") as tmp:
         cap = capture_cloud(CaptureConfig(source="synthetic", synthetic="bowl", marking="X", seed=0))
         save_capture(cap, Path(tmp) / "cap")
-        run_explore(Path(tmp) / "cap", ExploreConfig(steps=2, nk=10), Path(tmp) / "run", robot="pybullet",
-                    log=False, cache_dir=Path(tmp) / "cache")
+        run_explore(Path(tmp) / "cap", ExploreConfig(steps=2, nk=10), Path(tmp) / "run", make_backend("pybullet"),
+                    log=None, cache_dir=Path(tmp) / "cache")
     return time.perf_counter() - t0
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tergodic_cli.explore.geometry import (
+from reference_geometry import (
     conformal_rows,
     fit_primitive,
     normal_line,
@@ -15,7 +15,7 @@ from tergodic_cli.explore.geometry import (
     tangent_basis,
     tangent_distances,
 )
-from tergodic_cli.explore.gradient import cubic_gradient, cubic_value, fit_cubic
+from reference_geometry import cubic_gradient, cubic_value, fit_cubic
 
 
 def _cap_samples(centre, radius, axis, half_angle, k, rng):
@@ -93,7 +93,7 @@ def test_exactly_flat_patch_is_a_plane_even_when_vertical(normal):
 
 
 def test_projection_onto_sphere_and_plane():
-    from tergodic_cli.explore.geometry import Primitive
+    from reference_geometry import Primitive
 
     sph = Primitive("sphere", centre=np.array([0.0, 0.0, 0.0]), radius=0.05)
     x = np.array([0.03, 0.04, 0.12])

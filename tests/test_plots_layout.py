@@ -36,11 +36,11 @@ def bowl_log(tmp_path_factory):
     if not (BOWL / "cloud.npz").is_file():
         pytest.skip("data/bowl is missing")
     from tergodic_cli.explore import ExploreConfig
-    from tergodic_cli.run import run_explore
+    from tergodic_cli.run import LogSpec, run_explore
     from tergodic_cli.runlog import read_run_log
 
     tmp = tmp_path_factory.mktemp("plots")
-    run_explore(BOWL, ExploreConfig(steps=60, nk=30), tmp / "run", log_cloud_every=30, cache_dir=tmp / "cache")
+    run_explore(BOWL, ExploreConfig(steps=60, nk=30), tmp / "run", log=LogSpec(cloud_every=30), cache_dir=tmp / "cache")
     return read_run_log(tmp / "run" / "run.mcap")
 
 

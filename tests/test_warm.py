@@ -9,7 +9,6 @@ from pathlib import Path
 
 import pytest
 
-from tergodic_cli import warm
 from tergodic_cli.explore import warm as explore_warm
 
 numba = pytest.importorskip("numba")
@@ -38,13 +37,13 @@ def test_cached_follows_numbas_index(tmp_path):
     src = tmp_path / "warm_probe.py"
     src.write_text(KERNEL.format(body="2 * x"))
     try:
-        assert not warm._cached(_import_fresh(tmp_path, "warm_probe").double)
+        assert not explore_warm._cached(_import_fresh(tmp_path, "warm_probe").double)
         run = [sys.executable, "-c", "import sys; sys.path.insert(0, sys.argv[1]); import warm_probe; warm_probe.double(1.0)",
                str(tmp_path)]
         subprocess.run(run, check=True, timeout=120)
-        assert warm._cached(_import_fresh(tmp_path, "warm_probe").double)
+        assert explore_warm._cached(_import_fresh(tmp_path, "warm_probe").double)
         src.write_text(KERNEL.format(body="3 * x"))  # a new source stamp: numba's index is stale
-        assert not warm._cached(_import_fresh(tmp_path, "warm_probe").double)
+        assert not explore_warm._cached(_import_fresh(tmp_path, "warm_probe").double)
     finally:
         sys.modules.pop("warm_probe", None)
 
@@ -56,8 +55,8 @@ def test_cold_line_is_said_once_and_only_when_cold(monkeypatch):
         monkeypatch.setattr(explore_warm, "_compiled_here", lambda: False)  # as at the start of a run
         said.clear()
         explore_warm.compile_explorer(said.append)
-        assert said == ([warm.COLD_LINE] if cold else [])
-    assert "first run only" in warm.COLD_LINE and "compiling the explorer's kernels" in warm.COLD_LINE
+        assert said == ([explore_warm.COLD_LINE] if cold else [])
+    assert "first run only" in explore_warm.COLD_LINE and "compiling the explorer's kernels" in explore_warm.COLD_LINE
 
 
 def test_no_compile_inside_a_timed_step(tmp_path):
@@ -81,7 +80,7 @@ def test_no_compile_inside_a_timed_step(tmp_path):
                 seen.append(len(kernels.step_kernel.signatures))
             return step(self, *a, **k)
         Explorer.step = probe
-        run_explore({str(cap)!r}, ExploreConfig(steps=5, nk=20), {str(tmp_path / 'run')!r}, log=False,
+        run_explore({str(cap)!r}, ExploreConfig(steps=5, nk=20), {str(tmp_path / 'run')!r}, log=None,
                     cache_dir={str(tmp_path / 'cache')!r})
         print(json.dumps({{"seen": seen, "after": len(kernels.step_kernel.signatures)}}))
     """)

@@ -28,13 +28,16 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from tergodic_cli.config import Config
 from tergodic_cli.errors import TergodicError, require
 
 DISTORTIONS = ("none", "inverse_brown_conrady", "brown_conrady")
 
 
 @dataclass
-class Intrinsics:
+
+
+class Intrinsics(Config):
     """Pinhole intrinsics in pixels, with a distortion model and its 5 coefficients (k1, k2, p1, p2, k3)."""
 
     width: int
@@ -46,11 +49,10 @@ class Intrinsics:
     model: str = "none"
     coeffs: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
 
-    def to_dict(self) -> dict:
-        return {**self.__dict__, "coeffs": list(self.coeffs)}
-
 
 @dataclass
+
+
 class RGBDFrame:
     """An aligned RGB-D image.
 
@@ -68,6 +70,8 @@ class RGBDFrame:
 
 
 @runtime_checkable
+
+
 class Camera(Protocol):
     """An RGB-D camera that yields coloured clouds."""
 

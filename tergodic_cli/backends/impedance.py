@@ -1,34 +1,10 @@
 """What a real arm is commanded with: a Cartesian impedance target on the agent's line.
 
-Why not joint torques
----------------------
-The simulated arm turns a line target into joint torques every 1 ms. A Python process on a real
-robot cannot close that loop: libfranka
-needs a torque every 1 ms with hard real-time guarantees, and Python's garbage collector and
-scheduler jitter alone exceed that. The real backend therefore runs the stiffness and damping of
-the line controller inside the SDK's 1 kHz loop (franky's client-side Cartesian impedance, C++,
-real-time thread) and streams only *references* from Python, at ``stream_hz`` (100 Hz by default).
-
-The mapping
------------
-For the agent's line L = {a + s d} (d, unit, points into the surface) and a normal force f along d,
-the reference is
-
-- orientation R = [x, y, d]: the tool axis along the line, x a spin reference kept perpendicular to d
-  (parallel transport, as in the simulation);
-- position  x_t = a + ((p - a)·d + f / k_n) d, p the present TCP: the TCP's own point on the line,
-  pushed f / k_n further along d;
-- stiffness K = blockdiag(R diag(k_l, k_l, k_n) Rᵀ, R diag(k_r, k_r, k_spin) Rᵀ) (base frame, full 6×6),
-  damping D the same with the damping gains;
-- twist feed-forward: the line point's velocity, so the damping acts on the tracking error only.
-
-Across the line the spring holds the tool on it (k_l, the paper's K_L); along the line the target
-rides with the TCP, so the spring's force along d is exactly k_n · (f / k_n) = f wherever the surface
-is. The feed-forward wrench W_ff = (f d, 0) is thus realised *through* the spring offset K⁻¹ W_ff:
-franky 2.0's ``CartesianReference`` carries a pose, a twist and an acceleration, but no wrench. A slow
-integrator in Python on the measured F/T force (:class:`ForceLoop`) trims f so the pressed force
-matches F_d despite joint friction and model error; it runs at the stream rate, well below the
-bandwidth of the 1 kHz inner loop, so latency cannot destabilise it.
+Python cannot close a 1 kHz torque loop with real-time guarantees, so the line controller's stiffness
+and damping run inside the SDK's loop (franky's Cartesian impedance) and Python streams references at
+``stream_hz``; the normal force is realised through the spring offset f / k_n along the line, trimmed by
+a slow integral on the measured force (:class:`ForceLoop`). The mapping: docs/hardware.md, "The
+impedance reference on the agent's line".
 """
 
 from __future__ import annotations
@@ -39,11 +15,14 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from tergodic_cli.config import Config
 from tergodic_cli.robot.ga import tool_rotation
 from tergodic_cli.robot.interfaces import ArmState
 
 
 @dataclass
+
+
 class ImpedanceTarget:
     """One impedance reference, base frame, SI units.
 
@@ -61,6 +40,8 @@ class ImpedanceTarget:
 
 
 @runtime_checkable
+
+
 class ImpedanceArm(Protocol):
     """An arm whose real-time loop runs in the SDK: references instead of torques (the device behind
     :class:`~tergodic_cli.backends.streamed.StreamedArm`).
@@ -137,7 +118,9 @@ class ImpedanceArm(Protocol):
 
 
 @dataclass
-class LineImpedanceGains:
+
+
+class LineImpedanceGains(Config):
     """The line controller's stiffness and damping for an SDK impedance loop (defaults = the simulation's).
 
     k_lateral, k_normal : N/m across the line and along it (the normal value sets the spring offset
@@ -157,16 +140,6 @@ class LineImpedanceGains:
     d_spin: float = 1.0
     force_ki: float = 2.0
     force_trim_max: float = 1.0
-
-    def to_dict(self) -> dict:
-        """The gains as a dict.
-
-        Returns
-        -------
-        dict
-            Field name -> value (N/m, N m/rad, N s/m, N m s/rad, 1/s).
-        """
-        return dict(self.__dict__)
 
 
 def rotated_gains(R: np.ndarray, trans: tuple[float, float, float], rot: tuple[float, float, float]) -> np.ndarray:

@@ -24,6 +24,7 @@ from typing import Callable
 
 import numpy as np
 
+from tergodic_cli.config import Config
 from tergodic_cli.backends.impedance import ForceLoop, LineImpedanceGains, hold_target, line_impedance_target
 from tergodic_cli.errors import require
 from tergodic_cli.robot import kernels as Kn
@@ -34,7 +35,9 @@ from tergodic_cli.robot.run import SETTLE_S, ContactRun, object_pose
 
 
 @dataclass
-class HardwareRunConfig:
+
+
+class HardwareRunConfig(Config):
     """Settings of a run on hardware that the simulation does not have.
 
     gains : the impedance line controller (:class:`LineImpedanceGains`).
@@ -50,10 +53,6 @@ class HardwareRunConfig:
     move_speed: float = 0.1
     go_to_picture: bool = True
     force_filter_hz: float = 10.0
-
-    def to_dict(self) -> dict:
-        return {"gains": self.gains.to_dict(), "tool_load": {"mass": self.tool_load.mass, "com": list(map(float, self.tool_load.com))},
-                "move_speed": self.move_speed, "go_to_picture": self.go_to_picture, "force_filter_hz": self.force_filter_hz}
 
 
 class StreamedArm:
@@ -327,6 +326,8 @@ def dry_run(arm, sensor, camera, plan) -> str:
 
 
 @dataclass
+
+
 class DryRunPlan:
     """What :func:`dry_run` plans against.
 

@@ -1,27 +1,11 @@
 """The on-disk basis cache, keyed by geometry content.
 
-Key: BLAKE2b over the format and layout versions, every basis parameter, and the
-cloud's points in a *canonical frame* (centroid at the origin, principal axes as x, y,
-z, each axis signed by its third moment), quantised to 1 µm and sorted. A rigid motion
-of the same points, or a new target on them, gives the same key, so the basis is reused.
-
-The arrays are stored in the point order of the cloud that computed them, with that
-cloud's canonical order (``points_order``). A later call with the points in the same
-order (the usual case: the same capture again) gets the arrays as read, with no
-permutation; a reordered or moved copy gets its rows permuted to its own order.
-
-When the canonical frame is ambiguous (an exactly symmetric point set: equal
-principal variances or zero third moments), the key falls back to the points as
-given, which still hits for a changed target but not across a rigid motion.
-
-Files: ``<cache>/basis/<key>/<array>.npy`` (plain ``.npy``, never pickles: an object
-dtype is refused before anything is read) and ``basis.json`` (config, timings, versions
-and a checksum of every array). A missing, corrupt or edited entry is reported,
-discarded and recomputed.
-
-The checksum is computed while the file is read (each chunk is summed while it is still
-in the CPU cache), so a warm load is one pass over the bytes; see
-:mod:`tergodic_cli.checked_npy` for what it detects.
+Key: BLAKE2b over the format, every basis parameter and the points in a canonical frame (centroid,
+principal axes signed by their third moment, quantised to 1 µm, sorted), so a rigid motion or a new
+target reuses the basis; an ambiguous frame falls back to the points as given. Files:
+``<cache>/basis/<key>/<array>.npy`` (never pickles) and ``basis.json`` with a checksum of every
+array, computed while reading (:mod:`tergodic_cli.checked_npy`); a missing, corrupt or edited entry
+is reported, discarded and recomputed. Details: docs/precompute.md, "Warm cache".
 """
 
 from __future__ import annotations

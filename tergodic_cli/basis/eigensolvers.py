@@ -1,36 +1,12 @@
 """Eigensolvers for the smallest eigenpairs of L φ = λ M φ (M diagonal, L symmetric PSD).
 
-The default, :func:`smallest_eigenpairs`, is shift-invert Lanczos, built for this problem:
-
-1. **Symmetric form.** With s = √diag(M), A = S⁻¹ L S⁻¹ has the same eigenvalues and
-   eigenvectors y = S φ, so the problem is a standard symmetric one and M-orthonormal φ
-   are plain orthonormal y.
-2. **Exact null space.** L annihilates the indicator of every connected component, so
-   those c vectors are known eigenvectors with λ = 0; they are deflated (kept out of the
-   Krylov space) instead of being found by iteration.
-3. **A shift inside the wanted window.** One sparse LDLᵀ factorisation (``qdldl``) of
-   A − σI with σ about half way up the wanted spectrum; its inertia (the number of
-   negative pivots) is the number of eigenvalues below σ. The wanted eigenvalues then
-   sit at both ends of the spectrum of (A − σ)⁻¹ and Lanczos needs ~30 % fewer steps
-   than with σ ≈ 0 (ARPACK's choice): 1.5-1.7 nK instead of 2.2-2.4 nK.
-4. **Lanczos with full reorthogonalisation** written for this case: no implicit
-   restarts (ARPACK spends most of its time restarting and in level-2 BLAS), one
-   Gram-Schmidt pass per step (a second only on cancellation), convergence judged on
-   the small projected matrix, with the next check placed where the residuals should
-   pass at the rate they have been falling. Single vectors for small clouds; blocks of 4
-   (matrix-matrix products, fewer passes over memory) for large ones.
-5. **Certificates.** The converged eigenvalues below σ must number exactly the inertia
-   count; every returned pair's true residual ‖A y − λ y‖ is checked; a second inertia
-   count just above the largest eigenvalue found must equal nK (nothing skipped, e.g.
-   a copy of an exactly repeated eigenvalue); that count re-factorises with the first
-   factor's ordering and symbolic analysis. If any check fails, the next method is
-   tried: block Lanczos, then a negative shift, then ARPACK (with a warning).
-
-Measured against ``eigsh(L, nK, M, sigma=1e-12)`` (see ``docs/precompute.md``) the
-eigenvalues agree to ~1e-12 relative and the eigenspaces to a principal angle ~1e-10.
-
-:func:`arpack_eigenpairs` is the reference method of the authors' public code
-(``eigsh(L, nK, M, sigma=1e-12)``), kept for tests and benchmarks.
+The default, :func:`smallest_eigenpairs`, is shift-invert Lanczos written for this problem: the
+symmetric form A = S⁻¹ L S⁻¹ (S = √M), the connected components' null space deflated exactly, one
+LDLᵀ factorisation (``qdldl``) of A − σI with σ inside the wanted window (its inertia counts the
+eigenvalues below σ), full reorthogonalisation without restarts, and certificates (inertia counts,
+true residuals) that hand over to block Lanczos, a negative shift, then ARPACK when they fail.
+docs/precompute.md, "The eigensolver", gives the method and its measured accuracy against
+:func:`arpack_eigenpairs` (the authors' ``eigsh(L, nK, M, sigma=1e-12)``).
 """
 
 from __future__ import annotations

@@ -304,6 +304,56 @@ def size_warning(n: int, limit: int) -> str:
             f"{size_estimate(n)}; use a coarser --voxel (e.g. 0.003), or --max-points {n} to accept")
 
 
+def check_size(where, n: int, limit: int) -> None:
+    """Refuse a cloud too large to precompute in reasonable memory and time, unless the limit allows it.
+
+    Parameters
+    ----------
+    where : str or Path
+        The capture, for the message.
+    n : int
+        Its points.
+    limit : int
+        The ``--max-points`` limit.
+    """
+    if n > limit:
+        raise TergodicError(f"{where} has {n:,} points, above the {limit:,}-point limit: precompute would need "
+                            f"{size_estimate(n)}", f"re-capture with a coarser --voxel (e.g. 0.003), or pass --max-points {n}")
+
+
+#: The capture sources of ``tergodic capture --source``.
+SOURCES = ("file", "synthetic", "sim", "realsense")
+
+
+def resolve_source(source: str | None, from_file=None, synthetic=None, sim_object=None) -> str:
+    """The capture source, from ``--source`` or from whichever of --from / --synthetic / --object is given.
+
+    Parameters
+    ----------
+    source : str or None
+        One of :data:`SOURCES`, or None to infer it.
+    from_file, synthetic, sim_object : object or None
+        The options given (not None).
+
+    Returns
+    -------
+    str
+        One of :data:`SOURCES`; a missing, unknown or conflicting choice raises :class:`TergodicError`.
+    """
+    given = [name for name, value in (("file", from_file), ("synthetic", synthetic), ("sim", sim_object)) if value is not None]
+    usage = "use --from FILE, --synthetic OBJECT (see --help) or --source sim --object bowl|plate|mug|FILE.obj"
+    if source is None:
+        require(len(given) == 1, "give exactly one source", usage)
+        return given[0]
+    require(source in SOURCES, f"unknown --source '{source}'", f"use one of {', '.join(SOURCES)}")
+    others = [g for g in given if g != source]
+    require(not others, f"--source {source} does not go with "
+            f"{', '.join('--' + {'file': 'from', 'sim': 'object'}.get(g, g) for g in others)}", usage)
+    require(source != "file" or from_file is not None, "--source file needs --from FILE", usage)
+    require(source != "synthetic" or synthetic is not None, "--source synthetic needs --synthetic OBJECT", usage)
+    return source
+
+
 def format_report(cap: Capture) -> str:
     """A readable summary of a capture.
 

@@ -1,33 +1,22 @@
 """Textured objects for the simulated camera, and the cleaning model that fades their marking.
 
-An object is a UV-mapped triangle mesh (metres, object frame) with a texture whose texels carry a
-marking intensity ``m`` in [0, 1]. The texel colour is the clean surface colour blended towards
-the ink colour by ``m``, so a camera that renders the texture sees the marking fade as it is cleaned.
-
-Built-in objects (``bowl``, ``plate``, ``mug``) are the surfaces of
-:mod:`tergodic_cli.capture.synthetic`, and their UVs come from the same 2-D chart (``u, v`` in
-metres) in which the generator draws its markings, so X/ring/dots land where the generator puts them.
-A user mesh (``.obj``) keeps its own UVs for an image marking; without UVs, or for X/ring/dots, it
-gets the top-down chart ``(u, v) = (x - x_c, y - y_c)`` (suits open, height-field-like objects).
-
-The texture has ``RESERVED_ROWS`` extra rows at the bottom (v near 0) painted in the clean colour:
-the back faces of built-in objects map there, so a thin bowl seen from outside looks unmarked.
-
-Cleaning model (see docs/sim_camera.md)::
-
-    dm/dt = -k * F * m    for every texel within r_s (3-D distance) of a contact pressing with F > F_min
-
-integrated exactly over a step: ``m <- m * exp(-k * F * dt)``.
+An object is a UV-mapped triangle mesh (metres, object frame) whose texels carry a marking intensity
+m in [0, 1], blended from the clean colour towards the ink colour. Built-in objects share the 2-D
+chart of :mod:`tergodic_cli.capture.synthetic`, so their markings land where the generator draws
+them; a user ``.obj`` keeps its UVs or gets a top-down chart. ``RESERVED_ROWS`` clean rows take the
+built-in objects' back faces. Cleaning: m <- m exp(-k F dt) within r_s of a contact pressing with
+F > F_min (docs/sim_camera.md).
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from tergodic_cli.config import Config
 from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.rotations import euler_xyz_matrix, matrix_to_quat, quat_to_matrix
 
@@ -47,6 +36,8 @@ WHITE_LEVEL = 0.94
 
 
 @dataclass
+
+
 class CleaningModel:
     """How a pressing sponge removes the marking.
 
@@ -72,7 +63,9 @@ class CleaningModel:
 
 
 @dataclass
-class SimObjectConfig:
+
+
+class SimObjectConfig(Config):
     """What the simulated scene holds: an object, its marking and its pose in the robot base frame.
 
     object : "bowl", "plate", "mug", or a path to a Wavefront .obj (metres unless ``units`` is "mm").
@@ -96,11 +89,6 @@ class SimObjectConfig:
     seed: int = 0
     cleaning: CleaningModel = field(default_factory=CleaningModel)
 
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["pose"] = list(self.pose) if self.pose is not None else None
-        return d
-
 
 def default_pose(kind: str) -> tuple[float, ...]:
     """The default object pose x,y,z,roll,pitch,yaw (m, deg) in the robot base frame."""
@@ -108,6 +96,8 @@ def default_pose(kind: str) -> tuple[float, ...]:
 
 
 # ----------------------------------------------------------------------------- geometry
+
+
 @dataclass
 class ChartMesh:
     """A triangle mesh with a 2-D chart per vertex.
@@ -283,6 +273,8 @@ def _file_mesh(path: str, units: str, use_uvs: bool) -> ChartMesh:
 
 
 # ----------------------------------------------------------------------------- texture space
+
+
 def chart_to_uv(chart: np.ndarray, box: np.ndarray, height: int) -> np.ndarray:
     """Chart coordinates (n, 2) -> OBJ texture coordinates (n, 2) for a texture of ``height`` chart rows.
 
@@ -378,6 +370,8 @@ def read_marking_image(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ----------------------------------------------------------------------------- the object
+
+
 class TexturedObject:
     """A textured mesh whose marking can be cleaned; everything in metres.
 
@@ -526,18 +520,6 @@ class TexturedObject:
         base, delta = self._blend
         rgb = base + self.intensity[..., None].astype(np.float32) * delta
         return np.clip(rgb, 0, 255).astype(np.uint8)  # +0.5 above makes the cast round
-
-    def write_assets(self, folder: str | Path, stem: str = "object", image_format: str = "png") -> Path:
-        """Write ``stem``.obj, ``stem``.mtl and the current texture ``stem``.png into ``folder``; returns the .obj path.
-
-        The geometry is in the object frame (place it with ``pose``); front and back faces are both
-        written. Any OBJ viewer (or PyBullet's GUI) shows the textured object.
-        """
-        folder = Path(folder)
-        image = self.write_texture(folder / f"{stem}.{image_format}")
-        (folder / f"{stem}.mtl").write_text(f"newmtl marked\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nmap_Kd {image.name}\n")
-        (folder / f"{stem}.obj").write_text(f"mtllib {stem}.mtl\n" + self._obj_body_text())
-        return folder / f"{stem}.obj"
 
     def write_texture(self, path: str | Path) -> Path:
         """Write the current texture to ``path`` (.png, or .bmp: uncompressed, about 20x faster to write)."""

@@ -1,33 +1,12 @@
 """The HEDAC explorer on a point cloud (paper section IV-A).
 
-One :meth:`Explorer.step`:
-
-1. deposit the footprint φ(r) = exp(-ε² r²) (eq. 30) on the cloud points within r_a of each
-   agent, r measured in the agent's tangent plane (eq. 31), into the raw coverage c̃ shared
-   by all agents (eq. 3) - or, in robot mode, at the given contact points;
-2. source s = max(p̄ - c̄, 0)² (eq. 1) with p̄ normalised to unit mass with M and c̄ = c̃ / ∫c̃,
-   ∫ over the cloud (eq. 2, the default) or the target's support (``coverage_norm`` "target");
-   it is injected as s / ∫s, so every step adds unit mass whatever the residual;
-3. diffuse with δt = α h₀² (eq. 21, h₀ fixed: :data:`diffusion.H0`): ``carry`` u <- D u + s/∫s from u₀ = p̄ (eq. 5), or
-   ``source`` u = D s/∫s, where D is, by ``integrator``: ``resolvent`` Φ (1 + λδt)⁻¹ Φᵀ M
-   (eq. 4, the stationary HEDAC equation, in the eigenbasis), ``spectral`` Φ e^{-λδt} Φᵀ M
-   (eq. 19) or ``implicit`` (M + δt L)⁻¹ M (sparse, exact);
-4. for each agent: the drive g = heat_weight ∇u + gain_weight ∇G, ∇u at its projected position
-   from a weighted cubic fit (eqs. 32-33), ∇G the exact gradient of the footprint gain (the
-   residual a deposit would remove, :func:`kernels.gain_gradient`); acceleration a = a_max g/|g|
-   (eq. 6 saturated), semi-implicit Euler v <- clip(v + a δt, v_max); the move is projected onto
-   the CGA plane/sphere fitted to its n_N nearest points (eqs. 23-27), kept within v_max δt, and
-   refused when it leaves the data (more than 1.5 h from every neighbour): the agent then slides
-   along the boundary (:func:`kernels.move_agent`). The neutral score
-   (:class:`metrics.CoverageScore`) is updated after the step, outside its time.
-
-Cost: with the spectral integrators a step does work proportional to the points under the
-footprint and to nK, not to the number of cloud points: the spectral coefficients of the
-source are kept up to date incrementally (exactly; see :mod:`tergodic_cli.explore.kernels`
-and docs/speed.md), the heat is evaluated only at the agents' n_N neighbours, and the metrics
-are updated incrementally. A full recompute every ``resync_every`` steps bounds round-off.
-The whole step is one compiled call (:func:`kernels.step_kernel`). The ``implicit``
-integrator solves with the sparse factor on the whole cloud: O(n) per step.
+One :meth:`Explorer.step` deposits the footprint (eqs. 3, 30-31), updates the source (eqs. 1-2),
+diffuses (eq. 4, 19 or the implicit baseline, ``integrator``) and moves each agent along the heat
+gradient of a weighted cubic fit (eqs. 32-33) plus the footprint gain's, projected onto the CGA
+primitive fitted to its neighbours (eqs. 23-27) and kept on the data; docs/explore.md, "One step".
+With the spectral integrators the source's coefficients are kept incrementally, so a step costs
+the points under the footprint and nK, not the cloud's size (docs/speed.md); the whole step is one
+compiled call (:func:`kernels.step_kernel`).
 """
 
 from __future__ import annotations
@@ -459,11 +438,6 @@ class Explorer:
     def evecs(self) -> np.ndarray:
         """(n, nK) the eigenvectors in use, in the cloud's order."""
         return self._basis.evecs[:, : self.cfg.nk]
-
-    @property
-    def heat_is_spectral(self) -> bool:
-        """Whether u = evecs @ a (+ a residual), so :meth:`cloud_fields` returns coefficients."""
-        return self._spectral
 
     @property
     def source(self) -> np.ndarray:

@@ -1,32 +1,11 @@
 """Compiled kernels of one explorer step (numba, cached on disk).
 
-The reference forms of these computations are the numpy functions of ``geometry.py`` (CGA
-fit, projection, tangent frame), ``gradient.py`` (weighted cubic) and ``metrics.py`` (source
-and metrics); ``tests/test_incremental_kernels.py`` checks that the two agree. A step is one
-call of :func:`step_kernel`: numba's call overhead is paid once, not per small operation.
-
-Incremental source (the exact reformulation; docs/speed.md)
------------------------------------------------------------
-On a target point i (p̄_i > 0) with raw coverage c̃_i and Z = ∫c̃ = Σ M c̃, the residual is
-e_i = p̄_i - c̃_i / Z and the source s_i = max(e_i, 0)². On the active set A = {e_i > 0}
-
-    s_i = p̄_i² - 2 p̄_i c̃_i / Z + c̃_i² / Z²,
-
-so with the accumulators (nK-vectors F_k and scalars G_k, φ_i the i-th row of Φ)
-
-    F0 = Σ_A m_i p̄_i² φ_i,   F1 = Σ_A m_i p̄_i c̃_i φ_i,   F2 = Σ_A m_i c̃_i² φ_i,   G_k likewise without φ_i,
-
-Φᵀ M s = F0 - 2 F1 / Z + F2 / Z² and ∫s = G0 - 2 G1 / Z + G2 / Z². On A every term is at most
-m p̄² (c̃/Z < p̄ there), so the expansion loses no precision to cancellation. A step changes c̃
-only at the footprint's points: their terms are swapped (one row of Φ each). Z changes
-everywhere, but it only grows, so a point can only *enter* A through Z: it does when Z exceeds
-its threshold t_i = c̃_i / p̄_i. Inactive points wait in a min-heap keyed by t_i (lazily: a key
-may be stale-low, since c̃ only grows, and is then re-pushed), so each entry costs one row. A
-point the footprint has just deactivated waits in a short pending list instead, checked every
-step, until the footprint leaves it: only then is its threshold final and worth a heap entry.
-The spectral coefficients of the injected source s/∫s follow in O(nK); the heat u = Φ a + s̄
-is evaluated only at the agents' n_N neighbours. A full recompute (:func:`resync`) every K
-steps bounds the round-off of the running sums.
+A step is one call of :func:`step_kernel`: numba's call overhead is paid once, not per small
+operation. The NumPy references of the fit, projection, tangent frame and cubic gradient are in
+``tests/reference_geometry.py``, of the source and metrics in :mod:`~tergodic_cli.explore.metrics`;
+``tests/test_incremental_kernels.py`` checks that they agree. The incremental source (the exact
+expansion of s = max(p̄ - c̃/Z, 0)² on the active set, with a lazy min-heap of thresholds and a
+full :func:`resync` every K steps) is derived in docs/speed.md.
 """
 
 from __future__ import annotations

@@ -11,25 +11,6 @@ from __future__ import annotations
 import numpy as np
 
 
-def footprint(r: np.ndarray, epsilon: float) -> np.ndarray:
-    """Gaussian RBF footprint φ(r) = exp(-ε² r²) (eq. 30).
-
-    Parameters
-    ----------
-    r : array of float
-        Distances, metres.
-    epsilon : float
-        ε, 1/m.
-
-    Returns
-    -------
-    array of float
-        φ(r) in (0, 1], shaped like ``r``.
-    """
-    r = np.asarray(r, dtype=float)
-    return np.exp(-(epsilon * epsilon) * (r * r))
-
-
 def normalise(f: np.ndarray, mass: np.ndarray) -> np.ndarray:
     """``f`` scaled to unit mass, f / ∫f with ∫f = Σ M_i f_i (eq. 2); zeros stay zeros.
 

@@ -89,7 +89,7 @@ def compile_explorer(say: Callable[[str], None] | None = None) -> float:
     float
         Seconds spent.
     """
-    from tergodic_cli.explore import ExploreConfig, Explorer, kernels
+    from tergodic_cli.explore import ExploreConfig, Explorer
 
     if _compiled_here():
         return 0.0

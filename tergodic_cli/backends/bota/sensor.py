@@ -1,24 +1,10 @@
 """Bota Systems F/T sensors through Bota's driver (``pip install 'tergodic[bota]'``, module ``bota_driver``).
 
-API used (bota-driver 1.1.16, checked against the installed package and its 'Bota_Dummy' interface):
-``BotaDriver(config_path)`` or ``BotaDriver(BotaDriverConfig)``, then the lifecycle
-``configure() -> activate() -> read_frame_blocking() ... -> deactivate() -> shutdown()``, each
-returning a bool. A ``BotaFrame`` carries ``force`` and ``torque`` (3 floats each, N and N m, sensor
-frame), ``timestamp`` (an unsigned 32-bit microsecond counter: it wraps every 71.6 minutes),
-``status`` (``DataStatus`` with ``invalid``, ``overrange``, ``throttled``, ``raw``, ``val``) and
-``temperature``.
-
-Two behaviours of the driver shape this backend:
-
-- ``read_frame()`` (non-blocking) returns an *empty* frame, all zeros with timestamp 0, when no new
-  sample has arrived; a zero wrench would look like "no contact". We read with
-  ``read_frame_blocking()`` only.
-- ``BotaDriver.tare()`` works only in the INACTIVE state (it returns False while streaming), so
-  :meth:`BotaSensor.tare` zeroes in software: the mean of ``tare_samples`` frames is subtracted from
-  every later reading.
-
-A frame flagged invalid or over-range reads as NaN, which the safety guard's sensor check turns
-into a hold.
+bota-driver 1.1.16: ``BotaDriver(config)``, then ``configure() -> activate() -> read_frame_blocking() ...
+-> deactivate() -> shutdown()``. The non-blocking read returns an all-zero frame when no sample is new
+(a zero wrench would look like "no contact"), and the driver's ``tare()`` works only while inactive, so
+this backend reads blocking and tares in software (docs/hardware.md, "Bota"). A frame flagged invalid
+or over-range reads as NaN, which the safety guard turns into a hold.
 """
 
 from __future__ import annotations

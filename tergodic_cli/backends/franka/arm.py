@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tergodic_cli.config import Config
 from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.backends.extras import import_sdk
 from tergodic_cli.backends.impedance import ImpedanceTarget
@@ -43,7 +44,9 @@ LIMITS = {
 
 
 @dataclass
-class FrankaConfig:
+
+
+class FrankaConfig(Config):
     """How to reach and drive the arm.
 
     ip : the FCI address (Desk: Settings -> Network). model : "panda" or "fr3" (joint limits).
@@ -84,11 +87,6 @@ class FrankaConfig:
             T = np.asarray(self.ne_t_ee, dtype=float)
             require(T.shape == (4, 4) and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6),
                     "ne_t_ee is not a (4, 4) rigid transform", "give the TCP pose in the nominal end-effector frame")
-
-    def to_dict(self) -> dict:
-        d = dict(self.__dict__)
-        d["ne_t_ee"] = None if self.ne_t_ee is None else np.asarray(self.ne_t_ee).tolist()
-        return d
 
 
 class FrankyArm:
@@ -190,13 +188,6 @@ class FrankyArm:
             self._error = "the Franka reports an error (see Desk); it stopped"
             return self._error
         return None
-
-    def recover(self) -> bool:
-        """franky's automatic error recovery; clears the recorded fault when it succeeds."""
-        ok = bool(self._require().recover_from_errors())
-        if ok:
-            self._error = None
-        return ok
 
     # ------------------------------------------------------------------ commands
     def command(self, tau: np.ndarray) -> None:

@@ -19,13 +19,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tergodic_cli.config import Config
 from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.backends.camera import Intrinsics, RGBDFrame, frame_to_cloud
 from tergodic_cli.backends.extras import import_sdk
 
 
 @dataclass
-class RealSenseConfig:
+
+
+class RealSenseConfig(Config):
     """serial : the camera's serial number (None = the only one connected).
     width, height, fps : stream profile of both streams (D400: 640x480 or 1280x720 at 6-30 fps).
     depth_min, depth_max : metres kept along the optical axis (D435 sees from ~0.1 m).
@@ -54,11 +57,6 @@ class RealSenseConfig:
             T = np.asarray(self.T_base_cam, dtype=float)
             require(T.shape == (4, 4) and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6),
                     "the camera pose is not a rigid (4, 4) transform", "give --camera-pose x,y,z,qx,qy,qz,qw of the optical frame")
-
-    def to_dict(self) -> dict:
-        d = dict(self.__dict__)
-        d["T_base_cam"] = None if self.T_base_cam is None else np.asarray(self.T_base_cam).tolist()
-        return d
 
 
 class RealSenseCamera:
