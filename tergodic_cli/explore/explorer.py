@@ -367,6 +367,7 @@ class Explorer:
         self._pb[:] = 0
         self._pb[K.PB_TARGET, T] = 1
         self._pi[K.PI_TARGET, : len(T)] = T
+        self._tgt = (*K.tree_build(np.ascontiguousarray(self._P[T])), T.astype(np.int64))  # the broad gain's
         # The source's c̄ = c̃/Z: Z over the target (cfg.coverage_norm "target") or the cloud (eq. 2).
         self._prm[K.PR_ZTARGET] = 1.0 if self.cfg.coverage_norm == "target" and len(T) < n else 0.0
         self._heap_keys = np.zeros(len(T))
@@ -401,7 +402,7 @@ class Explorer:
 
     def _bind(self) -> None:
         """The step kernel's state arguments, bound once (the heap arrays change with the target)."""
-        self._state = (self._P, *self._tree, self._full.tree, self._phi, self._pf, self._pb, self._pi, self._sp, self._heap_keys,
+        self._state = (self._P, *self._tree, self._full.tree, self._tgt, self._phi, self._pf, self._pb, self._pi, self._sp, self._heap_keys,
                        self._heap_idx, self._fs, self._is, self._prm, self._ag, self._nbrs, self._k)
 
     @property

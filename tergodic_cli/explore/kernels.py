@@ -111,6 +111,11 @@ STEP_ITERATIONS = 4
 SHRINK = 0.98
 #: The footprint gain is summed over the points within this many r_a (φ(2 r_a) = e^-16 = 1e-7).
 GAIN_REACH = 2.0
+#: The broad gain (reach): its kernel is BROAD_WIDTH times the gain's, it weighs BROAD_WEIGHT, and it
+#: is summed over the target's points within BROAD_REACH of its width (e^-9: 1e-4 of the centre).
+BROAD_WIDTH = 3.0
+BROAD_WEIGHT = 0.15
+BROAD_REACH = 2.0
 #: Directions per half-turn an agent tries when a move would leave the data (30° apart).
 SLIDE_DIRECTIONS = 6
 #: Fit-project-requery iterations that bring a start onto the surface (as the explorer).
@@ -1135,13 +1140,13 @@ def agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full):
 
 
 @njit
-def gain_gradient(P, perm, nodes, boxes, tpts, pf, pb, fs, prm, x, t1, t2, ball):
+def gain_gradient(P, perm, nodes, boxes, tpts, pf, pb, fs, prm, x, t1, t2, ball, width=1.0, reach=GAIN_REACH, tmap=None):
     """∇G (3,) in the tangent plane (t1, t2) at ``x``, where G(x) = Σ_j M_j e_j φ(|x - x_j|) is the
     footprint-weighted residual e = max(p̄ - c̃/Z_Ω, 0) a deposit at x would reduce: the descent
     direction of the coverage error ε (eq. 48) for the next deposit. Exact, over the points within
     GAIN_REACH r_a (φ < 1e-7 beyond, at the default ε = 2/r_a)."""
-    eps2 = prm[PR_GAIN_EPS2]
-    cnt = tree_ball(perm, nodes, boxes, tpts, x, GAIN_REACH * 2.0 / math.sqrt(eps2), ball)
+    eps2 = prm[PR_GAIN_EPS2] / (width * width)
+    cnt = tree_ball(perm, nodes, boxes, tpts, x, reach * 2.0 / math.sqrt(eps2), ball)
     mass, pbar, cov = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV]
     target = pb[PB_TARGET]
     Z = fs[FS_ZC]
@@ -1150,7 +1155,7 @@ def gain_gradient(P, perm, nodes, boxes, tpts, pf, pb, fs, prm, x, t1, t2, ball)
     g1 = 0.0
     g2 = 0.0
     for t in range(cnt):
-        j = ball[t]
+        j = ball[t] if tmap is None else tmap[ball[t]]
         if target[j] == 0:
             continue
         e = pbar[j] - cov[j] * inv
@@ -1210,7 +1215,7 @@ def try_move(P, perm, nodes, boxes, tpts, full, x, disp, ref, k, prm, out_xp, ou
 
 
 @njit
-def move_agent(P, perm, nodes, boxes, tpts, full, Phi, pf, pb, pi, sp, fs, is_, ag, nbrs, i, k, prm, mode, u_full):
+def move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, is_, ag, nbrs, i, k, prm, mode, u_full):
     """Gradient step of agent i (eq. 6, saturated), semi-implicit Euler within v_max, then the
     move onto the surface (:func:`try_move`). A move that would leave the data (an edge, a hole,
     a gap) is not made: the velocity is reflected off the boundary (its outward normal estimated
@@ -1224,6 +1229,12 @@ def move_agent(P, perm, nodes, boxes, tpts, full, Phi, pf, pb, pi, sp, fs, is_, 
             ahead[d] = ag[i, AG_POS + d] + ag[i, AG_VEL + d] * prm[PR_DT]
         gl = gain_gradient(P, perm, nodes, boxes, tpts, pf, pb, fs, prm, ahead,
                            ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3], pi[PI_BALL])
+        # plus the same gain seen wider, over the target's points only: it pulls towards residual
+        # a few footprints away that the local gain cannot see (the plate's separate shapes)
+        gb = gain_gradient(P, tgt[0], tgt[1], tgt[2], tgt[3], pf, pb, fs, prm, ahead,
+                           ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3], pi[PI_BALL], BROAD_WIDTH, BROAD_REACH, tgt[4])
+        for d in range(3):
+            gl[d] += BROAD_WEIGHT * gb[d]
         for d in range(3):
             g[d] = prm[PR_HEAT] * g[d] + prm[PR_GAIN] * gl[d]
     gn = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
@@ -1299,12 +1310,13 @@ def move_agent(P, perm, nodes, boxes, tpts, full, Phi, pf, pb, pi, sp, fs, is_, 
 
 # ---------------------------------------------------------------------------------- the step
 @njit
-def step_kernel(P, perm, nodes, boxes, tpts, full, Phi, pf, pb, pi, sp, hk, hi, fs, is_, prm, ag, nbrs, k,
+def step_kernel(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, hk, hi, fs, is_, prm, ag, nbrs, k,
                 deposits, n_deposits, resets, reset_status, mode, resync_every, u_full, phase):
     """One explorer step (see explorer.py), or part of it.
 
     ``P`` and the tree (perm, nodes, boxes, tpts) are the field's points (the cloud, or its
-    thinned field set); ``full`` is the whole cloud's tree, which decides what lies on the data.
+    thinned field set); ``full`` is the whole cloud's tree, which decides what lies on the data;
+    ``tgt`` the tree over the target's field points (perm, nodes, boxes, tpts, their indices).
     ``n_deposits`` < 0: deposit at the agents (kinematic); otherwise at the first ``n_deposits``
     rows of ``deposits`` (contact points; each projected onto the surface, skipped when farther
     than r_a from the cloud). ``resets`` (N, 3) with ``reset_status`` (N,): when
@@ -1348,7 +1360,7 @@ def step_kernel(P, perm, nodes, boxes, tpts, full, Phi, pf, pb, pi, sp, hk, hi, 
                 place_agent(P, perm, nodes, boxes, tpts, full, ag, nbrs, i, resets[i], ag[i, AG_NRM:AG_NRM + 3].copy(), k,
                             prm[PR_REACH])
     for i in range(N):
-        move_agent(P, perm, nodes, boxes, tpts, full, Phi, pf, pb, pi, sp, fs, is_, ag, nbrs, i, k, prm, mode, u_full)
+        move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, is_, ag, nbrs, i, k, prm, mode, u_full)
 
 
 # ---------------------------------------------------------------------------------- coverage score
