@@ -49,6 +49,8 @@ RETREAT_TIMEOUT_S = 3.0
 #: Degrees between the tool axis and the surface normal in contact above which the run lifts the tool
 #: and stops (issue 15: never press at a large angle; following the normal, the median is ~1 deg).
 CONTACT_TILT_MAX_DEG = 15.0
+#: Degrees the line target's direction turns at most per explorer step (edges, tight curves).
+MAX_TURN_DEG = 3.0
 
 
 def robot_explore_config(cfg, explore_dt: float):
@@ -185,7 +187,25 @@ class ContactRun:
         if n_b @ self._surface_normal(a) < 0:  # the explorer's normal sign is arbitrary; ours faces the tool
             n_b = -n_b
         d = -n_b / np.linalg.norm(n_b)
-        return a, (d if self.max_tilt_deg is None else clamp_tilt(d, self.max_tilt_deg))
+        if self.max_tilt_deg is not None:
+            return a, clamp_tilt(d, self.max_tilt_deg)
+        return self._ball_line(a, d)
+
+    def _ball_contact(self, a: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where the sponge's ball on the line (a, d) touches the cloud (base frame) and the unit contact
+        normal there: from the nearest surface (the mean of the 8 cloud points nearest the ball's
+        centre) to the centre. On a smooth part it is the surface normal; at a sharp edge it turns
+        about the edge as the ball rolls over it, where the cloud's fitted normal is a blend."""
+        c = a - self.cfg.sponge.radius * d
+        _, idx = self.kdtree.query(self._to_obj(c), k=8)
+        q = self._to_base(self.points[idx].mean(axis=0))
+        n = c - q
+        return q, n / np.linalg.norm(n)
+
+    def _ball_line(self, a: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The line near (a, d) the ball presses along its own contact normal: through the contact, along -normal."""
+        q, n = self._ball_contact(a, d)
+        return q, -n
 
     def _reachable_at(self, x_base: np.ndarray) -> bool:
         return bool(self.reachable[self.kdtree.query(self._to_obj(x_base))[1]])
@@ -396,6 +416,13 @@ class ContactRun:
                 if fault is not None:
                     self._fault_sample(fault, step, obs, a_cur, d_cur, on_step, record=True)
                 a_new, d_new = self._agent_line()
+                turn = math.degrees(math.acos(min(1.0, float(d_new @ d_cur))))
+                if self.max_tilt_deg is None and turn > MAX_TURN_DEG:
+                    # The normal turns fast (an edge, a tight curve): the line advances only as far as
+                    # the tool turns MAX_TURN_DEG; the agent, reset to the tool tip, is slowed with it.
+                    f = MAX_TURN_DEG / turn
+                    a_new, d_new = self._ball_line(a_cur + f * (a_new - a_cur), d_cur + f * (d_new - d_cur))
+                    d_new = turn_towards(d_cur, d_new, MAX_TURN_DEG)  # the fit near an edge is noisy
                 # Where the tool cannot follow the normal the line stays on the last reachable one.
                 if self._reachable_at(a_new):
                     a_next, d_next = a_new, d_new
@@ -403,7 +430,8 @@ class ContactRun:
                     self._told_unreachable = True
                     self.on_event(step, f"robot: the agent entered the unreachable part at {_fmt(a_new)} m; the tool "
                                         "waits on the last reachable point")
-                off = math.degrees(math.acos(min(1.0, float(-d_next @ self._surface_normal(a_next)))))
+                # The angle the ball would press at on this line (its contact normal against the axis).
+                off = math.degrees(math.acos(min(1.0, float(-d_next @ self._ball_contact(a_next, d_next)[1]))))
                 if self.max_tilt_deg is None and off > CONTACT_TILT_MAX_DEG:  # never press at a large angle
                     self._fault_sample(Fault("reach", "retreat", f"the commanded tool axis is {off:.0f} deg off the "
                                              f"surface normal (limit {CONTACT_TILT_MAX_DEG:.0f}); lifting the tool off "
@@ -673,6 +701,15 @@ class _AgentCoverage:
         from tergodic_cli.explore.metrics import ergodicity, touched_fraction
 
         return {"ergodicity": ergodicity(self.ex.p, self.cov, self.ex.mass), "touched_fraction": touched_fraction(self.ex.p, self.cov)}
+
+
+def turn_towards(d0: np.ndarray, d1: np.ndarray, max_deg: float) -> np.ndarray:
+    """Unit (3,): ``d0`` rotated towards ``d1`` (both unit) by at most ``max_deg`` degrees."""
+    ang = math.acos(max(-1.0, min(1.0, float(d0 @ d1))))
+    if ang <= math.radians(max_deg):
+        return d1
+    side = d1 - (d0 @ d1) * d0
+    return math.cos(math.radians(max_deg)) * d0 + math.sin(math.radians(max_deg)) * side / np.linalg.norm(side)
 
 
 def clamp_tilt(d: np.ndarray, max_deg: float) -> np.ndarray:

@@ -25,7 +25,7 @@ from tergodic_cli.robot.config import RobotConfig, validate_robot_config
 from tergodic_cli.robot.controller import JointImpedance, LineForceController, min_jerk
 from tergodic_cli.robot.interfaces import ArmState, ContactWrench, LineTarget, Observation
 from tergodic_cli.robot.run import SETTLE_S, ContactRun, _fmt, object_pose
-from tergodic_cli.robot.surface import check_reachable, reconstruct_mesh, sim_object_mesh, transform_points
+from tergodic_cli.robot.surface import check_reachable, curved_edge, reconstruct_mesh, sim_object_mesh, transform_points
 
 #: N/m of the approach's axial position servo: its set-point advances at the guarded speed, so a
 #: steady push on the tool (gravity-model error, posture torques) cannot make it touch faster (a
@@ -414,7 +414,7 @@ class RobotRun(ContactRun):
         else:
             h = float(meta.get("spacing_h_m") or mean_spacing(points))
             normals = oriented_normals(points, resolve_side(cfg.normal_side, meta))
-            mesh, T_mesh = reconstruct_mesh(points, normals, h, cfg.mesh_edge), np.eye(4)
+            mesh, T_mesh = reconstruct_mesh(points, normals, h, curved_edge(points, normals, cfg.mesh_edge)), np.eye(4)
             self.mesh_source = "cloud"
         self.mesh = mesh
         self._T_mesh_obj = np.asarray(T_mesh, dtype=float)
