@@ -51,6 +51,8 @@ RETREAT_TIMEOUT_S = 3.0
 CONTACT_TILT_MAX_DEG = 15.0
 #: Degrees the line target's direction turns at most per explorer step (edges, tight curves).
 MAX_TURN_DEG = 3.0
+#: Cosine of the normals' spread beyond which the ball's contact is taken to be at an edge.
+EDGE_COS = math.cos(math.radians(10.0))
 
 
 def robot_explore_config(cfg, explore_dt: float):
@@ -150,6 +152,9 @@ class ContactRun:
         self._x_down = self._x_ref.copy()
         #: (N,) where the tool can follow the normal (a backend that plans its reach narrows it).
         self.reachable = np.ones(len(self.points), dtype=bool)
+        #: x (3,) -> (the closest point (3,), its face's unit normal (3,), either sign) of the object's
+        #: surface, capture frame, where a backend knows the surface it presses on (a mesh); None: the cloud.
+        self.closest: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
         #: The commanded tool axis is kept within this many degrees of straight down (None: it
         #: follows the normal; the simulation plans its reach instead, robot/reach.py).
         self.max_tilt_deg = cfg.max_tool_tilt_deg
@@ -189,16 +194,37 @@ class ContactRun:
         d = -n_b / np.linalg.norm(n_b)
         if self.max_tilt_deg is not None:
             return a, clamp_tilt(d, self.max_tilt_deg)
+        if self.closest is not None:
+            # Near an edge the cloud's normal is a blend of the faces': the ball would be placed to touch
+            # the edge from wherever the agent is; the face's own normal puts it on the agent's face.
+            nf = self.T_obj[:3, :3] @ self.closest(self._to_obj(a))[1]
+            if abs(float(nf @ d)) < EDGE_COS:
+                d = -nf if nf @ d < 0 else nf
         return self._ball_line(a, d)
 
     def _ball_contact(self, a: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Where the sponge's ball on the line (a, d) touches the cloud (base frame) and the unit contact
-        normal there: from the nearest surface (the mean of the 8 cloud points nearest the ball's
-        centre) to the centre. On a smooth part it is the surface normal; at a sharp edge it turns
-        about the edge as the ball rolls over it, where the cloud's fitted normal is a blend."""
+        normal there, from the nearest surface to the ball's centre: on a smooth part the centre's
+        foot on the tangent planes of its 8 nearest cloud points (the surface normal, noise-free);
+        at a sharp edge the closest point of the collision surface (:attr:`closest`, where it turns
+        the normal by over 10 deg; without it, the points' mean where their normals spread over
+        10 deg), so the normal turns about the edge as the ball rolls over it (the cloud's fitted
+        normal there is a blend of the faces', its tangent planes miss the edge)."""
         c = a - self.cfg.sponge.radius * d
-        _, idx = self.kdtree.query(self._to_obj(c), k=8)
-        q = self._to_base(self.points[idx].mean(axis=0))
+        co = self._to_obj(c)
+        _, idx = self.kdtree.query(co, k=8)
+        P, N = self.points[idx], self.normals[idx]
+        q = co - np.einsum("ij,ij->i", co - P, N) @ N / len(idx)
+        if self.closest is not None:  # the collision surface's own closest point: the ball's true contact
+            qm = self.closest(co)[0]
+            u, v = co - q, co - qm
+            if float(u @ v) < EDGE_COS * float(np.linalg.norm(u) * np.linalg.norm(v)):
+                q = qm
+        else:
+            m = N.mean(axis=0)
+            if float(np.min(N @ m)) < EDGE_COS * float(np.linalg.norm(m)):
+                q = P.mean(axis=0)
+        q = self._to_base(q)
         n = c - q
         return q, n / np.linalg.norm(n)
 
@@ -392,6 +418,7 @@ class ContactRun:
         ex = self.explorer
         n_sub = self.n_sub
         a_cur, d_cur = self._start_line
+        self._tilted = waiting = False
         obs = self.arm.get_observation()
         self.guard.feed_target(self.t)
         step = int(getattr(ex, "step_index", 0))
@@ -404,7 +431,9 @@ class ContactRun:
             deposit = self._to_obj(meas["contact_point"])[None, :] if meas["in_contact"] else np.zeros((0, 3))
             before = int(getattr(ex, "step_index", step))
             try:
-                ex.step(deposit_at=deposit, agent_at=self._to_obj(obs.state.ee_pose[:3, 3])[None, :])
+                # While the agent is in the unreachable part the tool waits and the agent moves on its
+                # own (reset to the waiting tool it would be sent straight back: a deadlock).
+                ex.step(deposit_at=deposit, agent_at=None if waiting else self._to_obj(obs.state.ee_pose[:3, 3])[None, :])
             except TergodicError as exc:
                 fault = Fault("explorer", "hold", f"the explorer failed ({exc}); holding position", self.t)
                 self._fault_sample(fault, before + 1, obs, a_cur, d_cur, on_step, record=True)
@@ -418,13 +447,14 @@ class ContactRun:
                 a_new, d_new = self._agent_line()
                 turn = math.degrees(math.acos(min(1.0, float(d_new @ d_cur))))
                 if self.max_tilt_deg is None and turn > MAX_TURN_DEG:
-                    # The normal turns fast (an edge, a tight curve): the line advances only as far as
-                    # the tool turns MAX_TURN_DEG; the agent, reset to the tool tip, is slowed with it.
-                    f = MAX_TURN_DEG / turn
-                    a_new, d_new = self._ball_line(a_cur + f * (a_new - a_cur), d_cur + f * (d_new - d_cur))
-                    d_new = turn_towards(d_cur, d_new, MAX_TURN_DEG)  # the fit near an edge is noisy
+                    # The normal turns fast (an edge, a tight curve): the ball rolls MAX_TURN_DEG about
+                    # its contact, the line through where it then touches; the agent, reset to the
+                    # tool tip, is held back with it.
+                    d_new = turn_towards(d_cur, d_new, MAX_TURN_DEG)
+                    a_new = self._ball_contact(a_cur, d_new)[0]
                 # Where the tool cannot follow the normal the line stays on the last reachable one.
-                if self._reachable_at(a_new):
+                waiting = not self._reachable_at(a_new)
+                if not waiting:
                     a_next, d_next = a_new, d_new
                 elif not self._told_unreachable:
                     self._told_unreachable = True
@@ -451,8 +481,11 @@ class ContactRun:
                 self._fault_sample(fault, step, obs, np.array(a), np.array(d), on_step, record=fresh)
             a_cur, d_cur = a_next, d_next
             sample = self._sample(step, obs, a_cur, d_cur)
-            press = self._measure(obs)["press_angle_deg"]
-            if sample["in_contact"] and press > CONTACT_TILT_MAX_DEG:  # never press at a large angle
+            # Never press at a large angle: two explorer steps in a row (a ball rolling over an edge
+            # sees single-sample transients when it touches both faces; a wrong axis stays wrong).
+            press = self._measure(obs)["press_angle_deg"] if sample["in_contact"] else 0.0
+            tilted, self._tilted = self._tilted, press > CONTACT_TILT_MAX_DEG
+            if tilted and self._tilted:
                 self._fault_sample(Fault("reach", "retreat", f"the tool presses {press:.0f} deg off the surface "
                                          f"normal in contact (limit {CONTACT_TILT_MAX_DEG:.0f}); lifting the tool off the "
                                          "surface", self.t), step, obs, a_cur, d_cur, on_step, record=True)
@@ -495,9 +528,13 @@ class ContactRun:
     def _measure(self, obs) -> dict:
         """The backend's contact point, force and press angle, and the surface normal there."""
         cp, fsum, press = self.arm.contact(obs)
-        x = cp if cp is not None else obs.state.ee_pose[:3, 3]
+        T = obs.state.ee_pose
+        x = cp if cp is not None else T[:3, 3]
+        # The surface normal where the tool's ball touches: the cloud's fit on smooth parts; at an
+        # edge (no normal of its own) the ball's contact normal, from its centre (ee pose) to the surface.
+        n = self._surface_normal(x) if self.max_tilt_deg is not None else self._ball_contact(T[:3, 3], T[:3, 2])[1]
         return {"contact_point": cp, "force_contact": fsum, "in_contact": bool(cp is not None and fsum >= self.threshold),
-                "normal": self._surface_normal(x), "at": x, "press_angle_deg": press}
+                "normal": n, "at": x, "press_angle_deg": press}
 
     def _sample(self, step: int, obs, a: np.ndarray, d: np.ndarray, stop_reason: str | None = None) -> dict:
         """The robot_sample_dict of CONTRACTS.md (plus extras) at the end of an explorer interval."""

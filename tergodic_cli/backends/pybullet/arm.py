@@ -381,6 +381,22 @@ class SimArm:
         return i, t, io, rd, fault
 
 
+def closest_point_fn(mesh, T: np.ndarray):
+    """x (3,) -> (the closest point (3,) on ``mesh`` placed by ``T`` (4, 4), its triangle's unit normal
+    (3,), either sign), in T's target frame (open3d)."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(transform_points(T, mesh.vertices).astype(np.float32)),
+                        o3d.core.Tensor(np.asarray(mesh.triangles).astype(np.uint32)))
+
+    def closest(x: np.ndarray) -> np.ndarray:
+        out = scene.compute_closest_points(o3d.core.Tensor(np.asarray(x, dtype=np.float32).reshape(1, 3)))
+        return out["points"].numpy()[0].astype(float), out["primitive_normals"].numpy()[0].astype(float)
+
+    return closest
+
+
 class RobotRun(ContactRun):
     """The contact loop on the simulated arm, its scene built from the capture.
 
@@ -423,6 +439,7 @@ class RobotRun(ContactRun):
         try:
             super().__init__(capture, explorer, cfg, arm, T_obj, on_event=say)
             self.max_tilt_deg = None  # the tool follows the normal; what the arm cannot reach is dropped
+            self.closest = closest_point_fn(mesh, self._T_mesh_obj)
             self._plan_reach(capture, pose_given)
         except BaseException:
             arm.disconnect()
