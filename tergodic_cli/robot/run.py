@@ -51,6 +51,8 @@ RETREAT_TIMEOUT_S = 3.0
 CONTACT_TILT_MAX_DEG = 15.0
 #: Degrees the line target's direction turns at most per explorer step (edges, tight curves).
 MAX_TURN_DEG = 3.0
+#: Metres between the agent, back in reach, and the waiting tool beyond which the tool lifts and moves over.
+TRANSIT_M = 0.012
 #: Cosine of the normals' spread beyond which the ball's contact is taken to be at an edge.
 EDGE_COS = math.cos(math.radians(10.0))
 
@@ -445,6 +447,23 @@ class ContactRun:
                 if fault is not None:
                     self._fault_sample(fault, step, obs, a_cur, d_cur, on_step, record=True)
                 a_new, d_new = self._agent_line()
+                # Where the tool cannot follow the normal it waits on the last reachable line.
+                waiting = not self._reachable_at(a_new)
+                if self.max_tilt_deg is None and not waiting and float(np.linalg.norm(a_new - a_cur)) > TRANSIT_M \
+                        and self.arm.reach(self._hover_pose(a_new, d_new)) is not None:
+                    # The reach map is sampled: where the hover pose is out of reach after all, mark it so.
+                    near = self.kdtree.query_ball_point(self._to_obj(a_new), TRANSIT_M)
+                    self.reachable[np.asarray(near, dtype=np.intp)] = False
+                    waiting = True
+                if self.max_tilt_deg is None and not waiting and float(np.linalg.norm(a_new - a_cur)) > TRANSIT_M:
+                    # The agent came back into reach away from the waiting tool: lift, move over, touch again.
+                    self._last_line = (a_cur, d_cur)
+                    self.to_picture(f"the agent is back in reach {1e3 * float(np.linalg.norm(a_new - a_cur)):.0f} mm "
+                                    "from the waiting tool; moving over")
+                    self.engage()
+                    ts[Kn.TS_COUNT], ts[Kn.TS_RUN] = 1.0, 0.0
+                    a_cur, d_cur = a_new, d_new = self._start_line
+                    obs = self.arm.get_observation()
                 turn = math.degrees(math.acos(min(1.0, float(d_new @ d_cur))))
                 if self.max_tilt_deg is None and turn > MAX_TURN_DEG:
                     # The normal turns fast (an edge, a tight curve): the ball rolls MAX_TURN_DEG about
@@ -452,11 +471,9 @@ class ContactRun:
                     # tool tip, is held back with it.
                     d_new = turn_towards(d_cur, d_new, MAX_TURN_DEG)
                     a_new = self._ball_contact(a_cur, d_new)[0]
-                # Where the tool cannot follow the normal the line stays on the last reachable one.
-                waiting = not self._reachable_at(a_new)
-                if not waiting:
+                if not waiting and self._reachable_at(a_new):
                     a_next, d_next = a_new, d_new
-                elif not self._told_unreachable:
+                elif waiting and not self._told_unreachable:
                     self._told_unreachable = True
                     self.on_event(step, f"robot: the agent entered the unreachable part at {_fmt(a_new)} m; the tool "
                                         "waits on the last reachable point")
