@@ -146,7 +146,21 @@ def reach_map(chain, points: np.ndarray, normals: np.ndarray, x_down: np.ndarray
         dist = np.minimum(dist, np.linalg.norm(pts - pts[j], axis=1))
     ok = np.array([pose_ok(chain, pts[j], -normals[j], x_down, q0, q_min, q_max, hover)[0] for j in idx])
     _, near = cKDTree(pts[idx]).query(pts)
-    return ok[near]
+    return ok[near] & ~occluded(pts, normals)
+
+
+def occluded(points: np.ndarray, normals: np.ndarray, reach: float = 0.10, clearance: float = 0.015) -> np.ndarray:
+    """(n,) bool: the object (the cloud ``points`` (n, 3)) lies within ``clearance`` m of the tool's
+    axis over the ``reach`` m behind a point along its unit normal (``normals`` (n, 3)): the holder
+    and hand there would hit it (the inside of a torus's hole, a narrow gap), whatever the joints allow."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(points)
+    hit = np.zeros(len(points), dtype=bool)
+    for s in np.linspace(0.03, reach, 15):
+        d, _ = tree.query(points + s * normals, distance_upper_bound=clearance)
+        hit |= np.isfinite(d)
+    return hit
 
 
 #: Object placements tried when the capture does not say where the object stands: (reach m, yaw deg)
