@@ -26,6 +26,19 @@ def test_normals_point_out_of_the_object(obj):
     assert np.mean(np.einsum("ij,ij->i", up, gt) < 0) > 0.1
 
 
+def test_torus_hole_blocks_the_tool():
+    from tergodic_cli.capture.synthetic import TORUS_MAJOR, TORUS_MINOR
+    from tergodic_cli.robot.reach import occluded
+
+    cap = capture_cloud(CaptureConfig(source="synthetic", synthetic="torus", seed=0))
+    P = cap.points
+    hit = occluded(P, oriented_normals(P, "outward"))
+    rho = np.hypot(P[:, 0], P[:, 1])
+    inner = (rho < TORUS_MAJOR - 0.9 * TORUS_MINOR) & (np.abs(P[:, 2] - TORUS_MINOR) < 0.004)  # facing the axis
+    top = P[:, 2] > 2 * TORUS_MINOR - 0.002
+    assert hit[inner].mean() > 0.95 and not hit[top].any()
+
+
 def test_box_edge_crossed_below_the_force_limit():
     pytest.importorskip("pybullet")
     pytest.importorskip("pygafro")

@@ -449,6 +449,12 @@ class ContactRun:
                 a_new, d_new = self._agent_line()
                 # Where the tool cannot follow the normal it waits on the last reachable line.
                 waiting = not self._reachable_at(a_new)
+                # The angle the ball would press at on the agent's line (its contact normal against the axis).
+                off = math.degrees(math.acos(min(1.0, float(-d_new @ self._ball_contact(a_new, d_new)[1]))))
+                if self.max_tilt_deg is None and not waiting and off > CONTACT_TILT_MAX_DEG:  # never press at a large angle
+                    self._fault_sample(Fault("reach", "retreat", f"the commanded tool axis is {off:.0f} deg off the "
+                                             f"surface normal (limit {CONTACT_TILT_MAX_DEG:.0f}); lifting the tool off "
+                                             "the surface", self.t), step, obs, a_cur, d_cur, on_step, record=True)
                 if self.max_tilt_deg is None and not waiting and float(np.linalg.norm(a_new - a_cur)) > TRANSIT_M \
                         and self.arm.reach(self._hover_pose(a_new, d_new)) is not None:
                     # The reach map is sampled: where the hover pose is out of reach after all, mark it so.
@@ -477,12 +483,6 @@ class ContactRun:
                     self._told_unreachable = True
                     self.on_event(step, f"robot: the agent entered the unreachable part at {_fmt(a_new)} m; the tool "
                                         "waits on the last reachable point")
-                # The angle the ball would press at on this line (its contact normal against the axis).
-                off = math.degrees(math.acos(min(1.0, float(-d_next @ self._ball_contact(a_next, d_next)[1]))))
-                if self.max_tilt_deg is None and off > CONTACT_TILT_MAX_DEG:  # never press at a large angle
-                    self._fault_sample(Fault("reach", "retreat", f"the commanded tool axis is {off:.0f} deg off the "
-                                             f"surface normal (limit {CONTACT_TILT_MAX_DEG:.0f}); lifting the tool off "
-                                             "the surface", self.t), step, obs, a_cur, d_cur, on_step, record=True)
                 self.guard.feed_target(self.t)
                 self._update_spin_ref(d_next)
             self._shadow.deposit()
