@@ -181,11 +181,14 @@ class ContactRun:
     def _to_obj(self, x: np.ndarray) -> np.ndarray:
         return (np.asarray(x, dtype=float) - self.T_obj[:3, 3]) @ self.T_obj[:3, :3]
 
-    def _surface_normal(self, x_base: np.ndarray, k: int = 6) -> np.ndarray:
-        """Oriented unit surface normal (base frame) near ``x_base``: mean of the k nearest cloud normals."""
+    def _surface_normal(self, x_base: np.ndarray, k: int = 6, smooth: bool = False):
+        """Oriented unit surface normal (base frame) near ``x_base``: mean of the k nearest cloud normals.
+        With ``smooth``: (normal, whether those normals lie within EDGE_COS of their mean: no edge)."""
         _, idx = self.kdtree.query(self._to_obj(x_base), k=k)
-        n = self.normals[np.atleast_1d(idx)].mean(axis=0)
-        return self.T_obj[:3, :3] @ (n / np.linalg.norm(n))
+        N = self.normals[np.atleast_1d(idx)]
+        m = N.mean(axis=0)
+        n = self.T_obj[:3, :3] @ (m / np.linalg.norm(m))
+        return (n, bool(np.min(N @ m) >= EDGE_COS * np.linalg.norm(m))) if smooth else n
 
     def _agent_line(self) -> tuple[np.ndarray, np.ndarray]:
         """The explorer's line L_a⊥ in the base frame: point and unit direction into the surface."""
@@ -449,9 +452,11 @@ class ContactRun:
                 a_new, d_new = self._agent_line()
                 # Where the tool cannot follow the normal it waits on the last reachable line.
                 waiting = not self._reachable_at(a_new)
-                # The angle the ball would press at on the agent's line (its contact normal against the axis).
-                off = math.degrees(math.acos(min(1.0, float(-d_new @ self._ball_contact(a_new, d_new)[1]))))
-                if self.max_tilt_deg is None and not waiting and off > CONTACT_TILT_MAX_DEG:  # never press at a large angle
+                # The agent's line against the surface normal where the surface has one (not at an edge,
+                # where the ball's normal turns about it; the measured press angle is checked below).
+                n_a, smooth = self._surface_normal(a_new, smooth=True)
+                off = math.degrees(math.acos(min(1.0, float(-d_new @ n_a))))
+                if self.max_tilt_deg is None and not waiting and smooth and off > CONTACT_TILT_MAX_DEG:
                     self._fault_sample(Fault("reach", "retreat", f"the commanded tool axis is {off:.0f} deg off the "
                                              f"surface normal (limit {CONTACT_TILT_MAX_DEG:.0f}); lifting the tool off "
                                              "the surface", self.t), step, obs, a_cur, d_cur, on_step, record=True)
