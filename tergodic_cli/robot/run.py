@@ -199,7 +199,7 @@ class ContactRun:
         d = -n_b / np.linalg.norm(n_b)
         if self.max_tilt_deg is not None:
             return a, clamp_tilt(d, self.max_tilt_deg)
-        if self.closest is not None:
+        if self.closest is not None and not self._surface_normal(a, smooth=True)[1]:
             # Near an edge the cloud's normal is a blend of the faces': the ball would be placed to touch
             # the edge from wherever the agent is; the face's own normal puts it on the agent's face.
             nf = self.T_obj[:3, :3] @ self.closest(self._to_obj(a))[1]
@@ -220,15 +220,15 @@ class ContactRun:
         _, idx = self.kdtree.query(co, k=8)
         P, N = self.points[idx], self.normals[idx]
         q = co - np.einsum("ij,ij->i", co - P, N) @ N / len(idx)
-        if self.closest is not None:  # the collision surface's own closest point: the ball's true contact
-            qm = self.closest(co)[0]
-            u, v = co - q, co - qm
-            if float(u @ v) < EDGE_COS * float(np.linalg.norm(u) * np.linalg.norm(v)):
-                q = qm
-        else:
-            m = N.mean(axis=0)
-            if float(np.min(N @ m)) < EDGE_COS * float(np.linalg.norm(m)):
+        m = N.mean(axis=0)
+        if float(np.min(N @ m)) < EDGE_COS * float(np.linalg.norm(m)):  # an edge (not a sheet's border)
+            if self.closest is None:
                 q = P.mean(axis=0)
+            else:  # the collision surface's own closest point: the ball's true contact
+                qm = self.closest(co)[0]
+                u, v = co - q, co - qm
+                if float(u @ v) < EDGE_COS * float(np.linalg.norm(u) * np.linalg.norm(v)):
+                    q = qm
         q = self._to_base(q)
         n = c - q
         return q, n / np.linalg.norm(n)
