@@ -53,7 +53,7 @@ class RobotConfig(Config):
         ~approach_speed × 0.25 s; at 20 mm/s the impact reached 10-28 N on the bowl).
     contact_force : N of contact normal force that counts as touching (coverage is deposited
         only above it); None = 20 % of ``force``.
-    normal_side : which side of the sheet the tool works on: auto, up, out.
+    normal_side : which side of the sheet the tool works on: auto (= outward), outward, up, out.
     mesh_edge : target triangle edge of the collision mesh, m.
     move_speed : peak joint speed of the picture -> hover move, rad/s.
     solver_iterations : PyBullet constraint-solver iterations.

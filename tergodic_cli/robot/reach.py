@@ -11,7 +11,8 @@ axes: the hand's x-axis turns to ±z, the wrist folds in its middle range).
 :func:`reach_map` runs inverse kinematics (damped least squares on the compiled chain, a few ms
 each) for a sample of the cloud's normals and marks every point by its nearest sample: a point is
 reachable when the arm holds the tool along its normal, at the point and ``hover`` back along the
-normal, with every joint ``margin`` rad inside its limits. The robot run drops the unreachable
+normal, with every joint ``margin`` rad inside its limits, and the object does not block the tool's
+axis behind it (:func:`occluded`). The robot run drops the unreachable
 part from the explorer's target before it starts and says so (issue 15, item 1).
 :func:`plan_reach` also places an object whose pose the capture does not give (0.5 or 0.4 m in
 front of the base, turned about the vertical) where the arm reaches the most of its target, and
@@ -146,7 +147,22 @@ def reach_map(chain, points: np.ndarray, normals: np.ndarray, x_down: np.ndarray
         dist = np.minimum(dist, np.linalg.norm(pts - pts[j], axis=1))
     ok = np.array([pose_ok(chain, pts[j], -normals[j], x_down, q0, q_min, q_max, hover)[0] for j in idx])
     _, near = cKDTree(pts[idx]).query(pts)
-    return ok[near]
+    return ok[near] & ~occluded(pts, normals)
+
+
+def occluded(points: np.ndarray, normals: np.ndarray, reach: float = 0.16, clearance: float = 0.025) -> np.ndarray:
+    """(n,) bool: the object (the cloud ``points`` (n, 3)) lies within ``clearance`` m of the tool's
+    axis over the ``reach`` m behind a point along its unit normal (``normals`` (n, 3)): the sponge's
+    holder and the hand there would hit it (the inside of a torus's hole, a narrow gap), whatever the
+    joints allow. (The torus's inner wall, 8 % of its surface, is the only built-in part it marks.)"""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(points)
+    hit = np.zeros(len(points), dtype=bool)
+    for s in np.linspace(0.03, reach, 15):
+        d, _ = tree.query(points + s * normals, distance_upper_bound=clearance)
+        hit |= np.isfinite(d)
+    return hit
 
 
 #: Object placements tried when the capture does not say where the object stands: (reach m, yaw deg)

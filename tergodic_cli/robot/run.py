@@ -49,6 +49,12 @@ RETREAT_TIMEOUT_S = 3.0
 #: Degrees between the tool axis and the surface normal in contact above which the run lifts the tool
 #: and stops (issue 15: never press at a large angle; following the normal, the median is ~1 deg).
 CONTACT_TILT_MAX_DEG = 15.0
+#: Degrees the line target's direction turns at most per explorer step (edges, tight curves).
+MAX_TURN_DEG = 3.0
+#: Metres between the agent, back in reach, and the waiting tool beyond which the tool lifts and moves over.
+TRANSIT_M = 0.012
+#: Cosine of the normals' spread beyond which the ball's contact is taken to be at an edge.
+EDGE_COS = math.cos(math.radians(10.0))
 
 
 def robot_explore_config(cfg, explore_dt: float):
@@ -148,6 +154,9 @@ class ContactRun:
         self._x_down = self._x_ref.copy()
         #: (N,) where the tool can follow the normal (a backend that plans its reach narrows it).
         self.reachable = np.ones(len(self.points), dtype=bool)
+        #: x (3,) -> (the closest point (3,), its face's unit normal (3,), either sign) of the object's
+        #: surface, capture frame, where a backend knows the surface it presses on (a mesh); None: the cloud.
+        self.closest: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
         #: The commanded tool axis is kept within this many degrees of straight down (None: it
         #: follows the normal; the simulation plans its reach instead, robot/reach.py).
         self.max_tilt_deg = cfg.max_tool_tilt_deg
@@ -172,11 +181,14 @@ class ContactRun:
     def _to_obj(self, x: np.ndarray) -> np.ndarray:
         return (np.asarray(x, dtype=float) - self.T_obj[:3, 3]) @ self.T_obj[:3, :3]
 
-    def _surface_normal(self, x_base: np.ndarray, k: int = 6) -> np.ndarray:
-        """Oriented unit surface normal (base frame) near ``x_base``: mean of the k nearest cloud normals."""
+    def _surface_normal(self, x_base: np.ndarray, k: int = 6, smooth: bool = False):
+        """Oriented unit surface normal (base frame) near ``x_base``: mean of the k nearest cloud normals.
+        With ``smooth``: (normal, whether those normals lie within EDGE_COS of their mean: no edge)."""
         _, idx = self.kdtree.query(self._to_obj(x_base), k=k)
-        n = self.normals[np.atleast_1d(idx)].mean(axis=0)
-        return self.T_obj[:3, :3] @ (n / np.linalg.norm(n))
+        N = self.normals[np.atleast_1d(idx)]
+        m = N.mean(axis=0)
+        n = self.T_obj[:3, :3] @ (m / np.linalg.norm(m))
+        return (n, bool(np.min(N @ m) >= EDGE_COS * np.linalg.norm(m))) if smooth else n
 
     def _agent_line(self) -> tuple[np.ndarray, np.ndarray]:
         """The explorer's line L_a⊥ in the base frame: point and unit direction into the surface."""
@@ -185,7 +197,46 @@ class ContactRun:
         if n_b @ self._surface_normal(a) < 0:  # the explorer's normal sign is arbitrary; ours faces the tool
             n_b = -n_b
         d = -n_b / np.linalg.norm(n_b)
-        return a, (d if self.max_tilt_deg is None else clamp_tilt(d, self.max_tilt_deg))
+        if self.max_tilt_deg is not None:
+            return a, clamp_tilt(d, self.max_tilt_deg)
+        if self.closest is not None and not self._surface_normal(a, smooth=True)[1]:
+            # Near an edge the cloud's normal is a blend of the faces': the ball would be placed to touch
+            # the edge from wherever the agent is; the face's own normal puts it on the agent's face.
+            nf = self.T_obj[:3, :3] @ self.closest(self._to_obj(a))[1]
+            if abs(float(nf @ d)) < EDGE_COS:
+                d = -nf if nf @ d < 0 else nf
+        return self._ball_line(a, d)
+
+    def _ball_contact(self, a: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where the sponge's ball on the line (a, d) touches the cloud (base frame) and the unit contact
+        normal there, from the nearest surface to the ball's centre: on a smooth part the centre's
+        foot on the tangent planes of its 8 nearest cloud points (the surface normal, noise-free);
+        at a sharp edge the closest point of the collision surface (:attr:`closest`, where it turns
+        the normal by over 10 deg; without it, the points' mean where their normals spread over
+        10 deg), so the normal turns about the edge as the ball rolls over it (the cloud's fitted
+        normal there is a blend of the faces', its tangent planes miss the edge)."""
+        c = a - self.cfg.sponge.radius * d
+        co = self._to_obj(c)
+        _, idx = self.kdtree.query(co, k=8)
+        P, N = self.points[idx], self.normals[idx]
+        q = co - np.einsum("ij,ij->i", co - P, N) @ N / len(idx)
+        m = N.mean(axis=0)
+        if float(np.min(N @ m)) < EDGE_COS * float(np.linalg.norm(m)):  # an edge (not a sheet's border)
+            if self.closest is None:
+                q = P.mean(axis=0)
+            else:  # the collision surface's own closest point: the ball's true contact
+                qm = self.closest(co)[0]
+                u, v = co - q, co - qm
+                if float(u @ v) < EDGE_COS * float(np.linalg.norm(u) * np.linalg.norm(v)):
+                    q = qm
+        q = self._to_base(q)
+        n = c - q
+        return q, n / np.linalg.norm(n)
+
+    def _ball_line(self, a: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The line near (a, d) the ball presses along its own contact normal: through the contact, along -normal."""
+        q, n = self._ball_contact(a, d)
+        return q, -n
 
     def _reachable_at(self, x_base: np.ndarray) -> bool:
         return bool(self.reachable[self.kdtree.query(self._to_obj(x_base))[1]])
@@ -372,6 +423,7 @@ class ContactRun:
         ex = self.explorer
         n_sub = self.n_sub
         a_cur, d_cur = self._start_line
+        self._tilted = waiting = False
         obs = self.arm.get_observation()
         self.guard.feed_target(self.t)
         step = int(getattr(ex, "step_index", 0))
@@ -384,7 +436,9 @@ class ContactRun:
             deposit = self._to_obj(meas["contact_point"])[None, :] if meas["in_contact"] else np.zeros((0, 3))
             before = int(getattr(ex, "step_index", step))
             try:
-                ex.step(deposit_at=deposit, agent_at=self._to_obj(obs.state.ee_pose[:3, 3])[None, :])
+                # While the agent is in the unreachable part the tool waits and the agent moves on its
+                # own (reset to the waiting tool it would be sent straight back: a deadlock).
+                ex.step(deposit_at=deposit, agent_at=None if waiting else self._to_obj(obs.state.ee_pose[:3, 3])[None, :])
             except TergodicError as exc:
                 fault = Fault("explorer", "hold", f"the explorer failed ({exc}); holding position", self.t)
                 self._fault_sample(fault, before + 1, obs, a_cur, d_cur, on_step, record=True)
@@ -396,18 +450,44 @@ class ContactRun:
                 if fault is not None:
                     self._fault_sample(fault, step, obs, a_cur, d_cur, on_step, record=True)
                 a_new, d_new = self._agent_line()
-                # Where the tool cannot follow the normal the line stays on the last reachable one.
-                if self._reachable_at(a_new):
-                    a_next, d_next = a_new, d_new
-                elif not self._told_unreachable:
-                    self._told_unreachable = True
-                    self.on_event(step, f"robot: the agent entered the unreachable part at {_fmt(a_new)} m; the tool "
-                                        "waits on the last reachable point")
-                off = math.degrees(math.acos(min(1.0, float(-d_next @ self._surface_normal(a_next)))))
-                if self.max_tilt_deg is None and off > CONTACT_TILT_MAX_DEG:  # never press at a large angle
+                # Where the tool cannot follow the normal it waits on the last reachable line.
+                waiting = not self._reachable_at(a_new)
+                # The agent's line against the surface normal where the surface has one (not at an edge,
+                # where the ball's normal turns about it; the measured press angle is checked below).
+                n_a, smooth = self._surface_normal(a_new, smooth=True)
+                off = math.degrees(math.acos(min(1.0, float(-d_new @ n_a))))
+                if self.max_tilt_deg is None and not waiting and smooth and off > CONTACT_TILT_MAX_DEG:
                     self._fault_sample(Fault("reach", "retreat", f"the commanded tool axis is {off:.0f} deg off the "
                                              f"surface normal (limit {CONTACT_TILT_MAX_DEG:.0f}); lifting the tool off "
                                              "the surface", self.t), step, obs, a_cur, d_cur, on_step, record=True)
+                if self.max_tilt_deg is None and not waiting and float(np.linalg.norm(a_new - a_cur)) > TRANSIT_M \
+                        and self.arm.reach(self._hover_pose(a_new, d_new)) is not None:
+                    # The reach map is sampled: where the hover pose is out of reach after all, mark it so.
+                    near = self.kdtree.query_ball_point(self._to_obj(a_new), TRANSIT_M)
+                    self.reachable[np.asarray(near, dtype=np.intp)] = False
+                    waiting = True
+                if self.max_tilt_deg is None and not waiting and float(np.linalg.norm(a_new - a_cur)) > TRANSIT_M:
+                    # The agent came back into reach away from the waiting tool: lift, move over, touch again.
+                    self._last_line = (a_cur, d_cur)
+                    self.to_picture(f"the agent is back in reach {1e3 * float(np.linalg.norm(a_new - a_cur)):.0f} mm "
+                                    "from the waiting tool; moving over")
+                    self.engage()
+                    ts[Kn.TS_COUNT], ts[Kn.TS_RUN] = 1.0, 0.0
+                    a_cur, d_cur = a_new, d_new = self._start_line
+                    obs = self.arm.get_observation()
+                turn = math.degrees(math.acos(min(1.0, float(d_new @ d_cur))))
+                if self.max_tilt_deg is None and turn > MAX_TURN_DEG:
+                    # The normal turns fast (an edge, a tight curve): the ball rolls MAX_TURN_DEG about
+                    # its contact, the line through where it then touches; the agent, reset to the
+                    # tool tip, is held back with it.
+                    d_new = turn_towards(d_cur, d_new, MAX_TURN_DEG)
+                    a_new = self._ball_contact(a_cur, d_new)[0]
+                if not waiting and self._reachable_at(a_new):
+                    a_next, d_next = a_new, d_new
+                elif waiting and not self._told_unreachable:
+                    self._told_unreachable = True
+                    self.on_event(step, f"robot: the agent entered the unreachable part at {_fmt(a_new)} m; the tool "
+                                        "waits on the last reachable point")
                 self.guard.feed_target(self.t)
                 self._update_spin_ref(d_next)
             self._shadow.deposit()
@@ -423,8 +503,11 @@ class ContactRun:
                 self._fault_sample(fault, step, obs, np.array(a), np.array(d), on_step, record=fresh)
             a_cur, d_cur = a_next, d_next
             sample = self._sample(step, obs, a_cur, d_cur)
-            press = self._measure(obs)["press_angle_deg"]
-            if sample["in_contact"] and press > CONTACT_TILT_MAX_DEG:  # never press at a large angle
+            # Never press at a large angle: two explorer steps in a row (a ball rolling over an edge
+            # sees single-sample transients when it touches both faces; a wrong axis stays wrong).
+            press = self._measure(obs)["press_angle_deg"] if sample["in_contact"] else 0.0
+            tilted, self._tilted = self._tilted, press > CONTACT_TILT_MAX_DEG
+            if tilted and self._tilted:
                 self._fault_sample(Fault("reach", "retreat", f"the tool presses {press:.0f} deg off the surface "
                                          f"normal in contact (limit {CONTACT_TILT_MAX_DEG:.0f}); lifting the tool off the "
                                          "surface", self.t), step, obs, a_cur, d_cur, on_step, record=True)
@@ -467,9 +550,13 @@ class ContactRun:
     def _measure(self, obs) -> dict:
         """The backend's contact point, force and press angle, and the surface normal there."""
         cp, fsum, press = self.arm.contact(obs)
-        x = cp if cp is not None else obs.state.ee_pose[:3, 3]
+        T = obs.state.ee_pose
+        x = cp if cp is not None else T[:3, 3]
+        # The surface normal where the tool's ball touches: the cloud's fit on smooth parts; at an
+        # edge (no normal of its own) the ball's contact normal, from its centre (ee pose) to the surface.
+        n = self._surface_normal(x) if self.max_tilt_deg is not None else self._ball_contact(T[:3, 3], T[:3, 2])[1]
         return {"contact_point": cp, "force_contact": fsum, "in_contact": bool(cp is not None and fsum >= self.threshold),
-                "normal": self._surface_normal(x), "at": x, "press_angle_deg": press}
+                "normal": n, "at": x, "press_angle_deg": press}
 
     def _sample(self, step: int, obs, a: np.ndarray, d: np.ndarray, stop_reason: str | None = None) -> dict:
         """The robot_sample_dict of CONTRACTS.md (plus extras) at the end of an explorer interval."""
@@ -673,6 +760,15 @@ class _AgentCoverage:
         from tergodic_cli.explore.metrics import ergodicity, touched_fraction
 
         return {"ergodicity": ergodicity(self.ex.p, self.cov, self.ex.mass), "touched_fraction": touched_fraction(self.ex.p, self.cov)}
+
+
+def turn_towards(d0: np.ndarray, d1: np.ndarray, max_deg: float) -> np.ndarray:
+    """Unit (3,): ``d0`` rotated towards ``d1`` (both unit) by at most ``max_deg`` degrees."""
+    ang = math.acos(max(-1.0, min(1.0, float(d0 @ d1))))
+    if ang <= math.radians(max_deg):
+        return d1
+    side = d1 - (d0 @ d1) * d0
+    return math.cos(math.radians(max_deg)) * d0 + math.sin(math.radians(max_deg)) * side / np.linalg.norm(side)
 
 
 def clamp_tilt(d: np.ndarray, max_deg: float) -> np.ndarray:

@@ -25,7 +25,7 @@ from tergodic_cli.robot.config import RobotConfig, validate_robot_config
 from tergodic_cli.robot.controller import JointImpedance, LineForceController, min_jerk
 from tergodic_cli.robot.interfaces import ArmState, ContactWrench, LineTarget, Observation
 from tergodic_cli.robot.run import SETTLE_S, ContactRun, _fmt, object_pose
-from tergodic_cli.robot.surface import check_reachable, reconstruct_mesh, sim_object_mesh, transform_points
+from tergodic_cli.robot.surface import check_reachable, curved_edge, reconstruct_mesh, sim_object_mesh, transform_points
 
 #: N/m of the approach's axial position servo: its set-point advances at the guarded speed, so a
 #: steady push on the tool (gravity-model error, posture torques) cannot make it touch faster (a
@@ -381,6 +381,22 @@ class SimArm:
         return i, t, io, rd, fault
 
 
+def closest_point_fn(mesh, T: np.ndarray):
+    """x (3,) -> (the closest point (3,) on ``mesh`` placed by ``T`` (4, 4), its triangle's unit normal
+    (3,), either sign), in T's target frame (open3d)."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(transform_points(T, mesh.vertices).astype(np.float32)),
+                        o3d.core.Tensor(np.asarray(mesh.triangles).astype(np.uint32)))
+
+    def closest(x: np.ndarray) -> np.ndarray:
+        out = scene.compute_closest_points(o3d.core.Tensor(np.asarray(x, dtype=np.float32).reshape(1, 3)))
+        return out["points"].numpy()[0].astype(float), out["primitive_normals"].numpy()[0].astype(float)
+
+    return closest
+
+
 class RobotRun(ContactRun):
     """The contact loop on the simulated arm, its scene built from the capture.
 
@@ -414,7 +430,7 @@ class RobotRun(ContactRun):
         else:
             h = float(meta.get("spacing_h_m") or mean_spacing(points))
             normals = oriented_normals(points, resolve_side(cfg.normal_side, meta))
-            mesh, T_mesh = reconstruct_mesh(points, normals, h, cfg.mesh_edge), np.eye(4)
+            mesh, T_mesh = reconstruct_mesh(points, normals, h, curved_edge(points, normals, cfg.mesh_edge)), np.eye(4)
             self.mesh_source = "cloud"
         self.mesh = mesh
         self._T_mesh_obj = np.asarray(T_mesh, dtype=float)
@@ -423,6 +439,7 @@ class RobotRun(ContactRun):
         try:
             super().__init__(capture, explorer, cfg, arm, T_obj, on_event=say)
             self.max_tilt_deg = None  # the tool follows the normal; what the arm cannot reach is dropped
+            self.closest = closest_point_fn(mesh, self._T_mesh_obj)
             self._plan_reach(capture, pose_given)
         except BaseException:
             arm.disconnect()
