@@ -2,7 +2,7 @@
 
 Usage (a few minutes with the defaults; the full run of docs/robot.md uses --steps 1000):
     OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/robot.py [--steps 300]
-        [--objects bowl,plate,mug,box] [--force 5] [--seed 0] [--gains tuned|paper] [--json out.json]
+        [--objects bowl,plate,mug,box,torus,partial,thin-mug] [--force 5] [--seed 0] [--gains tuned|paper] [--json out.json]
 
 For each built-in synthetic object (the box is the shape with sharp edges and vertical walls) it
 runs the robot (PyBullet, DIRECT, 1 kHz torque control) for ``--steps`` explorer steps at
@@ -96,6 +96,7 @@ def run_one(obj: str, steps: int, seed: int, force: float, nk: int, cache: str, 
     from tergodic_cli.basis import BasisConfig, get_basis
     from tergodic_cli.capture import CaptureConfig, capture_cloud
     from tergodic_cli.capture.filters import mean_spacing
+    from tergodic_cli.errors import TergodicError
     from tergodic_cli.explore import ExploreConfig, Explorer
     from tergodic_cli.explore.metrics import coverage_score
     from tergodic_cli.backends.pybullet import explore_with_robot
@@ -116,7 +117,12 @@ def run_one(obj: str, steps: int, seed: int, force: float, nk: int, cache: str, 
     ex = Explorer(basis, cap.target, cfg, start, on_event=lambda m: None)
     samples: list[dict] = []
     t0 = time.perf_counter()
-    out = explore_with_robot(cap, ex, rcfg, steps, on_step=lambda k, s: samples.append(s))
+    try:
+        out = explore_with_robot(cap, ex, rcfg, steps, on_step=lambda k, s: samples.append(s))
+    except TergodicError as exc:  # refused before any motion (bad input, nothing reachable): a row that says so
+        return {"object": obj, "seed": seed, "steps": steps, "force_N": force, "steps_done": 0,
+                "stop_reason": f"refused: {exc}", "eps_sponge": float("nan"), "eps_kinematic": float("nan"),
+                "bare_steps_per_s": bare}
     wall = time.perf_counter() - t0
     h = mean_spacing(cap.points)
     sponge = sponge_path(samples)
@@ -164,7 +170,8 @@ def table(rows: list[dict]) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=300, help="explorer steps per object (0.2 s each) [default: 300]")
-    ap.add_argument("--objects", default="bowl,plate,mug,box", help="synthetic objects [default: bowl,plate,mug,box]")
+    ap.add_argument("--objects", default="bowl,plate,mug,box,torus,partial,thin-mug",
+                    help="synthetic objects [default: bowl,plate,mug,box,torus,partial,thin-mug]")
     ap.add_argument("--force", type=float, default=5.0, help="desired force, N [default: 5]")
     ap.add_argument("--seed", type=int, default=0, help="seeds the start [default: 0]")
     ap.add_argument("--nk", type=int, default=200)

@@ -52,7 +52,7 @@ def explore(
     object_pose: Optional[str] = typer.Option(None, "--object-pose", help="[robot] Capture frame in the robot base frame: x,y,z[,roll,pitch,yaw] (m, deg) or x,y,z,qx,qy,qz,qw [default: 0.5 m in front of the base on a 0.2 m stand; identity for sim captures]."),
     workspace: Optional[str] = typer.Option(None, "--workspace", help="[robot] Workspace box xmin,ymin,zmin,xmax,ymax,zmax in the base frame, m."),
     explore_dt: Optional[float] = typer.Option(None, "--explore-dt", help="[robot] Simulated seconds per explorer step [default: 0.2; agent limits are rescaled so a step moves the same path]."),
-    normal_side: Optional[str] = typer.Option(None, "--normal-side", help="[robot] Side of the sheet the tool works on: auto, up or out."),
+    normal_side: Optional[str] = typer.Option(None, "--normal-side", help="[robot] Side of the sheet the tool works on: auto (= outward), outward, up or out."),
     gains: Optional[str] = typer.Option(None, "--gains", help="[pybullet] Controller gains: tuned (default) or paper (the paper's K, D and wrench PID on the full wrench, V-A3)."),
     gui: bool = typer.Option(False, "--gui", help="[pybullet] Open the PyBullet GUI (needs a display)."),
     realtime: bool = typer.Option(False, "--realtime", help="[pybullet] Pace the simulation to wall-clock time (with --gui)."),

@@ -51,6 +51,8 @@ RETREAT_TIMEOUT_S = 3.0
 CONTACT_TILT_MAX_DEG = 15.0
 #: Degrees the line target's direction turns at most per explorer step (edges, tight curves).
 MAX_TURN_DEG = 3.0
+#: Degrees the surface normal may turn over an explorer step for the line to follow it faster than that.
+GENTLE_TURN_DEG = 5.0
 #: Metres between the agent, back in reach, and the waiting tool beyond which the tool lifts and moves over.
 TRANSIT_M = 0.012
 #: Cosine of the normals' spread beyond which the ball's contact is taken to be at an edge.
@@ -476,11 +478,18 @@ class ContactRun:
                     a_cur, d_cur = a_new, d_new = self._start_line
                     obs = self.arm.get_observation()
                 turn = math.degrees(math.acos(min(1.0, float(d_new @ d_cur))))
-                if self.max_tilt_deg is None and turn > MAX_TURN_DEG:
+                # On a gentle curve the line may turn as fast as the surface's own normal over the step
+                # (+1 deg): at a flat MAX_TURN_DEG the bowl's 3.4 deg per 3 mm held the agent back
+                # (--gains paper: eps 1.30 x the kinematic agent's). At an edge (the cloud's normals
+                # spread) or on a tight curve (the torus's tube, 8.6 deg per step) it stays MAX_TURN_DEG.
+                n_c, smooth_c = self._surface_normal(a_cur, smooth=True)
+                geo = math.degrees(math.acos(min(1.0, float(n_a @ n_c))))
+                limit = max(MAX_TURN_DEG, geo + 1.0) if smooth and smooth_c and geo <= GENTLE_TURN_DEG else MAX_TURN_DEG
+                if self.max_tilt_deg is None and turn > limit:
                     # The normal turns fast (an edge, a tight curve): the ball rolls MAX_TURN_DEG about
                     # its contact, the line through where it then touches; the agent, reset to the
                     # tool tip, is held back with it.
-                    d_new = turn_towards(d_cur, d_new, MAX_TURN_DEG)
+                    d_new = turn_towards(d_cur, d_new, limit)
                     a_new = self._ball_contact(a_cur, d_new)[0]
                 if not waiting and self._reachable_at(a_new):
                     a_next, d_next = a_new, d_new

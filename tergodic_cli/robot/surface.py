@@ -62,12 +62,37 @@ def oriented_normals(points: np.ndarray, side: str, neighbors: int = 20) -> np.n
         # centroid") points normals into a torus's tube or a box's walls wherever it is ambiguous.
         pc.orient_normals_consistent_tangent_plane(min(neighbors, len(points) - 1))
         n = np.asarray(pc.normals).copy()
-        return n if _seen_from_above(points, n) >= 0 else -n
+        n = n if _seen_from_above(points, n) >= 0 else -n
+        return _away_from_close_sheet(points, n)
     n = np.asarray(pc.normals).copy()
     ref = np.array([0.0, 0.0, 1.0])[None, :] if side == "up" else points - points.mean(axis=0)
     flip = np.einsum("ij,ij->i", n, np.broadcast_to(ref, n.shape)) < 0
     n[flip] *= -1.0
     return n
+
+
+def _away_from_close_sheet(points: np.ndarray, normals: np.ndarray, reach: float = 0.01) -> np.ndarray:
+    """Normals (n, 3) turned away from another sheet closer than ``reach`` m along them, where the other
+    side is free: a thin wall's two sheets (the thin mug's, 4 mm apart) defeat the spanning tree's
+    propagation (52 % wrong), but each sheet faces away from its neighbour (the outer one out, the
+    inner one into the mug, where :func:`~tergodic_cli.robot.reach.occluded` marks it unreachable)."""
+    from scipy.spatial import cKDTree
+
+    from tergodic_cli.capture.filters import mean_spacing
+
+    h = mean_spacing(points)
+    tree = cKDTree(points)
+
+    def blocked(n):
+        hit = np.zeros(len(points), dtype=bool)
+        for s in np.arange(1.5 * h, reach, 0.5 * h):
+            hit |= np.isfinite(tree.query(points + s * n, distance_upper_bound=h)[0])
+        return hit
+
+    flip = blocked(normals) & ~blocked(-normals)
+    out = normals.copy()
+    out[flip] *= -1.0
+    return out
 
 
 def _seen_from_above(points: np.ndarray, normals: np.ndarray, cells: int = 32) -> float:
@@ -135,6 +160,25 @@ def reconstruct_mesh(points: np.ndarray, normals: np.ndarray, spacing: float, ed
             mesh.remove_unreferenced_vertices()
     return SurfaceMesh(np.asarray(mesh.vertices).copy(), np.asarray(mesh.triangles, dtype=np.int64).copy(),
                        time.perf_counter() - t0)
+
+
+def near_border(mesh: SurfaceMesh, points: np.ndarray, width: float) -> np.ndarray:
+    """(n,) bool: ``points`` (n, 3) within ``width`` m of the mesh's open border (edges of one triangle).
+
+    A sponge ball pressing there hangs over the sheet's edge; a ball-pivoting border is ragged, so
+    the ball rolls off it (the partial scan's free border: 28 deg off the normal)."""
+    from scipy.spatial import cKDTree
+
+    T = np.asarray(mesh.triangles)
+    E = np.sort(np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]]), axis=1)
+    edges, count = np.unique(E, axis=0, return_counts=True)
+    border = edges[count == 1]
+    if len(border) == 0:
+        return np.zeros(len(points), dtype=bool)
+    V = np.asarray(mesh.vertices, dtype=float)
+    s = np.linspace(0.0, 1.0, 6)[:, None, None]  # points along each border edge (edges ~10 mm)
+    samples = (V[border[:, 0]][None] * (1 - s) + V[border[:, 1]][None] * s).reshape(-1, 3)
+    return cKDTree(samples).query(np.asarray(points, dtype=float), distance_upper_bound=width)[0] < width
 
 
 def mesh_distance(mesh: SurfaceMesh, points: np.ndarray) -> np.ndarray:

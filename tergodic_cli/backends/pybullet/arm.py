@@ -25,7 +25,8 @@ from tergodic_cli.robot.config import RobotConfig, validate_robot_config
 from tergodic_cli.robot.controller import JointImpedance, LineForceController, min_jerk
 from tergodic_cli.robot.interfaces import ArmState, ContactWrench, LineTarget, Observation
 from tergodic_cli.robot.run import SETTLE_S, ContactRun, _fmt, object_pose
-from tergodic_cli.robot.surface import check_reachable, curved_edge, reconstruct_mesh, sim_object_mesh, transform_points
+from tergodic_cli.robot.surface import (SurfaceMesh, check_reachable, curved_edge, near_border, reconstruct_mesh,
+                                         sim_object_mesh, transform_points)
 
 #: N/m of the approach's axial position servo: its set-point advances at the guarded speed, so a
 #: steady push on the tool (gravity-model error, posture torques) cannot make it touch faster (a
@@ -457,6 +458,13 @@ class RobotRun(ContactRun):
         T, self.reachable = plan_reach(arm.dev._chain, self.points, self.normals, target, self._x_down,
                                        np.array(self.cfg.picture_q), arm.q_min, arm.q_max,
                                        self.T_obj if pose_given else None, self.cfg.hover_height)
+        # The ball hangs over an open sheet's border (a partial scan's free edge) and rolls off it.
+        border = near_border(SurfaceMesh(transform_points(self._T_mesh_obj, self.mesh.vertices), self.mesh.triangles),
+                             self.points, self.cfg.sponge.radius)
+        if float(target @ (border & self.reachable)) > 1e-3 * float(target.sum()):
+            self.on_event(0, f"robot: {100 * float(target @ (border & self.reachable)) / float(target.sum()):.0f} % of "
+                             f"the target lies within the sponge's radius of the sheet's open border; dropped")
+        self.reachable = self.reachable & ~border
         if not pose_given:
             self.T_obj = T
             self.points_base = transform_points(T, self.points)
