@@ -29,6 +29,20 @@ def _contact_force(run) -> float:
     return float(sum(c[2] for c in run.scene.sponge_contacts()))
 
 
+def _watch_contact_peak(run, state: str | None = None) -> list:
+    """PyBullet's summed contact force after every physics step (in ``state`` only, if given): [peak]."""
+    peak = [0.0]
+    step = run.scene.step
+
+    def watched():
+        step()
+        if state is None or run.sm.state == state:
+            peak[0] = max(peak[0], _contact_force(run))
+
+    run.scene.step = watched
+    return peak
+
+
 # ---------------------------------------------------------------------------------- item 3: the sensor
 def test_no_reading_before_the_first_physics_step_counts(plate):
     # PyBullet reports a zero reaction before its first step; with the tool weight subtracted that
@@ -166,14 +180,7 @@ def test_run_peak_is_every_ticks_maximum(plate):
     cfg = RobotConfig(**FAST)
     with RobotRun(cap, _explorer(cap, basis, cfg), cfg) as run:
         run.arm.fast = False
-        peak = [0.0]
-        step = run.scene.step
-
-        def watched():
-            step()
-            peak[0] = max(peak[0], _contact_force(run))
-
-        run.scene.step = watched
+        peak = _watch_contact_peak(run)
         out = run.run(10)
     assert out["stop_reason"] == "completed"
     assert out["force_peak_N"] >= out["force_peak_5hz_N"]
@@ -202,15 +209,7 @@ def test_first_touch_on_the_default_sim_capture_is_gentle(bowl_on_table, force, 
     start = cap.points[np.random.default_rng(seed).integers(len(cap.points))][None]
     with RobotRun(cap, Explorer(basis, cap.target, ec, start, on_event=lambda m: None), cfg) as run:
         assert run.mesh_source == "sim_object" and run.T_obj[2, 3] == pytest.approx(0.0, abs=1e-9)  # on the table
-        peak = [0.0]
-        step = run.scene.step
-
-        def watched():
-            step()
-            if run.sm.state == "approach":
-                peak[0] = max(peak[0], _contact_force(run))
-
-        run.scene.step = watched
+        peak = _watch_contact_peak(run, "approach")
         out = run.run(3)
     assert out["stop_reason"] == "completed"
     assert peak[0] <= 1.5 * force  # PyBullet's contact force, every tick of the approach
@@ -226,14 +225,7 @@ def test_paper_gains_press_steadily_with_the_full_wrench_pid(plate):
     cap, basis = plate
     cfg = RobotConfig(gains=PAPER_GAINS, **FAST)
     with RobotRun(cap, _explorer(cap, basis, cfg), cfg) as run:
-        peak = [0.0]
-        step = run.scene.step
-
-        def watched():
-            step()
-            peak[0] = max(peak[0], _contact_force(run))
-
-        run.scene.step = watched
+        peak = _watch_contact_peak(run)
         out = run.run(10)
     assert out["stop_reason"] == "completed", out["stop_reason"]
     assert out["tick_steady"] > 500 and out["force_rms_error_rel"] < 0.1

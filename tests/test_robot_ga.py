@@ -150,16 +150,21 @@ def _ga_control_law(T, J_base, dq, a, d, W_meas, g: ControllerGains, f_cmd_z) ->
     return np.array([-(c.multivector() | Wg).vector()[0] for c in cols])
 
 
-@pytest.mark.parametrize("seed", range(5))
-def test_matrix_control_law_equals_geometric_algebra(seed):
-    rng = _rng(20 + seed)
+def _random_line_state(rng):
+    """A random TCP motor, Jacobian, joint state, target line (a, unit d) near the tool and a measured wrench."""
     T = _random_motor(rng, 0.3)
     J = rng.normal(size=(6, 7)) * 0.5
     q, dq = rng.normal(size=7), rng.normal(size=7) * 0.3
     a = T[:3, 3] + rng.normal(size=3) * 0.01
     d = T[:3, :3] @ np.array([0.0, 0.0, 1.0]) + rng.normal(size=3) * 0.1
     d /= np.linalg.norm(d)
-    W_meas = rng.normal(size=6)
+    return T, J, q, dq, a, d, rng.normal(size=6)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_matrix_control_law_equals_geometric_algebra(seed):
+    rng = _rng(20 + seed)
+    T, J, q, dq, a, d, W_meas = _random_line_state(rng)
     g = ControllerGains(spin_stiffness=0.0, nullspace_stiffness=0.0, nullspace_damping=0.0, limit_stiffness=0.0,
                         force_filter_hz=0.0, guard_damping=0.0)  # (the speed guard is no part of eq. 47)
     ctrl = LineForceController(g, 1e-3, q_rest=q, x_ref=np.array([1.0, 0.0, 0.0]))
@@ -178,13 +183,7 @@ def test_wrench_pid_on_the_full_wrench(full):
     """Eqs. 40-41: W_C = K_p W_e + K_i ∫ W_e, W_e = W_d - W'_m, W_d = (0, 0, F_d, 0, 0, 0) (zero desired
     torque): K_p on all six components with ``pid_wrench`` (K_i on the axial one), else on the axial force only."""
     rng = _rng(40)
-    T = _random_motor(rng, 0.3)
-    J = rng.normal(size=(6, 7)) * 0.5
-    q, dq = rng.normal(size=7), rng.normal(size=7) * 0.3
-    a = T[:3, 3] + rng.normal(size=3) * 0.01
-    d = T[:3, :3] @ np.array([0.0, 0.0, 1.0]) + rng.normal(size=3) * 0.1
-    d /= np.linalg.norm(d)
-    W_meas = rng.normal(size=6)
+    T, J, q, dq, a, d, W_meas = _random_line_state(rng)
     g = ControllerGains(spin_stiffness=0.0, nullspace_stiffness=0.0, nullspace_damping=0.0, limit_stiffness=0.0,
                         force_filter_hz=0.0, guard_damping=0.0, pid_wrench=full, kp=0.5, ki=5.0, kd=0.0)
     ctrl = LineForceController(g, 1e-3, q_rest=q, x_ref=np.array([1.0, 0.0, 0.0]))

@@ -112,7 +112,7 @@ SHRINK = 0.98
 #: The footprint gain is summed over the points within this many r_a (φ(2 r_a) = e^-16 = 1e-7).
 GAIN_REACH = 2.0
 #: The broad gain (reach): its kernel is BROAD_WIDTH times the gain's, it weighs BROAD_WEIGHT, and it
-#: is summed over the target's points within BROAD_REACH of its width (e^-9: 1e-4 of the centre).
+#: is summed over the target's points within BROAD_REACH of its width (φ < 1e-7 beyond, as GAIN_REACH).
 BROAD_WIDTH = 3.0
 BROAD_WEIGHT = 0.15
 BROAD_REACH = 2.0
