@@ -42,8 +42,6 @@ from tergodic_cli.explore.config import ExploreConfig, validate_config
 SOURCES = ("file", "capture", "synthetic")
 #: Capture options an object table may carry (CaptureConfig fields).
 CAPTURE_KEYS = ("voxel", "voxel_rule", "units", "target", "marking", "seed", "noise", "crop", "outliers")
-#: ExploreConfig fields that a sweep sets itself or that make no sense per run.
-RESERVED = ("steps", "nk", "seed", "basis_neighbors")
 EXPLORE_KEYS = tuple(f.name for f in fields(ExploreConfig) if f.name not in ("steps", "seed"))
 FIX = "see the grid format in 'tergodic sweep --help' or docs/speed.md"
 
@@ -201,6 +199,14 @@ def run_config(grid: Grid, obj: ObjectSpec, combo: dict) -> ExploreConfig:
     if "normal_hint" in values:
         values["normal_hint"] = tuple(values["normal_hint"])
     return ExploreConfig(steps=grid.steps, seed=grid.seed, basis_neighbors=obj.neighbors, **values)
+
+
+def alpha_key(alpha) -> tuple:
+    """Sort key of α values: numbers in order, then schedules ("50:10@200") by their text."""
+    try:
+        return (0, float(alpha), "")
+    except (TypeError, ValueError):
+        return (1, 0.0, str(alpha))
 
 
 def run_id(object_key: str, start: int, config: dict) -> str:

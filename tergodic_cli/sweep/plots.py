@@ -18,24 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from tergodic_cli.sweep.grid import Grid
+from tergodic_cli.sweep.grid import Grid, alpha_key
 
-METRICS = (("ergodicity", "ε (unit-mass eq. 48, dimensionless)"), ("residual_ref", "residual of the published code (unitless)"))
-#: The residual's key: "residual_ref", or "ergodicity_ref" in results written before the rename.
-RESIDUAL_KEYS = ("residual_ref", "ergodicity_ref")
-
-
-def _metrics(rows: list[dict]) -> tuple[tuple[str, str], ...]:
-    """METRICS with the residual under the key the results use; ε and the residual each get their own row of axes."""
-    ref = next((k for k in RESIDUAL_KEYS if rows and k in rows[0]), "residual_ref")
-    return tuple((ref if key == "residual_ref" else key, label) for key, label in METRICS)
-
-
-def _num(alpha) -> float | None:
-    try:
-        return float(alpha)
-    except (TypeError, ValueError):
-        return None
+METRICS = (("ergodicity", "ε (unit-mass eq. 48, dimensionless)"),
+           ("residual_ref", "residual of the published code (unitless)"))
 
 
 def plot_sweep(out: Path, grid: Grid, rows: list[dict], series: dict) -> list[str]:
@@ -58,9 +44,9 @@ def plot_sweep(out: Path, grid: Grid, rows: list[dict], series: dict) -> list[st
             continue
         suffix = "".join(f"__{k}={v}" for k, v in zip(varied, variant))
         nks = sorted({int(r["nk"]) for r in sel})
-        alphas = sorted({str(r["alpha"]) for r in sel}, key=lambda a: (_num(a) is None, _num(a) or 0, a))
-        numeric = [a for a in alphas if _num(a) is not None]
-        best_alpha = min(numeric, key=lambda a: abs(math.log(_num(a) / 10.0))) if numeric else alphas[0]
+        alphas = sorted({str(r["alpha"]) for r in sel}, key=alpha_key)
+        numeric = [a for a in alphas if alpha_key(a)[0] == 0]
+        best_alpha = min(numeric, key=lambda a: abs(math.log(float(a) / 10.0))) if numeric else alphas[0]
         figs = {
             f"eps_vs_nk{suffix}.png": _final_plot(plt, sel, objects, "nk", nks, "alpha", alphas, "nK", log2=True),
             f"eps_vs_alpha{suffix}.png": (_final_plot(plt, sel, objects, "alpha", numeric, "nk", nks, "α", log10=True)
@@ -80,63 +66,64 @@ def plot_sweep(out: Path, grid: Grid, rows: list[dict], series: dict) -> list[st
     return files
 
 
-def _final_plot(plt, rows, objects, xkey, xs, lkey, lines, xlabel, log2=False, log10=False):
+def _panels(plt, objects, draw, title, **title_kw):
+    """Objects across, ε and the residual down (each on its own axes); ``draw(ax, obj, metric)``
+    fills a panel."""
     fig, axes = plt.subplots(2, len(objects), figsize=(4.2 * len(objects), 6.4), squeeze=False)
     for col, obj in enumerate(objects):
-        for row, (metric, label) in enumerate(_metrics(rows)):
+        for row, (metric, label) in enumerate(METRICS):
             ax = axes[row, col]
-            for line in lines:
-                xv, mean, std = [], [], []
-                for x in xs:
-                    vals = [r[metric] for r in rows if r["object"] == obj and str(r[xkey]) == str(x)
-                            and str(r[lkey]) == str(line) and r[metric] is not None]
-                    if vals:
-                        xv.append(float(x))
-                        mean.append(np.mean(vals))
-                        std.append(np.std(vals))
-                if xv:
-                    mean, std = np.array(mean), np.array(std)
-                    ax.plot(xv, mean, marker="o", ms=3, label=f"{'α' if lkey == 'alpha' else 'nK'} = {line}")
-                    ax.fill_between(xv, mean - std, mean + std, alpha=0.15)
-            if log2:
-                ax.set_xscale("log", base=2)
-                ax.set_xticks([float(x) for x in xs], [str(x) for x in xs])
-            if log10:
-                ax.set_xscale("log")
-            ax.set_xlabel(xlabel)
+            draw(ax, obj, metric)
             ax.grid(alpha=0.3)
             if row == 0:
-                ax.set_title(obj)
+                ax.set_title(title(obj), **title_kw)
             if col == 0:
                 ax.set_ylabel(label)
     axes[0, -1].legend(fontsize=7, loc="best")
     fig.tight_layout()
     return fig
+
+
+def _final_plot(plt, rows, objects, xkey, xs, lkey, lines, xlabel, log2=False, log10=False):
+    def draw(ax, obj, metric):
+        for line in lines:
+            xv, mean, std = [], [], []
+            for x in xs:
+                vals = [r[metric] for r in rows if r["object"] == obj and str(r[xkey]) == str(x)
+                        and str(r[lkey]) == str(line) and r[metric] is not None]
+                if vals:
+                    xv.append(float(x))
+                    mean.append(np.mean(vals))
+                    std.append(np.std(vals))
+            if xv:
+                mean, std = np.array(mean), np.array(std)
+                ax.plot(xv, mean, marker="o", ms=3, label=f"{'α' if lkey == 'alpha' else 'nK'} = {line}")
+                ax.fill_between(xv, mean - std, mean + std, alpha=0.15)
+        if log2:
+            ax.set_xscale("log", base=2)
+            ax.set_xticks([float(x) for x in xs], [str(x) for x in xs])
+        if log10:
+            ax.set_xscale("log")
+        ax.set_xlabel(xlabel)
+
+    return _panels(plt, objects, draw, str)
 
 
 def _time_plot(plt, rows, objects, series, index, lkey, lines, fixed: dict, fixed_label: str, llabel: str):
     if not index:
         return None
-    fig, axes = plt.subplots(2, len(objects), figsize=(4.2 * len(objects), 6.4), squeeze=False)
-    for col, obj in enumerate(objects):
-        for row, (metric, label) in enumerate(_metrics(rows)):
-            ax = axes[row, col]
-            for line in lines:
-                ids = [r["run_id"] for r in rows if r["object"] == obj and str(r[lkey]) == str(line)
-                       and all(str(r[k]) == str(v) for k, v in fixed.items())]
-                if not ids:
-                    continue
-                Y = np.stack([series[metric][index[i]] for i in ids]).astype(np.float64)
-                t = np.arange(1, Y.shape[1] + 1)
-                mean, std = np.nanmean(Y, axis=0), np.nanstd(Y, axis=0)
-                ax.plot(t, mean, lw=1.2, label=f"{llabel} = {line}")
-                ax.fill_between(t, mean - std, mean + std, alpha=0.2)
-            ax.set_xlabel("step")
-            ax.grid(alpha=0.3)
-            if row == 0:
-                ax.set_title(f"{obj} ({fixed_label}, mean ± std over starts)", fontsize=9)
-            if col == 0:
-                ax.set_ylabel(label)
-    axes[0, -1].legend(fontsize=7, loc="best")
-    fig.tight_layout()
-    return fig
+
+    def draw(ax, obj, metric):
+        for line in lines:
+            ids = [r["run_id"] for r in rows if r["object"] == obj and str(r[lkey]) == str(line)
+                   and all(str(r[k]) == str(v) for k, v in fixed.items())]
+            if not ids:
+                continue
+            Y = np.stack([series[metric][index[i]] for i in ids]).astype(np.float64)
+            t = np.arange(1, Y.shape[1] + 1)
+            mean, std = np.nanmean(Y, axis=0), np.nanstd(Y, axis=0)
+            ax.plot(t, mean, lw=1.2, label=f"{llabel} = {line}")
+            ax.fill_between(t, mean - std, mean + std, alpha=0.2)
+        ax.set_xlabel("step")
+
+    return _panels(plt, objects, draw, lambda obj: f"{obj} ({fixed_label}, mean ± std over starts)", fontsize=9)

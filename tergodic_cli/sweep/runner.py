@@ -34,9 +34,9 @@ from typing import Callable
 
 import numpy as np
 
-from tergodic_cli.atomic import file_sha256
-from tergodic_cli.errors import TergodicError, require
-from tergodic_cli.sweep.grid import Grid, ObjectSpec, load_grid, run_config, run_id
+from tergodic_cli.atomic import _json_default, file_sha256
+from tergodic_cli.errors import TergodicError, os_cause, require
+from tergodic_cli.sweep.grid import Grid, ObjectSpec, alpha_key, load_grid, run_config, run_id
 
 ENGINES = ("joblib", "ray")
 SERIES = ("ergodicity", "residual_ref", "touched_fraction")
@@ -187,12 +187,10 @@ def run_batch(task: dict) -> list[dict]:
 
 # ---------------------------------------------------------------------------------- engines
 def _ray(address: str | None, on_event):
-    """The ray module, initialised on ``address`` (or a new local cluster), and a cleanup callable."""
-    try:
-        import ray
-    except ImportError:
-        raise TergodicError("--engine ray needs Ray, which is not installed",
-                            "pip install 'ray>=2.9' (or use --engine joblib)") from None
+    """The ray module (imported by run_sweep already), initialised on ``address`` (or a new local
+    cluster), and a cleanup callable."""
+    import ray
+
     started = False
     if not ray.is_initialized():
         try:
@@ -321,22 +319,24 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
                 record["series_sha256"] = file_sha256(runs_dir / f"{rec['run_id']}.npz")
                 record[RECORD_SHA] = record_checksum(record)
                 write_json(runs_dir / f"{rec['run_id']}.json", record)
-                finished[rec["run_id"]] = (json.loads(json.dumps(record, default=_jsonable)),
+                finished[rec["run_id"]] = (json.loads(json.dumps(record, default=_json_default)),
                                            {k: np.asarray(v) for k, v in rec["series"].items()})
                 computed += 1
     table, series = _collect(plan, finished)
-    staged = _Staged(out)
-    with staged as stage:  # the outputs are built aside and moved in together
+    result = SweepResult(out=out, n_runs=len(plan), computed=computed, skipped=len(plan) - len(pending),
+                         failed=failed, table=table)
+
+    def build(stage: Path) -> list[str]:
         files = _write_outputs(stage, grid, table, series, parquet)
         if plots and table:
             from tergodic_cli.sweep.plots import plot_sweep
 
             files += plot_sweep(stage, grid, table, series)
-        result = SweepResult(out=out, n_runs=len(plan), computed=computed, skipped=len(plan) - len(pending),
-                             failed=failed, wall_s=time.perf_counter() - t_start, files=files, table=table)
+        result.wall_s = time.perf_counter() - t_start
         _write_sweep_json(stage, grid, objects, engine, jobs, plan, computed, result, failed, files)
-        staged.files = files + ["sweep.json"]
-    result.files = files + ["sweep.json"]
+        return files + ["sweep.json"]
+
+    result.files = _publish(out, build)
     return result
 
 
@@ -354,43 +354,26 @@ def _write_sweep_json(stage: Path, grid, objects, engine, jobs, plan, computed, 
         "failed": failed, "wall_s": result.wall_s, "files": files, "versions": library_versions()})
 
 
-class _Staged:
-    """A temporary folder inside ``out`` (same filesystem) whose ``files`` are renamed into ``out``
-    once all are written; on an error it is removed and the old outputs stay as they were."""
+def _publish(out: Path, build: Callable[[Path], list[str]]) -> list[str]:
+    """``build(stage)`` writes the outputs into a temporary folder inside ``out`` (same filesystem);
+    the files it names are then renamed into ``out`` together. On an error the folder is removed
+    and the old outputs stay as they were. Returns the names."""
+    import shutil
+    import tempfile
 
-    def __init__(self, out: Path):
-        self.out, self.files, self.path = out, [], None
-
-    def __enter__(self) -> Path:
-        import tempfile
-
+    try:
+        stage = Path(tempfile.mkdtemp(prefix=".results.tmp-", dir=out))
         try:
-            self.path = Path(tempfile.mkdtemp(prefix=".results.tmp-", dir=self.out))
-        except OSError as exc:
-            raise _os_error(exc, self.out) from None
-        return self.path
-
-    def __exit__(self, exc_type, exc, tb) -> bool:
-        import shutil
-
-        try:
-            if exc_type is None:
-                for name in self.files:
-                    os.replace(self.path / name, self.out / name)
-        except OSError as err:
-            raise _os_error(err, self.out) from None
+            files = build(stage)
+            for name in files:
+                os.replace(stage / name, out / name)
         finally:
-            shutil.rmtree(self.path, ignore_errors=True)
-        if isinstance(exc, OSError):
-            raise _os_error(exc, self.out) from None
-        return False
-
-
-def _os_error(exc: OSError, out: Path) -> TergodicError:
-    from tergodic_cli.atomic import os_cause
-
-    return TergodicError(f"cannot write the sweep's results in {out}: {os_cause(exc)}",
-                         "free space or fix the folder's permissions, then run the same command again: finished runs are kept")
+            shutil.rmtree(stage, ignore_errors=True)
+    except OSError as exc:
+        raise TergodicError(f"cannot write the sweep's results in {out}: {os_cause(exc)}",
+                            "free space or fix the folder's permissions, then run the same command again: "
+                            "finished runs are kept") from None
+    return files
 
 
 #: The record's checksum of its own content (canonical JSON without this key).
@@ -403,7 +386,7 @@ SUMMARY_KEYS = ("steps", "ergodicity", "residual_ref", "touched_fraction", "ergo
 
 def record_checksum(record: dict) -> str:
     body = {k: v for k, v in record.items() if k != RECORD_SHA}
-    text = json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True, default=_jsonable)
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True, default=_json_default)
     return hashlib.sha256(text.encode()).hexdigest()
 
 
@@ -431,12 +414,6 @@ def load_record(runs_dir: Path, rid: str):
     except (OSError, ValueError, KeyError):
         return f"runs/{rid}.npz: missing or unreadable"
     return rec, series
-
-
-def _jsonable(obj):
-    from tergodic_cli.atomic import _json_default
-
-    return _json_default(obj)
 
 
 def _batches(pending, grid: Grid, jobs: int, cache_dir) -> list[dict]:
@@ -493,7 +470,7 @@ def _collect(plan, finished: dict) -> tuple[list[dict], dict]:
         for k in SERIES:
             series[k].append(run_series[k])
         ids.append(rid)
-    order = sorted(range(len(rows)), key=lambda i: (rows[i]["object"], rows[i]["nk"], _alpha_key(rows[i]["alpha"]),
+    order = sorted(range(len(rows)), key=lambda i: (rows[i]["object"], rows[i]["nk"], alpha_key(rows[i]["alpha"]),
                                                     [str(rows[i].get(k)) for k in rows[i] if k not in LEAD_COLUMNS
                                                      and k not in METRIC_COLUMNS], rows[i]["start"]))
     rows = [rows[i] for i in order]
@@ -501,13 +478,6 @@ def _collect(plan, finished: dict) -> tuple[list[dict], dict]:
     for k in SERIES:
         merged[k] = np.stack([series[k][i] for i in order]) if order else np.zeros((0, 0), np.float32)
     return rows, merged
-
-
-def _alpha_key(alpha: str):
-    try:
-        return (0, float(alpha), "")
-    except ValueError:
-        return (1, 0.0, alpha)
 
 
 def _write_outputs(out: Path, grid: Grid, rows: list[dict], series: dict, parquet: bool) -> list[str]:
