@@ -291,7 +291,7 @@ class _Run:
 def _write_run(out: Path, run: _Run) -> dict:
     """The explorer loop and the artefacts, written into ``out`` (the temporary run folder)."""
     cfg, explorer, say, spec = run.cfg, run.explorer, run.say, run.log or LogSpec()
-    recorder = RunRecorder(explorer, cfg.steps)
+    recorder = RunRecorder(explorer)
     runlog = _open_log(out, cfg, run.basis, run.capture, spec) if run.log else None
     try:
         if runlog is not None:
@@ -305,11 +305,10 @@ def _write_run(out: Path, run: _Run) -> dict:
             if runlog is not None:
                 runlog.log_event(step, step * cfg.dt, msg)
 
-        if runlog is not None:
-            explorer.on_event = lambda msg: event_hook(explorer.step_index, msg)
+        explorer.on_event = lambda msg: event_hook(explorer.step_index, msg)
 
         def after_step(step: int, robot_sample: dict | None) -> None:
-            recorder.record(step, robot_sample)
+            recorder.record(step)
             if runlog is not None:
                 runlog.log_step(step, step * cfg.dt, positions=explorer.positions, velocities=explorer.velocities,
                                 normals=explorer.normals, metrics=explorer.metrics(), step_ms=explorer.last_step_ms,
@@ -498,11 +497,8 @@ def make_backend(robot: str = "kinematic", robot_options: dict | None = None, ha
     require(not dry_run or robot == "franka", "--dry-run needs a real robot", "use it with --robot franka")
     if robot == "kinematic":
         return Kinematic()
-    try:
-        from tergodic_cli.robot import RobotConfig
-    except ImportError as exc:
-        raise TergodicError(f"the robot backend is not available ({str(exc).splitlines()[0][:80]})",
-                            "use --robot kinematic, or install tergodic with its robot dependencies") from None
+    from tergodic_cli.robot import RobotConfig
+
     robot_cfg = make_robot_config(RobotConfig, robot_options)
     if robot == "franka":
         return Franka(robot_cfg, hardware)
@@ -540,59 +536,42 @@ def _log_cloud(runlog, explorer: Explorer, step: int) -> None:
     runlog.log_cloud(step, coverage=explorer.coverage, heat=explorer.heat, source=explorer.source, target=explorer.p)
 
 
-ROW_FIELDS = ("step", "time", "ergodicity", "residual_ref", "touched_fraction", "step_ms")
+#: trajectory.npz's per-step arrays, in the file's order: (T, N, 3) vectors, then (T,) scalars.
 VEC_FIELDS = ("positions", "velocities", "normals", "accelerations")
+SCALAR_FIELDS = ("time", "ergodicity", "residual_ref", "touched_fraction", "step_ms")
 
 
 class RunRecorder:
-    """Per-step arrays, preallocated for the planned steps (grown if a backend runs longer).
+    """The explorer's state after every step: trajectory.npz and the summary's series."""
 
-    Scalars live in one (steps, 6) array and vectors in one (4, steps, N, 3) array.
-    """
+    def __init__(self, explorer: Explorer):
+        self.ex, self.vecs, self.rows = explorer, [], []
 
-    def __init__(self, explorer: Explorer, steps: int):
-        self.ex = explorer
-        N = len(explorer.positions)
-        self.count = 0
-        self.rows = np.zeros((steps, len(ROW_FIELDS)))
-        self.vecs = np.zeros((len(VEC_FIELDS), steps, N, 3))
-        self._views()
+    @property
+    def count(self) -> int:
+        return len(self.rows)
 
-    def _views(self) -> None:
-        self.sca = {name: self.rows[:, i] for i, name in enumerate(ROW_FIELDS) if name != "step"}
-        self.vec = {name: self.vecs[i] for i, name in enumerate(VEC_FIELDS)}
-        self.step = self.rows[:, 0]  # the explorer step number of each row
+    def record(self, step: int) -> None:
+        ex, m = self.ex, self.ex.metrics()
+        self.vecs.append(np.stack([getattr(ex, k) for k in VEC_FIELDS]))  # a copy: the explorer works in place
+        self.rows.append((step * ex.cfg.dt, m["ergodicity"], m["residual_ref"], m["touched_fraction"],
+                          ex.last_step_ms))
 
-    def record(self, step: int, robot_sample: dict | None) -> None:
-        k = self.count
-        if k >= len(self.rows):
-            grow = max(k, 16)
-            self.rows = np.concatenate([self.rows, np.zeros((grow,) + self.rows.shape[1:])])
-            self.vecs = np.concatenate([self.vecs, np.zeros((self.vecs.shape[0], grow) + self.vecs.shape[2:])], axis=1)
-            self._views()
-        ex = self.ex
-        self.vec["positions"][k] = ex.positions
-        self.vec["velocities"][k] = ex.velocities
-        self.vec["accelerations"][k] = ex.accelerations
-        self.vec["normals"][k] = ex.normals
-        m = ex.metrics()
-        for name in ("ergodicity", "residual_ref", "touched_fraction"):
-            self.sca[name][k] = m[name]
-        self.sca["step_ms"][k] = ex.last_step_ms
-        self.sca["time"][k] = step * ex.cfg.dt
-        self.step[k] = step
-        self.count = k + 1
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The per-step arrays by name (after at least one step)."""
+        vecs, rows = np.array(self.vecs, dtype=np.float64), np.array(self.rows, dtype=np.float64)
+        return {**{k: vecs[:, i] for i, k in enumerate(VEC_FIELDS)},
+                **{k: rows[:, i] for i, k in enumerate(SCALAR_FIELDS)}}
 
     def series(self) -> dict[str, np.ndarray]:
-        return {k: self.sca[k][: self.count] for k in ("ergodicity", "residual_ref", "touched_fraction", "step_ms")}
+        return {k: v for k, v in self.arrays().items() if k in SCALAR_FIELDS[1:]}
 
     def write(self, path: Path, start: np.ndarray) -> None:
         from tergodic_cli.atomic import write_npz
 
-        ex, c = self.ex, self.count
-        write_npz(path, **{k: a[:c] for k, a in self.vec.items()}, **{k: a[:c] for k, a in self.sca.items()},
-                  start=np.asarray(start, dtype=np.float64), coverage=ex.coverage, heat=ex.heat, source=ex.source,
-                  target=ex.p, points=ex.points)
+        ex = self.ex
+        write_npz(path, **self.arrays(), start=np.asarray(start, dtype=np.float64), coverage=ex.coverage,
+                  heat=ex.heat, source=ex.source, target=ex.p, points=ex.points)
 
 
 def _provenance(run: _Run, robot_extra: dict, logged: bool) -> dict:

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import sys
-import types
 
 import numpy as np
 import pytest
@@ -184,12 +182,6 @@ def test_empty_target_is_refused(tmp_path):
     cloud = generate_synthetic("plate", "dots", seed=0, spacing=0.006)
     save_capture(Capture(cloud.points, cloud.colors, np.zeros(len(cloud.points)), {"kind": "test"}), tmp_path / "cap")
     assert_one_line_error(_explore(tmp_path / "cap", tmp_path / "run"), "empty")
-
-
-def test_missing_robot_backend_is_one_line(cap, tmp_path, monkeypatch):
-    monkeypatch.setitem(sys.modules, "tergodic_cli.robot", types.ModuleType("tergodic_cli.robot"))
-    res = _explore(cap, tmp_path / "run", "--robot", "pybullet")
-    assert_one_line_error(res, "robot backend is not available")
 
 
 @pytest.mark.slow

@@ -299,7 +299,9 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
 
     seed_txt = metadata.get(S.META_SEED, {}).get("seed", "")
     series = _stack_rows(rows)
-    _to_simulated_time(cloud_frames, metadata.get(S.META_TERGODIC, {}))
+    for c in cloud_frames:  # log times are wall-clock from version 2 on (t0 + simulated t): back to simulated t
+        c.t_ns -= t0
+        c.t = c.t_ns / 1e9
     _assign_cloud_steps(cloud_frames, series)
     sidecar = attachments.get(S.ATTACHMENT_SIDECAR)
     return RunLogData(
@@ -390,15 +392,10 @@ def _step_decoder(schema: Any):
 
     def row(data: bytes) -> dict:
         m = decode(data)
-        out: dict[str, Any] = {"step": m.step, "t": m.t}
-        for k in METRIC_FIELDS:
-            out[k] = getattr(m, k) if m.HasField(k) else None
-        out["step_ms"] = m.step_ms
-        for k, v in zip(m.extra_names, m.extra_values):
-            out[k] = v
-        n = m.n_agents
+        out = {"step": m.step, "t": m.t, **{k: getattr(m, k) if m.HasField(k) else None for k in METRIC_FIELDS},
+               "step_ms": m.step_ms, **dict(zip(m.extra_names, m.extra_values))}
         for k in VECTOR_FIELDS:
-            out[k] = np.asarray(getattr(m, k), dtype=np.float64).reshape(n, 3)
+            out[k] = np.asarray(getattr(m, k), dtype=np.float64).reshape(m.n_agents, 3)
         return out
 
     return row
@@ -430,16 +427,6 @@ def _time_origin(info: dict) -> int:
         raise TergodicError(f"the log's time_origin_ns {raw[:40]!r} is not a whole number of nanoseconds",
                             "the file is damaged; re-run 'tergodic explore'")
     return int(raw)
-
-
-def _to_simulated_time(clouds: list[CloudFrame], info: dict) -> None:
-    """Clouds' log times are wall-clock from version 2 on (``time_origin_ns`` + simulated t): back to simulated t."""
-    t0 = _time_origin(info)
-    if not t0:
-        return
-    for c in clouds:
-        c.t_ns -= t0
-        c.t = c.t_ns / 1e9
 
 
 def _assign_cloud_steps(clouds: list[CloudFrame], series: dict[str, np.ndarray]) -> None:

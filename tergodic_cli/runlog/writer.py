@@ -25,6 +25,7 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
+from tergodic_cli.atomic import _json_default
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.runlog import schema as S
 
@@ -33,18 +34,6 @@ FLUSH_EVERY = 50
 #: Upper bound on a chunk's uncompressed size; a chunk is also closed at every flush.
 CHUNK_BYTES = 4 * 1024 * 1024
 _METRIC_FIELDS = ("ergodicity", "residual_ref", "touched_fraction")
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, Path):
-        return str(obj)
-    if isinstance(obj, (set, tuple)):
-        return list(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
 def _dumps(obj: Any) -> str:
@@ -72,6 +61,10 @@ def _quat_to(axis: int, v) -> tuple[float, float, float, float]:
 
 def _quat(M: Any, x: float, y: float, z: float, w: float) -> Any:
     return M.Quaternion(x=x, y=y, z=z, w=w)
+
+
+def _stamp(M: Any, t_ns: int) -> Any:
+    return M.Timestamp(sec=t_ns // 1_000_000_000, nsec=t_ns % 1_000_000_000)
 
 
 def check_agent_arrays(positions: Any, velocities: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -308,7 +301,7 @@ class RunLog:
         rec.positions.extend(P.ravel().tolist())
         rec.velocities.extend(V.ravel().tolist())
         rec.normals.extend(Nn.ravel().tolist())
-        stamp = M.Timestamp(sec=t_ns // 1_000_000_000, nsec=t_ns % 1_000_000_000)
+        stamp = _stamp(M, t_ns)
         half = self._line_half
         shaft_d = 0.02 * half + 1e-4
         poses, entities = [], []
@@ -413,8 +406,7 @@ class RunLog:
             buf[:, col] = values
         t_ns = self._t_ns(self._last_t if t is None else t)
         F32 = M.PackedElementFieldNumericType.Float32
-        msg = M.PointCloud(timestamp=M.Timestamp(sec=t_ns // 1_000_000_000, nsec=t_ns % 1_000_000_000),
-                           frame_id=S.FRAME_OBJECT,
+        msg = M.PointCloud(timestamp=_stamp(M, t_ns), frame_id=S.FRAME_OBJECT,
                            # a full pose: Rerun's converter needs the position present
                            pose=M.Pose(position=M.Vector3(x=0.0, y=0.0, z=0.0), orientation=M.Quaternion(w=1.0)),
                            point_stride=4 * buf.shape[1], data=buf.tobytes(),
@@ -426,18 +418,16 @@ class RunLog:
         self.n_clouds += 1
         self.sync()
 
-    def log_event(self, step: int, t: float, text: str, level: str = "info") -> None:
+    def log_event(self, step: int, t: float, text: str) -> None:
         """Log a state-machine transition or warning as a ``foxglove.Log`` ("step N: text")."""
         from foxglove import messages as M
 
         self._require_open()
         t_ns = self._t_ns(t)
-        levels = {"debug": M.LogLevel.Debug, "warning": M.LogLevel.Warning, "error": M.LogLevel.Error}
+        msg = M.Log(timestamp=_stamp(M, t_ns), level=M.LogLevel.Info, message=f"step {int(step)}: {text}",
+                    name="tergodic")
         with self._writing():
-            self._ch[S.TOPIC_EVENTS].log(M.Log(timestamp=M.Timestamp(sec=t_ns // 1_000_000_000,
-                                                                     nsec=t_ns % 1_000_000_000),
-                                               level=levels.get(level, M.LogLevel.Info),
-                                               message=f"step {int(step)}: {text}", name="tergodic"), log_time=t_ns)
+            self._ch[S.TOPIC_EVENTS].log(msg, log_time=t_ns)
 
     # -- end -----------------------------------------------------------------------------------
     def close(self, summary: Mapping[str, Any] | None = None, status: str = "ok") -> None:
@@ -461,11 +451,8 @@ class RunLog:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        if self._closed:
-            return
         if exc_type is None:
-            self.close(None)
-            return
+            return self.close(None)
         status = "interrupted" if issubclass(exc_type, KeyboardInterrupt) else f"error: {exc_type.__name__}"
         try:
             self.close(None, status=status)
