@@ -45,8 +45,18 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
-def _time_axis(data: RunLogData) -> tuple[np.ndarray, str]:
-    return data.series["t"], "simulated time t (s)"
+def _single(plt, path: Path, title: str, xlabel: str, ylabel: str, draw) -> Path:
+    """One axes: ``draw(ax)`` plots, then the labels, a grid and the legend (when a line is labelled)."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    draw(ax)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend()
+    fig.tight_layout()
+    return _save(fig, path)
 
 
 def plot_run(data: RunLogData, out_dir: str | os.PathLike) -> list[Path]:
@@ -56,20 +66,17 @@ def plot_run(data: RunLogData, out_dir: str | os.PathLike) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     s = data.series
-    t, tlabel = _time_axis(data)
+    t, tlabel = data.series["t"], "simulated time t (s)"
     note = " (truncated log)" if data.truncated else ""
 
     written.append(_plot_ergodicity(plt, t, tlabel, s, note, out / "ergodicity.png"))
 
-    fig, ax = plt.subplots(figsize=(7, 4))
-    ax.plot(t, 100 * s["touched_fraction"], color="C2")
-    ax.set_ylim(0, 100)
-    ax.set_xlabel(tlabel)
-    ax.set_ylabel("target touched (%)")
-    ax.set_title(f"Target touched over time{note}")
-    ax.grid(True, alpha=0.3)
-    fig.tight_layout()
-    written.append(_save(fig, out / "touched.png"))
+    def touched(ax) -> None:
+        ax.plot(t, 100 * s["touched_fraction"], color="C2")
+        ax.set_ylim(0, 100)
+
+    written.append(_single(plt, out / "touched.png", f"Target touched over time{note}", tlabel,
+                           "target touched (%)", touched))
 
     rs = data.robot_series()
     if rs:
@@ -91,6 +98,12 @@ def plot_run(data: RunLogData, out_dir: str | os.PathLike) -> list[Path]:
 RESIDUAL_KEYS = ("residual_ref", "ergodicity_ref")
 
 
+def log_scale(eps: np.ndarray) -> bool:
+    """A log axis for ε only when its finite values are positive and span more than a decade."""
+    fin = eps[np.isfinite(eps)]
+    return bool(fin.size and np.all(fin > 0) and fin.max() > 10 * fin.min())
+
+
 def _plot_ergodicity(plt, t, tlabel: str, s: dict, note: str, path: Path) -> Path:
     """ε (eq. 48) and the authors' residual, each on its own axis: they are different quantities."""
     ref = next((k for k in RESIDUAL_KEYS if k in s), None)
@@ -98,8 +111,7 @@ def _plot_ergodicity(plt, t, tlabel: str, s: dict, note: str, path: Path) -> Pat
     ax = axes[0, 0]
     eps = np.asarray(s["ergodicity"], dtype=np.float64)
     ax.plot(t, eps, color="C0")
-    fin = eps[np.isfinite(eps)]
-    if fin.size and np.all(fin > 0) and fin.max() > 10 * fin.min():  # log only over more than a decade
+    if log_scale(eps):
         ax.set_yscale("log")
     ax.set_ylabel("ε (eq. 48)")
     ax.set_title(f"Ergodicity ε over time{note}")
@@ -120,27 +132,21 @@ def _plot_force(plt, data: RunLogData, rs: dict[str, np.ndarray], out: Path) -> 
     """Measured normal force against the desired one (wrench_desired's z, the tool axis), per explorer step."""
     if "force_normal" not in rs and "wrench_measured" not in rs:
         return []
-    T = len(data.robot)
-    t = rs["t_sim"] if "t_sim" in rs else data.series["t"][:T]
-    fig, ax = plt.subplots(figsize=(7, 4))
+    t = rs["t_sim"] if "t_sim" in rs else data.series["t"][:len(data.robot)]
     measured = rs["force_normal"] if "force_normal" in rs else np.linalg.norm(rs["wrench_measured"][:, :3], axis=1)
-    ax.plot(t, measured, label="measured normal force", color="C3", lw=1)
-    if "wrench_desired" in rs and rs["wrench_desired"].ndim == 2:
-        ax.plot(t, rs["wrench_desired"][:, 2], label="desired normal force", color="k", ls="--", lw=1)
-    if "in_contact" in rs:
-        off = ~rs["in_contact"].astype(bool)
+
+    def draw(ax) -> None:
+        ax.plot(t, measured, label="measured normal force", color="C3", lw=1)
+        if "wrench_desired" in rs and rs["wrench_desired"].ndim == 2:
+            ax.plot(t, rs["wrench_desired"][:, 2], label="desired normal force", color="k", ls="--", lw=1)
+        off = ~rs["in_contact"].astype(bool) if "in_contact" in rs else np.zeros(0, bool)
         if off.any():
             ax.fill_between(t, 0, 1, where=off, transform=ax.get_xaxis_transform(), color="0.85", lw=0,
                             label="not in contact")
-    ax.set_ylim(bottom=0)
-    ax.set_xlabel("simulated time (s)")
-    ax.set_ylabel("force (N)")
-    ax.set_title("Contact force against desired" + (" (truncated log)" if data.truncated else ""))
-    ax.grid(True, alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    path = _save(fig, out / "force.png")
-    return [path]
+        ax.set_ylim(bottom=0)
+
+    title = "Contact force against desired" + (" (truncated log)" if data.truncated else "")
+    return [_single(plt, out / "force.png", title, "simulated time (s)", "force (N)", draw)]
 
 
 def _plot_cleaning(plt, data: RunLogData, out: Path) -> list[Path]:
@@ -154,21 +160,17 @@ def _plot_cleaning(plt, data: RunLogData, out: Path) -> list[Path]:
         return []
     steps = np.array([0] + [int(s["step"]) for s in rows])
     seen = np.array([1.0] + [float(s["marking_remaining"]) for s in rows])
-    fig, ax = plt.subplots(figsize=(7, 4))
-    ax.plot(steps, 100 * seen, "o-", color="C3", label="seen by the camera (marking_remaining)")
     true = [s.get("marking_remaining_true") for s in rows]
-    if all(v is not None for v in true):
-        ax.plot(steps, 100 * np.array([1.0] + [float(v) for v in true]), "s--", color="0.4", ms=4,
-                label="ink left in the texture (true)")
-    ax.set_ylim(0, 105)
-    ax.set_xlabel("explorer step")
-    ax.set_ylabel("marking left (% of the initial)")
-    ax.set_title("Cleaning: marking left at each re-capture" + (" (truncated log)" if data.truncated else ""))
-    ax.grid(True, alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    path = _save(fig, out / "cleaning.png")
-    return [path]
+
+    def draw(ax) -> None:
+        ax.plot(steps, 100 * seen, "o-", color="C3", label="seen by the camera (marking_remaining)")
+        if all(v is not None for v in true):
+            ax.plot(steps, 100 * np.array([1.0] + [float(v) for v in true]), "s--", color="0.4", ms=4,
+                    label="ink left in the texture (true)")
+        ax.set_ylim(0, 105)
+
+    title = "Cleaning: marking left at each re-capture" + (" (truncated log)" if data.truncated else "")
+    return [_single(plt, out / "cleaning.png", title, "explorer step", "marking left (% of the initial)", draw)]
 
 
 def _color_range(vals: np.ndarray) -> tuple[float, float]:

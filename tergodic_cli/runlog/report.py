@@ -24,7 +24,7 @@ import numpy as np
 
 from tergodic_cli.atomic import atomic_path, check_output_file
 from tergodic_cli.errors import TergodicError, os_error
-from tergodic_cli.runlog.plots import RESIDUAL_KEYS, _color_range
+from tergodic_cli.runlog.plots import RESIDUAL_KEYS, _color_range, log_scale
 from tergodic_cli.runlog.reader import RunLogData
 
 #: More points than this are subsampled on the page (evenly, deterministic); the page says so.
@@ -258,49 +258,42 @@ def _series_figure(data: RunLogData) -> tuple[Any, dict]:
     import plotly.graph_objects as go
     from plotly.subplots import make_subplots
 
-    s = data.series
-    t = s["t"]
+    s, t = data.series, data.series["t"]
     embedded: dict[str, Any] = {"step": s["step"].tolist(), "t": t.tolist()}
-    rows: list[tuple[str, str, list, dict]] = []  # (title, y title, traces, y axis options), explorer time
+
+    def line(into: dict, key: str, x, y, name: str, colour: str, dash: str | None = None, **kw) -> Any:
+        into[key] = _nested(y)  # the numbers drawn, also in the page's JSON block
+        return go.Scatter(x=x, y=y, name=name, line=dict(color=colour, dash=dash), **kw)
+
     eps = np.asarray(s["ergodicity"], dtype=np.float64)
-    fin = eps[np.isfinite(eps)]
-    log = bool(fin.size and np.all(fin > 0) and fin.max() > 10 * fin.min())  # log only over more than a decade
-    rows.append(("Ergodicity ε over time", "ε (dimensionless)",
-                 [go.Scatter(x=t, y=eps, name="ε (eq. 48)", line=dict(color="#1f77b4"), showlegend=False)],
-                 dict(type="log") if log else dict(rangemode="tozero")))
-    embedded["ergodicity"] = _listed(eps)
-    ref = next((k for k in RESIDUAL_KEYS if k in s), None)
-    if ref:
+    solo = dict(showlegend=False)
+    rows = [("Ergodicity ε over time", "ε (dimensionless)",  # (title, y title, traces, y axis options)
+             [line(embedded, "ergodicity", t, eps, "ε (eq. 48)", "#1f77b4", **solo)],
+             dict(type="log") if log_scale(eps) else dict(rangemode="tozero"))]
+    if ref := next((k for k in RESIDUAL_KEYS if k in s), None):
         rows.append(("Authors' residual: share of the target's heat not yet touched", f"{ref} (unitless)",
-                     [go.Scatter(x=t, y=s[ref], name=ref, line=dict(color="#ff7f0e"), showlegend=False)], dict(rangemode="tozero")))
-        embedded[ref] = _listed(s[ref])
+                     [line(embedded, ref, t, s[ref], ref, "#ff7f0e", **solo)], dict(rangemode="tozero")))
     if "touched_fraction" in s:
         rows.append(("Target touched over time", "touched (% of target)",
-                     [go.Scatter(x=t, y=s["touched_fraction"], name="touched", line=dict(color="#2ca02c"), showlegend=False)],
+                     [line(embedded, "touched_fraction", t, s["touched_fraction"], "touched", "#2ca02c", **solo)],
                      dict(range=[0, 1.02], tickformat=".0%")))
-        embedded["touched_fraction"] = _listed(s["touched_fraction"])
     n_explorer = len(rows)
 
-    rs = data.robot_series()
-    if rs:
+    if rs := data.robot_series():
         rt = rs["t_sim"] if "t_sim" in rs else t[:len(data.robot)]
-        robot: dict[str, Any] = {"t_sim": _listed(rt)}
+        robot = embedded["robot"] = {"t_sim": _nested(rt)}
         force = []
         if "force_normal" in rs:
-            force.append(go.Scatter(x=rt, y=rs["force_normal"], name="measured normal force", line=dict(color="#d62728")))
-            robot["force_normal"] = _listed(rs["force_normal"])
-        if "wrench_desired" in rs and rs["wrench_desired"].ndim == 2:
-            fd = rs["wrench_desired"][:, 2]  # the desired force along the tool axis, as plots.py draws it
-            force.append(go.Scatter(x=rt, y=fd, name="desired force", line=dict(color="black", dash="dash")))
-            robot["force_desired"] = _listed(fd)
+            force.append(line(robot, "force_normal", rt, rs["force_normal"], "measured normal force", "#d62728"))
+        if "wrench_desired" in rs and rs["wrench_desired"].ndim == 2:  # along the tool axis, as plots.py draws it
+            force.append(line(robot, "force_desired", rt, rs["wrench_desired"][:, 2], "desired force", "black",
+                              dash="dash"))
         if force:
             rows.append(("Contact force against desired", "force (N)", force, {}))
         if "tilt_deg" in rs:
             rows.append(("Tool tilt from the surface normal", "tilt (°)",
-                         [go.Scatter(x=rt, y=rs["tilt_deg"], name="tilt", line=dict(color="#9467bd"), showlegend=False)],
+                         [line(robot, "tilt_deg", rt, rs["tilt_deg"], "tilt", "#9467bd", **solo)],
                          dict(rangemode="tozero")))
-            robot["tilt_deg"] = _listed(rs["tilt_deg"])
-        embedded["robot"] = robot
 
     fig = make_subplots(rows=len(rows), cols=1, subplot_titles=[r[0] for r in rows], vertical_spacing=0.42 / len(rows))
     for r, (_, ytitle, traces, yopts) in enumerate(rows, start=1):
@@ -332,13 +325,8 @@ def _f32(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.float32)
 
 
-def _listed(a) -> list:
-    """Floats for JSON, NaN as null (JSON has no NaN)."""
-    return [None if not np.isfinite(v) else float(v) for v in np.asarray(a, dtype=np.float64)]
-
-
 def _nested(a: np.ndarray) -> list:
-    """Nested lists of floats, NaN as null."""
+    """(Nested) lists of floats for JSON, NaN as null (JSON has no NaN)."""
     a = np.asarray(a, dtype=np.float64)
     return np.where(np.isfinite(a), a, None).tolist()
 

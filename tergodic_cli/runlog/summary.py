@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from tergodic_cli.atomic import _json_default
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.runlog import schema as S
 from tergodic_cli.runlog.reader import RunLogData
@@ -52,8 +53,6 @@ def recompute_summary(data: RunLogData) -> dict[str, Any]:
 
 def canonical(obj: Any) -> str:
     """A JSON text for comparing summaries (key order ignored, NaN equal to NaN)."""
-    from tergodic_cli.atomic import _json_default
-
     return json.dumps(obj, sort_keys=True, default=_json_default)
 
 
@@ -155,12 +154,7 @@ def format_table(summary: dict[str, Any], data: RunLogData, comparison: tuple[st
 
 def to_json(obj: Any) -> str:
     """``obj`` (a summary or :func:`state_at` dict; numpy values allowed) as indented JSON."""
-    def default(x: Any) -> Any:
-        if isinstance(x, (np.ndarray, np.generic)):
-            return x.tolist()
-        raise TypeError(type(x).__name__)
-
-    return json.dumps(obj, indent=2, default=default)
+    return json.dumps(obj, indent=2, default=_json_default)
 
 
 def state_at(data: RunLogData, step: int) -> dict[str, Any]:
