@@ -61,27 +61,17 @@ def replay(
         raise TergodicError(f"--rerun {rerun} does not end in .rrd", "e.g. --rerun run.rrd")
     if speed <= 0:
         raise TergodicError(f"--speed must be > 0, got {speed}", "e.g. --speed 2")
-    if rerun is not None:  # fail before the (long) read when the extra is missing
-        from tergodic_cli.runlog.viewers import rerun_available
-
-        if not rerun_available():
-            raise TergodicError("rerun-sdk is not installed", "pip install rerun-sdk  (or: pip install 'tergodic[rerun]')")
-    if gui:
-        from tergodic_cli.runlog.viewers import display_available
-
-        if not display_available():
-            raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)",
-                                "run it on a desktop, or use --plot OUT_DIR / open run.mcap in Foxglove")
-
-    if html is not None:  # fail before the (long) read when the page cannot be written
-        from tergodic_cli.atomic import check_output_file
-
-        check_output_file(html, overwrite, "--html")
-
-    path = resolve_log_path(run)
-    # every output is checked before the (long) read, and built aside then renamed in
     from tergodic_cli.atomic import AtomicFolder, check_output_file
+    from tergodic_cli.runlog.viewers import require_display, require_rerun
 
+    # every output is checked before the (long) read, and built aside then renamed in
+    if rerun is not None:
+        require_rerun()
+    if gui:
+        require_display()
+    if html is not None:
+        check_output_file(html, overwrite, "--html")
+    path = resolve_log_path(run)
     dest = None
     if export is not None:
         dest = export_out or path.parent / f"series.{export}"

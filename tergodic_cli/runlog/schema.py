@@ -57,38 +57,23 @@ CLOUD_FIELDS = ("target", "coverage", "heat", "source")
 SERIES_METRICS = ("ergodicity", "residual_ref", "touched_fraction")
 
 _NUM = {"type": "number"}
+_ARRAY = {"type": "array", "items": _NUM}
+_WRENCH = {"type": "object", "properties": {k: _NUM for k in ("fx", "fy", "fz", "tx", "ty", "tz")}}
 
 JSON_SCHEMAS: dict[str, dict] = {
     "tergodic.RobotSample": {
         "title": "tergodic.RobotSample",
         "description": "The robot sample after one explorer step (SI units, robot base frame; wrenches in the ee frame).",
         "type": "object",
-        "properties": {
-            "step": {"type": "integer"},
-            "t_sim": _NUM,
-            "state": {"type": "string"},
-            "ee_pose": {"type": "array", "items": _NUM},
-            "q": {"type": "array", "items": _NUM},
-            "dq": {"type": "array", "items": _NUM},
-            "tau": {"type": "array", "items": _NUM},
-            "wrench_measured": {"type": "array", "items": _NUM},
-            "wrench_desired": {"type": "array", "items": _NUM},
-            "force_normal": _NUM,
-            "in_contact": {"type": "boolean"},
-            "tilt_deg": _NUM,
-            "track_mm": _NUM,
-        },
+        "properties": {"step": {"type": "integer"}, "t_sim": _NUM, "state": {"type": "string"},
+                       **{k: _ARRAY for k in ("ee_pose", "q", "dq", "tau", "wrench_measured", "wrench_desired")},
+                       "force_normal": _NUM, "in_contact": {"type": "boolean"}, "tilt_deg": _NUM, "track_mm": _NUM},
     },
     "tergodic.Wrench": {
         "title": "tergodic.Wrench",
         "description": "Measured and desired wrench in the end-effector frame, N and N m.",
         "type": "object",
-        "properties": {
-            "step": {"type": "integer"},
-            "measured": {"type": "object", "properties": {k: _NUM for k in ("fx", "fy", "fz", "tx", "ty", "tz")}},
-            "desired": {"type": "object", "properties": {k: _NUM for k in ("fx", "fy", "fz", "tx", "ty", "tz")}},
-            "force_normal": _NUM,
-            "in_contact": {"type": "boolean"},
-        },
+        "properties": {"step": {"type": "integer"}, "measured": _WRENCH, "desired": _WRENCH, "force_normal": _NUM,
+                       "in_contact": {"type": "boolean"}},
     },
 }

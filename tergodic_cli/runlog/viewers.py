@@ -25,6 +25,20 @@ def display_available() -> bool:
     return True
 
 
+def require_display() -> None:
+    """One line (exit 2) unless a GUI window can open."""
+    if not display_available():
+        raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)",
+                            "run it on a desktop, or use --plot OUT_DIR / open run.mcap in Foxglove")
+
+
+def require_rerun() -> None:
+    """One line (exit 2) unless rerun-sdk is installed."""
+    if not rerun_available():
+        raise TergodicError("rerun-sdk is not installed",
+                            "pip install rerun-sdk  (or: pip install 'tergodic[rerun]')")
+
+
 def joint_series(data: RunLogData) -> tuple[np.ndarray, list[str] | None]:
     """Logged joint positions (T, J) and their names (None when the log does not name them)."""
     if not data.robot or data.robot[0].get("q") is None:
@@ -70,9 +84,7 @@ def set_joints(client: int, body: int, indices: list[int], q: np.ndarray) -> Non
 def replay_gui(data: RunLogData, speed: float = 1.0) -> int:
     """Open the PyBullet GUI and replay the logged joint states at ``speed`` times real time."""
     q, names = joint_series(data)
-    if not display_available():
-        raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)",
-                            "run it on a desktop, or use --plot OUT_DIR / open run.mcap in Foxglove")
+    require_display()
     import pybullet as p
 
     try:
@@ -147,8 +159,7 @@ def write_rerun(data: RunLogData, dest: str | os.PathLike) -> Path:
     """Write a Rerun recording (``.rrd``): the metrics over steps, the agents, and every cloud; for robot
     runs also the arm (a transform per link and the tool ``arm/ee``, in the base frame = the root), the
     cloud where the robot saw it (``object`` placed by ``object_pose``) and the wrench as arrows."""
-    if not rerun_available():
-        raise TergodicError("rerun-sdk is not installed", "pip install rerun-sdk  (or: pip install 'tergodic[rerun]')")
+    require_rerun()
     import rerun as rr
 
     dest = Path(dest)
@@ -158,15 +169,8 @@ def write_rerun(data: RunLogData, dest: str | os.PathLike) -> Path:
     rec.save(str(tmp))
 
     def at_step(step: int) -> None:
-        if hasattr(rec, "set_time"):
-            try:
-                rec.set_time("step", sequence=int(step))
-                return
-            except TypeError:
-                pass
-        rec.set_time_sequence("step", int(step))
+        rec.set_time("step", sequence=int(step))
 
-    scalar = getattr(rr, "Scalars", None) or rr.Scalar
     s = data.series
     keys = [k for k in ("ergodicity", "residual_ref", "touched_fraction", "step_ms") if k in s]
     clouds = {c.step: c for c in data.clouds}
@@ -174,11 +178,11 @@ def write_rerun(data: RunLogData, dest: str | os.PathLike) -> Path:
     for i, step in enumerate(s["step"].tolist()):
         at_step(step)
         for k in keys:
-            rec.log(f"metrics/{k}", scalar(float(s[k][i])))
+            rec.log(f"metrics/{k}", rr.Scalars(float(s[k][i])))
         if "positions" in s and s["positions"].dtype != object:
             rec.log("object/agents", rr.Points3D(s["positions"][i], radii=0.002, colors=[0, 180, 255]))
         if "force_normal" in rs:
-            rec.log("robot/force_normal", scalar(float(rs["force_normal"][i])))
+            rec.log("robot/force_normal", rr.Scalars(float(rs["force_normal"][i])))
         if step in clouds:
             c = clouds[step]
             cov = c.fields.get("coverage", np.zeros(len(c.points)))

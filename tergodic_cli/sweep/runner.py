@@ -452,21 +452,14 @@ def _collect(plan, finished: dict) -> tuple[list[dict], dict]:
             continue
         rec, run_series = finished[rid]
         s = rec["summary"]
-        row = {"run_id": rid, "object": rec["object"], "n_points": rec["n_points"], "n_target": rec["n_target"],
-               "start": start, "start_x": rec["start_xyz"][0], "start_y": rec["start_xyz"][1],
-               "start_z": rec["start_xyz"][2], "nk": cfg.nk, "alpha": cfg.alpha}
-        for k, v in combo.items():
-            if k not in ("nk", "alpha"):
-                row[k] = v
-        row.update({"steps": s["steps"], "ergodicity": s["ergodicity"], "residual_ref": s["residual_ref"],
-                    "touched_fraction": s["touched_fraction"]})
-        for name in ("ergodicity", "residual_ref", "touched_fraction"):
-            for m in ("200", "500"):
-                row[f"{name}_at_{m}"] = s[f"{name}_at"][m]
-        row.update({"off_surface_fraction": s.get("off_surface_fraction"), "step_max_m": s.get("step_max_m"),
-                    "edge_events": s.get("edge_events"), "step_ms_median": s["step_ms_median"],
-                    "wall_s": rec["wall_s"]})
-        rows.append(row)
+        rows.append({"run_id": rid, "object": rec["object"], "n_points": rec["n_points"], "n_target": rec["n_target"],
+                     "start": start, "start_x": rec["start_xyz"][0], "start_y": rec["start_xyz"][1],
+                     "start_z": rec["start_xyz"][2], "nk": cfg.nk, "alpha": cfg.alpha,
+                     **{k: v for k, v in combo.items() if k not in ("nk", "alpha")},
+                     **{k: s[k] for k in ("steps", *SERIES)},
+                     **{f"{name}_at_{m}": s[f"{name}_at"][m] for name in SERIES for m in ("200", "500")},
+                     **{k: s.get(k) for k in ("off_surface_fraction", "step_max_m", "edge_events")},
+                     "step_ms_median": s["step_ms_median"], "wall_s": rec["wall_s"]})
         for k in SERIES:
             series[k].append(run_series[k])
         ids.append(rid)
