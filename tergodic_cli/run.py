@@ -553,9 +553,10 @@ class RunRecorder:
 
     def record(self, step: int) -> None:
         ex, m = self.ex, self.ex.metrics()
-        self.vecs.append(np.stack([getattr(ex, k) for k in VEC_FIELDS]))  # a copy: the explorer works in place
-        self.rows.append((step * ex.cfg.dt, m["ergodicity"], m["residual_ref"], m["touched_fraction"],
-                          ex.last_step_ms))
+        # np.stack copies: the explorer updates its arrays in place
+        self.vecs.append(np.stack([getattr(ex, k) for k in VEC_FIELDS]))
+        self.rows.append((step * ex.cfg.dt, m["ergodicity"], m["residual_ref"],
+                          m["touched_fraction"], ex.last_step_ms))
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The per-step arrays by name (after at least one step)."""
@@ -570,8 +571,9 @@ class RunRecorder:
         from tergodic_cli.atomic import write_npz
 
         ex = self.ex
-        write_npz(path, **self.arrays(), start=np.asarray(start, dtype=np.float64), coverage=ex.coverage,
-                  heat=ex.heat, source=ex.source, target=ex.p, points=ex.points)
+        write_npz(path, **self.arrays(), start=np.asarray(start, dtype=np.float64),
+                  coverage=ex.coverage, heat=ex.heat, source=ex.source, target=ex.p,
+                  points=ex.points)
 
 
 def _provenance(run: _Run, robot_extra: dict, logged: bool) -> dict:

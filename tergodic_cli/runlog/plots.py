@@ -46,7 +46,7 @@ def _save(fig, path: Path) -> Path:
 
 
 def _single(plt, path: Path, title: str, xlabel: str, ylabel: str, draw) -> Path:
-    """One axes: ``draw(ax)`` plots, then the labels, a grid and the legend (when a line is labelled)."""
+    """One axes: ``draw(ax)`` plots, then the labels, a grid and a legend of the labelled lines."""
     fig, ax = plt.subplots(figsize=(7, 4))
     draw(ax)
     ax.set_xlabel(xlabel)
@@ -138,7 +138,8 @@ def _plot_force(plt, data: RunLogData, rs: dict[str, np.ndarray], out: Path) -> 
     def draw(ax) -> None:
         ax.plot(t, measured, label="measured normal force", color="C3", lw=1)
         if "wrench_desired" in rs and rs["wrench_desired"].ndim == 2:
-            ax.plot(t, rs["wrench_desired"][:, 2], label="desired normal force", color="k", ls="--", lw=1)
+            ax.plot(t, rs["wrench_desired"][:, 2], label="desired normal force", color="k", ls="--",
+                    lw=1)
         off = ~rs["in_contact"].astype(bool) if "in_contact" in rs else np.zeros(0, bool)
         if off.any():
             ax.fill_between(t, 0, 1, where=off, transform=ax.get_xaxis_transform(), color="0.85", lw=0,
@@ -165,12 +166,13 @@ def _plot_cleaning(plt, data: RunLogData, out: Path) -> list[Path]:
     def draw(ax) -> None:
         ax.plot(steps, 100 * seen, "o-", color="C3", label="seen by the camera (marking_remaining)")
         if all(v is not None for v in true):
-            ax.plot(steps, 100 * np.array([1.0] + [float(v) for v in true]), "s--", color="0.4", ms=4,
-                    label="ink left in the texture (true)")
+            ax.plot(steps, 100 * np.array([1.0] + [float(v) for v in true]), "s--", color="0.4",
+                    ms=4, label="ink left in the texture (true)")
         ax.set_ylim(0, 105)
 
-    title = "Cleaning: marking left at each re-capture" + (" (truncated log)" if data.truncated else "")
-    return [_single(plt, out / "cleaning.png", title, "explorer step", "marking left (% of the initial)", draw)]
+    note = " (truncated log)" if data.truncated else ""
+    return [_single(plt, out / "cleaning.png", f"Cleaning: marking left at each re-capture{note}",
+                    "explorer step", "marking left (% of the initial)", draw)]
 
 
 def _color_range(vals: np.ndarray) -> tuple[float, float]:

@@ -147,8 +147,7 @@ def resolve_log_path(path: str | os.PathLike) -> Path:
 
 def _check_head(path: Path) -> None:
     """Tell 'not an MCAP file' from 'truncated header' before parsing."""
-    with open(path, "rb") as fh:
-        head = fh.read(len(_MAGIC) + 9)
+    head = _read_at(path, 0, len(_MAGIC) + 9)
     if len(head) == 0:
         raise TergodicError(f"{path} is empty (0 bytes)", "the run wrote nothing; re-run 'tergodic explore'")
     n = min(len(head), len(_MAGIC))
@@ -176,8 +175,8 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
         Not an MCAP file, a truncated header, an unknown log schema version, not a
         tergodic log, or no step at all (one line, exit 2 in the CLI).
     """
-    from mcap.records import Attachment, Channel, Chunk, Footer, Header, Message, Metadata, Schema
-    from mcap.stream_reader import StreamReader, breakup_chunk
+    from mcap.records import Attachment, Channel, Footer, Header, Message, Metadata, Schema
+    from mcap.stream_reader import StreamReader
 
     path = resolve_log_path(path)
     _check_head(path)
@@ -200,20 +199,15 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
     size = path.stat().st_size
     finished = _has_footer(path, size)
     with open(path, "rb") as fh:
-        reader = StreamReader(fh, validate_crcs=True, emit_chunks=True)
+        reader = StreamReader(fh, validate_crcs=True)
         stream = reader._stream  # its byte count is the offset of the next record
-        top = iter(reader.records)
-        inner: list = []
+        records = iter(reader.records)
         while True:
             try:
-                if inner:
-                    rec = inner.pop()
-                else:
-                    at = max(stream.count, len(_MAGIC))  # the first call reads the magic first
-                    rec = next(top)
-                    if isinstance(rec, Chunk):  # opened here, so a bad chunk is named by its offset
-                        inner = breakup_chunk(rec, validate_crc=True)[::-1]
-                        continue
+                # A chunk is read and checked whole before its first message is yielded, so a
+                # failing call starts at the next record's offset: a bad chunk is named by it.
+                at = max(stream.count, len(_MAGIC))  # the first call reads the magic first
+                rec = next(records)
             except StopIteration:
                 break
             except Exception as exc:  # a cut (EndOfFile, short record) or damage (bad CRC, garbage)
@@ -299,7 +293,7 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
 
     seed_txt = metadata.get(S.META_SEED, {}).get("seed", "")
     series = _stack_rows(rows)
-    for c in cloud_frames:  # log times are wall-clock from version 2 on (t0 + simulated t): back to simulated t
+    for c in cloud_frames:  # log times are wall-clock from version 2 on (t0 + simulated t)
         c.t_ns -= t0
         c.t = c.t_ns / 1e9
     _assign_cloud_steps(cloud_frames, series)
@@ -316,6 +310,12 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
 _FOOTER_LEN = 1 + 8 + 20  # opcode, length, summary_start, summary_offset_start, summary_crc
 
 
+def _read_at(path: Path, offset: int, n: int = -1) -> bytes:
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        return fh.read(n)
+
+
 def _has_footer(path: Path, size: int) -> bool:
     """The file ends in a footer record and the closing magic: it was finished, so a bad
     record inside it is damage, not a cut."""
@@ -323,17 +323,13 @@ def _has_footer(path: Path, size: int) -> bool:
 
     if size < len(_MAGIC) * 2 + _FOOTER_LEN:
         return False
-    with open(path, "rb") as fh:
-        fh.seek(size - len(_MAGIC) - _FOOTER_LEN)
-        tail = fh.read()
+    tail = _read_at(path, size - len(_MAGIC) - _FOOTER_LEN)
     return tail[-len(_MAGIC):] == _MAGIC and tail[0] == 0x02 and struct.unpack_from("<Q", tail, 1)[0] == 20
 
 
 def _cut_magic(path: Path, at: int, size: int) -> bool:
     """After the footer the file holds only a part of the closing magic: cut in its last bytes."""
-    with open(path, "rb") as fh:
-        fh.seek(at)
-        rest = fh.read()
+    rest = _read_at(path, at)
     return len(rest) < len(_MAGIC) and _MAGIC.startswith(rest)
 
 
@@ -342,9 +338,7 @@ def _runs_past_end(path: Path, at: int, size: int) -> bool:
     file: the file was cut inside it (a truncation), not damaged."""
     import struct
 
-    with open(path, "rb") as fh:
-        fh.seek(at)
-        head = fh.read(9)
+    head = _read_at(path, at, 9)
     if len(head) < 9:
         return True
     opcode, length = head[0], struct.unpack_from("<Q", head, 1)[0]
@@ -372,9 +366,8 @@ def _check_summary_crc(path: Path, footer: Any, at: int) -> None:
 
     if not footer.summary_crc or not footer.summary_start:
         return
-    with open(path, "rb") as fh:
-        fh.seek(footer.summary_start)
-        body = fh.read(at + 1 + 8 + 16 - footer.summary_start)  # up to the footer's own CRC field
+    end = at + 1 + 8 + 16  # up to the footer's own CRC field
+    body = _read_at(path, footer.summary_start, end - footer.summary_start)
     if zlib.crc32(body) != footer.summary_crc:
         raise _corrupt(path, footer.summary_start, None, "the summary section's checksum does not match")
 
@@ -392,7 +385,8 @@ def _step_decoder(schema: Any):
 
     def row(data: bytes) -> dict:
         m = decode(data)
-        out = {"step": m.step, "t": m.t, **{k: getattr(m, k) if m.HasField(k) else None for k in METRIC_FIELDS},
+        out = {"step": m.step, "t": m.t,
+               **{k: getattr(m, k) if m.HasField(k) else None for k in METRIC_FIELDS},
                "step_ms": m.step_ms, **dict(zip(m.extra_names, m.extra_values))}
         for k in VECTOR_FIELDS:
             out[k] = np.asarray(getattr(m, k), dtype=np.float64).reshape(m.n_agents, 3)

@@ -261,21 +261,25 @@ def _series_figure(data: RunLogData) -> tuple[Any, dict]:
     s, t = data.series, data.series["t"]
     embedded: dict[str, Any] = {"step": s["step"].tolist(), "t": t.tolist()}
 
-    def line(into: dict, key: str, x, y, name: str, colour: str, dash: str | None = None, **kw) -> Any:
+    def line(into: dict, key: str, x, y, name: str, colour: str, dash: str | None = None,
+             **kw) -> Any:
         into[key] = _nested(y)  # the numbers drawn, also in the page's JSON block
         return go.Scatter(x=x, y=y, name=name, line=dict(color=colour, dash=dash), **kw)
 
     eps = np.asarray(s["ergodicity"], dtype=np.float64)
     solo = dict(showlegend=False)
-    rows = [("Ergodicity ε over time", "ε (dimensionless)",  # (title, y title, traces, y axis options)
+    # (title, y title, traces, y axis options)
+    rows = [("Ergodicity ε over time", "ε (dimensionless)",
              [line(embedded, "ergodicity", t, eps, "ε (eq. 48)", "#1f77b4", **solo)],
              dict(type="log") if log_scale(eps) else dict(rangemode="tozero"))]
     if ref := next((k for k in RESIDUAL_KEYS if k in s), None):
         rows.append(("Authors' residual: share of the target's heat not yet touched", f"{ref} (unitless)",
-                     [line(embedded, ref, t, s[ref], ref, "#ff7f0e", **solo)], dict(rangemode="tozero")))
+                     [line(embedded, ref, t, s[ref], ref, "#ff7f0e", **solo)],
+                     dict(rangemode="tozero")))
     if "touched_fraction" in s:
         rows.append(("Target touched over time", "touched (% of target)",
-                     [line(embedded, "touched_fraction", t, s["touched_fraction"], "touched", "#2ca02c", **solo)],
+                     [line(embedded, "touched_fraction", t, s["touched_fraction"], "touched",
+                           "#2ca02c", **solo)],
                      dict(range=[0, 1.02], tickformat=".0%")))
     n_explorer = len(rows)
 
@@ -284,10 +288,11 @@ def _series_figure(data: RunLogData) -> tuple[Any, dict]:
         robot = embedded["robot"] = {"t_sim": _nested(rt)}
         force = []
         if "force_normal" in rs:
-            force.append(line(robot, "force_normal", rt, rs["force_normal"], "measured normal force", "#d62728"))
-        if "wrench_desired" in rs and rs["wrench_desired"].ndim == 2:  # along the tool axis, as plots.py draws it
-            force.append(line(robot, "force_desired", rt, rs["wrench_desired"][:, 2], "desired force", "black",
-                              dash="dash"))
+            force.append(line(robot, "force_normal", rt, rs["force_normal"],
+                              "measured normal force", "#d62728"))
+        if "wrench_desired" in rs and rs["wrench_desired"].ndim == 2:  # along the tool axis
+            force.append(line(robot, "force_desired", rt, rs["wrench_desired"][:, 2],
+                              "desired force", "black", dash="dash"))
         if force:
             rows.append(("Contact force against desired", "force (N)", force, {}))
         if "tilt_deg" in rs:

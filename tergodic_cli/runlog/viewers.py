@@ -28,8 +28,8 @@ def display_available() -> bool:
 def require_display() -> None:
     """One line (exit 2) unless a GUI window can open."""
     if not display_available():
-        raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)",
-                            "run it on a desktop, or use --plot OUT_DIR / open run.mcap in Foxglove")
+        raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)", "run it on a "
+                            "desktop, or use --plot OUT_DIR / open run.mcap in Foxglove")
 
 
 def require_rerun() -> None:

@@ -424,8 +424,8 @@ class RunLog:
 
         self._require_open()
         t_ns = self._t_ns(t)
-        msg = M.Log(timestamp=_stamp(M, t_ns), level=M.LogLevel.Info, message=f"step {int(step)}: {text}",
-                    name="tergodic")
+        msg = M.Log(timestamp=_stamp(M, t_ns), level=M.LogLevel.Info, name="tergodic",
+                    message=f"step {int(step)}: {text}")
         with self._writing():
             self._ch[S.TOPIC_EVENTS].log(msg, log_time=t_ns)
 

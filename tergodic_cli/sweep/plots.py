@@ -46,7 +46,8 @@ def plot_sweep(out: Path, grid: Grid, rows: list[dict], series: dict) -> list[st
         nks = sorted({int(r["nk"]) for r in sel})
         alphas = sorted({str(r["alpha"]) for r in sel}, key=alpha_key)
         numeric = [a for a in alphas if alpha_key(a)[0] == 0]
-        best_alpha = min(numeric, key=lambda a: abs(math.log(float(a) / 10.0))) if numeric else alphas[0]
+        best_alpha = (min(numeric, key=lambda a: abs(math.log(float(a) / 10.0))) if numeric
+                      else alphas[0])
         figs = {
             f"eps_vs_nk{suffix}.png": _final_plot(plt, sel, objects, "nk", nks, "alpha", alphas, "nK", log2=True),
             f"eps_vs_alpha{suffix}.png": (_final_plot(plt, sel, objects, "alpha", numeric, "nk", nks, "α", log10=True)
@@ -97,7 +98,8 @@ def _final_plot(plt, rows, objects, xkey, xs, lkey, lines, xlabel, log2=False, l
                     std.append(np.std(vals))
             if xv:
                 mean, std = np.array(mean), np.array(std)
-                ax.plot(xv, mean, marker="o", ms=3, label=f"{'α' if lkey == 'alpha' else 'nK'} = {line}")
+                name = "α" if lkey == "alpha" else "nK"
+                ax.plot(xv, mean, marker="o", ms=3, label=f"{name} = {line}")
                 ax.fill_between(xv, mean - std, mean + std, alpha=0.15)
         if log2:
             ax.set_xscale("log", base=2)
@@ -126,4 +128,5 @@ def _time_plot(plt, rows, objects, series, index, lkey, lines, fixed: dict, fixe
             ax.fill_between(t, mean - std, mean + std, alpha=0.2)
         ax.set_xlabel("step")
 
-    return _panels(plt, objects, draw, lambda obj: f"{obj} ({fixed_label}, mean ± std over starts)", fontsize=9)
+    return _panels(plt, objects, draw, lambda obj: f"{obj} ({fixed_label}, mean ± std over starts)",
+                   fontsize=9)

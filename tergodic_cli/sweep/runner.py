@@ -323,8 +323,8 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
                                            {k: np.asarray(v) for k, v in rec["series"].items()})
                 computed += 1
     table, series = _collect(plan, finished)
-    result = SweepResult(out=out, n_runs=len(plan), computed=computed, skipped=len(plan) - len(pending),
-                         failed=failed, table=table)
+    result = SweepResult(out=out, n_runs=len(plan), computed=computed,
+                         skipped=len(plan) - len(pending), failed=failed, table=table)
 
     def build(stage: Path) -> list[str]:
         files = _write_outputs(stage, grid, table, series, parquet)
@@ -371,8 +371,8 @@ def _publish(out: Path, build: Callable[[Path], list[str]]) -> list[str]:
             shutil.rmtree(stage, ignore_errors=True)
     except OSError as exc:
         raise TergodicError(f"cannot write the sweep's results in {out}: {os_cause(exc)}",
-                            "free space or fix the folder's permissions, then run the same command again: "
-                            "finished runs are kept") from None
+                            "free space or fix the folder's permissions, then run the same command "
+                            "again: finished runs are kept") from None
     return files
 
 
@@ -386,7 +386,8 @@ SUMMARY_KEYS = ("steps", "ergodicity", "residual_ref", "touched_fraction", "ergo
 
 def record_checksum(record: dict) -> str:
     body = {k: v for k, v in record.items() if k != RECORD_SHA}
-    text = json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True, default=_json_default)
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True,
+                      default=_json_default)
     return hashlib.sha256(text.encode()).hexdigest()
 
 
@@ -452,20 +453,24 @@ def _collect(plan, finished: dict) -> tuple[list[dict], dict]:
             continue
         rec, run_series = finished[rid]
         s = rec["summary"]
-        rows.append({"run_id": rid, "object": rec["object"], "n_points": rec["n_points"], "n_target": rec["n_target"],
-                     "start": start, "start_x": rec["start_xyz"][0], "start_y": rec["start_xyz"][1],
-                     "start_z": rec["start_xyz"][2], "nk": cfg.nk, "alpha": cfg.alpha,
+        x, y, z = rec["start_xyz"]
+        rows.append({"run_id": rid, "object": rec["object"], "n_points": rec["n_points"],
+                     "n_target": rec["n_target"], "start": start, "start_x": x, "start_y": y,
+                     "start_z": z, "nk": cfg.nk, "alpha": cfg.alpha,
                      **{k: v for k, v in combo.items() if k not in ("nk", "alpha")},
                      **{k: s[k] for k in ("steps", *SERIES)},
-                     **{f"{name}_at_{m}": s[f"{name}_at"][m] for name in SERIES for m in ("200", "500")},
+                     **{f"{k}_at_{m}": s[f"{k}_at"][m] for k in SERIES for m in ("200", "500")},
                      **{k: s.get(k) for k in ("off_surface_fraction", "step_max_m", "edge_events")},
                      "step_ms_median": s["step_ms_median"], "wall_s": rec["wall_s"]})
         for k in SERIES:
             series[k].append(run_series[k])
         ids.append(rid)
-    order = sorted(range(len(rows)), key=lambda i: (rows[i]["object"], rows[i]["nk"], alpha_key(rows[i]["alpha"]),
-                                                    [str(rows[i].get(k)) for k in rows[i] if k not in LEAD_COLUMNS
-                                                     and k not in METRIC_COLUMNS], rows[i]["start"]))
+    def sort_key(i: int) -> tuple:
+        r = rows[i]
+        others = [str(r.get(k)) for k in r if k not in LEAD_COLUMNS and k not in METRIC_COLUMNS]
+        return r["object"], r["nk"], alpha_key(r["alpha"]), others, r["start"]
+
+    order = sorted(range(len(rows)), key=sort_key)
     rows = [rows[i] for i in order]
     merged = {"run_id": np.array([ids[i] for i in order], dtype="U16")}
     for k in SERIES:
