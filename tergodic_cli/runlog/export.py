@@ -22,25 +22,15 @@ from tergodic_cli.runlog.reader import RunLogData
 FORMATS = ("npz", "csv")
 
 
-def series_table(data: RunLogData) -> dict[str, np.ndarray]:
-    """All exportable arrays, first axis = step."""
-    out: dict[str, np.ndarray] = {}
-    for k, v in data.series.items():
-        if v.dtype != object:
-            out[k] = v
-    T = data.steps
-    for k, v in data.robot_series().items():
-        if len(v) == T and v.dtype != object:
-            out[f"robot_{k}"] = v.astype(np.float64) if v.dtype == bool else v
-    return out
-
-
 def export_series(data: RunLogData, fmt: str, dest: str | os.PathLike) -> Path:
     """Write the series to ``dest`` in ``fmt`` (npz or csv), atomically; returns ``dest``."""
     if fmt not in FORMATS:
         raise TergodicError(f"--export '{fmt}' is not a format", "use --export npz or --export csv")
     dest = Path(dest)
-    table = series_table(data)
+    table = {k: v for k, v in data.series.items() if v.dtype != object}  # first axis = step
+    table.update({f"robot_{k}": v.astype(np.float64) if v.dtype == bool else v
+                  for k, v in data.robot_series().items()
+                  if len(v) == data.steps and v.dtype != object})
     if fmt == "npz":
         write_npz(dest, **table)
         return dest

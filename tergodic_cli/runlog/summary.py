@@ -26,17 +26,6 @@ from tergodic_cli.runlog.reader import RunLogData
 SERIES_KEYS = S.SERIES_METRICS + ("step_ms",)
 
 
-def robot_extras(data: RunLogData) -> dict[str, Any]:
-    """``summarize_robot`` over the logged robot samples ({} for kinematic runs)."""
-    if not data.robot:
-        return {}
-    from tergodic_cli.robot import summarize_robot
-
-    # a fault outside the explore phase leaves no sample behind: the run's own stop reason is in its summary
-    stop = (data.stored_summary or {}).get("stop_reason")
-    return dict(summarize_robot(data.robot, stop_reason=stop) if stop else summarize_robot(data.robot))
-
-
 def recompute_summary(data: RunLogData) -> dict[str, Any]:
     """The summary.json dict, recomputed from the log (without the ``truncated`` flag)."""
     from tergodic_cli.explore import summarize_run
@@ -45,7 +34,13 @@ def recompute_summary(data: RunLogData) -> dict[str, Any]:
     if missing:
         raise TergodicError(f"{data.path} has no series {', '.join(missing)}", "the log was not written by 'tergodic explore'")
     series = {k: data.series[k] for k in SERIES_KEYS}
-    robot = robot_extras(data)
+    robot = {}  # summarize_robot over the logged robot samples
+    if data.robot:
+        from tergodic_cli.robot import summarize_robot
+
+        # a fault outside the explore phase leaves no sample: its stop reason is in the summary
+        stop = (data.stored_summary or {}).get("stop_reason")
+        robot = dict(summarize_robot(data.robot, **({"stop_reason": stop} if stop else {})))
     own = set(summarize_run(series, data.config, None))
     static = {k: v for k, v in (data.stored_summary or {}).items() if k not in own and k not in robot}
     return summarize_run(series, data.config, {**static, **robot})

@@ -18,16 +18,10 @@ from tergodic_cli.errors import TergodicError
 from tergodic_cli.runlog.reader import RunLogData
 
 
-def display_available() -> bool:
-    """True when a GUI window can open (an X or Wayland display on Linux; always on macOS/Windows)."""
-    if sys.platform.startswith("linux"):
-        return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
-    return True
-
-
 def require_display() -> None:
-    """One line (exit 2) unless a GUI window can open."""
-    if not display_available():
+    """One line (exit 2) unless a GUI window can open (an X or Wayland display on Linux)."""
+    screen = os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+    if sys.platform.startswith("linux") and not screen:
         raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)", "run it on a "
                             "desktop, or use --plot OUT_DIR / open run.mcap in Foxglove")
 

@@ -67,17 +67,6 @@ def _stamp(M: Any, t_ns: int) -> Any:
     return M.Timestamp(sec=t_ns // 1_000_000_000, nsec=t_ns % 1_000_000_000)
 
 
-def check_agent_arrays(positions: Any, velocities: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One step's agent positions, velocities and normals as (N, 3) float64 arrays, N >= 1 each."""
-    P = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-    V = np.asarray(velocities, dtype=np.float64).reshape(-1, 3)
-    Nn = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-    if not (len(P) == len(V) == len(Nn)) or len(P) == 0:
-        raise TergodicError(f"run log got {len(P)} positions, {len(V)} velocities, {len(Nn)} normals",
-                            "pass (N, 3) arrays for N >= 1 agents")
-    return P, V, Nn
-
-
 class RunLog:
     """Log an exploration run into ``path`` (an MCAP file), one call per explorer step.
 
@@ -286,7 +275,11 @@ class RunLog:
         t = float(t)
         if step < 0 or not 0.0 <= t < math.inf:
             raise TergodicError(f"run log got step {step} at t = {t}", "steps must be >= 0 and times finite, >= 0")
-        P, V, Nn = check_agent_arrays(positions, velocities, normals)
+        P, V, Nn = (np.asarray(a, dtype=np.float64).reshape(-1, 3) for a in (positions, velocities,
+                                                                             normals))
+        if not (len(P) == len(V) == len(Nn)) or len(P) == 0:
+            raise TergodicError(f"run log got {len(P)} positions, {len(V)} velocities, "
+                                f"{len(Nn)} normals", "pass (N, 3) arrays for N >= 1 agents")
         t_ns = self._t_ns(t)
         rec = self._Record(step=int(step), t=t, step_ms=float(step_ms), n_agents=len(P))
         for k, v in metrics.items():
