@@ -41,19 +41,19 @@ elbow away from its limits; the measured force is low-pass filtered before the P
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
-
+from tergodic_cli.config import Config
 
 #: Radians before a joint limit where the null-space repulsion starts.
 LIMIT_ZONE = 0.3
 
 
 @dataclass
-class ControllerGains:
+class ControllerGains(Config):
     """Gains of eq. 47 and the wrench PID (eq. 40), SI units; see :data:`PAPER_GAINS`.
 
     k_trans, k_rot : K_L on the translational (N/m) and rotational (N m/rad) error, ee axes x, y, z.
@@ -92,9 +92,6 @@ class ControllerGains:
     pid_wrench: bool = False
     derivative_filter_hz: float = 0.0
 
-    def to_dict(self) -> dict:
-        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
-
 
 #: The paper's gains (V-A3), for comparison runs.
 PAPER_GAINS = ControllerGains(k_trans=(750.0, 750.0, 300.0), k_rot=(30.0, 30.0, 30.0), d_trans=(150.0, 150.0, 50.0),
@@ -130,7 +127,7 @@ class LineForceController:
     q_limits : (q_min, q_max) joint limits for the null-space limit repulsion (default: the Panda's).
 
     The arithmetic is :func:`tergodic_cli.robot.kernels.line_force_step` (compiled); this class
-    holds its parameters and state (``prm``, ``state``, the null-space terms).
+    holds its packed parameters ``kpk`` and state ``mut`` (PID, null-space terms).
     """
 
     def __init__(self, gains: ControllerGains, dt: float, q_rest: np.ndarray, x_ref: np.ndarray, q_limits=None):
@@ -159,25 +156,8 @@ class LineForceController:
         self.mut = np.zeros(Kn.N_MUT)
         self._vref = np.zeros(3)
         self._modes = Kn.MODES
-        self._step = Kn.line_force_step_packed
+        self._step = Kn.line_force_step
         self.reset()
-
-    # Views into the packed arrays, by name.
-    @property
-    def prm(self) -> np.ndarray:
-        return self.kpk[self._Kn.KPK_PRM:self._Kn.KPK_PRM + self._Kn.N_CP]
-
-    @property
-    def q_rest(self) -> np.ndarray:
-        return self.kpk[self._Kn.KPK_QREST:self._Kn.KPK_QREST + 7]
-
-    @property
-    def q_min(self) -> np.ndarray:
-        return self.kpk[self._Kn.KPK_QMIN:self._Kn.KPK_QMIN + 7]
-
-    @property
-    def q_max(self) -> np.ndarray:
-        return self.kpk[self._Kn.KPK_QMAX:self._Kn.KPK_QMAX + 7]
 
     @property
     def x_ref(self) -> np.ndarray:
@@ -186,19 +166,6 @@ class LineForceController:
     @x_ref.setter
     def x_ref(self, v) -> None:
         self.kpk[self._Kn.KPK_XREF:self._Kn.KPK_XREF + 3] = np.asarray(v, dtype=float)
-
-    @property
-    def state(self) -> np.ndarray:
-        """(N_CS,) PID state: filtered wrench (6), previous error (6), has-previous flag, integral (6), step count."""
-        return self.mut[:self._Kn.N_CS]
-
-    @property
-    def tau_spring(self) -> np.ndarray:
-        return self.mut[self._Kn.MUT_SPRING:self._Kn.MUT_SPRING + 7]
-
-    @property
-    def n_damp(self) -> np.ndarray:
-        return self.mut[self._Kn.MUT_DAMP:].reshape(7, 7)
 
     @property
     def f_filt(self) -> float:

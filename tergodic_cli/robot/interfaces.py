@@ -319,22 +319,6 @@ class ToolLoad:
     com: np.ndarray
     inertia: np.ndarray | None = None
 
-    def wrench(self, R_base_sensor: np.ndarray) -> np.ndarray:
-        """The wrench the arm must apply to hold the tool still against gravity.
-
-        Parameters
-        ----------
-        R_base_sensor : (3, 3) float
-            The sensor frame's rotation in the base frame.
-
-        Returns
-        -------
-        (6,) float
-            Force (N) and torque (N m), sensor frame.
-        """
-        f = R_base_sensor[2, :] * (self.mass * GRAVITY)  # Rᵀ (0, 0, m g)
-        return np.concatenate([f, np.cross(self.com, f)])
-
 
 class ContactWrench:
     """Turns sensor readings into the wrench the tool exerts on its surroundings, in the ee frame.
@@ -352,30 +336,18 @@ class ContactWrench:
     """
 
     def __init__(self, load: ToolLoad, frame_in_ee: np.ndarray, inertial: bool = False):
-        from tergodic_cli.robot.kernels import contact_wrench
+        from tergodic_cli.robot import kernels  # lazily: numba is not loaded at CLI start-up
 
+        self._kn = kernels
         self.load = load
         self.R_se_m = np.ascontiguousarray(np.asarray(frame_in_ee, dtype=float)[:3, :3])  # sensor -> ee
         self.p_se_v = np.ascontiguousarray(np.asarray(frame_in_ee, dtype=float)[:3, 3])  # sensor origin in the ee frame
-        self.R_se = tuple(self.R_se_m.ravel().tolist())
-        self.p_se = tuple(self.p_se_v.tolist())
         self.mg = float(load.mass * GRAVITY)
         self.com = np.ascontiguousarray(load.com, dtype=float)
         self.tare_load = np.zeros(6)
-        self._kernel = contact_wrench
         self.inertial = bool(inertial)
         self.inertia = np.ascontiguousarray(load.inertia if load.inertia is not None else np.zeros(3), dtype=float)
-        from tergodic_cli.robot.kernels import N_DY
-
-        self.dyn = np.zeros(N_DY)  # the last sample's velocities (kernels.inertial_wrench)
-
-    def _load(self, R_base_ee: np.ndarray) -> np.ndarray:
-        """The tool load (6,) in the sensor frame at this orientation (the reading of a free, still tool, untared)."""
-        from tergodic_cli.robot.kernels import tool_load
-
-        out = np.empty(6)
-        tool_load(np.asarray(R_base_ee, dtype=float), self.R_se_m, self.mg, self.com, out)
-        return out
+        self.dyn = np.zeros(kernels.N_DY)  # the last sample's velocities (kernels.inertial_wrench)
 
     def tare_at(self, R_base_ee: np.ndarray) -> None:
         """Record the tool's orientation at the tare; call right after :meth:`WrenchSensor.tare`, tool at rest and free.
@@ -385,7 +357,8 @@ class ContactWrench:
         R_base_ee : (3, 3) float
             The end effector's rotation in the base frame.
         """
-        self.tare_load = self._load(np.asarray(R_base_ee, dtype=float).reshape(3, 3))
+        self._kn.tool_load(np.asarray(R_base_ee, dtype=float).reshape(3, 3), self.R_se_m, self.mg, self.com,
+                           self.tare_load)
 
     def __call__(self, reading, R_base_ee, state=None) -> np.ndarray:
         """(6,) wrench (f, m) the tool applies to the environment, ee frame, moment about the TCP.
@@ -398,12 +371,9 @@ class ContactWrench:
         out = np.empty(6)
         r = np.asarray(reading, dtype=float)
         if self.inertial and state is not None:
-            from tergodic_cli.robot.kernels import contact_wrench_dyn
-
-            T = state.ee_pose
-            contact_wrench_dyn(r, float(state.t), T, np.ascontiguousarray(state.jacobian, dtype=float),
-                               np.ascontiguousarray(state.dq, dtype=float), self.R_se_m, self.p_se_v, self.mg, self.com,
-                               self.tare_load, float(self.load.mass), self.inertia, self.dyn, out)
-            return out
-        self._kernel(r, R, self.R_se_m, self.p_se_v, self.mg, self.com, self.tare_load, out)
+            self._kn.contact_wrench_dyn(r, float(state.t), state.ee_pose, np.ascontiguousarray(state.jacobian, dtype=float),
+                                        np.ascontiguousarray(state.dq, dtype=float), self.R_se_m, self.p_se_v, self.mg,
+                                        self.com, self.tare_load, float(self.load.mass), self.inertia, self.dyn, out)
+        else:
+            self._kn.contact_wrench(r, R, self.R_se_m, self.p_se_v, self.mg, self.com, self.tare_load, out)
         return out

@@ -17,14 +17,14 @@ import math
 import numba
 import numpy as np
 
-from tergodic_cli.robot.ga import line_motor_z_scalar
+from tergodic_cli.robot import ga
 
 
 def njit(fn):
     return numba.njit(cache=True, nogil=True, fastmath=False)(fn)
 
 
-line_motor_z = njit(line_motor_z_scalar)
+line_motor_z = njit(ga.line_motor_z)
 
 # Controller modes.
 MODE_TRACK, MODE_APPROACH, MODE_RETREAT = 0, 1, 2
@@ -264,16 +264,17 @@ def contact_wrench_dyn(r, t, T, J, dq, R_se, p_se, mg, com, tare_load, m, inerti
 
 # ----------------------------------------------------------------------------- the controller
 @njit
-def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use_vref, K, D, prm, state,
-                    x_ref, q_rest, q_min, q_max, tau_spring, n_damp, tau, diag):
+def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use_vref, kpk, mut, tau, diag):
     """One step of eq. 47 with the wrench PID (see :class:`~tergodic_cli.robot.controller.LineForceController`).
 
     T (4, 4) TCP pose, J (6, 7) base-frame Jacobian, q, dq (7,), a, d (3,) target line (base frame, d
     into the surface), w (6,) measured ee wrench, mode MODE_*, v_ref (3,) target line velocity (used
-    when ``use_vref``). K, D (6,) gains, prm (N_CP,) parameters, state (N_CS,) PID state (updated).
-    tau_spring (7,), n_damp (7, 7): the null-space terms, refreshed here every 10 steps (updated).
-    Fills tau (7,) and diag (N_CD,).
+    when ``use_vref``). kpk (N_KPK,): the controller's packed constants (gains K, D, parameters, x_ref,
+    q_rest, joint limits); mut (N_MUT,): its PID state and the null-space terms, refreshed here every
+    10 steps (updated). Fills tau (7,) and diag (N_CD,).
     """
+    K, D, prm, x_ref = kpk[KPK_K:KPK_K + 6], kpk[KPK_D:KPK_D + 6], kpk[KPK_PRM:KPK_PRM + N_CP], kpk[KPK_XREF:KPK_XREF + 3]
+    state = mut[MUT_STATE:MUT_STATE + N_CS]
     r0, r1, r2 = T[0, 0], T[0, 1], T[0, 2]
     r3, r4, r5 = T[1, 0], T[1, 1], T[1, 2]
     r6, r7, r8 = T[2, 0], T[2, 1], T[2, 2]
@@ -341,7 +342,9 @@ def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use
     W3 = r0 * mx + r1 * my + r2 * mz
     W4 = r3 * mx + r4 * my + r5 * mz
     W5 = r6 * mx + r7 * my + r8 * mz
-    _posture(J, q, prm, state, q_rest, q_min, q_max, tau_spring, n_damp)
+    tau_spring, n_damp = mut[MUT_SPRING:MUT_SPRING + 7], mut[MUT_DAMP:MUT_DAMP + 49].reshape((7, 7))
+    _posture(J, q, prm, state, kpk[KPK_QREST:KPK_QREST + 7], kpk[KPK_QMIN:KPK_QMIN + 7], kpk[KPK_QMAX:KPK_QMAX + 7],
+             tau_spring, n_damp)
     for j in range(7):
         acc = J[0, j] * W0 + J[1, j] * W1 + J[2, j] * W2 + J[3, j] * W3 + J[4, j] * W4 + J[5, j] * W5
         acc += tau_spring[j]
@@ -352,16 +355,6 @@ def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use
     diag[6], diag[7], diag[8], diag[9], diag[10], diag[11] = wx, wy, wz, mx, my, mz
     diag[12] = state[CS_FFILT + 2]
     diag[13], diag[14], diag[15], diag[16], diag[17], diag[18] = ve0, ve1, ve2, ve3, ve4, ve5
-
-
-@njit
-def line_force_step_packed(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use_vref, kpk, mut, tau, diag):
-    """:func:`line_force_step` with the controller's packed ``kpk`` and ``mut`` (fewer arguments to dispatch)."""
-    line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use_vref, kpk[KPK_K:KPK_K + 6],
-                    kpk[KPK_D:KPK_D + 6], kpk[KPK_PRM:KPK_PRM + N_CP], mut[MUT_STATE:MUT_STATE + N_CS],
-                    kpk[KPK_XREF:KPK_XREF + 3], kpk[KPK_QREST:KPK_QREST + 7], kpk[KPK_QMIN:KPK_QMIN + 7],
-                    kpk[KPK_QMAX:KPK_QMAX + 7], mut[MUT_SPRING:MUT_SPRING + 7],
-                    mut[MUT_DAMP:MUT_DAMP + 49].reshape((7, 7)), tau, diag)
 
 
 @njit
@@ -594,15 +587,18 @@ def _unpack_constants(cst):
 
 
 @njit
-def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io, ts, t, dyn):
-    """One 1 kHz tick of the "track" loop after the joint read: FK + Jacobian, contact wrench, force
-    check, controller, state checks, and the torque to send (task + ``bias``, clamped to tau_max).
+def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, kd, io, ts, t, dyn):
+    """One 1 kHz tick after the joint read: FK + Jacobian, contact wrench, force check, the control
+    law, state checks, and the torque to send (the law's + ``bias``, clamped to tau_max).
 
-    i : row of A, D (n, 3), the gliding target line. qs, dqs : joint positions (rad) and velocities
-    (rad/s), flat tuples whose first 7 entries are the arm's (``zip(*getJointStates(...))``).
-    reading : the sensor's 6 numbers (tare removed); bias : gravity + Coriolis (7 numbers).
-    kpk, mut : the controller's (``mut`` is updated). ts : :func:`tick_stats` (updated). t : the
-    sample time, s; dyn : the inertial compensation's state (:func:`inertial_wrench`, updated).
+    The law: with ``kd`` empty, the "track" loop's line controller towards row i of A, D (n, 3), the
+    gliding target line (kpk, mut: the controller's; ``mut`` is updated); else a joint-impedance move
+    (the set-up moves), τ = K (q_d - q) + D (q̇_d - q̇) (:class:`JointImpedance`), q_d (rad) and
+    q̇_d (rad/s) row i of A, D (n, 7), kd (14,) the joint stiffness (7) then damping (7).
+    qs, dqs : joint positions (rad) and velocities (rad/s), flat tuples whose first 7 entries are the
+    arm's (``zip(*getJointStates(...))``). reading : the sensor's 6 numbers (tare removed); bias :
+    gravity + Coriolis (7 numbers). ts : :func:`tick_stats` (updated). t : the sample time, s; dyn :
+    the inertial compensation's state (:func:`inertial_wrench`, updated).
     Returns an F_* code (OK: send io[IO_TAU:IO_TAU + 7]). The separate kernels, chained.
     """
     q = io[IO_Q:IO_Q + 7]
@@ -628,60 +624,14 @@ def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io, ts, t, dyn
     code, _f = force_fault(w, force_limit)
     if code != OK:
         return code
+    joint = kd.shape[0] > 0
     task = np.empty(7)
-    line_force_step_packed(T, J, q, dq, A[i], D[i], w, MODE_TRACK, force_desired, 0.0, v_ref, use_vref, kpk, mut,
-                           task, diag)
-    v0, v1, v2 = diag[CD_VEE], diag[CD_VEE + 1], diag[CD_VEE + 2]
-    pos = np.empty(3)
-    pos[0], pos[1], pos[2] = T[0, 3], T[1, 3], T[2, 3]
-    code, _j = state_fault(q, dq, pos, math.sqrt(v0 * v0 + v1 * v1 + v2 * v2), q_lo, q_hi, dq_hi, tcp_max, ws_lo, ws_hi)
-    if code != OK:
-        return code
-    for j in range(7):
-        lim = tau_max[j]
-        io[IO_TAU + j] = min(max(task[j] + bias[j], -lim), lim)
-    return OK
-
-
-@njit
-def pybullet_joint_tick(i, QD, DQD, qs, dqs, reading, bias, cst, kd, io, ts, t, dyn):
-    """One 1 kHz tick of a joint-impedance move after the joint read (the set-up moves): FK + Jacobian,
-    contact wrench, force check, τ = K (q_d - q) + D (q̇_d - q̇) (:class:`JointImpedance`), state
-    checks (TCP speed from J q̇), and the torque to send (τ + ``bias``, clamped to tau_max).
-
-    i : row of QD, DQD (n, 7), the desired joints (rad) and velocities (rad/s). qs, dqs, reading,
-    bias, cst, io, ts, t, dyn : as :func:`pybullet_tick`. kd : (14,) joint stiffness (7) then damping (7).
-    Returns an F_* code (OK: send io[IO_TAU:IO_TAU + 7]).
-    """
-    q = io[IO_Q:IO_Q + 7]
-    dq = io[IO_DQ:IO_DQ + 7]
-    for j in range(7):
-        q[j] = qs[j]
-        dq[j] = dqs[j]
-    (_fd, _use, _vref, F, axis, qidx, tcp_off, R_se, p_se, mg, com, tare, q_lo, q_hi, dq_hi, tcp_max,
-     ws_lo, ws_hi, force_limit, tau_max, inertial, mass, inertia) = _unpack_constants(cst)
-    T = io[IO_T:IO_T + 16].reshape((4, 4))
-    J = io[IO_J:IO_J + 42].reshape((6, 7))
-    w = io[IO_W:IO_W + 6]
-    fk_jacobian(q, F, axis, qidx, tcp_off, T, J)
-    r = np.empty(6)
-    for k in range(6):
-        r[k] = reading[k]
-    if inertial:
-        contact_wrench_dyn(r, t, T, J, dq, R_se, p_se, mg, com, tare, mass, inertia, dyn, w)
+    if joint:
+        v0, v1, v2, _w0, _w1, _w2 = tcp_twist(J, dq, 7)
+        diag[CD_VEE], diag[CD_VEE + 1], diag[CD_VEE + 2] = v0, v1, v2
     else:
-        contact_wrench(r, T, R_se, p_se, mg, com, tare, w)
-    tick_stats(T, w, ts)
-    code, _f = force_fault(w, force_limit)
-    if code != OK:
-        return code
-    v0, v1, v2 = 0.0, 0.0, 0.0
-    for j in range(7):
-        v0 += J[0, j] * dq[j]
-        v1 += J[1, j] * dq[j]
-        v2 += J[2, j] * dq[j]
-    diag = io[IO_DIAG:IO_DIAG + N_CD]
-    diag[CD_VEE], diag[CD_VEE + 1], diag[CD_VEE + 2] = v0, v1, v2
+        line_force_step(T, J, q, dq, A[i], D[i], w, MODE_TRACK, force_desired, 0.0, v_ref, use_vref, kpk, mut, task, diag)
+        v0, v1, v2 = diag[CD_VEE], diag[CD_VEE + 1], diag[CD_VEE + 2]
     pos = np.empty(3)
     pos[0], pos[1], pos[2] = T[0, 3], T[1, 3], T[2, 3]
     code, _j = state_fault(q, dq, pos, math.sqrt(v0 * v0 + v1 * v1 + v2 * v2), q_lo, q_hi, dq_hi, tcp_max, ws_lo, ws_hi)
@@ -689,6 +639,6 @@ def pybullet_joint_tick(i, QD, DQD, qs, dqs, reading, bias, cst, kd, io, ts, t, 
         return code
     for j in range(7):
         lim = tau_max[j]
-        tau = kd[j] * (QD[i, j] - q[j]) + kd[7 + j] * (DQD[i, j] - dq[j])
+        tau = kd[j] * (A[i, j] - q[j]) + kd[7 + j] * (D[i, j] - dq[j]) if joint else task[j]
         io[IO_TAU + j] = min(max(tau + bias[j], -lim), lim)
     return OK

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from tergodic_cli.errors import TergodicError
-from tergodic_cli.robot.ga import (adjoint, gafro_motor_matrix, matrix_to_rotvec, motor_inverse, twist_from_gafro)
+from tergodic_cli.robot.ga import adjoint, matrix_to_rotvec, motor_inverse, twist_from_gafro
 
 #: Franka Emika datasheet limits (stricter than the pybullet URDF's).
 Q_MIN = np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973])
@@ -37,7 +37,7 @@ class FrankaModel:
 
     def flange_motor(self, q: np.ndarray) -> np.ndarray:
         """(4, 4) pose of gafro's end-effector (the Franka hand TCP) in the base frame: M(q), eq. 14."""
-        return gafro_motor_matrix(self.robot.getEEMotor(np.asarray(q, dtype=float)))
+        return np.asarray(self.robot.getEEMotor(np.asarray(q, dtype=float)).toTransformationMatrix(), dtype=float)
 
     def fk(self, q: np.ndarray) -> np.ndarray:
         """(4, 4) pose of our TCP in the base frame."""
