@@ -21,8 +21,6 @@ from tergodic_cli.robot.interfaces import ArmState
 
 
 @dataclass
-
-
 class ImpedanceTarget:
     """One impedance reference, base frame, SI units.
 
@@ -40,8 +38,6 @@ class ImpedanceTarget:
 
 
 @runtime_checkable
-
-
 class ImpedanceArm(Protocol):
     """An arm whose real-time loop runs in the SDK: references instead of torques (the device behind
     :class:`~tergodic_cli.backends.streamed.StreamedArm`).
@@ -118,8 +114,6 @@ class ImpedanceArm(Protocol):
 
 
 @dataclass
-
-
 class LineImpedanceGains(Config):
     """The line controller's stiffness and damping for an SDK impedance loop (defaults = the simulation's).
 

@@ -35,8 +35,6 @@ from tergodic_cli.robot.run import SETTLE_S, ContactRun, object_pose
 
 
 @dataclass
-
-
 class HardwareRunConfig(Config):
     """Settings of a run on hardware that the simulation does not have.
 
@@ -326,8 +324,6 @@ def dry_run(arm, sensor, camera, plan) -> str:
 
 
 @dataclass
-
-
 class DryRunPlan:
     """What :func:`dry_run` plans against.
 

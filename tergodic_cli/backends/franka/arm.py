@@ -44,8 +44,6 @@ LIMITS = {
 
 
 @dataclass
-
-
 class FrankaConfig(Config):
     """How to reach and drive the arm.
 

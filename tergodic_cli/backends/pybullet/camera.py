@@ -22,14 +22,16 @@ import os
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from tergodic_cli.backends.camera import Intrinsics, deproject
+from tergodic_cli.backends.factory import camera_pose_matrix
 from tergodic_cli.capture.textured import SimObjectConfig, TexturedObject
 from tergodic_cli.config import Config
-from tergodic_cli.rotations import matrix_to_quat, quat_to_matrix
+from tergodic_cli.rotations import matrix_to_quat
 from tergodic_cli.errors import TergodicError, require
 
 if TYPE_CHECKING:
@@ -77,7 +79,6 @@ class SimCameraConfig(Config):
         require(0 < self.near < self.far, f"clipping planes near={self.near} far={self.far} are not 0 < near < far", "e.g. 0.05 and 3.0")
         require(self.renderer in RENDERERS, f"unknown renderer '{self.renderer}'", f"use one of {', '.join(RENDERERS)}")
         require(self.depth_noise >= 0 and self.color_noise >= 0, "noise levels must be >= 0", "e.g. --depth-noise 0.001")
-
 
 
 @dataclass
@@ -176,37 +177,6 @@ def linearize_depth(d: np.ndarray, near: float, far: float) -> np.ndarray:
     return far * near / (far - (far - near) * np.asarray(d, dtype=np.float64))
 
 
-def back_project(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, K: tuple[float, float, float, float],
-                 T_base_cam: np.ndarray, sample: tuple[float, float] = (0.5, 0.5)) -> np.ndarray:
-    """Pixels (row, col) with optical depth z (metres) -> points (n, 3) in the base frame.
-
-    X = (col + o_u - cx) z / fx, Y = (row + o_v - cy) z / fy, Z = z in the optical frame, then
-    p_base = R p_cam + t.
-
-    Parameters
-    ----------
-    z : (n,) float
-        Optical depth, metres.
-    rows, cols : (n,) int
-        Pixel indices.
-    K : (fx, fy, cx, cy)
-        Intrinsics, pixels (:func:`intrinsics`).
-    T_base_cam : (4, 4) float
-        The optical frame in the base frame.
-    sample : (o_u, o_v)
-        Where the renderer samples a pixel (PIXEL_SAMPLE).
-
-    Returns
-    -------
-    (n, 3) float
-        Points in the base frame, metres.
-    """
-    fx, fy, cx, cy = K
-    o_u, o_v = sample
-    cam = np.column_stack([(cols + o_u - cx) * z / fx, (rows + o_v - cy) * z / fy, z])
-    return cam @ T_base_cam[:3, :3].T + T_base_cam[:3, 3]
-
-
 def look_at(eye, target) -> np.ndarray:
     """The optical frame at ``eye`` looking at ``target``.
 
@@ -258,14 +228,7 @@ def camera_pose(pose, target_default: np.ndarray) -> np.ndarray:
     require(len(v) in (6, 7), f"--camera-pose needs 6 or 7 numbers, got {len(v)}", fix)
     require(all(np.isfinite(v)), "--camera-pose has a non-finite number", fix)
     require(max(abs(x) for x in v[:3]) < 5.0, f"--camera-pose position {v[:3]} is not in metres near the robot", fix)
-    if len(v) == 6:
-        return look_at(v[:3], v[3:])
-    q = np.array(v[3:])
-    require(abs(np.linalg.norm(q) - 1.0) < 1e-3, "--camera-pose quaternion is not unit length", fix)
-    T = np.eye(4)
-    T[:3, :3] = quat_to_matrix(q / np.linalg.norm(q))
-    T[:3, 3] = v[:3]
-    return T
+    return look_at(v[:3], v[3:]) if len(v) == 6 else camera_pose_matrix(v, fix)
 
 
 # ----------------------------------------------------------------------------- quiet native output
@@ -448,7 +411,10 @@ class SimCamera:
             z = z + self._rng.normal(0.0, self.cfg.depth_noise, z.shape)
         if self.cfg.color_noise > 0:
             colors = np.clip(colors + self._rng.normal(0.0, self.cfg.color_noise, colors.shape), 0.0, 1.0)
-        return back_project(z, rows, cols, self.K, self.T_base_cam, PIXEL_SAMPLE[self.renderer]), colors
+        fx, fy, cx, cy = self.K
+        o_u, o_v = PIXEL_SAMPLE[self.renderer]  # where the renderer samples the pixel: a shifted principal point
+        intr = Intrinsics(self.cfg.width, self.cfg.height, fx, fy, cx - o_u, cy - o_v)
+        return deproject(z, intr, self.T_base_cam, rows, cols), colors
 
     def describe(self) -> dict:
         """The camera model for the capture sidecar.
@@ -519,7 +485,7 @@ def capture_sim(cfg: SimCaptureConfig | None = None, camera: SimCamera | None = 
                 "point it at the object with --camera-pose eye_x,eye_y,eye_z,target_x,target_y,target_z")
         t1 = time.perf_counter()
         # A cleaned object has no marking left: keep the cloud with p = 0 instead of refusing it.
-        cap = capture_cloud(_replace(pipe, source="sim", allow_empty_target=allow_empty_target), raw=(points, colors))
+        cap = capture_cloud(replace(pipe, source="sim", allow_empty_target=allow_empty_target), raw=(points, colors))
         timing["pipeline_ms"] = 1e3 * (time.perf_counter() - t1)
         timing["total_ms"] = 1e3 * (time.perf_counter() - t0)
         obj = camera.obj
@@ -539,12 +505,6 @@ def capture_sim(cfg: SimCaptureConfig | None = None, camera: SimCamera | None = 
     finally:
         if own:
             camera.close()
-
-
-def _replace(cfg, **changes):
-    from dataclasses import replace
-
-    return replace(cfg, **changes)
 
 
 def target_on_points(points: np.ndarray, capture: Capture, max_distance: float | None = None) -> np.ndarray:

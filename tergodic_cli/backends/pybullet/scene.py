@@ -30,7 +30,6 @@ SENSOR_JOINT = "panda_hand_joint"  # fixed joint flange -> hand: the wrist F/T s
 SPONGE_LINK = "panda_hand"
 
 
-
 #: The stock hand's inertial (panda.urdf): 0.81 kg, centre of mass 40 mm along the hand's z.
 _HAND_MASS, _HAND_COM_Z, _HAND_INERTIA = 0.81, 0.04, 0.1
 _HAND_INERTIAL = r'<inertial>\s*<origin rpy="0 0 0" xyz="0 0 0.04"/>\s*<mass value=".81"/>\s*' \

@@ -26,8 +26,6 @@ from tergodic_cli.backends.extras import import_sdk
 
 
 @dataclass
-
-
 class RealSenseConfig(Config):
     """serial : the camera's serial number (None = the only one connected).
     width, height, fps : stream profile of both streams (D400: 640x480 or 1280x720 at 6-30 fps).
