@@ -45,3 +45,9 @@ def import_sdk(module: str) -> ModuleType:
     except ImportError as exc:
         raise TergodicError(f"{module} ({what}) is installed but failed to load: {exc}",
                             f"reinstall it with pip install --force-reinstall {dist}, matching your robot or device firmware") from None
+
+
+def one_line(exc: BaseException) -> str:
+    """An SDK's exception as one line of at most 200 characters (its type when it says nothing)."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 200 else text[:197] + "..."

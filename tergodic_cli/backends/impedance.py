@@ -40,10 +40,7 @@ class ImpedanceTarget:
 @runtime_checkable
 class ImpedanceArm(Protocol):
     """An arm whose real-time loop runs in the SDK: references instead of torques (the device behind
-    :class:`~tergodic_cli.backends.streamed.StreamedArm`).
-
-    ``command(tau)`` still works (a torque hold between Python updates), but the contact loop
-    on hardware uses :meth:`command_impedance`, which the SDK tracks at 1 kHz.
+    :class:`~tergodic_cli.backends.streamed.StreamedArm`), which the SDK tracks at 1 kHz.
     """
 
     name: str
@@ -66,15 +63,6 @@ class ImpedanceArm(Protocol):
         -------
         ArmState
             Joint positions (rad), velocities (rad/s), the TCP pose and Jacobian (base frame).
-        """
-
-    def command(self, tau: np.ndarray) -> None:
-        """Send joint torques on top of the SDK's gravity compensation.
-
-        Parameters
-        ----------
-        tau : (dof,) float
-            Joint torques, N m.
         """
 
     def disconnect(self) -> None:

@@ -309,6 +309,45 @@ class WrenchSensor(Protocol):
         """Zero the reading: subtract the present wrench from every later sample."""
 
 
+class TaredSensor:
+    """A :class:`WrenchSensor` tared in software, over its ``_sample() -> (t s, (6,) wrench)``.
+
+    ``tare`` averages ``tare_samples`` samples (tool at rest, free) into the offset ``read`` removes;
+    ``bad_tare`` (problem, fix) refuses a tare over a non-finite sample (None: not checked).
+    """
+
+    bad_tare: tuple[str, str] | None = None
+
+    def __init__(self, frame_in_ee: np.ndarray | None = None, tare_samples: int = 50):
+        from tergodic_cli.errors import require
+
+        self.frame_in_ee = np.eye(4) if frame_in_ee is None else np.asarray(frame_in_ee, dtype=float)
+        require(self.frame_in_ee.shape == (4, 4), "frame_in_ee must be a (4, 4) transform",
+                "give the sensor pose in the TCP frame")
+        self.offset = np.zeros(6)
+        self.tare_samples = int(tare_samples)
+
+    def read(self) -> WrenchReading:
+        """The next sample, tare offset removed.
+
+        Returns
+        -------
+        WrenchReading
+            Force (N) and torque (N m) in the sensor frame, with its timestamp (s).
+        """
+        t, w = self._sample()
+        return WrenchReading(t, w - self.offset)
+
+    def tare(self) -> None:
+        """Zero in software: the mean of ``tare_samples`` samples becomes the offset."""
+        ws = np.array([self._sample()[1] for _ in range(self.tare_samples)])
+        if self.bad_tare is not None and not np.all(np.isfinite(ws)):
+            from tergodic_cli.errors import TergodicError
+
+            raise TergodicError(*self.bad_tare)
+        self.offset = ws.mean(axis=0)
+
+
 @dataclass
 class ToolLoad:
     """Mass (kg) and centre of mass (3,) in the sensor frame of everything beyond the sensor, and
