@@ -174,16 +174,13 @@ def line_impedance_target(p_tcp: np.ndarray, a: np.ndarray, d: np.ndarray, x_ref
     pose = np.eye(4)
     pose[:3, :3] = R
     pose[:3, 3] = a + (s + force / g.k_normal) * z if axial is None else a + float(axial) * z
-    K = rotated_gains(R, (g.k_lateral, g.k_lateral, g.k_normal), (g.k_tilt, g.k_tilt, g.k_spin))
-    D = rotated_gains(R, (g.d_lateral, g.d_lateral, g.d_normal), (g.d_tilt, g.d_tilt, g.d_spin))
-    twist = np.zeros(6)
+    ref = hold_target(pose, g)
     if line_velocity is not None:
         v = np.asarray(line_velocity, dtype=float)
-        twist[:3] = v - (v @ z) * z  # along the line the target rides with the TCP: no feed-forward there
-    twist[:3] += axial_speed * z
-    wrench = np.zeros(6)
-    wrench[:3] = (force if axial is None else 0.0) * z
-    return ImpedanceTarget(pose, K, D, twist, wrench)
+        ref.twist[:3] = v - (v @ z) * z  # along the line the target rides with the TCP: no feed-forward there
+    ref.twist[:3] += axial_speed * z
+    ref.wrench_ff[:3] = (force if axial is None else 0.0) * z
+    return ref
 
 
 def hold_target(pose: np.ndarray, gains: LineImpedanceGains) -> ImpedanceTarget:

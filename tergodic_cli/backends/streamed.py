@@ -31,7 +31,7 @@ from tergodic_cli.robot import kernels as Kn
 from tergodic_cli.robot.controller import min_jerk
 from tergodic_cli.robot.ga import matrix_to_rotvec, rotvec_to_matrix
 from tergodic_cli.robot.interfaces import ContactWrench, LineTarget, Observation, ToolLoad
-from tergodic_cli.robot.run import SETTLE_S, ContactRun, object_pose
+from tergodic_cli.robot.run import SETTLE_S, ContactRun, _fmt, object_pose
 
 
 @dataclass
@@ -371,7 +371,3 @@ class _StartAgent:
             dt = robot_cfg.explore_dt
 
         self.cfg = _Cfg()
-
-
-def _fmt(x) -> str:
-    return "(" + ", ".join(f"{float(v):.3f}" for v in np.ravel(x)) + ")"

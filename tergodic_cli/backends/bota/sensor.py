@@ -56,11 +56,8 @@ class BotaSensor(TaredSensor):
         super().__init__(cfg.frame_in_ee, cfg.tare_samples)
         self.cfg = cfg
         self.driver = None
-        self._bd = None
         self._last_us: int | None = None
         self._wraps = 0
-        self.last_status: dict | None = None
-        self.expected_dt = None
 
     @property
     def is_connected(self) -> bool:
@@ -70,7 +67,6 @@ class BotaSensor(TaredSensor):
         if self.driver is not None:
             return
         bd = import_sdk("bota_driver")
-        self._bd = bd
         try:
             driver = bd.BotaDriver(self._driver_config(bd))
         except Exception as exc:
@@ -82,7 +78,6 @@ class BotaSensor(TaredSensor):
             driver.shutdown()
             raise TergodicError("the Bota sensor did not start streaming", "power-cycle the sensor and retry")
         self.driver = driver
-        self.expected_dt = 1e-6 * float(driver.get_expected_timestep_us())
 
     def _driver_config(self, bd):
         if self.cfg.address != "dummy":
@@ -105,8 +100,6 @@ class BotaSensor(TaredSensor):
             self._wraps += 1
         self._last_us = us
         st = fr.status
-        self.last_status = {"invalid": int(st.invalid), "overrange": int(st.overrange), "throttled": int(st.throttled),
-                            "temperature": float(fr.temperature)}
         w = np.array(list(fr.force) + list(fr.torque), dtype=float)
         if int(st.invalid) or int(st.overrange) or w.shape != (6,):
             w = np.full(6, np.nan)

@@ -90,7 +90,6 @@ class FrankyArm:
     """
 
     name = "franka-franky"
-    dof = 7
 
     def __init__(self, cfg: FrankaConfig):
         cfg.validate()
@@ -105,7 +104,6 @@ class FrankyArm:
         self._motion = None
         self._gains_key: bytes | None = None
         self.measured_tau = np.zeros(7)
-        self.last_target: ImpedanceTarget | None = None
         self._error: str | None = None
 
     # ------------------------------------------------------------------ connection
@@ -205,7 +203,6 @@ class FrankyArm:
                 self._motion.set_gains(_gains(fr, K, D))
                 self._gains_key = key
             self._motion.set_reference(ref)
-        self.last_target = target
 
     def move_joints(self, q: np.ndarray, speed: float | None = None) -> None:
         """Blocking joint-space move (franky plans it with Ruckig); ends a torque-mode controller first."""

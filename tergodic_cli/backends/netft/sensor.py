@@ -103,7 +103,6 @@ class NetFTSensor(TaredSensor):
         self._serial = 0
         self._returned = -1
         self.last_record: tuple | None = None
-        self.packets = 0
         self.lost = 0
 
     @property
@@ -166,7 +165,6 @@ class NetFTSensor(TaredSensor):
             w = np.asarray(counts, dtype=float) * self.scale if status == 0 else np.full(6, np.nan)
             with self._cv:
                 self._serial += 1
-                self.packets += 1
                 self._latest = (self._serial, time.monotonic(), w, (seq, ft_seq, status, counts))
                 self._cv.notify_all()
 

@@ -59,7 +59,6 @@ class SimArm:
         try:
             self.scene.add_object(mesh.vertices, mesh.triangles, T_mesh)
             self.dev = PyBulletArm(self.scene)
-            self.dev.jacobian_every = int(cfg.jacobian_every)
             self.dev.dynamics_every = int(cfg.dynamics_every)
             self.dev.connect()
             self.scene.set_arm(np.array(cfg.picture_q))
@@ -91,7 +90,6 @@ class SimArm:
         self.contact_hook: Callable[[list, float], None] | None = None
         self.hook_every = 20
         self._hook_age = 0
-        self.hook_s = 0.0  # wall seconds spent in contact_hook
         self.wall0 = time.perf_counter()  # realtime pacing: wall clock at simulated time 0 (the run resets it)
         self._obs = None
         self._mode = None
@@ -180,9 +178,7 @@ class SimArm:
         self._hook_age += 1
         if self._hook_age >= self.hook_every:
             self._hook_age = 0
-            t = time.perf_counter()
             self.contact_hook(self.scene.sponge_contacts(), self.hook_every * self.cfg.physics_dt)
-            self.hook_s += time.perf_counter() - t
 
     def reach(self, T: np.ndarray) -> str | None:
         q_h, pe, oe = self._ik_hover(T)

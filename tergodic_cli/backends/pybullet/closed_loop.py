@@ -40,12 +40,13 @@ from typing import Callable
 
 import numpy as np
 
+from tergodic_cli.config import Config
 from tergodic_cli.errors import require
 from tergodic_cli.robot.config import RobotConfig
 
 
 @dataclass
-class CleaningLoopConfig:
+class CleaningLoopConfig(Config):
     """The outer loop's settings (saved in summary.json as ``closed_loop``).
 
     recapture_every : K, explorer steps between two re-captures.
@@ -62,9 +63,6 @@ class CleaningLoopConfig:
     max_steps: int = 2000
     clean_every: float = 0.05
     reset_coverage: bool = True
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 def validate_loop_config(cfg: CleaningLoopConfig) -> None:
@@ -95,18 +93,16 @@ def sim_scene_configs(meta: dict):
             "capture with 'tergodic capture --source sim --object bowl --marking X --out CAPTURE'")
     o = dict(sim["object"])
     o["cleaning"] = CleaningModel(**(o.get("cleaning") or {}))
-    o["pose"] = tuple(o["pose"]) if o.get("pose") is not None else None
-    obj_cfg = SimObjectConfig(**{f.name: o[f.name] for f in fields(SimObjectConfig) if f.name in o})
-    c = dict(sim["camera"])
-    c["pose"] = tuple(c["pose"]) if c.get("pose") is not None else None
-    cam_cfg = SimCameraConfig(**{f.name: c[f.name] for f in fields(SimCameraConfig) if f.name in c})
-    p = dict(meta.get("config") or {})
-    for key in ("crop", "outliers"):
-        if p.get(key) is not None:
-            p[key] = tuple(p[key])
+    c, p = dict(sim["camera"]), dict(meta.get("config") or {})
+    for d, keys in ((o, ("pose",)), (c, ("pose",)), (p, ("crop", "outliers"))):  # JSON lists back to tuples
+        d.update({k: tuple(d[k]) for k in keys if d.get(k) is not None})
     p.update(source="sim", allow_empty_target=True)
-    pipe = CaptureConfig(**{f.name: p[f.name] for f in fields(CaptureConfig) if f.name in p})
-    return obj_cfg, cam_cfg, pipe
+    return _known(SimObjectConfig, o), _known(SimCameraConfig, c), _known(CaptureConfig, p)
+
+
+def _known(cls, d: dict):
+    """``cls`` from the keys of ``d`` that are its fields (a sidecar record holds more)."""
+    return cls(**{f.name: d[f.name] for f in fields(cls) if f.name in d})
 
 
 def _basis_key(points: np.ndarray, basis_meta: dict) -> str:
@@ -114,8 +110,7 @@ def _basis_key(points: np.ndarray, basis_meta: dict) -> str:
     from tergodic_cli.basis.cache import geometry_key
 
     conf = basis_meta.get("config") if isinstance(basis_meta.get("config"), dict) else {}
-    names = {f.name for f in fields(BasisConfig)}
-    return geometry_key(np.asarray(points, dtype=np.float64), BasisConfig(**{k: v for k, v in conf.items() if k in names}))[0]
+    return geometry_key(np.asarray(points, dtype=np.float64), _known(BasisConfig, conf))[0]
 
 
 class _Cleaner:

@@ -64,7 +64,6 @@ class PyBulletArm:
     """The simulated Panda behind the :class:`Arm` protocol (7 torque-controlled joints)."""
 
     name = "panda-pybullet"
-    dof = 7
 
     def __init__(self, scene: PyBulletScene):
         self.scene = scene
@@ -79,8 +78,6 @@ class PyBulletArm:
         self.reaction_step = -1
         self.last_tau = [0.0] * 7  # total torque sent (task + compensation)
         self._tau_lim = self.tau_max.tolist()
-        #: Kept for backends whose Jacobian is costly; here it comes with the pose, every step.
-        self.jacobian_every = 1
         #: Gravity + Coriolis (calculateInverseDynamics) every this many commands (1 = every step).
         self.dynamics_every = 1
         self._bias: tuple | None = None

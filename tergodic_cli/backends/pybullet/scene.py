@@ -172,7 +172,6 @@ class PyBulletScene:
             names[info[1].decode()] = j
             links[info[12].decode()] = j
             p.changeDynamics(robot, j, linearDamping=0.0, angularDamping=0.0, physicsClientId=cid)
-        self.joint_index = names
         self.link_index = links
         self.link_names = [n for n, _ in sorted(links.items(), key=lambda kv: kv[1])]
         self.arm_joints = [names[n] for n in ARM_JOINTS]

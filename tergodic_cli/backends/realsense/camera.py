@@ -68,7 +68,6 @@ class RealSenseCamera:
         self.depth_scale: float | None = None
         self.serial: str | None = None
         self.name: str | None = None
-        self._rs = None
         self._align = None
 
     @property
@@ -79,7 +78,6 @@ class RealSenseCamera:
         if self.pipeline is not None:
             return
         rs = import_sdk("pyrealsense2")
-        self._rs = rs
         cfg = self.cfg
         devices = list(rs.context().query_devices())
         serials = [d.get_info(rs.camera_info.serial_number) for d in devices]
