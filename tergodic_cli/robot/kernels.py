@@ -58,6 +58,16 @@ OK, F_JOINT_POS, F_JOINT_VEL, F_TCP_SPEED, F_WORKSPACE, F_FORCE, F_SENSOR = 0, 1
 
 # ----------------------------------------------------------------------------- kinematics
 @njit
+def _mul3(r, b):
+    """r b for two 3x3 matrices as row-major 9-tuples (kept in registers), as a 9-tuple."""
+    return (r[0] * b[0] + r[1] * b[3] + r[2] * b[6], r[0] * b[1] + r[1] * b[4] + r[2] * b[7],
+            r[0] * b[2] + r[1] * b[5] + r[2] * b[8], r[3] * b[0] + r[4] * b[3] + r[5] * b[6],
+            r[3] * b[1] + r[4] * b[4] + r[5] * b[7], r[3] * b[2] + r[4] * b[5] + r[5] * b[8],
+            r[6] * b[0] + r[7] * b[3] + r[8] * b[6], r[6] * b[1] + r[7] * b[4] + r[8] * b[7],
+            r[6] * b[2] + r[7] * b[5] + r[8] * b[8])
+
+
+@njit
 def fk_jacobian(q, F, axis, qidx, tcp_off, T, J):
     """TCP pose and geometric Jacobian of a serial chain.
 
@@ -69,47 +79,29 @@ def fk_jacobian(q, F, axis, qidx, tcp_off, T, J):
     n = J.shape[1]
     zs = np.empty((n, 3))
     ps = np.empty((n, 3))
-    r00, r01, r02, r10, r11, r12, r20, r21, r22 = 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
+    R = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
     px, py, pz = 0.0, 0.0, 0.0
     for k in range(F.shape[0]):
         f = F[k]
         # p += R f_t; R = R f_R
-        px, py, pz = (px + r00 * f[0, 3] + r01 * f[1, 3] + r02 * f[2, 3],
-                      py + r10 * f[0, 3] + r11 * f[1, 3] + r12 * f[2, 3],
-                      pz + r20 * f[0, 3] + r21 * f[1, 3] + r22 * f[2, 3])
-        a00 = r00 * f[0, 0] + r01 * f[1, 0] + r02 * f[2, 0]
-        a01 = r00 * f[0, 1] + r01 * f[1, 1] + r02 * f[2, 1]
-        a02 = r00 * f[0, 2] + r01 * f[1, 2] + r02 * f[2, 2]
-        a10 = r10 * f[0, 0] + r11 * f[1, 0] + r12 * f[2, 0]
-        a11 = r10 * f[0, 1] + r11 * f[1, 1] + r12 * f[2, 1]
-        a12 = r10 * f[0, 2] + r11 * f[1, 2] + r12 * f[2, 2]
-        a20 = r20 * f[0, 0] + r21 * f[1, 0] + r22 * f[2, 0]
-        a21 = r20 * f[0, 1] + r21 * f[1, 1] + r22 * f[2, 1]
-        a22 = r20 * f[0, 2] + r21 * f[1, 2] + r22 * f[2, 2]
-        r00, r01, r02, r10, r11, r12, r20, r21, r22 = a00, a01, a02, a10, a11, a12, a20, a21, a22
+        px, py, pz = (px + R[0] * f[0, 3] + R[1] * f[1, 3] + R[2] * f[2, 3],
+                      py + R[3] * f[0, 3] + R[4] * f[1, 3] + R[5] * f[2, 3],
+                      pz + R[6] * f[0, 3] + R[7] * f[1, 3] + R[8] * f[2, 3])
+        R = _mul3(R, (f[0, 0], f[0, 1], f[0, 2], f[1, 0], f[1, 1], f[1, 2], f[2, 0], f[2, 1], f[2, 2]))
         i = qidx[k]
         if i >= 0:
             ux, uy, uz = axis[k, 0], axis[k, 1], axis[k, 2]
             c, s = math.cos(q[i]), math.sin(q[i])
             v = 1.0 - c
             # Rodrigues: rotation by q about u (unit), in the link frame; R = R Rot
-            b00, b01, b02 = c + ux * ux * v, ux * uy * v - uz * s, ux * uz * v + uy * s
-            b10, b11, b12 = uy * ux * v + uz * s, c + uy * uy * v, uy * uz * v - ux * s
-            b20, b21, b22 = uz * ux * v - uy * s, uz * uy * v + ux * s, c + uz * uz * v
-            a00 = r00 * b00 + r01 * b10 + r02 * b20
-            a01 = r00 * b01 + r01 * b11 + r02 * b21
-            a02 = r00 * b02 + r01 * b12 + r02 * b22
-            a10 = r10 * b00 + r11 * b10 + r12 * b20
-            a11 = r10 * b01 + r11 * b11 + r12 * b21
-            a12 = r10 * b02 + r11 * b12 + r12 * b22
-            a20 = r20 * b00 + r21 * b10 + r22 * b20
-            a21 = r20 * b01 + r21 * b11 + r22 * b21
-            a22 = r20 * b02 + r21 * b12 + r22 * b22
-            r00, r01, r02, r10, r11, r12, r20, r21, r22 = a00, a01, a02, a10, a11, a12, a20, a21, a22
-            zs[i, 0] = r00 * ux + r01 * uy + r02 * uz
-            zs[i, 1] = r10 * ux + r11 * uy + r12 * uz
-            zs[i, 2] = r20 * ux + r21 * uy + r22 * uz
+            R = _mul3(R, (c + ux * ux * v, ux * uy * v - uz * s, ux * uz * v + uy * s,
+                          uy * ux * v + uz * s, c + uy * uy * v, uy * uz * v - ux * s,
+                          uz * ux * v - uy * s, uz * uy * v + ux * s, c + uz * uz * v))
+            zs[i, 0] = R[0] * ux + R[1] * uy + R[2] * uz
+            zs[i, 1] = R[3] * ux + R[4] * uy + R[5] * uz
+            zs[i, 2] = R[6] * ux + R[7] * uy + R[8] * uz
             ps[i, 0], ps[i, 1], ps[i, 2] = px, py, pz
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = R
     ox, oy, oz = tcp_off[0], tcp_off[1], tcp_off[2]
     tx = px + r00 * ox + r01 * oy + r02 * oz
     ty = py + r10 * ox + r11 * oy + r12 * oz

@@ -325,13 +325,10 @@ class SimArm:
         explorer = len(kd) == 0
         arm, sc, g = self.dev, self.scene, self.guard
         p, cid, rob, idx = sc.p, sc.cid, sc.robot, arm._read_idx
-        get_states, inv_dyn, send, physics = p.getJointStates, p.calculateInverseDynamics, p.setJointMotorControlArray, \
-            p.stepSimulation
-        joints, mode_torque, dt, sread = sc.arm_joints, p.TORQUE_CONTROL, sc.dt, self.sensor.read
+        get_states, gravity, send, physics = p.getJointStates, arm.gravity, p.setJointMotorControlArray, self._physics
+        joints, mode_torque, sread = sc.arm_joints, p.TORQUE_CONTROL, self.sensor.read
         check_sensor, timeout = g.check_sensor, g.cfg.explorer_timeout
         io = np.zeros(Kn.N_IO)
-        zeros, every, realtime = arm._zeros, arm.dynamics_every, self.cfg.realtime
-        hook = self._run_hook if self.contact_hook is not None else None
         OK, F_FORCE, tau_sl = Kn.OK, Kn.F_FORCE, slice(Kn.IO_TAU, Kn.IO_TAU + 7)
         i, t, rd, fault = -1, sc.t, None, None
         for i in range(len(A)):
@@ -340,14 +337,10 @@ class SimArm:
             arm.reaction, arm.reaction_step = rs[-1], sc.steps
             rd = sread()
             t = sc.t
-            arm._bias_age += 1
-            if arm._bias is None or arm._bias_age >= every or arm._bias_epoch != sc.teleports:
-                arm._bias = inv_dyn(rob, qs[:-1], dqs[:-1], zeros, physicsClientId=cid)
-                arm._bias_age = 0
-                arm._bias_epoch = sc.teleports
+            bias = gravity(qs[:-1], dqs[:-1])
             fault = check_sensor(t, rd.t, rd.wrench)
             if fault is None:
-                code = tick(i, A, D, qs, dqs, rd.wrench, arm._bias, cst, kpk, mut, kd, io, ts, t, dyn)
+                code = tick(i, A, D, qs, dqs, rd.wrench, bias, cst, kpk, mut, kd, io, ts, t, dyn)
                 if code == F_FORCE:
                     fault = g.check_force(t, io[Kn.IO_W:Kn.IO_W + 6])
                 elif code != OK:
@@ -361,15 +354,7 @@ class SimArm:
             tot = io[tau_sl].tolist()
             arm.last_tau = tot
             send(rob, joints, mode_torque, forces=tot, physicsClientId=cid)
-            physics(physicsClientId=cid)
-            sc.steps += 1
-            sc.t = sc.steps * dt
-            if hook is not None:
-                hook()
-            if realtime:
-                lag = sc.t - (time.perf_counter() - self.wall0)
-                if lag > 0:
-                    time.sleep(lag)
+            physics()
         arm._q9 = arm._dq9 = None  # stale: the next command() reads the state first
         return i, t, io, rd, fault
 

@@ -126,18 +126,24 @@ class PyBulletArm:
         p, cid = sc.p, sc.cid
         if self._q9 is None:  # never read: read first (also checks the connection)
             self.read_state()
-        # Gravity and Coriolis change with q and q̇, slowly at these speeds (< 0.3 rad/s in contact:
-        # 1.2 mrad in 4 ms, ~0.03 N m of gravity torque): refreshed every dynamics_every commands.
-        self._bias_age += 1
-        if self._bias is None or self._bias_age >= self.dynamics_every or self._bias_epoch != sc.teleports:
-            self._bias = p.calculateInverseDynamics(sc.robot, self._q9, self._dq9, self._zeros, physicsClientId=cid)
-            self._bias_age = 0
-            self._bias_epoch = sc.teleports
-        bias = self._bias
-        lim = self._tau_lim
+        bias, lim = self.gravity(self._q9, self._dq9), self._tau_lim
         total = [min(max(t + b, -m), m) for t, b, m in zip(np.asarray(tau, dtype=float).tolist(), bias, lim)]
         self.last_tau = total
         p.setJointMotorControlArray(sc.robot, sc.arm_joints, p.TORQUE_CONTROL, forces=total, physicsClientId=cid)
+
+    def gravity(self, q, dq) -> tuple:
+        """Gravity + Coriolis torques at (q, q̇) of every movable joint (``calculateInverseDynamics``).
+
+        They change slowly at these speeds (< 0.3 rad/s in contact: 1.2 mrad in 4 ms, ~0.03 N m of
+        gravity torque): refreshed every ``dynamics_every`` calls, and after a teleport.
+        """
+        sc = self.scene
+        self._bias_age += 1
+        if self._bias is None or self._bias_age >= self.dynamics_every or self._bias_epoch != sc.teleports:
+            self._bias = sc.p.calculateInverseDynamics(sc.robot, q, dq, self._zeros, physicsClientId=sc.cid)
+            self._bias_age = 0
+            self._bias_epoch = sc.teleports
+        return self._bias
 
     def disconnect(self) -> None:
         """Leave the joints braked (velocity motors back on) and mark the arm disconnected."""
