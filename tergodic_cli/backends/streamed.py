@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
+from types import SimpleNamespace
 from typing import Callable
 
 import numpy as np
@@ -366,8 +367,4 @@ class _StartAgent:
         n = oriented_normals(pts, resolve_side(robot_cfg.normal_side, getattr(capture, "meta", {}) or {}))[i]
         self.positions = pts[i][None, :]
         self.normals = n[None, :]
-
-        class _Cfg:
-            dt = robot_cfg.explore_dt
-
-        self.cfg = _Cfg()
+        self.cfg = SimpleNamespace(dt=robot_cfg.explore_dt)

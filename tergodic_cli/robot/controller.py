@@ -1,41 +1,18 @@
 """The line-tracking impedance controller with a wrench PID (paper eqs. 34-47), and a joint impedance.
 
-One control step, all in the end-effector (TCP) frame, matrix form of the CGA products:
+One control step, all in the end-effector (TCP) frame, matrix form of the CGA products (docs/robot.md,
+"The controller"): the target line L_a⊥ moved into the ee frame by M̃; the motor M_{L_ee L_a⊥}
+(eq. 36) and its logarithm V_L = (t, φ) (eq. 37, :func:`~tergodic_cli.robot.ga.line_motor_z`);
+τ = J^eeᵀ (K_L V_L - D_V V_ee + W_C) (eq. 47) with the wrench PID W_C on W_d - W'_m (eqs. 40-41),
+using J^eeᵀ W^ee = Jᵀ (R W^ee) instead of forming J^ee (eq. 45).
 
-1. L_ee is the ee z-axis (eq. 35); the target L_a⊥ (point a, unit direction d pointing into
-   the surface) is moved into the ee frame by M̃ (the reverse motor);
-2. M_{L_ee L_a⊥} (eq. 36) and its logarithm, the twist V_L = (t, φ) (eq. 37), by
-   :func:`~tergodic_cli.robot.ga.line_motor_z`;
-3. V_L becomes the wrench W_L = K_L V_L (eq. 38, see "the twist-to-wrench map" below);
-4. the wrench PID W_C on W_d - W'_m (eqs. 40-41), W'_m the measured wrench in the ee frame
-   (eq. 39), acting on the force along the line only (see below);
-5. damping W_V = D_V V_ee on the ee twist V_ee = J^ee q̇ (eq. 46);
-6. τ = J^eeᵀ (K_L V_L - D_V V_ee + W_C) (eq. 47; the CGA inner product's minus sign, B·W = -τ,
-   is already folded into the matrix form). J^ee = M̃ J M (eq. 45) is never formed: we use
-   J^eeᵀ W^ee = Jᵀ (R W^ee), one 6×7 product fewer.
-
-Two choices the paper leaves open, made here:
-
-- *The twist-to-wrench map.* Eq. 38 multiplies by the conjugate pseudoscalar I_c "as a scalar
-  inertia". In gafro's blade conventions V·I_c puts the rotational part of a twist on force
-  blades (e12 -> e03) and the translational part on moment blades, which would turn a tilt
-  error into a push. We implement the stated intent, an identity inertia: the translational
-  error becomes a force, the rotational error a moment, K_L and D_V diagonal in (t, φ) and
-  (v, ω). The paper's K_L = diag(30, 30, 30, 750, 750, 300) is in gafro's twist order
-  (e12, e13, e23, e1∞, e2∞, e3∞), i.e. 30 N m/rad on rotations and 750, 750, 300 N/m on x, y, z.
-- *Which wrench components the PID acts on.* Eqs. 40-41 put it on the full wrench, W_d =
-  (0, 0, F_d, 0, 0, 0) with zero desired torque (``pid_wrench``, the paper's gains). Across
-  the line it fights the line stiffness through the friction force: an integral there winds up
-  against the motion until the tool sticks (the paper's gains on the plate: 3 mm behind the agent,
-  no coverage), so the integral acts on the axial force only, P and D on all six; the tuned gains
-  keep the whole PID on the force along the ee z-axis. Its derivative
-  differentiates a wrench filtered once more (``derivative_filter_hz``): the paper's K_d = 0.5 s
-  on the contact's 1 kHz jitter pushed 25 N at the first touch.
-
-Additions needed in simulation (not in the paper), each small and documented in docs/robot.md:
-the rotation about the tool axis is left free by a line, so a weak spring holds the ee x-axis
-near a reference; a weak posture spring in the Jacobian's null space keeps the redundant
-elbow away from its limits; the measured force is low-pass filtered before the PID.
+Two choices the paper leaves open (docs/robot.md): eq. 38's I_c is read as its stated intent, an
+identity inertia (translation error -> force, rotation error -> moment; used literally in gafro's
+blades a tilt would push along the axis); the PID's integral acts on the axial force only (across
+the line it winds up against the friction until the tool sticks), and its derivative sees the
+wrench filtered once more (``derivative_filter_hz``: the paper's K_d on the 1 kHz contact jitter
+pushed 25 N at the first touch). Simulation adds a weak spin spring (a line leaves the rotation
+about the tool axis free), a null-space posture spring and a low-pass filter on the measured force.
 """
 
 from __future__ import annotations

@@ -113,8 +113,6 @@ class PyBulletArm:
         J = np.empty((6, 7))
         F, axis, qidx, off = self._chain
         fk_jacobian(q, F, axis, qidx, off, T, J)
-        if len(q9) > 7:  # a working gripper: the arm's 7 first
-            return ArmState(sc.t, q[:7].copy(), np.array(dq9[:7]), T, J)
         return ArmState(sc.t, q, np.array(dq9), T, J)
 
     def command(self, tau: np.ndarray) -> None:

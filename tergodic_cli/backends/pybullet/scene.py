@@ -176,10 +176,10 @@ class PyBulletScene:
         self.link_names = [n for n, _ in sorted(links.items(), key=lambda kv: kv[1])]
         self.arm_joints = [names[n] for n in ARM_JOINTS]
         # Every non-fixed joint, in index order: the numDoF-sized inputs of calculateJacobian and
-        # calculateInverseDynamics (the arm's 7 here; 9 with a working gripper).
+        # calculateInverseDynamics (the arm's 7: the sponge replaces the gripper's fingers).
         self.movable = [j for j in range(p.getNumJoints(robot, physicsClientId=cid))
                         if p.getJointInfo(robot, j, physicsClientId=cid)[2] != p.JOINT_FIXED]
-        assert self.movable[:7] == self.arm_joints
+        assert self.movable == self.arm_joints
         self.sensor_joint = names[SENSOR_JOINT]
         self.sponge_link = links[SPONGE_LINK]
         #: The TCP is the sponge's tip, a point on the sponge's link (no link of its own: one fewer body).
@@ -187,10 +187,6 @@ class PyBulletScene:
         self.tcp_offset = (0.0, 0.0, float(self.sponge.offset + self.sponge.radius))
         # Torque control: switch the arm's default velocity motors off (force = 0).
         p.setJointMotorControlArray(robot, self.arm_joints, p.VELOCITY_CONTROL, forces=[0.0] * 7, physicsClientId=cid)
-        extra = self.movable[7:]  # a working gripper: hold it closed
-        if extra:
-            p.setJointMotorControlArray(robot, extra, p.POSITION_CONTROL, targetPositions=[0.0] * len(extra),
-                                        forces=[50.0] * len(extra), physicsClientId=cid)
         p.enableJointForceTorqueSensor(robot, self.sensor_joint, True, physicsClientId=cid)
         s = self.sponge
         # contactProcessingThreshold=0: only touching or penetrating points reach the solver. The
@@ -225,8 +221,6 @@ class PyBulletScene:
         self.teleports += 1
         for j, qi in zip(self.arm_joints, q):
             p.resetJointState(self.robot, j, float(qi), 0.0, physicsClientId=self.cid)
-        for j in self.movable[7:]:
-            p.resetJointState(self.robot, j, 0.0, 0.0, physicsClientId=self.cid)
 
     def link_pose(self, link: int) -> np.ndarray:
         """(4, 4) world pose of a link frame (forward kinematics recomputed)."""

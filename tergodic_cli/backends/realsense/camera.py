@@ -70,10 +70,6 @@ class RealSenseCamera:
         self.name: str | None = None
         self._align = None
 
-    @property
-    def is_connected(self) -> bool:
-        return self.pipeline is not None
-
     def connect(self) -> None:
         if self.pipeline is not None:
             return
@@ -147,10 +143,3 @@ class RealSenseCamera:
             self.pipeline.stop()
         finally:
             self.pipeline = None
-
-    def __enter__(self) -> "RealSenseCamera":
-        self.connect()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.disconnect()
