@@ -16,7 +16,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from tergodic_cli.config import Config
-from tergodic_cli.robot.ga import tool_rotation
+from tergodic_cli.robot.ga import pose_matrix, tool_rotation
 from tergodic_cli.robot.interfaces import ArmState
 
 
@@ -171,10 +171,8 @@ def line_impedance_target(p_tcp: np.ndarray, a: np.ndarray, d: np.ndarray, x_ref
     z = R[:, 2]
     a = np.asarray(a, dtype=float)
     s = float((np.asarray(p_tcp, dtype=float) - a) @ z)
-    pose = np.eye(4)
-    pose[:3, :3] = R
-    pose[:3, 3] = a + (s + force / g.k_normal) * z if axial is None else a + float(axial) * z
-    ref = hold_target(pose, g)
+    at = a + (s + force / g.k_normal) * z if axial is None else a + float(axial) * z
+    ref = hold_target(pose_matrix(R, at), g)
     if line_velocity is not None:
         v = np.asarray(line_velocity, dtype=float)
         ref.twist[:3] = v - (v @ z) * z  # along the line the target rides with the TCP: no feed-forward there

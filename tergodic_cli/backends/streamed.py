@@ -30,7 +30,7 @@ from tergodic_cli.backends.impedance import ForceLoop, LineImpedanceGains, hold_
 from tergodic_cli.errors import require
 from tergodic_cli.robot import kernels as Kn
 from tergodic_cli.robot.controller import min_jerk
-from tergodic_cli.robot.ga import matrix_to_rotvec, rotvec_to_matrix
+from tergodic_cli.robot.ga import matrix_to_rotvec, pose_matrix, rotvec_to_matrix
 from tergodic_cli.robot.interfaces import ContactWrench, LineTarget, Observation, ToolLoad
 from tergodic_cli.robot.run import SETTLE_S, ContactRun, _fmt, object_pose
 
@@ -165,9 +165,7 @@ class StreamedArm:
         p0, p1 = T0[:3, 3], T[:3, 3]
         for i in range(int(math.ceil(duration / self.dt)) + int(round(SETTLE_S / self.dt))):
             s, ds = min_jerk(np.zeros(1), np.ones(1), duration, (i + 1) * self.dt)
-            pose = np.eye(4)
-            pose[:3, :3] = rotvec_to_matrix(phi * float(s[0])) @ T0[:3, :3]
-            pose[:3, 3] = p0 + (p1 - p0) * float(s[0])
+            pose = pose_matrix(rotvec_to_matrix(phi * float(s[0])) @ T0[:3, :3], p0 + (p1 - p0) * float(s[0]))
             fault = check(self.get_observation())
             if fault is not None:
                 return fault

@@ -116,16 +116,15 @@ class LineForceController:
         self.dt = float(dt)
         self.K = tuple(float(k) for k in gains.k_trans + gains.k_rot)
         self.D = tuple(float(k) for k in gains.d_trans + gains.d_rot)
-        self.alpha = 1.0 - math.exp(-2.0 * math.pi * gains.force_filter_hz * self.dt) if gains.force_filter_hz > 0 else 1.0
         q_min, q_max = (Q_MIN, Q_MAX) if q_limits is None else (q_limits[0], q_limits[1])
-        prm = np.zeros(Kn.N_CP)
-        prm[Kn.CP_KP], prm[Kn.CP_KI], prm[Kn.CP_KD] = gains.kp, gains.ki, gains.kd
-        prm[Kn.CP_ALPHA], prm[Kn.CP_IMAX], prm[Kn.CP_SPIN] = self.alpha, gains.integral_max, gains.spin_stiffness
-        prm[Kn.CP_NS_K], prm[Kn.CP_NS_D], prm[Kn.CP_LIM_K] = gains.nullspace_stiffness, gains.nullspace_damping, gains.limit_stiffness
-        prm[Kn.CP_DT], prm[Kn.CP_LIMIT_ZONE] = self.dt, LIMIT_ZONE
-        prm[Kn.CP_VGUARD], prm[Kn.CP_DGUARD] = gains.guard_speed, gains.guard_damping
-        prm[Kn.CP_WRENCH] = 1.0 if gains.pid_wrench else 0.0
-        prm[Kn.CP_DALPHA] = 1.0 - math.exp(-2.0 * math.pi * gains.derivative_filter_hz * self.dt) if gains.derivative_filter_hz > 0 else 1.0
+
+        def lowpass(hz: float) -> float:  # the first-order filter's gain per step
+            return 1.0 - math.exp(-2.0 * math.pi * hz * self.dt) if hz > 0 else 1.0
+
+        g = gains
+        prm = np.array([g.kp, g.ki, g.kd, lowpass(g.force_filter_hz), g.integral_max, g.spin_stiffness,  # CP_* order
+                        g.nullspace_stiffness, g.nullspace_damping, g.limit_stiffness, self.dt, LIMIT_ZONE,
+                        g.guard_speed, g.guard_damping, 1.0 if g.pid_wrench else 0.0, lowpass(g.derivative_filter_hz)])
         #: Packed constants (kernels.KPK_*) and mutable state (kernels.MUT_*) of the compiled step.
         self.kpk = np.concatenate([self.K, self.D, prm, np.asarray(x_ref, dtype=float), np.asarray(q_rest, dtype=float),
                                    np.asarray(q_min, dtype=float), np.asarray(q_max, dtype=float)])

@@ -155,16 +155,12 @@ def contact_wrench(r, T, R_se, p_se, mg, com, tare_load, out):
     R_se (3, 3), p_se (3,): the sensor frame in the ee frame. mg : tool weight, N; com (3,) its centre
     of mass in the sensor frame; tare_load (6,): the tool load at the tare orientation. Fills ``out``.
     """
-    ld = np.empty(6)
-    tool_load(T, R_se, mg, com, ld)
-    w0 = r[0] + tare_load[0] - ld[0]
-    w1 = r[1] + tare_load[1] - ld[1]
-    w2 = r[2] + tare_load[2] - ld[2]
-    w3 = r[3] + tare_load[3] - ld[3]
-    w4 = r[4] + tare_load[4] - ld[4]
-    w5 = r[5] + tare_load[5] - ld[5]
-    g0, g1, g2 = rot(R_se, w0, w1, w2)
-    m0, m1, m2 = rot(R_se, w3, w4, w5)
+    w = np.empty(6)
+    tool_load(T, R_se, mg, com, w)
+    for k in range(6):  # the reading, the tool load at the tare put back and the load now removed
+        w[k] = r[k] + tare_load[k] - w[k]
+    g0, g1, g2 = rot(R_se, w[0], w[1], w[2])
+    m0, m1, m2 = rot(R_se, w[3], w[4], w[5])
     p0, p1, p2 = p_se[0], p_se[1], p_se[2]  # moment about the TCP: m_B = m_A + (A - B) × f
     out[0], out[1], out[2] = g0, g1, g2
     out[3] = m0 + p1 * g2 - p2 * g1

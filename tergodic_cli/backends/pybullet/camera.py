@@ -31,7 +31,7 @@ from tergodic_cli.backends.camera import Intrinsics, deproject
 from tergodic_cli.backends.factory import camera_pose_matrix
 from tergodic_cli.capture.textured import SimObjectConfig, TexturedObject
 from tergodic_cli.config import Config
-from tergodic_cli.rotations import matrix_to_quat
+from tergodic_cli.robot.ga import matrix_to_quat, motor_inverse, pose_matrix
 from tergodic_cli.errors import TergodicError, require
 
 if TYPE_CHECKING:
@@ -151,10 +151,7 @@ def view_matrix(T_base_cam: np.ndarray) -> np.ndarray:
     """
     T_gl = T_base_cam.copy()
     T_gl[:3, 1:3] *= -1.0  # optical -> OpenGL eye axes
-    V = np.eye(4)
-    V[:3, :3] = T_gl[:3, :3].T
-    V[:3, 3] = -T_gl[:3, :3].T @ T_gl[:3, 3]
-    return V
+    return motor_inverse(T_gl)
 
 
 def linearize_depth(d: np.ndarray, near: float, far: float) -> np.ndarray:
@@ -201,10 +198,7 @@ def look_at(eye, target) -> np.ndarray:
     x = np.cross(z, up)
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, :3] = np.column_stack([x, y, z])
-    T[:3, 3] = eye
-    return T
+    return pose_matrix(np.column_stack([x, y, z]), eye)
 
 
 def camera_pose(pose, target_default: np.ndarray) -> np.ndarray:
