@@ -1,9 +1,9 @@
 """The backends' interfaces: an :class:`Arm` driven by line targets, and a :class:`WrenchSensor`.
 
-Small Protocols in the style of lerobot's ``robots/robot.py``: a backend connects, is read,
-is commanded, disconnects. The state machine and the safety guard speak only these, so a real
-Franka (franky) with a real F/T sensor (Bota, Net F/T) replaces the PyBullet backend without
-touching them.
+In the style of lerobot's ``robots/robot.py`` (the arm a Protocol, the sensor a base class): a
+backend connects, is read, is commanded, disconnects. The state machine and the safety guard speak
+only these, so a real Franka (franky) with a real F/T sensor (Bota, Net F/T) replaces the PyBullet
+backend without touching them.
 
 Conventions every backend honours
 ---------------------------------
@@ -289,33 +289,18 @@ class Arm(Protocol):
         """Close the connection; the arm is left holding still."""
 
 
-@runtime_checkable
-class WrenchSensor(Protocol):
-    """A 6-axis force/torque sensor."""
+class WrenchSensor:
+    """A 6-axis force/torque sensor (the sign of its reading: see the module docstring).
+
+    The base of every backend's sensor, in the style of lerobot's base classes. A backend gives
+    ``frame_in_ee`` and overrides :meth:`read` and :meth:`tare`, or gives ``_sample() -> (t s,
+    (6,) wrench)`` and is tared in software here: :meth:`tare` averages ``tare_samples`` samples
+    into the offset :meth:`read` removes; ``bad_tare`` (problem, fix) refuses a tare over a
+    non-finite sample (None: not checked).
+    """
 
     #: (4, 4) pose of the sensor frame in the ee (TCP) frame.
     frame_in_ee: np.ndarray
-
-    def read(self) -> WrenchReading:
-        """The latest sample, tare offset removed (see the module docstring for the sign).
-
-        Returns
-        -------
-        WrenchReading
-            Force (N) and torque (N m) in the sensor frame, with its timestamp.
-        """
-
-    def tare(self) -> None:
-        """Zero the reading: subtract the present wrench from every later sample."""
-
-
-class TaredSensor:
-    """A :class:`WrenchSensor` tared in software, over its ``_sample() -> (t s, (6,) wrench)``.
-
-    ``tare`` averages ``tare_samples`` samples (tool at rest, free) into the offset ``read`` removes;
-    ``bad_tare`` (problem, fix) refuses a tare over a non-finite sample (None: not checked).
-    """
-
     bad_tare: tuple[str, str] | None = None
 
     def __init__(self, frame_in_ee: np.ndarray | None = None, tare_samples: int = 50):
@@ -328,7 +313,7 @@ class TaredSensor:
         self.tare_samples = int(tare_samples)
 
     def read(self) -> WrenchReading:
-        """The next sample, tare offset removed.
+        """The latest sample, tare offset removed.
 
         Returns
         -------
@@ -339,7 +324,7 @@ class TaredSensor:
         return WrenchReading(t, w - self.offset)
 
     def tare(self) -> None:
-        """Zero in software: the mean of ``tare_samples`` samples becomes the offset."""
+        """Zero the reading (tool at rest, free): the present wrench is subtracted from every later sample."""
         ws = np.array([self._sample()[1] for _ in range(self.tare_samples)])
         if self.bad_tare is not None and not np.all(np.isfinite(ws)):
             from tergodic_cli.errors import TergodicError

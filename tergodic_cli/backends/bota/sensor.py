@@ -16,7 +16,7 @@ import numpy as np
 
 from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.backends.extras import import_sdk, one_line
-from tergodic_cli.robot.interfaces import TaredSensor
+from tergodic_cli.robot.interfaces import WrenchSensor
 
 WRAP_US = 2**32
 
@@ -41,7 +41,7 @@ class BotaConfig:
         require(int(self.tare_samples) >= 1, "tare_samples must be >= 1", "e.g. 50")
 
 
-class BotaSensor(TaredSensor):
+class BotaSensor(WrenchSensor):
     """A Bota sensor behind :class:`~tergodic_cli.robot.interfaces.WrenchSensor`.
 
     ``read()`` returns the latest frame's wrench minus the tare offset, with t = the sensor's

@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from tergodic_cli.robot.interfaces import TaredSensor
+from tergodic_cli.robot.interfaces import WrenchSensor
 
 
-class FrankaWrenchEstimate(TaredSensor):
+class FrankaWrenchEstimate(WrenchSensor):
     """``-K_F_ext_hat_K`` of a connected :class:`~tergodic_cli.backends.franka.FrankyArm`, minus the tare."""
 
     def __init__(self, arm, tare_samples: int = 20):

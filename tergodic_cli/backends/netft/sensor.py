@@ -22,7 +22,7 @@ import numpy as np
 
 from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.backends.netft import rdt
-from tergodic_cli.robot.interfaces import TaredSensor
+from tergodic_cli.robot.interfaces import WrenchSensor
 
 
 @dataclass
@@ -80,7 +80,7 @@ def fetch_calibration(host: str, port: int = 80, timeout: float = 2.0) -> dict:
             "torque_unit": vals.get("scfgtu", "Nm") or "Nm"}
 
 
-class NetFTSensor(TaredSensor):
+class NetFTSensor(WrenchSensor):
     """An ATI Net F/T behind :class:`~tergodic_cli.robot.interfaces.WrenchSensor`.
 
     ``read().t`` is the host's monotonic clock when the record arrived (s); the record's own

@@ -14,7 +14,7 @@ import numpy as np
 
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.robot.ga import motor_inverse
-from tergodic_cli.robot.interfaces import ArmState, WrenchReading
+from tergodic_cli.robot.interfaces import ArmState, WrenchReading, WrenchSensor
 from tergodic_cli.robot.kernels import fk_jacobian
 from tergodic_cli.backends.pybullet.scene import ARM_JOINTS, PyBulletScene
 from tergodic_cli.robot.kinematics import DQ_MAX, Q_MAX, Q_MIN, TAU_MAX
@@ -152,7 +152,7 @@ class PyBulletArm:
         self._connected = False
 
 
-class PyBulletWrenchSensor:
+class PyBulletWrenchSensor(WrenchSensor):
     """The wrist F/T sensor: the reaction of the fixed joint between flange and hand.
 
     Reports the wrench the arm applies to the hand (and everything beyond it) in the hand's
