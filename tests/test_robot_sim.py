@@ -132,7 +132,7 @@ def test_ft_sensor_matches_contact_points_and_applied_force(plate):
                                     physicsClientId=sc.cid)
             run.arm.dev.command(run.arm.joint(st.q, st.dq, q_hold))
             sc.step()
-            readings.append(run.arm.contact_wrench(run.sensor.read().wrench, run.arm.dev.read_state().rot))
+            readings.append(run.arm.contact_wrench(run.sensor.read().wrench, run.arm.dev.read_state().ee_pose))
         w = np.mean(readings[-500:], axis=0)
         R = T[:3, :3]
         f_ee = -(R.T @ F)  # the tool "applies" the reaction of what pushes it

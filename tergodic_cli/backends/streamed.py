@@ -108,7 +108,7 @@ class StreamedArm:
             self._obs = Observation(st, None, np.zeros(6))
             return self._obs
         rd = self.sensor.read()
-        w = self.contact_wrench(rd.wrench, st.rot)
+        w = self.contact_wrench(rd.wrench, st.ee_pose)
         if getattr(rd, "valid", True) and self.ts is not None:
             Kn.tick_stats(st.ee_pose, w, self.ts)
         if math.isfinite(float(w[2])):

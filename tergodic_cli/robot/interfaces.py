@@ -39,36 +39,19 @@ class ArmState:
     ee_pose : (4, 4) pose of the TCP in the base frame (the motor M(q) of eq. 14 with the tool).
     jacobian : (6, dof) geometric Jacobian of the TCP in the base frame, rows (v, ω):
         v the TCP velocity, ω the angular velocity (libfranka's "zero Jacobian").
-    rot, pos : the same pose as 9 row-major floats and 3 floats, for scalar code at 1 kHz.
-
-    A backend gives either ``ee_pose`` or ``rot`` and ``pos``; the other form is made on first use.
+    pos : the TCP position as 3 floats (m), made on first use, for scalar code at 1 kHz.
     """
 
-    __slots__ = ("t", "q", "dq", "jacobian", "_T", "_rot", "_pos")
+    __slots__ = ("t", "q", "dq", "ee_pose", "jacobian", "_pos")
 
-    def __init__(self, t: float, q: np.ndarray, dq: np.ndarray, ee_pose: np.ndarray | None = None,
-                 jacobian: np.ndarray | None = None, rot: tuple | None = None, pos: tuple | None = None):
-        self.t, self.q, self.dq, self.jacobian = t, q, dq, jacobian
-        self._T, self._rot, self._pos = ee_pose, rot, pos
-
-    @property
-    def ee_pose(self) -> np.ndarray:
-        if self._T is None:
-            r, x = self._rot, self._pos
-            self._T = np.array(((r[0], r[1], r[2], x[0]), (r[3], r[4], r[5], x[1]), (r[6], r[7], r[8], x[2]),
-                                (0.0, 0.0, 0.0, 1.0)))
-        return self._T
-
-    @property
-    def rot(self) -> tuple:
-        if self._rot is None:
-            self._rot = tuple(self._T[:3, :3].ravel().tolist())
-        return self._rot
+    def __init__(self, t: float, q: np.ndarray, dq: np.ndarray, ee_pose: np.ndarray,
+                 jacobian: np.ndarray | None = None):
+        self.t, self.q, self.dq, self.ee_pose, self.jacobian, self._pos = t, q, dq, ee_pose, jacobian, None
 
     @property
     def pos(self) -> tuple:
         if self._pos is None:
-            self._pos = tuple(self._T[:3, 3].tolist())
+            self._pos = tuple(self.ee_pose[:3, 3].tolist())
         return self._pos
 
 

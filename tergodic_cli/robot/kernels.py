@@ -202,35 +202,25 @@ def inertial_wrench(t, T, J, dq, R_se, p_se, com, m, inertia, dyn, out):
     # The centre of mass from the TCP, base frame: R (p_se + R_se c).
     e0, e1, e2 = rot(R_se, com[0], com[1], com[2])
     c0, c1, c2 = rot(T, p_se[0] + e0, p_se[1] + e1, p_se[2] + e2)
-    vc0, vc1, vc2 = v0 + w1 * c2 - w2 * c1, v1 + w2 * c0 - w0 * c2, v2 + w0 * c1 - w1 * c0
+    # The centre of mass's velocity and the angular velocity: dyn holds them from DY_VC on (DY_W
+    # follows DY_VC), their backward differences from DY_AC on (DY_AL follows DY_AC).
+    vw = (v0 + w1 * c2 - w2 * c1, v1 + w2 * c0 - w0 * c2, v2 + w0 * c1 - w1 * c0, w0, w1, w2)
     dt = t - dyn[DY_T]
     if dyn[DY_HAS] != 0.0 and dt == 0.0:
         pass  # the same sample again: the accelerations stand
     elif dyn[DY_HAS] != 0.0 and 0.0 < dt <= DY_MAX_GAP:
-        dyn[DY_AC] = (vc0 - dyn[DY_VC]) / dt
-        dyn[DY_AC + 1] = (vc1 - dyn[DY_VC + 1]) / dt
-        dyn[DY_AC + 2] = (vc2 - dyn[DY_VC + 2]) / dt
-        dyn[DY_AL] = (w0 - dyn[DY_W]) / dt
-        dyn[DY_AL + 1] = (w1 - dyn[DY_W + 1]) / dt
-        dyn[DY_AL + 2] = (w2 - dyn[DY_W + 2]) / dt
+        for k in range(6):
+            dyn[DY_AC + k] = (vw[k] - dyn[DY_VC + k]) / dt
     else:
-        for k in range(3):
-            dyn[DY_AC + k] = 0.0
-            dyn[DY_AL + k] = 0.0
-    dyn[DY_T] = t
-    dyn[DY_VC], dyn[DY_VC + 1], dyn[DY_VC + 2] = vc0, vc1, vc2
-    dyn[DY_W], dyn[DY_W + 1], dyn[DY_W + 2] = w0, w1, w2
-    dyn[DY_HAS] = 1.0
+        dyn[DY_AC:DY_AC + 6] = 0.0
+    dyn[DY_T], dyn[DY_HAS] = t, 1.0
+    for k in range(6):
+        dyn[DY_VC + k] = vw[k]
     # Into the sensor frame: x_s = R_seᵀ Rᵀ x_b.
-    a0, a1, a2 = dyn[DY_AC], dyn[DY_AC + 1], dyn[DY_AC + 2]
-    b0, b1, b2 = dyn[DY_AL], dyn[DY_AL + 1], dyn[DY_AL + 2]
-    ae0, ae1, ae2 = rot_t(T, a0, a1, a2)
-    be0, be1, be2 = rot_t(T, b0, b1, b2)
-    we0, we1, we2 = rot_t(T, w0, w1, w2)
-    f0, f1, f2 = rot_t(R_se, ae0, ae1, ae2)
+    f0, f1, f2 = rot_t(R_se, *rot_t(T, dyn[DY_AC], dyn[DY_AC + 1], dyn[DY_AC + 2]))
     f0, f1, f2 = m * f0, m * f1, m * f2
-    al0, al1, al2 = rot_t(R_se, be0, be1, be2)
-    om0, om1, om2 = rot_t(R_se, we0, we1, we2)
+    al0, al1, al2 = rot_t(R_se, *rot_t(T, dyn[DY_AL], dyn[DY_AL + 1], dyn[DY_AL + 2]))
+    om0, om1, om2 = rot_t(R_se, *rot_t(T, w0, w1, w2))
     h0, h1, h2 = inertia[0] * om0, inertia[1] * om1, inertia[2] * om2
     out[0], out[1], out[2] = f0, f1, f2
     out[3] = com[1] * f2 - com[2] * f1 + inertia[0] * al0 + om1 * h2 - om2 * h1
