@@ -3,8 +3,8 @@
 A camera backend connects, is read, disconnects. ``read()`` returns the coloured cloud
 (points (n, 3) in metres, in the robot base frame when the camera's pose is known, colours
 (n, 3) in [0, 1]); ``read_frame()`` returns the aligned RGB-D image with its intrinsics, for
-tools that want the pixels. :func:`capture_with_camera` runs the same filters and segmentation as
-every other capture source.
+tools that want the pixels; a capture runs the same filters and segmentation as every other
+capture source (:func:`~tergodic_cli.backends.realsense.capture.capture_realsense`).
 
 Back-projection (pixel (u, v) = (column, row), pixel centres at integer coordinates, the
 convention of librealsense's ``rs2_deproject_pixel_to_point``):
@@ -29,7 +29,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from tergodic_cli.config import Config
-from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.errors import require
 
 DISTORTIONS = ("none", "inverse_brown_conrady", "brown_conrady")
 
@@ -129,23 +129,3 @@ def frame_to_cloud(frame: RGBDFrame, depth_min: float = 0.0, depth_max: float = 
     pts = deproject(z[rows, cols], frame.intrinsics, frame.T_base_cam, rows, cols)
     return pts, rgb[rows, cols]
 
-
-def capture_with_camera(camera: Camera, cfg, frames: int = 1):
-    """Read ``frames`` clouds from an open ``camera`` and run the capture pipeline on their union.
-
-    cfg : :class:`~tergodic_cli.capture.CaptureConfig` (its ``source`` names the camera).
-    Returns the :class:`~tergodic_cli.capture.Capture`.
-    """
-    from tergodic_cli.capture import capture_cloud
-
-    require(frames >= 1, f"frames must be >= 1, got {frames}", "e.g. 1")
-    pts, cols = [], []
-    for _ in range(int(frames)):
-        p, c = camera.read()
-        pts.append(p)
-        cols.append(c)
-    points = np.concatenate(pts) if pts else np.zeros((0, 3))
-    if len(points) == 0:
-        raise TergodicError("the camera returned no valid depth pixels",
-                            "check the working range (objects closer than ~0.1 m have no depth) and the lighting")
-    return capture_cloud(cfg, raw=(points, np.concatenate(cols)))

@@ -124,27 +124,6 @@ class LineImpedanceGains(Config):
     force_trim_max: float = 1.0
 
 
-def rotated_gains(R: np.ndarray, trans: tuple[float, float, float], rot: tuple[float, float, float]) -> np.ndarray:
-    """Gains given in the tool frame, expressed in the base frame.
-
-    Parameters
-    ----------
-    R : (3, 3) float
-        The tool frame's rotation in the base frame.
-    trans, rot : (3,) float
-        Translational (N/m or N s/m) and rotational (N m/rad or N m s/rad) gains along the tool's x, y, z.
-
-    Returns
-    -------
-    (6, 6) float
-        blockdiag(R diag(trans) Rᵀ, R diag(rot) Rᵀ).
-    """
-    G = np.zeros((6, 6))
-    G[:3, :3] = R @ np.diag(trans) @ R.T
-    G[3:, 3:] = R @ np.diag(rot) @ R.T
-    return G
-
-
 def line_impedance_target(p_tcp: np.ndarray, a: np.ndarray, d: np.ndarray, x_ref: np.ndarray, force: float,
                           gains: LineImpedanceGains, line_velocity: np.ndarray | None = None,
                           axial: float | None = None, axial_speed: float = 0.0) -> ImpedanceTarget:
@@ -184,6 +163,8 @@ def line_impedance_target(p_tcp: np.ndarray, a: np.ndarray, d: np.ndarray, x_ref
 def hold_target(pose: np.ndarray, gains: LineImpedanceGains) -> ImpedanceTarget:
     """A reference that holds a pose with the line gains in every direction (k_normal along the tool axis).
 
+    The gains, given along the tool's x, y, z, in the base frame: blockdiag(R diag(trans) Rᵀ, R diag(rot) Rᵀ).
+
     Parameters
     ----------
     pose : (4, 4) float
@@ -194,9 +175,12 @@ def hold_target(pose: np.ndarray, gains: LineImpedanceGains) -> ImpedanceTarget:
     -------
     ImpedanceTarget
     """
-    R = np.asarray(pose, dtype=float)[:3, :3]
-    K = rotated_gains(R, (gains.k_lateral, gains.k_lateral, gains.k_normal), (gains.k_tilt, gains.k_tilt, gains.k_spin))
-    D = rotated_gains(R, (gains.d_lateral, gains.d_lateral, gains.d_normal), (gains.d_tilt, gains.d_tilt, gains.d_spin))
+    R, g = np.asarray(pose, dtype=float)[:3, :3], gains
+    K, D = np.zeros((6, 6)), np.zeros((6, 6))
+    for G, trans, rot in ((K, (g.k_lateral, g.k_lateral, g.k_normal), (g.k_tilt, g.k_tilt, g.k_spin)),
+                          (D, (g.d_lateral, g.d_lateral, g.d_normal), (g.d_tilt, g.d_tilt, g.d_spin))):
+        G[:3, :3] = R @ np.diag(trans) @ R.T
+        G[3:, 3:] = R @ np.diag(rot) @ R.T
     return ImpedanceTarget(np.array(pose, dtype=float), K, D)
 
 

@@ -1,17 +1,10 @@
 """A simulated RGB-D camera: PyBullet renders a textured object, the depth buffer becomes a coloured cloud.
 
-Pipeline of one capture (formulas in docs/sim_camera.md):
-
-1. ``getCameraImage`` in a private DIRECT client (EGL plugin when it loads, TinyRenderer otherwise)
-   with our own OpenGL view and projection matrices;
-2. the OpenGL depth buffer d in [0, 1] is linearised to metres, ``z = far*near / (far - (far - near)*d)``;
-3. every object pixel (row i, column j) is back-projected with the pinhole intrinsics of the
-   projection, ``X = (j + o_u - cx) z / fx``, ``Y = (i + o_v - cy) z / fy``, ``Z = z`` (optical frame:
-   x right, y down, z forward; (o_u, o_v) is where the renderer samples the pixel, PIXEL_SAMPLE)
-   and mapped to the robot base frame with the camera pose;
-4. :func:`~tergodic_cli.capture.capture_cloud` applies the file pipeline's filters and segmentation.
-
-Everything is in metres and in the robot base frame.
+One capture (formulas and measured accuracy in docs/sim_camera.md): ``getCameraImage`` in a private
+DIRECT client (EGL plugin when it loads, TinyRenderer otherwise) with our own OpenGL view and
+projection matrices; the depth buffer linearised to metres; every object pixel back-projected with
+the projection's pinhole intrinsics, shifted by where the renderer samples a pixel (PIXEL_SAMPLE),
+into the robot base frame; then :func:`~tergodic_cli.capture.capture_cloud`'s filters and segmentation.
 """
 
 from __future__ import annotations
@@ -326,10 +319,6 @@ class SimCamera:
                 raise TergodicError("the EGL renderer plugin did not load (no EGL/GPU driver?)", "use --renderer tiny")
         return "tiny"
 
-    @property
-    def renderer_flag(self) -> int:
-        return self._p.ER_BULLET_HARDWARE_OPENGL if self.renderer == "egl" else self._p.ER_TINY_RENDERER
-
     def _sync_object(self) -> float:
         """Load the object, or give it its new texture when it changed; returns the milliseconds it took."""
         if self.obj is None or self.obj.version == self._loaded_version:
@@ -357,7 +346,8 @@ class SimCamera:
         with quiet_native_output():
             _, _, rgba, depth, seg = p.getCameraImage(
                 cfg.width, cfg.height, viewMatrix=self._view.T.ravel().tolist(), projectionMatrix=self._proj.T.ravel().tolist(),
-                renderer=self.renderer_flag, physicsClientId=self.client)
+                renderer=p.ER_BULLET_HARDWARE_OPENGL if self.renderer == "egl" else p.ER_TINY_RENDERER,
+                physicsClientId=self.client)
         ms = 1e3 * (time.perf_counter() - t0)
         rgb = np.asarray(rgba, dtype=np.float64).reshape(cfg.height, cfg.width, 4)[..., :3] / 255.0
         d = np.asarray(depth, dtype=np.float64).reshape(cfg.height, cfg.width)
