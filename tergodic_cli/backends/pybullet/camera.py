@@ -303,8 +303,8 @@ class SimCamera:
             self.close()
             raise
         self.last_texture_ms = 0.0
-        self.last_frame: Frame | None = None
         self.last_timing: dict[str, float] = {}
+        self.last_frame: Frame | None = None
 
     def _pick_renderer(self, wanted: str) -> str:
         p = self._p
@@ -357,7 +357,7 @@ class SimCamera:
         return Frame(rgb, z, seg, ms)
 
     def capture(self) -> tuple[np.ndarray, np.ndarray]:
-        """Render and back-project every object pixel.
+        """Render and back-project every object pixel, with the configured noise.
 
         Returns
         -------
@@ -366,28 +366,8 @@ class SimCamera:
         colors : (n, 3) float
             In [0, 1].
         """
-        frame = self.render()
-        self.last_frame = frame
+        frame = self.last_frame = self.render()
         t0 = time.perf_counter()
-        points, colors = self.frame_to_cloud(frame)
-        self.last_timing = {"texture_ms": self.last_texture_ms, "render_ms": frame.render_ms,
-                            "back_project_ms": 1e3 * (time.perf_counter() - t0)}
-        return points, colors
-
-    def frame_to_cloud(self, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
-        """Back-project the finite-depth pixels of ``frame`` (with the configured noise).
-
-        Parameters
-        ----------
-        frame : Frame
-
-        Returns
-        -------
-        points : (n, 3) float
-            Base frame, metres.
-        colors : (n, 3) float
-            In [0, 1].
-        """
         rows, cols = np.nonzero(np.isfinite(frame.depth))
         z = frame.depth[rows, cols]
         colors = frame.rgb[rows, cols]
@@ -397,8 +377,11 @@ class SimCamera:
             colors = np.clip(colors + self._rng.normal(0.0, self.cfg.color_noise, colors.shape), 0.0, 1.0)
         fx, fy, cx, cy = self.K
         o_u, o_v = PIXEL_SAMPLE[self.renderer]  # where the renderer samples the pixel: a shifted principal point
-        intr = Intrinsics(self.cfg.width, self.cfg.height, fx, fy, cx - o_u, cy - o_v)
-        return deproject(z, intr, self.T_base_cam, rows, cols), colors
+        points = deproject(z, Intrinsics(self.cfg.width, self.cfg.height, fx, fy, cx - o_u, cy - o_v), self.T_base_cam,
+                           rows, cols)
+        self.last_timing = {"texture_ms": self.last_texture_ms, "render_ms": frame.render_ms,
+                            "back_project_ms": 1e3 * (time.perf_counter() - t0)}
+        return points, colors
 
     def describe(self) -> dict:
         """The camera model for the capture sidecar.
@@ -476,6 +459,7 @@ def capture_sim(cfg: SimCaptureConfig | None = None, camera: SimCamera | None = 
         obj_cfg = obj.cfg if obj is not None else cfg.object
         cap.meta["frame"] = "robot_base"
         cap.meta["provenance"].update(object=obj_cfg.object, marking=obj_cfg.marking, renderer=camera.renderer)
+        cap.frame = camera.last_frame  # type: ignore[attr-defined]  # the rendered image, not saved by save_capture
         cap.meta["sim"] = {
             "object": obj_cfg.to_dict(),
             "object_pose": obj.pose.tolist() if obj is not None else None,
@@ -484,7 +468,6 @@ def capture_sim(cfg: SimCaptureConfig | None = None, camera: SimCamera | None = 
             "texture_version": obj.version if obj is not None else None,
             "timing_ms": timing,
         }
-        cap.frame = camera.last_frame  # type: ignore[attr-defined]  # the rendered image, not saved by save_capture
         return cap
     finally:
         if own:
