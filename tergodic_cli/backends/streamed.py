@@ -1,18 +1,12 @@
 """The contact loop on hardware: an :class:`ImpedanceArm` (franky) and a ``WrenchSensor`` behind
-the loop's :class:`~tergodic_cli.robot.interfaces.Arm`.
+the loop's :class:`~tergodic_cli.robot.interfaces.Arm` (docs/hardware.md).
 
-One control period is one *reference* streamed to the SDK's 1 kHz impedance loop
-(:mod:`tergodic_cli.backends.impedance`), at ``arm.stream_hz``: the line target becomes a
-Cartesian impedance reference, its force a spring offset trimmed by a slow integrator on the
-measured force (:class:`~tergodic_cli.backends.impedance.ForceLoop`). Free-space moves are the
-SDK's planned joint move to the picture pose and a Cartesian min-jerk in impedance to the hover pose.
-
-Contact on hardware is what the F/T sensor says: the force along the tool axis at or above the
-contact threshold; the contact point is then the TCP (the sponge tip). Ctrl-C during a run is a
-fault like any other: the tool retreats, the controller stops, and the summary carries the reason.
-
-Timing comes from ``pace(dt)``, called once per period: real time by default (sleep to the
-period's end); a simulated world's ``advance`` in tests.
+One control period streams one impedance *reference* to the SDK's 1 kHz loop, at ``arm.stream_hz``
+(:mod:`tergodic_cli.backends.impedance`): the line target, its force a spring offset trimmed by a
+slow integrator on the measured force. Free-space moves: the SDK's planned joint move to the picture
+pose, then a Cartesian min-jerk in impedance to the hover pose. Contact is what the F/T sensor says
+(the axial force at or above the threshold; the contact point is the TCP). ``pace(dt)`` times each
+period: real time by default (sleep to the period's end), a simulated world's ``advance`` in tests.
 """
 
 from __future__ import annotations

@@ -201,21 +201,12 @@ def _f64(x) -> np.ndarray:
     return x if isinstance(x, np.ndarray) and x.dtype == np.float64 and x.flags.c_contiguous else np.ascontiguousarray(x, dtype=float)
 
 
-@dataclass
-class JointGains:
-    """Joint impedance gains (N m/rad, N m s/rad) for moves between poses and for holding."""
-
-    stiffness: tuple = (600.0, 600.0, 600.0, 600.0, 250.0, 150.0, 50.0)
-    damping: tuple = (50.0, 50.0, 50.0, 50.0, 20.0, 15.0, 6.0)
-
-
 class JointImpedance:
-    """τ = K (q_d - q) + D (q̇_d - q̇): the paper's "simple joint impedance controller" (V-A3)."""
+    """τ = K (q_d - q) + D (q̇_d - q̇): the paper's "simple joint impedance controller" (V-A3), for
+    moves between poses and for holding."""
 
-    def __init__(self, gains: JointGains | None = None):
-        g = gains or JointGains()
-        self.K = np.array(g.stiffness, dtype=float)
-        self.D = np.array(g.damping, dtype=float)
+    K = np.array([600.0, 600.0, 600.0, 600.0, 250.0, 150.0, 50.0])  # N m/rad
+    D = np.array([50.0, 50.0, 50.0, 50.0, 20.0, 15.0, 6.0])  # N m s/rad
 
     def __call__(self, q: np.ndarray, dq: np.ndarray, q_d: np.ndarray, dq_d: np.ndarray | None = None) -> np.ndarray:
         dq_d = np.zeros_like(q) if dq_d is None else dq_d
