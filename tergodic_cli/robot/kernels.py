@@ -533,33 +533,29 @@ def _unpack_constants(cst):
     force_desired = cst[1]
     use_vref = cst[2] != 0.0
     v_ref = cst[3:6]
-    o = 6
-    F = cst[o:o + 16 * m].reshape((m, 4, 4))
-    o += 16 * m
-    axis = cst[o:o + 3 * m].reshape((m, 3))
-    o += 3 * m
+    F = cst[6:6 + 16 * m].reshape((m, 4, 4))
+    axis = cst[6 + 16 * m:6 + 19 * m].reshape((m, 3))
     qidx = np.empty(m, dtype=np.int64)
     for k in range(m):
-        qidx[k] = int(cst[o + k])
-    o += m
+        qidx[k] = int(cst[6 + 19 * m + k])
+    o = 6 + 20 * m  # the fixed-size rest
     tcp_off = cst[o:o + 3]
     R_se = cst[o + 3:o + 12].reshape((3, 3))
     p_se = cst[o + 12:o + 15]
     mg = cst[o + 15]
     com = cst[o + 16:o + 19]
     tare = cst[o + 19:o + 25]
-    o += 25
-    q_lo = cst[o:o + 7]
-    q_hi = cst[o + 7:o + 14]
-    dq_hi = cst[o + 14:o + 21]
-    tcp_max = cst[o + 21]
-    ws_lo = cst[o + 22:o + 25]
-    ws_hi = cst[o + 25:o + 28]
-    force_limit = cst[o + 28]
-    tau_max = cst[o + 29:o + 36]
-    inertial = cst[o + 36] != 0.0
-    mass = cst[o + 37]
-    inertia = cst[o + 38:o + 41]
+    q_lo = cst[o + 25:o + 32]
+    q_hi = cst[o + 32:o + 39]
+    dq_hi = cst[o + 39:o + 46]
+    tcp_max = cst[o + 46]
+    ws_lo = cst[o + 47:o + 50]
+    ws_hi = cst[o + 50:o + 53]
+    force_limit = cst[o + 53]
+    tau_max = cst[o + 54:o + 61]
+    inertial = cst[o + 61] != 0.0
+    mass = cst[o + 62]
+    inertia = cst[o + 63:o + 66]
     return (force_desired, use_vref, v_ref, F, axis, qidx, tcp_off, R_se, p_se, mg, com, tare, q_lo, q_hi, dq_hi,
             tcp_max, ws_lo, ws_hi, force_limit, tau_max, inertial, mass, inertia)
 
