@@ -206,11 +206,7 @@ class StreamedArm:
         return {"stream_hz": 1.0 / self.dt, "hardware_config": self.hw.to_dict()}
 
     def disconnect(self) -> None:
-        try:
-            self.dev.disconnect()
-        finally:
-            if hasattr(self.sensor, "disconnect"):
-                self.sensor.disconnect()
+        _disconnect(self.dev, self.sensor)
 
 
 def explore_with_hardware(capture, explorer, robot_cfg, steps: int, arm, sensor, on_step=None, on_event=None,
@@ -232,11 +228,15 @@ def explore_with_hardware(capture, explorer, robot_cfg, steps: int, arm, sensor,
             return run.run(steps, on_step)
     finally:
         if driver is None:
-            try:
-                arm.disconnect()
-            finally:
-                if hasattr(sensor, "disconnect"):
-                    sensor.disconnect()
+            _disconnect(arm, sensor)
+
+
+def _disconnect(arm, sensor) -> None:
+    try:
+        arm.disconnect()
+    finally:
+        if hasattr(sensor, "disconnect"):
+            sensor.disconnect()
 
 
 def dry_run(arm, sensor, camera, plan) -> str:

@@ -28,8 +28,6 @@ def kinematic_chain(scene: PyBulletScene) -> tuple[np.ndarray, np.ndarray, np.nd
     is the fixed transform F; the joint rotates the child about ``jointAxis`` (its own frame). The
     joint states are restored afterwards.
     """
-    from tergodic_cli.robot.ga import pose_matrix, quat_to_matrix
-
     p, cid, rob = scene.p, scene.cid, scene.robot
     chain = []
     j = scene.tcp_link
@@ -44,8 +42,7 @@ def kinematic_chain(scene: PyBulletScene) -> tuple[np.ndarray, np.ndarray, np.nd
         F, axis, qidx = [], [], []
         T_prev = np.eye(4)
         for link in chain:
-            ls = p.getLinkState(rob, link, computeForwardKinematics=True, physicsClientId=cid)
-            T = pose_matrix(quat_to_matrix(np.array(ls[5])), np.array(ls[4]))
+            T = scene.link_pose(link)
             F.append(np.linalg.solve(T_prev, T))
             info = p.getJointInfo(rob, link, physicsClientId=cid)
             movable = info[2] != p.JOINT_FIXED
@@ -181,7 +178,3 @@ class PyBulletWrenchSensor(WrenchSensor):
 
     def tare(self) -> None:
         self._offset = tuple(self._raw())
-
-    @property
-    def offset(self) -> np.ndarray:
-        return np.array(self._offset)
