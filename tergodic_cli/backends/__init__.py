@@ -15,7 +15,9 @@ Entry points: :func:`make_hardware`, :func:`make_camera`, :func:`explore_with_ha
 from tergodic_cli.backends.camera import Camera, Intrinsics, deproject
 from tergodic_cli.backends.factory import make_camera, make_hardware
 from tergodic_cli.backends.impedance import LineImpedanceGains, line_impedance_target
-from tergodic_cli.backends.streamed import DryRunPlan, HardwareRunConfig, dry_run, explore_with_hardware
+from tergodic_cli.backends.streamed import (DryRunPlan, HardwareRunConfig, dry_run,
+                                            explore_with_hardware)
 
-__all__ = ["Camera", "DryRunPlan", "HardwareRunConfig", "Intrinsics", "LineImpedanceGains", "deproject", "dry_run",
-           "explore_with_hardware", "line_impedance_target", "make_camera", "make_hardware"]
+__all__ = ["Camera", "DryRunPlan", "HardwareRunConfig", "Intrinsics", "LineImpedanceGains",
+           "deproject", "dry_run", "explore_with_hardware", "line_impedance_target", "make_camera",
+           "make_hardware"]

@@ -87,9 +87,10 @@ def deproject(depth: np.ndarray, intr: Intrinsics, T_base_cam: np.ndarray | None
     """Pixels with depth (metres) -> points (n, 3), base frame (see the module docstring).
 
     depth : (h, w) image (then every pixel, row-major) or (n,) depths of the pixels ``rows``, ``cols``.
-    The simulated camera's pinhole (no distortion) is the same with its pixel sampling offset in cx, cy.
+    The simulated camera's pinhole (no distortion) is the same, its pixel sampling offset in cx, cy.
     """
-    require(intr.model in DISTORTIONS, f"the camera reports the distortion model '{intr.model}', which tergodic cannot undo",
+    require(intr.model in DISTORTIONS,
+            f"the camera reports the distortion model '{intr.model}', which tergodic cannot undo",
             f"stream a profile with one of {', '.join(DISTORTIONS)} (the colour stream of D400 cameras)")
     z = np.asarray(depth, dtype=np.float64)
     if rows is None or cols is None:

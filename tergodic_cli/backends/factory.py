@@ -68,8 +68,9 @@ def make_camera(source: str = "realsense", serial: str | None = None, width: int
                                            depth_max=depth_max, T_base_cam=T_base_cam))
 
 
-def camera_pose_matrix(values, fix: str = "give x,y,z,qx,qy,qz,qw with a unit quaternion") -> np.ndarray:
-    """7 numbers x,y,z,qx,qy,qz,qw (optical frame in the base frame) -> (4, 4); ``fix`` for a bad quaternion."""
+def camera_pose_matrix(values, fix: str = "give x,y,z,qx,qy,qz,qw with a unit quaternion"):
+    """7 numbers x,y,z,qx,qy,qz,qw (the optical frame in the base frame) -> (4, 4); ``fix``: of a
+    quaternion that is not unit length."""
     from tergodic_cli.robot.ga import pose_matrix, quat_to_matrix
 
     v = [float(x) for x in values]

@@ -154,7 +154,7 @@ def line_impedance_target(p_tcp: np.ndarray, a: np.ndarray, d: np.ndarray, x_ref
     ref = hold_target(pose_matrix(R, at), g)
     if line_velocity is not None:
         v = np.asarray(line_velocity, dtype=float)
-        ref.twist[:3] = v - (v @ z) * z  # along the line the target rides with the TCP: no feed-forward there
+        ref.twist[:3] = v - (v @ z) * z  # along the line the target rides with the TCP
     ref.twist[:3] += axial_speed * z
     ref.wrench_ff[:3] = (force if axial is None else 0.0) * z
     return ref
@@ -163,7 +163,7 @@ def line_impedance_target(p_tcp: np.ndarray, a: np.ndarray, d: np.ndarray, x_ref
 def hold_target(pose: np.ndarray, gains: LineImpedanceGains) -> ImpedanceTarget:
     """A reference that holds a pose with the line gains in every direction (k_normal along the tool axis).
 
-    The gains, given along the tool's x, y, z, in the base frame: blockdiag(R diag(trans) Rᵀ, R diag(rot) Rᵀ).
+    Gains along the tool's x, y, z, in the base frame: blockdiag(R diag(trans) Rᵀ, R diag(rot) Rᵀ).
 
     Parameters
     ----------
@@ -177,9 +177,9 @@ def hold_target(pose: np.ndarray, gains: LineImpedanceGains) -> ImpedanceTarget:
     """
     R, g = np.asarray(pose, dtype=float)[:3, :3], gains
     K, D = np.zeros((6, 6)), np.zeros((6, 6))
-    for G, trans, rot in ((K, (g.k_lateral, g.k_lateral, g.k_normal), (g.k_tilt, g.k_tilt, g.k_spin)),
-                          (D, (g.d_lateral, g.d_lateral, g.d_normal), (g.d_tilt, g.d_tilt, g.d_spin))):
-        G[:3, :3] = R @ np.diag(trans) @ R.T
+    for G, tr, rot in ((K, (g.k_lateral, g.k_lateral, g.k_normal), (g.k_tilt, g.k_tilt, g.k_spin)),
+                       (D, (g.d_lateral, g.d_lateral, g.d_normal), (g.d_tilt, g.d_tilt, g.d_spin))):
+        G[:3, :3] = R @ np.diag(tr) @ R.T
         G[3:, 3:] = R @ np.diag(rot) @ R.T
     return ImpedanceTarget(np.array(pose, dtype=float), K, D)
 

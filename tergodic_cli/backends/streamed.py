@@ -159,7 +159,8 @@ class StreamedArm:
         p0, p1 = T0[:3, 3], T[:3, 3]
         for i in range(int(math.ceil(duration / self.dt)) + int(round(SETTLE_S / self.dt))):
             s, ds = min_jerk(np.zeros(1), np.ones(1), duration, (i + 1) * self.dt)
-            pose = pose_matrix(rotvec_to_matrix(phi * float(s[0])) @ T0[:3, :3], p0 + (p1 - p0) * float(s[0]))
+            s = float(s[0])
+            pose = pose_matrix(rotvec_to_matrix(phi * s) @ T0[:3, :3], p0 + (p1 - p0) * s)
             fault = check(self.get_observation())
             if fault is not None:
                 return fault

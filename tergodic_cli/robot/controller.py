@@ -1,10 +1,11 @@
 """The line-tracking impedance controller with a wrench PID (paper eqs. 34-47), and a joint impedance.
 
-One control step, all in the end-effector (TCP) frame, matrix form of the CGA products (docs/robot.md,
-"The controller"): the target line L_a⊥ moved into the ee frame by M̃; the motor M_{L_ee L_a⊥}
-(eq. 36) and its logarithm V_L = (t, φ) (eq. 37, :func:`~tergodic_cli.robot.ga.line_motor_z`);
-τ = J^eeᵀ (K_L V_L - D_V V_ee + W_C) (eq. 47) with the wrench PID W_C on W_d - W'_m (eqs. 40-41),
-using J^eeᵀ W^ee = Jᵀ (R W^ee) instead of forming J^ee (eq. 45).
+One control step, all in the end-effector (TCP) frame, matrix form of the CGA products
+(docs/robot.md, "The controller"): the target line L_a⊥ moved into the ee frame by M̃; the motor
+M_{L_ee L_a⊥} (eq. 36) and its logarithm V_L = (t, φ) (eq. 37,
+:func:`~tergodic_cli.robot.ga.line_motor_z`); τ = J^eeᵀ (K_L V_L - D_V V_ee + W_C) (eq. 47) with
+the wrench PID W_C on W_d - W'_m (eqs. 40-41), using J^eeᵀ W^ee = Jᵀ (R W^ee) instead of forming
+J^ee (eq. 45).
 
 Two choices the paper leaves open (docs/robot.md): eq. 38's I_c is read as its stated intent, an
 identity inertia (translation error -> force, rotation error -> moment; used literally in gafro's
@@ -122,9 +123,10 @@ class LineForceController:
             return 1.0 - math.exp(-2.0 * math.pi * hz * self.dt) if hz > 0 else 1.0
 
         g = gains
-        prm = np.array([g.kp, g.ki, g.kd, lowpass(g.force_filter_hz), g.integral_max, g.spin_stiffness,  # CP_* order
-                        g.nullspace_stiffness, g.nullspace_damping, g.limit_stiffness, self.dt, LIMIT_ZONE,
-                        g.guard_speed, g.guard_damping, 1.0 if g.pid_wrench else 0.0, lowpass(g.derivative_filter_hz)])
+        prm = np.array([g.kp, g.ki, g.kd, lowpass(g.force_filter_hz), g.integral_max,  # CP_* order
+                        g.spin_stiffness, g.nullspace_stiffness, g.nullspace_damping,
+                        g.limit_stiffness, self.dt, LIMIT_ZONE, g.guard_speed, g.guard_damping,
+                        1.0 if g.pid_wrench else 0.0, lowpass(g.derivative_filter_hz)])
         #: Packed constants (kernels.KPK_*) and mutable state (kernels.MUT_*) of the compiled step.
         self.kpk = np.concatenate([self.K, self.D, prm, np.asarray(x_ref, dtype=float), np.asarray(q_rest, dtype=float),
                                    np.asarray(q_min, dtype=float), np.asarray(q_max, dtype=float)])

@@ -182,5 +182,5 @@ def line_motor_z(ax: float, ay: float, az: float, dx: float, dy: float, dz: floa
 
 # ---------------------------------------------------------------------------------- pygafro
 def twist_from_gafro(c: np.ndarray) -> np.ndarray:
-    """(v, ω) of pygafro Twist coefficients [e12, e13, e23, e1∞, e2∞, e3∞] (set-up code, never at 1 kHz)."""
+    """(v, ω) of pygafro Twist coefficients [e12, e13, e23, e1∞, e2∞, e3∞] (set-up code only)."""
     return np.array([c[3], c[4], c[5], c[2], -c[1], c[0]])

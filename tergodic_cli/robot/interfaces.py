@@ -46,7 +46,8 @@ class ArmState:
 
     def __init__(self, t: float, q: np.ndarray, dq: np.ndarray, ee_pose: np.ndarray,
                  jacobian: np.ndarray | None = None):
-        self.t, self.q, self.dq, self.ee_pose, self.jacobian, self._pos = t, q, dq, ee_pose, jacobian, None
+        self.t, self.q, self.dq, self.ee_pose, self.jacobian = t, q, dq, ee_pose, jacobian
+        self._pos = None
 
     @property
     def pos(self) -> tuple:
@@ -289,7 +290,7 @@ class WrenchSensor:
     def __init__(self, frame_in_ee: np.ndarray | None = None, tare_samples: int = 50):
         from tergodic_cli.errors import require
 
-        self.frame_in_ee = np.eye(4) if frame_in_ee is None else np.asarray(frame_in_ee, dtype=float)
+        self.frame_in_ee = np.asarray(np.eye(4) if frame_in_ee is None else frame_in_ee, float)
         require(self.frame_in_ee.shape == (4, 4), "frame_in_ee must be a (4, 4) transform",
                 "give the sensor pose in the TCP frame")
         self.offset = np.zeros(6)
@@ -307,7 +308,7 @@ class WrenchSensor:
         return WrenchReading(t, w - self.offset)
 
     def tare(self) -> None:
-        """Zero the reading (tool at rest, free): the present wrench is subtracted from every later sample."""
+        """Zero the reading (tool at rest, free): the wrench now is taken off every later one."""
         ws = np.array([self._sample()[1] for _ in range(self.tare_samples)])
         if self.bad_tare is not None and not np.all(np.isfinite(ws)):
             from tergodic_cli.errors import TergodicError
@@ -364,8 +365,8 @@ class ContactWrench:
         R_base_ee : (3, 3) float
             The end effector's rotation in the base frame.
         """
-        self._kn.tool_load(np.asarray(R_base_ee, dtype=float).reshape(3, 3), self.R_se_m, self.mg, self.com,
-                           self.tare_load)
+        R = np.asarray(R_base_ee, dtype=float).reshape(3, 3)
+        self._kn.tool_load(R, self.R_se_m, self.mg, self.com, self.tare_load)
 
     def __call__(self, reading, R_base_ee, state=None) -> np.ndarray:
         """(6,) wrench (f, m) the tool applies to the environment, ee frame, moment about the TCP.
@@ -378,9 +379,12 @@ class ContactWrench:
         out = np.empty(6)
         r = np.asarray(reading, dtype=float)
         if self.inertial and state is not None:
-            self._kn.contact_wrench_dyn(r, float(state.t), state.ee_pose, np.ascontiguousarray(state.jacobian, dtype=float),
-                                        np.ascontiguousarray(state.dq, dtype=float), self.R_se_m, self.p_se_v, self.mg,
-                                        self.com, self.tare_load, float(self.load.mass), self.inertia, self.dyn, out)
+            J = np.ascontiguousarray(state.jacobian, dtype=float)
+            dq = np.ascontiguousarray(state.dq, dtype=float)
+            self._kn.contact_wrench_dyn(r, float(state.t), state.ee_pose, J, dq, self.R_se_m,
+                                        self.p_se_v, self.mg, self.com, self.tare_load,
+                                        float(self.load.mass), self.inertia, self.dyn, out)
         else:
-            self._kn.contact_wrench(r, R, self.R_se_m, self.p_se_v, self.mg, self.com, self.tare_load, out)
+            self._kn.contact_wrench(r, R, self.R_se_m, self.p_se_v, self.mg, self.com,
+                                    self.tare_load, out)
         return out

@@ -87,7 +87,8 @@ def fk_jacobian(q, F, axis, qidx, tcp_off, T, J):
         px, py, pz = (px + R[0] * f[0, 3] + R[1] * f[1, 3] + R[2] * f[2, 3],
                       py + R[3] * f[0, 3] + R[4] * f[1, 3] + R[5] * f[2, 3],
                       pz + R[6] * f[0, 3] + R[7] * f[1, 3] + R[8] * f[2, 3])
-        R = _mul3(R, (f[0, 0], f[0, 1], f[0, 2], f[1, 0], f[1, 1], f[1, 2], f[2, 0], f[2, 1], f[2, 2]))
+        R = _mul3(R, (f[0, 0], f[0, 1], f[0, 2], f[1, 0], f[1, 1], f[1, 2], f[2, 0], f[2, 1],
+                      f[2, 2]))
         i = qidx[k]
         if i >= 0:
             ux, uy, uz = axis[k, 0], axis[k, 1], axis[k, 2]
@@ -242,16 +243,18 @@ def contact_wrench_dyn(r, t, T, J, dq, R_se, p_se, mg, com, tare_load, m, inerti
 
 # ----------------------------------------------------------------------------- the controller
 @njit
-def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use_vref, kpk, mut, tau, diag):
+def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use_vref, kpk, mut,
+                    tau, diag):
     """One step of eq. 47 with the wrench PID (see :class:`~tergodic_cli.robot.controller.LineForceController`).
 
     T (4, 4) TCP pose, J (6, 7) base-frame Jacobian, q, dq (7,), a, d (3,) target line (base frame, d
     into the surface), w (6,) measured ee wrench, mode MODE_*, v_ref (3,) target line velocity (used
-    when ``use_vref``). kpk (N_KPK,): the controller's packed constants (gains K, D, parameters, x_ref,
-    q_rest, joint limits); mut (N_MUT,): its PID state and the null-space terms, refreshed here every
-    10 steps (updated). Fills tau (7,) and diag (N_CD,).
+    when ``use_vref``). kpk (N_KPK,): the controller's packed constants (gains K, D, parameters,
+    x_ref, q_rest, joint limits); mut (N_MUT,): its PID state and the null-space terms, refreshed
+    here every 10 steps (updated). Fills tau (7,) and diag (N_CD,).
     """
-    K, D, prm, x_ref = kpk[KPK_K:KPK_K + 6], kpk[KPK_D:KPK_D + 6], kpk[KPK_PRM:KPK_PRM + N_CP], kpk[KPK_XREF:KPK_XREF + 3]
+    K, D, x_ref = kpk[KPK_K:KPK_K + 6], kpk[KPK_D:KPK_D + 6], kpk[KPK_XREF:KPK_XREF + 3]
+    prm = kpk[KPK_PRM:KPK_PRM + N_CP]
     state = mut[MUT_STATE:MUT_STATE + N_CS]
     r0, r1, r2 = T[0, 0], T[0, 1], T[0, 2]
     r3, r4, r5 = T[1, 0], T[1, 1], T[1, 2]
@@ -321,8 +324,8 @@ def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use
     W4 = r3 * mx + r4 * my + r5 * mz
     W5 = r6 * mx + r7 * my + r8 * mz
     tau_spring, n_damp = mut[MUT_SPRING:MUT_SPRING + 7], mut[MUT_DAMP:MUT_DAMP + 49].reshape((7, 7))
-    _posture(J, q, prm, state, kpk[KPK_QREST:KPK_QREST + 7], kpk[KPK_QMIN:KPK_QMIN + 7], kpk[KPK_QMAX:KPK_QMAX + 7],
-             tau_spring, n_damp)
+    _posture(J, q, prm, state, kpk[KPK_QREST:KPK_QREST + 7], kpk[KPK_QMIN:KPK_QMIN + 7],
+             kpk[KPK_QMAX:KPK_QMAX + 7], tau_spring, n_damp)
     for j in range(7):
         acc = J[0, j] * W0 + J[1, j] * W1 + J[2, j] * W2 + J[3, j] * W3 + J[4, j] * W4 + J[5, j] * W5
         acc += tau_spring[j]
@@ -565,14 +568,14 @@ def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, kd, io, ts, t,
     """One 1 kHz tick after the joint read: FK + Jacobian, contact wrench, force check, the control
     law, state checks, and the torque to send (the law's + ``bias``, clamped to tau_max).
 
-    The law: with ``kd`` empty, the "track" loop's line controller towards row i of A, D (n, 3), the
-    gliding target line (kpk, mut: the controller's; ``mut`` is updated); else a joint-impedance move
-    (the set-up moves), τ = K (q_d - q) + D (q̇_d - q̇) (:class:`JointImpedance`), q_d (rad) and
-    q̇_d (rad/s) row i of A, D (n, 7), kd (14,) the joint stiffness (7) then damping (7).
-    qs, dqs : joint positions (rad) and velocities (rad/s), flat tuples whose first 7 entries are the
-    arm's (``zip(*getJointStates(...))``). reading : the sensor's 6 numbers (tare removed); bias :
-    gravity + Coriolis (7 numbers). ts : :func:`tick_stats` (updated). t : the sample time, s; dyn :
-    the inertial compensation's state (:func:`inertial_wrench`, updated).
+    The law: with ``kd`` empty, the "track" loop's line controller towards row i of A, D (n, 3),
+    the gliding target line (kpk, mut: the controller's; ``mut`` is updated); else a joint-impedance
+    move (the set-up moves), τ = K (q_d - q) + D (q̇_d - q̇) (:class:`JointImpedance`), q_d (rad)
+    and q̇_d (rad/s) row i of A, D (n, 7), kd (14,) the joint stiffness (7) then damping (7).
+    qs, dqs : joint positions (rad) and velocities (rad/s), flat tuples whose first 7 entries are
+    the arm's (``zip(*getJointStates(...))``). reading : the sensor's 6 numbers (tare removed);
+    bias : gravity + Coriolis (7 numbers). ts : :func:`tick_stats` (updated). t : the sample time,
+    s; dyn : the inertial compensation's state (:func:`inertial_wrench`, updated).
     Returns an F_* code (OK: send io[IO_TAU:IO_TAU + 7]). The separate kernels, chained.
     """
     q = io[IO_Q:IO_Q + 7]
@@ -604,7 +607,8 @@ def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, kd, io, ts, t,
         v0, v1, v2, _w0, _w1, _w2 = tcp_twist(J, dq, 7)
         diag[CD_VEE], diag[CD_VEE + 1], diag[CD_VEE + 2] = v0, v1, v2
     else:
-        line_force_step(T, J, q, dq, A[i], D[i], w, MODE_TRACK, force_desired, 0.0, v_ref, use_vref, kpk, mut, task, diag)
+        line_force_step(T, J, q, dq, A[i], D[i], w, MODE_TRACK, force_desired, 0.0, v_ref, use_vref,
+                        kpk, mut, task, diag)
         v0, v1, v2 = diag[CD_VEE], diag[CD_VEE + 1], diag[CD_VEE + 2]
     pos = np.empty(3)
     pos[0], pos[1], pos[2] = T[0, 3], T[1, 3], T[2, 3]

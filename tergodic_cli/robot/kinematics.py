@@ -37,7 +37,8 @@ class FrankaModel:
 
     def flange_motor(self, q: np.ndarray) -> np.ndarray:
         """(4, 4) pose of gafro's end-effector (the Franka hand TCP) in the base frame: M(q), eq. 14."""
-        return np.asarray(self.robot.getEEMotor(np.asarray(q, dtype=float)).toTransformationMatrix(), dtype=float)
+        M = self.robot.getEEMotor(np.asarray(q, dtype=float))
+        return np.asarray(M.toTransformationMatrix(), dtype=float)
 
     def fk(self, q: np.ndarray) -> np.ndarray:
         """(4, 4) pose of our TCP in the base frame."""

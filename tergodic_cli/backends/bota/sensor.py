@@ -45,7 +45,7 @@ class BotaSensor(WrenchSensor):
     """A Bota sensor behind :class:`~tergodic_cli.robot.interfaces.WrenchSensor`.
 
     ``read()`` returns the latest frame's wrench minus the tare offset, with t = the sensor's
-    timestamp in seconds (unwrapped); ``tare()`` averages ``tare_samples`` frames (the tool at rest, free).
+    timestamp in seconds (unwrapped); ``tare()`` averages ``tare_samples`` frames, the tool free.
     """
 
     bad_tare = ("the Bota sensor flagged samples invalid or over range while taring",

@@ -86,7 +86,7 @@ class FrankyArm:
     :class:`~tergodic_cli.backends.impedance.ImpedanceArm`.
 
     The exploration loop streams :meth:`command_impedance` references, whose stiffness and damping
-    run at 1 kHz inside franky (raw torques from Python would be a 10 ms zero-order hold: docs/hardware.md).
+    run at 1 kHz inside franky (raw torques from Python: a 10 ms zero-order hold, docs/hardware.md).
     """
 
     name = "franka-franky"
@@ -121,7 +121,8 @@ class FrankyArm:
         try:
             robot = fr.Robot(cfg.ip, relative_dynamics_factor=float(cfg.move_speed), realtime_config=rt)
         except Exception as exc:  # franky raises its own NetworkException, RealtimeException, IncompatibleVersionException
-            raise TergodicError(f"cannot connect to the Franka at {cfg.ip}: {one_line(exc)}", _connect_fix(exc)) from None
+            raise TergodicError(f"cannot connect to the Franka at {cfg.ip}: {one_line(exc)}",
+                                _connect_fix(exc)) from None
         try:
             if robot.has_errors:
                 robot.recover_from_errors()

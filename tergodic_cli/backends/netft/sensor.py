@@ -84,7 +84,7 @@ class NetFTSensor(WrenchSensor):
     """An ATI Net F/T behind :class:`~tergodic_cli.robot.interfaces.WrenchSensor`.
 
     ``read().t`` is the host's monotonic clock when the record arrived (s); the record's own
-    sequence numbers are kept in ``last_record``. ``tare()`` averages ``tare_samples`` fresh records.
+    sequence numbers are kept in ``last_record``. ``tare()`` averages ``tare_samples`` new records.
     """
 
     bad_tare = ("the Net F/T reported a bad status while taring",

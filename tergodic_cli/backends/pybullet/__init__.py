@@ -3,8 +3,8 @@ simulated camera; :func:`explore_with_robot` (``--robot pybullet``) and :func:`c
 (the closed loop through the camera, ``--recapture-every``)."""
 
 from tergodic_cli.backends.pybullet.arm import RobotRun, SimArm, explore_with_robot
-from tergodic_cli.backends.pybullet.closed_loop import (CleaningLoopConfig, clean_with_robot, log_recapture,
-                                                      sim_scene_configs)
+from tergodic_cli.backends.pybullet.closed_loop import (CleaningLoopConfig, clean_with_robot,
+                                                      log_recapture, sim_scene_configs)
 from tergodic_cli.backends.pybullet.devices import PyBulletArm, PyBulletWrenchSensor
 from tergodic_cli.backends.pybullet.scene import PyBulletScene
 

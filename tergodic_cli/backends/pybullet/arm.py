@@ -309,15 +309,17 @@ class SimArm:
         return Observation(st, rd, io[Kn.IO_W:Kn.IO_W + 6].copy()), A[i], D[i], fault
 
     def _joint_fast(self, QD: np.ndarray, DQD: np.ndarray):
-        """:meth:`_move_joints` with every check, one compiled call per tick. Returns the first fault or None."""
+        """:meth:`_move_joints` in compiled calls (all checks); the first fault, or None."""
         kd = np.ascontiguousarray(np.concatenate([self.joint.K, self.joint.D]), dtype=float)
-        return self._compiled(np.ascontiguousarray(QD, dtype=float), np.ascontiguousarray(DQD, dtype=float), kd, None)[-1]
+        QD, DQD = np.ascontiguousarray(QD, dtype=float), np.ascontiguousarray(DQD, dtype=float)
+        return self._compiled(QD, DQD, kd, None)[-1]
 
     def _compiled(self, A: np.ndarray, D: np.ndarray, kd: np.ndarray, v_line):
-        """``len(A)`` ticks, each: one joint read, the sensor read, gravity + Coriolis every ``dynamics_every``
-        ticks, one :func:`~tergodic_cli.robot.kernels.pybullet_tick` (the control law: the line controller
-        towards row i of A, D, or with ``kd`` the joint impedance towards it; the contact wrench, the guard's
-        limits; a nonzero code names the fault), one torque command, the physics step.
+        """``len(A)`` ticks, each: one joint read, the sensor read, gravity + Coriolis every
+        ``dynamics_every`` ticks, one :func:`~tergodic_cli.robot.kernels.pybullet_tick` (the
+        control law: the line controller towards row i of A, D, or with ``kd`` the joint impedance
+        towards it; the contact wrench, the guard's limits; a nonzero code names the fault), one
+        torque command, the physics step.
         Returns (last tick, its time, io, its reading, fault or None); a faulty tick is not commanded."""
         cst = Kn.pack_constants(self.dev._chain, self.contact_wrench, self.guard, self.dev.tau_max, self.F_d,
                                 None if v_line is None else np.asarray(v_line, dtype=float).tolist())
@@ -325,7 +327,8 @@ class SimArm:
         explorer = len(kd) == 0
         arm, sc, g = self.dev, self.scene, self.guard
         p, cid, rob, idx = sc.p, sc.cid, sc.robot, arm._read_idx
-        get_states, gravity, send, physics = p.getJointStates, arm.gravity, p.setJointMotorControlArray, self._physics
+        get_states, send = p.getJointStates, p.setJointMotorControlArray
+        gravity, physics = arm.gravity, self._physics
         joints, mode_torque, sread = sc.arm_joints, p.TORQUE_CONTROL, self.sensor.read
         check_sensor, timeout = g.check_sensor, g.cfg.explorer_timeout
         io = np.zeros(Kn.N_IO)

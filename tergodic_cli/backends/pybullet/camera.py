@@ -4,7 +4,8 @@ One capture (formulas and measured accuracy in docs/sim_camera.md): ``getCameraI
 DIRECT client (EGL plugin when it loads, TinyRenderer otherwise) with our own OpenGL view and
 projection matrices; the depth buffer linearised to metres; every object pixel back-projected with
 the projection's pinhole intrinsics, shifted by where the renderer samples a pixel (PIXEL_SAMPLE),
-into the robot base frame; then :func:`~tergodic_cli.capture.capture_cloud`'s filters and segmentation.
+into the robot base frame; then the filters and segmentation of
+:func:`~tergodic_cli.capture.capture_cloud`.
 """
 
 from __future__ import annotations
@@ -342,12 +343,12 @@ class SimCamera:
         """
         self.last_texture_ms = self._sync_object()
         cfg, p = self.cfg, self._p
+        flag = p.ER_BULLET_HARDWARE_OPENGL if self.renderer == "egl" else p.ER_TINY_RENDERER
         t0 = time.perf_counter()
         with quiet_native_output():
             _, _, rgba, depth, seg = p.getCameraImage(
                 cfg.width, cfg.height, viewMatrix=self._view.T.ravel().tolist(), projectionMatrix=self._proj.T.ravel().tolist(),
-                renderer=p.ER_BULLET_HARDWARE_OPENGL if self.renderer == "egl" else p.ER_TINY_RENDERER,
-                physicsClientId=self.client)
+                renderer=flag, physicsClientId=self.client)
         ms = 1e3 * (time.perf_counter() - t0)
         rgb = np.asarray(rgba, dtype=np.float64).reshape(cfg.height, cfg.width, 4)[..., :3] / 255.0
         d = np.asarray(depth, dtype=np.float64).reshape(cfg.height, cfg.width)
@@ -376,9 +377,9 @@ class SimCamera:
         if self.cfg.color_noise > 0:
             colors = np.clip(colors + self._rng.normal(0.0, self.cfg.color_noise, colors.shape), 0.0, 1.0)
         fx, fy, cx, cy = self.K
-        o_u, o_v = PIXEL_SAMPLE[self.renderer]  # where the renderer samples the pixel: a shifted principal point
-        points = deproject(z, Intrinsics(self.cfg.width, self.cfg.height, fx, fy, cx - o_u, cy - o_v), self.T_base_cam,
-                           rows, cols)
+        o_u, o_v = PIXEL_SAMPLE[self.renderer]  # where a pixel is sampled: shifted principal point
+        intr = Intrinsics(self.cfg.width, self.cfg.height, fx, fy, cx - o_u, cy - o_v)
+        points = deproject(z, intr, self.T_base_cam, rows, cols)
         self.last_timing = {"texture_ms": self.last_texture_ms, "render_ms": frame.render_ms,
                             "back_project_ms": 1e3 * (time.perf_counter() - t0)}
         return points, colors
@@ -452,7 +453,8 @@ def capture_sim(cfg: SimCaptureConfig | None = None, camera: SimCamera | None = 
                 "point it at the object with --camera-pose eye_x,eye_y,eye_z,target_x,target_y,target_z")
         t1 = time.perf_counter()
         # A cleaned object has no marking left: keep the cloud with p = 0 instead of refusing it.
-        cap = capture_cloud(replace(pipe, source="sim", allow_empty_target=allow_empty_target), raw=(points, colors))
+        pipe = replace(pipe, source="sim", allow_empty_target=allow_empty_target)
+        cap = capture_cloud(pipe, raw=(points, colors))
         timing["pipeline_ms"] = 1e3 * (time.perf_counter() - t1)
         timing["total_ms"] = 1e3 * (time.perf_counter() - t0)
         obj = camera.obj

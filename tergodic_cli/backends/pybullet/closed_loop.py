@@ -1,9 +1,9 @@
 """The closed outer loop in simulation (paper Fig. 3, issue 6): clean, look again, re-target, continue.
 
-``tergodic explore CAPTURE --robot pybullet --recapture-every K --until-clean S [--max-steps N]`` on a
-``--source sim`` capture (docs/closed_loop.md). One cycle: engage and press at F_d; K explorer steps
-in contact, the sponge's contacts (merged into their force-weighted mean point and summed force)
-fading the *same* textured object the camera renders every ``clean_every`` simulated seconds;
+``tergodic explore CAPTURE --robot pybullet --recapture-every K --until-clean S [--max-steps N]``
+on a ``--source sim`` capture (docs/closed_loop.md). One cycle: engage and press at F_d; K explorer
+steps in contact, the sponge's contacts (merged into their force-weighted mean point and summed
+force) fading the *same* textured object the camera renders every ``clean_every`` simulated seconds;
 retreat to the picture pose, re-capture (render, back-project, the capture pipeline), move the new
 p onto the basis points and hand it to the explorer. The geometry has not changed, so the basis is
 reused, never recomputed (each re-capture checks its cache key). The loop stops when the camera
@@ -77,7 +77,7 @@ def sim_scene_configs(meta: dict):
     o = dict(sim["object"])
     o["cleaning"] = CleaningModel(**(o.get("cleaning") or {}))
     c, p = dict(sim["camera"]), dict(meta.get("config") or {})
-    for d, keys in ((o, ("pose",)), (c, ("pose",)), (p, ("crop", "outliers"))):  # JSON lists back to tuples
+    for d, keys in ((o, ("pose",)), (c, ("pose",)), (p, ("crop", "outliers"))):  # lists: tuples
         d.update({k: tuple(d[k]) for k in keys if d.get(k) is not None})
     p.update(source="sim", allow_empty_target=True)
     return _known(SimObjectConfig, o), _known(SimCameraConfig, c), _known(CaptureConfig, p)

@@ -127,7 +127,7 @@ class PyBulletArm:
         p.setJointMotorControlArray(sc.robot, sc.arm_joints, p.TORQUE_CONTROL, forces=total, physicsClientId=cid)
 
     def gravity(self, q, dq) -> tuple:
-        """Gravity + Coriolis torques at (q, q̇) of every movable joint (``calculateInverseDynamics``).
+        """Gravity + Coriolis torques at (q, q̇), movable joints (``calculateInverseDynamics``).
 
         They change slowly at these speeds (< 0.3 rad/s in contact: 1.2 mrad in 4 ms, ~0.03 N m of
         gravity torque): refreshed every ``dynamics_every`` calls, and after a teleport.
@@ -135,7 +135,8 @@ class PyBulletArm:
         sc = self.scene
         self._bias_age += 1
         if self._bias is None or self._bias_age >= self.dynamics_every or self._bias_epoch != sc.teleports:
-            self._bias = sc.p.calculateInverseDynamics(sc.robot, q, dq, self._zeros, physicsClientId=sc.cid)
+            self._bias = sc.p.calculateInverseDynamics(sc.robot, q, dq, self._zeros,
+                                                       physicsClientId=sc.cid)
             self._bias_age = 0
             self._bias_epoch = sc.teleports
         return self._bias

@@ -41,7 +41,8 @@ def capture_realsense(cfg, serial: str | None = None, width: int = 640, height: 
         if len(points) == 0:
             raise TergodicError("the camera returned no valid depth pixels",
                                 "check the working range (objects closer than ~0.1 m have no depth) and the lighting")
-        cap = capture_cloud(replace(cfg, source="realsense"), raw=(points, np.concatenate([c for _, c in clouds])))
+        colors = np.concatenate([c for _, c in clouds])
+        cap = capture_cloud(replace(cfg, source="realsense"), raw=(points, colors))
         t2 = time.perf_counter()
         cap.meta["frame"] = "robot_base" if T is not None else "camera_optical"
         cap.meta["provenance"].update(device=cam.name, serial=cam.serial)
