@@ -80,10 +80,8 @@ class StreamedArm:
         self._alpha = 1.0 - math.exp(-2.0 * math.pi * self.hw.force_filter_hz * self.dt)
         self.force_loop = ForceLoop(self.hw.gains, float(robot_cfg.force))
         self.spin_ref = np.array([1.0, 0.0, 0.0])
-        self.ts = None
         self.threshold = float(robot_cfg.contact_threshold)
-        self._obs = None
-        self._mode = None
+        self.ts = self._obs = self._mode = None
         self._axial = 0.0
 
     @property
@@ -251,8 +249,7 @@ def dry_run(arm, sensor, camera, plan) -> str:
     Returns the report (several lines). Devices connected here are disconnected again; no
     command, move or reference is ever sent.
     """
-    lines = []
-    opened = []
+    lines, opened = [], []
     try:
         arm.connect()
         opened.append(arm)

@@ -87,11 +87,7 @@ def motor_inverse(T: np.ndarray) -> np.ndarray:
 def adjoint(T: np.ndarray) -> np.ndarray:
     """6×6 adjoint of the motor T acting on twists (v, ω): the matrix of M V M̃."""
     R, t = T[:3, :3], T[:3, 3]
-    A = np.zeros((6, 6))
-    A[:3, :3] = R
-    A[:3, 3:] = skew(t) @ R
-    A[3:, 3:] = R
-    return A
+    return np.block([[R, skew(t) @ R], [np.zeros((3, 3)), R]])
 
 
 # ---------------------------------------------------------------------------------- lines

@@ -1,10 +1,9 @@
 """Compiled (numba) kernels of the 1 kHz robot loop: forward kinematics and Jacobian, the contact
 wrench, the line-force controller and the safety limits.
 
-Each kernel is the only implementation of its math: :class:`~tergodic_cli.robot.controller.LineForceController`,
-:class:`~tergodic_cli.robot.interfaces.ContactWrench` and :class:`~tergodic_cli.robot.safety.SafetyGuard`
-call them, and :func:`pybullet_tick` chains them for the hot loop of a PyBullet run, so one numba call
-replaces ~400 Python-level float operations per control step (docs/robot.md, "Timing").
+Each kernel is the only implementation of its math (the controller, the contact wrench and the
+safety guard call them); :func:`pybullet_tick` chains them into one call per tick of a PyBullet run
+(docs/robot.md, "Timing").
 
 Arrays are float64 and C-contiguous; small matrix products are written out (numba's ``@`` on 3×3
 goes through BLAS, slower at this size).
@@ -233,11 +232,10 @@ def inertial_wrench(t, T, J, dq, R_se, p_se, com, m, inertia, dyn, out):
 def contact_wrench_dyn(r, t, T, J, dq, R_se, p_se, mg, com, tare_load, m, inertia, dyn, out):
     """:func:`contact_wrench` with the tool's inertial wrench (:func:`inertial_wrench`) removed from
     the reading first: the contact wrench alone, also while the arm accelerates."""
-    iw = np.empty(6)
-    inertial_wrench(t, T, J, dq, R_se, p_se, com, m, inertia, dyn, iw)
     rc = np.empty(6)
+    inertial_wrench(t, T, J, dq, R_se, p_se, com, m, inertia, dyn, rc)
     for k in range(6):
-        rc[k] = r[k] - iw[k]
+        rc[k] = r[k] - rc[k]
     contact_wrench(rc, T, R_se, p_se, mg, com, tare_load, out)
 
 

@@ -91,12 +91,9 @@ class SimArm:
         self.hook_every = 20
         self._hook_age = 0
         self.wall0 = time.perf_counter()  # realtime pacing: wall clock at simulated time 0 (the run resets it)
-        self._obs = None
-        self._mode = None
+        self._obs = self._mode = self._s_set = self._meas = None
         self._speed = 0.0
-        self._s_set = None
         self._ik: dict = {}
-        self._meas = None
         self.guard = self.ts = None
         self.F_d, self.threshold = float(cfg.force), float(cfg.contact_threshold)
 
@@ -469,14 +466,6 @@ class RobotRun(ContactRun):
     @property
     def scene(self) -> PyBulletScene:
         return self.arm.scene
-
-    @property
-    def sensor(self):
-        return self.arm.sensor
-
-    @sensor.setter
-    def sensor(self, s) -> None:  # fault injection: a wrapped sensor
-        self.arm.sensor = s
 
     def begin(self) -> None:
         super().begin()

@@ -443,8 +443,7 @@ def capture_sim(cfg: SimCaptureConfig | None = None, camera: SimCamera | None = 
     pipe = cfg.pipeline if cfg.pipeline is not None else CaptureConfig(source="sim")
     own = camera is None
     if own:
-        obj = TexturedObject(cfg.object)
-        camera = SimCamera(cfg.camera, obj)
+        camera = SimCamera(cfg.camera, TexturedObject(cfg.object))
     try:
         t0 = time.perf_counter()
         points, colors = camera.capture()

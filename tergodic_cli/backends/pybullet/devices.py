@@ -100,17 +100,11 @@ class PyBulletArm:
         sc = self.scene
         p, cid, rob = sc.p, sc.cid, sc.robot
         states = p.getJointStates(rob, self._read_idx, physicsClientId=cid)
-        q9 = [s[0] for s in states[:-1]]
-        dq9 = [s[1] for s in states[:-1]]
-        self._q9, self._dq9 = q9, dq9
-        self.reaction = states[-1][2]
-        self.reaction_step = sc.steps
-        q = np.array(q9)
-        T = np.empty((4, 4))
-        J = np.empty((6, 7))
-        F, axis, qidx, off = self._chain
-        fk_jacobian(q, F, axis, qidx, off, T, J)
-        return ArmState(sc.t, q, np.array(dq9), T, J)
+        self._q9, self._dq9 = [s[0] for s in states[:-1]], [s[1] for s in states[:-1]]
+        self.reaction, self.reaction_step = states[-1][2], sc.steps  # the sensor joint's
+        q, T, J = np.array(self._q9), np.empty((4, 4)), np.empty((6, 7))
+        fk_jacobian(q, *self._chain, T, J)
+        return ArmState(sc.t, q, np.array(self._dq9), T, J)
 
     def command(self, tau: np.ndarray) -> None:
         """Joint torques (7,) on top of gravity + Coriolis from ``calculateInverseDynamics``.
