@@ -5,6 +5,7 @@ Loopback only, every server bounded in time (max_seconds) and closed by its cont
 
 from __future__ import annotations
 
+import struct
 import threading
 import time
 from http.server import BaseHTTPRequestHandler, HTTPServer
@@ -40,14 +41,11 @@ def _sensor(port, **kw) -> NetFTSensor:
 
 def test_wire_format_round_trips():
     assert rdt.request(rdt.CMD_START_REALTIME, 0) == bytes.fromhex("1234000200000000")
-    assert rdt.parse_request(bytes.fromhex("1234004200000005")) == (rdt.CMD_SET_BIAS, 5)
-    rec = rdt.record(2**32 + 3, 7, 0, [1, -2, 3, -4, 5, -6])
+    rec = struct.pack(">IIIiiiiii", 3, 7, 0, 1, -2, 3, -4, 5, -6)  # the box's side of the wire
     assert len(rec) == 36
     assert rdt.parse_record(rec) == (3, 7, 0, (1, -2, 3, -4, 5, -6))
     with pytest.raises(ValueError):
         rdt.parse_record(rec[:-1])
-    with pytest.raises(ValueError):
-        rdt.parse_request(bytes.fromhex("4321000200000000"))
 
 
 def test_reads_the_stream_in_newtons():

@@ -67,7 +67,7 @@ def test_no_reading_before_the_first_physics_step_counts(plate):
         cfg = RobotConfig(force=force, **FAST)
         cfg.safety.force_limit = limit
         with RobotRun(cap, _explorer(cap, basis, cfg), cfg) as run:
-            assert run.sensor.read().valid  # the run stepped once, holding still, before any check
+            assert run.arm.sensor.read().valid  # the run stepped once, holding still, before any check
             out = run.run(3)
             assert out["force_peak_N"] < run.guard.force_limit == (limit or 5.0)
         assert out["stop_reason"] == "completed", out["stop_reason"]
@@ -81,7 +81,7 @@ def test_inertial_compensation_free_motion_and_contact(plate):
     cfg = RobotConfig(**FAST)
     with RobotRun(cap, _explorer(cap, basis, cfg), cfg) as run:
         run.arm.fast = False  # every tick through get_observation / send_action, where we can watch it
-        plain = ContactWrench(run.scene.tool_load(), run.sensor.frame_in_ee)  # weight only, as before
+        plain = ContactWrench(run.scene.tool_load(), run.arm.sensor.frame_in_ee)  # weight only, as before
         rec = []
         observe = run.arm.get_observation
 
@@ -90,7 +90,7 @@ def test_inertial_compensation_free_motion_and_contact(plate):
             if sensor:
                 st, w = obs.state, obs.wrench
                 plain.tare_load = run.arm.contact_wrench.tare_load
-                wp = plain(run.sensor.read().wrench, st.ee_pose)
+                wp = plain(run.arm.sensor.read().wrench, st.ee_pose)
                 rec.append((run.sm.state, float(np.linalg.norm(w[:3])), float(np.linalg.norm(wp[:3])),
                             float(np.linalg.norm(w[3:])), _contact_force(run), float(-(st.ee_pose[:3, :3] @ w[:3])[2])))
             return obs

@@ -73,9 +73,9 @@ def _run(plate, mode: str, after: int = 4):
         def explore(steps, on_step, *a):  # the fault starts 0.8 s into the exploration
             t_f = run.scene.t + 0.8
             if mode == "frozen":
-                run.sensor = _FrozenSensor(run.sensor, t_f)
+                run.arm.sensor = _FrozenSensor(run.arm.sensor, t_f)
             elif mode == "nan":
-                run.sensor = _NaNSensor(run.sensor, t_f)
+                run.arm.sensor = _NaNSensor(run.arm.sensor, t_f)
             elif mode == "tcp_outside":  # the box's floor rises just over the tool: the TCP breaches it
                 run.guard.ws_lo[2] = run.arm.dev.read_state().ee_pose[2, 3] + 1e-3
                 run.guard.check_target = lambda t, x: None  # (the targets on the surface would trip first)

@@ -18,6 +18,74 @@ def _rng(seed=0):
     return np.random.default_rng(seed)
 
 
+# ------------------------------------------------------------ the matrix forms' CGA counterparts (test-only)
+def motor_log(T):
+    """gafro's motor logarithm in the decoupled chart: (t, φ) as a twist (6,) = (v, ω)."""
+    return np.concatenate([T[:3, 3], ga.matrix_to_rotvec(T[:3, :3])])
+
+
+def motor_exp(V):
+    """Inverse of motor_log: the (4, 4) transform T(v) R(ω)."""
+    return ga.pose_matrix(ga.rotvec_to_matrix(V[3:]), V[:3])
+
+
+def coadjoint(T):
+    """6×6 matrix of M W M̃ on wrenches (f, m): f' = R f, m' = R m + t × R f."""
+    R, t = T[:3, :3], T[:3, 3]
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[3:, :3] = ga.skew(t) @ R
+    A[3:, 3:] = R
+    return A
+
+
+def line_from_point_dir(a, d):
+    d = np.asarray(d, dtype=float) / np.linalg.norm(d)
+    return d, np.cross(np.asarray(a, dtype=float), d)
+
+
+def line_transform(T, d, m):
+    """M L M̃ on a Plücker line: d' = R d, m' = R m + t × R d."""
+    R, t = T[:3, :3], T[:3, 3]
+    return R @ d, R @ m + np.cross(t, R @ d)
+
+
+def line_motor_z(a, d):
+    out = ga.line_motor_z(*(float(x) for x in a), *(float(x) for x in d))
+    return np.array(out[:3]), np.array(out[3:])
+
+
+def twist_to_gafro(V):  # [e12, e13, e23, e1∞, e2∞, e3∞]
+    return np.array([V[5], -V[4], V[3], V[0], V[1], V[2]])
+
+
+def wrench_to_gafro(W):  # [e01, e02, e12, e03, e13, e23]
+    return np.array([W[0], W[1], W[5], W[2], -W[4], W[3]])
+
+
+def wrench_from_gafro(c):
+    return np.array([c[0], c[1], c[3], c[5], -c[4], c[2]])
+
+
+def line_from_gafro(c):  # [e01∞, e02∞, e12∞, e03∞, e13∞, e23∞] = [dx, dy, mz, dz, -my, mx], |d| = 1
+    d, m = np.array([c[0], c[1], c[3]]), np.array([c[5], -c[4], c[2]])
+    return d / np.linalg.norm(d), m / np.linalg.norm(d)
+
+
+def gafro_motor(T):
+    return pygafro.Motor(pygafro.MotorGenerator(twist_to_gafro(motor_log(T))))
+
+
+def gafro_motor_matrix(M):
+    return np.asarray(M.toTransformationMatrix(), dtype=float)
+
+
+def gafro_line(a, d):
+    """P(a) ∧ P(a + d) ∧ e∞, oriented along d."""
+    a = np.asarray(a, dtype=float)
+    return pygafro.Line(pygafro.Point(*a), pygafro.Point(*(a + np.asarray(d, dtype=float))))
+
+
 def _random_motor(rng, scale=1.0) -> np.ndarray:
     axis = rng.normal(size=3)
     axis /= np.linalg.norm(axis)
@@ -33,7 +101,7 @@ def test_power_is_twist_wrench_inner_product():
     rng = _rng(1)
     for _ in range(20):
         V, W = rng.normal(size=6), rng.normal(size=6)
-        inner = pygafro.Twist(ga.twist_to_gafro(V)).multivector() | pygafro.Wrench(ga.wrench_to_gafro(W)).multivector()
+        inner = pygafro.Twist(twist_to_gafro(V)).multivector() | pygafro.Wrench(wrench_to_gafro(W)).multivector()
         assert inner.vector()[0] == pytest.approx(-(V[:3] @ W[:3] + V[3:] @ W[3:]), abs=1e-12)
 
 
@@ -43,39 +111,39 @@ def test_power_is_invariant_under_motors():
     for _ in range(10):
         T = _random_motor(rng)
         V, W = rng.normal(size=6), rng.normal(size=6)
-        assert (ga.adjoint(T) @ V) @ (ga.coadjoint(T) @ W) == pytest.approx(V @ W, rel=1e-12, abs=1e-12)
+        assert (ga.adjoint(T) @ V) @ (coadjoint(T) @ W) == pytest.approx(V @ W, rel=1e-12, abs=1e-12)
 
 
 def test_sandwich_matrices_match_pygafro():
     rng = _rng(3)
     for _ in range(10):
         T = _random_motor(rng, 0.5)
-        M = ga.gafro_motor(T)
-        np.testing.assert_allclose(ga.gafro_motor_matrix(M), T, atol=1e-12)
+        M = gafro_motor(T)
+        np.testing.assert_allclose(gafro_motor_matrix(M), T, atol=1e-12)
         V, W = rng.normal(size=6), rng.normal(size=6)
-        Vg = pygafro.Twist(ga.twist_to_gafro(V)).transform(M)
-        Wg = pygafro.Wrench(ga.wrench_to_gafro(W)).transform(M)
+        Vg = pygafro.Twist(twist_to_gafro(V)).transform(M)
+        Wg = pygafro.Wrench(wrench_to_gafro(W)).transform(M)
         np.testing.assert_allclose(ga.twist_from_gafro(np.asarray(Vg.vector())), ga.adjoint(T) @ V, atol=1e-12)
-        np.testing.assert_allclose(ga.wrench_from_gafro(np.asarray(Wg.vector())), ga.coadjoint(T) @ W, atol=1e-12)
+        np.testing.assert_allclose(wrench_from_gafro(np.asarray(Wg.vector())), coadjoint(T) @ W, atol=1e-12)
         a, d = rng.normal(size=3), rng.normal(size=3)
         d /= np.linalg.norm(d)
-        Lg = M.apply(ga.gafro_line(a, d))
-        d2, m2 = ga.line_transform(T, *ga.line_from_point_dir(a, d))
-        np.testing.assert_allclose(ga.line_from_gafro(np.asarray(Lg.vector()))[0], d2, atol=1e-12)
-        np.testing.assert_allclose(ga.line_from_gafro(np.asarray(Lg.vector()))[1], m2, atol=1e-12)
+        Lg = M.apply(gafro_line(a, d))
+        d2, m2 = line_transform(T, *line_from_point_dir(a, d))
+        np.testing.assert_allclose(line_from_gafro(np.asarray(Lg.vector()))[0], d2, atol=1e-12)
+        np.testing.assert_allclose(line_from_gafro(np.asarray(Lg.vector()))[1], m2, atol=1e-12)
 
 
 def test_log_exp_round_trips():
     rng = _rng(4)
     for _ in range(20):
         T = _random_motor(rng)
-        np.testing.assert_allclose(ga.motor_exp(ga.motor_log(T)), T, atol=1e-12)
+        np.testing.assert_allclose(motor_exp(motor_log(T)), T, atol=1e-12)
         V = np.concatenate([rng.normal(size=3), rng.normal(size=3)])
         V[3:] *= rng.uniform(0.05, 3.0) / np.linalg.norm(V[3:])  # |φ| < π: the log's principal branch
-        np.testing.assert_allclose(ga.motor_log(ga.motor_exp(V)), V, atol=1e-10)
+        np.testing.assert_allclose(motor_log(motor_exp(V)), V, atol=1e-10)
         # pygafro: exp(B) then MotorLogarithm gives B back, and its exp is our exp.
-        M = pygafro.Motor(pygafro.MotorGenerator(ga.twist_to_gafro(V)))
-        np.testing.assert_allclose(ga.gafro_motor_matrix(M), ga.motor_exp(V), atol=1e-12)
+        M = pygafro.Motor(pygafro.MotorGenerator(twist_to_gafro(V)))
+        np.testing.assert_allclose(gafro_motor_matrix(M), motor_exp(V), atol=1e-12)
         np.testing.assert_allclose(ga.twist_from_gafro(_gafro_twist_vec(pygafro.MotorLogarithm(M))), V, atol=1e-9)
 
 
@@ -96,16 +164,16 @@ def test_line_motor_maps_ee_axis_onto_target_and_matches_gafro(seed):
     d = rng.normal(size=3)
     d[2] = abs(d[2]) + 0.2  # the tool never points away from the surface
     d /= np.linalg.norm(d)
-    t, phi = ga.line_motor_z(a, d)
-    T = ga.motor_exp(np.concatenate([t, phi]))
+    t, phi = line_motor_z(a, d)
+    T = motor_exp(np.concatenate([t, phi]))
     # It maps the ee z-axis (e0 ∧ e3 ∧ e∞) onto the target line, orientation included ...
-    d2, m2 = ga.line_transform(T, np.array([0.0, 0.0, 1.0]), np.zeros(3))
-    d_t, m_t = ga.line_from_point_dir(a, d)
+    d2, m2 = line_transform(T, np.array([0.0, 0.0, 1.0]), np.zeros(3))
+    d_t, m_t = line_from_point_dir(a, d)
     np.testing.assert_allclose(d2, d_t, atol=1e-12)
     np.testing.assert_allclose(m2, m_t, atol=1e-12)
     # ... it is the motor of ref. [54] as pygafro computes it ...
-    Mg = pygafro.Line.Z().getMotor(ga.gafro_line(a, d))
-    np.testing.assert_allclose(ga.gafro_motor_matrix(Mg), T, atol=1e-10)
+    Mg = pygafro.Line.Z().getMotor(gafro_line(a, d))
+    np.testing.assert_allclose(gafro_motor_matrix(Mg), T, atol=1e-10)
     # ... and eq. 37's logarithm is pygafro's.
     np.testing.assert_allclose(ga.twist_from_gafro(_gafro_twist_vec(pygafro.MotorLogarithm(Mg))),
                                np.concatenate([t, phi]), atol=1e-9)
@@ -114,19 +182,19 @@ def test_line_motor_maps_ee_axis_onto_target_and_matches_gafro(seed):
 
 
 def test_line_motor_of_parallel_lines_is_the_offset():
-    t, phi = ga.line_motor_z(np.array([0.01, -0.02, 0.3]), np.array([0.0, 0.0, 1.0]))
+    t, phi = line_motor_z(np.array([0.01, -0.02, 0.3]), np.array([0.0, 0.0, 1.0]))
     np.testing.assert_allclose(t, [0.01, -0.02, 0.0], atol=1e-15)
     np.testing.assert_allclose(phi, 0.0, atol=1e-15)
-    Mg = pygafro.Line.Z().getMotor(ga.gafro_line(np.array([0.01, -0.02, 0.3]), np.array([0.0, 0.0, 1.0])))
-    np.testing.assert_allclose(ga.gafro_motor_matrix(Mg)[:3, 3], [0.01, -0.02, 0.0], atol=1e-12)
+    Mg = pygafro.Line.Z().getMotor(gafro_line(np.array([0.01, -0.02, 0.3]), np.array([0.0, 0.0, 1.0])))
+    np.testing.assert_allclose(gafro_motor_matrix(Mg)[:3, 3], [0.01, -0.02, 0.0], atol=1e-12)
 
 
 def _ga_control_law(T, J_base, dq, a, d, W_meas, g: ControllerGains, f_cmd_z) -> np.ndarray:
     """Eq. 47 written with pygafro objects only (motors, lines, MotorLogarithm, sandwiches, GA inner products)."""
-    M = ga.gafro_motor(T)
+    M = gafro_motor(T)
     Mr = pygafro.Motor(M.reverse())  # M̃
     # Eq. 35-36 in the ee frame: L_ee = e0 ∧ e3 ∧ e∞ and M̃ L_a⊥ M.
-    L_a_ee = Mr.apply(ga.gafro_line(a, d))
+    L_a_ee = Mr.apply(gafro_line(a, d))
     M_line = pygafro.Line.Z().getMotor(L_a_ee)
     V_L = ga.twist_from_gafro(_gafro_twist_vec(pygafro.MotorLogarithm(M_line)))  # eq. 37, (t, φ)
     K = np.array(g.k_trans + g.k_rot)
@@ -138,14 +206,14 @@ def _ga_control_law(T, J_base, dq, a, d, W_meas, g: ControllerGains, f_cmd_z) ->
         B_tcp = J_base[:, i]  # (v at the TCP, ω), base axes
         # as a screw at the base origin, then into the ee frame by the reverse motor
         B0 = np.concatenate([B_tcp[:3] - np.cross(B_tcp[3:], T[:3, 3]), B_tcp[3:]])
-        Bg = pygafro.Twist(ga.twist_to_gafro(B0)).transform(Mr)
+        Bg = pygafro.Twist(twist_to_gafro(B0)).transform(Mr)
         cols.append(Bg)
     V_ee = sum((ga.twist_from_gafro(np.asarray(c.vector())) * dq[i] for i, c in enumerate(cols)), np.zeros(6))
     W_V = np.array(g.d_trans + g.d_rot) * V_ee  # eq. 46
     # eq. 40's output: on the tool axis (a float), or the full wrench (6,)
     W_C = np.array([0.0, 0.0, f_cmd_z, 0.0, 0.0, 0.0]) if np.ndim(f_cmd_z) == 0 else np.asarray(f_cmd_z)
     W = W_L - W_V + W_C
-    Wg = pygafro.Wrench(ga.wrench_to_gafro(W)).multivector()
+    Wg = pygafro.Wrench(wrench_to_gafro(W)).multivector()
     # τ_i = -B_i^ee · W (III-B: B · W = -τ)
     return np.array([-(c.multivector() | Wg).vector()[0] for c in cols])
 
@@ -222,8 +290,13 @@ def test_contact_wrench_removes_tool_weight_and_moves_to_tcp():
     f_s = R_se.T @ F_ee
     p_tcp_in_s = R_se.T @ (-frame[:3, 3])
     m_s = np.cross(p_tcp_in_s, f_s)  # moment about the sensor origin of a force acting at the TCP
-    raw_tare = load.wrench(R_tare @ R_se)
-    raw_now = load.wrench(R_now @ R_se) + np.concatenate([f_s, m_s])
+
+    def weight(R_base_sensor):  # what the arm applies to hold the tool still: Rᵀ (0, 0, m g) at the centre of mass
+        f = R_base_sensor.T @ np.array([0.0, 0.0, load.mass * 9.81])
+        return np.concatenate([f, np.cross(load.com, f)])
+
+    raw_tare = weight(R_tare @ R_se)
+    raw_now = weight(R_now @ R_se) + np.concatenate([f_s, m_s])
     cw.tare_at(R_tare)
     out = cw(raw_now - raw_tare, R_now)
     np.testing.assert_allclose(out[:3], F_ee, atol=1e-12)

@@ -132,7 +132,7 @@ def test_ft_sensor_matches_contact_points_and_applied_force(plate):
                                     physicsClientId=sc.cid)
             run.arm.dev.command(run.arm.joint(st.q, st.dq, q_hold))
             sc.step()
-            readings.append(run.arm.contact_wrench(run.sensor.read().wrench, run.arm.dev.read_state().rot))
+            readings.append(run.arm.contact_wrench(run.arm.sensor.read().wrench, run.arm.dev.read_state().ee_pose))
         w = np.mean(readings[-500:], axis=0)
         R = T[:3, :3]
         f_ee = -(R.T @ F)  # the tool "applies" the reaction of what pushes it
@@ -281,12 +281,12 @@ def test_fault_injection_ends_safe(plate, mode, needle):
 def test_frozen_sensor_holds_position(plate):
     run = _faulty_run(plate, "none", after=10**6)
     with run:
-        run.sensor = _FrozenSensor(run.sensor, t_freeze=math.inf)
+        run.arm.sensor = _FrozenSensor(run.arm.sensor, t_freeze=math.inf)
         # freeze 1 s into the exploration
         orig = run._explore
 
         def explore(steps, on_step):
-            run.sensor._t = run.scene.t + 1.0
+            run.arm.sensor._t = run.scene.t + 1.0
             return orig(steps, on_step)
 
         run._explore = explore

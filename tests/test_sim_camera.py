@@ -11,9 +11,10 @@ from conftest import assert_one_line_error, run_cli, run_cli_subprocess
 from tergodic_cli.capture import CaptureConfig, capture_cloud, load_capture
 from tergodic_cli.capture import synthetic
 from tergodic_cli.capture.segment import parse_target, segment_target
-from tergodic_cli.backends.pybullet.camera import (PIXEL_SAMPLE, SimCamera, SimCameraConfig, SimCaptureConfig, back_project,
+from tergodic_cli.backends.pybullet.camera import (PIXEL_SAMPLE, SimCamera, SimCameraConfig, SimCaptureConfig,
                                              capture_sim, intrinsics, linearize_depth, look_at, projection_matrix,
                                              target_on_points, view_matrix)
+from tergodic_cli.backends.camera import Intrinsics, deproject
 from tergodic_cli.capture.textured import (CleaningModel, SimObjectConfig, TexturedObject, builtin_mesh, chart_to_uv,
                                            rasterize_uv, read_obj)
 from tergodic_cli.errors import TergodicError
@@ -68,7 +69,7 @@ def test_depth_linearisation_and_back_projection_invert_the_projection():
     v = 0.5 * (1.0 - ndc[:, 1]) * h
     z = linearize_depth(d, near, far)
     np.testing.assert_allclose(z, ((pts - T[:3, 3]) @ T[:3, 2]), rtol=1e-9)  # distance along the optical axis
-    back = back_project(z, v - 0.5, u - 0.5, intrinsics(w, h, fov), T)
+    back = deproject(z, Intrinsics(w, h, *intrinsics(w, h, fov)), T, rows=v, cols=u)  # image-plane coordinates
     np.testing.assert_allclose(back, pts, atol=1e-9)
 
 

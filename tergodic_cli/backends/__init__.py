@@ -12,14 +12,12 @@
 Entry points: :func:`make_hardware`, :func:`make_camera`, :func:`explore_with_hardware`, :func:`dry_run`.
 """
 
-from tergodic_cli.backends.camera import Camera, Intrinsics, RGBDFrame, capture_with_camera, deproject, frame_to_cloud
-from tergodic_cli.backends.extras import import_sdk, install_hint
+from tergodic_cli.backends.camera import Camera, Intrinsics, deproject
 from tergodic_cli.backends.factory import make_camera, make_hardware
-from tergodic_cli.backends.impedance import ImpedanceArm, ImpedanceTarget, LineImpedanceGains, line_impedance_target
-from tergodic_cli.backends.streamed import DryRunPlan, HardwareRunConfig, StreamedArm, dry_run, explore_with_hardware
+from tergodic_cli.backends.impedance import LineImpedanceGains, line_impedance_target
+from tergodic_cli.backends.streamed import (DryRunPlan, HardwareRunConfig, dry_run,
+                                            explore_with_hardware)
 
-__all__ = [
-    "Camera", "DryRunPlan", "HardwareRunConfig", "ImpedanceArm", "ImpedanceTarget", "Intrinsics",
-    "LineImpedanceGains", "RGBDFrame", "capture_with_camera", "deproject", "dry_run", "explore_with_hardware",
-    "frame_to_cloud", "import_sdk", "install_hint", "line_impedance_target", "make_camera", "make_hardware", "StreamedArm",
-]
+__all__ = ["Camera", "DryRunPlan", "HardwareRunConfig", "Intrinsics", "LineImpedanceGains",
+           "deproject", "dry_run", "explore_with_hardware", "line_impedance_target", "make_camera",
+           "make_hardware"]

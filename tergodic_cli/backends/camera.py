@@ -3,8 +3,8 @@
 A camera backend connects, is read, disconnects. ``read()`` returns the coloured cloud
 (points (n, 3) in metres, in the robot base frame when the camera's pose is known, colours
 (n, 3) in [0, 1]); ``read_frame()`` returns the aligned RGB-D image with its intrinsics, for
-tools that want the pixels. :func:`capture_with_camera` runs the same filters and segmentation as
-every other capture source.
+tools that want the pixels; a capture runs the same filters and segmentation as every other
+capture source (:func:`~tergodic_cli.backends.realsense.capture.capture_realsense`).
 
 Back-projection (pixel (u, v) = (column, row), pixel centres at integer coordinates, the
 convention of librealsense's ``rs2_deproject_pixel_to_point``):
@@ -29,14 +29,12 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from tergodic_cli.config import Config
-from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.errors import require
 
 DISTORTIONS = ("none", "inverse_brown_conrady", "brown_conrady")
 
 
 @dataclass
-
-
 class Intrinsics(Config):
     """Pinhole intrinsics in pixels, with a distortion model and its 5 coefficients (k1, k2, p1, p2, k3)."""
 
@@ -51,8 +49,6 @@ class Intrinsics(Config):
 
 
 @dataclass
-
-
 class RGBDFrame:
     """An aligned RGB-D image.
 
@@ -70,8 +66,6 @@ class RGBDFrame:
 
 
 @runtime_checkable
-
-
 class Camera(Protocol):
     """An RGB-D camera that yields coloured clouds."""
 
@@ -88,39 +82,37 @@ class Camera(Protocol):
         """Stop streaming and release the device."""
 
 
-def undistort_normalized(x: np.ndarray, y: np.ndarray, intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised image coordinates (x, y) -> undistorted ray coordinates under ``intr.model``."""
-    require(intr.model in DISTORTIONS, f"the camera reports the distortion model '{intr.model}', which tergodic cannot undo",
-            f"stream a profile with one of {', '.join(DISTORTIONS)} (the colour stream of D400 cameras)")
-    k1, k2, p1, p2, k3 = (float(c) for c in (tuple(intr.coeffs) + (0.0,) * 5)[:5])
-    if intr.model == "none" or not any((k1, k2, p1, p2, k3)):
-        return x, y
-    inverse = intr.model == "inverse_brown_conrady"
-    xu, yu = x.copy(), y.copy()
-    for _ in range(10):
-        r2 = xu * xu + yu * yu
-        f = 1.0 + ((k3 * r2 + k2) * r2 + k1) * r2
-        tx, ty = (xu * f, yu * f) if inverse else (xu, yu)
-        dx = 2 * p1 * tx * ty + p2 * (r2 + 2 * tx * tx)
-        dy = 2 * p2 * tx * ty + p1 * (r2 + 2 * ty * ty)
-        xu, yu = (x - dx) / f, (y - dy) / f
-    return xu, yu
-
-
 def deproject(depth: np.ndarray, intr: Intrinsics, T_base_cam: np.ndarray | None = None,
               rows: np.ndarray | None = None, cols: np.ndarray | None = None) -> np.ndarray:
     """Pixels with depth (metres) -> points (n, 3), base frame (see the module docstring).
 
     depth : (h, w) image (then every pixel, row-major) or (n,) depths of the pixels ``rows``, ``cols``.
+    The simulated camera's pinhole (no distortion) is the same, its pixel sampling offset in cx, cy.
     """
+    require(intr.model in DISTORTIONS,
+            f"the camera reports the distortion model '{intr.model}', which tergodic cannot undo",
+            f"stream a profile with one of {', '.join(DISTORTIONS)} (the colour stream of D400 cameras)")
     z = np.asarray(depth, dtype=np.float64)
     if rows is None or cols is None:
         rows, cols = np.indices(z.shape)
         rows, cols, z = rows.ravel(), cols.ravel(), z.ravel()
-    x = (np.asarray(cols, dtype=np.float64) - intr.cx) / intr.fx
-    y = (np.asarray(rows, dtype=np.float64) - intr.cy) / intr.fy
-    x, y = undistort_normalized(x, y, intr)
-    cam = np.column_stack([x * z, y * z, z])
+    u = np.asarray(cols, dtype=np.float64) - intr.cx
+    v = np.asarray(rows, dtype=np.float64) - intr.cy
+    k1, k2, p1, p2, k3 = (float(c) for c in (tuple(intr.coeffs) + (0.0,) * 5)[:5])
+    if intr.model == "none" or not any((k1, k2, p1, p2, k3)):
+        cam = np.column_stack([u * z / intr.fx, v * z / intr.fy, z])
+    else:  # undo the distortion by fixed-point iteration on the normalised coordinates
+        x, y = u / intr.fx, v / intr.fy
+        inverse = intr.model == "inverse_brown_conrady"
+        xu, yu = x.copy(), y.copy()
+        for _ in range(10):
+            r2 = xu * xu + yu * yu
+            f = 1.0 + ((k3 * r2 + k2) * r2 + k1) * r2
+            tx, ty = (xu * f, yu * f) if inverse else (xu, yu)
+            dx = 2 * p1 * tx * ty + p2 * (r2 + 2 * tx * tx)
+            dy = 2 * p2 * tx * ty + p1 * (r2 + 2 * ty * ty)
+            xu, yu = (x - dx) / f, (y - dy) / f
+        cam = np.column_stack([xu * z, yu * z, z])
     if T_base_cam is None:
         return cam
     T = np.asarray(T_base_cam, dtype=float)
@@ -138,23 +130,3 @@ def frame_to_cloud(frame: RGBDFrame, depth_min: float = 0.0, depth_max: float = 
     pts = deproject(z[rows, cols], frame.intrinsics, frame.T_base_cam, rows, cols)
     return pts, rgb[rows, cols]
 
-
-def capture_with_camera(camera: Camera, cfg, frames: int = 1):
-    """Read ``frames`` clouds from an open ``camera`` and run the capture pipeline on their union.
-
-    cfg : :class:`~tergodic_cli.capture.CaptureConfig` (its ``source`` names the camera).
-    Returns the :class:`~tergodic_cli.capture.Capture`.
-    """
-    from tergodic_cli.capture import capture_cloud
-
-    require(frames >= 1, f"frames must be >= 1, got {frames}", "e.g. 1")
-    pts, cols = [], []
-    for _ in range(int(frames)):
-        p, c = camera.read()
-        pts.append(p)
-        cols.append(c)
-    points = np.concatenate(pts) if pts else np.zeros((0, 3))
-    if len(points) == 0:
-        raise TergodicError("the camera returned no valid depth pixels",
-                            "check the working range (objects closer than ~0.1 m have no depth) and the lighting")
-    return capture_cloud(cfg, raw=(points, np.concatenate(cols)))

@@ -20,12 +20,6 @@ SDKS: dict[str, tuple[str, str, str]] = {
 }
 
 
-def install_hint(module: str) -> str:
-    """The pip command that installs ``module``'s extra."""
-    extra = SDKS[module][0]
-    return f"pip install 'tergodic[{extra}]'"
-
-
 def import_sdk(module: str) -> ModuleType:
     """Import an optional SDK by its module name, or raise a one-line :class:`TergodicError`.
 
@@ -41,7 +35,14 @@ def import_sdk(module: str) -> ModuleType:
         if exc.name not in (None, module) and not str(exc.name).startswith(module + "."):
             raise TergodicError(f"{module} ({what}) failed to import: {exc}",
                                 f"reinstall it with pip install --force-reinstall {dist}") from None
-        raise TergodicError(f"{module} is not installed ({what}, pip package {dist})", install_hint(module)) from None
+        raise TergodicError(f"{module} is not installed ({what}, pip package {dist})",
+                            f"pip install 'tergodic[{extra}]'") from None
     except ImportError as exc:
         raise TergodicError(f"{module} ({what}) is installed but failed to load: {exc}",
                             f"reinstall it with pip install --force-reinstall {dist}, matching your robot or device firmware") from None
+
+
+def one_line(exc: BaseException) -> str:
+    """An SDK's exception as one line of at most 200 characters (its type when it says nothing)."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 200 else text[:197] + "..."

@@ -68,9 +68,10 @@ def make_camera(source: str = "realsense", serial: str | None = None, width: int
                                            depth_max=depth_max, T_base_cam=T_base_cam))
 
 
-def camera_pose_matrix(values) -> np.ndarray:
-    """7 numbers x,y,z,qx,qy,qz,qw (optical frame in the base frame) -> (4, 4)."""
-    from tergodic_cli.robot.ga import quat_to_matrix
+def camera_pose_matrix(values, fix: str = "give x,y,z,qx,qy,qz,qw with a unit quaternion"):
+    """7 numbers x,y,z,qx,qy,qz,qw (the optical frame in the base frame) -> (4, 4); ``fix``: of a
+    quaternion that is not unit length."""
+    from tergodic_cli.robot.ga import pose_matrix, quat_to_matrix
 
     v = [float(x) for x in values]
     if len(v) != 7:
@@ -78,8 +79,5 @@ def camera_pose_matrix(values) -> np.ndarray:
                             "give the optical frame's pose from your hand-eye calibration: x,y,z,qx,qy,qz,qw (m)")
     q = np.array(v[3:])
     require(bool(np.all(np.isfinite(v))) and abs(np.linalg.norm(q) - 1.0) < 1e-3, "--camera-pose quaternion is not unit length",
-            "give x,y,z,qx,qy,qz,qw with a unit quaternion")
-    T = np.eye(4)
-    T[:3, :3] = quat_to_matrix(q / np.linalg.norm(q))
-    T[:3, 3] = v[:3]
-    return T
+            fix)
+    return pose_matrix(quat_to_matrix(q / np.linalg.norm(q)), np.array(v[:3]))

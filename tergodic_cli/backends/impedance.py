@@ -16,13 +16,11 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from tergodic_cli.config import Config
-from tergodic_cli.robot.ga import tool_rotation
+from tergodic_cli.robot.ga import pose_matrix, tool_rotation
 from tergodic_cli.robot.interfaces import ArmState
 
 
 @dataclass
-
-
 class ImpedanceTarget:
     """One impedance reference, base frame, SI units.
 
@@ -40,14 +38,9 @@ class ImpedanceTarget:
 
 
 @runtime_checkable
-
-
 class ImpedanceArm(Protocol):
     """An arm whose real-time loop runs in the SDK: references instead of torques (the device behind
-    :class:`~tergodic_cli.backends.streamed.StreamedArm`).
-
-    ``command(tau)`` still works (a torque hold between Python updates), but the contact loop
-    on hardware uses :meth:`command_impedance`, which the SDK tracks at 1 kHz.
+    :class:`~tergodic_cli.backends.streamed.StreamedArm`), which the SDK tracks at 1 kHz.
     """
 
     name: str
@@ -70,15 +63,6 @@ class ImpedanceArm(Protocol):
         -------
         ArmState
             Joint positions (rad), velocities (rad/s), the TCP pose and Jacobian (base frame).
-        """
-
-    def command(self, tau: np.ndarray) -> None:
-        """Send joint torques on top of the SDK's gravity compensation.
-
-        Parameters
-        ----------
-        tau : (dof,) float
-            Joint torques, N m.
         """
 
     def disconnect(self) -> None:
@@ -118,8 +102,6 @@ class ImpedanceArm(Protocol):
 
 
 @dataclass
-
-
 class LineImpedanceGains(Config):
     """The line controller's stiffness and damping for an SDK impedance loop (defaults = the simulation's).
 
@@ -140,27 +122,6 @@ class LineImpedanceGains(Config):
     d_spin: float = 1.0
     force_ki: float = 2.0
     force_trim_max: float = 1.0
-
-
-def rotated_gains(R: np.ndarray, trans: tuple[float, float, float], rot: tuple[float, float, float]) -> np.ndarray:
-    """Gains given in the tool frame, expressed in the base frame.
-
-    Parameters
-    ----------
-    R : (3, 3) float
-        The tool frame's rotation in the base frame.
-    trans, rot : (3,) float
-        Translational (N/m or N s/m) and rotational (N m/rad or N m s/rad) gains along the tool's x, y, z.
-
-    Returns
-    -------
-    (6, 6) float
-        blockdiag(R diag(trans) Rᵀ, R diag(rot) Rᵀ).
-    """
-    G = np.zeros((6, 6))
-    G[:3, :3] = R @ np.diag(trans) @ R.T
-    G[3:, 3:] = R @ np.diag(rot) @ R.T
-    return G
 
 
 def line_impedance_target(p_tcp: np.ndarray, a: np.ndarray, d: np.ndarray, x_ref: np.ndarray, force: float,
@@ -189,23 +150,20 @@ def line_impedance_target(p_tcp: np.ndarray, a: np.ndarray, d: np.ndarray, x_ref
     z = R[:, 2]
     a = np.asarray(a, dtype=float)
     s = float((np.asarray(p_tcp, dtype=float) - a) @ z)
-    pose = np.eye(4)
-    pose[:3, :3] = R
-    pose[:3, 3] = a + (s + force / g.k_normal) * z if axial is None else a + float(axial) * z
-    K = rotated_gains(R, (g.k_lateral, g.k_lateral, g.k_normal), (g.k_tilt, g.k_tilt, g.k_spin))
-    D = rotated_gains(R, (g.d_lateral, g.d_lateral, g.d_normal), (g.d_tilt, g.d_tilt, g.d_spin))
-    twist = np.zeros(6)
+    at = a + (s + force / g.k_normal) * z if axial is None else a + float(axial) * z
+    ref = hold_target(pose_matrix(R, at), g)
     if line_velocity is not None:
         v = np.asarray(line_velocity, dtype=float)
-        twist[:3] = v - (v @ z) * z  # along the line the target rides with the TCP: no feed-forward there
-    twist[:3] += axial_speed * z
-    wrench = np.zeros(6)
-    wrench[:3] = (force if axial is None else 0.0) * z
-    return ImpedanceTarget(pose, K, D, twist, wrench)
+        ref.twist[:3] = v - (v @ z) * z  # along the line the target rides with the TCP
+    ref.twist[:3] += axial_speed * z
+    ref.wrench_ff[:3] = (force if axial is None else 0.0) * z
+    return ref
 
 
 def hold_target(pose: np.ndarray, gains: LineImpedanceGains) -> ImpedanceTarget:
     """A reference that holds a pose with the line gains in every direction (k_normal along the tool axis).
+
+    Gains along the tool's x, y, z, in the base frame: blockdiag(R diag(trans) Rᵀ, R diag(rot) Rᵀ).
 
     Parameters
     ----------
@@ -217,9 +175,12 @@ def hold_target(pose: np.ndarray, gains: LineImpedanceGains) -> ImpedanceTarget:
     -------
     ImpedanceTarget
     """
-    R = np.asarray(pose, dtype=float)[:3, :3]
-    K = rotated_gains(R, (gains.k_lateral, gains.k_lateral, gains.k_normal), (gains.k_tilt, gains.k_tilt, gains.k_spin))
-    D = rotated_gains(R, (gains.d_lateral, gains.d_lateral, gains.d_normal), (gains.d_tilt, gains.d_tilt, gains.d_spin))
+    R, g = np.asarray(pose, dtype=float)[:3, :3], gains
+    K, D = np.zeros((6, 6)), np.zeros((6, 6))
+    for G, tr, rot in ((K, (g.k_lateral, g.k_lateral, g.k_normal), (g.k_tilt, g.k_tilt, g.k_spin)),
+                       (D, (g.d_lateral, g.d_lateral, g.d_normal), (g.d_tilt, g.d_tilt, g.d_spin))):
+        G[:3, :3] = R @ np.diag(tr) @ R.T
+        G[3:, 3:] = R @ np.diag(rot) @ R.T
     return ImpedanceTarget(np.array(pose, dtype=float), K, D)
 
 

@@ -1,18 +1,12 @@
 """The contact loop on hardware: an :class:`ImpedanceArm` (franky) and a ``WrenchSensor`` behind
-the loop's :class:`~tergodic_cli.robot.interfaces.Arm`.
+the loop's :class:`~tergodic_cli.robot.interfaces.Arm` (docs/hardware.md).
 
-One control period is one *reference* streamed to the SDK's 1 kHz impedance loop
-(:mod:`tergodic_cli.backends.impedance`), at ``arm.stream_hz``: the line target becomes a
-Cartesian impedance reference, its force a spring offset trimmed by a slow integrator on the
-measured force (:class:`~tergodic_cli.backends.impedance.ForceLoop`). Free-space moves are the
-SDK's planned joint move to the picture pose and a Cartesian min-jerk in impedance to the hover pose.
-
-Contact on hardware is what the F/T sensor says: the force along the tool axis at or above the
-contact threshold; the contact point is then the TCP (the sponge tip). Ctrl-C during a run is a
-fault like any other: the tool retreats, the controller stops, and the summary carries the reason.
-
-Timing comes from ``pace(dt)``, called once per period: real time by default (sleep to the
-period's end); a simulated world's ``advance`` in tests.
+One control period streams one impedance *reference* to the SDK's 1 kHz loop, at ``arm.stream_hz``
+(:mod:`tergodic_cli.backends.impedance`): the line target, its force a spring offset trimmed by a
+slow integrator on the measured force. Free-space moves: the SDK's planned joint move to the picture
+pose, then a Cartesian min-jerk in impedance to the hover pose. Contact is what the F/T sensor says
+(the axial force at or above the threshold; the contact point is the TCP). ``pace(dt)`` times each
+period: real time by default (sleep to the period's end), a simulated world's ``advance`` in tests.
 """
 
 from __future__ import annotations
@@ -20,6 +14,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
+from types import SimpleNamespace
 from typing import Callable
 
 import numpy as np
@@ -29,14 +24,12 @@ from tergodic_cli.backends.impedance import ForceLoop, LineImpedanceGains, hold_
 from tergodic_cli.errors import require
 from tergodic_cli.robot import kernels as Kn
 from tergodic_cli.robot.controller import min_jerk
-from tergodic_cli.robot.ga import matrix_to_rotvec, rotvec_to_matrix
+from tergodic_cli.robot.ga import matrix_to_rotvec, pose_matrix, rotvec_to_matrix
 from tergodic_cli.robot.interfaces import ContactWrench, LineTarget, Observation, ToolLoad
-from tergodic_cli.robot.run import SETTLE_S, ContactRun, object_pose
+from tergodic_cli.robot.run import SETTLE_S, ContactRun, _fmt, object_pose
 
 
 @dataclass
-
-
 class HardwareRunConfig(Config):
     """Settings of a run on hardware that the simulation does not have.
 
@@ -87,10 +80,8 @@ class StreamedArm:
         self._alpha = 1.0 - math.exp(-2.0 * math.pi * self.hw.force_filter_hz * self.dt)
         self.force_loop = ForceLoop(self.hw.gains, float(robot_cfg.force))
         self.spin_ref = np.array([1.0, 0.0, 0.0])
-        self.ts = None
         self.threshold = float(robot_cfg.contact_threshold)
-        self._obs = None
-        self._mode = None
+        self.ts = self._obs = self._mode = None
         self._axial = 0.0
 
     @property
@@ -109,7 +100,7 @@ class StreamedArm:
             self._obs = Observation(st, None, np.zeros(6))
             return self._obs
         rd = self.sensor.read()
-        w = self.contact_wrench(rd.wrench, st.rot)
+        w = self.contact_wrench(rd.wrench, st.ee_pose)
         if getattr(rd, "valid", True) and self.ts is not None:
             Kn.tick_stats(st.ee_pose, w, self.ts)
         if math.isfinite(float(w[2])):
@@ -166,9 +157,8 @@ class StreamedArm:
         p0, p1 = T0[:3, 3], T[:3, 3]
         for i in range(int(math.ceil(duration / self.dt)) + int(round(SETTLE_S / self.dt))):
             s, ds = min_jerk(np.zeros(1), np.ones(1), duration, (i + 1) * self.dt)
-            pose = np.eye(4)
-            pose[:3, :3] = rotvec_to_matrix(phi * float(s[0])) @ T0[:3, :3]
-            pose[:3, 3] = p0 + (p1 - p0) * float(s[0])
+            s = float(s[0])
+            pose = pose_matrix(rotvec_to_matrix(phi * s) @ T0[:3, :3], p0 + (p1 - p0) * s)
             fault = check(self.get_observation())
             if fault is not None:
                 return fault
@@ -215,11 +205,7 @@ class StreamedArm:
         return {"stream_hz": 1.0 / self.dt, "hardware_config": self.hw.to_dict()}
 
     def disconnect(self) -> None:
-        try:
-            self.dev.disconnect()
-        finally:
-            if hasattr(self.sensor, "disconnect"):
-                self.sensor.disconnect()
+        _disconnect(self.dev, self.sensor)
 
 
 def explore_with_hardware(capture, explorer, robot_cfg, steps: int, arm, sensor, on_step=None, on_event=None,
@@ -241,11 +227,15 @@ def explore_with_hardware(capture, explorer, robot_cfg, steps: int, arm, sensor,
             return run.run(steps, on_step)
     finally:
         if driver is None:
-            try:
-                arm.disconnect()
-            finally:
-                if hasattr(sensor, "disconnect"):
-                    sensor.disconnect()
+            _disconnect(arm, sensor)
+
+
+def _disconnect(arm, sensor) -> None:
+    try:
+        arm.disconnect()
+    finally:
+        if hasattr(sensor, "disconnect"):
+            sensor.disconnect()
 
 
 def dry_run(arm, sensor, camera, plan) -> str:
@@ -259,8 +249,7 @@ def dry_run(arm, sensor, camera, plan) -> str:
     Returns the report (several lines). Devices connected here are disconnected again; no
     command, move or reference is ever sent.
     """
-    lines = []
-    opened = []
+    lines, opened = [], []
     try:
         arm.connect()
         opened.append(arm)
@@ -326,8 +315,6 @@ def dry_run(arm, sensor, camera, plan) -> str:
 
 
 @dataclass
-
-
 class DryRunPlan:
     """What :func:`dry_run` plans against.
 
@@ -370,12 +357,4 @@ class _StartAgent:
         n = oriented_normals(pts, resolve_side(robot_cfg.normal_side, getattr(capture, "meta", {}) or {}))[i]
         self.positions = pts[i][None, :]
         self.normals = n[None, :]
-
-        class _Cfg:
-            dt = robot_cfg.explore_dt
-
-        self.cfg = _Cfg()
-
-
-def _fmt(x) -> str:
-    return "(" + ", ".join(f"{float(v):.3f}" for v in np.ravel(x)) + ")"
+        self.cfg = SimpleNamespace(dt=robot_cfg.explore_dt)

@@ -1,59 +1,37 @@
 """The line-tracking impedance controller with a wrench PID (paper eqs. 34-47), and a joint impedance.
 
-One control step, all in the end-effector (TCP) frame, matrix form of the CGA products:
+One control step, all in the end-effector (TCP) frame, matrix form of the CGA products
+(docs/robot.md, "The controller"): the target line L_a⊥ moved into the ee frame by M̃; the motor
+M_{L_ee L_a⊥} (eq. 36) and its logarithm V_L = (t, φ) (eq. 37,
+:func:`~tergodic_cli.robot.ga.line_motor_z`); τ = J^eeᵀ (K_L V_L - D_V V_ee + W_C) (eq. 47) with
+the wrench PID W_C on W_d - W'_m (eqs. 40-41), using J^eeᵀ W^ee = Jᵀ (R W^ee) instead of forming
+J^ee (eq. 45).
 
-1. L_ee is the ee z-axis (eq. 35); the target L_a⊥ (point a, unit direction d pointing into
-   the surface) is moved into the ee frame by M̃ (the reverse motor);
-2. M_{L_ee L_a⊥} (eq. 36) and its logarithm, the twist V_L = (t, φ) (eq. 37), by
-   :func:`~tergodic_cli.robot.ga.line_motor_z`;
-3. V_L becomes the wrench W_L = K_L V_L (eq. 38, see "the twist-to-wrench map" below);
-4. the wrench PID W_C on W_d - W'_m (eqs. 40-41), W'_m the measured wrench in the ee frame
-   (eq. 39), acting on the force along the line only (see below);
-5. damping W_V = D_V V_ee on the ee twist V_ee = J^ee q̇ (eq. 46);
-6. τ = J^eeᵀ (K_L V_L - D_V V_ee + W_C) (eq. 47; the CGA inner product's minus sign, B·W = -τ,
-   is already folded into the matrix form). J^ee = M̃ J M (eq. 45) is never formed: we use
-   J^eeᵀ W^ee = Jᵀ (R W^ee), one 6×7 product fewer.
-
-Two choices the paper leaves open, made here:
-
-- *The twist-to-wrench map.* Eq. 38 multiplies by the conjugate pseudoscalar I_c "as a scalar
-  inertia". In gafro's blade conventions V·I_c puts the rotational part of a twist on force
-  blades (e12 -> e03) and the translational part on moment blades, which would turn a tilt
-  error into a push. We implement the stated intent, an identity inertia: the translational
-  error becomes a force, the rotational error a moment, K_L and D_V diagonal in (t, φ) and
-  (v, ω). The paper's K_L = diag(30, 30, 30, 750, 750, 300) is in gafro's twist order
-  (e12, e13, e23, e1∞, e2∞, e3∞), i.e. 30 N m/rad on rotations and 750, 750, 300 N/m on x, y, z.
-- *Which wrench components the PID acts on.* Eqs. 40-41 put it on the full wrench, W_d =
-  (0, 0, F_d, 0, 0, 0) with zero desired torque (``pid_wrench``, the paper's gains). Across
-  the line it fights the line stiffness through the friction force: an integral there winds up
-  against the motion until the tool sticks (the paper's gains on the plate: 3 mm behind the agent,
-  no coverage), so the integral acts on the axial force only, P and D on all six; the tuned gains
-  keep the whole PID on the force along the ee z-axis. Its derivative
-  differentiates a wrench filtered once more (``derivative_filter_hz``): the paper's K_d = 0.5 s
-  on the contact's 1 kHz jitter pushed 25 N at the first touch.
-
-Additions needed in simulation (not in the paper), each small and documented in docs/robot.md:
-the rotation about the tool axis is left free by a line, so a weak spring holds the ee x-axis
-near a reference; a weak posture spring in the Jacobian's null space keeps the redundant
-elbow away from its limits; the measured force is low-pass filtered before the PID.
+Two choices the paper leaves open (docs/robot.md): eq. 38's I_c is read as its stated intent, an
+identity inertia (translation error -> force, rotation error -> moment; used literally in gafro's
+blades a tilt would push along the axis); the PID's integral acts on the axial force only (across
+the line it winds up against the friction until the tool sticks), and its derivative sees the
+wrench filtered once more (``derivative_filter_hz``: the paper's K_d on the 1 kHz contact jitter
+pushed 25 N at the first touch). Simulation adds a weak spin spring (a line leaves the rotation
+about the tool axis free), a null-space posture spring and a low-pass filter on the measured force.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
-
+from tergodic_cli.config import Config
 
 #: Radians before a joint limit where the null-space repulsion starts.
 LIMIT_ZONE = 0.3
 
 
 @dataclass
-class ControllerGains:
+class ControllerGains(Config):
     """Gains of eq. 47 and the wrench PID (eq. 40), SI units; see :data:`PAPER_GAINS`.
 
     k_trans, k_rot : K_L on the translational (N/m) and rotational (N m/rad) error, ee axes x, y, z.
@@ -92,9 +70,6 @@ class ControllerGains:
     pid_wrench: bool = False
     derivative_filter_hz: float = 0.0
 
-    def to_dict(self) -> dict:
-        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
-
 
 #: The paper's gains (V-A3), for comparison runs.
 PAPER_GAINS = ControllerGains(k_trans=(750.0, 750.0, 300.0), k_rot=(30.0, 30.0, 30.0), d_trans=(150.0, 150.0, 50.0),
@@ -130,7 +105,7 @@ class LineForceController:
     q_limits : (q_min, q_max) joint limits for the null-space limit repulsion (default: the Panda's).
 
     The arithmetic is :func:`tergodic_cli.robot.kernels.line_force_step` (compiled); this class
-    holds its parameters and state (``prm``, ``state``, the null-space terms).
+    holds its packed parameters ``kpk`` and state ``mut`` (PID, null-space terms).
     """
 
     def __init__(self, gains: ControllerGains, dt: float, q_rest: np.ndarray, x_ref: np.ndarray, q_limits=None):
@@ -142,16 +117,16 @@ class LineForceController:
         self.dt = float(dt)
         self.K = tuple(float(k) for k in gains.k_trans + gains.k_rot)
         self.D = tuple(float(k) for k in gains.d_trans + gains.d_rot)
-        self.alpha = 1.0 - math.exp(-2.0 * math.pi * gains.force_filter_hz * self.dt) if gains.force_filter_hz > 0 else 1.0
         q_min, q_max = (Q_MIN, Q_MAX) if q_limits is None else (q_limits[0], q_limits[1])
-        prm = np.zeros(Kn.N_CP)
-        prm[Kn.CP_KP], prm[Kn.CP_KI], prm[Kn.CP_KD] = gains.kp, gains.ki, gains.kd
-        prm[Kn.CP_ALPHA], prm[Kn.CP_IMAX], prm[Kn.CP_SPIN] = self.alpha, gains.integral_max, gains.spin_stiffness
-        prm[Kn.CP_NS_K], prm[Kn.CP_NS_D], prm[Kn.CP_LIM_K] = gains.nullspace_stiffness, gains.nullspace_damping, gains.limit_stiffness
-        prm[Kn.CP_DT], prm[Kn.CP_LIMIT_ZONE] = self.dt, LIMIT_ZONE
-        prm[Kn.CP_VGUARD], prm[Kn.CP_DGUARD] = gains.guard_speed, gains.guard_damping
-        prm[Kn.CP_WRENCH] = 1.0 if gains.pid_wrench else 0.0
-        prm[Kn.CP_DALPHA] = 1.0 - math.exp(-2.0 * math.pi * gains.derivative_filter_hz * self.dt) if gains.derivative_filter_hz > 0 else 1.0
+
+        def lowpass(hz: float) -> float:  # the first-order filter's gain per step
+            return 1.0 - math.exp(-2.0 * math.pi * hz * self.dt) if hz > 0 else 1.0
+
+        g = gains
+        prm = np.array([g.kp, g.ki, g.kd, lowpass(g.force_filter_hz), g.integral_max,  # CP_* order
+                        g.spin_stiffness, g.nullspace_stiffness, g.nullspace_damping,
+                        g.limit_stiffness, self.dt, LIMIT_ZONE, g.guard_speed, g.guard_damping,
+                        1.0 if g.pid_wrench else 0.0, lowpass(g.derivative_filter_hz)])
         #: Packed constants (kernels.KPK_*) and mutable state (kernels.MUT_*) of the compiled step.
         self.kpk = np.concatenate([self.K, self.D, prm, np.asarray(x_ref, dtype=float), np.asarray(q_rest, dtype=float),
                                    np.asarray(q_min, dtype=float), np.asarray(q_max, dtype=float)])
@@ -159,25 +134,8 @@ class LineForceController:
         self.mut = np.zeros(Kn.N_MUT)
         self._vref = np.zeros(3)
         self._modes = Kn.MODES
-        self._step = Kn.line_force_step_packed
+        self._step = Kn.line_force_step
         self.reset()
-
-    # Views into the packed arrays, by name.
-    @property
-    def prm(self) -> np.ndarray:
-        return self.kpk[self._Kn.KPK_PRM:self._Kn.KPK_PRM + self._Kn.N_CP]
-
-    @property
-    def q_rest(self) -> np.ndarray:
-        return self.kpk[self._Kn.KPK_QREST:self._Kn.KPK_QREST + 7]
-
-    @property
-    def q_min(self) -> np.ndarray:
-        return self.kpk[self._Kn.KPK_QMIN:self._Kn.KPK_QMIN + 7]
-
-    @property
-    def q_max(self) -> np.ndarray:
-        return self.kpk[self._Kn.KPK_QMAX:self._Kn.KPK_QMAX + 7]
 
     @property
     def x_ref(self) -> np.ndarray:
@@ -186,19 +144,6 @@ class LineForceController:
     @x_ref.setter
     def x_ref(self, v) -> None:
         self.kpk[self._Kn.KPK_XREF:self._Kn.KPK_XREF + 3] = np.asarray(v, dtype=float)
-
-    @property
-    def state(self) -> np.ndarray:
-        """(N_CS,) PID state: filtered wrench (6), previous error (6), has-previous flag, integral (6), step count."""
-        return self.mut[:self._Kn.N_CS]
-
-    @property
-    def tau_spring(self) -> np.ndarray:
-        return self.mut[self._Kn.MUT_SPRING:self._Kn.MUT_SPRING + 7]
-
-    @property
-    def n_damp(self) -> np.ndarray:
-        return self.mut[self._Kn.MUT_DAMP:].reshape(7, 7)
 
     @property
     def f_filt(self) -> float:
@@ -258,21 +203,12 @@ def _f64(x) -> np.ndarray:
     return x if isinstance(x, np.ndarray) and x.dtype == np.float64 and x.flags.c_contiguous else np.ascontiguousarray(x, dtype=float)
 
 
-@dataclass
-class JointGains:
-    """Joint impedance gains (N m/rad, N m s/rad) for moves between poses and for holding."""
-
-    stiffness: tuple = (600.0, 600.0, 600.0, 600.0, 250.0, 150.0, 50.0)
-    damping: tuple = (50.0, 50.0, 50.0, 50.0, 20.0, 15.0, 6.0)
-
-
 class JointImpedance:
-    """τ = K (q_d - q) + D (q̇_d - q̇): the paper's "simple joint impedance controller" (V-A3)."""
+    """τ = K (q_d - q) + D (q̇_d - q̇): the paper's "simple joint impedance controller" (V-A3), for
+    moves between poses and for holding."""
 
-    def __init__(self, gains: JointGains | None = None):
-        g = gains or JointGains()
-        self.K = np.array(g.stiffness, dtype=float)
-        self.D = np.array(g.damping, dtype=float)
+    K = np.array([600.0, 600.0, 600.0, 600.0, 250.0, 150.0, 50.0])  # N m/rad
+    D = np.array([50.0, 50.0, 50.0, 50.0, 20.0, 15.0, 6.0])  # N m s/rad
 
     def __call__(self, q: np.ndarray, dq: np.ndarray, q_d: np.ndarray, dq_d: np.ndarray | None = None) -> np.ndarray:
         dq_d = np.zeros_like(q) if dq_d is None else dq_d

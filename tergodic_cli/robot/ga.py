@@ -1,11 +1,11 @@
 """Conformal geometric algebra of the line-tracking controller (paper eqs. 13-17, 35-47), in matrix form.
 
-The paper writes the controller with CGA motors, lines, twists and wrenches. At 1 kHz in
-Python, one pygafro call costs 2-25 µs, so the control loop evaluates the same products in
-their matrix form, as the paper itself notes (V-A3): a motor is a rigid transform (R, t), a
-line is a Plücker pair (d, m), twists and wrenches are 6-vectors transformed by 6×6
-adjoints. The functions ``*_to_gafro`` / ``*_from_gafro`` map each quantity to pygafro's
-coefficient vectors, and the tests check every matrix product against pygafro.
+The paper writes the controller with CGA motors, lines, twists and wrenches. pygafro's line motor
+costs 9 µs a call and its Jacobian 57 µs, and numba cannot call it (docs/robot.md, "Why matrix
+form"), so the 1 kHz loop evaluates the same products in their matrix form, as the paper itself
+notes (V-A3): a motor is a rigid transform (R, t), a line is a Plücker pair (d, m), twists and
+wrenches are 6-vectors transformed by 6×6 adjoints. tests/test_robot_ga.py maps each quantity to
+pygafro's coefficient vectors (their blade orders are written there) and checks every product.
 
 Conventions (all SI, right-handed)
 ----------------------------------
@@ -18,11 +18,6 @@ Conventions (all SI, right-handed)
   ``pygafro.MotorLogarithm`` returns; it is not the screw logarithm).
 - line    L ≅ (d, m): unit direction d and moment m = a × d for any point a on the line;
   L = P1 ∧ P2 ∧ e∞ is oriented from P1 to P2.
-
-pygafro coefficient orders (checked in tests/test_robot_ga.py):
-- Twist / MotorGenerator blades [e12, e13, e23, e1∞, e2∞, e3∞] = [ωz, -ωy, ωx, vx, vy, vz];
-- Wrench blades [e01, e02, e12, e03, e13, e23] = [fx, fy, mz, fz, -my, mx];
-- Line blades [e01∞, e02∞, e12∞, e03∞, e13∞, e23∞] = [dx, dy, mz, dz, -my, mx].
 """
 
 from __future__ import annotations
@@ -89,56 +84,13 @@ def motor_inverse(T: np.ndarray) -> np.ndarray:
     return pose_matrix(R.T, -R.T @ t)
 
 
-def motor_log(T: np.ndarray) -> np.ndarray:
-    """gafro's motor logarithm in the decoupled chart: (t, φ) as a twist (6,) = (v, ω)."""
-    return np.concatenate([T[:3, 3], matrix_to_rotvec(T[:3, :3])])
-
-
-def motor_exp(V: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`motor_log`: the (4, 4) transform T(v) R(ω) of the twist (6,) = (v, ω)."""
-    V = np.asarray(V, dtype=float)
-    return pose_matrix(rotvec_to_matrix(V[3:]), V[:3])
-
-
 def adjoint(T: np.ndarray) -> np.ndarray:
     """6×6 adjoint of the motor T acting on twists (v, ω): the matrix of M V M̃."""
     R, t = T[:3, :3], T[:3, 3]
-    A = np.zeros((6, 6))
-    A[:3, :3] = R
-    A[:3, 3:] = skew(t) @ R
-    A[3:, 3:] = R
-    return A
-
-
-def coadjoint(T: np.ndarray) -> np.ndarray:
-    """6×6 matrix of M W M̃ on wrenches (f, m): f' = R f, m' = R m + t × R f.
-
-    In CGA twists and wrenches are both transformed by the sandwich M X M̃ (eq. 13, no dual
-    adjoint needed); in matrix form the two sandwiches are these two 6×6 matrices.
-    """
-    R, t = T[:3, :3], T[:3, 3]
-    A = np.zeros((6, 6))
-    A[:3, :3] = R
-    A[3:, :3] = skew(t) @ R
-    A[3:, 3:] = R
-    return A
+    return np.block([[R, skew(t) @ R], [np.zeros((3, 3)), R]])
 
 
 # ---------------------------------------------------------------------------------- lines
-
-
-def line_from_point_dir(a: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Plücker pair (d, m) of the line through ``a`` with direction ``d`` (normalised)."""
-    d = np.asarray(d, dtype=float)
-    d = d / np.linalg.norm(d)
-    return d, np.cross(np.asarray(a, dtype=float), d)
-
-
-def line_transform(T: np.ndarray, d: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The line (d, m) moved by the motor T (M L M̃): d' = R d, m' = R m + t × R d."""
-    R, t = T[:3, :3], T[:3, 3]
-    d2 = R @ d
-    return d2, R @ m + np.cross(t, d2)
 
 
 def tool_rotation(d: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
@@ -179,31 +131,28 @@ def point_line_distance(x: np.ndarray, a: np.ndarray, d: np.ndarray) -> float:
 PARALLEL_SIN = 1e-9
 
 
-def line_motor_z(a: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def line_motor_z(ax: float, ay: float, az: float, dx: float, dy: float, dz: float) -> tuple:
     """The motor M_{L_ee L_a⊥} (eq. 36) in the end-effector frame, where L_ee is the z-axis.
 
     It is the smallest screw taking the z-axis onto the line through ``a`` with unit direction
     ``d`` (both in the ee frame): a rotation by the angle between the directions about their
     common perpendicular, and a slide along it by the lines' distance, as (1 + L_a L_ee)/C
-    of ref. [54] (checked against ``pygafro.Line.getMotor`` in the tests).
+    of ref. [54] (checked against ``pygafro.Line.getMotor`` in the tests). Plain floats in and
+    out: the 1 kHz loop compiles it (``kernels.line_motor_z``).
 
     Parameters
     ----------
-    a : (3,) a point on the target line, metres, ee frame.
-    d : (3,) its unit direction, ee frame.
+    ax, ay, az : float
+        A point on the target line, metres, ee frame.
+    dx, dy, dz : float
+        Its unit direction, ee frame.
 
     Returns
     -------
-    (t, phi) : the motor in gafro's decoupled chart, t (3,) metres and the rotation vector
-        phi (3,) radians; ``motor_log`` of it is the twist (t, phi) of eq. 37.
+    (tx, ty, tz, φx, φy, φz) : tuple of float
+        The motor in gafro's decoupled chart, t metres and the rotation vector φ radians; its
+        logarithm is the twist (t, φ) of eq. 37.
     """
-    tx, ty, tz, px, py, pz = line_motor_z_scalar(float(a[0]), float(a[1]), float(a[2]),
-                                                 float(d[0]), float(d[1]), float(d[2]))
-    return np.array((tx, ty, tz)), np.array((px, py, pz))
-
-
-def line_motor_z_scalar(ax: float, ay: float, az: float, dx: float, dy: float, dz: float) -> tuple:
-    """:func:`line_motor_z` on plain floats, returning (tx, ty, tz, φx, φy, φz): the 1 kHz form."""
     # c = e_z × d; sθ = |c|, cθ = e_z · d.
     cx, cy = -dy, dx
     s = math.sqrt(cx * cx + cy * cy)
@@ -227,61 +176,7 @@ def line_motor_z_scalar(ax: float, ay: float, az: float, dx: float, dy: float, d
     return (-sigma * dx + delta * ux, -sigma * dy + delta * uy, sigma - sigma * dz, theta * ux, theta * uy, 0.0)
 
 
-# ---------------------------------------------------------------------------------- pygafro bridges
-# Used by the tests and by setup code (inverse kinematics); never in the 1 kHz loop.
-
-
-def twist_to_gafro(V: np.ndarray) -> np.ndarray:
-    """(v, ω) -> pygafro Twist coefficients [e12, e13, e23, e1∞, e2∞, e3∞]."""
-    v, w = V[:3], V[3:]
-    return np.array([w[2], -w[1], w[0], v[0], v[1], v[2]])
-
-
+# ---------------------------------------------------------------------------------- pygafro
 def twist_from_gafro(c: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`twist_to_gafro`."""
+    """(v, ω) of pygafro Twist coefficients [e12, e13, e23, e1∞, e2∞, e3∞] (set-up code only)."""
     return np.array([c[3], c[4], c[5], c[2], -c[1], c[0]])
-
-
-def wrench_to_gafro(W: np.ndarray) -> np.ndarray:
-    """(f, m) -> pygafro Wrench coefficients [e01, e02, e12, e03, e13, e23]."""
-    f, m = W[:3], W[3:]
-    return np.array([f[0], f[1], m[2], f[2], -m[1], m[0]])
-
-
-def wrench_from_gafro(c: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`wrench_to_gafro`."""
-    return np.array([c[0], c[1], c[3], c[5], -c[4], c[2]])
-
-
-def line_to_gafro(d: np.ndarray, m: np.ndarray) -> np.ndarray:
-    """Plücker (d, m) -> pygafro Line coefficients [e01∞, e02∞, e12∞, e03∞, e13∞, e23∞]."""
-    return np.array([d[0], d[1], m[2], d[2], -m[1], m[0]])
-
-
-def line_from_gafro(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse of :func:`line_to_gafro`, normalised to |d| = 1."""
-    d = np.array([c[0], c[1], c[3]])
-    m = np.array([c[5], -c[4], c[2]])
-    n = float(np.linalg.norm(d))
-    return d / n, m / n
-
-
-def gafro_motor(T: np.ndarray):
-    """The pygafro Motor of the (4, 4) transform T (via its decoupled logarithm)."""
-    import pygafro
-
-    return pygafro.Motor(pygafro.MotorGenerator(twist_to_gafro(motor_log(T))))
-
-
-def gafro_motor_matrix(M) -> np.ndarray:
-    """The (4, 4) transform of a pygafro Motor."""
-    return np.asarray(M.toTransformationMatrix(), dtype=float)
-
-
-def gafro_line(a: np.ndarray, d: np.ndarray):
-    """The pygafro Line P(a) ∧ P(a + d) ∧ e∞ (oriented along d)."""
-    import pygafro
-
-    a = np.asarray(a, dtype=float)
-    b = a + np.asarray(d, dtype=float)
-    return pygafro.Line(pygafro.Point(*a), pygafro.Point(*b))

@@ -1,9 +1,9 @@
 """The backends' interfaces: an :class:`Arm` driven by line targets, and a :class:`WrenchSensor`.
 
-Small Protocols in the style of lerobot's ``robots/robot.py``: a backend connects, is read,
-is commanded, disconnects. The state machine and the safety guard speak only these, so a real
-Franka (franky) with a real F/T sensor (Bota, Net F/T) replaces the PyBullet backend without
-touching them.
+In the style of lerobot's ``robots/robot.py`` (the arm a Protocol, the sensor a base class): a
+backend connects, is read, is commanded, disconnects. The state machine and the safety guard speak
+only these, so a real Franka (franky) with a real F/T sensor (Bota, Net F/T) replaces the PyBullet
+backend without touching them.
 
 Conventions every backend honours
 ---------------------------------
@@ -39,36 +39,20 @@ class ArmState:
     ee_pose : (4, 4) pose of the TCP in the base frame (the motor M(q) of eq. 14 with the tool).
     jacobian : (6, dof) geometric Jacobian of the TCP in the base frame, rows (v, ω):
         v the TCP velocity, ω the angular velocity (libfranka's "zero Jacobian").
-    rot, pos : the same pose as 9 row-major floats and 3 floats, for scalar code at 1 kHz.
-
-    A backend gives either ``ee_pose`` or ``rot`` and ``pos``; the other form is made on first use.
+    pos : the TCP position as 3 floats (m), made on first use, for scalar code at 1 kHz.
     """
 
-    __slots__ = ("t", "q", "dq", "jacobian", "_T", "_rot", "_pos")
+    __slots__ = ("t", "q", "dq", "ee_pose", "jacobian", "_pos")
 
-    def __init__(self, t: float, q: np.ndarray, dq: np.ndarray, ee_pose: np.ndarray | None = None,
-                 jacobian: np.ndarray | None = None, rot: tuple | None = None, pos: tuple | None = None):
-        self.t, self.q, self.dq, self.jacobian = t, q, dq, jacobian
-        self._T, self._rot, self._pos = ee_pose, rot, pos
-
-    @property
-    def ee_pose(self) -> np.ndarray:
-        if self._T is None:
-            r, x = self._rot, self._pos
-            self._T = np.array(((r[0], r[1], r[2], x[0]), (r[3], r[4], r[5], x[1]), (r[6], r[7], r[8], x[2]),
-                                (0.0, 0.0, 0.0, 1.0)))
-        return self._T
-
-    @property
-    def rot(self) -> tuple:
-        if self._rot is None:
-            self._rot = tuple(self._T[:3, :3].ravel().tolist())
-        return self._rot
+    def __init__(self, t: float, q: np.ndarray, dq: np.ndarray, ee_pose: np.ndarray,
+                 jacobian: np.ndarray | None = None):
+        self.t, self.q, self.dq, self.ee_pose, self.jacobian = t, q, dq, ee_pose, jacobian
+        self._pos = None
 
     @property
     def pos(self) -> tuple:
         if self._pos is None:
-            self._pos = tuple(self._T[:3, 3].tolist())
+            self._pos = tuple(self.ee_pose[:3, 3].tolist())
         return self._pos
 
 
@@ -289,24 +273,48 @@ class Arm(Protocol):
         """Close the connection; the arm is left holding still."""
 
 
-@runtime_checkable
-class WrenchSensor(Protocol):
-    """A 6-axis force/torque sensor."""
+class WrenchSensor:
+    """A 6-axis force/torque sensor (the sign of its reading: see the module docstring).
+
+    The base of every backend's sensor, in the style of lerobot's base classes. A backend gives
+    ``frame_in_ee`` and overrides :meth:`read` and :meth:`tare`, or gives ``_sample() -> (t s,
+    (6,) wrench)`` and is tared in software here: :meth:`tare` averages ``tare_samples`` samples
+    into the offset :meth:`read` removes; ``bad_tare`` (problem, fix) refuses a tare over a
+    non-finite sample (None: not checked).
+    """
 
     #: (4, 4) pose of the sensor frame in the ee (TCP) frame.
     frame_in_ee: np.ndarray
+    bad_tare: tuple[str, str] | None = None
+
+    def __init__(self, frame_in_ee: np.ndarray | None = None, tare_samples: int = 50):
+        from tergodic_cli.errors import require
+
+        self.frame_in_ee = np.asarray(np.eye(4) if frame_in_ee is None else frame_in_ee, float)
+        require(self.frame_in_ee.shape == (4, 4), "frame_in_ee must be a (4, 4) transform",
+                "give the sensor pose in the TCP frame")
+        self.offset = np.zeros(6)
+        self.tare_samples = int(tare_samples)
 
     def read(self) -> WrenchReading:
-        """The latest sample, tare offset removed (see the module docstring for the sign).
+        """The latest sample, tare offset removed.
 
         Returns
         -------
         WrenchReading
-            Force (N) and torque (N m) in the sensor frame, with its timestamp.
+            Force (N) and torque (N m) in the sensor frame, with its timestamp (s).
         """
+        t, w = self._sample()
+        return WrenchReading(t, w - self.offset)
 
     def tare(self) -> None:
-        """Zero the reading: subtract the present wrench from every later sample."""
+        """Zero the reading (tool at rest, free): the wrench now is taken off every later one."""
+        ws = np.array([self._sample()[1] for _ in range(self.tare_samples)])
+        if self.bad_tare is not None and not np.all(np.isfinite(ws)):
+            from tergodic_cli.errors import TergodicError
+
+            raise TergodicError(*self.bad_tare)
+        self.offset = ws.mean(axis=0)
 
 
 @dataclass
@@ -318,22 +326,6 @@ class ToolLoad:
     mass: float
     com: np.ndarray
     inertia: np.ndarray | None = None
-
-    def wrench(self, R_base_sensor: np.ndarray) -> np.ndarray:
-        """The wrench the arm must apply to hold the tool still against gravity.
-
-        Parameters
-        ----------
-        R_base_sensor : (3, 3) float
-            The sensor frame's rotation in the base frame.
-
-        Returns
-        -------
-        (6,) float
-            Force (N) and torque (N m), sensor frame.
-        """
-        f = R_base_sensor[2, :] * (self.mass * GRAVITY)  # Rᵀ (0, 0, m g)
-        return np.concatenate([f, np.cross(self.com, f)])
 
 
 class ContactWrench:
@@ -352,30 +344,18 @@ class ContactWrench:
     """
 
     def __init__(self, load: ToolLoad, frame_in_ee: np.ndarray, inertial: bool = False):
-        from tergodic_cli.robot.kernels import contact_wrench
+        from tergodic_cli.robot import kernels  # lazily: numba is not loaded at CLI start-up
 
+        self._kn = kernels
         self.load = load
         self.R_se_m = np.ascontiguousarray(np.asarray(frame_in_ee, dtype=float)[:3, :3])  # sensor -> ee
         self.p_se_v = np.ascontiguousarray(np.asarray(frame_in_ee, dtype=float)[:3, 3])  # sensor origin in the ee frame
-        self.R_se = tuple(self.R_se_m.ravel().tolist())
-        self.p_se = tuple(self.p_se_v.tolist())
         self.mg = float(load.mass * GRAVITY)
         self.com = np.ascontiguousarray(load.com, dtype=float)
         self.tare_load = np.zeros(6)
-        self._kernel = contact_wrench
         self.inertial = bool(inertial)
         self.inertia = np.ascontiguousarray(load.inertia if load.inertia is not None else np.zeros(3), dtype=float)
-        from tergodic_cli.robot.kernels import N_DY
-
-        self.dyn = np.zeros(N_DY)  # the last sample's velocities (kernels.inertial_wrench)
-
-    def _load(self, R_base_ee: np.ndarray) -> np.ndarray:
-        """The tool load (6,) in the sensor frame at this orientation (the reading of a free, still tool, untared)."""
-        from tergodic_cli.robot.kernels import tool_load
-
-        out = np.empty(6)
-        tool_load(np.asarray(R_base_ee, dtype=float), self.R_se_m, self.mg, self.com, out)
-        return out
+        self.dyn = np.zeros(kernels.N_DY)  # the last sample's velocities (kernels.inertial_wrench)
 
     def tare_at(self, R_base_ee: np.ndarray) -> None:
         """Record the tool's orientation at the tare; call right after :meth:`WrenchSensor.tare`, tool at rest and free.
@@ -385,7 +365,8 @@ class ContactWrench:
         R_base_ee : (3, 3) float
             The end effector's rotation in the base frame.
         """
-        self.tare_load = self._load(np.asarray(R_base_ee, dtype=float).reshape(3, 3))
+        R = np.asarray(R_base_ee, dtype=float).reshape(3, 3)
+        self._kn.tool_load(R, self.R_se_m, self.mg, self.com, self.tare_load)
 
     def __call__(self, reading, R_base_ee, state=None) -> np.ndarray:
         """(6,) wrench (f, m) the tool applies to the environment, ee frame, moment about the TCP.
@@ -398,12 +379,12 @@ class ContactWrench:
         out = np.empty(6)
         r = np.asarray(reading, dtype=float)
         if self.inertial and state is not None:
-            from tergodic_cli.robot.kernels import contact_wrench_dyn
-
-            T = state.ee_pose
-            contact_wrench_dyn(r, float(state.t), T, np.ascontiguousarray(state.jacobian, dtype=float),
-                               np.ascontiguousarray(state.dq, dtype=float), self.R_se_m, self.p_se_v, self.mg, self.com,
-                               self.tare_load, float(self.load.mass), self.inertia, self.dyn, out)
-            return out
-        self._kernel(r, R, self.R_se_m, self.p_se_v, self.mg, self.com, self.tare_load, out)
+            J = np.ascontiguousarray(state.jacobian, dtype=float)
+            dq = np.ascontiguousarray(state.dq, dtype=float)
+            self._kn.contact_wrench_dyn(r, float(state.t), state.ee_pose, J, dq, self.R_se_m,
+                                        self.p_se_v, self.mg, self.com, self.tare_load,
+                                        float(self.load.mass), self.inertia, self.dyn, out)
+        else:
+            self._kn.contact_wrench(r, R, self.R_se_m, self.p_se_v, self.mg, self.com,
+                                    self.tare_load, out)
         return out

@@ -1,10 +1,9 @@
 """Compiled (numba) kernels of the 1 kHz robot loop: forward kinematics and Jacobian, the contact
 wrench, the line-force controller and the safety limits.
 
-Each kernel is the only implementation of its math: :class:`~tergodic_cli.robot.controller.LineForceController`,
-:class:`~tergodic_cli.robot.interfaces.ContactWrench` and :class:`~tergodic_cli.robot.safety.SafetyGuard`
-call them, and :func:`pybullet_tick` chains them for the hot loop of a PyBullet run, so one numba call
-replaces ~400 Python-level float operations per control step (docs/robot.md, "Timing").
+Each kernel is the only implementation of its math (the controller, the contact wrench and the
+safety guard call them); :func:`pybullet_tick` chains them into one call per tick of a PyBullet run
+(docs/robot.md, "Timing").
 
 Arrays are float64 and C-contiguous; small matrix products are written out (numba's ``@`` on 3×3
 goes through BLAS, slower at this size).
@@ -17,14 +16,14 @@ import math
 import numba
 import numpy as np
 
-from tergodic_cli.robot.ga import line_motor_z_scalar
+from tergodic_cli.robot import ga
 
 
 def njit(fn):
     return numba.njit(cache=True, nogil=True, fastmath=False)(fn)
 
 
-line_motor_z = njit(line_motor_z_scalar)
+line_motor_z = njit(ga.line_motor_z)
 
 # Controller modes.
 MODE_TRACK, MODE_APPROACH, MODE_RETREAT = 0, 1, 2
@@ -58,6 +57,16 @@ OK, F_JOINT_POS, F_JOINT_VEL, F_TCP_SPEED, F_WORKSPACE, F_FORCE, F_SENSOR = 0, 1
 
 # ----------------------------------------------------------------------------- kinematics
 @njit
+def _mul3(r, b):
+    """r b for two 3x3 matrices as row-major 9-tuples (kept in registers), as a 9-tuple."""
+    return (r[0] * b[0] + r[1] * b[3] + r[2] * b[6], r[0] * b[1] + r[1] * b[4] + r[2] * b[7],
+            r[0] * b[2] + r[1] * b[5] + r[2] * b[8], r[3] * b[0] + r[4] * b[3] + r[5] * b[6],
+            r[3] * b[1] + r[4] * b[4] + r[5] * b[7], r[3] * b[2] + r[4] * b[5] + r[5] * b[8],
+            r[6] * b[0] + r[7] * b[3] + r[8] * b[6], r[6] * b[1] + r[7] * b[4] + r[8] * b[7],
+            r[6] * b[2] + r[7] * b[5] + r[8] * b[8])
+
+
+@njit
 def fk_jacobian(q, F, axis, qidx, tcp_off, T, J):
     """TCP pose and geometric Jacobian of a serial chain.
 
@@ -69,47 +78,30 @@ def fk_jacobian(q, F, axis, qidx, tcp_off, T, J):
     n = J.shape[1]
     zs = np.empty((n, 3))
     ps = np.empty((n, 3))
-    r00, r01, r02, r10, r11, r12, r20, r21, r22 = 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
+    R = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
     px, py, pz = 0.0, 0.0, 0.0
     for k in range(F.shape[0]):
         f = F[k]
         # p += R f_t; R = R f_R
-        px, py, pz = (px + r00 * f[0, 3] + r01 * f[1, 3] + r02 * f[2, 3],
-                      py + r10 * f[0, 3] + r11 * f[1, 3] + r12 * f[2, 3],
-                      pz + r20 * f[0, 3] + r21 * f[1, 3] + r22 * f[2, 3])
-        a00 = r00 * f[0, 0] + r01 * f[1, 0] + r02 * f[2, 0]
-        a01 = r00 * f[0, 1] + r01 * f[1, 1] + r02 * f[2, 1]
-        a02 = r00 * f[0, 2] + r01 * f[1, 2] + r02 * f[2, 2]
-        a10 = r10 * f[0, 0] + r11 * f[1, 0] + r12 * f[2, 0]
-        a11 = r10 * f[0, 1] + r11 * f[1, 1] + r12 * f[2, 1]
-        a12 = r10 * f[0, 2] + r11 * f[1, 2] + r12 * f[2, 2]
-        a20 = r20 * f[0, 0] + r21 * f[1, 0] + r22 * f[2, 0]
-        a21 = r20 * f[0, 1] + r21 * f[1, 1] + r22 * f[2, 1]
-        a22 = r20 * f[0, 2] + r21 * f[1, 2] + r22 * f[2, 2]
-        r00, r01, r02, r10, r11, r12, r20, r21, r22 = a00, a01, a02, a10, a11, a12, a20, a21, a22
+        px, py, pz = (px + R[0] * f[0, 3] + R[1] * f[1, 3] + R[2] * f[2, 3],
+                      py + R[3] * f[0, 3] + R[4] * f[1, 3] + R[5] * f[2, 3],
+                      pz + R[6] * f[0, 3] + R[7] * f[1, 3] + R[8] * f[2, 3])
+        R = _mul3(R, (f[0, 0], f[0, 1], f[0, 2], f[1, 0], f[1, 1], f[1, 2], f[2, 0], f[2, 1],
+                      f[2, 2]))
         i = qidx[k]
         if i >= 0:
             ux, uy, uz = axis[k, 0], axis[k, 1], axis[k, 2]
             c, s = math.cos(q[i]), math.sin(q[i])
             v = 1.0 - c
             # Rodrigues: rotation by q about u (unit), in the link frame; R = R Rot
-            b00, b01, b02 = c + ux * ux * v, ux * uy * v - uz * s, ux * uz * v + uy * s
-            b10, b11, b12 = uy * ux * v + uz * s, c + uy * uy * v, uy * uz * v - ux * s
-            b20, b21, b22 = uz * ux * v - uy * s, uz * uy * v + ux * s, c + uz * uz * v
-            a00 = r00 * b00 + r01 * b10 + r02 * b20
-            a01 = r00 * b01 + r01 * b11 + r02 * b21
-            a02 = r00 * b02 + r01 * b12 + r02 * b22
-            a10 = r10 * b00 + r11 * b10 + r12 * b20
-            a11 = r10 * b01 + r11 * b11 + r12 * b21
-            a12 = r10 * b02 + r11 * b12 + r12 * b22
-            a20 = r20 * b00 + r21 * b10 + r22 * b20
-            a21 = r20 * b01 + r21 * b11 + r22 * b21
-            a22 = r20 * b02 + r21 * b12 + r22 * b22
-            r00, r01, r02, r10, r11, r12, r20, r21, r22 = a00, a01, a02, a10, a11, a12, a20, a21, a22
-            zs[i, 0] = r00 * ux + r01 * uy + r02 * uz
-            zs[i, 1] = r10 * ux + r11 * uy + r12 * uz
-            zs[i, 2] = r20 * ux + r21 * uy + r22 * uz
+            R = _mul3(R, (c + ux * ux * v, ux * uy * v - uz * s, ux * uz * v + uy * s,
+                          uy * ux * v + uz * s, c + uy * uy * v, uy * uz * v - ux * s,
+                          uz * ux * v - uy * s, uz * uy * v + ux * s, c + uz * uz * v))
+            zs[i, 0] = R[0] * ux + R[1] * uy + R[2] * uz
+            zs[i, 1] = R[3] * ux + R[4] * uy + R[5] * uz
+            zs[i, 2] = R[6] * ux + R[7] * uy + R[8] * uz
             ps[i, 0], ps[i, 1], ps[i, 2] = px, py, pz
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = R
     ox, oy, oz = tcp_off[0], tcp_off[1], tcp_off[2]
     tx = px + r00 * ox + r01 * oy + r02 * oz
     ty = py + r10 * ox + r11 * oy + r12 * oz
@@ -163,16 +155,12 @@ def contact_wrench(r, T, R_se, p_se, mg, com, tare_load, out):
     R_se (3, 3), p_se (3,): the sensor frame in the ee frame. mg : tool weight, N; com (3,) its centre
     of mass in the sensor frame; tare_load (6,): the tool load at the tare orientation. Fills ``out``.
     """
-    ld = np.empty(6)
-    tool_load(T, R_se, mg, com, ld)
-    w0 = r[0] + tare_load[0] - ld[0]
-    w1 = r[1] + tare_load[1] - ld[1]
-    w2 = r[2] + tare_load[2] - ld[2]
-    w3 = r[3] + tare_load[3] - ld[3]
-    w4 = r[4] + tare_load[4] - ld[4]
-    w5 = r[5] + tare_load[5] - ld[5]
-    g0, g1, g2 = rot(R_se, w0, w1, w2)
-    m0, m1, m2 = rot(R_se, w3, w4, w5)
+    w = np.empty(6)
+    tool_load(T, R_se, mg, com, w)
+    for k in range(6):  # the reading, the tool load at the tare put back and the load now removed
+        w[k] = r[k] + tare_load[k] - w[k]
+    g0, g1, g2 = rot(R_se, w[0], w[1], w[2])
+    m0, m1, m2 = rot(R_se, w[3], w[4], w[5])
     p0, p1, p2 = p_se[0], p_se[1], p_se[2]  # moment about the TCP: m_B = m_A + (A - B) × f
     out[0], out[1], out[2] = g0, g1, g2
     out[3] = m0 + p1 * g2 - p2 * g1
@@ -214,35 +202,25 @@ def inertial_wrench(t, T, J, dq, R_se, p_se, com, m, inertia, dyn, out):
     # The centre of mass from the TCP, base frame: R (p_se + R_se c).
     e0, e1, e2 = rot(R_se, com[0], com[1], com[2])
     c0, c1, c2 = rot(T, p_se[0] + e0, p_se[1] + e1, p_se[2] + e2)
-    vc0, vc1, vc2 = v0 + w1 * c2 - w2 * c1, v1 + w2 * c0 - w0 * c2, v2 + w0 * c1 - w1 * c0
+    # The centre of mass's velocity and the angular velocity: dyn holds them from DY_VC on (DY_W
+    # follows DY_VC), their backward differences from DY_AC on (DY_AL follows DY_AC).
+    vw = (v0 + w1 * c2 - w2 * c1, v1 + w2 * c0 - w0 * c2, v2 + w0 * c1 - w1 * c0, w0, w1, w2)
     dt = t - dyn[DY_T]
     if dyn[DY_HAS] != 0.0 and dt == 0.0:
         pass  # the same sample again: the accelerations stand
     elif dyn[DY_HAS] != 0.0 and 0.0 < dt <= DY_MAX_GAP:
-        dyn[DY_AC] = (vc0 - dyn[DY_VC]) / dt
-        dyn[DY_AC + 1] = (vc1 - dyn[DY_VC + 1]) / dt
-        dyn[DY_AC + 2] = (vc2 - dyn[DY_VC + 2]) / dt
-        dyn[DY_AL] = (w0 - dyn[DY_W]) / dt
-        dyn[DY_AL + 1] = (w1 - dyn[DY_W + 1]) / dt
-        dyn[DY_AL + 2] = (w2 - dyn[DY_W + 2]) / dt
+        for k in range(6):
+            dyn[DY_AC + k] = (vw[k] - dyn[DY_VC + k]) / dt
     else:
-        for k in range(3):
-            dyn[DY_AC + k] = 0.0
-            dyn[DY_AL + k] = 0.0
-    dyn[DY_T] = t
-    dyn[DY_VC], dyn[DY_VC + 1], dyn[DY_VC + 2] = vc0, vc1, vc2
-    dyn[DY_W], dyn[DY_W + 1], dyn[DY_W + 2] = w0, w1, w2
-    dyn[DY_HAS] = 1.0
+        dyn[DY_AC:DY_AC + 6] = 0.0
+    dyn[DY_T], dyn[DY_HAS] = t, 1.0
+    for k in range(6):
+        dyn[DY_VC + k] = vw[k]
     # Into the sensor frame: x_s = R_seᵀ Rᵀ x_b.
-    a0, a1, a2 = dyn[DY_AC], dyn[DY_AC + 1], dyn[DY_AC + 2]
-    b0, b1, b2 = dyn[DY_AL], dyn[DY_AL + 1], dyn[DY_AL + 2]
-    ae0, ae1, ae2 = rot_t(T, a0, a1, a2)
-    be0, be1, be2 = rot_t(T, b0, b1, b2)
-    we0, we1, we2 = rot_t(T, w0, w1, w2)
-    f0, f1, f2 = rot_t(R_se, ae0, ae1, ae2)
+    f0, f1, f2 = rot_t(R_se, *rot_t(T, dyn[DY_AC], dyn[DY_AC + 1], dyn[DY_AC + 2]))
     f0, f1, f2 = m * f0, m * f1, m * f2
-    al0, al1, al2 = rot_t(R_se, be0, be1, be2)
-    om0, om1, om2 = rot_t(R_se, we0, we1, we2)
+    al0, al1, al2 = rot_t(R_se, *rot_t(T, dyn[DY_AL], dyn[DY_AL + 1], dyn[DY_AL + 2]))
+    om0, om1, om2 = rot_t(R_se, *rot_t(T, w0, w1, w2))
     h0, h1, h2 = inertia[0] * om0, inertia[1] * om1, inertia[2] * om2
     out[0], out[1], out[2] = f0, f1, f2
     out[3] = com[1] * f2 - com[2] * f1 + inertia[0] * al0 + om1 * h2 - om2 * h1
@@ -254,26 +232,28 @@ def inertial_wrench(t, T, J, dq, R_se, p_se, com, m, inertia, dyn, out):
 def contact_wrench_dyn(r, t, T, J, dq, R_se, p_se, mg, com, tare_load, m, inertia, dyn, out):
     """:func:`contact_wrench` with the tool's inertial wrench (:func:`inertial_wrench`) removed from
     the reading first: the contact wrench alone, also while the arm accelerates."""
-    iw = np.empty(6)
-    inertial_wrench(t, T, J, dq, R_se, p_se, com, m, inertia, dyn, iw)
     rc = np.empty(6)
+    inertial_wrench(t, T, J, dq, R_se, p_se, com, m, inertia, dyn, rc)
     for k in range(6):
-        rc[k] = r[k] - iw[k]
+        rc[k] = r[k] - rc[k]
     contact_wrench(rc, T, R_se, p_se, mg, com, tare_load, out)
 
 
 # ----------------------------------------------------------------------------- the controller
 @njit
-def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use_vref, K, D, prm, state,
-                    x_ref, q_rest, q_min, q_max, tau_spring, n_damp, tau, diag):
+def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use_vref, kpk, mut,
+                    tau, diag):
     """One step of eq. 47 with the wrench PID (see :class:`~tergodic_cli.robot.controller.LineForceController`).
 
     T (4, 4) TCP pose, J (6, 7) base-frame Jacobian, q, dq (7,), a, d (3,) target line (base frame, d
     into the surface), w (6,) measured ee wrench, mode MODE_*, v_ref (3,) target line velocity (used
-    when ``use_vref``). K, D (6,) gains, prm (N_CP,) parameters, state (N_CS,) PID state (updated).
-    tau_spring (7,), n_damp (7, 7): the null-space terms, refreshed here every 10 steps (updated).
-    Fills tau (7,) and diag (N_CD,).
+    when ``use_vref``). kpk (N_KPK,): the controller's packed constants (gains K, D, parameters,
+    x_ref, q_rest, joint limits); mut (N_MUT,): its PID state and the null-space terms, refreshed
+    here every 10 steps (updated). Fills tau (7,) and diag (N_CD,).
     """
+    K, D, x_ref = kpk[KPK_K:KPK_K + 6], kpk[KPK_D:KPK_D + 6], kpk[KPK_XREF:KPK_XREF + 3]
+    prm = kpk[KPK_PRM:KPK_PRM + N_CP]
+    state = mut[MUT_STATE:MUT_STATE + N_CS]
     r0, r1, r2 = T[0, 0], T[0, 1], T[0, 2]
     r3, r4, r5 = T[1, 0], T[1, 1], T[1, 2]
     r6, r7, r8 = T[2, 0], T[2, 1], T[2, 2]
@@ -341,7 +321,9 @@ def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use
     W3 = r0 * mx + r1 * my + r2 * mz
     W4 = r3 * mx + r4 * my + r5 * mz
     W5 = r6 * mx + r7 * my + r8 * mz
-    _posture(J, q, prm, state, q_rest, q_min, q_max, tau_spring, n_damp)
+    tau_spring, n_damp = mut[MUT_SPRING:MUT_SPRING + 7], mut[MUT_DAMP:MUT_DAMP + 49].reshape((7, 7))
+    _posture(J, q, prm, state, kpk[KPK_QREST:KPK_QREST + 7], kpk[KPK_QMIN:KPK_QMIN + 7],
+             kpk[KPK_QMAX:KPK_QMAX + 7], tau_spring, n_damp)
     for j in range(7):
         acc = J[0, j] * W0 + J[1, j] * W1 + J[2, j] * W2 + J[3, j] * W3 + J[4, j] * W4 + J[5, j] * W5
         acc += tau_spring[j]
@@ -352,16 +334,6 @@ def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use
     diag[6], diag[7], diag[8], diag[9], diag[10], diag[11] = wx, wy, wz, mx, my, mz
     diag[12] = state[CS_FFILT + 2]
     diag[13], diag[14], diag[15], diag[16], diag[17], diag[18] = ve0, ve1, ve2, ve3, ve4, ve5
-
-
-@njit
-def line_force_step_packed(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use_vref, kpk, mut, tau, diag):
-    """:func:`line_force_step` with the controller's packed ``kpk`` and ``mut`` (fewer arguments to dispatch)."""
-    line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use_vref, kpk[KPK_K:KPK_K + 6],
-                    kpk[KPK_D:KPK_D + 6], kpk[KPK_PRM:KPK_PRM + N_CP], mut[MUT_STATE:MUT_STATE + N_CS],
-                    kpk[KPK_XREF:KPK_XREF + 3], kpk[KPK_QREST:KPK_QREST + 7], kpk[KPK_QMIN:KPK_QMIN + 7],
-                    kpk[KPK_QMAX:KPK_QMAX + 7], mut[MUT_SPRING:MUT_SPRING + 7],
-                    mut[MUT_DAMP:MUT_DAMP + 49].reshape((7, 7)), tau, diag)
 
 
 @njit
@@ -562,47 +534,46 @@ def _unpack_constants(cst):
     force_desired = cst[1]
     use_vref = cst[2] != 0.0
     v_ref = cst[3:6]
-    o = 6
-    F = cst[o:o + 16 * m].reshape((m, 4, 4))
-    o += 16 * m
-    axis = cst[o:o + 3 * m].reshape((m, 3))
-    o += 3 * m
+    F = cst[6:6 + 16 * m].reshape((m, 4, 4))
+    axis = cst[6 + 16 * m:6 + 19 * m].reshape((m, 3))
     qidx = np.empty(m, dtype=np.int64)
     for k in range(m):
-        qidx[k] = int(cst[o + k])
-    o += m
+        qidx[k] = int(cst[6 + 19 * m + k])
+    o = 6 + 20 * m  # the fixed-size rest
     tcp_off = cst[o:o + 3]
     R_se = cst[o + 3:o + 12].reshape((3, 3))
     p_se = cst[o + 12:o + 15]
     mg = cst[o + 15]
     com = cst[o + 16:o + 19]
     tare = cst[o + 19:o + 25]
-    o += 25
-    q_lo = cst[o:o + 7]
-    q_hi = cst[o + 7:o + 14]
-    dq_hi = cst[o + 14:o + 21]
-    tcp_max = cst[o + 21]
-    ws_lo = cst[o + 22:o + 25]
-    ws_hi = cst[o + 25:o + 28]
-    force_limit = cst[o + 28]
-    tau_max = cst[o + 29:o + 36]
-    inertial = cst[o + 36] != 0.0
-    mass = cst[o + 37]
-    inertia = cst[o + 38:o + 41]
+    q_lo = cst[o + 25:o + 32]
+    q_hi = cst[o + 32:o + 39]
+    dq_hi = cst[o + 39:o + 46]
+    tcp_max = cst[o + 46]
+    ws_lo = cst[o + 47:o + 50]
+    ws_hi = cst[o + 50:o + 53]
+    force_limit = cst[o + 53]
+    tau_max = cst[o + 54:o + 61]
+    inertial = cst[o + 61] != 0.0
+    mass = cst[o + 62]
+    inertia = cst[o + 63:o + 66]
     return (force_desired, use_vref, v_ref, F, axis, qidx, tcp_off, R_se, p_se, mg, com, tare, q_lo, q_hi, dq_hi,
             tcp_max, ws_lo, ws_hi, force_limit, tau_max, inertial, mass, inertia)
 
 
 @njit
-def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io, ts, t, dyn):
-    """One 1 kHz tick of the "track" loop after the joint read: FK + Jacobian, contact wrench, force
-    check, controller, state checks, and the torque to send (task + ``bias``, clamped to tau_max).
+def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, kd, io, ts, t, dyn):
+    """One 1 kHz tick after the joint read: FK + Jacobian, contact wrench, force check, the control
+    law, state checks, and the torque to send (the law's + ``bias``, clamped to tau_max).
 
-    i : row of A, D (n, 3), the gliding target line. qs, dqs : joint positions (rad) and velocities
-    (rad/s), flat tuples whose first 7 entries are the arm's (``zip(*getJointStates(...))``).
-    reading : the sensor's 6 numbers (tare removed); bias : gravity + Coriolis (7 numbers).
-    kpk, mut : the controller's (``mut`` is updated). ts : :func:`tick_stats` (updated). t : the
-    sample time, s; dyn : the inertial compensation's state (:func:`inertial_wrench`, updated).
+    The law: with ``kd`` empty, the "track" loop's line controller towards row i of A, D (n, 3),
+    the gliding target line (kpk, mut: the controller's; ``mut`` is updated); else a joint-impedance
+    move (the set-up moves), τ = K (q_d - q) + D (q̇_d - q̇) (:class:`JointImpedance`), q_d (rad)
+    and q̇_d (rad/s) row i of A, D (n, 7), kd (14,) the joint stiffness (7) then damping (7).
+    qs, dqs : joint positions (rad) and velocities (rad/s), flat tuples whose first 7 entries are
+    the arm's (``zip(*getJointStates(...))``). reading : the sensor's 6 numbers (tare removed);
+    bias : gravity + Coriolis (7 numbers). ts : :func:`tick_stats` (updated). t : the sample time,
+    s; dyn : the inertial compensation's state (:func:`inertial_wrench`, updated).
     Returns an F_* code (OK: send io[IO_TAU:IO_TAU + 7]). The separate kernels, chained.
     """
     q = io[IO_Q:IO_Q + 7]
@@ -628,60 +599,15 @@ def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, io, ts, t, dyn
     code, _f = force_fault(w, force_limit)
     if code != OK:
         return code
+    joint = kd.shape[0] > 0
     task = np.empty(7)
-    line_force_step_packed(T, J, q, dq, A[i], D[i], w, MODE_TRACK, force_desired, 0.0, v_ref, use_vref, kpk, mut,
-                           task, diag)
-    v0, v1, v2 = diag[CD_VEE], diag[CD_VEE + 1], diag[CD_VEE + 2]
-    pos = np.empty(3)
-    pos[0], pos[1], pos[2] = T[0, 3], T[1, 3], T[2, 3]
-    code, _j = state_fault(q, dq, pos, math.sqrt(v0 * v0 + v1 * v1 + v2 * v2), q_lo, q_hi, dq_hi, tcp_max, ws_lo, ws_hi)
-    if code != OK:
-        return code
-    for j in range(7):
-        lim = tau_max[j]
-        io[IO_TAU + j] = min(max(task[j] + bias[j], -lim), lim)
-    return OK
-
-
-@njit
-def pybullet_joint_tick(i, QD, DQD, qs, dqs, reading, bias, cst, kd, io, ts, t, dyn):
-    """One 1 kHz tick of a joint-impedance move after the joint read (the set-up moves): FK + Jacobian,
-    contact wrench, force check, τ = K (q_d - q) + D (q̇_d - q̇) (:class:`JointImpedance`), state
-    checks (TCP speed from J q̇), and the torque to send (τ + ``bias``, clamped to tau_max).
-
-    i : row of QD, DQD (n, 7), the desired joints (rad) and velocities (rad/s). qs, dqs, reading,
-    bias, cst, io, ts, t, dyn : as :func:`pybullet_tick`. kd : (14,) joint stiffness (7) then damping (7).
-    Returns an F_* code (OK: send io[IO_TAU:IO_TAU + 7]).
-    """
-    q = io[IO_Q:IO_Q + 7]
-    dq = io[IO_DQ:IO_DQ + 7]
-    for j in range(7):
-        q[j] = qs[j]
-        dq[j] = dqs[j]
-    (_fd, _use, _vref, F, axis, qidx, tcp_off, R_se, p_se, mg, com, tare, q_lo, q_hi, dq_hi, tcp_max,
-     ws_lo, ws_hi, force_limit, tau_max, inertial, mass, inertia) = _unpack_constants(cst)
-    T = io[IO_T:IO_T + 16].reshape((4, 4))
-    J = io[IO_J:IO_J + 42].reshape((6, 7))
-    w = io[IO_W:IO_W + 6]
-    fk_jacobian(q, F, axis, qidx, tcp_off, T, J)
-    r = np.empty(6)
-    for k in range(6):
-        r[k] = reading[k]
-    if inertial:
-        contact_wrench_dyn(r, t, T, J, dq, R_se, p_se, mg, com, tare, mass, inertia, dyn, w)
+    if joint:
+        v0, v1, v2, _w0, _w1, _w2 = tcp_twist(J, dq, 7)
+        diag[CD_VEE], diag[CD_VEE + 1], diag[CD_VEE + 2] = v0, v1, v2
     else:
-        contact_wrench(r, T, R_se, p_se, mg, com, tare, w)
-    tick_stats(T, w, ts)
-    code, _f = force_fault(w, force_limit)
-    if code != OK:
-        return code
-    v0, v1, v2 = 0.0, 0.0, 0.0
-    for j in range(7):
-        v0 += J[0, j] * dq[j]
-        v1 += J[1, j] * dq[j]
-        v2 += J[2, j] * dq[j]
-    diag = io[IO_DIAG:IO_DIAG + N_CD]
-    diag[CD_VEE], diag[CD_VEE + 1], diag[CD_VEE + 2] = v0, v1, v2
+        line_force_step(T, J, q, dq, A[i], D[i], w, MODE_TRACK, force_desired, 0.0, v_ref, use_vref,
+                        kpk, mut, task, diag)
+        v0, v1, v2 = diag[CD_VEE], diag[CD_VEE + 1], diag[CD_VEE + 2]
     pos = np.empty(3)
     pos[0], pos[1], pos[2] = T[0, 3], T[1, 3], T[2, 3]
     code, _j = state_fault(q, dq, pos, math.sqrt(v0 * v0 + v1 * v1 + v2 * v2), q_lo, q_hi, dq_hi, tcp_max, ws_lo, ws_hi)
@@ -689,6 +615,6 @@ def pybullet_joint_tick(i, QD, DQD, qs, dqs, reading, bias, cst, kd, io, ts, t, 
         return code
     for j in range(7):
         lim = tau_max[j]
-        tau = kd[j] * (QD[i, j] - q[j]) + kd[7 + j] * (DQD[i, j] - dq[j])
+        tau = kd[j] * (A[i, j] - q[j]) + kd[7 + j] * (D[i, j] - dq[j]) if joint else task[j]
         io[IO_TAU + j] = min(max(tau + bias[j], -lim), lim)
     return OK

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from tergodic_cli.errors import TergodicError, require
-from tergodic_cli.backends.extras import import_sdk
-from tergodic_cli.robot.interfaces import WrenchReading
+from tergodic_cli.backends.extras import import_sdk, one_line
+from tergodic_cli.robot.interfaces import WrenchSensor
 
 WRAP_US = 2**32
 
@@ -41,25 +41,23 @@ class BotaConfig:
         require(int(self.tare_samples) >= 1, "tare_samples must be >= 1", "e.g. 50")
 
 
-class BotaSensor:
+class BotaSensor(WrenchSensor):
     """A Bota sensor behind :class:`~tergodic_cli.robot.interfaces.WrenchSensor`.
 
     ``read()`` returns the latest frame's wrench minus the tare offset, with t = the sensor's
-    timestamp in seconds (unwrapped).
+    timestamp in seconds (unwrapped); ``tare()`` averages ``tare_samples`` frames, the tool free.
     """
+
+    bad_tare = ("the Bota sensor flagged samples invalid or over range while taring",
+                "keep the tool free and still, check the sensor, and retry")
 
     def __init__(self, cfg: BotaConfig):
         cfg.validate()
+        super().__init__(cfg.frame_in_ee, cfg.tare_samples)
         self.cfg = cfg
-        self.frame_in_ee = np.eye(4) if cfg.frame_in_ee is None else np.asarray(cfg.frame_in_ee, dtype=float)
-        require(self.frame_in_ee.shape == (4, 4), "frame_in_ee must be a (4, 4) transform", "give the sensor pose in the TCP frame")
-        self.offset = np.zeros(6)
         self.driver = None
-        self._bd = None
         self._last_us: int | None = None
         self._wraps = 0
-        self.last_status: dict | None = None
-        self.expected_dt = None
 
     @property
     def is_connected(self) -> bool:
@@ -69,11 +67,10 @@ class BotaSensor:
         if self.driver is not None:
             return
         bd = import_sdk("bota_driver")
-        self._bd = bd
         try:
             driver = bd.BotaDriver(self._driver_config(bd))
         except Exception as exc:
-            raise TergodicError(f"the Bota driver rejected its configuration: {_one_line(exc)}",
+            raise TergodicError(f"the Bota driver rejected its configuration: {one_line(exc)}",
                                 "check the JSON configuration (interface, port, serial number)") from None
         if not driver.configure():
             raise TergodicError("the Bota sensor could not be configured", "check the cable, the port in the configuration and its permissions")
@@ -81,7 +78,6 @@ class BotaSensor:
             driver.shutdown()
             raise TergodicError("the Bota sensor did not start streaming", "power-cycle the sensor and retry")
         self.driver = driver
-        self.expected_dt = 1e-6 * float(driver.get_expected_timestep_us())
 
     def _driver_config(self, bd):
         if self.cfg.address != "dummy":
@@ -95,7 +91,7 @@ class BotaSensor:
         cfg.genA_sensor_operation_params = op
         return cfg
 
-    def _frame(self) -> tuple[float, np.ndarray]:
+    def _sample(self) -> tuple[float, np.ndarray]:
         if self.driver is None:
             raise TergodicError("the Bota sensor is not connected", "call connect() first")
         fr = self.driver.read_frame_blocking()
@@ -104,23 +100,10 @@ class BotaSensor:
             self._wraps += 1
         self._last_us = us
         st = fr.status
-        self.last_status = {"invalid": int(st.invalid), "overrange": int(st.overrange), "throttled": int(st.throttled),
-                            "temperature": float(fr.temperature)}
         w = np.array(list(fr.force) + list(fr.torque), dtype=float)
         if int(st.invalid) or int(st.overrange) or w.shape != (6,):
             w = np.full(6, np.nan)
         return 1e-6 * (us + self._wraps * WRAP_US), w
-
-    def read(self) -> WrenchReading:
-        t, w = self._frame()
-        return WrenchReading(t, w - self.offset)
-
-    def tare(self) -> None:
-        """Zero in software: the mean of ``tare_samples`` frames (the tool at rest, free) becomes the offset."""
-        ws = np.array([self._frame()[1] for _ in range(int(self.cfg.tare_samples))])
-        require(bool(np.all(np.isfinite(ws))), "the Bota sensor flagged samples invalid or over range while taring",
-                "keep the tool free and still, check the sensor, and retry")
-        self.offset = ws.mean(axis=0)
 
     def disconnect(self) -> None:
         if self.driver is None:
@@ -131,6 +114,3 @@ class BotaSensor:
         finally:
             self.driver = None
 
-
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split())[:200] or type(exc).__name__

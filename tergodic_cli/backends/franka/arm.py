@@ -13,9 +13,7 @@ API used (franky-control 2.0, checked against its type stubs ``franky/_franky.py
   ``set_reference(CartesianReference(target=Affine, target_twist=Twist))``: franky's client-side
   Cartesian impedance controller, computed in its 1 kHz real-time thread; Python streams
   references (:mod:`tergodic_cli.backends.impedance` explains the mapping).
-- ``SimpleTorqueMotion.set_torque(tau)`` for :meth:`FrankyArm.command` (raw torques, on top of
-  libfranka's gravity compensation, with Coriolis compensation on), and ``TorqueStopMotion`` to
-  end either torque-mode controller gracefully.
+- ``TorqueStopMotion`` to end the impedance controller (a torque-mode controller) gracefully.
 """
 
 from __future__ import annotations
@@ -26,26 +24,22 @@ import numpy as np
 
 from tergodic_cli.config import Config
 from tergodic_cli.errors import TergodicError, require
-from tergodic_cli.backends.extras import import_sdk
+from tergodic_cli.backends.extras import import_sdk, one_line
 from tergodic_cli.backends.impedance import ImpedanceTarget
 from tergodic_cli.robot.interfaces import ArmState
+from tergodic_cli.robot.kinematics import DQ_MAX, Q_MAX, Q_MIN, TAU_MAX
 
 #: Joint limits (rad, rad/s, N m) from Franka's datasheets.
 LIMITS = {
-    "panda": (np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973]),
-              np.array([2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973]),
-              np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61]),
-              np.array([87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0])),
+    "panda": (Q_MIN, Q_MAX, DQ_MAX, TAU_MAX),
     "fr3": (np.array([-2.7437, -1.7837, -2.9007, -3.0421, -2.8065, 0.5445, -3.0159]),
             np.array([2.7437, 1.7837, 2.9007, -0.1518, 2.8065, 4.5169, 3.0159]),
             np.array([2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26]),
-            np.array([87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0])),
+            TAU_MAX),
 }
 
 
 @dataclass
-
-
 class FrankaConfig(Config):
     """How to reach and drive the arm.
 
@@ -57,7 +51,6 @@ class FrankaConfig(Config):
     torque_thresholds, force_thresholds : libfranka's collision reflex thresholds (N m, N).
     realtime : "enforce" (refuse to run without a PREEMPT_RT kernel) or "ignore" (bench tests only).
     max_delta_tau : N m per 1 ms torque-rate limit of franky's torque motions.
-    torque_timeout : s without a new torque before a :meth:`FrankyArm.command` stream is stopped by franky.
     error_clip : m, franky clamps the impedance controller's translational error to this on each base
         axis, which bounds the commanded force at stiffness × error_clip whatever the reference does.
     """
@@ -71,7 +64,6 @@ class FrankaConfig(Config):
     force_thresholds: float = 40.0
     realtime: str = "enforce"
     max_delta_tau: float = 1.0
-    torque_timeout: float = 0.05
     error_clip: float = 0.05
 
     def validate(self) -> None:
@@ -93,14 +85,11 @@ class FrankyArm:
     """A Franka arm behind :class:`~tergodic_cli.robot.interfaces.Arm` and
     :class:`~tergodic_cli.backends.impedance.ImpedanceArm`.
 
-    ``command(tau)`` streams joint torques through franky's ``SimpleTorqueMotion`` (a zero-order
-    hold between Python updates, stopped by franky when no torque arrives for ``torque_timeout``).
-    The exploration loop uses :meth:`command_impedance`, whose stiffness and damping run at 1 kHz
-    inside franky.
+    The exploration loop streams :meth:`command_impedance` references, whose stiffness and damping
+    run at 1 kHz inside franky (raw torques from Python: a 10 ms zero-order hold, docs/hardware.md).
     """
 
     name = "franka-franky"
-    dof = 7
 
     def __init__(self, cfg: FrankaConfig):
         cfg.validate()
@@ -111,12 +100,10 @@ class FrankyArm:
         self.stream_hz = float(cfg.stream_hz)
         self.robot = None
         self._fr = None
-        self._mode: str | None = None  # None | "torque" | "impedance"
+        self._mode: str | None = None  # None | "impedance"
         self._motion = None
         self._gains_key: bytes | None = None
-        self.last_tau = np.zeros(7)
         self.measured_tau = np.zeros(7)
-        self.last_target: ImpedanceTarget | None = None
         self._error: str | None = None
 
     # ------------------------------------------------------------------ connection
@@ -134,7 +121,8 @@ class FrankyArm:
         try:
             robot = fr.Robot(cfg.ip, relative_dynamics_factor=float(cfg.move_speed), realtime_config=rt)
         except Exception as exc:  # franky raises its own NetworkException, RealtimeException, IncompatibleVersionException
-            raise TergodicError(f"cannot connect to the Franka at {cfg.ip}: {_one_line(exc)}", _connect_fix(exc)) from None
+            raise TergodicError(f"cannot connect to the Franka at {cfg.ip}: {one_line(exc)}",
+                                _connect_fix(exc)) from None
         try:
             if robot.has_errors:
                 robot.recover_from_errors()
@@ -142,7 +130,7 @@ class FrankyArm:
             if cfg.ne_t_ee is not None:
                 robot.set_ee(np.asarray(cfg.ne_t_ee, dtype=float).flatten(order="F").tolist())  # column-major
         except Exception as exc:
-            raise TergodicError(f"the Franka at {cfg.ip} refused its set-up: {_one_line(exc)}",
+            raise TergodicError(f"the Franka at {cfg.ip} refused its set-up: {one_line(exc)}",
                                 "recover the robot in Desk (unlock the joints, activate FCI) and retry") from None
         self.robot = robot
 
@@ -181,7 +169,7 @@ class FrankyArm:
             if self._mode is not None:
                 robot.poll_motion()  # re-raises an exception the control thread stored
         except Exception as exc:
-            self._error = f"the Franka stopped: {_one_line(exc)}"
+            self._error = f"the Franka stopped: {one_line(exc)}"
             self._mode = None
             return self._error
         if robot.has_errors:
@@ -190,24 +178,6 @@ class FrankyArm:
         return None
 
     # ------------------------------------------------------------------ commands
-    def command(self, tau: np.ndarray) -> None:
-        """Joint torques (7,) N m on top of gravity (libfranka) and Coriolis (franky) compensation.
-
-        Held by franky until the next call; call at least every ``torque_timeout`` seconds.
-        """
-        robot = self._require()
-        fr = self._fr
-        t = np.clip(np.asarray(tau, dtype=float).reshape(7), -self.tau_max, self.tau_max)
-        if self._mode != "torque":
-            motion = fr.SimpleTorqueMotion(initial_torque=t, signal_timeout=float(self.cfg.torque_timeout),
-                                           compensate_coriolis=True, max_delta_tau=float(self.cfg.max_delta_tau),
-                                           lower_joint_limits=self.q_min, upper_joint_limits=self.q_max)
-            robot.move(motion, asynchronous=True)
-            self._motion, self._mode = motion, "torque"
-        else:
-            self._motion.set_torque(t)
-        self.last_tau = t
-
     def command_impedance(self, target: ImpedanceTarget) -> None:
         """Start, or update, franky's Cartesian impedance tracking with ``target`` (base frame)."""
         robot = self._require()
@@ -234,7 +204,6 @@ class FrankyArm:
                 self._motion.set_gains(_gains(fr, K, D))
                 self._gains_key = key
             self._motion.set_reference(ref)
-        self.last_target = target
 
     def move_joints(self, q: np.ndarray, speed: float | None = None) -> None:
         """Blocking joint-space move (franky plans it with Ruckig); ends a torque-mode controller first."""
@@ -248,7 +217,7 @@ class FrankyArm:
         try:
             robot.move(self._fr.JointMotion(qd, relative_dynamics_factor=f))
         except Exception as exc:
-            self._error = f"the Franka stopped during a joint move: {_one_line(exc)}"
+            self._error = f"the Franka stopped during a joint move: {one_line(exc)}"
             raise TergodicError(self._error, "check the workspace for obstacles, recover the robot in Desk and retry") from None
 
     def stop(self) -> None:
@@ -260,7 +229,7 @@ class FrankyArm:
             robot.move(self._fr.TorqueStopMotion(), asynchronous=True)
             robot.join_motion(3.0)
         except Exception as exc:
-            self._error = f"the Franka stopped: {_one_line(exc)}"
+            self._error = f"the Franka stopped: {one_line(exc)}"
         finally:
             self._mode, self._motion = None, None
 
@@ -270,11 +239,6 @@ def _gains(fr, K: np.ndarray, D: np.ndarray):
     g.stiffness = K
     g.damping = D
     return g
-
-
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split()) or type(exc).__name__
-    return text if len(text) <= 200 else text[:197] + "..."
 
 
 def _connect_fix(exc: BaseException) -> str:

@@ -11,31 +11,22 @@ from __future__ import annotations
 
 import numpy as np
 
-from tergodic_cli.robot.interfaces import WrenchReading
+from tergodic_cli.robot.interfaces import WrenchSensor
 
 
-class FrankaWrenchEstimate:
+class FrankaWrenchEstimate(WrenchSensor):
     """``-K_F_ext_hat_K`` of a connected :class:`~tergodic_cli.backends.franka.FrankyArm`, minus the tare."""
 
     def __init__(self, arm, tare_samples: int = 20):
+        super().__init__(None, tare_samples)
         self.arm = arm
-        self.frame_in_ee = np.eye(4)
-        self.offset = np.zeros(6)
-        self.tare_samples = int(tare_samples)
 
     def connect(self) -> None:
         self.arm.connect()
 
-    def _raw(self) -> tuple[float, np.ndarray]:
+    def _sample(self) -> tuple[float, np.ndarray]:
         s = self.arm._require().state
         return float(s.time.to_sec()), -np.asarray(s.K_F_ext_hat_K, dtype=float).reshape(6)
-
-    def read(self) -> WrenchReading:
-        t, w = self._raw()
-        return WrenchReading(t, w - self.offset)
-
-    def tare(self) -> None:
-        self.offset = np.mean([self._raw()[1] for _ in range(self.tare_samples)], axis=0)
 
     def disconnect(self) -> None:
         """The arm owns the connection."""

@@ -18,8 +18,6 @@ PORT = 49152
 HEADER = 0x1234
 CMD_STOP = 0x0000
 CMD_START_REALTIME = 0x0002
-CMD_START_BUFFERED = 0x0003
-CMD_SET_BIAS = 0x0042
 REQUEST = struct.Struct(">HHI")
 RECORD = struct.Struct(">IIIiiiiii")
 
@@ -32,21 +30,6 @@ TORQUE_UNITS = {"Nm": 1.0, "N-m": 1.0, "Nmm": 1e-3, "N-mm": 1e-3, "kNm": 1e3, "k
 def request(command: int, count: int = 0) -> bytes:
     """An 8-byte RDT request."""
     return REQUEST.pack(HEADER, command, count)
-
-
-def parse_request(data: bytes) -> tuple[int, int]:
-    """(command, count) of a request; ValueError when it is not one."""
-    if len(data) != REQUEST.size:
-        raise ValueError(f"an RDT request has {REQUEST.size} bytes, got {len(data)}")
-    header, command, count = REQUEST.unpack(data)
-    if header != HEADER:
-        raise ValueError(f"bad RDT header 0x{header:04x}")
-    return command, count
-
-
-def record(rdt_sequence: int, ft_sequence: int, status: int, counts) -> bytes:
-    """A 36-byte RDT record (sequence numbers wrap at 2**32)."""
-    return RECORD.pack(rdt_sequence & 0xFFFFFFFF, ft_sequence & 0xFFFFFFFF, status & 0xFFFFFFFF, *(int(c) for c in counts))
 
 
 def parse_record(data: bytes) -> tuple[int, int, int, tuple[int, ...]]:

@@ -22,7 +22,7 @@ import numpy as np
 
 from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.backends.netft import rdt
-from tergodic_cli.robot.interfaces import WrenchReading
+from tergodic_cli.robot.interfaces import WrenchSensor
 
 
 @dataclass
@@ -80,19 +80,20 @@ def fetch_calibration(host: str, port: int = 80, timeout: float = 2.0) -> dict:
             "torque_unit": vals.get("scfgtu", "Nm") or "Nm"}
 
 
-class NetFTSensor:
+class NetFTSensor(WrenchSensor):
     """An ATI Net F/T behind :class:`~tergodic_cli.robot.interfaces.WrenchSensor`.
 
     ``read().t`` is the host's monotonic clock when the record arrived (s); the record's own
-    sequence numbers are kept in ``last_record``.
+    sequence numbers are kept in ``last_record``. ``tare()`` averages ``tare_samples`` new records.
     """
+
+    bad_tare = ("the Net F/T reported a bad status while taring",
+                "check the sensor (its web page shows the status word) and retry")
 
     def __init__(self, cfg: NetFTConfig):
         self.cfg = cfg
         self.host, self.port = cfg.host_port()
-        self.frame_in_ee = np.eye(4) if cfg.frame_in_ee is None else np.asarray(cfg.frame_in_ee, dtype=float)
-        require(self.frame_in_ee.shape == (4, 4), "frame_in_ee must be a (4, 4) transform", "give the sensor pose in the TCP frame")
-        self.offset = np.zeros(6)
+        super().__init__(cfg.frame_in_ee, cfg.tare_samples)
         self.scale = None  # (6,) counts -> N, N m
         self.sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
@@ -102,7 +103,6 @@ class NetFTSensor:
         self._serial = 0
         self._returned = -1
         self.last_record: tuple | None = None
-        self.packets = 0
         self.lost = 0
 
     @property
@@ -165,11 +165,10 @@ class NetFTSensor:
             w = np.asarray(counts, dtype=float) * self.scale if status == 0 else np.full(6, np.nan)
             with self._cv:
                 self._serial += 1
-                self.packets += 1
                 self._latest = (self._serial, time.monotonic(), w, (seq, ft_seq, status, counts))
                 self._cv.notify_all()
 
-    def _next(self) -> tuple[float, np.ndarray]:
+    def _sample(self) -> tuple[float, np.ndarray]:
         if self.sock is None:
             raise TergodicError("the Net F/T is not connected", "call connect() first")
         with self._cv:
@@ -178,17 +177,6 @@ class NetFTSensor:
         self._returned = serial
         self.last_record = rec
         return t, w
-
-    def read(self) -> WrenchReading:
-        t, w = self._next()
-        return WrenchReading(t, w - self.offset)
-
-    def tare(self) -> None:
-        """Zero in software: the mean of ``tare_samples`` fresh records becomes the offset."""
-        ws = np.array([self._next()[1] for _ in range(int(self.cfg.tare_samples))])
-        require(bool(np.all(np.isfinite(ws))), "the Net F/T reported a bad status while taring",
-                "check the sensor (its web page shows the status word) and retry")
-        self.offset = ws.mean(axis=0)
 
     def disconnect(self) -> None:
         sock = self.sock

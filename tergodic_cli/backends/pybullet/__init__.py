@@ -3,17 +3,10 @@ simulated camera; :func:`explore_with_robot` (``--robot pybullet``) and :func:`c
 (the closed loop through the camera, ``--recapture-every``)."""
 
 from tergodic_cli.backends.pybullet.arm import RobotRun, SimArm, explore_with_robot
+from tergodic_cli.backends.pybullet.closed_loop import (CleaningLoopConfig, clean_with_robot,
+                                                      log_recapture, sim_scene_configs)
 from tergodic_cli.backends.pybullet.devices import PyBulletArm, PyBulletWrenchSensor
 from tergodic_cli.backends.pybullet.scene import PyBulletScene
-
-
-def __getattr__(name):  # the closed loop pulls in the camera (open3d); load on first use
-    if name in ("clean_with_robot", "CleaningLoopConfig", "log_recapture", "sim_scene_configs"):
-        from tergodic_cli.backends.pybullet import closed_loop
-
-        return getattr(closed_loop, name)
-    raise AttributeError(name)
-
 
 __all__ = ["CleaningLoopConfig", "PyBulletArm", "PyBulletScene", "PyBulletWrenchSensor", "RobotRun", "SimArm",
            "clean_with_robot", "explore_with_robot", "log_recapture", "sim_scene_configs"]

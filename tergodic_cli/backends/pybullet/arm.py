@@ -59,7 +59,6 @@ class SimArm:
         try:
             self.scene.add_object(mesh.vertices, mesh.triangles, T_mesh)
             self.dev = PyBulletArm(self.scene)
-            self.dev.jacobian_every = int(cfg.jacobian_every)
             self.dev.dynamics_every = int(cfg.dynamics_every)
             self.dev.connect()
             self.scene.set_arm(np.array(cfg.picture_q))
@@ -91,14 +90,10 @@ class SimArm:
         self.contact_hook: Callable[[list, float], None] | None = None
         self.hook_every = 20
         self._hook_age = 0
-        self.hook_s = 0.0  # wall seconds spent in contact_hook
         self.wall0 = time.perf_counter()  # realtime pacing: wall clock at simulated time 0 (the run resets it)
-        self._obs = None
-        self._mode = None
+        self._obs = self._mode = self._s_set = self._meas = None
         self._speed = 0.0
-        self._s_set = None
         self._ik: dict = {}
-        self._meas = None
         self.guard = self.ts = None
         self.F_d, self.threshold = float(cfg.force), float(cfg.contact_threshold)
 
@@ -180,9 +175,7 @@ class SimArm:
         self._hook_age += 1
         if self._hook_age >= self.hook_every:
             self._hook_age = 0
-            t = time.perf_counter()
             self.contact_hook(self.scene.sponge_contacts(), self.hook_every * self.cfg.physics_dt)
-            self.hook_s += time.perf_counter() - t
 
     def reach(self, T: np.ndarray) -> str | None:
         q_h, pe, oe = self._ik_hover(T)
@@ -303,13 +296,9 @@ class SimArm:
         """The loop's ``_follow`` with the arithmetic in one compiled call per tick
         (:func:`~tergodic_cli.robot.kernels.pybullet_tick`): the same checks in the same order,
         the same arithmetic as get_observation / check / send_action."""
-        cst = Kn.pack_constants(self.dev._chain, self.contact_wrench, self.guard, self.dev.tau_max, self.F_d,
-                                None if v_line is None else np.asarray(v_line, dtype=float).tolist())
         A, D = np.ascontiguousarray(A, dtype=float), np.ascontiguousarray(D, dtype=float)
-        tick, kpk, mut, ts, dyn = Kn.pybullet_tick, self.ctrl.kpk, self.ctrl.mut, self.ts, self.contact_wrench.dyn
         self._mode = "press"
-        i, t, io, rd, fault = self._compiled(
-            len(A), lambda i, qs, dqs, w, bias, io, t: tick(i, A, D, qs, dqs, w, bias, cst, kpk, mut, io, ts, t, dyn), True)
+        i, t, io, rd, fault = self._compiled(A, D, np.zeros(0), v_line)
         if i < 0:
             return self.get_observation(), None, None, None
         st = ArmState(t, io[Kn.IO_Q:Kn.IO_Q + 7].copy(), io[Kn.IO_DQ:Kn.IO_DQ + 7].copy(),
@@ -317,45 +306,41 @@ class SimArm:
         return Observation(st, rd, io[Kn.IO_W:Kn.IO_W + 6].copy()), A[i], D[i], fault
 
     def _joint_fast(self, QD: np.ndarray, DQD: np.ndarray):
-        """:meth:`_move_joints` with every check, one compiled call per tick
-        (:func:`~tergodic_cli.robot.kernels.pybullet_joint_tick`). Returns the first fault or None."""
-        cst = Kn.pack_constants(self.dev._chain, self.contact_wrench, self.guard, self.dev.tau_max, self.F_d, None)
+        """:meth:`_move_joints` in compiled calls (all checks); the first fault, or None."""
         kd = np.ascontiguousarray(np.concatenate([self.joint.K, self.joint.D]), dtype=float)
         QD, DQD = np.ascontiguousarray(QD, dtype=float), np.ascontiguousarray(DQD, dtype=float)
-        tick, ts, dyn = Kn.pybullet_joint_tick, self.ts, self.contact_wrench.dyn
-        return self._compiled(len(QD), lambda i, qs, dqs, w, bias, io, t: tick(i, QD, DQD, qs, dqs, w, bias, cst, kd, io, ts, t, dyn),
-                              False)[-1]
+        return self._compiled(QD, DQD, kd, None)[-1]
 
-    def _compiled(self, n: int, step, explorer: bool):
-        """``n`` ticks, each: one joint read, the sensor read, gravity + Coriolis every ``dynamics_every``
-        ticks, ``step(i, q, q̇, wrench, bias, io, t)`` (one compiled call: the control law, the contact
-        wrench, the guard's limits; a nonzero code names the fault), one torque command, the physics step.
+    def _compiled(self, A: np.ndarray, D: np.ndarray, kd: np.ndarray, v_line):
+        """``len(A)`` ticks, each: one joint read, the sensor read, gravity + Coriolis every
+        ``dynamics_every`` ticks, one :func:`~tergodic_cli.robot.kernels.pybullet_tick` (the
+        control law: the line controller towards row i of A, D, or with ``kd`` the joint impedance
+        towards it; the contact wrench, the guard's limits; a nonzero code names the fault), one
+        torque command, the physics step.
         Returns (last tick, its time, io, its reading, fault or None); a faulty tick is not commanded."""
+        cst = Kn.pack_constants(self.dev._chain, self.contact_wrench, self.guard, self.dev.tau_max, self.F_d,
+                                None if v_line is None else np.asarray(v_line, dtype=float).tolist())
+        tick, kpk, mut, ts, dyn = Kn.pybullet_tick, self.ctrl.kpk, self.ctrl.mut, self.ts, self.contact_wrench.dyn
+        explorer = len(kd) == 0
         arm, sc, g = self.dev, self.scene, self.guard
         p, cid, rob, idx = sc.p, sc.cid, sc.robot, arm._read_idx
-        get_states, inv_dyn, send, physics = p.getJointStates, p.calculateInverseDynamics, p.setJointMotorControlArray, \
-            p.stepSimulation
-        joints, mode_torque, dt, sread = sc.arm_joints, p.TORQUE_CONTROL, sc.dt, self.sensor.read
+        get_states, send = p.getJointStates, p.setJointMotorControlArray
+        gravity, physics = arm.gravity, self._physics
+        joints, mode_torque, sread = sc.arm_joints, p.TORQUE_CONTROL, self.sensor.read
         check_sensor, timeout = g.check_sensor, g.cfg.explorer_timeout
         io = np.zeros(Kn.N_IO)
-        zeros, every, realtime = arm._zeros, arm.dynamics_every, self.cfg.realtime
-        hook = self._run_hook if self.contact_hook is not None else None
         OK, F_FORCE, tau_sl = Kn.OK, Kn.F_FORCE, slice(Kn.IO_TAU, Kn.IO_TAU + 7)
         i, t, rd, fault = -1, sc.t, None, None
-        for i in range(n):
+        for i in range(len(A)):
             # Flat tuples: q, q̇ and reactions of the movable joints, then the sensor joint's (last).
             qs, dqs, rs, _ = zip(*get_states(rob, idx, physicsClientId=cid))
             arm.reaction, arm.reaction_step = rs[-1], sc.steps
             rd = sread()
             t = sc.t
-            arm._bias_age += 1
-            if arm._bias is None or arm._bias_age >= every or arm._bias_epoch != sc.teleports:
-                arm._bias = inv_dyn(rob, qs[:-1], dqs[:-1], zeros, physicsClientId=cid)
-                arm._bias_age = 0
-                arm._bias_epoch = sc.teleports
+            bias = gravity(qs[:-1], dqs[:-1])
             fault = check_sensor(t, rd.t, rd.wrench)
             if fault is None:
-                code = step(i, qs, dqs, rd.wrench, arm._bias, io, t)
+                code = tick(i, A, D, qs, dqs, rd.wrench, bias, cst, kpk, mut, kd, io, ts, t, dyn)
                 if code == F_FORCE:
                     fault = g.check_force(t, io[Kn.IO_W:Kn.IO_W + 6])
                 elif code != OK:
@@ -369,15 +354,7 @@ class SimArm:
             tot = io[tau_sl].tolist()
             arm.last_tau = tot
             send(rob, joints, mode_torque, forces=tot, physicsClientId=cid)
-            physics(physicsClientId=cid)
-            sc.steps += 1
-            sc.t = sc.steps * dt
-            if hook is not None:
-                hook()
-            if realtime:
-                lag = sc.t - (time.perf_counter() - self.wall0)
-                if lag > 0:
-                    time.sleep(lag)
+            physics()
         arm._q9 = arm._dq9 = None  # stale: the next command() reads the state first
         return i, t, io, rd, fault
 
@@ -489,14 +466,6 @@ class RobotRun(ContactRun):
     @property
     def scene(self) -> PyBulletScene:
         return self.arm.scene
-
-    @property
-    def sensor(self):
-        return self.arm.sensor
-
-    @sensor.setter
-    def sensor(self, s) -> None:  # fault injection: a wrapped sensor
-        self.arm.sensor = s
 
     def begin(self) -> None:
         super().begin()

@@ -1,17 +1,11 @@
 """A simulated RGB-D camera: PyBullet renders a textured object, the depth buffer becomes a coloured cloud.
 
-Pipeline of one capture (formulas in docs/sim_camera.md):
-
-1. ``getCameraImage`` in a private DIRECT client (EGL plugin when it loads, TinyRenderer otherwise)
-   with our own OpenGL view and projection matrices;
-2. the OpenGL depth buffer d in [0, 1] is linearised to metres, ``z = far*near / (far - (far - near)*d)``;
-3. every object pixel (row i, column j) is back-projected with the pinhole intrinsics of the
-   projection, ``X = (j + o_u - cx) z / fx``, ``Y = (i + o_v - cy) z / fy``, ``Z = z`` (optical frame:
-   x right, y down, z forward; (o_u, o_v) is where the renderer samples the pixel, PIXEL_SAMPLE)
-   and mapped to the robot base frame with the camera pose;
-4. :func:`~tergodic_cli.capture.capture_cloud` applies the file pipeline's filters and segmentation.
-
-Everything is in metres and in the robot base frame.
+One capture (formulas and measured accuracy in docs/sim_camera.md): ``getCameraImage`` in a private
+DIRECT client (EGL plugin when it loads, TinyRenderer otherwise) with our own OpenGL view and
+projection matrices; the depth buffer linearised to metres; every object pixel back-projected with
+the projection's pinhole intrinsics, shifted by where the renderer samples a pixel (PIXEL_SAMPLE),
+into the robot base frame; then the filters and segmentation of
+:func:`~tergodic_cli.capture.capture_cloud`.
 """
 
 from __future__ import annotations
@@ -22,14 +16,16 @@ import os
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from tergodic_cli.backends.camera import Intrinsics, deproject
+from tergodic_cli.backends.factory import camera_pose_matrix
 from tergodic_cli.capture.textured import SimObjectConfig, TexturedObject
 from tergodic_cli.config import Config
-from tergodic_cli.rotations import matrix_to_quat, quat_to_matrix
+from tergodic_cli.robot.ga import matrix_to_quat, motor_inverse, pose_matrix
 from tergodic_cli.errors import TergodicError, require
 
 if TYPE_CHECKING:
@@ -77,7 +73,6 @@ class SimCameraConfig(Config):
         require(0 < self.near < self.far, f"clipping planes near={self.near} far={self.far} are not 0 < near < far", "e.g. 0.05 and 3.0")
         require(self.renderer in RENDERERS, f"unknown renderer '{self.renderer}'", f"use one of {', '.join(RENDERERS)}")
         require(self.depth_noise >= 0 and self.color_noise >= 0, "noise levels must be >= 0", "e.g. --depth-noise 0.001")
-
 
 
 @dataclass
@@ -150,10 +145,7 @@ def view_matrix(T_base_cam: np.ndarray) -> np.ndarray:
     """
     T_gl = T_base_cam.copy()
     T_gl[:3, 1:3] *= -1.0  # optical -> OpenGL eye axes
-    V = np.eye(4)
-    V[:3, :3] = T_gl[:3, :3].T
-    V[:3, 3] = -T_gl[:3, :3].T @ T_gl[:3, 3]
-    return V
+    return motor_inverse(T_gl)
 
 
 def linearize_depth(d: np.ndarray, near: float, far: float) -> np.ndarray:
@@ -174,37 +166,6 @@ def linearize_depth(d: np.ndarray, near: float, far: float) -> np.ndarray:
         z, metres, shaped like ``d``.
     """
     return far * near / (far - (far - near) * np.asarray(d, dtype=np.float64))
-
-
-def back_project(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, K: tuple[float, float, float, float],
-                 T_base_cam: np.ndarray, sample: tuple[float, float] = (0.5, 0.5)) -> np.ndarray:
-    """Pixels (row, col) with optical depth z (metres) -> points (n, 3) in the base frame.
-
-    X = (col + o_u - cx) z / fx, Y = (row + o_v - cy) z / fy, Z = z in the optical frame, then
-    p_base = R p_cam + t.
-
-    Parameters
-    ----------
-    z : (n,) float
-        Optical depth, metres.
-    rows, cols : (n,) int
-        Pixel indices.
-    K : (fx, fy, cx, cy)
-        Intrinsics, pixels (:func:`intrinsics`).
-    T_base_cam : (4, 4) float
-        The optical frame in the base frame.
-    sample : (o_u, o_v)
-        Where the renderer samples a pixel (PIXEL_SAMPLE).
-
-    Returns
-    -------
-    (n, 3) float
-        Points in the base frame, metres.
-    """
-    fx, fy, cx, cy = K
-    o_u, o_v = sample
-    cam = np.column_stack([(cols + o_u - cx) * z / fx, (rows + o_v - cy) * z / fy, z])
-    return cam @ T_base_cam[:3, :3].T + T_base_cam[:3, 3]
 
 
 def look_at(eye, target) -> np.ndarray:
@@ -231,10 +192,7 @@ def look_at(eye, target) -> np.ndarray:
     x = np.cross(z, up)
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, :3] = np.column_stack([x, y, z])
-    T[:3, 3] = eye
-    return T
+    return pose_matrix(np.column_stack([x, y, z]), eye)
 
 
 def camera_pose(pose, target_default: np.ndarray) -> np.ndarray:
@@ -258,14 +216,7 @@ def camera_pose(pose, target_default: np.ndarray) -> np.ndarray:
     require(len(v) in (6, 7), f"--camera-pose needs 6 or 7 numbers, got {len(v)}", fix)
     require(all(np.isfinite(v)), "--camera-pose has a non-finite number", fix)
     require(max(abs(x) for x in v[:3]) < 5.0, f"--camera-pose position {v[:3]} is not in metres near the robot", fix)
-    if len(v) == 6:
-        return look_at(v[:3], v[3:])
-    q = np.array(v[3:])
-    require(abs(np.linalg.norm(q) - 1.0) < 1e-3, "--camera-pose quaternion is not unit length", fix)
-    T = np.eye(4)
-    T[:3, :3] = quat_to_matrix(q / np.linalg.norm(q))
-    T[:3, 3] = v[:3]
-    return T
+    return look_at(v[:3], v[3:]) if len(v) == 6 else camera_pose_matrix(v, fix)
 
 
 # ----------------------------------------------------------------------------- quiet native output
@@ -353,8 +304,8 @@ class SimCamera:
             self.close()
             raise
         self.last_texture_ms = 0.0
-        self.last_frame: Frame | None = None
         self.last_timing: dict[str, float] = {}
+        self.last_frame: Frame | None = None
 
     def _pick_renderer(self, wanted: str) -> str:
         p = self._p
@@ -368,10 +319,6 @@ class SimCamera:
             if wanted == "egl":
                 raise TergodicError("the EGL renderer plugin did not load (no EGL/GPU driver?)", "use --renderer tiny")
         return "tiny"
-
-    @property
-    def renderer_flag(self) -> int:
-        return self._p.ER_BULLET_HARDWARE_OPENGL if self.renderer == "egl" else self._p.ER_TINY_RENDERER
 
     def _sync_object(self) -> float:
         """Load the object, or give it its new texture when it changed; returns the milliseconds it took."""
@@ -396,11 +343,12 @@ class SimCamera:
         """
         self.last_texture_ms = self._sync_object()
         cfg, p = self.cfg, self._p
+        flag = p.ER_BULLET_HARDWARE_OPENGL if self.renderer == "egl" else p.ER_TINY_RENDERER
         t0 = time.perf_counter()
         with quiet_native_output():
             _, _, rgba, depth, seg = p.getCameraImage(
                 cfg.width, cfg.height, viewMatrix=self._view.T.ravel().tolist(), projectionMatrix=self._proj.T.ravel().tolist(),
-                renderer=self.renderer_flag, physicsClientId=self.client)
+                renderer=flag, physicsClientId=self.client)
         ms = 1e3 * (time.perf_counter() - t0)
         rgb = np.asarray(rgba, dtype=np.float64).reshape(cfg.height, cfg.width, 4)[..., :3] / 255.0
         d = np.asarray(depth, dtype=np.float64).reshape(cfg.height, cfg.width)
@@ -410,7 +358,7 @@ class SimCamera:
         return Frame(rgb, z, seg, ms)
 
     def capture(self) -> tuple[np.ndarray, np.ndarray]:
-        """Render and back-project every object pixel.
+        """Render and back-project every object pixel, with the configured noise.
 
         Returns
         -------
@@ -419,28 +367,8 @@ class SimCamera:
         colors : (n, 3) float
             In [0, 1].
         """
-        frame = self.render()
-        self.last_frame = frame
+        frame = self.last_frame = self.render()
         t0 = time.perf_counter()
-        points, colors = self.frame_to_cloud(frame)
-        self.last_timing = {"texture_ms": self.last_texture_ms, "render_ms": frame.render_ms,
-                            "back_project_ms": 1e3 * (time.perf_counter() - t0)}
-        return points, colors
-
-    def frame_to_cloud(self, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
-        """Back-project the finite-depth pixels of ``frame`` (with the configured noise).
-
-        Parameters
-        ----------
-        frame : Frame
-
-        Returns
-        -------
-        points : (n, 3) float
-            Base frame, metres.
-        colors : (n, 3) float
-            In [0, 1].
-        """
         rows, cols = np.nonzero(np.isfinite(frame.depth))
         z = frame.depth[rows, cols]
         colors = frame.rgb[rows, cols]
@@ -448,7 +376,13 @@ class SimCamera:
             z = z + self._rng.normal(0.0, self.cfg.depth_noise, z.shape)
         if self.cfg.color_noise > 0:
             colors = np.clip(colors + self._rng.normal(0.0, self.cfg.color_noise, colors.shape), 0.0, 1.0)
-        return back_project(z, rows, cols, self.K, self.T_base_cam, PIXEL_SAMPLE[self.renderer]), colors
+        fx, fy, cx, cy = self.K
+        o_u, o_v = PIXEL_SAMPLE[self.renderer]  # where a pixel is sampled: shifted principal point
+        intr = Intrinsics(self.cfg.width, self.cfg.height, fx, fy, cx - o_u, cy - o_v)
+        points = deproject(z, intr, self.T_base_cam, rows, cols)
+        self.last_timing = {"texture_ms": self.last_texture_ms, "render_ms": frame.render_ms,
+                            "back_project_ms": 1e3 * (time.perf_counter() - t0)}
+        return points, colors
 
     def describe(self) -> dict:
         """The camera model for the capture sidecar.
@@ -509,8 +443,7 @@ def capture_sim(cfg: SimCaptureConfig | None = None, camera: SimCamera | None = 
     pipe = cfg.pipeline if cfg.pipeline is not None else CaptureConfig(source="sim")
     own = camera is None
     if own:
-        obj = TexturedObject(cfg.object)
-        camera = SimCamera(cfg.camera, obj)
+        camera = SimCamera(cfg.camera, TexturedObject(cfg.object))
     try:
         t0 = time.perf_counter()
         points, colors = camera.capture()
@@ -519,13 +452,15 @@ def capture_sim(cfg: SimCaptureConfig | None = None, camera: SimCamera | None = 
                 "point it at the object with --camera-pose eye_x,eye_y,eye_z,target_x,target_y,target_z")
         t1 = time.perf_counter()
         # A cleaned object has no marking left: keep the cloud with p = 0 instead of refusing it.
-        cap = capture_cloud(_replace(pipe, source="sim", allow_empty_target=allow_empty_target), raw=(points, colors))
+        pipe = replace(pipe, source="sim", allow_empty_target=allow_empty_target)
+        cap = capture_cloud(pipe, raw=(points, colors))
         timing["pipeline_ms"] = 1e3 * (time.perf_counter() - t1)
         timing["total_ms"] = 1e3 * (time.perf_counter() - t0)
         obj = camera.obj
         obj_cfg = obj.cfg if obj is not None else cfg.object
         cap.meta["frame"] = "robot_base"
         cap.meta["provenance"].update(object=obj_cfg.object, marking=obj_cfg.marking, renderer=camera.renderer)
+        cap.frame = camera.last_frame  # type: ignore[attr-defined]  # the rendered image, not saved by save_capture
         cap.meta["sim"] = {
             "object": obj_cfg.to_dict(),
             "object_pose": obj.pose.tolist() if obj is not None else None,
@@ -534,17 +469,10 @@ def capture_sim(cfg: SimCaptureConfig | None = None, camera: SimCamera | None = 
             "texture_version": obj.version if obj is not None else None,
             "timing_ms": timing,
         }
-        cap.frame = camera.last_frame  # type: ignore[attr-defined]  # the rendered image, not saved by save_capture
         return cap
     finally:
         if own:
             camera.close()
-
-
-def _replace(cfg, **changes):
-    from dataclasses import replace
-
-    return replace(cfg, **changes)
 
 
 def target_on_points(points: np.ndarray, capture: Capture, max_distance: float | None = None) -> np.ndarray:

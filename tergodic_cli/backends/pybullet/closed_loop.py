@@ -1,34 +1,17 @@
 """The closed outer loop in simulation (paper Fig. 3, issue 6): clean, look again, re-target, continue.
 
 ``tergodic explore CAPTURE --robot pybullet --recapture-every K --until-clean S [--max-steps N]``
-on a ``--source sim`` capture. One cycle:
+on a ``--source sim`` capture (docs/closed_loop.md). One cycle: engage and press at F_d; K explorer
+steps in contact, the sponge's contacts (merged into their force-weighted mean point and summed
+force) fading the *same* textured object the camera renders every ``clean_every`` simulated seconds;
+retreat to the picture pose, re-capture (render, back-project, the capture pipeline), move the new
+p onto the basis points and hand it to the explorer. The geometry has not changed, so the basis is
+reused, never recomputed (each re-capture checks its cache key). The loop stops when the camera
+sees at most ``until_clean`` of the first capture's marking (Σp, the ink weighed by its colour
+intensity), or when ``max_steps`` are spent. The robot, the cleaning model and the camera run in one
+process; the camera has its own PyBullet client, so the arm never occludes it.
 
-1. hover above the agent, approach, press at F_d (the robot's state machine);
-2. K explorer steps in contact. Every ``clean_every`` simulated seconds the sponge's contacts
-   go to the cleaning model of the *same* textured object the camera renders
-   (:meth:`~tergodic_cli.capture.textured.TexturedObject.clean`, force x time): the contacts of
-   PyBullet's manifold are merged into one point (force-weighted mean) carrying their summed
-   normal force, the measured contact force;
-3. retreat, move to the picture pose, re-capture with the simulated camera (render, back-project,
-   the capture pipeline's filters and colour segmentation), transfer the new p onto the basis
-   points (:func:`~tergodic_cli.backends.pybullet.camera.target_on_points`) and give it to the explorer
-   (:meth:`Explorer.set_target`). The geometry has not changed, so the basis is reused, never
-   recomputed: each re-capture checks that its cloud has the basis' cache key (a cache hit);
-4. stop when the marking the camera sees is at most ``until_clean`` of what it saw at first, or
-   when the step budget ``max_steps`` is spent; otherwise start the next cycle.
-
-Every capture of the loop, the first one included, weighs the ink by its colour intensity (the
-capture's ``voxel_rule="intensity"``: p is the mean ink weight of each voxel, 1 on full ink, a
-saturation ramp on partly wiped ink; :func:`~tergodic_cli.capture.segment.target_weight`), so
-faint ink still draws the agent and still counts. "Marking remaining" is measured by the camera:
-Σp of the re-capture / Σp of capture 0. The true share of the texture's ink
-(:meth:`TexturedObject.marking_remaining`, the simulator's own accounting) is reported beside it.
-The camera misses ink fainter than about 7.5 % of full intensity (docs/sim_camera.md), so "clean" is
-within a few points of the truth.
-
-Entry point: :func:`clean_with_robot`. The robot, the cleaning model and the camera run in the
-same process; the camera has its own PyBullet client, so the arm never occludes it (a wrist
-camera at the picture pose would not see the arm either).
+Entry point: :func:`clean_with_robot`.
 """
 
 from __future__ import annotations
@@ -40,12 +23,13 @@ from typing import Callable
 
 import numpy as np
 
+from tergodic_cli.config import Config
 from tergodic_cli.errors import require
 from tergodic_cli.robot.config import RobotConfig
 
 
 @dataclass
-class CleaningLoopConfig:
+class CleaningLoopConfig(Config):
     """The outer loop's settings (saved in summary.json as ``closed_loop``).
 
     recapture_every : K, explorer steps between two re-captures.
@@ -62,9 +46,6 @@ class CleaningLoopConfig:
     max_steps: int = 2000
     clean_every: float = 0.05
     reset_coverage: bool = True
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 def validate_loop_config(cfg: CleaningLoopConfig) -> None:
@@ -95,18 +76,16 @@ def sim_scene_configs(meta: dict):
             "capture with 'tergodic capture --source sim --object bowl --marking X --out CAPTURE'")
     o = dict(sim["object"])
     o["cleaning"] = CleaningModel(**(o.get("cleaning") or {}))
-    o["pose"] = tuple(o["pose"]) if o.get("pose") is not None else None
-    obj_cfg = SimObjectConfig(**{f.name: o[f.name] for f in fields(SimObjectConfig) if f.name in o})
-    c = dict(sim["camera"])
-    c["pose"] = tuple(c["pose"]) if c.get("pose") is not None else None
-    cam_cfg = SimCameraConfig(**{f.name: c[f.name] for f in fields(SimCameraConfig) if f.name in c})
-    p = dict(meta.get("config") or {})
-    for key in ("crop", "outliers"):
-        if p.get(key) is not None:
-            p[key] = tuple(p[key])
+    c, p = dict(sim["camera"]), dict(meta.get("config") or {})
+    for d, keys in ((o, ("pose",)), (c, ("pose",)), (p, ("crop", "outliers"))):  # lists: tuples
+        d.update({k: tuple(d[k]) for k in keys if d.get(k) is not None})
     p.update(source="sim", allow_empty_target=True)
-    pipe = CaptureConfig(**{f.name: p[f.name] for f in fields(CaptureConfig) if f.name in p})
-    return obj_cfg, cam_cfg, pipe
+    return _known(SimObjectConfig, o), _known(SimCameraConfig, c), _known(CaptureConfig, p)
+
+
+def _known(cls, d: dict):
+    """``cls`` from the keys of ``d`` that are its fields (a sidecar record holds more)."""
+    return cls(**{f.name: d[f.name] for f in fields(cls) if f.name in d})
 
 
 def _basis_key(points: np.ndarray, basis_meta: dict) -> str:
@@ -114,8 +93,7 @@ def _basis_key(points: np.ndarray, basis_meta: dict) -> str:
     from tergodic_cli.basis.cache import geometry_key
 
     conf = basis_meta.get("config") if isinstance(basis_meta.get("config"), dict) else {}
-    names = {f.name for f in fields(BasisConfig)}
-    return geometry_key(np.asarray(points, dtype=np.float64), BasisConfig(**{k: v for k, v in conf.items() if k in names}))[0]
+    return geometry_key(np.asarray(points, dtype=np.float64), _known(BasisConfig, conf))[0]
 
 
 class _Cleaner:

@@ -14,7 +14,7 @@ import numpy as np
 
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.robot.ga import motor_inverse
-from tergodic_cli.robot.interfaces import ArmState, WrenchReading
+from tergodic_cli.robot.interfaces import ArmState, WrenchReading, WrenchSensor
 from tergodic_cli.robot.kernels import fk_jacobian
 from tergodic_cli.backends.pybullet.scene import ARM_JOINTS, PyBulletScene
 from tergodic_cli.robot.kinematics import DQ_MAX, Q_MAX, Q_MIN, TAU_MAX
@@ -28,8 +28,6 @@ def kinematic_chain(scene: PyBulletScene) -> tuple[np.ndarray, np.ndarray, np.nd
     is the fixed transform F; the joint rotates the child about ``jointAxis`` (its own frame). The
     joint states are restored afterwards.
     """
-    from tergodic_cli.robot.ga import pose_matrix, quat_to_matrix
-
     p, cid, rob = scene.p, scene.cid, scene.robot
     chain = []
     j = scene.tcp_link
@@ -44,8 +42,7 @@ def kinematic_chain(scene: PyBulletScene) -> tuple[np.ndarray, np.ndarray, np.nd
         F, axis, qidx = [], [], []
         T_prev = np.eye(4)
         for link in chain:
-            ls = p.getLinkState(rob, link, computeForwardKinematics=True, physicsClientId=cid)
-            T = pose_matrix(quat_to_matrix(np.array(ls[5])), np.array(ls[4]))
+            T = scene.link_pose(link)
             F.append(np.linalg.solve(T_prev, T))
             info = p.getJointInfo(rob, link, physicsClientId=cid)
             movable = info[2] != p.JOINT_FIXED
@@ -64,7 +61,6 @@ class PyBulletArm:
     """The simulated Panda behind the :class:`Arm` protocol (7 torque-controlled joints)."""
 
     name = "panda-pybullet"
-    dof = 7
 
     def __init__(self, scene: PyBulletScene):
         self.scene = scene
@@ -79,8 +75,6 @@ class PyBulletArm:
         self.reaction_step = -1
         self.last_tau = [0.0] * 7  # total torque sent (task + compensation)
         self._tau_lim = self.tau_max.tolist()
-        #: Kept for backends whose Jacobian is costly; here it comes with the pose, every step.
-        self.jacobian_every = 1
         #: Gravity + Coriolis (calculateInverseDynamics) every this many commands (1 = every step).
         self.dynamics_every = 1
         self._bias: tuple | None = None
@@ -106,19 +100,11 @@ class PyBulletArm:
         sc = self.scene
         p, cid, rob = sc.p, sc.cid, sc.robot
         states = p.getJointStates(rob, self._read_idx, physicsClientId=cid)
-        q9 = [s[0] for s in states[:-1]]
-        dq9 = [s[1] for s in states[:-1]]
-        self._q9, self._dq9 = q9, dq9
-        self.reaction = states[-1][2]
-        self.reaction_step = sc.steps
-        q = np.array(q9)
-        T = np.empty((4, 4))
-        J = np.empty((6, 7))
-        F, axis, qidx, off = self._chain
-        fk_jacobian(q, F, axis, qidx, off, T, J)
-        if len(q9) > 7:  # a working gripper: the arm's 7 first
-            return ArmState(sc.t, q[:7].copy(), np.array(dq9[:7]), T, J)
-        return ArmState(sc.t, q, np.array(dq9), T, J)
+        self._q9, self._dq9 = [s[0] for s in states[:-1]], [s[1] for s in states[:-1]]
+        self.reaction, self.reaction_step = states[-1][2], sc.steps  # the sensor joint's
+        q, T, J = np.array(self._q9), np.empty((4, 4)), np.empty((6, 7))
+        fk_jacobian(q, *self._chain, T, J)
+        return ArmState(sc.t, q, np.array(self._dq9), T, J)
 
     def command(self, tau: np.ndarray) -> None:
         """Joint torques (7,) on top of gravity + Coriolis from ``calculateInverseDynamics``.
@@ -129,18 +115,25 @@ class PyBulletArm:
         p, cid = sc.p, sc.cid
         if self._q9 is None:  # never read: read first (also checks the connection)
             self.read_state()
-        # Gravity and Coriolis change with q and q̇, slowly at these speeds (< 0.3 rad/s in contact:
-        # 1.2 mrad in 4 ms, ~0.03 N m of gravity torque): refreshed every dynamics_every commands.
-        self._bias_age += 1
-        if self._bias is None or self._bias_age >= self.dynamics_every or self._bias_epoch != sc.teleports:
-            self._bias = p.calculateInverseDynamics(sc.robot, self._q9, self._dq9, self._zeros, physicsClientId=cid)
-            self._bias_age = 0
-            self._bias_epoch = sc.teleports
-        bias = self._bias
-        lim = self._tau_lim
+        bias, lim = self.gravity(self._q9, self._dq9), self._tau_lim
         total = [min(max(t + b, -m), m) for t, b, m in zip(np.asarray(tau, dtype=float).tolist(), bias, lim)]
         self.last_tau = total
         p.setJointMotorControlArray(sc.robot, sc.arm_joints, p.TORQUE_CONTROL, forces=total, physicsClientId=cid)
+
+    def gravity(self, q, dq) -> tuple:
+        """Gravity + Coriolis torques at (q, q̇), movable joints (``calculateInverseDynamics``).
+
+        They change slowly at these speeds (< 0.3 rad/s in contact: 1.2 mrad in 4 ms, ~0.03 N m of
+        gravity torque): refreshed every ``dynamics_every`` calls, and after a teleport.
+        """
+        sc = self.scene
+        self._bias_age += 1
+        if self._bias is None or self._bias_age >= self.dynamics_every or self._bias_epoch != sc.teleports:
+            self._bias = sc.p.calculateInverseDynamics(sc.robot, q, dq, self._zeros,
+                                                       physicsClientId=sc.cid)
+            self._bias_age = 0
+            self._bias_epoch = sc.teleports
+        return self._bias
 
     def disconnect(self) -> None:
         """Leave the joints braked (velocity motors back on) and mark the arm disconnected."""
@@ -151,7 +144,7 @@ class PyBulletArm:
         self._connected = False
 
 
-class PyBulletWrenchSensor:
+class PyBulletWrenchSensor(WrenchSensor):
     """The wrist F/T sensor: the reaction of the fixed joint between flange and hand.
 
     Reports the wrench the arm applies to the hand (and everything beyond it) in the hand's
@@ -180,7 +173,3 @@ class PyBulletWrenchSensor:
 
     def tare(self) -> None:
         self._offset = tuple(self._raw())
-
-    @property
-    def offset(self) -> np.ndarray:
-        return np.array(self._offset)

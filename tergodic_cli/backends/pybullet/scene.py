@@ -30,7 +30,6 @@ SENSOR_JOINT = "panda_hand_joint"  # fixed joint flange -> hand: the wrist F/T s
 SPONGE_LINK = "panda_hand"
 
 
-
 #: The stock hand's inertial (panda.urdf): 0.81 kg, centre of mass 40 mm along the hand's z.
 _HAND_MASS, _HAND_COM_Z, _HAND_INERTIA = 0.81, 0.04, 0.1
 _HAND_INERTIAL = r'<inertial>\s*<origin rpy="0 0 0" xyz="0 0 0.04"/>\s*<mass value=".81"/>\s*' \
@@ -113,15 +112,14 @@ class PyBulletScene:
     Parameters
     ----------
     sponge : :class:`SpongeSpec`.
-    gui : open the PyBullet GUI instead of DIRECT.
+    gui : open the PyBullet GUI instead of DIRECT, with a table: a ground plane at z = 0 (the object
+        is static, so it only matters for looks and for links that sink below it).
     dt : physics step, s (1 kHz by default).
     solver_iterations : constraint solver iterations per step.
-    table : add a ground plane at z = 0 (the table the robot stands on; the object is static, so
-        it only matters for looks and for links that sink below the table).
     """
 
     def __init__(self, sponge: SpongeSpec | None = None, gui: bool = False, dt: float = 1e-3,
-                 solver_iterations: int = 10, table: bool | None = None):
+                 solver_iterations: int = 10):
         import pybullet as p
         import pybullet_data
 
@@ -145,8 +143,7 @@ class PyBulletScene:
         p.setTimeStep(self.dt, physicsClientId=cid)
         p.setPhysicsEngineParameter(numSolverIterations=int(solver_iterations), physicsClientId=cid)
         data = pybullet_data.getDataPath()
-        table = self.gui if table is None else table
-        self.table = p.loadURDF(os.path.join(data, "plane.urdf"), physicsClientId=cid) if table else None
+        self.table = p.loadURDF(os.path.join(data, "plane.urdf"), physicsClientId=cid) if gui else None
         self.robot = self._load_robot(data)
         p.setPhysicsEngineParameter(contactBreakingThreshold=self._breaking_factor(), physicsClientId=cid)
         self.object: int | None = None
@@ -166,22 +163,18 @@ class PyBulletScene:
             robot = p.loadURDF(path, useFixedBase=True, flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=cid)
         finally:
             os.unlink(path)
-        names = {}
-        links = {}
-        for j in range(p.getNumJoints(robot, physicsClientId=cid)):
-            info = p.getJointInfo(robot, j, physicsClientId=cid)
-            names[info[1].decode()] = j
-            links[info[12].decode()] = j
+        n = p.getNumJoints(robot, physicsClientId=cid)
+        infos = [p.getJointInfo(robot, j, physicsClientId=cid) for j in range(n)]
+        for j in range(n):
             p.changeDynamics(robot, j, linearDamping=0.0, angularDamping=0.0, physicsClientId=cid)
-        self.joint_index = names
-        self.link_index = links
-        self.link_names = [n for n, _ in sorted(links.items(), key=lambda kv: kv[1])]
+        names = {info[1].decode(): j for j, info in enumerate(infos)}
+        self.link_names = [info[12].decode() for info in infos]
+        self.link_index = links = {n: j for j, n in enumerate(self.link_names)}
         self.arm_joints = [names[n] for n in ARM_JOINTS]
         # Every non-fixed joint, in index order: the numDoF-sized inputs of calculateJacobian and
-        # calculateInverseDynamics (the arm's 7 here; 9 with a working gripper).
-        self.movable = [j for j in range(p.getNumJoints(robot, physicsClientId=cid))
-                        if p.getJointInfo(robot, j, physicsClientId=cid)[2] != p.JOINT_FIXED]
-        assert self.movable[:7] == self.arm_joints
+        # calculateInverseDynamics (the arm's 7: the sponge replaces the gripper's fingers).
+        self.movable = [j for j, info in enumerate(infos) if info[2] != p.JOINT_FIXED]
+        assert self.movable == self.arm_joints
         self.sensor_joint = names[SENSOR_JOINT]
         self.sponge_link = links[SPONGE_LINK]
         #: The TCP is the sponge's tip, a point on the sponge's link (no link of its own: one fewer body).
@@ -189,10 +182,6 @@ class PyBulletScene:
         self.tcp_offset = (0.0, 0.0, float(self.sponge.offset + self.sponge.radius))
         # Torque control: switch the arm's default velocity motors off (force = 0).
         p.setJointMotorControlArray(robot, self.arm_joints, p.VELOCITY_CONTROL, forces=[0.0] * 7, physicsClientId=cid)
-        extra = self.movable[7:]  # a working gripper: hold it closed
-        if extra:
-            p.setJointMotorControlArray(robot, extra, p.POSITION_CONTROL, targetPositions=[0.0] * len(extra),
-                                        forces=[50.0] * len(extra), physicsClientId=cid)
         p.enableJointForceTorqueSensor(robot, self.sensor_joint, True, physicsClientId=cid)
         s = self.sponge
         # contactProcessingThreshold=0: only touching or penetrating points reach the solver. The
@@ -227,8 +216,6 @@ class PyBulletScene:
         self.teleports += 1
         for j, qi in zip(self.arm_joints, q):
             p.resetJointState(self.robot, j, float(qi), 0.0, physicsClientId=self.cid)
-        for j in self.movable[7:]:
-            p.resetJointState(self.robot, j, 0.0, 0.0, physicsClientId=self.cid)
 
     def link_pose(self, link: int) -> np.ndarray:
         """(4, 4) world pose of a link frame (forward kinematics recomputed)."""

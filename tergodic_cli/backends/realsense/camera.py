@@ -26,8 +26,6 @@ from tergodic_cli.backends.extras import import_sdk
 
 
 @dataclass
-
-
 class RealSenseConfig(Config):
     """serial : the camera's serial number (None = the only one connected).
     width, height, fps : stream profile of both streams (D400: 640x480 or 1280x720 at 6-30 fps).
@@ -70,18 +68,12 @@ class RealSenseCamera:
         self.depth_scale: float | None = None
         self.serial: str | None = None
         self.name: str | None = None
-        self._rs = None
         self._align = None
-
-    @property
-    def is_connected(self) -> bool:
-        return self.pipeline is not None
 
     def connect(self) -> None:
         if self.pipeline is not None:
             return
         rs = import_sdk("pyrealsense2")
-        self._rs = rs
         cfg = self.cfg
         devices = list(rs.context().query_devices())
         serials = [d.get_info(rs.camera_info.serial_number) for d in devices]
@@ -151,10 +143,3 @@ class RealSenseCamera:
             self.pipeline.stop()
         finally:
             self.pipeline = None
-
-    def __enter__(self) -> "RealSenseCamera":
-        self.connect()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.disconnect()

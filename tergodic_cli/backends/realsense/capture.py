@@ -5,7 +5,9 @@ from __future__ import annotations
 import time
 from dataclasses import replace
 
-from tergodic_cli.backends.camera import capture_with_camera
+import numpy as np
+
+from tergodic_cli.errors import TergodicError, require
 
 
 def capture_realsense(cfg, serial: str | None = None, width: int = 640, height: int = 480, fps: int = 30,
@@ -24,6 +26,7 @@ def capture_realsense(cfg, serial: str | None = None, width: int = 640, height: 
     "camera_optical", ``meta["realsense"]`` the device, its intrinsics and the timings.
     """
     from tergodic_cli.backends.factory import camera_pose_matrix, make_camera
+    from tergodic_cli.capture import capture_cloud
 
     T = camera_pose_matrix(camera_pose) if camera_pose is not None else None
     cam = make_camera("realsense", serial=serial, width=width, height=height, fps=fps, T_base_cam=T,
@@ -32,7 +35,14 @@ def capture_realsense(cfg, serial: str | None = None, width: int = 640, height: 
     cam.connect()
     try:
         t1 = time.perf_counter()
-        cap = capture_with_camera(cam, replace(cfg, source="realsense"), frames=frames)
+        require(frames >= 1, f"frames must be >= 1, got {frames}", "e.g. 1")
+        clouds = [cam.read() for _ in range(int(frames))]  # merged into one cloud
+        points = np.concatenate([p for p, _ in clouds])
+        if len(points) == 0:
+            raise TergodicError("the camera returned no valid depth pixels",
+                                "check the working range (objects closer than ~0.1 m have no depth) and the lighting")
+        colors = np.concatenate([c for _, c in clouds])
+        cap = capture_cloud(replace(cfg, source="realsense"), raw=(points, colors))
         t2 = time.perf_counter()
         cap.meta["frame"] = "robot_base" if T is not None else "camera_optical"
         cap.meta["provenance"].update(device=cam.name, serial=cam.serial)
