@@ -131,6 +131,29 @@ def test_a_joint_near_its_limit_marks_the_place_out_of_reach(mug, monkeypatch):
     assert kept[d < 0.005].any()  # without the rule those places stay reachable
 
 
+def test_the_agent_moves_on_when_the_rolled_contact_is_out_of_reach(mug, monkeypatch):
+    """Where the turn limit leaves the tool's next line on an unreachable point while the agent's own
+    point is reachable, the tool waits and the agent moves on by itself (reset to the standing tool it
+    took the same step again and again: the torus stood still for 900 steps); back in reach away from
+    the tool, the tool moves over. Forced: no turn at all allowed, the tool's own spot out of reach."""
+    import tergodic_cli.robot.run as R
+
+    cap, basis = mug
+    cfg = RobotConfig(force=5.0, **FAST)
+    monkeypatch.setattr(R, "MAX_TURN_DEG", 0.0)
+    monkeypatch.setattr(R, "GENTLE_TURN_DEG", -1.0)
+    events = []
+    with RobotRun(cap, _explorer(cap, basis, cfg), cfg, on_event=lambda s, m: events.append(m)) as run:
+        run.begin()
+        with run.guarded():
+            run.engage()
+            spot = run._to_obj(run._start_line[0])
+            run.reachable[np.linalg.norm(cap.points - spot, axis=1) < 0.002] = False
+            run.explore(15)
+        assert run.fault is None and run.sm.state == "explore"
+    assert any("moving over" in m for m in events)
+
+
 def test_no_press_at_a_large_angle(mug):
     cap, basis = mug
     cfg = RobotConfig(force=5.0, **FAST)
