@@ -135,8 +135,8 @@ def run_one(obj: str, steps: int, seed: int, force: float, nk: int, cache: str, 
         out = explore_with_robot(cap, ex, rcfg, steps, on_step=on_step)
     except TergodicError as exc:  # refused before any motion (bad input, nothing reachable): a row that says so
         return {"object": obj, "seed": seed, "steps": steps, "force_N": force, "steps_done": 0,
-                "stop_reason": f"refused: {exc}", "eps_sponge": float("nan"), "eps_kinematic": float("nan"),
-                "bare_steps_per_s": bare}
+                "stop_reason": f"refused: {exc}", "bare_steps_per_s": bare,
+                **dict.fromkeys(("eps_sponge", "eps_kinematic", "eps_sponge_whole", "eps_kinematic_whole"), float("nan"))}
     wall = time.perf_counter() - t0
     h = mean_spacing(cap.points)
     reach = np.asarray(ex.p, dtype=float)  # the target the robot explored: the unreachable part dropped
