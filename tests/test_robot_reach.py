@@ -107,6 +107,53 @@ def test_an_unreachable_region_is_reported_and_dropped(mug):
         RobotRun(cap, _explorer(cap, basis, cfg, target=target), cfg)
 
 
+def test_a_joint_near_its_limit_marks_the_place_out_of_reach(mug, monkeypatch):
+    """Where the arm's posture nears a joint limit in contact (the torus's far wall drove joint 6 past
+    it), the place is marked out of reach: the tool waits there, the agent moves on, the tool moves
+    over; the run never stops on the limit. Forced here by counting every posture as near its limit."""
+    import tergodic_cli.robot.run as R
+
+    cap, basis = mug
+    cfg = RobotConfig(force=5.0, **FAST)
+    with RobotRun(cap, _explorer(cap, basis, cfg), cfg) as run:
+        run.run(6)
+        kept = run.reachable.copy()
+    monkeypatch.setattr(R, "JOINT_NEAR", 10.0)
+    events = []
+    with RobotRun(cap, _explorer(cap, basis, cfg), cfg, on_event=lambda s, m: events.append(m)) as run:
+        before = run.reachable.copy()
+        out = run.run(12)
+        assert out["stop_reason"] == "completed"
+        cps = np.array([run._to_obj(s["contact_point"]) for s in run.samples if s["in_contact"]])
+        d = np.min(np.linalg.norm(cap.points[:, None] - cps[None], axis=2), axis=1)
+        assert not run.reachable[d < 0.005].any() and before[d < 0.005].any()
+        assert any("waits on the last reachable point" in m for m in events)
+    assert kept[d < 0.005].any()  # without the rule those places stay reachable
+
+
+def test_the_agent_moves_on_when_the_rolled_contact_is_out_of_reach(mug, monkeypatch):
+    """Where the turn limit leaves the tool's next line on an unreachable point while the agent's own
+    point is reachable, the tool waits and the agent moves on by itself (reset to the standing tool it
+    took the same step again and again: the torus stood still for 900 steps); back in reach away from
+    the tool, the tool moves over. Forced: no turn at all allowed, the tool's own spot out of reach."""
+    import tergodic_cli.robot.run as R
+
+    cap, basis = mug
+    cfg = RobotConfig(force=5.0, **FAST)
+    monkeypatch.setattr(R, "MAX_TURN_DEG", 0.0)
+    monkeypatch.setattr(R, "GENTLE_TURN_DEG", -1.0)
+    events = []
+    with RobotRun(cap, _explorer(cap, basis, cfg), cfg, on_event=lambda s, m: events.append(m)) as run:
+        run.begin()
+        with run.guarded():
+            run.engage()
+            spot = run._to_obj(run._start_line[0])
+            run.reachable[np.linalg.norm(cap.points - spot, axis=1) < 0.002] = False
+            run.explore(15)
+        assert run.fault is None and run.sm.state == "explore"
+    assert any("moving over" in m for m in events)
+
+
 def test_no_press_at_a_large_angle(mug):
     cap, basis = mug
     cfg = RobotConfig(force=5.0, **FAST)

@@ -55,6 +55,9 @@ MAX_TURN_DEG = 3.0
 GENTLE_TURN_DEG = 5.0
 #: Metres between the agent, back in reach, and the waiting tool beyond which the tool lifts and moves over.
 TRANSIT_M = 0.012
+#: Radians from a joint's limit (inside the guard's margin), and the share of its speed limit, at
+#: which the tool's place counts as out of reach after all.
+JOINT_NEAR, SPEED_NEAR = 0.1, 0.4
 #: Cosine of the normals' spread beyond which the ball's contact is taken to be at an edge.
 EDGE_COS = math.cos(math.radians(10.0))
 
@@ -491,9 +494,12 @@ class ContactRun:
                     # tool tip, is held back with it.
                     d_new = turn_towards(d_cur, d_new, limit)
                     a_new = self._ball_contact(a_cur, d_new)[0]
-                if not waiting and self._reachable_at(a_new):
+                # Where the line (rolled by the turn limit) lands out of reach the tool stays and the agent
+                # moves on its own: reset to the tool tip it took the same step again and again (torus).
+                waiting = waiting or not self._reachable_at(a_new)
+                if not waiting:
                     a_next, d_next = a_new, d_new
-                elif waiting and not self._told_unreachable:
+                elif not self._told_unreachable:
                     self._told_unreachable = True
                     self.on_event(step, f"robot: the agent entered the unreachable part at {_fmt(a_new)} m; the tool "
                                         "waits on the last reachable point")
@@ -511,6 +517,15 @@ class ContactRun:
                 fresh = fault.kind != "explorer" and step > (self.samples[-1]["step"] if self.samples else 0)
                 self._fault_sample(fault, step, obs, np.array(a), np.array(d), on_step, record=fresh)
             a_cur, d_cur = a_next, d_next
+            st, g = obs.state, self.guard
+            near_limit = min(np.min(st.q - g.q_lo), np.min(g.q_hi - st.q)) < JOINT_NEAR
+            spinning = max(abs(st.dq) / self.arm.dq_max) > SPEED_NEAR
+            if self.max_tilt_deg is None and (near_limit or spinning):
+                # A joint nears its limit, or the wrist spins up (near a singularity): the posture
+                # drifted from the planned one and this part is out of reach after all; the tool
+                # waits here and moves over when the agent is back in reach.
+                near = self.kdtree.query_ball_point(self._to_obj(a_cur), TRANSIT_M)
+                self.reachable[np.asarray(near, dtype=np.intp)] = False
             sample = self._sample(step, obs, a_cur, d_cur)
             # Never press at a large angle: two explorer steps in a row (a ball rolling over an edge
             # sees single-sample transients when it touches both faces; a wrong axis stays wrong).
