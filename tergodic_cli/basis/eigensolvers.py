@@ -12,7 +12,6 @@ docs/precompute.md, "The eigensolver", gives the method and its measured accurac
 from __future__ import annotations
 
 import math
-import time
 import warnings
 
 import numpy as np
@@ -70,8 +69,7 @@ def component_null_basis(L: sp.spmatrix, sqrt_mass: np.ndarray) -> np.ndarray:
 class SymmetricFactor:
     """Sparse LDLᵀ of a symmetric (possibly indefinite) matrix K, with its inertia.
 
-    Uses ``qdldl`` (AMD ordering, no pivoting) when installed, given only K's upper
-    triangle; else SuperLU in symmetric mode without row pivoting, whose U diagonal is D.
+    Uses ``qdldl`` (AMD ordering, no pivoting), given only K's upper triangle.
     :meth:`refactor` factorises another matrix with the same sparsity pattern (another
     shift) reusing the ordering and symbolic analysis: 3-5x cheaper than a new factor.
 
@@ -81,36 +79,17 @@ class SymmetricFactor:
     """
 
     def __init__(self, K: sp.spmatrix, check_accuracy: bool = True):
+        import qdldl
+
         K = sp.csc_matrix(K)
         self.n = K.shape[0]
         try:
-            import qdldl
-        except ImportError:
-            qdldl = None
-        if qdldl is not None:
-            try:
-                self._solver = qdldl.Solver(sp.triu(K, format="csc"), upper=True)
-            except Exception as exc:  # zero pivot: the shift hit the spectrum
-                raise EigensolverFailure(f"LDL factorisation failed ({exc})") from None
-            self.solve = self._solver.solve
-            self.backend = "qdldl"
-            self._set_inertia(self._solver.factors()[1], K if check_accuracy else None)
-        else:
-            self.backend = "superlu"
-            self._superlu(K, check_accuracy)
-
-    def _superlu(self, K: sp.csc_matrix, check_accuracy: bool) -> None:
-        from scipy.sparse.linalg import splu
-
-        try:
-            lu = splu(K, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                      options=dict(SymmetricMode=True))
-        except RuntimeError as exc:
-            raise EigensolverFailure(f"LU factorisation failed ({exc})") from None
-        if not np.array_equal(lu.perm_r, lu.perm_c):
-            raise EigensolverFailure("SuperLU pivoted off the diagonal; inertia unknown")
-        self.solve = lu.solve
-        self._set_inertia(lu.U.diagonal(), K if check_accuracy else None)
+            self._solver = qdldl.Solver(sp.triu(K, format="csc"), upper=True)
+        except Exception as exc:  # zero pivot: the shift hit the spectrum
+            raise EigensolverFailure(f"LDL factorisation failed ({exc})") from None
+        self.solve = self._solver.solve
+        self.backend = "qdldl"
+        self._set_inertia(self._solver.factors()[1], K if check_accuracy else None)
 
     def refactor(self, K: sp.spmatrix, check_accuracy: bool = False) -> "SymmetricFactor":
         """Factorise K in place.
@@ -128,9 +107,6 @@ class SymmetricFactor:
             ``self``.
         """
         K = sp.csc_matrix(K)
-        if self.backend != "qdldl":
-            self._superlu(K, check_accuracy)
-            return self
         try:
             self._solver.update(sp.triu(K, format="csc"), upper=True)
         except Exception as exc:
@@ -212,8 +188,7 @@ def choose_shift(A: "ShiftedMatrix", area: float, n_wanted: int, n_null: int,
     return best
 
 
-def lanczos(apply_op, q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, check_from: int,
-            timings: dict | None = None, check_every=None):
+def lanczos(apply_op, q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, check_from: int, check_every):
     """Symmetric Lanczos with full reorthogonalisation and a deflated subspace.
 
     After the three-term step, each new vector is orthogonalised against all previous
@@ -234,7 +209,7 @@ def lanczos(apply_op, q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, che
     on_check : callable(alpha (m,), beta (m + 1,), m) -> bool, True when converged;
         ``beta[i]`` couples q_{i-1} and q_i (beta[0] = 0), ``beta[m]`` is the residual coupling.
     check_from : first Krylov dimension at which ``on_check`` is called.
-    check_every : callable(m) -> steps to the next check (default: max(4, m // 20)).
+    check_every : callable(m) -> steps to the next check.
 
     Returns
     -------
@@ -252,17 +227,11 @@ def lanczos(apply_op, q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, che
     beta = np.zeros(max_dim + 1)
     anorm = 0.0
     next_check = check_from
-    check_every = check_every or (lambda m: max(4, m // 20))
     rng = np.random.default_rng(2024)
-    clock = time.perf_counter
-    t_op = t_orth = t_check = 0.0
-    n_checks = 0
     for j in range(max_dim):
         k = c + j  # row of q_j
-        t0 = clock()
         q = Q[k]
         r = apply_op(q)
-        t1 = clock()
         if j:
             r -= beta[j] * Q[k - 1]
         a = q @ r
@@ -295,17 +264,9 @@ def lanczos(apply_op, q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, che
             np.multiply(r, 1.0 / b, out=Q[k + 1])
         Q32[k + 1] = Q[k + 1]
         beta[j + 1] = b
-        t2 = clock()
-        t_op += t1 - t0
-        t_orth += t2 - t1
         m = j + 1
         if m >= next_check:
-            done = on_check(alpha[:m], beta[:m + 1], m)
-            t_check += clock() - t2
-            n_checks += 1
-            if done:
-                if timings is not None:
-                    timings.update(op_s=t_op, orth_s=t_orth, check_s=t_check, checks=n_checks)
+            if on_check(alpha[:m], beta[:m + 1], m):
                 return Q[c:], m
             next_check = m + check_every(m)
     raise EigensolverFailure(f"Lanczos did not converge in {max_dim} steps")
@@ -344,8 +305,7 @@ def tridiagonal_eigh(alpha: np.ndarray, beta: np.ndarray) -> tuple[np.ndarray, n
     return eigh_tridiagonal(alpha, beta, lapack_driver="stemr")
 
 
-def block_lanczos(apply_op, Q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, check_from: int,
-                  timings: dict | None = None, check_every=None):
+def block_lanczos(apply_op, Q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, check_from: int, check_every):
     """Symmetric block Lanczos with full reorthogonalisation and a deflated subspace.
 
     Each new block is orthogonalised against all previous ones by block classical
@@ -362,7 +322,7 @@ def block_lanczos(apply_op, Q0: np.ndarray, Z: np.ndarray, max_dim: int, on_chec
     on_check : callable(T_band (b + 1, m), B_last (b, b), m) -> bool, True when converged.
         ``T_band`` is the projected operator in LAPACK lower band storage.
     check_from : first Krylov dimension at which ``on_check`` is called.
-    check_every : callable(m) -> Krylov dimensions to the next check (default: max(4, m // 16)).
+    check_every : callable(m) -> Krylov dimensions to the next check.
 
     Returns
     -------
@@ -380,16 +340,10 @@ def block_lanczos(apply_op, Q0: np.ndarray, Z: np.ndarray, max_dim: int, on_chec
     anorm = 0.0
     next_check = check_from
     rng = np.random.default_rng(2024)
-    clock = time.perf_counter
-    t_op = t_orth = t_check = 0.0
     B_prev = None
-    n_checks = 0
-    check_every = check_every or (lambda m: max(4, m // 16))
     for j in range(n_blocks):
         lo, hi = j * b, (j + 1) * b
-        t0 = clock()
         W = apply_op(Q[lo:hi])
-        t1 = clock()
         if B_prev is not None:
             W -= B_prev @ Q[lo - b:lo]  # (Q_{j-1} B_jᵀ)ᵀ in row form
         A = Q[lo:hi] @ W.T
@@ -430,17 +384,9 @@ def block_lanczos(apply_op, Q0: np.ndarray, Z: np.ndarray, max_dim: int, on_chec
             if d > 0:
                 band[d, hi - d:hi] = np.diagonal(R, b - d)
         B_prev = R  # the next block's coupling to this one
-        t2 = clock()
-        t_op += t1 - t0
-        t_orth += t2 - t1
         m = hi
         if m >= next_check:
-            done = on_check(band[:, :m], R, m)
-            t_check += clock() - t2
-            n_checks += 1
-            if done:
-                if timings is not None:
-                    timings.update(op_s=t_op, orth_s=t_orth, check_s=t_check, checks=n_checks)
+            if on_check(band[:, :m], R, m):
                 return Q, m
             next_check = m + check_every(m)
     raise EigensolverFailure(f"Lanczos did not converge in {n_blocks * b} steps")
@@ -499,8 +445,7 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
     seed : start-vector seed (results are deterministic).
     interior_shift : σ inside the wanted window (fast) or σ < 0 (positive definite, slower).
     block : Lanczos block size (1: single vectors).
-    report : optional dict, filled with what was done (method, shift, Krylov dimension,
-        residual, timings in seconds under keys ending in ``_s``).
+    report : optional dict, filled with what was done (method, shift, residual).
 
     Returns
     -------
@@ -517,7 +462,6 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
     if ne <= 0:  # only null vectors are wanted: they are exact
         report["method"] = "null-space"
         return np.zeros(nk), np.ascontiguousarray(Z[:, :nk] / s[:, None])
-    t0 = time.perf_counter()
     A = L.tocoo()
     A = ShiftedMatrix(sp.csc_matrix((A.data / (s[A.row] * s[A.col]), (A.row, A.col)), shape=L.shape))  # S⁻¹ L S⁻¹
     if interior_shift:
@@ -527,8 +471,7 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
         sigma = -0.01 * 4.0 * math.pi / float(mass.sum())
         factor = SymmetricFactor(A(sigma))
     n_below = factor.n_negative - (c if sigma > 0 else 0)  # non-zero eigenvalues in (0, σ)
-    report.update(method="lanczos", block=block, sigma=sigma, below_sigma=n_below, factor=factor.backend,
-                  factor_s=time.perf_counter() - t0)
+    report.update(method="lanczos", block=block, sigma=sigma, factor=factor.backend)
     solve = factor.solve
     from scipy.linalg import eig_banded
 
@@ -581,7 +524,7 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
             theta, U = tridiagonal_eigh(alpha, beta[1:m])
             return select(theta, U, m, beta[m:m + 1, None])
 
-        Q, m = lanczos(solve, Q0[0], Z, max_dim, on_check, check_from, report,
+        Q, m = lanczos(solve, Q0[0], Z, max_dim, on_check, check_from,
                        check_every=lambda m: state.get("next_in", max(4, m // 20)))
     else:
         def apply_op(X):
@@ -594,13 +537,9 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
             theta, U = eig_banded(band, lower=True)
             return select(theta, U, m, R)
 
-        Q, m = block_lanczos(apply_op, Q0, Z, max_dim, on_check, check_from, report,
+        Q, m = block_lanczos(apply_op, Q0, Z, max_dim, on_check, check_from,
                              check_every=lambda m: state.get("next_in", max(4, m // 16)))
-    report["krylov_dim"] = m
-    t0 = time.perf_counter()
     Y = Q[:m].T @ state["U"]  # Ritz vectors as columns, (n, ne)
-    report["ritz_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
     evals, evecs = _finish(Y, L, s, Z, nk, float(np.max(state["lam"])), report)
     # Completeness: Sylvester's law must count exactly nk eigenvalues below a point τ just
     # above the largest one found. This catches an eigenvalue Lanczos skipped (e.g. one
@@ -608,7 +547,6 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
     top = float(evals[-1])
     tau = 0.5 * (top + state["next_lo"]) if state["next_lo"] > top * (1 + 1e-6) else top * (1 + 1e-7)
     count = factor.refactor(A(tau)).n_negative  # the solves are done: reuse the factor's analysis
-    report.update(finish_s=time.perf_counter() - t0, count_at_top=count)
     if count != nk:
         raise EigensolverFailure(f"{count} eigenvalues lie below {tau:.6g}, {nk} were found")
     return evals, evecs
@@ -689,19 +627,15 @@ _BLAS_CONTROLLER = []
 
 
 def _single_threaded_blas():
-    """Limit BLAS to one thread where ``threadpoolctl`` is installed (else do nothing).
+    """Limit BLAS to one thread (``threadpoolctl``).
 
     The solver's dense work is level-2 BLAS and thin products, bound by memory bandwidth:
     a second BLAS thread gains little on a quiet machine and costs 2-3x when the other
     core is busy (measured: 2.4-3.0 s instead of 0.8-1.1 s at 3684 points, nK = 200).
     The controller (a scan of the loaded libraries, ~5 ms) is built once per process.
     """
-    try:
-        from threadpoolctl import ThreadpoolController
-    except ImportError:
-        import contextlib
+    from threadpoolctl import ThreadpoolController
 
-        return contextlib.nullcontext()
     if not _BLAS_CONTROLLER:
         _BLAS_CONTROLLER.append(ThreadpoolController())
     return _BLAS_CONTROLLER[0].limit(limits=1, user_api="blas")
