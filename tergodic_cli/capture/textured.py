@@ -18,7 +18,7 @@ import numpy as np
 
 from tergodic_cli.config import Config
 from tergodic_cli.errors import TergodicError, require
-from tergodic_cli.rotations import euler_xyz_matrix, matrix_to_quat, quat_to_matrix
+from tergodic_cli.rotations import matrix_to_quat, quat_to_matrix
 
 BUILTIN_OBJECTS = ("bowl", "plate", "mug")
 PATTERN_MARKINGS = ("X", "ring", "dots", "patches")
@@ -603,7 +603,9 @@ def parse_pose(values, option: str) -> np.ndarray:
     T = np.eye(4)
     T[:3, 3] = v[:3]
     if len(v) == 6:
-        T[:3, :3] = euler_xyz_matrix(*np.deg2rad(v[3:]))
+        from scipy.spatial.transform import Rotation
+
+        T[:3, :3] = Rotation.from_euler("xyz", v[3:], degrees=True).as_matrix()  # fixed axes: Rz Ry Rx
     elif len(v) == 7:
         q = np.array(v[3:])
         require(abs(np.linalg.norm(q) - 1.0) < 1e-3, f"{option} quaternion is not unit length", fix)
