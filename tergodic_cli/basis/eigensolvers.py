@@ -4,7 +4,7 @@ The default, :func:`smallest_eigenpairs`, is shift-invert Lanczos written for th
 symmetric form A = S⁻¹ L S⁻¹ (S = √M), the connected components' null space deflated exactly, one
 LDLᵀ factorisation (``qdldl``) of A − σI with σ inside the wanted window (its inertia counts the
 eigenvalues below σ), full reorthogonalisation without restarts, and certificates (inertia counts,
-true residuals) that hand over to block Lanczos, a negative shift, then ARPACK when they fail.
+true residuals) that hand over to another start vector, a negative shift, then ARPACK when they fail.
 docs/precompute.md, "The eigensolver", gives the method and its measured accuracy against
 :func:`arpack_eigenpairs` (the authors' ``eigsh(L, nK, M, sigma=1e-12)``).
 """
@@ -28,8 +28,6 @@ DENSE_MAX_N = 800
 DENSE_CAP_N = 6000
 #: Reorthogonalisation corrections below this share of the vector are applied in float32.
 SMALL_CORRECTION = 1e-6
-#: Blocks of 4 from this many points up: matrix-matrix products beat the extra Krylov steps.
-BLOCK_MIN_N = 8000
 #: Aim for this share of the wanted non-zero eigenvalues below the shift σ.
 SHIFT_SHARE = 0.55
 
@@ -305,93 +303,6 @@ def tridiagonal_eigh(alpha: np.ndarray, beta: np.ndarray) -> tuple[np.ndarray, n
     return eigh_tridiagonal(alpha, beta, lapack_driver="stemr")
 
 
-def block_lanczos(apply_op, Q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, check_from: int, check_every):
-    """Symmetric block Lanczos with full reorthogonalisation and a deflated subspace.
-
-    Each new block is orthogonalised against all previous ones by block classical
-    Gram-Schmidt (matrix-matrix products), repeated only when it cancelled badly, so the
-    basis stays orthonormal to machine precision and Ritz vectors are as accurate as
-    their residuals say (tiny corrections applied in float32, as in :func:`lanczos`).
-
-    Parameters
-    ----------
-    apply_op : callable (b, n) -> (b, n), a symmetric operator applied to each row.
-    Q0 : (b, n) orthonormal start block (rows), orthogonal to ``Z``.
-    Z : (n, c) orthonormal vectors kept out of the Krylov space.
-    max_dim : largest Krylov dimension.
-    on_check : callable(T_band (b + 1, m), B_last (b, b), m) -> bool, True when converged.
-        ``T_band`` is the projected operator in LAPACK lower band storage.
-    check_from : first Krylov dimension at which ``on_check`` is called.
-    check_every : callable(m) -> Krylov dimensions to the next check.
-
-    Returns
-    -------
-    Q (≥ m, n) whose first m rows are the orthonormal Lanczos vectors, and m.
-    """
-    b, n = Q0.shape
-    eps = np.finfo(np.float64).eps
-    n_blocks = max_dim // b
-    Q = np.empty(((n_blocks + 1) * b, n))
-    Q32 = np.empty(((n_blocks + 1) * b, n), dtype=np.float32)
-    Q[:b] = Q0
-    Q32[:b] = Q0
-    band = np.zeros((b + 1, (n_blocks + 1) * b))  # lower band storage of T
-    Zt = np.ascontiguousarray(Z.T)
-    anorm = 0.0
-    next_check = check_from
-    rng = np.random.default_rng(2024)
-    B_prev = None
-    for j in range(n_blocks):
-        lo, hi = j * b, (j + 1) * b
-        W = apply_op(Q[lo:hi])
-        if B_prev is not None:
-            W -= B_prev @ Q[lo - b:lo]  # (Q_{j-1} B_jᵀ)ᵀ in row form
-        A = Q[lo:hi] @ W.T
-        W -= A.T @ Q[lo:hi]
-        if Zt.shape[0]:
-            W -= (W @ Z) @ Zt
-        norm0 = np.linalg.norm(W)
-        V = Q[:hi]
-        H = V @ W.T
-        if np.max(np.abs(H)) <= SMALL_CORRECTION * norm0:  # see lanczos(): float32 update
-            W -= (H.T.astype(np.float32) @ Q32[:hi]).astype(np.float64)
-        else:
-            W -= H.T @ V
-        A += H[lo:hi]
-        if np.linalg.norm(W) < 0.7 * norm0:  # cancellation: one more pass
-            H = V @ W.T
-            W -= H.T @ V
-            A += H[lo:hi]
-        A = 0.5 * (A + A.T)
-        Qn, R = np.linalg.qr(W.T)
-        anorm = max(anorm, np.abs(A).sum(axis=1).max() + np.abs(R).sum(axis=0).max())
-        small = np.abs(np.diag(R)) <= 1e3 * eps * anorm
-        if small.any():  # (near) invariant subspace: continue with fresh directions
-            X = rng.standard_normal((int(small.sum()), n))
-            for _ in range(2):
-                if Zt.shape[0]:
-                    X -= (X @ Z) @ Zt
-                X -= (X @ V.T) @ V
-                X -= (X @ Qn) @ Qn.T
-            Qx, _ = np.linalg.qr(X.T)
-            Qn[:, small] = Qx
-            R[small, :] = 0.0
-        Q[hi:hi + b] = Qn.T
-        Q32[hi:hi + b] = Qn.T
-        for d in range(b + 1):  # A on the diagonal band, R (the next coupling) below it
-            if d < b:
-                band[d, lo:hi - d] = np.diagonal(A, -d)
-            if d > 0:
-                band[d, hi - d:hi] = np.diagonal(R, b - d)
-        B_prev = R  # the next block's coupling to this one
-        m = hi
-        if m >= next_check:
-            if on_check(band[:, :m], R, m):
-                return Q, m
-            next_check = m + check_every(m)
-    raise EigensolverFailure(f"Lanczos did not converge in {n_blocks * b} steps")
-
-
 # ---------------------------------------------------------------------------------------
 # Solvers
 
@@ -434,7 +345,7 @@ def _finish(Y: np.ndarray, L: sp.spmatrix, s: np.ndarray, Z: np.ndarray, nk: int
 
 
 def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int = 0,
-                       interior_shift: bool = True, block: int = 1, report: dict | None = None):
+                       interior_shift: bool = True, report: dict | None = None):
     """Shift-invert Lanczos with deflated null space (see the module docstring).
 
     Parameters
@@ -444,7 +355,6 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
     nk : number of eigenpairs.
     seed : start-vector seed (results are deterministic).
     interior_shift : σ inside the wanted window (fast) or σ < 0 (positive definite, slower).
-    block : Lanczos block size (1: single vectors).
     report : optional dict, filled with what was done (method, shift, residual).
 
     Returns
@@ -471,13 +381,12 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
         sigma = -0.01 * 4.0 * math.pi / float(mass.sum())
         factor = SymmetricFactor(A(sigma))
     n_below = factor.n_negative - (c if sigma > 0 else 0)  # non-zero eigenvalues in (0, σ)
-    report.update(method="lanczos", block=block, sigma=sigma, factor=factor.backend)
-    solve = factor.solve
-    from scipy.linalg import eig_banded
-
+    report.update(method="lanczos", sigma=sigma, factor=factor.backend, seed=seed)
     state = {}
 
-    def select(theta, U, m, coupling):
+    def on_check(alpha, beta, m):
+        theta, U = tridiagonal_eigh(alpha, beta[1:m])
+        coupling = beta[m:m + 1, None]
         with np.errstate(divide="ignore"):
             lam = sigma + 1.0 / theta
         # Ritz values in the spectral gap (−1/σ, 0) map to λ < 0: never eigenvalues.
@@ -513,32 +422,14 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
         return True
 
     rng = np.random.default_rng(seed)
-    X = rng.standard_normal((block, n))
+    X = rng.standard_normal((1, n))
     X -= (X @ Z) @ Z.T
-    Q0 = np.linalg.qr(X.T)[0].T
-    max_dim = int(min(n - c - block, 3 * ne + 100))
+    q0 = np.linalg.qr(X.T)[0][:, 0]
+    max_dim = int(min(n - c - 1, 3 * ne + 100))
     # Lanczos typically needs ne + ~7 √ne steps here; start checking a little before.
     check_from = int(min(max_dim, ne + max(8, 5 * math.sqrt(ne))))
-    if block == 1:
-        def on_check(alpha, beta, m):
-            theta, U = tridiagonal_eigh(alpha, beta[1:m])
-            return select(theta, U, m, beta[m:m + 1, None])
-
-        Q, m = lanczos(solve, Q0[0], Z, max_dim, on_check, check_from,
-                       check_every=lambda m: state.get("next_in", max(4, m // 20)))
-    else:
-        def apply_op(X):
-            out = np.empty_like(X)
-            for i in range(len(X)):
-                out[i] = solve(X[i])
-            return out
-
-        def on_check(band, R, m):
-            theta, U = eig_banded(band, lower=True)
-            return select(theta, U, m, R)
-
-        Q, m = block_lanczos(apply_op, Q0, Z, max_dim, on_check, check_from,
-                             check_every=lambda m: state.get("next_in", max(4, m // 16)))
+    Q, m = lanczos(factor.solve, q0, Z, max_dim, on_check, check_from,
+                   check_every=lambda m: state.get("next_in", max(4, m // 20)))
     Y = Q[:m].T @ state["U"]  # Ritz vectors as columns, (n, ne)
     evals, evecs = _finish(Y, L, s, Z, nk, float(np.max(state["lam"])), report)
     # Completeness: Sylvester's law must count exactly nk eigenvalues below a point τ just
@@ -645,9 +536,8 @@ def smallest_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int 
                         report: dict | None = None):
     """The ``nk`` smallest eigenpairs of L φ = λ M φ by the fastest certified method.
 
-    Tries, in order: dense LAPACK (small clouds) or Lanczos with an interior shift
-    (single vectors below BLOCK_MIN_N points, blocks of 4 above), block Lanczos with a
-    larger block and another start, Lanczos with a negative shift, ARPACK. Each but the
+    Tries, in order: dense LAPACK (small clouds) or Lanczos with an interior shift, the
+    same from another start vector, Lanczos with a negative shift, ARPACK. Each but the
     last certifies its result (see the module docstring) or hands over to the next.
 
     Parameters
@@ -676,11 +566,9 @@ def smallest_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int 
     if n <= DENSE_MAX_N or (3 * nk >= n and n <= DENSE_CAP_N):
         attempts.append(("dense", lambda: dense_eigenpairs(L, mass, nk, report)))
     else:
-        block = 4 if n >= BLOCK_MIN_N else 1
-        attempts.append(("lanczos", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed, block=block, report=report)))
-        # A block of b sees up to b copies of an exactly repeated eigenvalue from the start.
-        attempts.append(("block-lanczos", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed + 1, block=2 * block + 2,
-                                                                     report=report)))
+        attempts.append(("lanczos", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed, report=report)))
+        # Another start vector: a copy of a repeated eigenvalue the first one missed may show.
+        attempts.append(("lanczos-restart", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed + 1, report=report)))
         attempts.append(("lanczos-negative-shift", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed, report=report,
                                                                               interior_shift=False)))
     for name, attempt in attempts:
