@@ -58,13 +58,21 @@ def to_dict(config) -> dict:
     Parameters
     ----------
     config : dataclass instance
+        Or, in the recursion, any of its values.
 
     Returns
     -------
     dict
-        Field name -> JSON-ready value.
+        Field name -> JSON-ready value (tuples as lists, numpy values as Python ones).
     """
-    return _plain(config)
+    if dataclasses.is_dataclass(config) and not isinstance(config, type):
+        return {f.name: to_dict(getattr(config, f.name)) for f in dataclasses.fields(config)}
+    if isinstance(config, (tuple, list)):
+        return [to_dict(v) for v in config]
+    return config.tolist() if hasattr(config, "tolist") else config  # numpy arrays and scalars
+
+
+_FIX = "use a config.json written by tergodic, or correct it"
 
 
 def from_dict(cls, d: dict, what: str | None = None):
@@ -83,21 +91,7 @@ def from_dict(cls, d: dict, what: str | None = None):
     object
         An instance of ``cls``.
     """
-    return _build(cls, d, what or cls.__name__)
-
-
-def _plain(value):
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, (tuple, list)):
-        return [_plain(v) for v in value]
-    return value.tolist() if hasattr(value, "tolist") else value  # numpy arrays and scalars
-
-
-_FIX = "use a config.json written by tergodic, or correct it"
-
-
-def _build(cls, d, where: str):
+    where = what or cls.__name__
     require(isinstance(d, dict), f"{where} is not a JSON object", _FIX)
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls) if f.init}
@@ -119,7 +113,7 @@ def _coerce(hint, value, where: str):
             return value  # a free union: the stage's validation checks it
         args = typing.get_args(hint)
     if dataclasses.is_dataclass(hint):
-        return _build(hint, value, where)
+        return from_dict(hint, value, where)
     origin = typing.get_origin(hint)
     if origin is tuple:
         require(isinstance(value, (list, tuple)), f"{where} is not a list", _FIX)
@@ -172,7 +166,7 @@ def write_config(path: str | Path, kind: str, **sections) -> None:
     """
     from tergodic_cli.atomic import write_json
 
-    write_json(Path(path), {"kind": kind, "version": 1, **{k: _plain(v) for k, v in sections.items()}})
+    write_json(Path(path), {"kind": kind, "version": 1, **{k: to_dict(v) for k, v in sections.items()}})
 
 
 def read_config(path: str | Path, kind: str, fix: str) -> dict:

@@ -7,7 +7,7 @@ voxel rule can give p as the share of target-coloured points in each voxel.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -78,25 +78,6 @@ def load_capture_config(path: str | Path) -> tuple[CaptureConfig, dict]:
     return cfg, {k: v for k, v in d.items() if k not in ("kind", "version", "capture")}
 
 
-@dataclass
-class CaptureReport:
-    """Counts after each stage, for the printed summary."""
-
-    stages: list[tuple[str, int]] = field(default_factory=list)
-
-    def add(self, name: str, n: int) -> None:
-        """Record a stage.
-
-        Parameters
-        ----------
-        name : str
-            The stage.
-        n : int
-            Points left after it.
-        """
-        self.stages.append((name, int(n)))
-
-
 def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] | None = None,
                   on_event=None) -> Capture:
     """Run the capture pipeline for ``cfg``.
@@ -122,7 +103,7 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
         on_event = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
     t0 = time.perf_counter()
     target_range = parse_target(cfg.target)
-    report = CaptureReport()
+    stages: list[tuple[str, int]] = []  # points left after each stage, for the printed summary
     provenance: dict = {"source": cfg.source}
     truth = None
     if raw is not None:
@@ -142,7 +123,7 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
             provenance["noise_m"] = float(cfg.noise)
     else:
         raise TergodicError(f"unknown capture source '{cfg.source}'", "use --from FILE or --synthetic OBJECT")
-    report.add("input", len(points))
+    stages.append(("input", len(points)))
     require(len(points) > 0, "the cloud is empty", "check the input file or the crop box")
 
     if cfg.units == "mm":
@@ -156,7 +137,7 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
                 "remove them, or pass --drop-invalid to drop them")
         points, colors = points[finite], (colors[finite] if colors is not None else None)
         truth = truth[finite] if truth is not None else None
-        report.add("drop invalid", len(points))
+        stages.append(("drop invalid", len(points)))
     require(len(points) >= MIN_POINTS, f"the cloud has only {len(points)} points",
             f"give at least {MIN_POINTS} points (check the file or the filters)")
     _check_extent(points, cfg.units, f"{Path(cfg.path).name}: " if cfg.source == "file" and cfg.path else "")
@@ -165,14 +146,14 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     if cfg.crop is not None:
         box = np.asarray(cfg.crop, dtype=float)
         keep &= crop_box(points, box[:3], box[3:])
-        report.add("crop", keep.sum())
+        stages.append(("crop", int(keep.sum())))
         require(keep.sum() >= MIN_POINTS, f"only {int(keep.sum())} points are inside the crop box",
                 "widen --crop xmin,ymin,zmin,xmax,ymax,zmax (metres)")
     if cfg.outliers is not None:
         idx = np.flatnonzero(keep)
         inl = remove_statistical_outliers(points[idx], int(cfg.outliers[0]), float(cfg.outliers[1]))
         keep[idx[~inl]] = False
-        report.add("outliers", keep.sum())
+        stages.append(("outliers", int(keep.sum())))
     points = points[keep]
     colors = colors[keep] if colors is not None else None
     truth = truth[keep] if truth is not None else None
@@ -182,7 +163,7 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
         weight = (weight >= 1.0).astype(np.float64)
     if cfg.voxel > 0:
         points, colors, p = voxel_downsample(points, colors, weight, cfg.voxel, cfg.voxel_rule)
-        report.add(f"voxel {cfg.voxel * 1e3:g} mm", len(points))
+        stages.append((f"voxel {cfg.voxel * 1e3:g} mm", len(points)))
     if len(points) > cfg.max_points:  # before the duplicate check and the k-d tree
         on_event(size_warning(len(points), cfg.max_points))
     if cfg.voxel <= 0:
@@ -205,8 +186,8 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
         "input_units": cfg.units,
         "provenance": provenance,
         "config": cfg.to_dict(),
-        "filters": [{"stage": name, "points": n} for name, n in report.stages],
-        "counts": {"input": report.stages[0][1], "output": len(points), "target": n_target},
+        "filters": [{"stage": name, "points": n} for name, n in stages],
+        "counts": {"input": stages[0][1], "output": len(points), "target": n_target},
         "target": {
             "spec": cfg.target,
             "voxel_rule": cfg.voxel_rule if cfg.voxel > 0 else "per-point",

@@ -24,6 +24,8 @@ COLOUR_DEPTHS = (8, 16)
 
 _FIX_EXPORT = "re-export the cloud"
 _FIX_INVALID = "remove those rows, or pass --drop-invalid to drop them"
+_FIX_PLY_COUNT = "fix the 'element vertex' count in the header or re-export the cloud"
+_FIX_PCD_COUNT = "fix POINTS (and WIDTH) in the header or re-export the cloud"
 
 
 def read_cloud(path: str | Path, drop_invalid: bool = False,
@@ -137,15 +139,7 @@ class _Reader:
         first = n_header_lines + 1  # file line number of the body's first line
         skip = sum(count for _, count, _, _ in elements[:vi])  # one line per row of earlier elements
         n, props = elements[vi][1], elements[vi][2]
-        rows = lines[skip:skip + n]
-        short = next((i for i, ln in enumerate(rows) if not ln.strip()), len(rows))
-        if short < n:
-            got = sum(1 for ln in lines[skip:] if ln.strip())
-            self.fail(f"line {first + skip + short}", f"the header declares {n} vertices but the body holds {got} (truncated?)")
-        extra = sum(1 for ln in lines[skip + n:] if ln.strip())
-        if extra and len(elements) == vi + 1:
-            self.fail(f"line {first + skip + n}", f"the header declares {n} vertices but the body holds {n + extra} rows",
-                      "fix the 'element vertex' count in the header or re-export the cloud")
+        rows = self._ascii_rows(lines, skip, n, first, f"{n} vertices", _FIX_PLY_COUNT, len(elements) > vi + 1)
         table = self._parse_rows(rows, len(props), lambda i: first + skip + i)
         return table, lambda i, j: f"line {first + skip + i}" + (f" ('{props[j][1]}')" if j is not None else "")
 
@@ -161,22 +155,11 @@ class _Reader:
             offset += count * row_dtype(props).itemsize
         dtype = row_dtype(elements[vi][2])
         n = elements[vi][1]
-        need = n * dtype.itemsize
-        have = len(self.blob) - offset
-        if have < need:
-            self.fail("body", f"truncated: {len(self.blob)} of {offset + need} bytes; the header declares {n} vertices "
-                      f"but only {max(have, 0) // dtype.itemsize} are complete")
         after = elements[vi + 1:]
-        if not any(p[0] == "list" for e in after for p in e[2]):  # fixed-size rest: its length is known
+        rest = None  # the rest's length is known when it has fixed-size rows only
+        if not any(p[0] == "list" for e in after for p in e[2]):
             rest = sum(count * row_dtype(props).itemsize for _, count, props, _ in after)
-            if have > need + rest:
-                extra = have - need - rest
-                self.fail("body", f"{extra} bytes after the {n} vertices the header declares "
-                          f"(room for {extra // dtype.itemsize} more: a wrong 'element vertex' count?)",
-                          "fix the 'element vertex' count in the header or re-export the cloud")
-            if have < need + rest:
-                self.fail("body", f"truncated: {len(self.blob)} of {offset + need + rest} bytes")
-        rec = np.frombuffer(self.blob, dtype=dtype, count=n, offset=offset)
+        rec = self._records(offset, dtype, n, ("vertices", f"{n} vertices", "'element vertex'", _FIX_PLY_COUNT), rest)
         table = np.empty((n, len(dtype.names)))
         for j, name in enumerate(dtype.names):
             table[:, j] = rec[name]
@@ -226,8 +209,7 @@ class _Reader:
         if points is None:
             points = (width or 0) * (height or 1)
         if width is not None and width * (height or 1) != points:
-            self.fail("header", f"WIDTH x HEIGHT = {width * (height or 1)} but POINTS = {points}",
-                      "fix the header or re-export the cloud")
+            self.fail("header", f"WIDTH x HEIGHT = {width * (height or 1)} but POINTS = {points}", _FIX_PCD_COUNT)
         for axis in ("x", "y", "z"):
             if axis not in fields:
                 self.fail("header", f"no '{axis}' field", "re-export the cloud with x, y, z fields")
@@ -246,12 +228,7 @@ class _Reader:
         if data == "ascii":
             lines = self.blob[pos:].decode("ascii", "replace").split("\n")
             first = lineno + 1
-            rows = lines[:points]
-            short = next((i for i, ln in enumerate(rows) if not ln.strip()), len(rows))
-            got = sum(1 for ln in lines if ln.strip())
-            if short < points or got > points:
-                self.fail(f"line {first + min(short, points)}", f"the header declares POINTS {points} but the body holds {got} rows",
-                          "fix POINTS (and WIDTH) in the header or re-export the cloud")
+            rows = self._ascii_rows(lines, 0, points, first, f"POINTS {points}", _FIX_PCD_COUNT)
             table = self._parse_rows(rows, len(names), lambda i: first + i)
             if packed is not None:
                 col = table[:, names.index(packed)]
@@ -262,16 +239,7 @@ class _Reader:
         elif data in ("binary", "binary_compressed"):
             dtype = np.dtype([(f"f{j}", f"<{t.lower()}{s}") for j, (t, s) in enumerate(kinds)])
             if data == "binary":
-                need = points * dtype.itemsize
-                have = len(self.blob) - pos
-                if have < need:
-                    self.fail("body", f"truncated: {len(self.blob)} of {pos + need} bytes; POINTS {points} declared "
-                              f"but only {max(have, 0) // dtype.itemsize} are complete")
-                if have > need:
-                    self.fail("body", f"{have - need} bytes after the {points} points the header declares "
-                              f"(room for {(have - need) // dtype.itemsize} more: a wrong POINTS count?)",
-                              "fix POINTS (and WIDTH) in the header or re-export the cloud")
-                rec = np.frombuffer(self.blob, dtype=dtype, count=points, offset=pos)
+                rec = self._records(pos, dtype, points, ("points", f"POINTS {points}", "POINTS", _FIX_PCD_COUNT), 0)
             else:
                 rec = self._pcd_compressed(pos, dtype, points)
             table = np.empty((points, len(kinds)))
@@ -298,7 +266,7 @@ class _Reader:
             self.fail("body", f"truncated: the compressed block needs {csize} bytes, {len(self.blob) - pos - 8} are left")
         if usize != points * dtype.itemsize:
             self.fail("body", f"the compressed block holds {usize} bytes but POINTS {points} needs {points * dtype.itemsize}",
-                      "fix POINTS (and WIDTH) in the header or re-export the cloud")
+                      _FIX_PCD_COUNT)
         raw = _lzf_decompress(self.blob[pos + 8:pos + 8 + csize], usize)
         if raw is None:
             self.fail("body", "the compressed block is corrupt")
@@ -361,6 +329,33 @@ class _Reader:
                              lambda i, j: f"row {i}" + (f" of '{'points' if j < 3 else 'colors'}'" if j is not None else ""))
 
     # ---------------------------------------------------------------------------- common
+    def _ascii_rows(self, lines, skip, n, first, declared, fix, more_follow=False):
+        """The ``n`` text rows after ``skip`` lines; a blank line among them, or more rows than
+        ``n`` with no other element to follow, fails naming the line (``first``: the body's)."""
+        rows = lines[skip:skip + n]
+        short = next((i for i, ln in enumerate(rows) if not ln.strip()), len(rows))
+        got = sum(1 for ln in lines[skip:] if ln.strip())
+        if short < n or (got > n and not more_follow):
+            self.fail(f"line {first + skip + min(short, n)}", f"the header declares {declared} but the body holds {got} rows",
+                      fix)
+        return rows
+
+    def _records(self, offset, dtype, n, names, rest):
+        """``n`` binary records at ``offset``; fails when the body is too short or, with ``rest``
+        (bytes of what follows) known, too long. ``names``: (unit, declared, count, fix) for the message."""
+        unit, declared, count, fix = names
+        need, have = n * dtype.itemsize, len(self.blob) - offset
+        if have < need:
+            self.fail("body", f"truncated: {len(self.blob)} of {offset + need} bytes; the header declares {declared} "
+                      f"but only {max(have, 0) // dtype.itemsize} are complete")
+        if rest is not None and have > need + rest:
+            extra = have - need - rest
+            self.fail("body", f"{extra} bytes after the {n} {unit} the header declares "
+                      f"(room for {extra // dtype.itemsize} more: a wrong {count} count?)", fix)
+        if rest is not None and have < need + rest:
+            self.fail("body", f"truncated: {len(self.blob)} of {offset + need + rest} bytes")
+        return np.frombuffer(self.blob, dtype=dtype, count=n, offset=offset)
+
     def _parse_rows(self, rows, k, line_of, fix="every row needs the columns the header declares"):
         """Rows of text into an (n, k) float table; a row with another column count fails naming its line."""
         import io

@@ -36,8 +36,6 @@ WHITE_LEVEL = 0.94
 
 
 @dataclass
-
-
 class CleaningModel:
     """How a pressing sponge removes the marking.
 
@@ -63,8 +61,6 @@ class CleaningModel:
 
 
 @dataclass
-
-
 class SimObjectConfig(Config):
     """What the simulated scene holds: an object, its marking and its pose in the robot base frame.
 
