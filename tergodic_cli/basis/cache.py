@@ -129,28 +129,6 @@ def canonical_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
     return centroid, R, bool(gaps_ok and skew_ok)
 
 
-def geometry_key(points: np.ndarray, cfg: BasisConfig) -> tuple[str, np.ndarray, bool]:
-    """The cache key of a cloud and basis parameters.
-
-    Parameters
-    ----------
-    points : (n, 3) float
-        Metres.
-    cfg : BasisConfig
-
-    Returns
-    -------
-    key : str
-        Hex digest.
-    order : (n,) int
-        The permutation that puts ``points`` into canonical order.
-    invariant : bool
-        Whether the key is invariant to rigid motions.
-    """
-    key, order, invariant, _ = _geometry(points, cfg)
-    return key, order, invariant
-
-
 def _canonical_order(q: np.ndarray) -> tuple[np.ndarray, bytes]:
     """An order sorting the integer coordinates q (n, 3) lexicographically (x, then y, then z),
     and bytes that identify the sorted coordinates (hashed into the key).
@@ -172,8 +150,26 @@ def _canonical_order(q: np.ndarray) -> tuple[np.ndarray, bytes]:
     return order, b"lexsort" + np.ascontiguousarray(q[order]).tobytes()
 
 
-def _geometry(points: np.ndarray, cfg: BasisConfig) -> tuple[str, np.ndarray, bool, np.ndarray]:
-    """Key, canonical order, invariance and the canonical coordinates (n, 3) in canonical order."""
+def geometry_key(points: np.ndarray, cfg: BasisConfig) -> tuple[str, np.ndarray, bool, np.ndarray]:
+    """The cache key of a cloud and basis parameters.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Metres.
+    cfg : BasisConfig
+
+    Returns
+    -------
+    key : str
+        Hex digest.
+    order : (n,) int
+        The permutation that puts ``points`` into canonical order.
+    invariant : bool
+        Whether the key is invariant to rigid motions.
+    canon : (n, 3) float
+        The canonical coordinates, metres, in canonical order.
+    """
     centroid, R, invariant = canonical_frame(points)
     canon = (points - centroid) @ R.T if invariant else points
     q = np.rint(canon / QUANTUM_M).astype(np.int64)
@@ -333,7 +329,7 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
     """
     say = on_event or (lambda msg: warnings.warn(msg, stacklevel=2))
     t0 = time.perf_counter()
-    key, order, invariant, canon = _geometry(points, cfg)
+    key, order, invariant, canon = geometry_key(points, cfg)
     entry = Path(cache_dir or default_cache_dir()) / "basis" / key
     timings = {"key_ms": 1e3 * (time.perf_counter() - t0)}
     if not force:

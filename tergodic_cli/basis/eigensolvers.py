@@ -11,6 +11,7 @@ docs/precompute.md, "The eigensolver", gives the method and its measured accurac
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 
@@ -86,7 +87,6 @@ class SymmetricFactor:
         except Exception as exc:  # zero pivot: the shift hit the spectrum
             raise EigensolverFailure(f"LDL factorisation failed ({exc})") from None
         self.solve = self._solver.solve
-        self.backend = "qdldl"
         self._set_inertia(self._solver.factors()[1], K if check_accuracy else None)
 
     def refactor(self, K: sp.spmatrix, check_accuracy: bool = False) -> "SymmetricFactor":
@@ -381,7 +381,7 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
         sigma = -0.01 * 4.0 * math.pi / float(mass.sum())
         factor = SymmetricFactor(A(sigma))
     n_below = factor.n_negative - (c if sigma > 0 else 0)  # non-zero eigenvalues in (0, σ)
-    report.update(method="lanczos", sigma=sigma, factor=factor.backend, seed=seed)
+    report.update(method="lanczos", sigma=sigma, seed=seed)
     state = {}
 
     def on_check(alpha, beta, m):
@@ -514,11 +514,9 @@ def arpack_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, sigma: float = 
     return evals[order], evecs[:, order]
 
 
-_BLAS_CONTROLLER = []
-
-
-def _single_threaded_blas():
-    """Limit BLAS to one thread (``threadpoolctl``).
+@functools.lru_cache(maxsize=1)
+def _blas_controller():
+    """The ``threadpoolctl`` controller that limits BLAS to one thread around each solve.
 
     The solver's dense work is level-2 BLAS and thin products, bound by memory bandwidth:
     a second BLAS thread gains little on a quiet machine and costs 2-3x when the other
@@ -527,9 +525,7 @@ def _single_threaded_blas():
     """
     from threadpoolctl import ThreadpoolController
 
-    if not _BLAS_CONTROLLER:
-        _BLAS_CONTROLLER.append(ThreadpoolController())
-    return _BLAS_CONTROLLER[0].limit(limits=1, user_api="blas")
+    return ThreadpoolController()
 
 
 def smallest_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int = 0,
@@ -573,7 +569,7 @@ def smallest_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int 
                                                                               interior_shift=False)))
     for name, attempt in attempts:
         try:
-            with _single_threaded_blas():
+            with _blas_controller().limit(limits=1, user_api="blas"):
                 return attempt()
         except EigensolverFailure as exc:
             report.setdefault("fallbacks", []).append(f"{name}: {exc}")

@@ -489,6 +489,8 @@ def _lzf_decompress(data: bytes, size: int) -> bytes | None:
 def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None) -> None:
     """Write a binary little-endian PLY (double xyz, uchar rgb), the reference clouds' layout.
 
+    Written in place: :func:`~tergodic_cli.capture.artefact.save_capture` builds the whole folder aside.
+
     Parameters
     ----------
     path : str or Path
@@ -497,22 +499,16 @@ def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None) -
     colors : (n, 3) float or None
         In [0, 1].
     """
-    from tergodic_cli.atomic import atomic_path
-
-    n = len(points)
     props = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}",
-              "property double x", "property double y", "property double z"]
+    columns = [points[:, 0], points[:, 1], points[:, 2]]
     if colors is not None:
         props += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-        header += ["property uchar red", "property uchar green", "property uchar blue"]
-    header.append("end_header")
-    rec = np.empty(n, dtype=props)
-    rec["x"], rec["y"], rec["z"] = points[:, 0], points[:, 1], points[:, 2]
-    if colors is not None:
-        rgb = np.clip(np.rint(colors * 255.0), 0, 255).astype(np.uint8)
-        rec["red"], rec["green"], rec["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
-    with atomic_path(path, suffix=".ply") as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(("\n".join(header) + "\n").encode("ascii"))
-            fh.write(rec.tobytes())
+        columns += list(np.clip(np.rint(colors * 255.0), 0, 255).astype(np.uint8).T)
+    rec = np.empty(len(points), dtype=props)
+    for (name, _), column in zip(props, columns):
+        rec[name] = column
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
+    header += [f"property {'double' if t == '<f8' else 'uchar'} {name}" for name, t in props] + ["end_header"]
+    with open(path, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(rec.tobytes())

@@ -457,15 +457,6 @@ class TexturedObject:
         """Share of the initial marking intensity still present (1 = untouched, 0 = clean)."""
         return float(self.intensity.sum()) / self._initial_sum
 
-    def marking_at(self, points: np.ndarray, max_distance: float = 0.003) -> np.ndarray:
-        """Marking intensity (m,) at base-frame points (m, 3): the nearest surface texel's, 0 farther than ``max_distance``."""
-        local = self.to_object(points)
-        dist, idx = self._texel_tree.query(local, distance_upper_bound=max_distance)
-        out = np.zeros(len(local))
-        hit = np.isfinite(dist)
-        out[hit] = self.intensity.ravel()[self.texel_index[idx[hit]]]
-        return out
-
     def to_object(self, points: np.ndarray) -> np.ndarray:
         """Base-frame points (m, 3) -> object frame."""
         R, t = self.pose[:3, :3], self.pose[:3, 3]
