@@ -508,16 +508,6 @@ class TexturedObject:
         rgb = base + self.intensity[..., None].astype(np.float32) * delta
         return np.clip(rgb, 0, 255).astype(np.uint8)  # +0.5 above makes the cast round
 
-    def write_texture(self, path: str | Path) -> Path:
-        """Write the current texture to ``path`` (.png, or .bmp: uncompressed, about 20x faster to write)."""
-        from PIL import Image
-
-        path = Path(path)
-        require(path.suffix in (".png", ".bmp"), f"unknown texture format '{path.suffix}'", "use .png or .bmp")
-        path.parent.mkdir(parents=True, exist_ok=True)
-        Image.fromarray(self.texture_rgb()).save(path)
-        return path
-
     def _obj_body_text(self) -> str:
         if self._obj_body is None:
             v = "\n".join(f"v {x:.7f} {y:.7f} {z:.7f}" for x, y, z in self._render_vertices)
@@ -561,8 +551,10 @@ class TexturedObject:
         (about 0.8 MB at 512 x 520) in the renderer until the client disconnects.
         """
         import pybullet as p
+        from PIL import Image
 
-        path = self.write_texture(Path(folder) / f"texture_v{self.version}.bmp")
+        path = Path(folder) / f"texture_v{self.version}.bmp"  # uncompressed: ~20x faster to write than PNG
+        Image.fromarray(self.texture_rgb()).save(path)
         tex = p.loadTexture(str(path), physicsClientId=client)
         require(tex >= 0, f"PyBullet could not load the texture {path}", "check the temporary folder is writable")
         p.changeVisualShape(body, -1, textureUniqueId=tex, rgbaColor=[1, 1, 1, 1], physicsClientId=client)
