@@ -200,9 +200,7 @@ class AtomicFolder:
         self._discard()
 
         if isinstance(exc, OSError) or (full and isinstance(exc, TergodicError)):
-            cause = "no space left on device" if full else os_cause(exc)
-            raise TergodicError(f"cannot write the {self.what} {self.shown}: {cause}",
-                                ("free space or " if full else "") + f"choose another {self.option}") from None
+            raise self._error(exc, full) from None
         if ours:  # name the folder, not its temporary sibling
             raise TergodicError(exc.problem.replace(tmp, str(self.shown)),
                                 exc.fix.replace(tmp, str(self.shown)) if exc.fix else None) from None
@@ -241,9 +239,11 @@ class AtomicFolder:
             except OSError:
                 pass
 
-    def _error(self, exc: OSError):
-        fix = ("free space or " if _full(exc) else "") + f"choose another {self.option}"
-        return TergodicError(f"cannot write the {self.what} {self.shown}: {os_cause(exc)}", fix)
+    def _error(self, exc: BaseException, full: bool | None = None):
+        full = _full(exc) if full is None else full
+        cause = "no space left on device" if full else os_cause(exc)
+        return TergodicError(f"cannot write the {self.what} {self.shown}: {cause}",
+                             ("free space or " if full else "") + f"choose another {self.option}")
 
 
 def write_png(path: str | Path, rgb: np.ndarray) -> None:

@@ -19,41 +19,8 @@ from tergodic_cli.errors import TergodicError, require
 CONFIG_FILE = "config.json"
 
 
-class Config:
-    """Mixin for config dataclasses: ``to_dict`` / ``from_dict`` round-trip through JSON."""
-
-    def to_dict(self) -> dict:
-        """The config as JSON-ready values.
-
-        Returns
-        -------
-        dict
-            Field name -> value; tuples become lists and nested dataclasses dicts.
-        """
-        return to_dict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict, what: str | None = None):
-        """The config :meth:`to_dict` wrote; missing keys keep their defaults.
-
-        Parameters
-        ----------
-        d : dict
-            Field name -> value, as :meth:`to_dict` returns.
-        what : str, optional
-            How the config is named in an error (default: the class name).
-
-        Returns
-        -------
-        Config
-            An instance of ``cls``; an unknown key or a value of the wrong type raises
-            :class:`~tergodic_cli.errors.TergodicError` naming it.
-        """
-        return from_dict(cls, d, what)
-
-
 def to_dict(config) -> dict:
-    """:meth:`Config.to_dict` for any config dataclass (one that does not derive from :class:`Config`).
+    """A config dataclass as JSON-ready values (:meth:`Config.to_dict`, and for any other dataclass).
 
     Parameters
     ----------
@@ -76,20 +43,21 @@ _FIX = "use a config.json written by tergodic, or correct it"
 
 
 def from_dict(cls, d: dict, what: str | None = None):
-    """:meth:`Config.from_dict` for any config dataclass ``cls``.
+    """The config :func:`to_dict` wrote, as ``cls`` (:meth:`Config.from_dict`, and for any other dataclass).
 
     Parameters
     ----------
     cls : dataclass type
     d : dict
-        Field name -> value.
+        Field name -> value; missing keys keep their defaults.
     what : str, optional
         How the config is named in an error (default: the class name).
 
     Returns
     -------
     object
-        An instance of ``cls``.
+        An instance of ``cls``; an unknown key or a value of the wrong type raises
+        :class:`~tergodic_cli.errors.TergodicError` naming it.
     """
     where = what or cls.__name__
     require(isinstance(d, dict), f"{where} is not a JSON object", _FIX)
@@ -127,6 +95,13 @@ def _coerce(hint, value, where: str):
         require(isinstance(value, hint) and (hint is bool or not isinstance(value, bool)),
                 f"{where} is not {'an' if hint is int else 'a'} {hint.__name__}", _FIX)
     return value
+
+
+class Config:
+    """Mixin for config dataclasses: ``to_dict`` / ``from_dict`` round-trip through JSON."""
+
+    to_dict = to_dict
+    from_dict = classmethod(from_dict)
 
 
 def override(saved, now, given, renamed: dict | None = None):

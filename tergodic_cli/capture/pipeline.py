@@ -105,7 +105,6 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     target_range = parse_target(cfg.target)
     stages: list[tuple[str, int]] = []  # points left after each stage, for the printed summary
     provenance: dict = {"source": cfg.source}
-    truth = None
     if raw is not None:
         points, colors = raw
     elif cfg.source == "file":
@@ -117,7 +116,7 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
         from tergodic_cli.capture.synthetic import generate_synthetic
 
         syn = generate_synthetic(cfg.synthetic, cfg.marking, cfg.seed, noise=cfg.noise)
-        points, colors, truth = syn.points, syn.colors, syn.mask
+        points, colors = syn.points, syn.colors
         provenance.update(object=cfg.synthetic, marking=cfg.marking, seed=cfg.seed)
         if float(cfg.noise) > 0:  # validated above
             provenance["noise_m"] = float(cfg.noise)
@@ -136,7 +135,6 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
         require(cfg.drop_invalid, f"the cloud has {bad} points with NaN or inf coordinates or colours",
                 "remove them, or pass --drop-invalid to drop them")
         points, colors = points[finite], (colors[finite] if colors is not None else None)
-        truth = truth[finite] if truth is not None else None
         stages.append(("drop invalid", len(points)))
     require(len(points) >= MIN_POINTS, f"the cloud has only {len(points)} points",
             f"give at least {MIN_POINTS} points (check the file or the filters)")
@@ -156,7 +154,6 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
         stages.append(("outliers", int(keep.sum())))
     points = points[keep]
     colors = colors[keep] if colors is not None else None
-    truth = truth[keep] if truth is not None else None
 
     weight = target_weight(colors, target_range, len(points))
     if cfg.voxel_rule != "intensity":  # the marking only: faint ink (and colour noise on the surface) weighs 0
@@ -203,9 +200,7 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     from tergodic_cli.provenance import library_versions
 
     meta["versions"] = library_versions()
-    cap = Capture(points, colors, p, meta)
-    cap.truth = truth  # type: ignore[attr-defined]  # generator mask before voxel, for tests
-    return cap
+    return Capture(points, colors, p, meta)
 
 
 def _validate_config(cfg: CaptureConfig) -> None:
