@@ -52,6 +52,18 @@ def test_capture_round_trips_every_format(fmt, tmp_path, bowl):
     assert side["filters"][0] == {"stage": "input", "points": len(bowl.points)}
 
 
+def test_binary_compressed_pcd_reads_like_the_cloud(tmp_path, bowl):
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(bowl.points))
+    pcd.colors = o3d.utility.Vector3dVector(bowl.colors)
+    assert o3d.io.write_point_cloud(str(tmp_path / "c.pcd"), pcd, write_ascii=False, compressed=True)
+    assert b"DATA binary_compressed" in (tmp_path / "c.pcd").read_bytes()[:400]
+    pts, cols = read_cloud(tmp_path / "c.pcd")
+    np.testing.assert_allclose(pts, bowl.points, atol=1e-6)
+    np.testing.assert_allclose(cols, bowl.colors, atol=0.5 / 255 + 1e-6)
+
+
 @pytest.mark.parametrize("kind", OBJECTS)
 @pytest.mark.parametrize("marking", MARKINGS)
 def test_segmentation_recovers_generator_marking(kind, marking):

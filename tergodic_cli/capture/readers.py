@@ -169,7 +169,7 @@ class _Reader:
     # ------------------------------------------------------------------------------- PCD
     def pcd(self):
         fields = size = types = counts = None
-        width = height = points = data = None
+        dims, data = {}, None  # WIDTH, HEIGHT, POINTS
         pos, lineno = 0, 0
         while data is None:
             nl = self.blob.find(b"\n", pos)
@@ -193,14 +193,14 @@ class _Reader:
                 value = _int(vals[0]) if len(vals) == 1 else None
                 if value is None or value < 0:
                     self.fail(f"line {lineno}", f"bad {key} '{' '.join(vals)}'", "re-export it as PCD")
-                width, height, points = (value, height, points) if key == "WIDTH" else \
-                    (width, value, points) if key == "HEIGHT" else (width, height, value)
+                dims[key] = value
             elif key == "DATA":
                 data = vals[0].lower() if vals else ""
             elif key not in ("VERSION", "VIEWPOINT"):
                 self.fail(f"line {lineno}", f"cannot parse the PCD header line '{_printable(line[:60])}'", "re-export it as PCD")
         if not fields:
             self.fail("header", "no FIELDS line", "re-export it as PCD")
+        width, height, points = (dims.get(key) for key in ("WIDTH", "HEIGHT", "POINTS"))
         k = len(fields)
         counts = counts or [1] * k
         if size is None or types is None or len(size) != k or len(types) != k or len(counts) != k \
@@ -250,11 +250,9 @@ class _Reader:
             where = lambda i, j: f"point {i}" + (f" ('{names[j]}')" if j is not None else "")
         else:
             self.fail("header", f"unknown PCD DATA '{data}'", "re-export it as ascii or binary PCD")
-        if bits is not None:
-            ix = [names.index(a) for a in ("x", "y", "z")]
-            pts = self._finite(table[:, ix], lambda i, j: where(i, ix[j] if j is not None else None))
-            rgb = np.column_stack([(bits >> 16) & 255, (bits >> 8) & 255, bits & 255]).astype(np.float64)
-            return np.ascontiguousarray(pts), rgb / 255.0
+        if bits is not None:  # three 8-bit columns
+            table = np.column_stack([table, (bits >> 16) & 255, (bits >> 8) & 255, bits & 255])
+            names, kinds = names + ["r", "g", "b"], kinds + [("U", 1)] * 3
         return self._columns(table, names, [_PCD_AS_PLY[k_] for k_ in kinds], where)
 
     def _pcd_compressed(self, pos, dtype, points):
