@@ -16,7 +16,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from tergodic_cli.errors import TergodicError, os_cause  # one wording of the OS's causes, for every verb
+# os_cause: one wording of the OS's causes, for every verb
+from tergodic_cli.errors import TergodicError, os_cause
 
 
 @contextlib.contextmanager
@@ -55,17 +56,20 @@ def check_output_file(path: str | os.PathLike, overwrite: bool, option: str) -> 
         raise TergodicError(f"{option} {shown} is a folder, not a file", f"choose another {option}")
     check_parent_writable(target, shown, option)
     if target.exists() and not overwrite:
-        raise TergodicError(f"{option} {shown} already exists", f"pass --overwrite to replace it, or choose another {option}")
+        raise TergodicError(f"{option} {shown} already exists",
+                            f"pass --overwrite to replace it, or choose another {option}")
 
 
 def check_parent_writable(target: Path, shown, option: str) -> None:
-    """Refuse, before any work, a ``target`` whose nearest existing ancestor is a file or a folder
-    we may not write into (also for root on a read-only filesystem). ``option`` names the flag to change."""
+    """Refuse, before any work, a ``target`` whose nearest existing ancestor is a file or a
+    folder we may not write into (also for root on a read-only filesystem). ``option`` names
+    the flag to change."""
     parent = Path(os.path.abspath(target)).parent
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent
     if not parent.is_dir():
-        raise TergodicError(f"{option} {shown} is under {parent}, which is a file, not a folder", f"choose another {option}")
+        raise TergodicError(f"{option} {shown} is under {parent}, which is a file, not a folder",
+                            f"choose another {option}")
     if not os.access(parent, os.W_OK | os.X_OK):
         ro = bool(os.statvfs(parent).f_flag & os.ST_RDONLY)
         raise TergodicError(f"cannot write {option} {shown}: {'read-only filesystem' if ro else 'permission denied'}"

@@ -20,7 +20,7 @@ CONFIG_FILE = "config.json"
 
 
 def to_dict(config) -> dict:
-    """A config dataclass as JSON-ready values (:meth:`Config.to_dict`, and for any other dataclass).
+    """A config dataclass as JSON-ready values (:meth:`Config.to_dict`; any dataclass).
 
     Parameters
     ----------
@@ -43,7 +43,7 @@ _FIX = "use a config.json written by tergodic, or correct it"
 
 
 def from_dict(cls, d: dict, what: str | None = None):
-    """The config :func:`to_dict` wrote, as ``cls`` (:meth:`Config.from_dict`, and for any other dataclass).
+    """The config :func:`to_dict` wrote, as ``cls`` (:meth:`Config.from_dict`; any dataclass).
 
     Parameters
     ----------
@@ -141,7 +141,8 @@ def write_config(path: str | Path, kind: str, **sections) -> None:
     """
     from tergodic_cli.atomic import write_json
 
-    write_json(Path(path), {"kind": kind, "version": 1, **{k: to_dict(v) for k, v in sections.items()}})
+    sections = {k: to_dict(v) for k, v in sections.items()}
+    write_json(Path(path), {"kind": kind, "version": 1, **sections})
 
 
 def read_config(path: str | Path, kind: str, fix: str) -> dict:

@@ -4,15 +4,15 @@ Key: BLAKE2b over the format, every basis parameter and the points in a canonica
 principal axes signed by their third moment, quantised to 1 µm, sorted), so a rigid motion or a new
 target reuses the basis; an ambiguous frame falls back to the points as given. Files:
 ``<cache>/basis/<key>/<array>.npy`` (never pickles) and ``basis.json`` with a checksum of every
-array, computed while reading; a missing, corrupt or edited entry
-is reported, discarded and recomputed. Details: docs/precompute.md, "Warm cache".
+array, checked on every read; a missing, corrupt or edited entry is reported, discarded and
+recomputed. Details: docs/precompute.md, "Warm cache".
 
 The arrays' checksum is BLAKE2b over the array's dtype and shape, the wrapping 64-bit sums of each
 run of 4096 words (the "rows"), the 4096 per-position sums across those runs (the "lanes"), and the
-few trailing bytes: one pass at memory speed (a warm hit must take under 30 ms). Any change inside one
-8-byte word (a flipped bit or byte) changes its row's sum, so it is always detected; two swapped
-words differ in their row or in their lane, so a swap is detected too. It detects corruption and
-edits; it is not a cryptographic seal against a deliberate forgery.
+few trailing bytes: one pass at memory speed (a warm hit must take under 30 ms). Any change inside
+one 8-byte word (a flipped bit or byte) changes its row's sum, so it is always detected; two
+swapped words differ in their row or in their lane, so a swap is detected too. It detects
+corruption and edits; it is not a cryptographic seal against a deliberate forgery.
 """
 
 from __future__ import annotations
@@ -345,7 +345,8 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
     from tergodic_cli.atomic import check_parent_writable
     from tergodic_cli.progress import Spinner
 
-    check_parent_writable(entry, entry.parent.parent, _CACHE_OPTION)  # before minutes of work, not after
+    # before minutes of work, not after
+    check_parent_writable(entry, entry.parent.parent, _CACHE_OPTION)
     with Spinner(f"computing basis: Laplacian + {cfg.nk} eigenpairs of {len(points)} points"):
         basis = compute_basis(points, cfg.nk, cfg.neighbors, timings)
     from tergodic_cli.provenance import library_versions

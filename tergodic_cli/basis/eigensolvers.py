@@ -4,7 +4,8 @@ The default, :func:`smallest_eigenpairs`, is shift-invert Lanczos written for th
 symmetric form A = S⁻¹ L S⁻¹ (S = √M), the connected components' null space deflated exactly, one
 LDLᵀ factorisation (``qdldl``) of A − σI with σ inside the wanted window (its inertia counts the
 eigenvalues below σ), full reorthogonalisation without restarts, and certificates (inertia counts,
-true residuals) that hand over to another start vector, a negative shift, then ARPACK when they fail.
+true residuals) that hand over to another start vector, a negative shift, then ARPACK when they
+fail.
 docs/precompute.md, "The eigensolver", gives the method and its measured accuracy against
 :func:`arpack_eigenpairs` (the authors' ``eigsh(L, nK, M, sigma=1e-12)``).
 """
@@ -186,7 +187,8 @@ def choose_shift(A: "ShiftedMatrix", area: float, n_wanted: int, n_null: int,
     return best
 
 
-def lanczos(apply_op, q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, check_from: int, check_every):
+def lanczos(apply_op, q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, check_from: int,
+            check_every):
     """Symmetric Lanczos with full reorthogonalisation and a deflated subspace.
 
     After the three-term step, each new vector is orthogonalised against all previous
@@ -559,9 +561,11 @@ def smallest_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int 
     if n <= DENSE_MAX_N or (3 * nk >= n and n <= DENSE_CAP_N):
         attempts.append(("dense", lambda: dense_eigenpairs(L, mass, nk, report)))
     else:
-        attempts.append(("lanczos", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed, report=report)))
+        attempts.append(("lanczos", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed,
+                                                               report=report)))
         # Another start vector: a copy of a repeated eigenvalue the first one missed may show.
-        attempts.append(("lanczos-restart", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed + 1, report=report)))
+        attempts.append(("lanczos-restart", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed + 1,
+                                                                       report=report)))
         attempts.append(("lanczos-negative-shift", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed, report=report,
                                                                               interior_shift=False)))
     for name, attempt in attempts:

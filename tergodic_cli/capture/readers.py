@@ -139,7 +139,8 @@ class _Reader:
         first = n_header_lines + 1  # file line number of the body's first line
         skip = sum(count for _, count, _, _ in elements[:vi])  # one line per row of earlier elements
         n, props = elements[vi][1], elements[vi][2]
-        rows = self._ascii_rows(lines, skip, n, first, f"{n} vertices", _FIX_PLY_COUNT, len(elements) > vi + 1)
+        rows = self._ascii_rows(lines, skip, n, first, f"{n} vertices", _FIX_PLY_COUNT,
+                                more_follow=len(elements) > vi + 1)
         table = self._parse_rows(rows, len(props), lambda i: first + skip + i)
         return table, lambda i, j: f"line {first + skip + i}" + (f" ('{props[j][1]}')" if j is not None else "")
 
@@ -159,7 +160,8 @@ class _Reader:
         rest = None  # the rest's length is known when it has fixed-size rows only
         if not any(p[0] == "list" for e in after for p in e[2]):
             rest = sum(count * row_dtype(props).itemsize for _, count, props, _ in after)
-        rec = self._records(offset, dtype, n, ("vertices", f"{n} vertices", "'element vertex'", _FIX_PLY_COUNT), rest)
+        label = ("vertices", f"{n} vertices", "'element vertex'", _FIX_PLY_COUNT)
+        rec = self._records(offset, dtype, n, label, rest)
         table = np.empty((n, len(dtype.names)))
         for j, name in enumerate(dtype.names):
             table[:, j] = rec[name]
@@ -209,7 +211,8 @@ class _Reader:
         if points is None:
             points = (width or 0) * (height or 1)
         if width is not None and width * (height or 1) != points:
-            self.fail("header", f"WIDTH x HEIGHT = {width * (height or 1)} but POINTS = {points}", _FIX_PCD_COUNT)
+            self.fail("header", f"WIDTH x HEIGHT = {width * (height or 1)} but POINTS = {points}",
+                      _FIX_PCD_COUNT)
         for axis in ("x", "y", "z"):
             if axis not in fields:
                 self.fail("header", f"no '{axis}' field", "re-export the cloud with x, y, z fields")
@@ -239,7 +242,8 @@ class _Reader:
         elif data in ("binary", "binary_compressed"):
             dtype = np.dtype([(f"f{j}", f"<{t.lower()}{s}") for j, (t, s) in enumerate(kinds)])
             if data == "binary":
-                rec = self._records(pos, dtype, points, ("points", f"POINTS {points}", "POINTS", _FIX_PCD_COUNT), 0)
+                label = ("points", f"POINTS {points}", "POINTS", _FIX_PCD_COUNT)
+                rec = self._records(pos, dtype, points, label, 0)
             else:
                 rec = self._pcd_compressed(pos, dtype, points)
             table = np.empty((points, len(kinds)))
@@ -334,18 +338,19 @@ class _Reader:
         short = next((i for i, ln in enumerate(rows) if not ln.strip()), len(rows))
         got = sum(1 for ln in lines[skip:] if ln.strip())
         if short < n or (got > n and not more_follow):
-            self.fail(f"line {first + skip + min(short, n)}", f"the header declares {declared} but the body holds {got} rows",
-                      fix)
+            self.fail(f"line {first + skip + min(short, n)}",
+                      f"the header declares {declared} but the body holds {got} rows", fix)
         return rows
 
-    def _records(self, offset, dtype, n, names, rest):
+    def _records(self, offset, dtype, n, label, rest):
         """``n`` binary records at ``offset``; fails when the body is too short or, with ``rest``
-        (bytes of what follows) known, too long. ``names``: (unit, declared, count, fix) for the message."""
-        unit, declared, count, fix = names
+        (bytes of what follows) known, too long. ``label``: (unit, declared, count, fix), for
+        the message."""
+        unit, declared, count, fix = label
         need, have = n * dtype.itemsize, len(self.blob) - offset
         if have < need:
-            self.fail("body", f"truncated: {len(self.blob)} of {offset + need} bytes; the header declares {declared} "
-                      f"but only {max(have, 0) // dtype.itemsize} are complete")
+            self.fail("body", f"truncated: {len(self.blob)} of {offset + need} bytes; the header "
+                      f"declares {declared} but only {max(have, 0) // dtype.itemsize} are complete")
         if rest is not None and have > need + rest:
             extra = have - need - rest
             self.fail("body", f"{extra} bytes after the {n} {unit} the header declares "
@@ -487,7 +492,8 @@ def _lzf_decompress(data: bytes, size: int) -> bytes | None:
 def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None) -> None:
     """Write a binary little-endian PLY (double xyz, uchar rgb), the reference clouds' layout.
 
-    Written in place: :func:`~tergodic_cli.capture.artefact.save_capture` builds the whole folder aside.
+    Written in place: :func:`~tergodic_cli.capture.artefact.save_capture` builds the whole
+    folder aside.
 
     Parameters
     ----------
@@ -506,7 +512,8 @@ def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None) -
     for (name, _), column in zip(props, columns):
         rec[name] = column
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
-    header += [f"property {'double' if t == '<f8' else 'uchar'} {name}" for name, t in props] + ["end_header"]
+    header += [f"property {'double' if t == '<f8' else 'uchar'} {name}" for name, t in props]
+    header.append("end_header")
     with open(path, "wb") as fh:
         fh.write(("\n".join(header) + "\n").encode("ascii"))
         fh.write(rec.tobytes())

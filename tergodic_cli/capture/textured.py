@@ -553,7 +553,8 @@ class TexturedObject:
         import pybullet as p
         from PIL import Image
 
-        path = Path(folder) / f"texture_v{self.version}.bmp"  # uncompressed: ~20x faster to write than PNG
+        # BMP: uncompressed, about 20x faster to write than PNG
+        path = Path(folder) / f"texture_v{self.version}.bmp"
         Image.fromarray(self.texture_rgb()).save(path)
         tex = p.loadTexture(str(path), physicsClientId=client)
         require(tex >= 0, f"PyBullet could not load the texture {path}", "check the temporary folder is writable")
@@ -584,7 +585,8 @@ def parse_pose(values, option: str) -> np.ndarray:
     if len(v) == 6:
         from scipy.spatial.transform import Rotation
 
-        T[:3, :3] = Rotation.from_euler("xyz", v[3:], degrees=True).as_matrix()  # fixed axes: Rz Ry Rx
+        # lower-case "xyz": fixed axes, R = Rz(yaw) Ry(pitch) Rx(roll)
+        T[:3, :3] = Rotation.from_euler("xyz", v[3:], degrees=True).as_matrix()
     elif len(v) == 7:
         q = np.array(v[3:])
         require(abs(np.linalg.norm(q) - 1.0) < 1e-3, f"{option} quaternion is not unit length", fix)
