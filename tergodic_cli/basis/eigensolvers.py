@@ -584,29 +584,3 @@ def smallest_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int 
     evals[np.abs(evals) < 1e-9 * max(abs(float(evals[-1])), 1e-300)] = 0.0
     return evals, evecs
 
-
-def eigenvalue_clusters(evals: np.ndarray, rtol: float = 1e-3) -> list[list[int]]:
-    """Index groups of (near-)equal eigenvalues (ascending ``evals``); the zeros form one group.
-
-    Eigenvectors are only defined up to a rotation within such a group, so two solvers are
-    compared per group (principal angles), not per vector.
-
-    Parameters
-    ----------
-    evals : (k,) float
-        Ascending.
-    rtol : float
-        Relative gap below which neighbours are grouped.
-
-    Returns
-    -------
-    list of list of int
-    """
-    floor = 1e-9 * abs(evals[-1])
-    groups = [[0]]
-    for i in range(1, len(evals)):
-        if evals[i] - evals[i - 1] <= rtol * max(abs(evals[i]), floor):
-            groups[-1].append(i)
-        else:
-            groups.append([i])
-    return groups
