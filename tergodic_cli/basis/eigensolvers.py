@@ -583,4 +583,3 @@ def smallest_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int 
     evals, evecs = arpack_eigenpairs(L, mass, nk, sigma=sigma, v0=rng.standard_normal(n))
     evals[np.abs(evals) < 1e-9 * max(abs(float(evals[-1])), 1e-300)] = 0.0
     return evals, evecs
-
