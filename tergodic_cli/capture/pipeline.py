@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from tergodic_cli.capture.artefact import CAPTURE_CONFIG_KIND, Capture
-from tergodic_cli.capture.filters import VOXEL_RULES, crop_box, mean_spacing, remove_statistical_outliers, voxel_downsample
+from tergodic_cli.capture.filters import (VOXEL_RULES, mean_spacing, remove_statistical_outliers,
+                                          voxel_downsample)
 from tergodic_cli.capture.segment import parse_target, target_weight
 from tergodic_cli.config import Config
 from tergodic_cli.errors import TergodicError, require
@@ -143,7 +144,7 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     keep = np.ones(len(points), bool)
     if cfg.crop is not None:
         box = np.asarray(cfg.crop, dtype=float)
-        keep &= crop_box(points, box[:3], box[3:])
+        keep &= np.all((points >= box[:3]) & (points <= box[3:]), axis=1)  # the passthrough filter
         stages.append(("crop", int(keep.sum())))
         require(keep.sum() >= MIN_POINTS, f"only {int(keep.sum())} points are inside the crop box",
                 "widen --crop xmin,ymin,zmin,xmax,ymax,zmax (metres)")
@@ -162,7 +163,10 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
         points, colors, p = voxel_downsample(points, colors, weight, cfg.voxel, cfg.voxel_rule)
         stages.append((f"voxel {cfg.voxel * 1e3:g} mm", len(points)))
     if len(points) > cfg.max_points:  # before the duplicate check and the k-d tree
-        on_event(size_warning(len(points), cfg.max_points))
+        n = len(points)
+        on_event(f"warning: {n:,} points after filtering, above the {cfg.max_points:,}-point limit: "
+                 f"precompute would need {size_estimate(n)}; use a coarser --voxel (e.g. 0.003), "
+                 f"or --max-points {n} to accept")
     if cfg.voxel <= 0:
         p = weight
         n_unique = len(np.unique(points, axis=0))
@@ -259,25 +263,6 @@ def size_estimate(n: int) -> str:
     gb, seconds = n * BYTES_PER_POINT / 1e9, n * SECONDS_PER_POINT
     memory = f"~{gb:.1f} GB" if gb >= 1 else f"~{max(gb * 1e3, 1):.0f} MB"
     return f"{memory} and over {seconds / 60:.0f} min" if seconds >= 60 else f"{memory} and over {max(seconds, 1):.0f} s"
-
-
-def size_warning(n: int, limit: int) -> str:
-    """The warning for a capture above the point limit.
-
-    Parameters
-    ----------
-    n : int
-        Points after filtering.
-    limit : int
-        The ``--max-points`` limit.
-
-    Returns
-    -------
-    str
-        One line.
-    """
-    return (f"warning: {n:,} points after filtering, above the {limit:,}-point limit: precompute would need "
-            f"{size_estimate(n)}; use a coarser --voxel (e.g. 0.003), or --max-points {n} to accept")
 
 
 def check_size(where, n: int, limit: int) -> None:
