@@ -164,8 +164,8 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
         stages.append((f"voxel {cfg.voxel * 1e3:g} mm", len(points)))
     if len(points) > cfg.max_points:  # before the duplicate check and the k-d tree
         n = len(points)
-        on_event(f"warning: {n:,} points after filtering, above the {cfg.max_points:,}-point limit: "
-                 f"precompute would need {size_estimate(n)}; use a coarser --voxel (e.g. 0.003), "
+        on_event(f"warning: {n:,} points after filtering, above the {cfg.max_points:,}-point "
+                 f"limit: precompute would need {size_estimate(n)}; use a coarser --voxel (e.g. 0.003), "
                  f"or --max-points {n} to accept")
     if cfg.voxel <= 0:
         p = weight
