@@ -144,7 +144,7 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     keep = np.ones(len(points), bool)
     if cfg.crop is not None:
         box = np.asarray(cfg.crop, dtype=float)
-        keep &= np.all((points >= box[:3]) & (points <= box[3:]), axis=1)  # the passthrough filter
+        keep &= np.all((points >= box[:3]) & (points <= box[3:]), axis=1)  # passthrough
         stages.append(("crop", int(keep.sum())))
         require(keep.sum() >= MIN_POINTS, f"only {int(keep.sum())} points are inside the crop box",
                 "widen --crop xmin,ymin,zmin,xmax,ymax,zmax (metres)")
@@ -165,8 +165,8 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     if len(points) > cfg.max_points:  # before the duplicate check and the k-d tree
         n = len(points)
         on_event(f"warning: {n:,} points after filtering, above the {cfg.max_points:,}-point "
-                 f"limit: precompute would need {size_estimate(n)}; use a coarser --voxel (e.g. 0.003), "
-                 f"or --max-points {n} to accept")
+                 f"limit: precompute would need {size_estimate(n)}; use a coarser --voxel "
+                 f"(e.g. 0.003), or --max-points {n} to accept")
     if cfg.voxel <= 0:
         p = weight
         n_unique = len(np.unique(points, axis=0))
