@@ -118,7 +118,7 @@ def _rings_mesh(radii: np.ndarray, heights: np.ndarray, edge: float) -> tuple[np
 
     xy = [np.zeros((1, 2))]
     z = [np.array([heights[0]])]
-    for r, h, r_prev, h_prev in zip(radii[1:], heights[1:], radii[:-1], heights[:-1]):
+    for r, h in zip(radii[1:], heights[1:]):
         # Enough points that 3-D edges along the ring are about `edge`; alternate the phase between rings.
         n = max(6, int(np.ceil(2 * np.pi * r / edge)))
         phase = np.pi / n * (len(xy) % 2)
@@ -327,15 +327,6 @@ def rasterize_uv(vertices: np.ndarray, triangles: np.ndarray, uv: np.ndarray, wi
     return out
 
 
-def _pattern_intensity(marking: str, chart: np.ndarray, size: float, seed: int) -> np.ndarray:
-    """Marking intensity (h, w) in {0, 1} of X/ring/dots, drawn by the synthetic generator's own rules."""
-    from tergodic_cli.capture import synthetic
-
-    mark = synthetic._MARKS[marking]  # the generator's drawing rules, so both agree exactly
-    flat = chart.reshape(-1, 2)
-    return mark(flat, size, np.random.default_rng(seed + 1)).reshape(chart.shape[:2]).astype(np.float64)
-
-
 def read_marking_image(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """An image marking: ink colour (h, w, 3) in [0, 1] and intensity (h, w) in [0, 1].
 
@@ -386,7 +377,7 @@ class TexturedObject:
     def __init__(self, cfg: SimObjectConfig | None = None):
         from scipy.spatial import cKDTree
 
-        from tergodic_cli.capture.synthetic import MARKING_RGB, SURFACE_RGB
+        from tergodic_cli.capture.synthetic import _MARKS, MARKING_RGB, SURFACE_RGB
 
         cfg = cfg or SimObjectConfig()
         cfg.cleaning.validate()
@@ -424,8 +415,10 @@ class TexturedObject:
             self.ink_rgb[:height] = ink
             self.intensity[:height] = image_m
         else:
-            chart = texel_chart(width, height, mesh.box)
-            self.intensity[:height] = _pattern_intensity(cfg.marking, chart, mesh.size, cfg.seed)
+            chart = texel_chart(width, height, mesh.box).reshape(-1, 2)
+            # the generator's drawing rules and dots' draw, so both agree exactly
+            mark = _MARKS[cfg.marking](chart, mesh.size, np.random.default_rng(cfg.seed + 1))
+            self.intensity[:height] = mark.reshape(height, width)
 
         # Where each texel sits on the surface; texels off the surface carry no marking.
         surf = rasterize_uv(mesh.vertices, mesh.triangles, uv_front, self.width, self.height)
