@@ -61,9 +61,14 @@ WARM_CACHE_GOAL_MS = 30.0
 
 
 def clusters(evals: np.ndarray, rtol: float = 1e-3) -> list[list[int]]:
-    from tergodic_cli.basis.eigensolvers import eigenvalue_clusters
-
-    groups = eigenvalue_clusters(evals, rtol)
+    """Index groups of (near-)equal ascending eigenvalues (relative gap <= rtol), the zeros one group."""
+    floor = 1e-9 * abs(evals[-1])
+    groups = [[0]]
+    for i in range(1, len(evals)):
+        if evals[i] - evals[i - 1] <= rtol * max(abs(evals[i]), floor):
+            groups[-1].append(i)
+        else:
+            groups.append([i])
     if len(groups) > 1 and len(groups[-1]) > 1:
         groups = groups[:-1]  # cut by the nK boundary: no well-defined span
     return groups

@@ -9,13 +9,15 @@ import contextlib
 import hashlib
 import json
 import os
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 
-from tergodic_cli.errors import os_cause  # noqa: F401  (one wording of the OS's causes, for every verb)
+# os_cause: one wording of the OS's causes, for every verb
+from tergodic_cli.errors import TergodicError, os_cause
 
 
 @contextlib.contextmanager
@@ -41,8 +43,6 @@ def atomic_path(target: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
 
 
 def _file_error(exc: OSError, target: Path):
-    from tergodic_cli.errors import TergodicError
-
     return TergodicError(f"cannot write {target}: {os_cause(exc)}",
                          ("free space, or " if _full(exc) else "") + "check the path and its permissions")
 
@@ -50,33 +50,36 @@ def _file_error(exc: OSError, target: Path):
 def check_output_file(path: str | os.PathLike, overwrite: bool, option: str) -> None:
     """Refuse, before any work, an output file that is a folder, lies under a file, sits in a
     folder we cannot write, or exists without ``overwrite`` (it is then written atomically)."""
-    from tergodic_cli.errors import TergodicError
-
     shown = Path(path)
     target = Path(os.path.abspath(path))
-    other = f"choose another {option}"
     if target.is_dir():
-        raise TergodicError(f"{option} {shown} is a folder, not a file", other)
-    parent = target.parent
+        raise TergodicError(f"{option} {shown} is a folder, not a file", f"choose another {option}")
+    check_parent_writable(target, shown, option)
+    if target.exists() and not overwrite:
+        raise TergodicError(f"{option} {shown} already exists",
+                            f"pass --overwrite to replace it, or choose another {option}")
+
+
+def check_parent_writable(target: Path, shown, option: str) -> None:
+    """Refuse, before any work, a ``target`` whose nearest existing ancestor is a file or a
+    folder we may not write into (also for root on a read-only filesystem). ``option`` names
+    the flag to change."""
+    parent = Path(os.path.abspath(target)).parent
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent
     if not parent.is_dir():
-        raise TergodicError(f"{option} {shown} is under {parent}, which is a file, not a folder", other)
+        raise TergodicError(f"{option} {shown} is under {parent}, which is a file, not a folder",
+                            f"choose another {option}")
     if not os.access(parent, os.W_OK | os.X_OK):
         ro = bool(os.statvfs(parent).f_flag & os.ST_RDONLY)
         raise TergodicError(f"cannot write {option} {shown}: {'read-only filesystem' if ro else 'permission denied'}"
-                            f" at {parent}", other)
-    if target.exists() and not overwrite:
-        raise TergodicError(f"{option} {shown} already exists", f"pass --overwrite to replace it, or {other}")
+                            f" at {parent}", f"choose another {option}")
 
 
 def file_sha256(path: str | os.PathLike) -> str:
-    """sha256 of a file's bytes, read in 1 MiB blocks."""
-    h = hashlib.sha256()
+    """sha256 of a file's bytes."""
     with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+        return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
 def _umask() -> int:
@@ -109,7 +112,6 @@ def _json_default(obj: Any) -> Any:
 
 
 # ------------------------------------------------------------------------------ whole folders
-#: The operating system's causes, in the words of the one-line message (no errno, no library text).
 def _full(exc: BaseException) -> bool:
     return isinstance(exc, OSError) and os_cause(exc) in ("no space left on device", "disk quota exceeded")
 
@@ -139,8 +141,6 @@ class AtomicFolder:
 
     def check(self, renamed: bool = True) -> None:
         """``renamed=False``: only the checks of a folder written into in place (a resumable sweep)."""
-        from tergodic_cli.errors import TergodicError
-
         shown, target, opt = self.shown, self.target, self.option
         other = f"choose another {opt}"
         if renamed and os.path.commonpath([str(target), os.getcwd()]) == str(target):  # renaming would pull it from under us
@@ -148,15 +148,7 @@ class AtomicFolder:
         if target.is_symlink() or (target.exists() and not target.is_dir()):  # a link would be replaced, not followed
             raise TergodicError(f"{opt} {shown} is a {'symbolic link' if target.is_symlink() else 'file'}, not a folder",
                                 other)
-        parent = target.parent
-        while not parent.exists() and parent != parent.parent:
-            parent = parent.parent
-        if not parent.is_dir():
-            raise TergodicError(f"{opt} {shown} is under {parent}, which is a file, not a folder", other)
-        if not os.access(parent, os.W_OK | os.X_OK):  # false for root too on a read-only filesystem
-            ro = bool(os.statvfs(parent).f_flag & os.ST_RDONLY)
-            raise TergodicError(f"cannot write {opt} {shown}: {'read-only filesystem' if ro else 'permission denied'}"
-                                f" at {parent}", other)
+        check_parent_writable(target, shown, opt)
         if target.is_dir() and not os.access(target, os.W_OK | os.X_OK):
             raise TergodicError(f"cannot write {opt} {shown}: permission denied or read-only filesystem", other)
         if target.is_dir() and renamed:
@@ -173,8 +165,6 @@ class AtomicFolder:
                                     f"pass --overwrite to replace it, or {other}")
 
     def __enter__(self) -> Path:
-        import tempfile
-
         self.check()
         try:
             for parent in reversed(self.target.parents):  # remember what we create, to remove it on failure
@@ -203,8 +193,6 @@ class AtomicFolder:
                     return False
             except OSError:
                 pass  # keep the interrupt; the partial folder is lost
-        from tergodic_cli.errors import TergodicError
-
         tmp = str(self.tmp) if self.tmp is not None else None
         # a write into our folder that failed (e.g. reported by the log's writer process) on a full
         # disk: looked at before the discard frees the space
@@ -213,26 +201,19 @@ class AtomicFolder:
         self._discard()
 
         if isinstance(exc, OSError) or (full and isinstance(exc, TergodicError)):
-            cause = "no space left on device" if full else os_cause(exc)
-            raise TergodicError(f"cannot write the {self.what} {self.shown}: {cause}",
-                                ("free space or " if full else "") + f"choose another {self.option}") from None
+            raise self._error(exc, full) from None
         if ours:  # name the folder, not its temporary sibling
             raise TergodicError(exc.problem.replace(tmp, str(self.shown)),
                                 exc.fix.replace(tmp, str(self.shown)) if exc.fix else None) from None
         return False
 
     def _disk_full(self) -> bool:
-        import shutil
-
         try:
             return shutil.disk_usage(self.target.parent).free < (1 << 20)
         except OSError:
             return False
 
     def _swap_in(self) -> None:
-        import shutil
-        import tempfile
-
         assert self.tmp is not None
         os.chmod(self.tmp, 0o777 & ~_umask())  # mkdtemp makes 0700; an artefact is an ordinary folder
         target = self.target
@@ -250,8 +231,6 @@ class AtomicFolder:
         self.tmp = None
 
     def _discard(self) -> None:
-        import shutil
-
         if self.tmp is not None:
             shutil.rmtree(self.tmp, ignore_errors=True)
             self.tmp = None
@@ -261,11 +240,11 @@ class AtomicFolder:
             except OSError:
                 pass
 
-    def _error(self, exc: OSError):
-        from tergodic_cli.errors import TergodicError
-
-        fix = ("free space or " if _full(exc) else "") + f"choose another {self.option}"
-        return TergodicError(f"cannot write the {self.what} {self.shown}: {os_cause(exc)}", fix)
+    def _error(self, exc: BaseException, full: bool | None = None):
+        full = _full(exc) if full is None else full
+        cause = "no space left on device" if full else os_cause(exc)
+        return TergodicError(f"cannot write the {self.what} {self.shown}: {cause}",
+                             ("free space or " if full else "") + f"choose another {self.option}")
 
 
 def write_png(path: str | Path, rgb: np.ndarray) -> None:

@@ -19,85 +19,47 @@ from tergodic_cli.errors import TergodicError, require
 CONFIG_FILE = "config.json"
 
 
-class Config:
-    """Mixin for config dataclasses: ``to_dict`` / ``from_dict`` round-trip through JSON."""
-
-    def to_dict(self) -> dict:
-        """The config as JSON-ready values.
-
-        Returns
-        -------
-        dict
-            Field name -> value; tuples become lists and nested dataclasses dicts.
-        """
-        return to_dict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict, what: str | None = None):
-        """The config :meth:`to_dict` wrote; missing keys keep their defaults.
-
-        Parameters
-        ----------
-        d : dict
-            Field name -> value, as :meth:`to_dict` returns.
-        what : str, optional
-            How the config is named in an error (default: the class name).
-
-        Returns
-        -------
-        Config
-            An instance of ``cls``; an unknown key or a value of the wrong type raises
-            :class:`~tergodic_cli.errors.TergodicError` naming it.
-        """
-        return from_dict(cls, d, what)
-
-
 def to_dict(config) -> dict:
-    """:meth:`Config.to_dict` for any config dataclass (one that does not derive from :class:`Config`).
+    """A config dataclass as JSON-ready values (:meth:`Config.to_dict`; any dataclass).
 
     Parameters
     ----------
     config : dataclass instance
+        Or, in the recursion, any of its values.
 
     Returns
     -------
     dict
-        Field name -> JSON-ready value.
+        Field name -> JSON-ready value (tuples as lists, numpy values as Python ones).
     """
-    return _plain(config)
+    if dataclasses.is_dataclass(config) and not isinstance(config, type):
+        return {f.name: to_dict(getattr(config, f.name)) for f in dataclasses.fields(config)}
+    if isinstance(config, (tuple, list)):
+        return [to_dict(v) for v in config]
+    return config.tolist() if hasattr(config, "tolist") else config  # numpy arrays and scalars
+
+
+_FIX = "use a config.json written by tergodic, or correct it"
 
 
 def from_dict(cls, d: dict, what: str | None = None):
-    """:meth:`Config.from_dict` for any config dataclass ``cls``.
+    """The config :func:`to_dict` wrote, as ``cls`` (:meth:`Config.from_dict`; any dataclass).
 
     Parameters
     ----------
     cls : dataclass type
     d : dict
-        Field name -> value.
+        Field name -> value; missing keys keep their defaults.
     what : str, optional
         How the config is named in an error (default: the class name).
 
     Returns
     -------
     object
-        An instance of ``cls``.
+        An instance of ``cls``; an unknown key or a value of the wrong type raises
+        :class:`~tergodic_cli.errors.TergodicError` naming it.
     """
-    return _build(cls, d, what or cls.__name__)
-
-
-def _plain(value):
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, (tuple, list)):
-        return [_plain(v) for v in value]
-    return value.tolist() if hasattr(value, "tolist") else value  # numpy arrays and scalars
-
-
-_FIX = "use a config.json written by tergodic, or correct it"
-
-
-def _build(cls, d, where: str):
+    where = what or cls.__name__
     require(isinstance(d, dict), f"{where} is not a JSON object", _FIX)
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls) if f.init}
@@ -119,7 +81,7 @@ def _coerce(hint, value, where: str):
             return value  # a free union: the stage's validation checks it
         args = typing.get_args(hint)
     if dataclasses.is_dataclass(hint):
-        return _build(hint, value, where)
+        return from_dict(hint, value, where)
     origin = typing.get_origin(hint)
     if origin is tuple:
         require(isinstance(value, (list, tuple)), f"{where} is not a list", _FIX)
@@ -133,6 +95,13 @@ def _coerce(hint, value, where: str):
         require(isinstance(value, hint) and (hint is bool or not isinstance(value, bool)),
                 f"{where} is not {'an' if hint is int else 'a'} {hint.__name__}", _FIX)
     return value
+
+
+class Config:
+    """Mixin for config dataclasses: ``to_dict`` / ``from_dict`` round-trip through JSON."""
+
+    to_dict = to_dict
+    from_dict = classmethod(from_dict)
 
 
 def override(saved, now, given, renamed: dict | None = None):
@@ -172,7 +141,8 @@ def write_config(path: str | Path, kind: str, **sections) -> None:
     """
     from tergodic_cli.atomic import write_json
 
-    write_json(Path(path), {"kind": kind, "version": 1, **{k: _plain(v) for k, v in sections.items()}})
+    sections = {k: to_dict(v) for k, v in sections.items()}
+    write_json(Path(path), {"kind": kind, "version": 1, **sections})
 
 
 def read_config(path: str | Path, kind: str, fix: str) -> dict:

@@ -77,24 +77,3 @@ def os_error(exc: OSError, path, action: str, fix: str) -> TergodicError:
     """One line for an operating-system failure: ``cannot ACTION PATH: CAUSE; FIX``."""
     return TergodicError(f"cannot {action} {path}: {os_cause(exc)}", fix)
 
-
-def require_writable(path, option: str, sibling: bool = False) -> None:
-    """Refuse, before any work, a folder ``path`` we cannot write into: its nearest existing
-    ancestor (from its parent when ``sibling``: the folder is built beside it and renamed
-    in) must be a folder we may write into. ``option`` names the flag to change."""
-    import os
-    from pathlib import Path
-
-    path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise TergodicError(f"cannot write {path}: it is a file, not a folder", f"choose another {option}")
-    parent = Path(os.path.abspath(path))
-    parent = parent.parent if sibling else parent
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if not parent.is_dir():
-        raise TergodicError(f"cannot write {path}: {parent} is a file, not a folder", f"choose another {option}")
-    if not os.access(parent, os.W_OK | os.X_OK):  # also false for root on a read-only filesystem
-        ro = bool(os.statvfs(parent).f_flag & os.ST_RDONLY)
-        raise TergodicError(f"cannot write {path}: {'read-only filesystem' if ro else 'permission denied'} at {parent}",
-                            f"choose another {option}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import platform
 import sys
@@ -17,13 +18,11 @@ _PACKAGES = ("tergodic", "numpy", "scipy", "open3d", "robust-laplacian", "pybull
 def _versions() -> tuple[tuple[str, str], ...]:
     out = {"python": sys.version.split()[0], "platform": platform.platform()}
     for name in _PACKAGES:
-        out[name] = "absent"
+        found = []
         for dist in (name,) + _ALIASES.get(name, ()):
-            try:
-                out[name] = metadata.version(dist)
-                break
-            except metadata.PackageNotFoundError:
-                continue
+            with contextlib.suppress(metadata.PackageNotFoundError):
+                found.append(metadata.version(dist))
+        out[name] = (found or ["absent"])[0]
     return tuple(out.items())
 
 

@@ -7,15 +7,6 @@ import math
 import numpy as np
 
 
-def euler_xyz_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """R = Rz(yaw) Ry(pitch) Rx(roll) (fixed axes X, then Y, then Z; radians)."""
-    cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
-    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    return Rz @ Ry @ Rx
-
-
 def quat_to_matrix(q) -> np.ndarray:
     """Rotation matrix (3, 3) of the unit quaternion ``q`` = (x, y, z, w) (pybullet order)."""
     x, y, z, w = (float(c) for c in q)

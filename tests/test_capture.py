@@ -11,7 +11,7 @@ from conftest import assert_one_line_error, run_cli, run_cli_subprocess
 from tergodic_cli.capture import CaptureConfig, capture_cloud, load_capture
 from tergodic_cli.capture.filters import voxel_downsample
 from tergodic_cli.capture.readers import read_cloud, write_ply
-from tergodic_cli.capture.segment import parse_target, rgb_to_hsv, segment_target, target_weight
+from tergodic_cli.capture.segment import parse_target, rgb_to_hsv, target_weight
 from tergodic_cli.capture.synthetic import MARKINGS, OBJECTS, generate_synthetic
 
 
@@ -52,11 +52,23 @@ def test_capture_round_trips_every_format(fmt, tmp_path, bowl):
     assert side["filters"][0] == {"stage": "input", "points": len(bowl.points)}
 
 
+def test_binary_compressed_pcd_reads_like_the_cloud(tmp_path, bowl):
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(bowl.points))
+    pcd.colors = o3d.utility.Vector3dVector(bowl.colors)
+    assert o3d.io.write_point_cloud(str(tmp_path / "c.pcd"), pcd, write_ascii=False, compressed=True)
+    assert b"DATA binary_compressed" in (tmp_path / "c.pcd").read_bytes()[:400]
+    pts, cols = read_cloud(tmp_path / "c.pcd")
+    np.testing.assert_allclose(pts, bowl.points, atol=1e-6)
+    np.testing.assert_allclose(cols, bowl.colors, atol=0.5 / 255 + 1e-6)
+
+
 @pytest.mark.parametrize("kind", OBJECTS)
 @pytest.mark.parametrize("marking", MARKINGS)
 def test_segmentation_recovers_generator_marking(kind, marking):
     cloud = generate_synthetic(kind, marking, seed=5, spacing=0.003)
-    mask = segment_target(cloud.colors, parse_target("red"), len(cloud.colors))
+    mask = target_weight(cloud.colors, parse_target("red"), len(cloud.colors)) >= 1
     iou = (mask & cloud.mask).sum() / (mask | cloud.mask).sum()
     assert iou >= 0.95
 
@@ -111,7 +123,7 @@ def test_faint_ink_weighs_in_by_its_intensity(bowl):
     w = target_weight(colours * 0.6, red, len(m))  # shading scales the colour: the weight does not change
     np.testing.assert_allclose(w, target_weight(colours, red, len(m)))
     assert w[0] == 0.0 and w[-1] == 1.0 and np.all(np.diff(w) >= 0)
-    faint = (m >= 0.1) & ~segment_target(colours, red, len(m))  # below the threshold: 0 as a mask
+    faint = (m >= 0.1) & ~(target_weight(colours, red, len(m)) >= 1)  # below the threshold: 0 as a mask
     assert faint.sum() >= 40 and np.all(w[faint] > 0) and np.all(w[faint] < 1)
     assert np.all(w[m < 0.04] == 0)  # the plain surface and the faintest trace carry no ink
     # a saturated marking on a noisy plain surface: the mask rules are unchanged, 'intensity' sees more
@@ -120,8 +132,7 @@ def test_faint_ink_weighs_in_by_its_intensity(bowl):
     ink = capture_cloud(CaptureConfig(**cloud, voxel_rule="intensity"))
     np.testing.assert_array_equal(ink.points, frac.points)
     assert np.all(ink.target >= frac.target) and ink.meta["target"]["voxel_rule"] == "intensity"
-    mask = segment_target(bowl.colors, red, len(bowl.colors))
-    np.testing.assert_array_equal(mask, target_weight(bowl.colors, red, len(mask)) >= 1)
+    mask = target_weight(bowl.colors, red, len(bowl.colors)) >= 1
     np.testing.assert_array_equal(mask, bowl.mask)
 
 

@@ -14,7 +14,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from tergodic_cli.capture import CaptureConfig, capture_cloud, load_capture
-from tergodic_cli.capture.synthetic import OBJECTS, generate_synthetic, test_objects
+from tergodic_cli.capture.synthetic import COVERAGE_OBJECTS, OBJECTS, generate_synthetic
 from tergodic_cli.errors import TergodicError
 
 
@@ -29,7 +29,7 @@ def _components(points: np.ndarray, radius: float) -> int:
 
 
 def test_coverage_objects_list_the_issues_geometry():
-    objs = test_objects()
+    objs = list(COVERAGE_OBJECTS)
     kinds = {o.object for o in objs}
     assert {"holed-plate", "thin-mug", "torus", "box", "partial"} <= kinds
     assert any(o.object == "bowl" and 0.001 <= o.noise <= 0.002 for o in objs)  # "1-2 mm Gaussian noise"
@@ -37,7 +37,7 @@ def test_coverage_objects_list_the_issues_geometry():
     assert all(o.object in OBJECTS for o in objs)
 
 
-@pytest.mark.parametrize("obj", test_objects(), ids=lambda o: f"{o.object}-{o.marking}-{o.noise}")
+@pytest.mark.parametrize("obj", COVERAGE_OBJECTS, ids=lambda o: f"{o.object}-{o.marking}-{o.noise}")
 def test_coverage_objects_have_a_few_thousand_points_and_a_target_at_3mm(obj):
     cap = capture_cloud(CaptureConfig(synthetic=obj.object, marking=obj.marking, noise=obj.noise, voxel=0.003))
     n_target = int((cap.target > 0).sum())
@@ -202,7 +202,7 @@ def test_generator_rejects_bad_noise_in_one_line():
         generate_synthetic("torus", "X", noise=-1.0)
 
 
-@pytest.mark.parametrize("obj", test_objects(), ids=lambda o: f"{o.object}-{o.marking}")
+@pytest.mark.parametrize("obj", COVERAGE_OBJECTS, ids=lambda o: f"{o.object}-{o.marking}")
 def test_coverage_objects_precompute_and_explore(obj, tmp_path):
     cap = tmp_path / "cap"
     assert run_cli("capture", "--synthetic", obj.object, "--marking", obj.marking, "--noise", obj.noise,

@@ -4,15 +4,16 @@ The default, :func:`smallest_eigenpairs`, is shift-invert Lanczos written for th
 symmetric form A = S⁻¹ L S⁻¹ (S = √M), the connected components' null space deflated exactly, one
 LDLᵀ factorisation (``qdldl``) of A − σI with σ inside the wanted window (its inertia counts the
 eigenvalues below σ), full reorthogonalisation without restarts, and certificates (inertia counts,
-true residuals) that hand over to block Lanczos, a negative shift, then ARPACK when they fail.
+true residuals) that hand over to another start vector, a negative shift, then ARPACK when they
+fail.
 docs/precompute.md, "The eigensolver", gives the method and its measured accuracy against
 :func:`arpack_eigenpairs` (the authors' ``eigsh(L, nK, M, sigma=1e-12)``).
 """
 
 from __future__ import annotations
 
+import functools
 import math
-import time
 import warnings
 
 import numpy as np
@@ -29,8 +30,6 @@ DENSE_MAX_N = 800
 DENSE_CAP_N = 6000
 #: Reorthogonalisation corrections below this share of the vector are applied in float32.
 SMALL_CORRECTION = 1e-6
-#: Blocks of 4 from this many points up: matrix-matrix products beat the extra Krylov steps.
-BLOCK_MIN_N = 8000
 #: Aim for this share of the wanted non-zero eigenvalues below the shift σ.
 SHIFT_SHARE = 0.55
 
@@ -70,8 +69,7 @@ def component_null_basis(L: sp.spmatrix, sqrt_mass: np.ndarray) -> np.ndarray:
 class SymmetricFactor:
     """Sparse LDLᵀ of a symmetric (possibly indefinite) matrix K, with its inertia.
 
-    Uses ``qdldl`` (AMD ordering, no pivoting) when installed, given only K's upper
-    triangle; else SuperLU in symmetric mode without row pivoting, whose U diagonal is D.
+    Uses ``qdldl`` (AMD ordering, no pivoting), given only K's upper triangle.
     :meth:`refactor` factorises another matrix with the same sparsity pattern (another
     shift) reusing the ordering and symbolic analysis: 3-5x cheaper than a new factor.
 
@@ -81,36 +79,16 @@ class SymmetricFactor:
     """
 
     def __init__(self, K: sp.spmatrix, check_accuracy: bool = True):
+        import qdldl
+
         K = sp.csc_matrix(K)
         self.n = K.shape[0]
         try:
-            import qdldl
-        except ImportError:
-            qdldl = None
-        if qdldl is not None:
-            try:
-                self._solver = qdldl.Solver(sp.triu(K, format="csc"), upper=True)
-            except Exception as exc:  # zero pivot: the shift hit the spectrum
-                raise EigensolverFailure(f"LDL factorisation failed ({exc})") from None
-            self.solve = self._solver.solve
-            self.backend = "qdldl"
-            self._set_inertia(self._solver.factors()[1], K if check_accuracy else None)
-        else:
-            self.backend = "superlu"
-            self._superlu(K, check_accuracy)
-
-    def _superlu(self, K: sp.csc_matrix, check_accuracy: bool) -> None:
-        from scipy.sparse.linalg import splu
-
-        try:
-            lu = splu(K, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                      options=dict(SymmetricMode=True))
-        except RuntimeError as exc:
-            raise EigensolverFailure(f"LU factorisation failed ({exc})") from None
-        if not np.array_equal(lu.perm_r, lu.perm_c):
-            raise EigensolverFailure("SuperLU pivoted off the diagonal; inertia unknown")
-        self.solve = lu.solve
-        self._set_inertia(lu.U.diagonal(), K if check_accuracy else None)
+            self._solver = qdldl.Solver(sp.triu(K, format="csc"), upper=True)
+        except Exception as exc:  # zero pivot: the shift hit the spectrum
+            raise EigensolverFailure(f"LDL factorisation failed ({exc})") from None
+        self.solve = self._solver.solve
+        self._set_inertia(self._solver.factors()[1], K if check_accuracy else None)
 
     def refactor(self, K: sp.spmatrix, check_accuracy: bool = False) -> "SymmetricFactor":
         """Factorise K in place.
@@ -128,9 +106,6 @@ class SymmetricFactor:
             ``self``.
         """
         K = sp.csc_matrix(K)
-        if self.backend != "qdldl":
-            self._superlu(K, check_accuracy)
-            return self
         try:
             self._solver.update(sp.triu(K, format="csc"), upper=True)
         except Exception as exc:
@@ -213,7 +188,7 @@ def choose_shift(A: "ShiftedMatrix", area: float, n_wanted: int, n_null: int,
 
 
 def lanczos(apply_op, q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, check_from: int,
-            timings: dict | None = None, check_every=None):
+            check_every):
     """Symmetric Lanczos with full reorthogonalisation and a deflated subspace.
 
     After the three-term step, each new vector is orthogonalised against all previous
@@ -234,7 +209,7 @@ def lanczos(apply_op, q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, che
     on_check : callable(alpha (m,), beta (m + 1,), m) -> bool, True when converged;
         ``beta[i]`` couples q_{i-1} and q_i (beta[0] = 0), ``beta[m]`` is the residual coupling.
     check_from : first Krylov dimension at which ``on_check`` is called.
-    check_every : callable(m) -> steps to the next check (default: max(4, m // 20)).
+    check_every : callable(m) -> steps to the next check.
 
     Returns
     -------
@@ -252,17 +227,11 @@ def lanczos(apply_op, q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, che
     beta = np.zeros(max_dim + 1)
     anorm = 0.0
     next_check = check_from
-    check_every = check_every or (lambda m: max(4, m // 20))
     rng = np.random.default_rng(2024)
-    clock = time.perf_counter
-    t_op = t_orth = t_check = 0.0
-    n_checks = 0
     for j in range(max_dim):
         k = c + j  # row of q_j
-        t0 = clock()
         q = Q[k]
         r = apply_op(q)
-        t1 = clock()
         if j:
             r -= beta[j] * Q[k - 1]
         a = q @ r
@@ -295,17 +264,9 @@ def lanczos(apply_op, q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, che
             np.multiply(r, 1.0 / b, out=Q[k + 1])
         Q32[k + 1] = Q[k + 1]
         beta[j + 1] = b
-        t2 = clock()
-        t_op += t1 - t0
-        t_orth += t2 - t1
         m = j + 1
         if m >= next_check:
-            done = on_check(alpha[:m], beta[:m + 1], m)
-            t_check += clock() - t2
-            n_checks += 1
-            if done:
-                if timings is not None:
-                    timings.update(op_s=t_op, orth_s=t_orth, check_s=t_check, checks=n_checks)
+            if on_check(alpha[:m], beta[:m + 1], m):
                 return Q[c:], m
             next_check = m + check_every(m)
     raise EigensolverFailure(f"Lanczos did not converge in {max_dim} steps")
@@ -316,8 +277,8 @@ def tridiagonal_eigh(alpha: np.ndarray, beta: np.ndarray) -> tuple[np.ndarray, n
 
     LAPACK ``dstevd`` (divide and conquer), called directly: on this solver's Lanczos
     matrices it took half the time of ``dstemr`` (what ``scipy.linalg.eigh_tridiagonal``
-    calls; 6 against 12 ms for the 4 checks at 2996 points, nK = 100). Falls back to
-    ``eigh_tridiagonal``.
+    calls; 6 against 12 ms for the 4 checks at 2996 points, nK = 100). A LAPACK failure
+    raises :class:`EigensolverFailure` (the next method takes over).
 
     Parameters
     ----------
@@ -335,115 +296,10 @@ def tridiagonal_eigh(alpha: np.ndarray, beta: np.ndarray) -> tuple[np.ndarray, n
     """
     from scipy.linalg.lapack import dstevd
 
-    if len(alpha) > 1:
-        w, z, info = dstevd(alpha, beta, compute_v=1)
-        if info == 0:
-            return w, z
-    from scipy.linalg import eigh_tridiagonal
-
-    return eigh_tridiagonal(alpha, beta, lapack_driver="stemr")
-
-
-def block_lanczos(apply_op, Q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, check_from: int,
-                  timings: dict | None = None, check_every=None):
-    """Symmetric block Lanczos with full reorthogonalisation and a deflated subspace.
-
-    Each new block is orthogonalised against all previous ones by block classical
-    Gram-Schmidt (matrix-matrix products), repeated only when it cancelled badly, so the
-    basis stays orthonormal to machine precision and Ritz vectors are as accurate as
-    their residuals say (tiny corrections applied in float32, as in :func:`lanczos`).
-
-    Parameters
-    ----------
-    apply_op : callable (b, n) -> (b, n), a symmetric operator applied to each row.
-    Q0 : (b, n) orthonormal start block (rows), orthogonal to ``Z``.
-    Z : (n, c) orthonormal vectors kept out of the Krylov space.
-    max_dim : largest Krylov dimension.
-    on_check : callable(T_band (b + 1, m), B_last (b, b), m) -> bool, True when converged.
-        ``T_band`` is the projected operator in LAPACK lower band storage.
-    check_from : first Krylov dimension at which ``on_check`` is called.
-    check_every : callable(m) -> Krylov dimensions to the next check (default: max(4, m // 16)).
-
-    Returns
-    -------
-    Q (≥ m, n) whose first m rows are the orthonormal Lanczos vectors, and m.
-    """
-    b, n = Q0.shape
-    eps = np.finfo(np.float64).eps
-    n_blocks = max_dim // b
-    Q = np.empty(((n_blocks + 1) * b, n))
-    Q32 = np.empty(((n_blocks + 1) * b, n), dtype=np.float32)
-    Q[:b] = Q0
-    Q32[:b] = Q0
-    band = np.zeros((b + 1, (n_blocks + 1) * b))  # lower band storage of T
-    Zt = np.ascontiguousarray(Z.T)
-    anorm = 0.0
-    next_check = check_from
-    rng = np.random.default_rng(2024)
-    clock = time.perf_counter
-    t_op = t_orth = t_check = 0.0
-    B_prev = None
-    n_checks = 0
-    check_every = check_every or (lambda m: max(4, m // 16))
-    for j in range(n_blocks):
-        lo, hi = j * b, (j + 1) * b
-        t0 = clock()
-        W = apply_op(Q[lo:hi])
-        t1 = clock()
-        if B_prev is not None:
-            W -= B_prev @ Q[lo - b:lo]  # (Q_{j-1} B_jᵀ)ᵀ in row form
-        A = Q[lo:hi] @ W.T
-        W -= A.T @ Q[lo:hi]
-        if Zt.shape[0]:
-            W -= (W @ Z) @ Zt
-        norm0 = np.linalg.norm(W)
-        V = Q[:hi]
-        H = V @ W.T
-        if np.max(np.abs(H)) <= SMALL_CORRECTION * norm0:  # see lanczos(): float32 update
-            W -= (H.T.astype(np.float32) @ Q32[:hi]).astype(np.float64)
-        else:
-            W -= H.T @ V
-        A += H[lo:hi]
-        if np.linalg.norm(W) < 0.7 * norm0:  # cancellation: one more pass
-            H = V @ W.T
-            W -= H.T @ V
-            A += H[lo:hi]
-        A = 0.5 * (A + A.T)
-        Qn, R = np.linalg.qr(W.T)
-        anorm = max(anorm, np.abs(A).sum(axis=1).max() + np.abs(R).sum(axis=0).max())
-        small = np.abs(np.diag(R)) <= 1e3 * eps * anorm
-        if small.any():  # (near) invariant subspace: continue with fresh directions
-            X = rng.standard_normal((int(small.sum()), n))
-            for _ in range(2):
-                if Zt.shape[0]:
-                    X -= (X @ Z) @ Zt
-                X -= (X @ V.T) @ V
-                X -= (X @ Qn) @ Qn.T
-            Qx, _ = np.linalg.qr(X.T)
-            Qn[:, small] = Qx
-            R[small, :] = 0.0
-        Q[hi:hi + b] = Qn.T
-        Q32[hi:hi + b] = Qn.T
-        for d in range(b + 1):  # A on the diagonal band, R (the next coupling) below it
-            if d < b:
-                band[d, lo:hi - d] = np.diagonal(A, -d)
-            if d > 0:
-                band[d, hi - d:hi] = np.diagonal(R, b - d)
-        B_prev = R  # the next block's coupling to this one
-        t2 = clock()
-        t_op += t1 - t0
-        t_orth += t2 - t1
-        m = hi
-        if m >= next_check:
-            done = on_check(band[:, :m], R, m)
-            t_check += clock() - t2
-            n_checks += 1
-            if done:
-                if timings is not None:
-                    timings.update(op_s=t_op, orth_s=t_orth, check_s=t_check, checks=n_checks)
-                return Q, m
-            next_check = m + check_every(m)
-    raise EigensolverFailure(f"Lanczos did not converge in {n_blocks * b} steps")
+    w, z, info = dstevd(alpha, beta, compute_v=1)
+    if info:
+        raise EigensolverFailure(f"dstevd failed (info {info})")
+    return w, z
 
 
 # ---------------------------------------------------------------------------------------
@@ -488,7 +344,7 @@ def _finish(Y: np.ndarray, L: sp.spmatrix, s: np.ndarray, Z: np.ndarray, nk: int
 
 
 def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int = 0,
-                       interior_shift: bool = True, block: int = 1, report: dict | None = None):
+                       interior_shift: bool = True, report: dict | None = None):
     """Shift-invert Lanczos with deflated null space (see the module docstring).
 
     Parameters
@@ -498,9 +354,7 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
     nk : number of eigenpairs.
     seed : start-vector seed (results are deterministic).
     interior_shift : σ inside the wanted window (fast) or σ < 0 (positive definite, slower).
-    block : Lanczos block size (1: single vectors).
-    report : optional dict, filled with what was done (method, shift, Krylov dimension,
-        residual, timings in seconds under keys ending in ``_s``).
+    report : optional dict, filled with what was done (method, shift, residual).
 
     Returns
     -------
@@ -517,7 +371,6 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
     if ne <= 0:  # only null vectors are wanted: they are exact
         report["method"] = "null-space"
         return np.zeros(nk), np.ascontiguousarray(Z[:, :nk] / s[:, None])
-    t0 = time.perf_counter()
     A = L.tocoo()
     A = ShiftedMatrix(sp.csc_matrix((A.data / (s[A.row] * s[A.col]), (A.row, A.col)), shape=L.shape))  # S⁻¹ L S⁻¹
     if interior_shift:
@@ -527,14 +380,12 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
         sigma = -0.01 * 4.0 * math.pi / float(mass.sum())
         factor = SymmetricFactor(A(sigma))
     n_below = factor.n_negative - (c if sigma > 0 else 0)  # non-zero eigenvalues in (0, σ)
-    report.update(method="lanczos", block=block, sigma=sigma, below_sigma=n_below, factor=factor.backend,
-                  factor_s=time.perf_counter() - t0)
-    solve = factor.solve
-    from scipy.linalg import eig_banded
-
+    report.update(method="lanczos", sigma=sigma, seed=seed)
     state = {}
 
-    def select(theta, U, m, coupling):
+    def on_check(alpha, beta, m):
+        theta, U = tridiagonal_eigh(alpha, beta[1:m])
+        coupling = beta[m:m + 1, None]
         with np.errstate(divide="ignore"):
             lam = sigma + 1.0 / theta
         # Ritz values in the spectral gap (−1/σ, 0) map to λ < 0: never eigenvalues.
@@ -570,37 +421,15 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
         return True
 
     rng = np.random.default_rng(seed)
-    X = rng.standard_normal((block, n))
+    X = rng.standard_normal((1, n))
     X -= (X @ Z) @ Z.T
-    Q0 = np.linalg.qr(X.T)[0].T
-    max_dim = int(min(n - c - block, 3 * ne + 100))
+    q0 = np.linalg.qr(X.T)[0][:, 0]
+    max_dim = int(min(n - c - 1, 3 * ne + 100))
     # Lanczos typically needs ne + ~7 √ne steps here; start checking a little before.
     check_from = int(min(max_dim, ne + max(8, 5 * math.sqrt(ne))))
-    if block == 1:
-        def on_check(alpha, beta, m):
-            theta, U = tridiagonal_eigh(alpha, beta[1:m])
-            return select(theta, U, m, beta[m:m + 1, None])
-
-        Q, m = lanczos(solve, Q0[0], Z, max_dim, on_check, check_from, report,
-                       check_every=lambda m: state.get("next_in", max(4, m // 20)))
-    else:
-        def apply_op(X):
-            out = np.empty_like(X)
-            for i in range(len(X)):
-                out[i] = solve(X[i])
-            return out
-
-        def on_check(band, R, m):
-            theta, U = eig_banded(band, lower=True)
-            return select(theta, U, m, R)
-
-        Q, m = block_lanczos(apply_op, Q0, Z, max_dim, on_check, check_from, report,
-                             check_every=lambda m: state.get("next_in", max(4, m // 16)))
-    report["krylov_dim"] = m
-    t0 = time.perf_counter()
+    Q, m = lanczos(factor.solve, q0, Z, max_dim, on_check, check_from,
+                   check_every=lambda m: state.get("next_in", max(4, m // 20)))
     Y = Q[:m].T @ state["U"]  # Ritz vectors as columns, (n, ne)
-    report["ritz_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
     evals, evecs = _finish(Y, L, s, Z, nk, float(np.max(state["lam"])), report)
     # Completeness: Sylvester's law must count exactly nk eigenvalues below a point τ just
     # above the largest one found. This catches an eigenvalue Lanczos skipped (e.g. one
@@ -608,7 +437,6 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
     top = float(evals[-1])
     tau = 0.5 * (top + state["next_lo"]) if state["next_lo"] > top * (1 + 1e-6) else top * (1 + 1e-7)
     count = factor.refactor(A(tau)).n_negative  # the solves are done: reuse the factor's analysis
-    report.update(finish_s=time.perf_counter() - t0, count_at_top=count)
     if count != nk:
         raise EigensolverFailure(f"{count} eigenvalues lie below {tau:.6g}, {nk} were found")
     return evals, evecs
@@ -685,35 +513,26 @@ def arpack_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, sigma: float = 
     return evals[order], evecs[:, order]
 
 
-_BLAS_CONTROLLER = []
-
-
-def _single_threaded_blas():
-    """Limit BLAS to one thread where ``threadpoolctl`` is installed (else do nothing).
+@functools.lru_cache(maxsize=1)
+def _blas_controller():
+    """The ``threadpoolctl`` controller that limits BLAS to one thread around each solve.
 
     The solver's dense work is level-2 BLAS and thin products, bound by memory bandwidth:
     a second BLAS thread gains little on a quiet machine and costs 2-3x when the other
     core is busy (measured: 2.4-3.0 s instead of 0.8-1.1 s at 3684 points, nK = 200).
     The controller (a scan of the loaded libraries, ~5 ms) is built once per process.
     """
-    try:
-        from threadpoolctl import ThreadpoolController
-    except ImportError:
-        import contextlib
+    from threadpoolctl import ThreadpoolController
 
-        return contextlib.nullcontext()
-    if not _BLAS_CONTROLLER:
-        _BLAS_CONTROLLER.append(ThreadpoolController())
-    return _BLAS_CONTROLLER[0].limit(limits=1, user_api="blas")
+    return ThreadpoolController()
 
 
 def smallest_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int = 0,
                         report: dict | None = None):
     """The ``nk`` smallest eigenpairs of L φ = λ M φ by the fastest certified method.
 
-    Tries, in order: dense LAPACK (small clouds) or Lanczos with an interior shift
-    (single vectors below BLOCK_MIN_N points, blocks of 4 above), block Lanczos with a
-    larger block and another start, Lanczos with a negative shift, ARPACK. Each but the
+    Tries, in order: dense LAPACK (small clouds) or Lanczos with an interior shift, the
+    same from another start vector, Lanczos with a negative shift, ARPACK. Each but the
     last certifies its result (see the module docstring) or hands over to the next.
 
     Parameters
@@ -742,16 +561,16 @@ def smallest_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int 
     if n <= DENSE_MAX_N or (3 * nk >= n and n <= DENSE_CAP_N):
         attempts.append(("dense", lambda: dense_eigenpairs(L, mass, nk, report)))
     else:
-        block = 4 if n >= BLOCK_MIN_N else 1
-        attempts.append(("lanczos", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed, block=block, report=report)))
-        # A block of b sees up to b copies of an exactly repeated eigenvalue from the start.
-        attempts.append(("block-lanczos", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed + 1, block=2 * block + 2,
-                                                                     report=report)))
+        attempts.append(("lanczos", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed,
+                                                               report=report)))
+        # Another start vector: a copy of a repeated eigenvalue the first one missed may show.
+        attempts.append(("lanczos-restart", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed + 1,
+                                                                       report=report)))
         attempts.append(("lanczos-negative-shift", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed, report=report,
                                                                               interior_shift=False)))
     for name, attempt in attempts:
         try:
-            with _single_threaded_blas():
+            with _blas_controller().limit(limits=1, user_api="blas"):
                 return attempt()
         except EigensolverFailure as exc:
             report.setdefault("fallbacks", []).append(f"{name}: {exc}")
@@ -764,30 +583,3 @@ def smallest_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int 
     evals, evecs = arpack_eigenpairs(L, mass, nk, sigma=sigma, v0=rng.standard_normal(n))
     evals[np.abs(evals) < 1e-9 * max(abs(float(evals[-1])), 1e-300)] = 0.0
     return evals, evecs
-
-
-def eigenvalue_clusters(evals: np.ndarray, rtol: float = 1e-3) -> list[list[int]]:
-    """Index groups of (near-)equal eigenvalues (ascending ``evals``); the zeros form one group.
-
-    Eigenvectors are only defined up to a rotation within such a group, so two solvers are
-    compared per group (principal angles), not per vector.
-
-    Parameters
-    ----------
-    evals : (k,) float
-        Ascending.
-    rtol : float
-        Relative gap below which neighbours are grouped.
-
-    Returns
-    -------
-    list of list of int
-    """
-    floor = 1e-9 * abs(evals[-1])
-    groups = [[0]]
-    for i in range(1, len(evals)):
-        if evals[i] - evals[i - 1] <= rtol * max(abs(evals[i]), floor):
-            groups[-1].append(i)
-        else:
-            groups.append([i])
-    return groups

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from tergodic_cli.atomic import _json_default, file_sha256
-from tergodic_cli.errors import TergodicError, os_cause, os_error, require_writable
+from tergodic_cli.atomic import AtomicFolder, _json_default, file_sha256
+from tergodic_cli.errors import TergodicError, os_error
 
 SIDECAR = "capture.json"
 ARRAYS = "cloud.npz"
@@ -50,7 +50,10 @@ class Capture:
 CAPTURE_FILES = frozenset({ARRAYS, "cloud.ply", SIDECAR, "camera_rgb.png", "config.json"})
 #: The kind of a capture's ``config.json``.
 CAPTURE_CONFIG_KIND = "tergodic.capture_config"
-_OUT_FIX = "choose another --out"
+
+
+def _folder(out: str | Path, overwrite: bool) -> AtomicFolder:
+    return AtomicFolder(out, overwrite, "--out", what="capture", owned=CAPTURE_FILES.__contains__)
 
 
 def check_out_folder(out: str | Path, overwrite: bool) -> None:
@@ -64,25 +67,7 @@ def check_out_folder(out: str | Path, overwrite: bool) -> None:
     overwrite : bool
         An existing capture there may be replaced.
     """
-    import os
-
-    out = Path(out)
-    here = os.path.abspath(out)
-    if os.path.commonpath([here, os.getcwd()]) == here:  # renaming it would pull the folder from under the shell
-        raise TergodicError(f"--out {out} is the current folder or holds it", "give --out a folder of its own, e.g. --out cap/")
-    if out.exists() and not out.is_dir():
-        raise TergodicError(f"--out {out} is a file, not a folder", _OUT_FIX)
-    if out.is_dir():
-        try:
-            names = {p.name for p in out.iterdir()}
-        except OSError as exc:
-            raise os_error(exc, out, "read", _OUT_FIX) from None
-        if names and not names <= CAPTURE_FILES:
-            raise TergodicError(f"--out {out} holds files that are not a capture's ({sorted(names - CAPTURE_FILES)[0]}, ...)",
-                                "choose another --out; only a capture folder is replaced")
-        if names and not overwrite:
-            raise TergodicError(f"--out {out} already holds a capture", "pass --overwrite to replace it, or choose another --out")
-    require_writable(out, "--out", sibling=True)
+    _folder(out, overwrite).check()
 
 
 def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, extra=None,
@@ -112,25 +97,12 @@ def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, 
     Path
         The sidecar ``out_dir/capture.json``.
     """
-    import os
-    import shutil
-    import tempfile
-
     from tergodic_cli.capture.readers import write_ply
 
-    shown = Path(out_dir)
-    check_out_folder(shown, overwrite)
-    out = Path(os.path.abspath(shown))  # normalised: '.', '..' and a trailing slash have a real name and parent
     arrays = {"points": capture.points.astype(np.float64), "target": capture.target.astype(np.float64)}
     if capture.colors is not None:
         arrays["colors"] = capture.colors.astype(np.float32)
-    created, tmp, old = [], None, None
-    try:
-        for parent in reversed(out.parents):  # remember what we create, to remove it on failure
-            if not parent.exists():
-                parent.mkdir()
-                created.append(parent)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    with _folder(out_dir, overwrite) as tmp:
         with open(tmp / ARRAYS, "wb") as fh:
             np.savez(fh, **arrays)
         write_ply(tmp / "cloud.ply", capture.points, capture.colors)
@@ -146,36 +118,8 @@ def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, 
         meta = json.loads(json.dumps(meta, default=_json_default))  # what a reader will see
         meta[SIDECAR_SHA] = sidecar_checksum(meta)
         (tmp / SIDECAR).write_text(json.dumps(meta, indent=2) + "\n")
-        os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes 0700; a capture is an ordinary folder
-        if out.exists():  # move the old capture aside, put the new one in place, then drop the old
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
-            os.replace(out, old / out.name)
-            try:
-                os.replace(tmp, out)
-            except BaseException:
-                os.replace(old / out.name, out)
-                raise
-            tmp = None
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, out)
-            tmp = None
-    except BaseException as exc:
-        if tmp is not None:
-            shutil.rmtree(tmp, ignore_errors=True)
-        if old is not None and not (old / out.name).exists():
-            shutil.rmtree(old, ignore_errors=True)
-        for parent in reversed(created):
-            try:
-                parent.rmdir()
-            except OSError:
-                pass
-        if isinstance(exc, OSError):
-            full = os_cause(exc) in ("no space left on device", "disk quota exceeded")
-            raise os_error(exc, shown, "write the capture", ("free space or " if full else "") + _OUT_FIX) from None
-        raise
     capture.meta = meta
-    return shown / SIDECAR
+    return Path(out_dir) / SIDECAR
 
 
 def load_capture(path: str | Path) -> Capture:
@@ -244,12 +188,4 @@ def sidecar_checksum(meta: dict) -> str:
     body = {k: v for k, v in meta.items() if k != SIDECAR_SHA}
     text = json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
     return hashlib.sha256(text.encode()).hexdigest()
-
-
-def _umask() -> int:
-    import os
-
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 

@@ -1,28 +1,11 @@
-"""Point-cloud filters as in the paper's acquisition node: passthrough, statistical outlier, voxel grid."""
+"""Point-cloud filters as in the paper's acquisition node: statistical outlier, voxel grid
+(the passthrough crop is one line in the pipeline)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 VOXEL_RULES = ("fraction", "all", "intensity")
-
-
-def crop_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Passthrough filter.
-
-    Parameters
-    ----------
-    points : (n, 3) float
-        Metres.
-    lo, hi : (3,) float
-        Corners of the axis-aligned box, metres.
-
-    Returns
-    -------
-    (n,) bool
-        True for the points inside [lo, hi].
-    """
-    return np.all((points >= lo) & (points <= hi), axis=1)
 
 
 def remove_statistical_outliers(points: np.ndarray, nb_neighbors: int, std_ratio: float) -> np.ndarray:

@@ -7,13 +7,14 @@ voxel rule can give p as the share of target-coloured points in each voxel.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from tergodic_cli.capture.artefact import CAPTURE_CONFIG_KIND, Capture
-from tergodic_cli.capture.filters import VOXEL_RULES, crop_box, mean_spacing, remove_statistical_outliers, voxel_downsample
+from tergodic_cli.capture.filters import (VOXEL_RULES, mean_spacing, remove_statistical_outliers,
+                                          voxel_downsample)
 from tergodic_cli.capture.segment import parse_target, target_weight
 from tergodic_cli.config import Config
 from tergodic_cli.errors import TergodicError, require
@@ -78,25 +79,6 @@ def load_capture_config(path: str | Path) -> tuple[CaptureConfig, dict]:
     return cfg, {k: v for k, v in d.items() if k not in ("kind", "version", "capture")}
 
 
-@dataclass
-class CaptureReport:
-    """Counts after each stage, for the printed summary."""
-
-    stages: list[tuple[str, int]] = field(default_factory=list)
-
-    def add(self, name: str, n: int) -> None:
-        """Record a stage.
-
-        Parameters
-        ----------
-        name : str
-            The stage.
-        n : int
-            Points left after it.
-        """
-        self.stages.append((name, int(n)))
-
-
 def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] | None = None,
                   on_event=None) -> Capture:
     """Run the capture pipeline for ``cfg``.
@@ -122,9 +104,8 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
         on_event = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
     t0 = time.perf_counter()
     target_range = parse_target(cfg.target)
-    report = CaptureReport()
+    stages: list[tuple[str, int]] = []  # points left after each stage, for the printed summary
     provenance: dict = {"source": cfg.source}
-    truth = None
     if raw is not None:
         points, colors = raw
     elif cfg.source == "file":
@@ -136,13 +117,13 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
         from tergodic_cli.capture.synthetic import generate_synthetic
 
         syn = generate_synthetic(cfg.synthetic, cfg.marking, cfg.seed, noise=cfg.noise)
-        points, colors, truth = syn.points, syn.colors, syn.mask
+        points, colors = syn.points, syn.colors
         provenance.update(object=cfg.synthetic, marking=cfg.marking, seed=cfg.seed)
         if float(cfg.noise) > 0:  # validated above
             provenance["noise_m"] = float(cfg.noise)
     else:
         raise TergodicError(f"unknown capture source '{cfg.source}'", "use --from FILE or --synthetic OBJECT")
-    report.add("input", len(points))
+    stages.append(("input", len(points)))
     require(len(points) > 0, "the cloud is empty", "check the input file or the crop box")
 
     if cfg.units == "mm":
@@ -155,8 +136,7 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
         require(cfg.drop_invalid, f"the cloud has {bad} points with NaN or inf coordinates or colours",
                 "remove them, or pass --drop-invalid to drop them")
         points, colors = points[finite], (colors[finite] if colors is not None else None)
-        truth = truth[finite] if truth is not None else None
-        report.add("drop invalid", len(points))
+        stages.append(("drop invalid", len(points)))
     require(len(points) >= MIN_POINTS, f"the cloud has only {len(points)} points",
             f"give at least {MIN_POINTS} points (check the file or the filters)")
     _check_extent(points, cfg.units, f"{Path(cfg.path).name}: " if cfg.source == "file" and cfg.path else "")
@@ -164,27 +144,29 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     keep = np.ones(len(points), bool)
     if cfg.crop is not None:
         box = np.asarray(cfg.crop, dtype=float)
-        keep &= crop_box(points, box[:3], box[3:])
-        report.add("crop", keep.sum())
+        keep &= np.all((points >= box[:3]) & (points <= box[3:]), axis=1)  # passthrough
+        stages.append(("crop", int(keep.sum())))
         require(keep.sum() >= MIN_POINTS, f"only {int(keep.sum())} points are inside the crop box",
                 "widen --crop xmin,ymin,zmin,xmax,ymax,zmax (metres)")
     if cfg.outliers is not None:
         idx = np.flatnonzero(keep)
         inl = remove_statistical_outliers(points[idx], int(cfg.outliers[0]), float(cfg.outliers[1]))
         keep[idx[~inl]] = False
-        report.add("outliers", keep.sum())
+        stages.append(("outliers", int(keep.sum())))
     points = points[keep]
     colors = colors[keep] if colors is not None else None
-    truth = truth[keep] if truth is not None else None
 
     weight = target_weight(colors, target_range, len(points))
     if cfg.voxel_rule != "intensity":  # the marking only: faint ink (and colour noise on the surface) weighs 0
         weight = (weight >= 1.0).astype(np.float64)
     if cfg.voxel > 0:
         points, colors, p = voxel_downsample(points, colors, weight, cfg.voxel, cfg.voxel_rule)
-        report.add(f"voxel {cfg.voxel * 1e3:g} mm", len(points))
+        stages.append((f"voxel {cfg.voxel * 1e3:g} mm", len(points)))
     if len(points) > cfg.max_points:  # before the duplicate check and the k-d tree
-        on_event(size_warning(len(points), cfg.max_points))
+        n = len(points)
+        on_event(f"warning: {n:,} points after filtering, above the {cfg.max_points:,}-point "
+                 f"limit: precompute would need {size_estimate(n)}; use a coarser --voxel "
+                 f"(e.g. 0.003), or --max-points {n} to accept")
     if cfg.voxel <= 0:
         p = weight
         n_unique = len(np.unique(points, axis=0))
@@ -205,8 +187,8 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
         "input_units": cfg.units,
         "provenance": provenance,
         "config": cfg.to_dict(),
-        "filters": [{"stage": name, "points": n} for name, n in report.stages],
-        "counts": {"input": report.stages[0][1], "output": len(points), "target": n_target},
+        "filters": [{"stage": name, "points": n} for name, n in stages],
+        "counts": {"input": stages[0][1], "output": len(points), "target": n_target},
         "target": {
             "spec": cfg.target,
             "voxel_rule": cfg.voxel_rule if cfg.voxel > 0 else "per-point",
@@ -222,9 +204,7 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     from tergodic_cli.provenance import library_versions
 
     meta["versions"] = library_versions()
-    cap = Capture(points, colors, p, meta)
-    cap.truth = truth  # type: ignore[attr-defined]  # generator mask before voxel, for tests
-    return cap
+    return Capture(points, colors, p, meta)
 
 
 def _validate_config(cfg: CaptureConfig) -> None:
@@ -283,25 +263,6 @@ def size_estimate(n: int) -> str:
     gb, seconds = n * BYTES_PER_POINT / 1e9, n * SECONDS_PER_POINT
     memory = f"~{gb:.1f} GB" if gb >= 1 else f"~{max(gb * 1e3, 1):.0f} MB"
     return f"{memory} and over {seconds / 60:.0f} min" if seconds >= 60 else f"{memory} and over {max(seconds, 1):.0f} s"
-
-
-def size_warning(n: int, limit: int) -> str:
-    """The warning for a capture above the point limit.
-
-    Parameters
-    ----------
-    n : int
-        Points after filtering.
-    limit : int
-        The ``--max-points`` limit.
-
-    Returns
-    -------
-    str
-        One line.
-    """
-    return (f"warning: {n:,} points after filtering, above the {limit:,}-point limit: precompute would need "
-            f"{size_estimate(n)}; use a coarser --voxel (e.g. 0.003), or --max-points {n} to accept")
 
 
 def check_size(where, n: int, limit: int) -> None:

@@ -24,6 +24,8 @@ COLOUR_DEPTHS = (8, 16)
 
 _FIX_EXPORT = "re-export the cloud"
 _FIX_INVALID = "remove those rows, or pass --drop-invalid to drop them"
+_FIX_PLY_COUNT = "fix the 'element vertex' count in the header or re-export the cloud"
+_FIX_PCD_COUNT = "fix POINTS (and WIDTH) in the header or re-export the cloud"
 
 
 def read_cloud(path: str | Path, drop_invalid: bool = False,
@@ -137,15 +139,8 @@ class _Reader:
         first = n_header_lines + 1  # file line number of the body's first line
         skip = sum(count for _, count, _, _ in elements[:vi])  # one line per row of earlier elements
         n, props = elements[vi][1], elements[vi][2]
-        rows = lines[skip:skip + n]
-        short = next((i for i, ln in enumerate(rows) if not ln.strip()), len(rows))
-        if short < n:
-            got = sum(1 for ln in lines[skip:] if ln.strip())
-            self.fail(f"line {first + skip + short}", f"the header declares {n} vertices but the body holds {got} (truncated?)")
-        extra = sum(1 for ln in lines[skip + n:] if ln.strip())
-        if extra and len(elements) == vi + 1:
-            self.fail(f"line {first + skip + n}", f"the header declares {n} vertices but the body holds {n + extra} rows",
-                      "fix the 'element vertex' count in the header or re-export the cloud")
+        rows = self._ascii_rows(lines, skip, n, first, f"{n} vertices", _FIX_PLY_COUNT,
+                                more_follow=len(elements) > vi + 1)
         table = self._parse_rows(rows, len(props), lambda i: first + skip + i)
         return table, lambda i, j: f"line {first + skip + i}" + (f" ('{props[j][1]}')" if j is not None else "")
 
@@ -161,22 +156,12 @@ class _Reader:
             offset += count * row_dtype(props).itemsize
         dtype = row_dtype(elements[vi][2])
         n = elements[vi][1]
-        need = n * dtype.itemsize
-        have = len(self.blob) - offset
-        if have < need:
-            self.fail("body", f"truncated: {len(self.blob)} of {offset + need} bytes; the header declares {n} vertices "
-                      f"but only {max(have, 0) // dtype.itemsize} are complete")
         after = elements[vi + 1:]
-        if not any(p[0] == "list" for e in after for p in e[2]):  # fixed-size rest: its length is known
+        rest = None  # the rest's length is known when it has fixed-size rows only
+        if not any(p[0] == "list" for e in after for p in e[2]):
             rest = sum(count * row_dtype(props).itemsize for _, count, props, _ in after)
-            if have > need + rest:
-                extra = have - need - rest
-                self.fail("body", f"{extra} bytes after the {n} vertices the header declares "
-                          f"(room for {extra // dtype.itemsize} more: a wrong 'element vertex' count?)",
-                          "fix the 'element vertex' count in the header or re-export the cloud")
-            if have < need + rest:
-                self.fail("body", f"truncated: {len(self.blob)} of {offset + need + rest} bytes")
-        rec = np.frombuffer(self.blob, dtype=dtype, count=n, offset=offset)
+        label = ("vertices", f"{n} vertices", "'element vertex'", _FIX_PLY_COUNT)
+        rec = self._records(offset, dtype, n, label, rest)
         table = np.empty((n, len(dtype.names)))
         for j, name in enumerate(dtype.names):
             table[:, j] = rec[name]
@@ -186,7 +171,7 @@ class _Reader:
     # ------------------------------------------------------------------------------- PCD
     def pcd(self):
         fields = size = types = counts = None
-        width = height = points = data = None
+        dims, data = {}, None  # WIDTH, HEIGHT, POINTS
         pos, lineno = 0, 0
         while data is None:
             nl = self.blob.find(b"\n", pos)
@@ -210,14 +195,14 @@ class _Reader:
                 value = _int(vals[0]) if len(vals) == 1 else None
                 if value is None or value < 0:
                     self.fail(f"line {lineno}", f"bad {key} '{' '.join(vals)}'", "re-export it as PCD")
-                width, height, points = (value, height, points) if key == "WIDTH" else \
-                    (width, value, points) if key == "HEIGHT" else (width, height, value)
+                dims[key] = value
             elif key == "DATA":
                 data = vals[0].lower() if vals else ""
             elif key not in ("VERSION", "VIEWPOINT"):
                 self.fail(f"line {lineno}", f"cannot parse the PCD header line '{_printable(line[:60])}'", "re-export it as PCD")
         if not fields:
             self.fail("header", "no FIELDS line", "re-export it as PCD")
+        width, height, points = (dims.get(key) for key in ("WIDTH", "HEIGHT", "POINTS"))
         k = len(fields)
         counts = counts or [1] * k
         if size is None or types is None or len(size) != k or len(types) != k or len(counts) != k \
@@ -227,7 +212,7 @@ class _Reader:
             points = (width or 0) * (height or 1)
         if width is not None and width * (height or 1) != points:
             self.fail("header", f"WIDTH x HEIGHT = {width * (height or 1)} but POINTS = {points}",
-                      "fix the header or re-export the cloud")
+                      _FIX_PCD_COUNT)
         for axis in ("x", "y", "z"):
             if axis not in fields:
                 self.fail("header", f"no '{axis}' field", "re-export the cloud with x, y, z fields")
@@ -246,12 +231,7 @@ class _Reader:
         if data == "ascii":
             lines = self.blob[pos:].decode("ascii", "replace").split("\n")
             first = lineno + 1
-            rows = lines[:points]
-            short = next((i for i, ln in enumerate(rows) if not ln.strip()), len(rows))
-            got = sum(1 for ln in lines if ln.strip())
-            if short < points or got > points:
-                self.fail(f"line {first + min(short, points)}", f"the header declares POINTS {points} but the body holds {got} rows",
-                          "fix POINTS (and WIDTH) in the header or re-export the cloud")
+            rows = self._ascii_rows(lines, 0, points, first, f"POINTS {points}", _FIX_PCD_COUNT)
             table = self._parse_rows(rows, len(names), lambda i: first + i)
             if packed is not None:
                 col = table[:, names.index(packed)]
@@ -262,16 +242,8 @@ class _Reader:
         elif data in ("binary", "binary_compressed"):
             dtype = np.dtype([(f"f{j}", f"<{t.lower()}{s}") for j, (t, s) in enumerate(kinds)])
             if data == "binary":
-                need = points * dtype.itemsize
-                have = len(self.blob) - pos
-                if have < need:
-                    self.fail("body", f"truncated: {len(self.blob)} of {pos + need} bytes; POINTS {points} declared "
-                              f"but only {max(have, 0) // dtype.itemsize} are complete")
-                if have > need:
-                    self.fail("body", f"{have - need} bytes after the {points} points the header declares "
-                              f"(room for {(have - need) // dtype.itemsize} more: a wrong POINTS count?)",
-                              "fix POINTS (and WIDTH) in the header or re-export the cloud")
-                rec = np.frombuffer(self.blob, dtype=dtype, count=points, offset=pos)
+                label = ("points", f"POINTS {points}", "POINTS", _FIX_PCD_COUNT)
+                rec = self._records(pos, dtype, points, label, 0)
             else:
                 rec = self._pcd_compressed(pos, dtype, points)
             table = np.empty((points, len(kinds)))
@@ -282,11 +254,9 @@ class _Reader:
             where = lambda i, j: f"point {i}" + (f" ('{names[j]}')" if j is not None else "")
         else:
             self.fail("header", f"unknown PCD DATA '{data}'", "re-export it as ascii or binary PCD")
-        if bits is not None:
-            ix = [names.index(a) for a in ("x", "y", "z")]
-            pts = self._finite(table[:, ix], lambda i, j: where(i, ix[j] if j is not None else None))
-            rgb = np.column_stack([(bits >> 16) & 255, (bits >> 8) & 255, bits & 255]).astype(np.float64)
-            return np.ascontiguousarray(pts), rgb / 255.0
+        if bits is not None:  # three 8-bit columns
+            table = np.column_stack([table, (bits >> 16) & 255, (bits >> 8) & 255, bits & 255])
+            names, kinds = names + ["r", "g", "b"], kinds + [("U", 1)] * 3
         return self._columns(table, names, [_PCD_AS_PLY[k_] for k_ in kinds], where)
 
     def _pcd_compressed(self, pos, dtype, points):
@@ -298,7 +268,7 @@ class _Reader:
             self.fail("body", f"truncated: the compressed block needs {csize} bytes, {len(self.blob) - pos - 8} are left")
         if usize != points * dtype.itemsize:
             self.fail("body", f"the compressed block holds {usize} bytes but POINTS {points} needs {points * dtype.itemsize}",
-                      "fix POINTS (and WIDTH) in the header or re-export the cloud")
+                      _FIX_PCD_COUNT)
         raw = _lzf_decompress(self.blob[pos + 8:pos + 8 + csize], usize)
         if raw is None:
             self.fail("body", "the compressed block is corrupt")
@@ -361,6 +331,34 @@ class _Reader:
                              lambda i, j: f"row {i}" + (f" of '{'points' if j < 3 else 'colors'}'" if j is not None else ""))
 
     # ---------------------------------------------------------------------------- common
+    def _ascii_rows(self, lines, skip, n, first, declared, fix, more_follow=False):
+        """The ``n`` text rows after ``skip`` lines; a blank line among them, or more rows than
+        ``n`` with no other element to follow, fails naming the line (``first``: the body's)."""
+        rows = lines[skip:skip + n]
+        short = next((i for i, ln in enumerate(rows) if not ln.strip()), len(rows))
+        got = sum(1 for ln in lines[skip:] if ln.strip())
+        if short < n or (got > n and not more_follow):
+            self.fail(f"line {first + skip + min(short, n)}",
+                      f"the header declares {declared} but the body holds {got} rows", fix)
+        return rows
+
+    def _records(self, offset, dtype, n, label, rest):
+        """``n`` binary records at ``offset``; fails when the body is too short or, with ``rest``
+        (bytes of what follows) known, too long. ``label``: (unit, declared, count, fix), for
+        the message."""
+        unit, declared, count, fix = label
+        need, have = n * dtype.itemsize, len(self.blob) - offset
+        if have < need:
+            self.fail("body", f"truncated: {len(self.blob)} of {offset + need} bytes; the header "
+                      f"declares {declared} but only {max(have, 0) // dtype.itemsize} are complete")
+        if rest is not None and have > need + rest:
+            extra = have - need - rest
+            self.fail("body", f"{extra} bytes after the {n} {unit} the header declares "
+                      f"(room for {extra // dtype.itemsize} more: a wrong {count} count?)", fix)
+        if rest is not None and have < need + rest:
+            self.fail("body", f"truncated: {len(self.blob)} of {offset + need + rest} bytes")
+        return np.frombuffer(self.blob, dtype=dtype, count=n, offset=offset)
+
     def _parse_rows(self, rows, k, line_of, fix="every row needs the columns the header declares"):
         """Rows of text into an (n, k) float table; a row with another column count fails naming its line."""
         import io
@@ -494,6 +492,9 @@ def _lzf_decompress(data: bytes, size: int) -> bytes | None:
 def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None) -> None:
     """Write a binary little-endian PLY (double xyz, uchar rgb), the reference clouds' layout.
 
+    Written in place: :func:`~tergodic_cli.capture.artefact.save_capture` builds the whole
+    folder aside.
+
     Parameters
     ----------
     path : str or Path
@@ -502,22 +503,17 @@ def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None) -
     colors : (n, 3) float or None
         In [0, 1].
     """
-    from tergodic_cli.atomic import atomic_path
-
-    n = len(points)
     props = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}",
-              "property double x", "property double y", "property double z"]
+    columns = [points[:, 0], points[:, 1], points[:, 2]]
     if colors is not None:
         props += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-        header += ["property uchar red", "property uchar green", "property uchar blue"]
+        columns += list(np.clip(np.rint(colors * 255.0), 0, 255).astype(np.uint8).T)
+    rec = np.empty(len(points), dtype=props)
+    for (name, _), column in zip(props, columns):
+        rec[name] = column
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
+    header += [f"property {'double' if t == '<f8' else 'uchar'} {name}" for name, t in props]
     header.append("end_header")
-    rec = np.empty(n, dtype=props)
-    rec["x"], rec["y"], rec["z"] = points[:, 0], points[:, 1], points[:, 2]
-    if colors is not None:
-        rgb = np.clip(np.rint(colors * 255.0), 0, 255).astype(np.uint8)
-        rec["red"], rec["green"], rec["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
-    with atomic_path(path, suffix=".ply") as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(("\n".join(header) + "\n").encode("ascii"))
-            fh.write(rec.tobytes())
+    with open(path, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(rec.tobytes())

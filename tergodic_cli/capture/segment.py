@@ -151,29 +151,10 @@ def rgb_to_hsv(rgb: np.ndarray) -> np.ndarray:
     return np.column_stack([hue * 60.0, sat, cmax])
 
 
-def segment_target(colors: np.ndarray | None, target: HsvRange | None, n: int) -> np.ndarray:
-    """The target-coloured points (weight 1).
-
-    Parameters
-    ----------
-    colors : (n, 3) float or None
-        RGB in [0, 1].
-    target : HsvRange or None
-        None (``all``) selects every point.
-    n : int
-        Number of points.
-
-    Returns
-    -------
-    (n,) bool
-    """
-    return target_weight(colors, target, n) >= 1.0
-
-
 def target_weight(colors: np.ndarray | None, target: HsvRange | None, n: int) -> np.ndarray:
     """Target weight in [0, 1] of each colour: 1 on the marking, a ramp on faint ink, 0 elsewhere.
 
-    A saturated marking on a plain surface gets exactly the binary mask of :func:`segment_target`.
+    A saturated marking on a plain surface gets a binary mask (the pipeline's ``weight >= 1``).
 
     Parameters
     ----------

@@ -87,20 +87,6 @@ COVERAGE_OBJECTS: tuple[TestObject, ...] = (
 )
 
 
-def test_objects() -> list[TestObject]:
-    """The combinations of the coverage tests and benchmark.
-
-    Returns
-    -------
-    list of TestObject
-        (object, marking, noise σ in metres).
-    """
-    return list(COVERAGE_OBJECTS)
-
-
-test_objects.__test__ = False  # type: ignore[attr-defined]  # pytest would collect it when imported
-
-
 def generate_synthetic(kind: str, marking: str = "X", seed: int = 0, spacing: float = 0.0012,
                        noise: float = 0.0) -> SyntheticCloud:
     """Sample ``kind`` at about one point per ``spacing``² of area and paint ``marking`` on it.

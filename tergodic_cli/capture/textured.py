@@ -18,7 +18,7 @@ import numpy as np
 
 from tergodic_cli.config import Config
 from tergodic_cli.errors import TergodicError, require
-from tergodic_cli.rotations import euler_xyz_matrix, matrix_to_quat, quat_to_matrix
+from tergodic_cli.rotations import matrix_to_quat, quat_to_matrix
 
 BUILTIN_OBJECTS = ("bowl", "plate", "mug")
 PATTERN_MARKINGS = ("X", "ring", "dots", "patches")
@@ -36,8 +36,6 @@ WHITE_LEVEL = 0.94
 
 
 @dataclass
-
-
 class CleaningModel:
     """How a pressing sponge removes the marking.
 
@@ -63,8 +61,6 @@ class CleaningModel:
 
 
 @dataclass
-
-
 class SimObjectConfig(Config):
     """What the simulated scene holds: an object, its marking and its pose in the robot base frame.
 
@@ -122,7 +118,7 @@ def _rings_mesh(radii: np.ndarray, heights: np.ndarray, edge: float) -> tuple[np
 
     xy = [np.zeros((1, 2))]
     z = [np.array([heights[0]])]
-    for r, h, r_prev, h_prev in zip(radii[1:], heights[1:], radii[:-1], heights[:-1]):
+    for r, h in zip(radii[1:], heights[1:]):
         # Enough points that 3-D edges along the ring are about `edge`; alternate the phase between rings.
         n = max(6, int(np.ceil(2 * np.pi * r / edge)))
         phase = np.pi / n * (len(xy) % 2)
@@ -331,15 +327,6 @@ def rasterize_uv(vertices: np.ndarray, triangles: np.ndarray, uv: np.ndarray, wi
     return out
 
 
-def _pattern_intensity(marking: str, chart: np.ndarray, size: float, seed: int) -> np.ndarray:
-    """Marking intensity (h, w) in {0, 1} of X/ring/dots, drawn by the synthetic generator's own rules."""
-    from tergodic_cli.capture import synthetic
-
-    mark = synthetic._MARKS[marking]  # the generator's drawing rules, so both agree exactly
-    flat = chart.reshape(-1, 2)
-    return mark(flat, size, np.random.default_rng(seed + 1)).reshape(chart.shape[:2]).astype(np.float64)
-
-
 def read_marking_image(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """An image marking: ink colour (h, w, 3) in [0, 1] and intensity (h, w) in [0, 1].
 
@@ -390,7 +377,7 @@ class TexturedObject:
     def __init__(self, cfg: SimObjectConfig | None = None):
         from scipy.spatial import cKDTree
 
-        from tergodic_cli.capture.synthetic import MARKING_RGB, SURFACE_RGB
+        from tergodic_cli.capture.synthetic import _MARKS, MARKING_RGB, SURFACE_RGB
 
         cfg = cfg or SimObjectConfig()
         cfg.cleaning.validate()
@@ -428,8 +415,10 @@ class TexturedObject:
             self.ink_rgb[:height] = ink
             self.intensity[:height] = image_m
         else:
-            chart = texel_chart(width, height, mesh.box)
-            self.intensity[:height] = _pattern_intensity(cfg.marking, chart, mesh.size, cfg.seed)
+            chart = texel_chart(width, height, mesh.box).reshape(-1, 2)
+            # the generator's drawing rules and dots' draw, so both agree exactly
+            mark = _MARKS[cfg.marking](chart, mesh.size, np.random.default_rng(cfg.seed + 1))
+            self.intensity[:height] = mark.reshape(height, width)
 
         # Where each texel sits on the surface; texels off the surface carry no marking.
         surf = rasterize_uv(mesh.vertices, mesh.triangles, uv_front, self.width, self.height)
@@ -460,15 +449,6 @@ class TexturedObject:
     def marking_remaining(self) -> float:
         """Share of the initial marking intensity still present (1 = untouched, 0 = clean)."""
         return float(self.intensity.sum()) / self._initial_sum
-
-    def marking_at(self, points: np.ndarray, max_distance: float = 0.003) -> np.ndarray:
-        """Marking intensity (m,) at base-frame points (m, 3): the nearest surface texel's, 0 farther than ``max_distance``."""
-        local = self.to_object(points)
-        dist, idx = self._texel_tree.query(local, distance_upper_bound=max_distance)
-        out = np.zeros(len(local))
-        hit = np.isfinite(dist)
-        out[hit] = self.intensity.ravel()[self.texel_index[idx[hit]]]
-        return out
 
     def to_object(self, points: np.ndarray) -> np.ndarray:
         """Base-frame points (m, 3) -> object frame."""
@@ -521,16 +501,6 @@ class TexturedObject:
         rgb = base + self.intensity[..., None].astype(np.float32) * delta
         return np.clip(rgb, 0, 255).astype(np.uint8)  # +0.5 above makes the cast round
 
-    def write_texture(self, path: str | Path) -> Path:
-        """Write the current texture to ``path`` (.png, or .bmp: uncompressed, about 20x faster to write)."""
-        from PIL import Image
-
-        path = Path(path)
-        require(path.suffix in (".png", ".bmp"), f"unknown texture format '{path.suffix}'", "use .png or .bmp")
-        path.parent.mkdir(parents=True, exist_ok=True)
-        Image.fromarray(self.texture_rgb()).save(path)
-        return path
-
     def _obj_body_text(self) -> str:
         if self._obj_body is None:
             v = "\n".join(f"v {x:.7f} {y:.7f} {z:.7f}" for x, y, z in self._render_vertices)
@@ -574,8 +544,11 @@ class TexturedObject:
         (about 0.8 MB at 512 x 520) in the renderer until the client disconnects.
         """
         import pybullet as p
+        from PIL import Image
 
-        path = self.write_texture(Path(folder) / f"texture_v{self.version}.bmp")
+        # BMP: uncompressed, about 20x faster to write than PNG
+        path = Path(folder) / f"texture_v{self.version}.bmp"
+        Image.fromarray(self.texture_rgb()).save(path)
         tex = p.loadTexture(str(path), physicsClientId=client)
         require(tex >= 0, f"PyBullet could not load the texture {path}", "check the temporary folder is writable")
         p.changeVisualShape(body, -1, textureUniqueId=tex, rgbaColor=[1, 1, 1, 1], physicsClientId=client)
@@ -603,7 +576,10 @@ def parse_pose(values, option: str) -> np.ndarray:
     T = np.eye(4)
     T[:3, 3] = v[:3]
     if len(v) == 6:
-        T[:3, :3] = euler_xyz_matrix(*np.deg2rad(v[3:]))
+        from scipy.spatial.transform import Rotation
+
+        # lower-case "xyz": fixed axes, R = Rz(yaw) Ry(pitch) Rx(roll)
+        T[:3, :3] = Rotation.from_euler("xyz", v[3:], degrees=True).as_matrix()
     elif len(v) == 7:
         q = np.array(v[3:])
         require(abs(np.linalg.norm(q) - 1.0) < 1e-3, f"{option} quaternion is not unit length", fix)
