@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 from conftest import fibonacci_sphere, jittered_square
+from reference_geometry import coverage_score, residual_ref
 
 from tergodic_cli.basis import compute_basis
 from tergodic_cli.capture.synthetic import generate_synthetic
@@ -117,17 +118,20 @@ def test_incremental_metrics_equal_their_definitions(bowl, norm):
         X.append(ex.positions[0].copy())
     m = ex.metrics()
     # The neutral score, kept step by step, equals its definition on the whole trajectory.
-    ref = M.coverage_score(cloud.points, target, np.array(X), 0.012, basis.h)
+    ref = coverage_score(cloud.points, target, np.array(X), 0.012, basis.h)
     assert m["ergodicity"] == pytest.approx(ref["ergodicity"], rel=1e-9)
     assert m["touched_fraction"] == pytest.approx(ref["touched_fraction"], abs=1e-15)
     assert ex.score()["off_surface_fraction"] == ref["off_surface_fraction"] == 0.0
     assert ex.score()["step_max_m"] == pytest.approx(ref["step_max_m"], rel=1e-12)
+    # ... and so does the library's score of a whole trajectory (the benchmarks')
+    lib = M.coverage_score(cloud.points, target, np.array(X)[:, None], 0.012, basis.h)
+    assert lib == pytest.approx(ref, rel=1e-9, abs=1e-15)
     # p̂ = e^{-δtL} p̄ + s̄₁ after step 1 (the published code's first heat: s̄₁ with the cloud's
     # normalisation), then [c = 0] masks it.
     first = Explorer(basis, target, ExploreConfig(nk=80, agent_radius=0.012, integrator="spectral",
                                                   coverage_norm="cloud"), start)
     first.step()
-    assert m["residual_ref"] == pytest.approx(M.residual_ref(first.heat, ex.coverage), rel=1e-9)
+    assert m["residual_ref"] == pytest.approx(residual_ref(first.heat, ex.coverage), rel=1e-9)
     np.testing.assert_allclose(ex.source, M.source_term(target, ex.coverage, basis.mass, norm=norm), rtol=1e-12,
                                atol=0)
     other = M.source_term(target, ex.coverage, basis.mass, norm="cloud" if norm == "target" else "target")

@@ -1,7 +1,9 @@
 """Coverage, source and the three exploration metrics as pure functions of full arrays.
 
 The :class:`~tergodic_cli.explore.explorer.Explorer` keeps incremental versions of these for
-speed; these reference forms define them (and the tests check the two agree).
+speed; these forms define them (and the tests check the two agree). The neutral score of a
+trajectory is kept step by step (:class:`CoverageScore`); its full-array definition is in
+``tests/reference_geometry.py``.
 
 All per-point arrays are (n,) float64 over the cloud; ``mass`` is the lumped mass M (m²).
 """
@@ -86,29 +88,6 @@ def ergodicity(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray) -> float:
     return float(np.sqrt(mass @ (e * e)))
 
 
-def residual_ref(first_heat: np.ndarray, coverage: np.ndarray) -> float:
-    """The authors' residual: ‖p̂ · [c̃ = 0]‖₂ / ‖p̂‖₂ with p̂ = u₁ / Σu₁ (plain sums and norms).
-
-    [c̃ = 0] marks points the footprint never reached. Raw, unnormalised coverage makes any
-    touched point count as done.
-
-    Parameters
-    ----------
-    first_heat : (n,) float
-        The heat u after the first step.
-    coverage : (n,) float
-        Raw coverage c̃.
-
-    Returns
-    -------
-    float
-        Dimensionless, in [0, 1].
-    """
-    p_hat = first_heat / first_heat.sum()
-    untouched = coverage == 0
-    return float(np.linalg.norm(p_hat[untouched]) / np.linalg.norm(p_hat))
-
-
 def touched_fraction(p: np.ndarray, coverage: np.ndarray) -> float:
     """Share of target points (p > 0) whose coverage is > 0.
 
@@ -135,7 +114,7 @@ OFF_SURFACE_H = 2.0
 
 def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray, agent_radius: float,
                    h: float) -> dict:
-    """The neutral coverage score of a trajectory, from full arrays (the reference form).
+    """The neutral coverage score of a whole trajectory: :class:`CoverageScore` over its steps.
 
     Parameters
     ----------
@@ -152,29 +131,15 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
     target points within r_a of some X_t); ``off_surface_fraction`` (share of positions more than
     2h from every point); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
     """
-    from scipy.spatial import cKDTree
+    from tergodic_cli.explore.explorer import cloud_index
 
-    P = np.asarray(points, dtype=np.float64)
     X = np.asarray(positions, dtype=np.float64)
-    steps = np.linalg.norm(np.diff(X, axis=0), axis=-1) if len(X) > 1 else np.zeros(1)
-    X = X.reshape(-1, 3)
-    k = (2.0 / agent_radius) ** 2
-    c = np.zeros(len(P))
-    for a in range(0, len(X), 256):
-        d2 = ((P[:, None, :] - X[None, a:a + 256, :]) ** 2).sum(-1)
-        c += np.exp(-k * d2).sum(1)
-    p = np.asarray(target, dtype=np.float64)
-    pbar = p / p.sum()
-    cbar = c / c.sum() if c.sum() > 0 else c
-    tree = cKDTree(P)
-    near, _ = tree.query(X)
-    hit = np.zeros(len(P), dtype=bool)
-    for idx in tree.query_ball_point(X, agent_radius):
-        hit[idx] = True
-    T = p > 0
-    return {"ergodicity": float(np.linalg.norm(np.maximum(pbar - cbar, 0.0)) / np.linalg.norm(pbar)),
-            "touched_fraction": float(hit[T].mean()), "off_surface_fraction": float((near > OFF_SURFACE_H * h).mean()),
-            "step_max_m": float(steps.max())}
+    X = X.reshape(len(X), -1, 3)
+    score = CoverageScore(cloud_index(np.ascontiguousarray(points, dtype=np.float64)), target, agent_radius, h,
+                          X.shape[1])
+    for x in X:
+        score.add(x)
+    return score.metrics()
 
 
 class CoverageScore:
