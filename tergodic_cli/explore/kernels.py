@@ -188,28 +188,17 @@ def tree_build(points):
 
 @njit
 def _box_dist2(boxes, node, x0, x1, x2):
+    """Squared distance from (x0, x1, x2) to a node's box (0 inside)."""
     d2 = 0.0
-    v = boxes[node, 0] - x0
-    if v > 0.0:
-        d2 += v * v
-    else:
-        v = x0 - boxes[node, 3]
+    x = (x0, x1, x2)
+    for d in range(3):
+        v = boxes[node, d] - x[d]
         if v > 0.0:
             d2 += v * v
-    v = boxes[node, 1] - x1
-    if v > 0.0:
-        d2 += v * v
-    else:
-        v = x1 - boxes[node, 4]
-        if v > 0.0:
-            d2 += v * v
-    v = boxes[node, 2] - x2
-    if v > 0.0:
-        d2 += v * v
-    else:
-        v = x2 - boxes[node, 5]
-        if v > 0.0:
-            d2 += v * v
+        else:
+            v = x[d] - boxes[node, 3 + d]
+            if v > 0.0:
+                d2 += v * v
     return d2
 
 
@@ -324,8 +313,7 @@ def sym_eig_min(A, n, V, W):
             W[i, j] = A[i, j]
             V[i, j] = 1.0 if i == j else 0.0
     for _ in range(60):
-        off = 0.0
-        diag = 0.0
+        off = diag = 0.0
         for i in range(n):
             diag += W[i, i] * W[i, i]
             for j in range(i + 1, n):
@@ -376,9 +364,7 @@ def fit_project(P, nb, k, x, ref, out_xp, out_n):
     Writes the projected point and its unit normal (oriented like ``ref``); returns 0, or 1
     when the fit is degenerate (then the nearest point and ``ref`` are used, as the explorer does).
     """
-    c0 = 0.0
-    c1 = 0.0
-    c2 = 0.0
+    c0 = c1 = c2 = 0.0
     for t in range(k):
         j = nb[t]
         c0 += P[j, 0]
@@ -398,14 +384,7 @@ def fit_project(P, nb, k, x, ref, out_xp, out_n):
     scale = math.sqrt(ss / k)
     status = 0
     kind = 0  # 0 plane, 1 sphere, 2 least-squares plane
-    n0 = 0.0
-    n1 = 0.0
-    n2 = 0.0
-    offset = 0.0
-    cx = 0.0
-    cy = 0.0
-    cz = 0.0
-    radius = 0.0
+    n0 = n1 = n2 = offset = cx = cy = cz = radius = 0.0
     # Coincident points (their spread is rounding of the centroid): no surface to fit.
     if scale <= 1e-12 * (abs(c0) + abs(c1) + abs(c2)) or scale == 0.0:
         status = 1
@@ -761,9 +740,7 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
         sp[SP_F0, q] = 0.0
         sp[SP_F1, q] = 0.0
         sp[SP_F2, q] = 0.0
-    g0 = 0.0
-    g1 = 0.0
-    g2 = 0.0
+    g0 = g1 = g2 = 0.0
     size = 0
     pending = pb[PB_PEND]
     is_[IS_NPEND] = 0
@@ -794,8 +771,7 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
     is_[IS_RESYNCS] += 1
     if is_[IS_RESYNCS] > 1 and ms > 0.0:  # the first resync initialises; later ones measure drift
         drift = abs(old_ms - ms) / ms
-        big = 0.0
-        dev = 0.0
+        big = dev = 0.0
         for q in range(nK):
             new = sp[SP_F0, q] - 2.0 * inv * sp[SP_F1, q] + inv * inv * sp[SP_F2, q]
             big = max(big, abs(new))
@@ -806,18 +782,43 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
 
 
 @njit
+def _take_row(pf, pi, fs, is_, j, n, w0, w1, w2):
+    """Queue row j of Φ as the n-th row this step adds (F_k += w_k φ_j), add w to G; returns n + 1.
+    The rows go in pi[PI_BALL] (free after the deposits), the weights in pf[PF_W0..PF_W2]."""
+    is_[IS_ROWS] += 1
+    fs[FS_G0] += w0
+    fs[FS_G1] += w1
+    fs[FS_G2] += w2
+    pi[PI_BALL, n] = j
+    pf[PF_W0, n], pf[PF_W1, n], pf[PF_W2, n] = w0, w1, w2
+    return n + 1
+
+
+@njit
+def _enter_or_wait(Phi, pf, pb, pi, hk, hi, fs, is_, j, n, size):
+    """A point off the active set: it enters (its row queued) when Z has passed its threshold
+    c̃/p̄, else its threshold goes onto the heap. Returns (rows queued, heap size)."""
+    c, p, m, Z = pf[PF_COV, j], pf[PF_PBAR, j], pf[PF_MASS, j], fs[FS_Z]
+    if _is_active(c, p, Z):
+        n = _take_row(pf, pi, fs, is_, j, n, m * p * p, m * p * c, m * c * c)
+        _prefetch_row(Phi, j)
+        pb[PB_ACTIVE, j] = 1
+    else:
+        size = heap_push(hk, hi, size, max(c / p, Z), j)
+        pb[PB_INHEAP, j] = 1
+    return n, size
+
+
+@njit
 def update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
     """Bring the accumulators up to date after this step's deposits (points in the changed
     list) and the growth of Z (points whose threshold c̃/p̄ it passed enter the active set)."""
     mass, pbar, cov, oldc = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV], pf[PF_OLDC]
-    W0, W1, W2 = pf[PF_W0], pf[PF_W1], pf[PF_W2]
     active, inheap, mark, pending = pb[PB_ACTIVE], pb[PB_INHEAP], pb[PB_MARK], pb[PB_PEND]
     chg = pi[PI_CHG]
-    rows = pi[PI_BALL]  # free after the deposits: the rows to add
     pend = pi[PI_PEND]
     nrows = 0
     Z = fs[FS_Z]
-    g0, g1, g2 = fs[FS_G0], fs[FS_G1], fs[FS_G2]
     size = is_[IS_HEAP]
     # A point the footprint deactivates waits in the pending list, not in the heap, while the
     # footprint still covers it: its c̃ (hence its threshold) is still growing, and a heap key
@@ -830,25 +831,9 @@ def update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
         elif mark[j] == 1:  # covered again this step: the changed list below decides
             pend[npend] = j
             npend += 1
-        else:
+        else:  # enters if Z passed its threshold while it was pending
             pending[j] = 0
-            c = cov[j]
-            p = pbar[j]
-            if _is_active(c, p, Z):  # Z passed its threshold while it was pending
-                is_[IS_ROWS] += 1
-                m = mass[j]
-                w0, w1, w2 = m * p * p, m * p * c, m * c * c
-                g0 += w0
-                g1 += w1
-                g2 += w2
-                rows[nrows] = j
-                W0[nrows], W1[nrows], W2[nrows] = w0, w1, w2
-                nrows += 1
-                _prefetch_row(Phi, j)
-                active[j] = 1
-            else:
-                size = heap_push(hk, hi, size, max(c / p, Z), j)
-                inheap[j] = 1
+            nrows, size = _enter_or_wait(Phi, pf, pb, pi, hk, hi, fs, is_, j, nrows, size)
     for t in range(is_[IS_NCHG]):
         j = chg[t]
         mark[j] = 0
@@ -859,18 +844,10 @@ def update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
         was = active[j] == 1
         now = _is_active(c1, p, Z)
         if was or now:
-            is_[IS_ROWS] += 1
             fw = 1.0 if was else 0.0
             fn = 1.0 if now else 0.0
-            w0 = (fn - fw) * m * p * p
-            w1 = m * p * (fn * c1 - fw * c0)
-            w2 = m * (fn * c1 * c1 - fw * c0 * c0)
-            g0 += w0
-            g1 += w1
-            g2 += w2
-            rows[nrows] = j
-            W0[nrows], W1[nrows], W2[nrows] = w0, w1, w2
-            nrows += 1
+            nrows = _take_row(pf, pi, fs, is_, j, nrows, (fn - fw) * m * p * p, m * p * (fn * c1 - fw * c0),
+                              m * (fn * c1 * c1 - fw * c0 * c0))
             if c0 != 0.0:  # (an untouched point's row was requested by the deposit)
                 _prefetch_row(Phi, j)
         active[j] = 1 if now else 0
@@ -886,28 +863,12 @@ def update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
         inheap[j] = 0
         if active[j] == 1:
             continue  # a stale entry of a point that re-entered through its own deposit step
-        c = cov[j]
-        p = pbar[j]
-        if _is_active(c, p, Z):
-            is_[IS_ROWS] += 1
-            m = mass[j]
-            w0, w1, w2 = m * p * p, m * p * c, m * c * c
-            g0 += w0
-            g1 += w1
-            g2 += w2
-            rows[nrows] = j
-            W0[nrows], W1[nrows], W2[nrows] = w0, w1, w2
-            nrows += 1
-            _prefetch_row(Phi, j)
-            active[j] = 1
-        else:  # its key was stale (c̃ has grown since): wait for the true threshold
-            size = heap_push(hk, hi, size, max(c / p, Z), j)
-            inheap[j] = 1
-    _add_rows(sp, Phi, rows, W0, W1, W2, nrows)
+        # enters, or its key was stale (c̃ has grown since) and it waits for the true threshold
+        nrows, size = _enter_or_wait(Phi, pf, pb, pi, hk, hi, fs, is_, j, nrows, size)
+    _add_rows(sp, Phi, pi[PI_BALL], pf[PF_W0], pf[PF_W1], pf[PF_W2], nrows)
     is_[IS_HEAP] = size
-    fs[FS_G0], fs[FS_G1], fs[FS_G2] = g0, g1, g2
     inv = 1.0 / Z if Z > 0.0 else 0.0
-    fs[FS_MASS_S] = g0 - 2.0 * inv * g1 + inv * inv * g2
+    fs[FS_MASS_S] = fs[FS_G0] - 2.0 * inv * fs[FS_G1] + inv * inv * fs[FS_G2]
 
 
 @njit
@@ -950,10 +911,7 @@ def row_dot(x, y):
     """x · y with four independent partial sums: a single running sum is bound by the
     latency of the floating-point add (the compiler may not reorder it)."""
     n = x.shape[0]
-    s0 = 0.0
-    s1 = 0.0
-    s2 = 0.0
-    s3 = 0.0
+    s0 = s1 = s2 = s3 = 0.0
     m = n - n % 4
     for q in range(0, m, 4):
         s0 += x[q] * y[q]
@@ -1034,8 +992,7 @@ def deposit(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, x, n):
     nchg = is_[IS_NCHG]
     touched = is_[IS_TOUCHED]
     untouched = fs[FS_REF_UNTOUCHED]
-    dz = 0.0
-    dzc = 0.0
+    dz = dzc = 0.0
     for t in range(cnt):
         j = ball[t]
         d0 = P[j, 0] - x[0]
@@ -1092,8 +1049,7 @@ def place_agent(P, perm, nodes, boxes, tpts, full, ag, nbrs, i, x0, ref, k, prm_
     d2 = np.empty(k)
     for _ in range(START_ITERATIONS):
         locate(P, perm, nodes, boxes, tpts, x, r, k, xp, nn, nb, d2)
-        m0, m1, m2 = xp[0] - x[0], xp[1] - x[1], xp[2] - x[2]
-        moved = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+        moved = math.sqrt(_dist2(xp, x))
         x[:] = xp
         r[:] = nn
         if moved < 1e-9:
@@ -1151,9 +1107,7 @@ def gain_gradient(P, perm, nodes, boxes, tpts, pf, pb, fs, prm, x, t1, t2, ball,
     target = pb[PB_TARGET]
     Z = fs[FS_ZC]
     inv = 1.0 / Z if Z > 0.0 else 0.0
-    g0 = 0.0
-    g1 = 0.0
-    g2 = 0.0
+    g0 = g1 = g2 = 0.0
     for t in range(cnt):
         j = ball[t] if tmap is None else tmap[ball[t]]
         if target[j] == 0:
@@ -1234,9 +1188,7 @@ def move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, 
         gb = gain_gradient(P, tgt[0], tgt[1], tgt[2], tgt[3], pf, pb, fs, prm, ahead,
                            ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3], pi[PI_BALL], BROAD_WIDTH, BROAD_REACH, tgt[4])
         for d in range(3):
-            gl[d] += BROAD_WEIGHT * gb[d]
-        for d in range(3):
-            g[d] = prm[PR_HEAT] * g[d] + prm[PR_GAIN] * gl[d]
+            g[d] = prm[PR_HEAT] * g[d] + prm[PR_GAIN] * (gl[d] + BROAD_WEIGHT * gb[d])
     gn = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
     a_max, v_max, dt = prm[PR_AMAX], prm[PR_VMAX], prm[PR_DT]
     acc = np.zeros(3)
@@ -1406,8 +1358,7 @@ def score_epsilon(cov, tlist, pplain, ss):
     """ε = ‖max(p̄ - c/Σc, 0)‖₂ / ‖p̄‖₂ over the target points ``tlist`` (p̄ = 0 elsewhere): O(|T|)."""
     C = ss[SS_C]
     inv = 1.0 / C if C > 0.0 else 0.0
-    num = 0.0
-    den = 0.0
+    num = den = 0.0
     for t in range(tlist.shape[0]):
         j = tlist[t]
         p = pplain[j]
