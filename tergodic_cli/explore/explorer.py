@@ -73,38 +73,6 @@ def cloud_index(points: np.ndarray) -> CloudIndex:
     return _cached("tree", points, lambda: CloudIndex(points))
 
 
-def surface_parts(points: np.ndarray, h: float) -> np.ndarray:
-    """The part of the cloud each point is on (built once per array).
-
-    Points closer than 2 x SURFACE_REACH h are joined, so an agent that stays within
-    SURFACE_REACH h of the data can cross between any two points of one part and no others.
-
-    Parameters
-    ----------
-    points : (n, 3) float
-        Metres.
-    h : float
-        The cloud's spacing, metres.
-
-    Returns
-    -------
-    (n,) int
-        Part labels, in the cloud's order.
-    """
-
-    def build():
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import connected_components
-        from scipy.spatial import cKDTree
-
-        pairs = cKDTree(points).query_pairs(2.0 * K.SURFACE_REACH * h, output_type="ndarray")
-        n = len(points)
-        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-        return connected_components(graph, directed=False)[1]
-
-    return _cached("parts", points, build)
-
-
 def _internal_phi(evecs: np.ndarray, nk: int, order: np.ndarray) -> np.ndarray:
     """Φ[:, :nk] with its rows in internal order, C-contiguous (built once per array and nK)."""
     per_nk = _cached("phi", evecs, dict)
@@ -155,25 +123,6 @@ class FieldSet:
         dist, _ = cKDTree(self.points).query(self.points, 4)
         self.h = float(dist[:, 1:].mean())
         self.thinned = True
-
-
-def field_set(points: np.ndarray, mass: np.ndarray, h: float) -> FieldSet:
-    """The :class:`FieldSet` of a cloud (built once per array).
-
-    Parameters
-    ----------
-    points : (n, 3) float
-        Metres.
-    mass : (n,) float
-        Lumped mass, m².
-    h : float
-        Spacing, metres.
-
-    Returns
-    -------
-    FieldSet
-    """
-    return _cached("fields", points, lambda: FieldSet(points, mass, h))
 
 
 class Explorer:
@@ -227,7 +176,7 @@ class Explorer:
         self._full = cloud_index(self.points)  # what lies on the data, the score, the starts
         # The fields live on the cloud, or on its thinned field set when the cloud is much denser
         # than a 3 mm capture (the implicit integrator needs the whole cloud's L).
-        fset = field_set(self.points, self.mass, self.h)
+        fset = _cached("fields", self.points, lambda: FieldSet(self.points, self.mass, self.h))
         if fset.thinned and cfg.integrator == "implicit":
             fset = FieldSet(self.points, self.mass, float("inf"))
         self._field = fset
@@ -311,8 +260,23 @@ class Explorer:
 
     def _to_target_part(self, i: int, hint: np.ndarray) -> None:
         """Move agent i to the target's part of the cloud when its start is on a part the agent
-        cannot leave without leaving the data (a gap wider than 2 x SURFACE_REACH h)."""
-        parts = surface_parts(self.points, self.h)
+        cannot leave without leaving the data (a gap wider than 2 x SURFACE_REACH h).
+
+        The parts (built once per cloud) join the points closer than 2 x SURFACE_REACH h, so an
+        agent that stays within SURFACE_REACH h of the data can cross between any two points of
+        one part and no others."""
+
+        def parts_of_cloud():
+            from scipy.sparse import coo_matrix
+            from scipy.sparse.csgraph import connected_components
+            from scipy.spatial import cKDTree
+
+            pairs = cKDTree(self.points).query_pairs(2.0 * K.SURFACE_REACH * self.h, output_type="ndarray")
+            n = len(self.points)
+            graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+            return connected_components(graph, directed=False)[1]
+
+        parts = _cached("parts", self.points, parts_of_cloud)
         here = parts[self._field.sel[self._order[self._nbrs[i, 0]]]]
         if np.any(self.p[parts == here] > 0):
             return

@@ -14,41 +14,34 @@ import math
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba.core import cgutils, types
+from numba.extending import intrinsic
 
 
 def njit(fn):
     return numba.njit(cache=True, nogil=True)(fn)
 
 
-def _make_prefetch():
+@intrinsic
+def prefetch(typingctx, A, i, q):
     """``prefetch(A, i, q)``: ask the CPU to start loading the cache line of A[i, q] (A a 2-D
     float64 array) and go on without waiting for it."""
-    from llvmlite import ir
-    from numba.core import cgutils, types
-    from numba.extending import intrinsic
+    sig = types.void(A, types.intp, types.intp)
 
-    @intrinsic
-    def prefetch(typingctx, A, i, q):
-        sig = types.void(A, types.intp, types.intp)
+    def codegen(context, builder, signature, args):
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1], args[2]], wraparound=False)
+        i8p = ir.IntType(8).as_pointer()
+        i32 = ir.IntType(32)
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]),
+                                            "llvm.prefetch.p0")
+        # a read, kept in the caches (locality 2: L2 and beyond), of data
+        builder.call(fn, [builder.bitcast(ptr, i8p), ir.Constant(i32, 0), ir.Constant(i32, 2), ir.Constant(i32, 1)])
+        return context.get_dummy_value()
 
-        def codegen(context, builder, signature, args):
-            aryty = signature.args[0]
-            ary = context.make_array(aryty)(context, builder, args[0])
-            ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1], args[2]], wraparound=False)
-            i8p = ir.IntType(8).as_pointer()
-            i32 = ir.IntType(32)
-            fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]),
-                                                "llvm.prefetch.p0")
-            # a read, kept in the caches (locality 2: L2 and beyond), of data
-            builder.call(fn, [builder.bitcast(ptr, i8p), ir.Constant(i32, 0), ir.Constant(i32, 2), ir.Constant(i32, 1)])
-            return context.get_dummy_value()
-
-        return sig, codegen
-
-    return prefetch
-
-
-prefetch = _make_prefetch()
+    return sig, codegen
 
 #: Points per KD-tree leaf.
 LEAF_SIZE = 8
@@ -67,8 +60,8 @@ N_PB = 5
 PI_CHG, PI_BALL, PI_TARGET, PI_PEND = 0, 1, 2, 3
 N_PI = 4
 # Rows of the spectral array ``sp`` (nK columns).
-SP_DECAY, SP_A, SP_B, SP_F0, SP_F1, SP_F2, SP_EXPDECAY, SP_PBARCOEF = 0, 1, 2, 3, 4, 5, 6, 7
-N_SP = 8
+SP_DECAY, SP_A, SP_B, SP_F0, SP_F1, SP_F2, SP_PBARCOEF = 0, 1, 2, 3, 4, 5, 6
+N_SP = 7
 # Columns of the agent array ``ag`` (N rows).
 AG_POS, AG_VEL, AG_ACC, AG_NRM, AG_T1, AG_T2 = 0, 3, 6, 9, 12, 15
 N_AG = 18
@@ -575,16 +568,8 @@ def cubic_slope(uv, values, weights, k, degree):
     else:
         ok = False
     if not ok:
-        Xw = np.empty((k, m))
-        fw = np.empty(k)
-        for t in range(k):
-            sw = math.sqrt(weights[t])
-            fw[t] = values[t] * sw
-            for a in range(m):
-                Xw[t, a] = X[t, a] * sw
-        sol = np.linalg.lstsq(Xw, fw, 1e-10)[0]
-        for a in range(m):
-            coef[a] = sol[a]
+        sw = np.sqrt(weights[:k])
+        coef[:] = np.linalg.lstsq(X * sw.reshape(k, 1), values[:k] * sw, 1e-10)[0]
     return coef[1] / rho, coef[2] / rho
 
 

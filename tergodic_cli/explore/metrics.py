@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from tergodic_cli.explore import kernels as K
+
 
 def normalise(f: np.ndarray, mass: np.ndarray) -> np.ndarray:
     """``f`` scaled to unit mass, f / ∫f with ∫f = Σ M_i f_i (eq. 2); zeros stay zeros.
@@ -155,9 +157,6 @@ class CoverageScore:
     """
 
     def __init__(self, index, target: np.ndarray, agent_radius: float, h: float, n_agents: int = 1):
-        from tergodic_cli.explore import kernels as K
-
-        self._K = K
         self._tree = index.tree
         n = len(index.order)
         self._cov = np.zeros(n)
@@ -182,7 +181,7 @@ class CoverageScore:
         self._tlist = np.flatnonzero(p > 0)
         self._target = (p > 0).astype(np.int8)
         self._pplain = p / p.sum()
-        self._ss[self._K.SS_TOUCHED] = float(np.count_nonzero(self._touched[self._tlist]))
+        self._ss[K.SS_TOUCHED] = float(np.count_nonzero(self._touched[self._tlist]))
 
     def add(self, positions: np.ndarray) -> None:
         """Score one step.
@@ -192,7 +191,7 @@ class CoverageScore:
         positions : (N, 3) float
             The agents' positions, metres.
         """
-        K, ss = self._K, self._ss
+        ss = self._ss
         has_prev = ss[K.SS_N] > 0
         for i, x in enumerate(positions):
             K.score_position(*self._tree, x, self._prev[i], has_prev, self._cov, self._touched, self._target, ss,
@@ -207,7 +206,7 @@ class CoverageScore:
         dict
             ``ergodicity`` (dimensionless), ``touched_fraction``, ``off_surface_fraction``, ``step_max_m`` (metres).
         """
-        K, ss = self._K, self._ss
+        ss = self._ss
         n = max(ss[K.SS_N], 1.0)
         return {"ergodicity": K.score_epsilon(self._cov, self._tlist, self._pplain, ss) if ss[K.SS_N] else 1.0,
                 "touched_fraction": float(ss[K.SS_TOUCHED] / len(self._tlist)),
