@@ -259,26 +259,3 @@ def test_set_target_keeps_the_basis_and_restarts_the_reference(sphere):
     assert 0 < m["residual_ref"] < 1
     ex.set_target(upper, reset_coverage=True)
     assert not ex.coverage.any()
-
-
-@pytest.mark.parametrize("diffusion,integrator,norm", [("carry", "resolvent", "target"), ("carry", "spectral", "cloud"),
-                                                       ("source", "resolvent", "target"), ("carry", "implicit", "target")])
-def test_cloud_fields_equal_coverage_source_and_heat(bowl, diffusion, integrator, norm):
-    """What the run log gets in one pass (u as Φ a + r for the writer process) equals the definitions."""
-    cloud, basis = bowl
-    target = cloud.mask.astype(float)
-    start = cloud.points[np.flatnonzero(cloud.mask)[:1]]
-    ex = Explorer(basis, target, ExploreConfig(nk=80, agent_radius=0.012, diffusion=diffusion, integrator=integrator,
-                                               coverage_norm=norm), start)
-    for _ in range(60):
-        ex.step()
-    coverage, source, coeffs, residual = ex.cloud_fields()
-    np.testing.assert_array_equal(coverage, ex.coverage)
-    # One pass against the definition: the same numbers up to the order of a few sums (the coverage
-    # normaliser), a few ulps of the largest source value.
-    expected = M.source_term(target, ex.coverage, basis.mass, norm=norm)
-    np.testing.assert_allclose(source, expected, rtol=0, atol=1e-12 * expected.max())
-    heat = residual if coeffs is None else ex.evecs @ coeffs + residual
-    assert (coeffs is None) == (integrator == "implicit")
-    np.testing.assert_allclose(heat, ex.heat, rtol=0, atol=1e-12 * np.abs(ex.heat).max())
-    assert np.abs(heat).max() > 0 and source.max() > 0

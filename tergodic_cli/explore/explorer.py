@@ -437,67 +437,6 @@ class Explorer:
             u += self._sbar()[self._rank][f.rep]
         return u
 
-    def cloud_fields(self, out: tuple | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
-        """Coverage c̃, source s and the heat's terms in one O(n) pass, in the cloud's order.
-
-        Returns ``(coverage, source, coeffs, residual)`` with u = ``evecs @ coeffs + residual``
-        (the O(n nK) product is left to the caller: the run log does it in its writer process;
-        ``coeffs`` is None when u has no spectral form, ``--integrator implicit``). s uses the
-        running normaliser of the last step, so it equals :attr:`source` up to round-off.
-
-        Parameters
-        ----------
-        out : tuple, optional
-            Arrays to fill instead, ``(coverage (n,), source (n,), coeffs (nK,) or None,
-            residual (n,))``; coverage and source may be float32 (rounded as ``astype`` would),
-            which saves the run log a conversion pass.
-
-        Returns
-        -------
-        coverage, source : (n,) float
-        coeffs : (nK,) float or None
-        residual : (n,) float
-        """
-        n = len(self.points)
-        if out is None:
-            coverage, source, residual = np.empty(n), np.empty(n), np.empty(n)
-            coeffs = None
-        else:
-            coverage, source, coeffs, residual = out
-        carry = self._spectral and self._mode == K.HEAT_CARRY
-        f = self._field
-        m = len(f.sel)
-        # one compiled pass; when thinned, on the field set, then each point takes its field point's values
-        fields = (np.empty(m), np.empty(m), np.empty(m)) if f.thinned else (coverage, source, residual)
-        K.cloud_fields(self._pf[K.PF_PBAR], self._cov, self._T, self._rank, self._fs[K.FS_Z],
-                       self._fs[K.FS_MASS_S], carry, *fields)
-        if f.thinned:
-            coverage[:], source[:], residual[:] = (a[f.rep] for a in fields)
-        if not self._spectral:
-            residual[:] = self._u_orig
-            return coverage, source, None, residual
-        if coeffs is None:
-            return coverage, source, self._sp[K.SP_A].copy(), residual
-        coeffs[:] = self._sp[K.SP_A]
-        return coverage, source, coeffs, residual
-
-    def heat_at(self, idx: np.ndarray) -> np.ndarray:
-        """The heat exactly as the agents' gradient fits see it, O(m nK).
-
-        Parameters
-        ----------
-        idx : (m,) int
-            Cloud point indices.
-
-        Returns
-        -------
-        (m,) float
-            u at those points.
-        """
-        idx = self._rank[self._field.rep[np.asarray(idx, dtype=np.int64).ravel()]]
-        return np.array([K.heat_at(self._phi, self._pf, self._sp, self._fs, j, self._mode, self._u_full)
-                         for j in idx])
-
     def metrics(self) -> dict:
         """The metrics after the last step (see docs/explore.md).
 

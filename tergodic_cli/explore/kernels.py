@@ -923,25 +923,6 @@ def project_rows(Phi, w):
 
 
 @njit
-def cloud_fields(pbar, cov, T, rank, Z, ms, carry, coverage, source, residual):
-    """The logged cloud's fields in the cloud's order, in one pass: coverage c̃, source
-    s = max(p̄ − c̃/Z, 0)² (on the target T, internal order), and the heat's residual s/∫s
-    (carry-over) or 0. Writes ``coverage``, ``source``, ``residual`` (n,)."""
-    s = np.zeros(len(cov))
-    for t in range(len(T)):
-        j = T[t]
-        e = pbar[j] - (cov[j] / Z if Z > 0.0 else 0.0)
-        if e > 0.0:
-            s[j] = e * e
-    inv = 1.0 / ms if (carry and ms > 0.0) else 0.0
-    for i in range(len(rank)):
-        j = rank[i]
-        coverage[i] = cov[j]
-        source[i] = s[j]
-        residual[i] = s[j] / ms if inv != 0.0 else 0.0
-
-
-@njit
 def expand_rows(Phi, c):
     """Φ c (n,) for Φ (n, nK), c (nK,), in a fixed order (see :func:`project_rows`)."""
     out = np.empty(Phi.shape[0])
