@@ -135,17 +135,11 @@ def tree_build(points):
     while sp > 0:
         sp -= 1
         node, lo, hi = stack[sp, 0], stack[sp, 1], stack[sp, 2]
+        idx = perm[lo:hi].copy()
+        pts = points[idx]
         for d in range(3):
-            boxes[node, d] = np.inf
-            boxes[node, 3 + d] = -np.inf
-        for t in range(lo, hi):
-            j = perm[t]
-            for d in range(3):
-                v = points[j, d]
-                if v < boxes[node, d]:
-                    boxes[node, d] = v
-                if v > boxes[node, 3 + d]:
-                    boxes[node, 3 + d] = v
+            boxes[node, d] = pts[:, d].min()
+            boxes[node, 3 + d] = pts[:, d].max()
         nodes[node, 0] = lo
         nodes[node, 1] = hi
         if hi - lo <= LEAF_SIZE:
@@ -157,13 +151,7 @@ def tree_build(points):
             if w > widest:
                 widest = w
                 axis = d
-        seg = perm[lo:hi].copy()
-        keys = np.empty(hi - lo)
-        for t in range(hi - lo):
-            keys[t] = points[seg[t], axis]
-        order = np.argsort(keys, kind="mergesort")
-        for t in range(hi - lo):
-            perm[lo + t] = seg[order[t]]
+        perm[lo:hi] = idx[np.argsort(pts[:, axis], kind="mergesort")]
         mid = (lo + hi) // 2
         left, right = count, count + 1
         count += 2
@@ -172,11 +160,7 @@ def tree_build(points):
         stack[sp, 0], stack[sp, 1], stack[sp, 2] = right, mid, hi
         stack[sp + 1, 0], stack[sp + 1, 1], stack[sp + 1, 2] = left, lo, mid
         sp += 2
-    tree_points = np.empty((n, 3))
-    for t in range(n):
-        for d in range(3):
-            tree_points[t, d] = points[perm[t], d]
-    return perm, nodes[:count].copy(), boxes[:count].copy(), tree_points
+    return perm, nodes[:count].copy(), boxes[:count].copy(), points[perm]
 
 
 @njit

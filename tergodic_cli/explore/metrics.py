@@ -56,12 +56,8 @@ def source_term(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray, norm: str
     (n,) float
         s, 1/m⁴.
     """
-    if norm == "target":
-        on_target = np.where(np.asarray(p) > 0, coverage, 0.0)
-        total = float(mass @ on_target)
-        cbar = coverage / total if total > 0 else np.zeros_like(coverage, dtype=float)
-    else:
-        cbar = normalise(coverage, mass)
+    total = float(mass @ (np.where(np.asarray(p) > 0, coverage, 0.0) if norm == "target" else coverage))
+    cbar = coverage / total if total > 0 else np.zeros_like(coverage, dtype=float)
     return np.maximum(normalise(p, mass) - cbar, 0.0) ** 2
 
 
@@ -86,8 +82,7 @@ def ergodicity(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray) -> float:
     float
         1/m.
     """
-    e = np.maximum(normalise(p, mass) - normalise(coverage, mass), 0.0)
-    return float(np.sqrt(mass @ (e * e)))
+    return float(np.sqrt(mass @ source_term(p, coverage, mass)))
 
 
 def touched_fraction(p: np.ndarray, coverage: np.ndarray) -> float:
