@@ -1039,10 +1039,7 @@ def agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full):
     # Off the sampled surface the neighbours lie on one side: a plane, not an extrapolated cubic.
     degree = 3 if r2min <= prm[PR_H2] else 1
     gu, gv = cubic_slope(uv, vals, w, k, degree)
-    g = np.empty(3)
-    for d in range(3):
-        g[d] = ag[i, AG_T1 + d] * gu + ag[i, AG_T2 + d] * gv
-    return g
+    return ag[i, AG_T1:AG_T1 + 3] * gu + ag[i, AG_T2:AG_T2 + 3] * gv
 
 
 @njit
@@ -1073,10 +1070,7 @@ def gain_gradient(P, perm, nodes, boxes, tpts, pf, pb, fs, prm, x, t1, t2, ball,
     f = 2.0 * eps2
     a = f * (g0 * t1[0] + g1 * t1[1] + g2 * t1[2])
     b = f * (g0 * t2[0] + g1 * t2[1] + g2 * t2[2])
-    out = np.empty(3)
-    for d in range(3):
-        out[d] = a * t1[d] + b * t2[d]
-    return out
+    return a * t1 + b * t2
 
 
 @njit
@@ -1128,9 +1122,7 @@ def move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, 
     g = agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full)
     if prm[PR_GAIN] > 0.0:
         # taken where the agent's momentum carries it next (x + v dt): it cannot turn at once
-        ahead = np.empty(3)
-        for d in range(3):
-            ahead[d] = ag[i, AG_POS + d] + ag[i, AG_VEL + d] * prm[PR_DT]
+        ahead = ag[i, AG_POS:AG_POS + 3] + ag[i, AG_VEL:AG_VEL + 3] * prm[PR_DT]
         gl = gain_gradient(P, perm, nodes, boxes, tpts, pf, pb, fs, prm, ahead,
                            ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3], pi[PI_BALL])
         # plus the same gain seen wider, over the target's points only: it pulls towards residual
@@ -1147,22 +1139,16 @@ def move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, 
             acc[d] = g[d] * (a_max / gn)
     x = ag[i, AG_POS:AG_POS + 3].copy()
     nrm = ag[i, AG_NRM:AG_NRM + 3].copy()
-    v = np.empty(3)
-    for d in range(3):
-        v[d] = ag[i, AG_VEL + d] + acc[d] * dt
+    v = ag[i, AG_VEL:AG_VEL + 3] + acc * dt
     tangential(v, nrm)  # the acceleration lies in the tangent plane already; keep v there too
     speed = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
     if speed > v_max:
-        f = v_max / speed
-        for d in range(3):
-            v[d] *= f
+        v *= v_max / speed
     xp = np.empty(3)
     nn = np.empty(3)
     nb = np.empty(k, np.int64)
     d2 = np.empty(k)
-    disp = np.empty(3)
-    for d in range(3):
-        disp[d] = v[d] * dt
+    disp = v * dt
     ok = try_move(P, perm, nodes, boxes, tpts, full, x, disp, nrm, k, prm, xp, nn, nb, d2)
     if not ok:
         # The move leaves the data (an edge, a hole, a gap). Slide instead: of the tangent
@@ -1192,21 +1178,16 @@ def move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, 
             if ok:
                 break
         if not ok:  # wait where it is; the next gradient step picks a new way
-            for d in range(3):
-                v[d] = 0.0
-                xp[d] = x[d]
-                nn[d] = nrm[d]
-            for t in range(k):
-                nb[t] = nbrs[i, t]
-    for d in range(3):
-        ag[i, AG_ACC + d] = acc[d]
-        ag[i, AG_POS + d] = xp[d]
-        ag[i, AG_NRM + d] = nn[d]
-    for t in range(k):
-        nbrs[i, t] = nb[t]
+            v[:] = 0.0
+            xp[:] = x
+            nn[:] = nrm
+            nb[:] = nbrs[i]
+    ag[i, AG_ACC:AG_ACC + 3] = acc
+    ag[i, AG_POS:AG_POS + 3] = xp
+    ag[i, AG_NRM:AG_NRM + 3] = nn
+    nbrs[i, :] = nb
     tangential(v, nn)
-    for d in range(3):
-        ag[i, AG_VEL + d] = v[d]
+    ag[i, AG_VEL:AG_VEL + 3] = v
     tangent_frame(nn, ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3])
 
 
