@@ -23,7 +23,7 @@ from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.explore import kernels as K
 from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_config
 from tergodic_cli.explore.diffusion import ImplicitDiffusion, time_step
-from tergodic_cli.explore.metrics import CoverageScore
+from tergodic_cli.explore.metrics import CoverageScore, source_term
 
 # Static per-cloud data, shared by every explorer of the same arrays (a sweep builds hundreds).
 _STORE: dict[tuple[str, int], tuple] = {}
@@ -112,9 +112,7 @@ class FieldSet:
         # each voxel's stand-in: its point nearest the voxel's centroid (a real point, on the data)
         d = np.linalg.norm(points - centre[group], axis=1)
         order = np.lexsort((d, group))
-        first = np.ones(n, dtype=bool)
-        first[1:] = group[order][1:] != group[order][:-1]
-        self.sel = np.sort(order[first])
+        self.sel = np.sort(order[np.unique(group[order], return_index=True)[1]])
         slot = np.empty(len(counts), dtype=np.int64)
         slot[group[self.sel]] = np.arange(len(self.sel))
         self.rep = slot[group]
@@ -406,8 +404,6 @@ class Explorer:
 
     @property
     def source(self) -> np.ndarray:
-        from tergodic_cli.explore.metrics import source_term
-
         return source_term(self.p, self.coverage, self.mass, norm=self.cfg.coverage_norm)
 
     def _s_target(self, Z: float) -> np.ndarray:

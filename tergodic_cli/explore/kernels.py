@@ -690,10 +690,8 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
     old_ms = fs[FS_MASS_S]
     Zold = fs[FS_Z]
     nK = sp.shape[1]
-    old_coef = np.empty(nK)
     inv = 1.0 / Zold if Zold > 0.0 else 0.0
-    for q in range(nK):
-        old_coef[q] = sp[SP_F0, q] - 2.0 * inv * sp[SP_F1, q] + inv * inv * sp[SP_F2, q]
+    old_coef = sp[SP_F0] - 2.0 * inv * sp[SP_F1] + inv * inv * sp[SP_F2]
     Zc = 0.0
     for j in range(n):
         Zc += mass[j] * cov[j]
@@ -705,10 +703,7 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
     else:
         Z = Zc
     fs[FS_Z] = Z
-    for q in range(nK):
-        sp[SP_F0, q] = 0.0
-        sp[SP_F1, q] = 0.0
-        sp[SP_F2, q] = 0.0
+    sp[SP_F0:SP_F2 + 1] = 0.0
     g0 = g1 = g2 = 0.0
     size = 0
     pending = pb[PB_PEND]
