@@ -198,9 +198,7 @@ def tree_knn(perm, nodes, boxes, tpts, x, k, out_idx, out_d2):
         left = nodes[node, 2]
         if left < 0:
             for j in range(nodes[node, 0], nodes[node, 1]):
-                a = tpts[j, 0] - x0
-                b = tpts[j, 1] - x1
-                c = tpts[j, 2] - x2
+                a, b, c = tpts[j, 0] - x0, tpts[j, 1] - x1, tpts[j, 2] - x2
                 d2 = a * a + b * b + c * c
                 if d2 < out_d2[k - 1]:
                     t = k - 1
@@ -212,12 +210,8 @@ def tree_knn(perm, nodes, boxes, tpts, x, k, out_idx, out_d2):
                     out_idx[t] = perm[j]
         else:
             right = nodes[node, 3]
-            if _box_dist2(boxes, left, x0, x1, x2) <= _box_dist2(boxes, right, x0, x1, x2):
-                stack[sp] = right
-                stack[sp + 1] = left
-            else:
-                stack[sp] = left
-                stack[sp + 1] = right
+            near_left = _box_dist2(boxes, left, x0, x1, x2) <= _box_dist2(boxes, right, x0, x1, x2)
+            stack[sp], stack[sp + 1] = (right, left) if near_left else (left, right)
             sp += 2
 
 
@@ -255,15 +249,12 @@ def tree_ball(perm, nodes, boxes, tpts, x, r, out):
         left = nodes[node, 2]
         if left < 0:
             for j in range(nodes[node, 0], nodes[node, 1]):
-                a = tpts[j, 0] - x0
-                b = tpts[j, 1] - x1
-                c = tpts[j, 2] - x2
+                a, b, c = tpts[j, 0] - x0, tpts[j, 1] - x1, tpts[j, 2] - x2
                 if a * a + b * b + c * c <= r2:
                     out[cnt] = perm[j]
                     cnt += 1
         else:
-            stack[sp] = nodes[node, 3]
-            stack[sp + 1] = left
+            stack[sp], stack[sp + 1] = nodes[node, 3], left
             sp += 2
     return cnt
 
@@ -354,9 +345,7 @@ def fit_project(P, nb, k, x, ref, out_xp, out_n):
     ss = 0.0
     for t in range(k):
         j = nb[t]
-        y[t, 0] = P[j, 0] - c0
-        y[t, 1] = P[j, 1] - c1
-        y[t, 2] = P[j, 2] - c2
+        y[t, 0], y[t, 1], y[t, 2] = P[j, 0] - c0, P[j, 1] - c1, P[j, 2] - c2
         ss += y[t, 0] * y[t, 0] + y[t, 1] * y[t, 1] + y[t, 2] * y[t, 2]
     scale = math.sqrt(ss / k)
     status = 0
@@ -861,10 +850,8 @@ def sbar_at(pf, fs, j):
     """The injected source s̄ = max(p̄ - c̃/Z, 0)² / ∫s at point ``j``."""
     Z = fs[FS_Z]
     ms = fs[FS_MASS_S]
-    if not (ms > 0.0):
-        return 0.0
     p = pf[PF_PBAR, j]
-    if p == 0.0:
+    if not (ms > 0.0) or p == 0.0:
         return 0.0
     e = p - pf[PF_COV, j] / Z if Z > 0.0 else p
     return e * e / ms if e > 0.0 else 0.0
@@ -940,9 +927,7 @@ def deposit(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, x, n):
     dz = dzc = 0.0
     for t in range(cnt):
         j = ball[t]
-        d0 = P[j, 0] - x[0]
-        d1 = P[j, 1] - x[1]
-        d2 = P[j, 2] - x[2]
+        d0, d1, d2 = P[j, 0] - x[0], P[j, 1] - x[1], P[j, 2] - x[2]
         off = d0 * n[0] + d1 * n[1] + d2 * n[2]
         r2 = max(d0 * d0 + d1 * d1 + d2 * d2 - off * off, 0.0)
         phi = math.exp(-eps2 * r2)
@@ -1020,9 +1005,7 @@ def agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full):
     r2min = np.inf
     for t in range(k):
         j = nbrs[i, t]
-        d0 = P[j, 0] - ag[i, AG_POS]
-        d1 = P[j, 1] - ag[i, AG_POS + 1]
-        d2 = P[j, 2] - ag[i, AG_POS + 2]
+        d0, d1, d2 = P[j, 0] - ag[i, AG_POS], P[j, 1] - ag[i, AG_POS + 1], P[j, 2] - ag[i, AG_POS + 2]
         u = d0 * ag[i, AG_T1] + d1 * ag[i, AG_T1 + 1] + d2 * ag[i, AG_T1 + 2]
         v = d0 * ag[i, AG_T2] + d1 * ag[i, AG_T2 + 1] + d2 * ag[i, AG_T2 + 2]
         uv[t, 0] = u
@@ -1045,8 +1028,7 @@ def gain_gradient(P, perm, nodes, boxes, tpts, pf, pb, fs, prm, x, t1, t2, ball,
     GAIN_REACH r_a (φ < 1e-7 beyond, at the default ε = 2/r_a)."""
     eps2 = prm[PR_GAIN_EPS2] / (width * width)
     cnt = tree_ball(perm, nodes, boxes, tpts, x, reach * 2.0 / math.sqrt(eps2), ball)
-    mass, pbar, cov = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV]
-    target = pb[PB_TARGET]
+    mass, pbar, cov, target = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV], pb[PB_TARGET]
     Z = fs[FS_ZC]
     inv = 1.0 / Z if Z > 0.0 else 0.0
     g0 = g1 = g2 = 0.0
