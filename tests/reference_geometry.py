@@ -1,5 +1,5 @@
-"""The NumPy references of the explorer's numba kernels (tests only): the CGA fit, the cubic gradient,
-the neutral coverage score and the authors' residual from full arrays.
+"""The NumPy references of the explorer's numba kernels (tests only): the CGA fit, the cubic
+gradient, the neutral coverage score and the authors' residual from full arrays.
 
 Local surface geometry by the paper's conformal-geometric-algebra fit (eqs. 23-29).
 
@@ -382,8 +382,8 @@ def residual_ref(first_heat: np.ndarray, coverage: np.ndarray) -> float:
     return float(np.linalg.norm(p_hat[untouched]) / np.linalg.norm(p_hat))
 
 
-def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray, agent_radius: float,
-                   h: float) -> dict:
+def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray,
+                   agent_radius: float, h: float) -> dict:
     """The neutral coverage score of a trajectory, from full arrays (the definition of
     :class:`tergodic_cli.explore.metrics.CoverageScore`).
 
@@ -397,10 +397,10 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
 
     Returns
     -------
-    dict: ``ergodicity`` ε = ‖max(p̄ - c̄, 0)‖₂ / ‖p̄‖₂ with c_i = Σ_t exp(-(2/r_a)² |P_i - X_t|²) and
-    p̄ = p/Σp, c̄ = c/Σc (dimensionless, 0 is perfect, 1 untouched); ``touched_fraction`` (share of
-    target points within r_a of some X_t); ``off_surface_fraction`` (share of positions more than
-    2h from every point); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
+    dict: ``ergodicity`` ε = ‖max(p̄ - c̄, 0)‖₂ / ‖p̄‖₂ with c_i = Σ_t exp(-(2/r_a)² |P_i - X_t|²)
+    and p̄ = p/Σp, c̄ = c/Σc (dimensionless, 0 is perfect, 1 untouched); ``touched_fraction``
+    (share of target points within r_a of some X_t); ``off_surface_fraction`` (share of positions
+    more than 2h from every point); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
     """
     from scipy.spatial import cKDTree
 
@@ -422,6 +422,7 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
     for idx in tree.query_ball_point(X, agent_radius):
         hit[idx] = True
     T = p > 0
-    return {"ergodicity": float(np.linalg.norm(np.maximum(pbar - cbar, 0.0)) / np.linalg.norm(pbar)),
-            "touched_fraction": float(hit[T].mean()), "off_surface_fraction": float((near > M.OFF_SURFACE_H * h).mean()),
+    eps = float(np.linalg.norm(np.maximum(pbar - cbar, 0.0)) / np.linalg.norm(pbar))
+    return {"ergodicity": eps, "touched_fraction": float(hit[T].mean()),
+            "off_surface_fraction": float((near > M.OFF_SURFACE_H * h).mean()),
             "step_max_m": float(steps.max())}

@@ -5,7 +5,8 @@ The clouds are the project's own (``capture.synthetic.COVERAGE_OBJECTS``: a bowl
 noise, a plate with a hole, a thin-walled mug, a torus with two target patches, a box with sharp
 edges, a one-sided partial scan), captured at the default 3 mm voxel; the paper's bunny and plate
 are used when ../shared/data/reference is present. The score is recomputed from the trajectory
-with ``reference_geometry.coverage_score`` (full arrays), independent of the explorer's incremental one.
+with ``reference_geometry.coverage_score`` (full arrays), independent of the explorer's
+incremental one.
 """
 
 from __future__ import annotations

@@ -71,7 +71,8 @@ class FullRecompute:
 def _heat_at(ex: Explorer, idx) -> np.ndarray:
     """The heat at cloud points ``idx`` exactly as the agents' gradient fits see it."""
     idx = ex._rank[ex._field.rep[np.asarray(idx, dtype=np.int64).ravel()]]
-    return np.array([K.heat_at(ex._phi, ex._pf, ex._sp, ex._fs, j, ex._mode, ex._u_full) for j in idx])
+    return np.array([K.heat_at(ex._phi, ex._pf, ex._sp, ex._fs, j, ex._mode, ex._u_full)
+                     for j in idx])
 
 
 def _eq48(ex: Explorer) -> float:
@@ -162,7 +163,8 @@ def test_incremental_source_for_a_marking_and_the_other_variants(bowl, integrato
         ex.step()
         ref.step(ex.coverage)
         want = ref.heat_at(nb)
-        worst["heat"] = max(worst["heat"], float(np.abs(_heat_at(ex, nb) - want).max() / np.abs(want).max()))
+        got = _heat_at(ex, nb)
+        worst["heat"] = max(worst["heat"], float(np.abs(got - want).max() / np.abs(want).max()))
     assert worst["heat"] < RTOL, worst
     # The whole reconstructed field agrees too (what the run log's clouds store).
     u_full = ref.phi @ ref.a + (ref.sbar if diffusion == "carry" else 0)

@@ -52,8 +52,7 @@ class CloudIndex:
     def __init__(self, points: np.ndarray):
         perm, nodes, boxes, tpts = K.tree_build(points)
         self.order = perm
-        self.rank = np.empty_like(perm)
-        self.rank[perm] = np.arange(len(perm))
+        self.rank = np.argsort(perm)  # the inverse permutation
         self.points = tpts
         self.tree = (np.arange(len(perm)), nodes, boxes, tpts)
 
@@ -269,8 +268,8 @@ class Explorer:
             from scipy.sparse.csgraph import connected_components
             from scipy.spatial import cKDTree
 
-            pairs = cKDTree(self.points).query_pairs(2.0 * K.SURFACE_REACH * self.h, output_type="ndarray")
-            n = len(self.points)
+            n, reach = len(self.points), 2.0 * K.SURFACE_REACH * self.h
+            pairs = cKDTree(self.points).query_pairs(reach, output_type="ndarray")
             graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
             return connected_components(graph, directed=False)[1]
 
@@ -363,9 +362,9 @@ class Explorer:
 
     def _bind(self) -> None:
         """The step kernel's state arguments, bound once (the heap arrays change with the target)."""
-        self._state = (self._P, *self._tree, self._full.tree, self._tgt, self._phi, self._pf, self._pb, self._pi,
-                       self._sp, self._heap_keys, self._heap_idx, self._fs, self._is, self._prm, self._ag, self._nbrs,
-                       self._k)
+        self._state = (self._P, *self._tree, self._full.tree, self._tgt, self._phi, self._pf,
+                       self._pb, self._pi, self._sp, self._heap_keys, self._heap_idx, self._fs,
+                       self._is, self._prm, self._ag, self._nbrs, self._k)
 
     @property
     def edge_events(self) -> int:
@@ -499,7 +498,8 @@ class Explorer:
             status[:] = 0
         else:
             status[:] = -1
-        args = (*self._state, deposits, n_dep, self._resets, status, self._mode, self._resync, self._u_full)
+        args = (*self._state, deposits, n_dep, self._resets, status, self._mode, self._resync,
+                self._u_full)
         if self._spectral:
             K.step_kernel(*args, 0)
         else:  # coverage and source, the full field's diffusion, the agents
@@ -516,7 +516,8 @@ class Explorer:
         self.last_step_ms = 1e3 * (time.perf_counter() - t0)
         # The neutral score (metrics.coverage_score) is instrumentation: outside the step's time.
         self._score.add(self.positions)
-        self._set_metrics(math.sqrt(max(float(self._fs[K.FS_REF_UNTOUCHED]), 0.0) / self._ref_norm2))
+        untouched = max(float(self._fs[K.FS_REF_UNTOUCHED]), 0.0)
+        self._set_metrics(math.sqrt(untouched / self._ref_norm2))
 
     def _diffuse_full(self) -> None:
         """The implicit integrator on the whole field: u <- (M + δt L)⁻¹ M u + s̄ (carry) or u = ... s̄."""

@@ -32,13 +32,15 @@ def prefetch(typingctx, A, i, q):
     def codegen(context, builder, signature, args):
         aryty = signature.args[0]
         ary = context.make_array(aryty)(context, builder, args[0])
-        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1], args[2]], wraparound=False)
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1], args[2]],
+                                       wraparound=False)
         i8p = ir.IntType(8).as_pointer()
         i32 = ir.IntType(32)
-        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]),
-                                            "llvm.prefetch.p0")
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0")
         # a read, kept in the caches (locality 2: L2 and beyond), of data
-        builder.call(fn, [builder.bitcast(ptr, i8p), ir.Constant(i32, 0), ir.Constant(i32, 2), ir.Constant(i32, 1)])
+        flags = [ir.Constant(i32, 0), ir.Constant(i32, 2), ir.Constant(i32, 1)]
+        builder.call(fn, [builder.bitcast(ptr, i8p), *flags])
         return context.get_dummy_value()
 
     return sig, codegen
@@ -140,8 +142,7 @@ def tree_build(points):
         for d in range(3):
             boxes[node, d] = pts[:, d].min()
             boxes[node, 3 + d] = pts[:, d].max()
-        nodes[node, 0] = lo
-        nodes[node, 1] = hi
+        nodes[node, 0], nodes[node, 1] = lo, hi
         if hi - lo <= LEAF_SIZE:
             continue
         axis = 0
@@ -155,8 +156,7 @@ def tree_build(points):
         mid = (lo + hi) // 2
         left, right = count, count + 1
         count += 2
-        nodes[node, 2] = left
-        nodes[node, 3] = right
+        nodes[node, 2], nodes[node, 3] = left, right
         stack[sp, 0], stack[sp, 1], stack[sp, 2] = right, mid, hi
         stack[sp + 1, 0], stack[sp + 1, 1], stack[sp + 1, 2] = left, lo, mid
         sp += 2
@@ -311,8 +311,7 @@ def sym_eig_min(A, n, V, W):
                         W[q, r] = W[r, q]
                 W[p, p] -= t * apq
                 W[q, q] += t * apq
-                W[p, q] = 0.0
-                W[q, p] = 0.0
+                W[p, q] = W[q, p] = 0.0
                 for r in range(n):
                     vrp, vrq = V[r, p], V[r, q]
                     V[r, p] = c * vrp - s * vrq
@@ -372,8 +371,7 @@ def fit_project(P, nb, k, x, ref, out_xp, out_n):
         for a in range(5):
             for b in range(a):
                 B[a, b] = B[b, a]
-        V = np.empty((5, 5))
-        Wk = np.empty((5, 5))
+        V, Wk = np.empty((5, 5)), np.empty((5, 5))
         col = sym_eig_min(B, 5, V, Wk)
         r0, r1, r2 = V[0, col], V[1, col], V[2, col]
         v_inf, v0 = V[3, col], V[4, col]
@@ -406,9 +404,7 @@ def fit_project(P, nb, k, x, ref, out_xp, out_n):
             kind = 0
         if kind == 0:
             dd = n0 * x[0] + n1 * x[1] + n2 * x[2] - offset
-            out_xp[0] = x[0] - dd * n0
-            out_xp[1] = x[1] - dd * n1
-            out_xp[2] = x[2] - dd * n2
+            out_xp[0], out_xp[1], out_xp[2] = x[0] - dd * n0, x[1] - dd * n1, x[2] - dd * n2
         else:
             q0, q1, q2 = x[0] - cx, x[1] - cy, x[2] - cz
             dist = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2)
@@ -416,8 +412,7 @@ def fit_project(P, nb, k, x, ref, out_xp, out_n):
                 status = 1
             else:
                 n0, n1, n2 = q0 / dist, q1 / dist, q2 / dist
-                out_xp[0] = cx + radius * n0
-                out_xp[1] = cy + radius * n1
+                out_xp[0], out_xp[1] = cx + radius * n0, cy + radius * n1
                 out_xp[2] = cz + radius * n2
     if status == 1:
         j = nb[0]
@@ -443,9 +438,7 @@ def tangent_frame(n, out_t1, out_t2):
     inv = 1.0 / math.sqrt(a * a + b * b + c * c)
     a, b, c = a * inv, b * inv, c * inv
     out_t1[0], out_t1[1], out_t1[2] = a, b, c
-    out_t2[0] = ny * c - nz * b
-    out_t2[1] = nz * a - nx * c
-    out_t2[2] = nx * b - ny * a
+    out_t2[0], out_t2[1], out_t2[2] = ny * c - nz * b, nz * a - nx * c, nx * b - ny * a
 
 
 @njit
@@ -480,18 +473,11 @@ def cubic_slope(uv, values, weights, k, degree):
     for t in range(k):
         u = uv[t, 0] / rho
         v = uv[t, 1] / rho
-        X[t, 0] = 1.0
-        X[t, 1] = u
-        X[t, 2] = v
+        X[t, 0], X[t, 1], X[t, 2] = 1.0, u, v
         if m == 10:
             uu, vv = u * u, v * v
-            X[t, 3] = uu
-            X[t, 4] = u * v
-            X[t, 5] = vv
-            X[t, 6] = uu * u
-            X[t, 7] = uu * v
-            X[t, 8] = u * vv
-            X[t, 9] = vv * v
+            X[t, 3], X[t, 4], X[t, 5] = uu, u * v, vv
+            X[t, 6], X[t, 7], X[t, 8], X[t, 9] = uu * u, uu * v, u * vv, vv * v
     A = np.zeros((m, m))
     rhs = np.zeros(m)
     for t in range(k):
@@ -561,11 +547,9 @@ def heap_push(hk, hi, size, key, idx):
         parent = (i - 1) // HEAP_ARITY
         if hk[parent] <= key:
             break
-        hk[i] = hk[parent]
-        hi[i] = hi[parent]
+        hk[i], hi[i] = hk[parent], hi[parent]
         i = parent
-    hk[i] = key
-    hi[i] = idx
+    hk[i], hi[i] = key, idx
     return size + 1
 
 
@@ -575,8 +559,7 @@ def heap_pop(hk, hi, size):
     key, idx = hk[0], hi[0]
     size -= 1
     if size > 0:
-        last_k = hk[size]
-        last_i = hi[size]
+        last_k, last_i = hk[size], hi[size]
         i = 0
         while True:
             first = HEAP_ARITY * i + 1
@@ -591,11 +574,9 @@ def heap_pop(hk, hi, size):
                     child = c
             if last_k <= ck:
                 break
-            hk[i] = ck
-            hi[i] = hi[child]
+            hk[i], hi[i] = ck, hi[child]
             i = child
-        hk[i] = last_k
-        hi[i] = last_i
+        hk[i], hi[i] = last_k, last_i
     return key, idx, size
 
 
@@ -676,8 +657,7 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
     active, inheap = pb[PB_ACTIVE], pb[PB_INHEAP]
     targets = pi[PI_TARGET]
     nt = is_[IS_NTARGET]
-    old_ms = fs[FS_MASS_S]
-    Zold = fs[FS_Z]
+    old_ms, Zold = fs[FS_MASS_S], fs[FS_Z]
     nK = sp.shape[1]
     inv = 1.0 / Zold if Zold > 0.0 else 0.0
     old_coef = sp[SP_F0] - 2.0 * inv * sp[SP_F1] + inv * inv * sp[SP_F2]
@@ -703,8 +683,7 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
         p = pbar[j]
         pending[j] = 0
         if _is_active(c, p, Z):
-            active[j] = 1
-            inheap[j] = 0
+            active[j], inheap[j] = 1, 0
             m = mass[j]
             w0, w1, w2 = m * p * p, m * p * c, m * c * c
             g0 += w0
@@ -712,8 +691,7 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
             g2 += w2
             _add_row(sp, Phi, j, w0, w1, w2)
         else:
-            active[j] = 0
-            inheap[j] = 1
+            active[j], inheap[j] = 0, 1
             size = heap_push(hk, hi, size, max(c / p, Z), j)
     is_[IS_HEAP] = size
     fs[FS_G0], fs[FS_G1], fs[FS_G2] = g0, g1, g2
@@ -768,8 +746,7 @@ def update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
     list) and the growth of Z (points whose threshold c̃/p̄ it passed enter the active set)."""
     mass, pbar, cov, oldc = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV], pf[PF_OLDC]
     active, inheap, mark, pending = pb[PB_ACTIVE], pb[PB_INHEAP], pb[PB_MARK], pb[PB_PEND]
-    chg = pi[PI_CHG]
-    pend = pi[PI_PEND]
+    chg, pend = pi[PI_CHG], pi[PI_PEND]
     nrows = 0
     Z = fs[FS_Z]
     size = is_[IS_HEAP]
@@ -799,8 +776,8 @@ def update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
         if was or now:
             fw = 1.0 if was else 0.0
             fn = 1.0 if now else 0.0
-            nrows = _take_row(pf, pi, fs, is_, j, nrows, (fn - fw) * m * p * p, m * p * (fn * c1 - fw * c0),
-                              m * (fn * c1 * c1 - fw * c0 * c0))
+            nrows = _take_row(pf, pi, fs, is_, j, nrows, (fn - fw) * m * p * p,
+                              m * p * (fn * c1 - fw * c0), m * (fn * c1 * c1 - fw * c0 * c0))
             if c0 != 0.0:  # (an untouched point's row was requested by the deposit)
                 _prefetch_row(Phi, j)
         active[j] = 1 if now else 0
@@ -973,10 +950,8 @@ def place_agent(P, perm, nodes, boxes, tpts, full, ag, nbrs, i, x0, ref, k, prm_
     START_ITERATIONS times) and set agent ``i``'s position, normal, frame, tangent velocity."""
     x = x0.copy()
     r = ref.copy()
-    xp = np.empty(3)
-    nn = np.empty(3)
-    nb = np.empty(k, np.int64)
-    d2 = np.empty(k)
+    xp, nn = np.empty(3), np.empty(3)
+    nb, d2 = np.empty(k, np.int64), np.empty(k)
     for _ in range(START_ITERATIONS):
         locate(P, perm, nodes, boxes, tpts, x, r, k, xp, nn, nb, d2)
         moved = math.sqrt(_dist2(xp, x))
@@ -984,10 +959,9 @@ def place_agent(P, perm, nodes, boxes, tpts, full, ag, nbrs, i, x0, ref, k, prm_
         r[:] = nn
         if moved < 1e-9:
             break
-    if not on_data(full, x, prm_reach):  # projected into a hole or past an edge
-        j = nb[0]
-        for d in range(3):
-            x[d] = P[j, d]
+    # projected into a hole or past an edge
+    if nearest_distance(full[0], full[1], full[2], full[3], x) > prm_reach:
+        x[:] = P[nb[0]]
     ag[i, AG_POS:AG_POS + 3] = x
     ag[i, AG_NRM:AG_NRM + 3] = r
     nbrs[i, :] = nb
@@ -1005,11 +979,11 @@ def agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full):
     r2min = np.inf
     for t in range(k):
         j = nbrs[i, t]
-        d0, d1, d2 = P[j, 0] - ag[i, AG_POS], P[j, 1] - ag[i, AG_POS + 1], P[j, 2] - ag[i, AG_POS + 2]
+        d0, d1 = P[j, 0] - ag[i, AG_POS], P[j, 1] - ag[i, AG_POS + 1]
+        d2 = P[j, 2] - ag[i, AG_POS + 2]
         u = d0 * ag[i, AG_T1] + d1 * ag[i, AG_T1 + 1] + d2 * ag[i, AG_T1 + 2]
         v = d0 * ag[i, AG_T2] + d1 * ag[i, AG_T2 + 1] + d2 * ag[i, AG_T2 + 2]
-        uv[t, 0] = u
-        uv[t, 1] = v
+        uv[t, 0], uv[t, 1] = u, v
         r2 = u * u + v * v
         r2min = min(r2min, r2)
         w[t] = math.exp(-eps2 * r2)
@@ -1057,13 +1031,6 @@ def _dist2(a, b):
 
 
 @njit
-def on_data(full, x, reach):
-    """Whether ``x`` lies within ``reach`` (metres) of a point of the cloud whose tree is ``full``
-    (perm, nodes, boxes, points)."""
-    return nearest_distance(full[0], full[1], full[2], full[3], x) <= reach
-
-
-@njit
 def try_move(P, perm, nodes, boxes, tpts, full, x, disp, ref, k, prm, out_xp, out_n, out_nb, d2buf):
     """Move from ``x`` by ``disp`` (3,) and project onto the surface fitted there (eqs. 23-27),
     shrinking the step until the projected displacement is at most v_max dt (the projection can
@@ -1086,7 +1053,7 @@ def try_move(P, perm, nodes, boxes, tpts, full, x, disp, ref, k, prm, out_xp, ou
         f = limit / moved
         for d in range(3):
             out_xp[d] = x[d] + (out_xp[d] - x[d]) * f
-    return on_data(full, out_xp, prm[PR_REACH])
+    return nearest_distance(full[0], full[1], full[2], full[3], out_xp) <= prm[PR_REACH]
 
 
 @njit
@@ -1121,10 +1088,8 @@ def move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, 
     speed = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
     if speed > v_max:
         v *= v_max / speed
-    xp = np.empty(3)
-    nn = np.empty(3)
-    nb = np.empty(k, np.int64)
-    d2 = np.empty(k)
+    xp, nn = np.empty(3), np.empty(3)
+    nb, d2 = np.empty(k, np.int64), np.empty(k)
     disp = v * dt
     ok = try_move(P, perm, nodes, boxes, tpts, full, x, disp, nrm, k, prm, xp, nn, nb, d2)
     if not ok:
@@ -1192,10 +1157,8 @@ def step_kernel(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, hk,
                 deposit(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, ag[i, AG_POS:AG_POS + 3],
                         ag[i, AG_NRM:AG_NRM + 3])
         else:
-            xp = np.empty(3)
-            nn = np.empty(3)
-            nb = np.empty(k, np.int64)
-            d2 = np.empty(k)
+            xp, nn = np.empty(3), np.empty(3)
+            nb, d2 = np.empty(k, np.int64), np.empty(k)
             ref = ag[0, AG_NRM:AG_NRM + 3].copy()
             for t in range(n_deposits):
                 q = deposits[t]
@@ -1239,8 +1202,7 @@ def score_position(perm, nodes, boxes, tpts, x, prev, has_prev, cov, touched, ta
     cnt = tree_ball(perm, nodes, boxes, tpts, x, sp_[SC_CUT], ball)
     eps2 = sp_[SC_EPS2]
     ra2 = sp_[SC_RA] * sp_[SC_RA]
-    near = np.inf
-    add = 0.0
+    near, add = np.inf, 0.0
     for t in range(cnt):
         j = ball[t]
         d0, d1, d2 = tpts[j, 0] - x[0], tpts[j, 1] - x[1], tpts[j, 2] - x[2]

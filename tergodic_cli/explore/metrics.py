@@ -56,7 +56,8 @@ def source_term(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray, norm: str
     (n,) float
         s, 1/m⁴.
     """
-    total = float(mass @ (np.where(np.asarray(p) > 0, coverage, 0.0) if norm == "target" else coverage))
+    counted = np.where(np.asarray(p) > 0, coverage, 0.0) if norm == "target" else coverage
+    total = float(mass @ counted)
     cbar = coverage / total if total > 0 else np.zeros_like(coverage, dtype=float)
     return np.maximum(normalise(p, mass) - cbar, 0.0) ** 2
 
@@ -132,8 +133,8 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
 
     X = np.asarray(positions, dtype=np.float64)
     X = X.reshape(len(X), -1, 3)
-    score = CoverageScore(cloud_index(np.ascontiguousarray(points, dtype=np.float64)), target, agent_radius, h,
-                          X.shape[1])
+    index = cloud_index(np.ascontiguousarray(points, dtype=np.float64))
+    score = CoverageScore(index, target, agent_radius, h, X.shape[1])
     for x in X:
         score.add(x)
     return score.metrics()
