@@ -217,8 +217,7 @@ class Explorer:
         self._cov = self._pf[K.PF_COV]
         self._u_full = np.zeros(n if not self._spectral else 0)  # implicit: u in internal order
         self._u_orig = np.zeros(n if not self._spectral else 0)  # ... and in the cloud's order
-        self.step_index = 0
-        self.last_step_ms = 0.0
+        self.step_index, self.last_step_ms = 0, 0.0
         self._score = None
         self.set_target(target)
 

@@ -132,8 +132,7 @@ def tree_build(points):
     boxes = np.empty((cap, 6))
     stack = np.empty((256, 3), np.int64)
     stack[0, 0], stack[0, 1], stack[0, 2] = 0, 0, n
-    sp = 1
-    count = 1
+    sp = count = 1
     while sp > 0:
         sp -= 1
         node, lo, hi = stack[sp, 0], stack[sp, 1], stack[sp, 2]
@@ -184,9 +183,8 @@ def tree_knn(perm, nodes, boxes, tpts, x, k, out_idx, out_d2):
     """The ``k`` nearest points of ``x`` (3,): indices into out_idx[:k], squared distances
     (m²) into out_d2[:k], ascending."""
     x0, x1, x2 = x[0], x[1], x[2]
-    for t in range(k):
-        out_d2[t] = np.inf
-        out_idx[t] = -1
+    out_d2[:k] = np.inf
+    out_idx[:k] = -1
     stack = np.empty(128, np.int64)
     stack[0] = 0
     sp = 1
@@ -232,8 +230,7 @@ def tree_ball(perm, nodes, boxes, tpts, x, r, out):
     r2 = r * r
     stack = np.empty(128, np.int64)
     stack[0] = 0
-    sp = 1
-    cnt = 0
+    sp, cnt = 1, 0
     while sp > 0:
         sp -= 1
         node = stack[sp]
@@ -262,8 +259,7 @@ def tree_ball(perm, nodes, boxes, tpts, x, r, out):
 @njit
 def nearest_distance(perm, nodes, boxes, tpts, x):
     """Distance (metres) from ``x`` (3,) to its nearest cloud point."""
-    idx = np.empty(1, np.int64)
-    d2 = np.empty(1)
+    idx, d2 = np.empty(1, np.int64), np.empty(1)
     tree_knn(perm, nodes, boxes, tpts, x, 1, idx, d2)
     return math.sqrt(d2[0])
 
@@ -337,9 +333,7 @@ def fit_project(P, nb, k, x, ref, out_xp, out_n):
         c0 += P[j, 0]
         c1 += P[j, 1]
         c2 += P[j, 2]
-    c0 /= k
-    c1 /= k
-    c2 /= k
+    c0, c1, c2 = c0 / k, c1 / k, c2 / k
     y = np.empty((k, 3))
     ss = 0.0
     for t in range(k):
@@ -358,9 +352,7 @@ def fit_project(P, nb, k, x, ref, out_xp, out_n):
         B = np.zeros((5, 5))
         w = np.empty(5)
         for t in range(k):
-            y[t, 0] *= inv
-            y[t, 1] *= inv
-            y[t, 2] *= inv
+            y[t, 0], y[t, 1], y[t, 2] = y[t, 0] * inv, y[t, 1] * inv, y[t, 2] * inv
             w[0], w[1], w[2] = y[t, 0], y[t, 1], y[t, 2]
             w[3] = -1.0
             w[4] = -0.5 * (y[t, 0] * y[t, 0] + y[t, 1] * y[t, 1] + y[t, 2] * y[t, 2])
@@ -478,8 +470,7 @@ def cubic_slope(uv, values, weights, k, degree):
             uu, vv = u * u, v * v
             X[t, 3], X[t, 4], X[t, 5] = uu, u * v, vv
             X[t, 6], X[t, 7], X[t, 8], X[t, 9] = uu * u, uu * v, u * vv, vv * v
-    A = np.zeros((m, m))
-    rhs = np.zeros(m)
+    A, rhs = np.zeros((m, m)), np.zeros(m)
     for t in range(k):
         wt = weights[t]
         for a in range(m):
@@ -490,8 +481,7 @@ def cubic_slope(uv, values, weights, k, degree):
     # Cholesky A = L Lᵀ; a singular or badly conditioned layout falls back to SVD least squares.
     L = np.zeros((m, m))
     ok = True
-    dmin = np.inf
-    dmax = 0.0
+    dmin, dmax = np.inf, 0.0
     for j in range(m):
         s = A[j, j]
         for t in range(j):
@@ -655,8 +645,7 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
     n = pf.shape[1]
     mass, pbar, cov = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV]
     active, inheap = pb[PB_ACTIVE], pb[PB_INHEAP]
-    targets = pi[PI_TARGET]
-    nt = is_[IS_NTARGET]
+    targets, nt = pi[PI_TARGET], is_[IS_NTARGET]
     old_ms, Zold = fs[FS_MASS_S], fs[FS_Z]
     nK = sp.shape[1]
     inv = 1.0 / Zold if Zold > 0.0 else 0.0
@@ -674,8 +663,7 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
     fs[FS_Z] = Z
     sp[SP_F0:SP_F2 + 1] = 0.0
     g0 = g1 = g2 = 0.0
-    size = 0
-    pending = pb[PB_PEND]
+    size, pending = 0, pb[PB_PEND]
     is_[IS_NPEND] = 0
     for t in range(nt):
         j = targets[t]
@@ -747,9 +735,8 @@ def update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
     mass, pbar, cov, oldc = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV], pf[PF_OLDC]
     active, inheap, mark, pending = pb[PB_ACTIVE], pb[PB_INHEAP], pb[PB_MARK], pb[PB_PEND]
     chg, pend = pi[PI_CHG], pi[PI_PEND]
-    nrows = 0
     Z = fs[FS_Z]
-    size = is_[IS_HEAP]
+    nrows, size = 0, is_[IS_HEAP]
     # A point the footprint deactivates waits in the pending list, not in the heap, while the
     # footprint still covers it: its c̃ (hence its threshold) is still growing, and a heap key
     # would go stale and be popped and re-pushed. Once it is left alone its key is final.
@@ -811,8 +798,7 @@ def diffuse(sp, fs, carry):
     scale = 1.0 / ms if ms > 0.0 else 0.0
     d, a, b = sp[SP_DECAY], sp[SP_A], sp[SP_B]
     f0, f1, f2 = sp[SP_F0], sp[SP_F1], sp[SP_F2]
-    c1 = -2.0 * inv
-    c2 = inv * inv
+    c1, c2 = -2.0 * inv, inv * inv
     for q in range(sp.shape[1]):
         coef = (f0[q] + c1 * f1[q] + c2 * f2[q]) * scale
         if carry:
@@ -895,11 +881,9 @@ def deposit(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, x, n):
     mass, cov, oldc, phat = pf[PF_MASS], pf[PF_COV], pf[PF_OLDC], pf[PF_PHAT]
     target, mark = pb[PB_TARGET], pb[PB_MARK]
     chg = pi[PI_CHG]
-    eps2 = prm[PR_EPS2]
+    eps2, ztarget = prm[PR_EPS2], prm[PR_ZTARGET]
     have_phat = is_[IS_PHAT] == 1
-    ztarget = prm[PR_ZTARGET]
-    nchg = is_[IS_NCHG]
-    touched = is_[IS_TOUCHED]
+    nchg, touched = is_[IS_NCHG], is_[IS_TOUCHED]
     untouched = fs[FS_REF_UNTOUCHED]
     dz = dzc = 0.0
     for t in range(cnt):
@@ -1200,8 +1184,7 @@ def score_position(perm, nodes, boxes, tpts, x, prev, has_prev, cov, touched, ta
     """Add position ``x`` (3,) to the score: its footprint on every point within SC_CUT, the
     target points it touches (within r_a), whether it is off the cloud, its step from ``prev``."""
     cnt = tree_ball(perm, nodes, boxes, tpts, x, sp_[SC_CUT], ball)
-    eps2 = sp_[SC_EPS2]
-    ra2 = sp_[SC_RA] * sp_[SC_RA]
+    eps2, ra2 = sp_[SC_EPS2], sp_[SC_RA] * sp_[SC_RA]
     near, add = np.inf, 0.0
     for t in range(cnt):
         j = ball[t]
