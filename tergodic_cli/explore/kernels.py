@@ -259,7 +259,8 @@ def tree_ball(perm, nodes, boxes, tpts, x, r, out):
 @njit
 def nearest_distance(perm, nodes, boxes, tpts, x):
     """Distance (metres) from ``x`` (3,) to its nearest cloud point."""
-    idx, d2 = np.empty(1, np.int64), np.empty(1)
+    idx = np.empty(1, np.int64)
+    d2 = np.empty(1)
     tree_knn(perm, nodes, boxes, tpts, x, 1, idx, d2)
     return math.sqrt(d2[0])
 
@@ -363,7 +364,8 @@ def fit_project(P, nb, k, x, ref, out_xp, out_n):
         for a in range(5):
             for b in range(a):
                 B[a, b] = B[b, a]
-        V, Wk = np.empty((5, 5)), np.empty((5, 5))
+        V = np.empty((5, 5))
+        Wk = np.empty((5, 5))
         col = sym_eig_min(B, 5, V, Wk)
         r0, r1, r2 = V[0, col], V[1, col], V[2, col]
         v_inf, v0 = V[3, col], V[4, col]
@@ -470,7 +472,8 @@ def cubic_slope(uv, values, weights, k, degree):
             uu, vv = u * u, v * v
             X[t, 3], X[t, 4], X[t, 5] = uu, u * v, vv
             X[t, 6], X[t, 7], X[t, 8], X[t, 9] = uu * u, uu * v, u * vv, vv * v
-    A, rhs = np.zeros((m, m)), np.zeros(m)
+    A = np.zeros((m, m))
+    rhs = np.zeros(m)
     for t in range(k):
         wt = weights[t]
         for a in range(m):
@@ -645,7 +648,8 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
     n = pf.shape[1]
     mass, pbar, cov = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV]
     active, inheap = pb[PB_ACTIVE], pb[PB_INHEAP]
-    targets, nt = pi[PI_TARGET], is_[IS_NTARGET]
+    targets = pi[PI_TARGET]
+    nt = is_[IS_NTARGET]
     old_ms, Zold = fs[FS_MASS_S], fs[FS_Z]
     nK = sp.shape[1]
     inv = 1.0 / Zold if Zold > 0.0 else 0.0
@@ -663,7 +667,8 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
     fs[FS_Z] = Z
     sp[SP_F0:SP_F2 + 1] = 0.0
     g0 = g1 = g2 = 0.0
-    size, pending = 0, pb[PB_PEND]
+    size = 0
+    pending = pb[PB_PEND]
     is_[IS_NPEND] = 0
     for t in range(nt):
         j = targets[t]
@@ -734,7 +739,8 @@ def update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
     list) and the growth of Z (points whose threshold c̃/p̄ it passed enter the active set)."""
     mass, pbar, cov, oldc = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV], pf[PF_OLDC]
     active, inheap, mark, pending = pb[PB_ACTIVE], pb[PB_INHEAP], pb[PB_MARK], pb[PB_PEND]
-    chg, pend = pi[PI_CHG], pi[PI_PEND]
+    chg = pi[PI_CHG]
+    pend = pi[PI_PEND]
     Z = fs[FS_Z]
     nrows, size = 0, is_[IS_HEAP]
     # A point the footprint deactivates waits in the pending list, not in the heap, while the
@@ -934,8 +940,10 @@ def place_agent(P, perm, nodes, boxes, tpts, full, ag, nbrs, i, x0, ref, k, prm_
     START_ITERATIONS times) and set agent ``i``'s position, normal, frame, tangent velocity."""
     x = x0.copy()
     r = ref.copy()
-    xp, nn = np.empty(3), np.empty(3)
-    nb, d2 = np.empty(k, np.int64), np.empty(k)
+    xp = np.empty(3)
+    nn = np.empty(3)
+    nb = np.empty(k, np.int64)
+    d2 = np.empty(k)
     for _ in range(START_ITERATIONS):
         locate(P, perm, nodes, boxes, tpts, x, r, k, xp, nn, nb, d2)
         moved = math.sqrt(_dist2(xp, x))
@@ -1072,8 +1080,10 @@ def move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, 
     speed = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
     if speed > v_max:
         v *= v_max / speed
-    xp, nn = np.empty(3), np.empty(3)
-    nb, d2 = np.empty(k, np.int64), np.empty(k)
+    xp = np.empty(3)
+    nn = np.empty(3)
+    nb = np.empty(k, np.int64)
+    d2 = np.empty(k)
     disp = v * dt
     ok = try_move(P, perm, nodes, boxes, tpts, full, x, disp, nrm, k, prm, xp, nn, nb, d2)
     if not ok:
@@ -1141,8 +1151,10 @@ def step_kernel(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, hk,
                 deposit(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, ag[i, AG_POS:AG_POS + 3],
                         ag[i, AG_NRM:AG_NRM + 3])
         else:
-            xp, nn = np.empty(3), np.empty(3)
-            nb, d2 = np.empty(k, np.int64), np.empty(k)
+            xp = np.empty(3)
+            nn = np.empty(3)
+            nb = np.empty(k, np.int64)
+            d2 = np.empty(k)
             ref = ag[0, AG_NRM:AG_NRM + 3].copy()
             for t in range(n_deposits):
                 q = deposits[t]

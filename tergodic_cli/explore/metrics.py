@@ -15,24 +15,6 @@ import numpy as np
 from tergodic_cli.explore import kernels as K
 
 
-def normalise(f: np.ndarray, mass: np.ndarray) -> np.ndarray:
-    """``f`` scaled to unit mass, f / ∫f with ∫f = Σ M_i f_i (eq. 2); zeros stay zeros.
-
-    Parameters
-    ----------
-    f : (n,) float
-    mass : (n,) float
-        Lumped mass, m².
-
-    Returns
-    -------
-    (n,) float
-        1/m².
-    """
-    total = float(mass @ f)
-    return f / total if total > 0 else np.zeros_like(f, dtype=float)
-
-
 def source_term(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray, norm: str = "cloud") -> np.ndarray:
     """s = max(p̄ - c̄, 0)² (eq. 1) with p̄ the target normalised to unit mass.
 
@@ -56,10 +38,13 @@ def source_term(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray, norm: str
     (n,) float
         s, 1/m⁴.
     """
+    # each to unit mass, f / ∫f with ∫f = Σ M_i f_i (eq. 2); zeros stay zeros
+    p_total = float(mass @ p)
+    pbar = p / p_total if p_total > 0 else np.zeros_like(p, dtype=float)
     counted = np.where(np.asarray(p) > 0, coverage, 0.0) if norm == "target" else coverage
     total = float(mass @ counted)
     cbar = coverage / total if total > 0 else np.zeros_like(coverage, dtype=float)
-    return np.maximum(normalise(p, mass) - cbar, 0.0) ** 2
+    return np.maximum(pbar - cbar, 0.0) ** 2
 
 
 def ergodicity(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray) -> float:
