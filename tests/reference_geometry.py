@@ -1,4 +1,5 @@
-"""The NumPy references of the explorer's numba kernels (tests only): the CGA fit and the cubic gradient.
+"""The NumPy references of the explorer's numba kernels (tests only): the CGA fit, the cubic
+gradient, the neutral coverage score and the authors' residual from full arrays.
 
 Local surface geometry by the paper's conformal-geometric-algebra fit (eqs. 23-29).
 
@@ -40,6 +41,8 @@ import math
 
 import numpy as np
 from scipy.linalg.lapack import dposv, dsyevd
+
+from tergodic_cli.explore import metrics as M
 
 #: A sphere whose radius exceeds this many rms patch radii is treated as its tangent plane
 #: (its sagitta over the patch is below 1e-4 of the patch size, far below the sampling noise).
@@ -353,3 +356,73 @@ def cubic_value(coef: np.ndarray, uv: np.ndarray) -> np.ndarray:
     (k,) float
     """
     return cubic_design(uv) @ coef
+
+
+# ---------------------------------------------------------------------------------- metrics
+def residual_ref(first_heat: np.ndarray, coverage: np.ndarray) -> float:
+    """The authors' residual: ‖p̂ · [c̃ = 0]‖₂ / ‖p̂‖₂ with p̂ = u₁ / Σu₁ (plain sums and norms).
+
+    [c̃ = 0] marks points the footprint never reached. Raw, unnormalised coverage makes any
+    touched point count as done.
+
+    Parameters
+    ----------
+    first_heat : (n,) float
+        The heat u after the first step.
+    coverage : (n,) float
+        Raw coverage c̃.
+
+    Returns
+    -------
+    float
+        Dimensionless, in [0, 1].
+    """
+    p_hat = first_heat / first_heat.sum()
+    untouched = coverage == 0
+    return float(np.linalg.norm(p_hat[untouched]) / np.linalg.norm(p_hat))
+
+
+def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray,
+                   agent_radius: float, h: float) -> dict:
+    """The neutral coverage score of a trajectory, from full arrays (the definition of
+    :class:`tergodic_cli.explore.metrics.CoverageScore`).
+
+    Parameters
+    ----------
+    points : (n, 3) cloud points P, metres.
+    target : (n,) target weight p >= 0.
+    positions : (T, 3) or (T, N, 3) agent positions X_t, metres (all agents' count).
+    agent_radius : r_a, metres; the footprint is exp(-(2/r_a)² d²), d the 3-D distance.
+    h : mean point spacing, metres.
+
+    Returns
+    -------
+    dict: ``ergodicity`` ε = ‖max(p̄ - c̄, 0)‖₂ / ‖p̄‖₂ with c_i = Σ_t exp(-(2/r_a)² |P_i - X_t|²)
+    and p̄ = p/Σp, c̄ = c/Σc (dimensionless, 0 is perfect, 1 untouched); ``touched_fraction``
+    (share of target points within r_a of some X_t); ``off_surface_fraction`` (share of positions
+    more than 2h from every point); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
+    """
+    from scipy.spatial import cKDTree
+
+    P = np.asarray(points, dtype=np.float64)
+    X = np.asarray(positions, dtype=np.float64)
+    steps = np.linalg.norm(np.diff(X, axis=0), axis=-1) if len(X) > 1 else np.zeros(1)
+    X = X.reshape(-1, 3)
+    k = (2.0 / agent_radius) ** 2
+    c = np.zeros(len(P))
+    for a in range(0, len(X), 256):
+        d2 = ((P[:, None, :] - X[None, a:a + 256, :]) ** 2).sum(-1)
+        c += np.exp(-k * d2).sum(1)
+    p = np.asarray(target, dtype=np.float64)
+    pbar = p / p.sum()
+    cbar = c / c.sum() if c.sum() > 0 else c
+    tree = cKDTree(P)
+    near, _ = tree.query(X)
+    hit = np.zeros(len(P), dtype=bool)
+    for idx in tree.query_ball_point(X, agent_radius):
+        hit[idx] = True
+    T = p > 0
+    eps = float(np.linalg.norm(np.maximum(pbar - cbar, 0.0)) / np.linalg.norm(pbar))
+    return {"ergodicity": eps, "touched_fraction": float(hit[T].mean()),
+            "off_surface_fraction": float((near > M.OFF_SURFACE_H * h).mean()),
+            "step_max_m": float(steps.max())}

@@ -5,7 +5,8 @@ The clouds are the project's own (``capture.synthetic.COVERAGE_OBJECTS``: a bowl
 noise, a plate with a hole, a thin-walled mug, a torus with two target patches, a box with sharp
 edges, a one-sided partial scan), captured at the default 3 mm voxel; the paper's bunny and plate
 are used when ../shared/data/reference is present. The score is recomputed from the trajectory
-with ``metrics.coverage_score`` (full arrays), independent of the explorer's incremental one.
+with ``reference_geometry.coverage_score`` (full arrays), independent of the explorer's
+incremental one.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from tergodic_cli.basis import BasisConfig, get_basis
 from tergodic_cli.capture import CaptureConfig, capture_cloud
 from tergodic_cli.capture.synthetic import COVERAGE_OBJECTS
 from tergodic_cli.explore import ExploreConfig, Explorer
-from tergodic_cli.explore.metrics import coverage_score
+from reference_geometry import coverage_score
 
 REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "data" / "reference"
 STEPS = 1000

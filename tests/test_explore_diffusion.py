@@ -12,6 +12,7 @@ from scipy.special import k0
 from tergodic_cli.basis import compute_basis
 from tergodic_cli.capture.synthetic import generate_synthetic
 from tergodic_cli.explore import ExploreConfig, Explorer
+from tergodic_cli.explore import kernels as K
 from tergodic_cli.explore.diffusion import ImplicitDiffusion, time_step
 
 SIDE = 0.1  # metres
@@ -157,4 +158,4 @@ def test_alpha_schedule_switches_the_time_step(bowl):
         seen.append(ex.alpha)
         ex.step()
     assert seen == [50.0, 50.0, 50.0, 10.0, 10.0]
-    np.testing.assert_allclose(ex._decay, np.exp(-basis.evals * time_step(10)))
+    np.testing.assert_allclose(ex._sp[K.SP_DECAY], np.exp(-basis.evals * time_step(10)))

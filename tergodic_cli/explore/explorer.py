@@ -23,22 +23,19 @@ from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.explore import kernels as K
 from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_config
 from tergodic_cli.explore.diffusion import ImplicitDiffusion, time_step
-from tergodic_cli.explore.metrics import CoverageScore
+from tergodic_cli.explore.metrics import CoverageScore, source_term
 
 # Static per-cloud data, shared by every explorer of the same arrays (a sweep builds hundreds).
-_TREES: dict[int, tuple] = {}
-_PHI: dict[int, tuple] = {}
-_PARTS: dict[int, tuple] = {}
-_FIELDS: dict[int, tuple] = {}
+_STORE: dict[tuple[str, int], tuple] = {}
 
 
-def _cached(store: dict, owner, build):
-    key = id(owner)
-    hit = store.get(key)
+def _cached(kind: str, owner, build):
+    key = (kind, id(owner))
+    hit = _STORE.get(key)
     if hit is not None and hit[0]() is owner:
         return hit[1]
     value = build()
-    store[key] = (weakref.ref(owner, lambda _ref, key=key: store.pop(key, None)), value)
+    _STORE[key] = (weakref.ref(owner, lambda _ref, key=key: _STORE.pop(key, None)), value)
     return value
 
 
@@ -55,8 +52,7 @@ class CloudIndex:
     def __init__(self, points: np.ndarray):
         perm, nodes, boxes, tpts = K.tree_build(points)
         self.order = perm
-        self.rank = np.empty_like(perm)
-        self.rank[perm] = np.arange(len(perm))
+        self.rank = np.argsort(perm)  # the inverse permutation
         self.points = tpts
         self.tree = (np.arange(len(perm)), nodes, boxes, tpts)
 
@@ -73,44 +69,12 @@ def cloud_index(points: np.ndarray) -> CloudIndex:
     -------
     CloudIndex
     """
-    return _cached(_TREES, points, lambda: CloudIndex(points))
-
-
-def surface_parts(points: np.ndarray, h: float) -> np.ndarray:
-    """The part of the cloud each point is on (built once per array).
-
-    Points closer than 2 x SURFACE_REACH h are joined, so an agent that stays within
-    SURFACE_REACH h of the data can cross between any two points of one part and no others.
-
-    Parameters
-    ----------
-    points : (n, 3) float
-        Metres.
-    h : float
-        The cloud's spacing, metres.
-
-    Returns
-    -------
-    (n,) int
-        Part labels, in the cloud's order.
-    """
-
-    def build():
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import connected_components
-        from scipy.spatial import cKDTree
-
-        pairs = cKDTree(points).query_pairs(2.0 * K.SURFACE_REACH * h, output_type="ndarray")
-        n = len(points)
-        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-        return connected_components(graph, directed=False)[1]
-
-    return _cached(_PARTS, points, build)
+    return _cached("tree", points, lambda: CloudIndex(points))
 
 
 def _internal_phi(evecs: np.ndarray, nk: int, order: np.ndarray) -> np.ndarray:
     """Φ[:, :nk] with its rows in internal order, C-contiguous (built once per array and nK)."""
-    per_nk = _cached(_PHI, evecs, dict)
+    per_nk = _cached("phi", evecs, dict)
     key = (nk, len(order))  # the whole cloud, or its field set (one per cloud)
     if key not in per_nk:
         per_nk[key] = np.ascontiguousarray(evecs[order, :nk], dtype=np.float64)
@@ -147,9 +111,7 @@ class FieldSet:
         # each voxel's stand-in: its point nearest the voxel's centroid (a real point, on the data)
         d = np.linalg.norm(points - centre[group], axis=1)
         order = np.lexsort((d, group))
-        first = np.ones(n, dtype=bool)
-        first[1:] = group[order][1:] != group[order][:-1]
-        self.sel = np.sort(order[first])
+        self.sel = np.sort(order[np.unique(group[order], return_index=True)[1]])
         slot = np.empty(len(counts), dtype=np.int64)
         slot[group[self.sel]] = np.arange(len(self.sel))
         self.rep = slot[group]
@@ -158,25 +120,6 @@ class FieldSet:
         dist, _ = cKDTree(self.points).query(self.points, 4)
         self.h = float(dist[:, 1:].mean())
         self.thinned = True
-
-
-def field_set(points: np.ndarray, mass: np.ndarray, h: float) -> FieldSet:
-    """The :class:`FieldSet` of a cloud (built once per array).
-
-    Parameters
-    ----------
-    points : (n, 3) float
-        Metres.
-    mass : (n,) float
-        Lumped mass, m².
-    h : float
-        Spacing, metres.
-
-    Returns
-    -------
-    FieldSet
-    """
-    return _cached(_FIELDS, points, lambda: FieldSet(points, mass, h))
 
 
 class Explorer:
@@ -230,7 +173,7 @@ class Explorer:
         self._full = cloud_index(self.points)  # what lies on the data, the score, the starts
         # The fields live on the cloud, or on its thinned field set when the cloud is much denser
         # than a 3 mm capture (the implicit integrator needs the whole cloud's L).
-        fset = field_set(self.points, self.mass, self.h)
+        fset = _cached("fields", self.points, lambda: FieldSet(self.points, self.mass, self.h))
         if fset.thinned and cfg.integrator == "implicit":
             fset = FieldSet(self.points, self.mass, float("inf"))
         self._field = fset
@@ -274,8 +217,7 @@ class Explorer:
         self._cov = self._pf[K.PF_COV]
         self._u_full = np.zeros(n if not self._spectral else 0)  # implicit: u in internal order
         self._u_orig = np.zeros(n if not self._spectral else 0)  # ... and in the cloud's order
-        self.step_index = 0
-        self.last_step_ms = 0.0
+        self.step_index, self.last_step_ms = 0, 0.0
         self._score = None
         self.set_target(target)
 
@@ -314,8 +256,23 @@ class Explorer:
 
     def _to_target_part(self, i: int, hint: np.ndarray) -> None:
         """Move agent i to the target's part of the cloud when its start is on a part the agent
-        cannot leave without leaving the data (a gap wider than 2 x SURFACE_REACH h)."""
-        parts = surface_parts(self.points, self.h)
+        cannot leave without leaving the data (a gap wider than 2 x SURFACE_REACH h).
+
+        The parts (built once per cloud) join the points closer than 2 x SURFACE_REACH h, so an
+        agent that stays within SURFACE_REACH h of the data can cross between any two points of
+        one part and no others."""
+
+        def parts_of_cloud():
+            from scipy.sparse import coo_matrix
+            from scipy.sparse.csgraph import connected_components
+            from scipy.spatial import cKDTree
+
+            n, reach = len(self.points), 2.0 * K.SURFACE_REACH * self.h
+            pairs = cKDTree(self.points).query_pairs(reach, output_type="ndarray")
+            graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+            return connected_components(graph, directed=False)[1]
+
+        parts = _cached("parts", self.points, parts_of_cloud)
         here = parts[self._field.sel[self._order[self._nbrs[i, 0]]]]
         if np.any(self.p[parts == here] > 0):
             return
@@ -361,7 +318,6 @@ class Explorer:
         pbar = (np.divide(held, fset.mass, out=np.zeros(n), where=fset.mass > 0) / total)[self._order]  # internal order
         T = np.flatnonzero(pbar > 0)
         self._T = T
-        self._n_target = len(T)
         self._pf[K.PF_PBAR] = pbar
         self._pf[K.PF_PHAT] = 0.0
         self._pb[:] = 0
@@ -370,8 +326,7 @@ class Explorer:
         self._tgt = (*K.tree_build(np.ascontiguousarray(self._P[T])), T.astype(np.int64))  # the broad gain's
         # The source's c̄ = c̃/Z: Z over the target (cfg.coverage_norm "target") or the cloud (eq. 2).
         self._prm[K.PR_ZTARGET] = 1.0 if self.cfg.coverage_norm == "target" and len(T) < n else 0.0
-        self._heap_keys = np.zeros(len(T))
-        self._heap_idx = np.zeros(len(self._heap_keys), dtype=np.int64)
+        self._heap_keys, self._heap_idx = np.zeros(len(T)), np.zeros(len(T), dtype=np.int64)
         keep = self._is[[K.IS_EDGE, K.IS_FOOTPRINT, K.IS_ROWS, K.IS_POPS]]  # run diagnostics survive a new target
         drift = self._fs[K.FS_DRIFT]
         self._is[:] = 0
@@ -395,15 +350,20 @@ class Explorer:
             self._score = CoverageScore(self._full, p, self.r_a, self.h, self.cfg.n_agents)
         else:
             self._score.set_target(p, self._full)
-        self._metrics = {"ergodicity": self._score.metrics()["ergodicity"], "residual_ref": float("nan"),
-                         "touched_fraction": self._score.metrics()["touched_fraction"]}
+        self._set_metrics(float("nan"))
         if hasattr(self, "_state"):
             self._bind()
 
+    def _set_metrics(self, residual_ref: float) -> None:
+        sc = self._score.metrics()
+        self._metrics = {"ergodicity": sc["ergodicity"], "residual_ref": residual_ref,
+                         "touched_fraction": sc["touched_fraction"]}
+
     def _bind(self) -> None:
         """The step kernel's state arguments, bound once (the heap arrays change with the target)."""
-        self._state = (self._P, *self._tree, self._full.tree, self._tgt, self._phi, self._pf, self._pb, self._pi, self._sp, self._heap_keys,
-                       self._heap_idx, self._fs, self._is, self._prm, self._ag, self._nbrs, self._k)
+        self._state = (self._P, *self._tree, self._full.tree, self._tgt, self._phi, self._pf,
+                       self._pb, self._pi, self._sp, self._heap_keys, self._heap_idx, self._fs,
+                       self._is, self._prm, self._ag, self._nbrs, self._k)
 
     @property
     def edge_events(self) -> int:
@@ -442,18 +402,19 @@ class Explorer:
 
     @property
     def source(self) -> np.ndarray:
-        from tergodic_cli.explore.metrics import source_term
-
         return source_term(self.p, self.coverage, self.mass, norm=self.cfg.coverage_norm)
+
+    def _s_target(self, Z: float) -> np.ndarray:
+        """s = max(p̄ - c̃/Z, 0)² on the target's points ``self._T`` (internal order)."""
+        T = self._T
+        return np.maximum(self._pf[K.PF_PBAR, T] - (self._cov[T] / Z if Z > 0 else 0.0), 0.0) ** 2
 
     def _sbar(self) -> np.ndarray:
         """(m,) the injected source s/∫s as the step used it (running Z and ∫s), internal order."""
         out = np.zeros(len(self._field.sel))
-        Z, ms = self._fs[K.FS_Z], self._fs[K.FS_MASS_S]
+        ms = self._fs[K.FS_MASS_S]
         if ms > 0:
-            T = self._T
-            e = self._pf[K.PF_PBAR, T] - (self._cov[T] / Z if Z > 0 else 0.0)
-            out[T] = np.maximum(e, 0.0) ** 2 / ms
+            out[self._T] = self._s_target(self._fs[K.FS_Z]) / ms
         return out
 
     @property
@@ -464,76 +425,11 @@ class Explorer:
         f = self._field
         if f.thinned:  # the spectral part on every point; the residual from each one's field point
             u = K.expand_rows(np.ascontiguousarray(self.evecs), self._sp[K.SP_A])
-            if self._mode == K.HEAT_CARRY:
-                u += self._sbar()[self._rank][f.rep]
-            return u
-        u = K.expand_rows(self._phi, self._sp[K.SP_A])
+        else:
+            u = K.expand_rows(self._phi, self._sp[K.SP_A])[self._rank]
         if self._mode == K.HEAT_CARRY:
-            u += self._sbar()
-        return u[self._rank]
-
-    def cloud_fields(self, out: tuple | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
-        """Coverage c̃, source s and the heat's terms in one O(n) pass, in the cloud's order.
-
-        Returns ``(coverage, source, coeffs, residual)`` with u = ``evecs @ coeffs + residual``
-        (the O(n nK) product is left to the caller: the run log does it in its writer process;
-        ``coeffs`` is None when u has no spectral form, ``--integrator implicit``). s uses the
-        running normaliser of the last step, so it equals :attr:`source` up to round-off.
-
-        Parameters
-        ----------
-        out : tuple, optional
-            Arrays to fill instead, ``(coverage (n,), source (n,), coeffs (nK,) or None,
-            residual (n,))``; coverage and source may be float32 (rounded as ``astype`` would),
-            which saves the run log a conversion pass.
-
-        Returns
-        -------
-        coverage, source : (n,) float
-        coeffs : (nK,) float or None
-        residual : (n,) float
-        """
-        n = len(self.points)
-        if out is None:
-            coverage, source, residual = np.empty(n), np.empty(n), np.empty(n)
-            coeffs = None
-        else:
-            coverage, source, coeffs, residual = out
-        carry = self._spectral and self._mode == K.HEAT_CARRY
-        f = self._field
-        if f.thinned:  # computed on the field set, then each point takes its field point's values
-            m = len(f.sel)
-            cs, ss, rs = np.empty(m), np.empty(m), np.empty(m)
-            K.cloud_fields(self._pf[K.PF_PBAR], self._cov, self._T, self._rank, self._fs[K.FS_Z],
-                           self._fs[K.FS_MASS_S], carry, cs, ss, rs)
-            coverage[:], source[:], residual[:] = cs[f.rep], ss[f.rep], rs[f.rep]
-        else:
-            K.cloud_fields(self._pf[K.PF_PBAR], self._cov, self._T, self._rank, self._fs[K.FS_Z],
-                           self._fs[K.FS_MASS_S], carry, coverage, source, residual)  # one compiled pass
-        if not self._spectral:
-            residual[:] = self._u_orig
-            return coverage, source, None, residual
-        if coeffs is None:
-            return coverage, source, self._sp[K.SP_A].copy(), residual
-        coeffs[:] = self._sp[K.SP_A]
-        return coverage, source, coeffs, residual
-
-    def heat_at(self, idx: np.ndarray) -> np.ndarray:
-        """The heat exactly as the agents' gradient fits see it, O(m nK).
-
-        Parameters
-        ----------
-        idx : (m,) int
-            Cloud point indices.
-
-        Returns
-        -------
-        (m,) float
-            u at those points.
-        """
-        idx = self._rank[self._field.rep[np.asarray(idx, dtype=np.int64).ravel()]]
-        return np.array([K.heat_at(self._phi, self._pf, self._sp, self._fs, j, self._mode, self._u_full)
-                         for j in idx])
+            u += self._sbar()[self._rank][f.rep]
+        return u
 
     def metrics(self) -> dict:
         """The metrics after the last step (see docs/explore.md).
@@ -560,10 +456,6 @@ class Explorer:
     def alpha(self) -> float:
         """α in effect for the next step."""
         return [a for s, a in self._schedule if s <= self.step_index][-1]
-
-    @property
-    def _decay(self) -> np.ndarray:
-        return self._sp[K.SP_DECAY]
 
     def _set_alpha(self) -> None:
         alpha = self.alpha
@@ -605,12 +497,14 @@ class Explorer:
             status[:] = 0
         else:
             status[:] = -1
+        args = (*self._state, deposits, n_dep, self._resets, status, self._mode, self._resync,
+                self._u_full)
         if self._spectral:
-            K.step_kernel(*self._state, deposits, n_dep, self._resets, status, self._mode, self._resync, self._u_full, 0)
-        else:
-            K.step_kernel(*self._state, deposits, n_dep, self._resets, status, self._mode, self._resync, self._u_full, 1)
+            K.step_kernel(*args, 0)
+        else:  # coverage and source, the full field's diffusion, the agents
+            K.step_kernel(*args, 1)
             self._diffuse_full()
-            K.step_kernel(*self._state, deposits, n_dep, self._resets, status, self._mode, self._resync, self._u_full, 2)
+            K.step_kernel(*args, 2)
         if agent_at is not None:
             for i in np.flatnonzero(status == -2):
                 self.on_event(f"warning: step {self.step_index}: agent {i} reset point is "
@@ -621,19 +515,13 @@ class Explorer:
         self.last_step_ms = 1e3 * (time.perf_counter() - t0)
         # The neutral score (metrics.coverage_score) is instrumentation: outside the step's time.
         self._score.add(self.positions)
-        sc = self._score.metrics()
-        self._metrics = {
-            "ergodicity": sc["ergodicity"],
-            "residual_ref": math.sqrt(max(float(self._fs[K.FS_REF_UNTOUCHED]), 0.0) / self._ref_norm2),
-            "touched_fraction": sc["touched_fraction"],
-        }
+        untouched = max(float(self._fs[K.FS_REF_UNTOUCHED]), 0.0)
+        self._set_metrics(math.sqrt(untouched / self._ref_norm2))
 
     def _diffuse_full(self) -> None:
         """The implicit integrator on the whole field: u <- (M + δt L)⁻¹ M u + s̄ (carry) or u = ... s̄."""
         T = self._T
-        Z = self._fs[K.FS_Z]
-        e = self._pf[K.PF_PBAR, T] - (self._cov[T] / Z if Z > 0 else 0.0)
-        s = np.maximum(e, 0.0) ** 2
+        s = self._s_target(self._fs[K.FS_Z])
         total = float(self._pf[K.PF_MASS, T] @ s)
         sbar = np.zeros(len(self.points))
         if total > 0:
@@ -655,12 +543,10 @@ class Explorer:
         if self._prm[K.PR_ZTARGET] == 0.0:
             u += self._sbar()
         else:  # the published code's s̄₁ has the cloud-normalised coverage (eq. 2), whatever drives the agents
-            T = self._T
-            Zc = self._fs[K.FS_ZC]
-            e = np.maximum(self._pf[K.PF_PBAR, T] - (self._cov[T] / Zc if Zc > 0 else 0.0), 0.0) ** 2
-            total = float(self._pf[K.PF_MASS, T] @ e)
+            e = self._s_target(self._fs[K.FS_ZC])
+            total = float(self._pf[K.PF_MASS, self._T] @ e)
             if total > 0:
-                u[T] += e / total
+                u[self._T] += e / total
         total = float(u.sum())
         if not (total > 0 and math.isfinite(total)):
             raise TergodicError("the heat after the first step has no positive mass",

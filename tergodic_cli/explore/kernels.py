@@ -14,41 +14,36 @@ import math
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba.core import cgutils, types
+from numba.extending import intrinsic
 
 
 def njit(fn):
     return numba.njit(cache=True, nogil=True)(fn)
 
 
-def _make_prefetch():
+@intrinsic
+def prefetch(typingctx, A, i, q):
     """``prefetch(A, i, q)``: ask the CPU to start loading the cache line of A[i, q] (A a 2-D
     float64 array) and go on without waiting for it."""
-    from llvmlite import ir
-    from numba.core import cgutils, types
-    from numba.extending import intrinsic
+    sig = types.void(A, types.intp, types.intp)
 
-    @intrinsic
-    def prefetch(typingctx, A, i, q):
-        sig = types.void(A, types.intp, types.intp)
+    def codegen(context, builder, signature, args):
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1], args[2]],
+                                       wraparound=False)
+        i8p = ir.IntType(8).as_pointer()
+        i32 = ir.IntType(32)
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0")
+        # a read, kept in the caches (locality 2: L2 and beyond), of data
+        flags = [ir.Constant(i32, 0), ir.Constant(i32, 2), ir.Constant(i32, 1)]
+        builder.call(fn, [builder.bitcast(ptr, i8p), *flags])
+        return context.get_dummy_value()
 
-        def codegen(context, builder, signature, args):
-            aryty = signature.args[0]
-            ary = context.make_array(aryty)(context, builder, args[0])
-            ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1], args[2]], wraparound=False)
-            i8p = ir.IntType(8).as_pointer()
-            i32 = ir.IntType(32)
-            fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]),
-                                                "llvm.prefetch.p0")
-            # a read, kept in the caches (locality 2: L2 and beyond), of data
-            builder.call(fn, [builder.bitcast(ptr, i8p), ir.Constant(i32, 0), ir.Constant(i32, 2), ir.Constant(i32, 1)])
-            return context.get_dummy_value()
-
-        return sig, codegen
-
-    return prefetch
-
-
-prefetch = _make_prefetch()
+    return sig, codegen
 
 #: Points per KD-tree leaf.
 LEAF_SIZE = 8
@@ -67,8 +62,8 @@ N_PB = 5
 PI_CHG, PI_BALL, PI_TARGET, PI_PEND = 0, 1, 2, 3
 N_PI = 4
 # Rows of the spectral array ``sp`` (nK columns).
-SP_DECAY, SP_A, SP_B, SP_F0, SP_F1, SP_F2, SP_EXPDECAY, SP_PBARCOEF = 0, 1, 2, 3, 4, 5, 6, 7
-N_SP = 8
+SP_DECAY, SP_A, SP_B, SP_F0, SP_F1, SP_F2, SP_PBARCOEF = 0, 1, 2, 3, 4, 5, 6
+N_SP = 7
 # Columns of the agent array ``ag`` (N rows).
 AG_POS, AG_VEL, AG_ACC, AG_NRM, AG_T1, AG_T2 = 0, 3, 6, 9, 12, 15
 N_AG = 18
@@ -137,24 +132,16 @@ def tree_build(points):
     boxes = np.empty((cap, 6))
     stack = np.empty((256, 3), np.int64)
     stack[0, 0], stack[0, 1], stack[0, 2] = 0, 0, n
-    sp = 1
-    count = 1
+    sp = count = 1
     while sp > 0:
         sp -= 1
         node, lo, hi = stack[sp, 0], stack[sp, 1], stack[sp, 2]
+        idx = perm[lo:hi].copy()
+        pts = points[idx]
         for d in range(3):
-            boxes[node, d] = np.inf
-            boxes[node, 3 + d] = -np.inf
-        for t in range(lo, hi):
-            j = perm[t]
-            for d in range(3):
-                v = points[j, d]
-                if v < boxes[node, d]:
-                    boxes[node, d] = v
-                if v > boxes[node, 3 + d]:
-                    boxes[node, 3 + d] = v
-        nodes[node, 0] = lo
-        nodes[node, 1] = hi
+            boxes[node, d] = pts[:, d].min()
+            boxes[node, 3 + d] = pts[:, d].max()
+        nodes[node, 0], nodes[node, 1] = lo, hi
         if hi - lo <= LEAF_SIZE:
             continue
         axis = 0
@@ -164,52 +151,30 @@ def tree_build(points):
             if w > widest:
                 widest = w
                 axis = d
-        seg = perm[lo:hi].copy()
-        keys = np.empty(hi - lo)
-        for t in range(hi - lo):
-            keys[t] = points[seg[t], axis]
-        order = np.argsort(keys, kind="mergesort")
-        for t in range(hi - lo):
-            perm[lo + t] = seg[order[t]]
+        perm[lo:hi] = idx[np.argsort(pts[:, axis], kind="mergesort")]
         mid = (lo + hi) // 2
         left, right = count, count + 1
         count += 2
-        nodes[node, 2] = left
-        nodes[node, 3] = right
+        nodes[node, 2], nodes[node, 3] = left, right
         stack[sp, 0], stack[sp, 1], stack[sp, 2] = right, mid, hi
         stack[sp + 1, 0], stack[sp + 1, 1], stack[sp + 1, 2] = left, lo, mid
         sp += 2
-    tree_points = np.empty((n, 3))
-    for t in range(n):
-        for d in range(3):
-            tree_points[t, d] = points[perm[t], d]
-    return perm, nodes[:count].copy(), boxes[:count].copy(), tree_points
+    return perm, nodes[:count].copy(), boxes[:count].copy(), points[perm]
 
 
 @njit
 def _box_dist2(boxes, node, x0, x1, x2):
+    """Squared distance from (x0, x1, x2) to a node's box (0 inside)."""
     d2 = 0.0
-    v = boxes[node, 0] - x0
-    if v > 0.0:
-        d2 += v * v
-    else:
-        v = x0 - boxes[node, 3]
+    x = (x0, x1, x2)
+    for d in range(3):
+        v = boxes[node, d] - x[d]
         if v > 0.0:
             d2 += v * v
-    v = boxes[node, 1] - x1
-    if v > 0.0:
-        d2 += v * v
-    else:
-        v = x1 - boxes[node, 4]
-        if v > 0.0:
-            d2 += v * v
-    v = boxes[node, 2] - x2
-    if v > 0.0:
-        d2 += v * v
-    else:
-        v = x2 - boxes[node, 5]
-        if v > 0.0:
-            d2 += v * v
+        else:
+            v = x[d] - boxes[node, 3 + d]
+            if v > 0.0:
+                d2 += v * v
     return d2
 
 
@@ -218,9 +183,8 @@ def tree_knn(perm, nodes, boxes, tpts, x, k, out_idx, out_d2):
     """The ``k`` nearest points of ``x`` (3,): indices into out_idx[:k], squared distances
     (m²) into out_d2[:k], ascending."""
     x0, x1, x2 = x[0], x[1], x[2]
-    for t in range(k):
-        out_d2[t] = np.inf
-        out_idx[t] = -1
+    out_d2[:k] = np.inf
+    out_idx[:k] = -1
     stack = np.empty(128, np.int64)
     stack[0] = 0
     sp = 1
@@ -232,9 +196,7 @@ def tree_knn(perm, nodes, boxes, tpts, x, k, out_idx, out_d2):
         left = nodes[node, 2]
         if left < 0:
             for j in range(nodes[node, 0], nodes[node, 1]):
-                a = tpts[j, 0] - x0
-                b = tpts[j, 1] - x1
-                c = tpts[j, 2] - x2
+                a, b, c = tpts[j, 0] - x0, tpts[j, 1] - x1, tpts[j, 2] - x2
                 d2 = a * a + b * b + c * c
                 if d2 < out_d2[k - 1]:
                     t = k - 1
@@ -246,12 +208,8 @@ def tree_knn(perm, nodes, boxes, tpts, x, k, out_idx, out_d2):
                     out_idx[t] = perm[j]
         else:
             right = nodes[node, 3]
-            if _box_dist2(boxes, left, x0, x1, x2) <= _box_dist2(boxes, right, x0, x1, x2):
-                stack[sp] = right
-                stack[sp + 1] = left
-            else:
-                stack[sp] = left
-                stack[sp + 1] = right
+            near_left = _box_dist2(boxes, left, x0, x1, x2) <= _box_dist2(boxes, right, x0, x1, x2)
+            stack[sp], stack[sp + 1] = (right, left) if near_left else (left, right)
             sp += 2
 
 
@@ -272,8 +230,7 @@ def tree_ball(perm, nodes, boxes, tpts, x, r, out):
     r2 = r * r
     stack = np.empty(128, np.int64)
     stack[0] = 0
-    sp = 1
-    cnt = 0
+    sp, cnt = 1, 0
     while sp > 0:
         sp -= 1
         node = stack[sp]
@@ -289,15 +246,12 @@ def tree_ball(perm, nodes, boxes, tpts, x, r, out):
         left = nodes[node, 2]
         if left < 0:
             for j in range(nodes[node, 0], nodes[node, 1]):
-                a = tpts[j, 0] - x0
-                b = tpts[j, 1] - x1
-                c = tpts[j, 2] - x2
+                a, b, c = tpts[j, 0] - x0, tpts[j, 1] - x1, tpts[j, 2] - x2
                 if a * a + b * b + c * c <= r2:
                     out[cnt] = perm[j]
                     cnt += 1
         else:
-            stack[sp] = nodes[node, 3]
-            stack[sp + 1] = left
+            stack[sp], stack[sp + 1] = nodes[node, 3], left
             sp += 2
     return cnt
 
@@ -324,8 +278,7 @@ def sym_eig_min(A, n, V, W):
             W[i, j] = A[i, j]
             V[i, j] = 1.0 if i == j else 0.0
     for _ in range(60):
-        off = 0.0
-        diag = 0.0
+        off = diag = 0.0
         for i in range(n):
             diag += W[i, i] * W[i, i]
             for j in range(i + 1, n):
@@ -355,8 +308,7 @@ def sym_eig_min(A, n, V, W):
                         W[q, r] = W[r, q]
                 W[p, p] -= t * apq
                 W[q, q] += t * apq
-                W[p, q] = 0.0
-                W[q, p] = 0.0
+                W[p, q] = W[q, p] = 0.0
                 for r in range(n):
                     vrp, vrq = V[r, p], V[r, q]
                     V[r, p] = c * vrp - s * vrq
@@ -376,36 +328,23 @@ def fit_project(P, nb, k, x, ref, out_xp, out_n):
     Writes the projected point and its unit normal (oriented like ``ref``); returns 0, or 1
     when the fit is degenerate (then the nearest point and ``ref`` are used, as the explorer does).
     """
-    c0 = 0.0
-    c1 = 0.0
-    c2 = 0.0
+    c0 = c1 = c2 = 0.0
     for t in range(k):
         j = nb[t]
         c0 += P[j, 0]
         c1 += P[j, 1]
         c2 += P[j, 2]
-    c0 /= k
-    c1 /= k
-    c2 /= k
+    c0, c1, c2 = c0 / k, c1 / k, c2 / k
     y = np.empty((k, 3))
     ss = 0.0
     for t in range(k):
         j = nb[t]
-        y[t, 0] = P[j, 0] - c0
-        y[t, 1] = P[j, 1] - c1
-        y[t, 2] = P[j, 2] - c2
+        y[t, 0], y[t, 1], y[t, 2] = P[j, 0] - c0, P[j, 1] - c1, P[j, 2] - c2
         ss += y[t, 0] * y[t, 0] + y[t, 1] * y[t, 1] + y[t, 2] * y[t, 2]
     scale = math.sqrt(ss / k)
     status = 0
     kind = 0  # 0 plane, 1 sphere, 2 least-squares plane
-    n0 = 0.0
-    n1 = 0.0
-    n2 = 0.0
-    offset = 0.0
-    cx = 0.0
-    cy = 0.0
-    cz = 0.0
-    radius = 0.0
+    n0 = n1 = n2 = offset = cx = cy = cz = radius = 0.0
     # Coincident points (their spread is rounding of the centroid): no surface to fit.
     if scale <= 1e-12 * (abs(c0) + abs(c1) + abs(c2)) or scale == 0.0:
         status = 1
@@ -414,9 +353,7 @@ def fit_project(P, nb, k, x, ref, out_xp, out_n):
         B = np.zeros((5, 5))
         w = np.empty(5)
         for t in range(k):
-            y[t, 0] *= inv
-            y[t, 1] *= inv
-            y[t, 2] *= inv
+            y[t, 0], y[t, 1], y[t, 2] = y[t, 0] * inv, y[t, 1] * inv, y[t, 2] * inv
             w[0], w[1], w[2] = y[t, 0], y[t, 1], y[t, 2]
             w[3] = -1.0
             w[4] = -0.5 * (y[t, 0] * y[t, 0] + y[t, 1] * y[t, 1] + y[t, 2] * y[t, 2])
@@ -461,9 +398,7 @@ def fit_project(P, nb, k, x, ref, out_xp, out_n):
             kind = 0
         if kind == 0:
             dd = n0 * x[0] + n1 * x[1] + n2 * x[2] - offset
-            out_xp[0] = x[0] - dd * n0
-            out_xp[1] = x[1] - dd * n1
-            out_xp[2] = x[2] - dd * n2
+            out_xp[0], out_xp[1], out_xp[2] = x[0] - dd * n0, x[1] - dd * n1, x[2] - dd * n2
         else:
             q0, q1, q2 = x[0] - cx, x[1] - cy, x[2] - cz
             dist = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2)
@@ -471,8 +406,7 @@ def fit_project(P, nb, k, x, ref, out_xp, out_n):
                 status = 1
             else:
                 n0, n1, n2 = q0 / dist, q1 / dist, q2 / dist
-                out_xp[0] = cx + radius * n0
-                out_xp[1] = cy + radius * n1
+                out_xp[0], out_xp[1] = cx + radius * n0, cy + radius * n1
                 out_xp[2] = cz + radius * n2
     if status == 1:
         j = nb[0]
@@ -498,9 +432,7 @@ def tangent_frame(n, out_t1, out_t2):
     inv = 1.0 / math.sqrt(a * a + b * b + c * c)
     a, b, c = a * inv, b * inv, c * inv
     out_t1[0], out_t1[1], out_t1[2] = a, b, c
-    out_t2[0] = ny * c - nz * b
-    out_t2[1] = nz * a - nx * c
-    out_t2[2] = nx * b - ny * a
+    out_t2[0], out_t2[1], out_t2[2] = ny * c - nz * b, nz * a - nx * c, nx * b - ny * a
 
 
 @njit
@@ -535,18 +467,11 @@ def cubic_slope(uv, values, weights, k, degree):
     for t in range(k):
         u = uv[t, 0] / rho
         v = uv[t, 1] / rho
-        X[t, 0] = 1.0
-        X[t, 1] = u
-        X[t, 2] = v
+        X[t, 0], X[t, 1], X[t, 2] = 1.0, u, v
         if m == 10:
             uu, vv = u * u, v * v
-            X[t, 3] = uu
-            X[t, 4] = u * v
-            X[t, 5] = vv
-            X[t, 6] = uu * u
-            X[t, 7] = uu * v
-            X[t, 8] = u * vv
-            X[t, 9] = vv * v
+            X[t, 3], X[t, 4], X[t, 5] = uu, u * v, vv
+            X[t, 6], X[t, 7], X[t, 8], X[t, 9] = uu * u, uu * v, u * vv, vv * v
     A = np.zeros((m, m))
     rhs = np.zeros(m)
     for t in range(k):
@@ -559,8 +484,7 @@ def cubic_slope(uv, values, weights, k, degree):
     # Cholesky A = L Lᵀ; a singular or badly conditioned layout falls back to SVD least squares.
     L = np.zeros((m, m))
     ok = True
-    dmin = np.inf
-    dmax = 0.0
+    dmin, dmax = np.inf, 0.0
     for j in range(m):
         s = A[j, j]
         for t in range(j):
@@ -596,16 +520,8 @@ def cubic_slope(uv, values, weights, k, degree):
     else:
         ok = False
     if not ok:
-        Xw = np.empty((k, m))
-        fw = np.empty(k)
-        for t in range(k):
-            sw = math.sqrt(weights[t])
-            fw[t] = values[t] * sw
-            for a in range(m):
-                Xw[t, a] = X[t, a] * sw
-        sol = np.linalg.lstsq(Xw, fw, 1e-10)[0]
-        for a in range(m):
-            coef[a] = sol[a]
+        sw = np.sqrt(weights[:k])
+        coef[:] = np.linalg.lstsq(X * sw.reshape(k, 1), values[:k] * sw, 1e-10)[0]
     return coef[1] / rho, coef[2] / rho
 
 
@@ -624,11 +540,9 @@ def heap_push(hk, hi, size, key, idx):
         parent = (i - 1) // HEAP_ARITY
         if hk[parent] <= key:
             break
-        hk[i] = hk[parent]
-        hi[i] = hi[parent]
+        hk[i], hi[i] = hk[parent], hi[parent]
         i = parent
-    hk[i] = key
-    hi[i] = idx
+    hk[i], hi[i] = key, idx
     return size + 1
 
 
@@ -638,8 +552,7 @@ def heap_pop(hk, hi, size):
     key, idx = hk[0], hi[0]
     size -= 1
     if size > 0:
-        last_k = hk[size]
-        last_i = hi[size]
+        last_k, last_i = hk[size], hi[size]
         i = 0
         while True:
             first = HEAP_ARITY * i + 1
@@ -654,11 +567,9 @@ def heap_pop(hk, hi, size):
                     child = c
             if last_k <= ck:
                 break
-            hk[i] = ck
-            hi[i] = hi[child]
+            hk[i], hi[i] = ck, hi[child]
             i = child
-        hk[i] = last_k
-        hi[i] = last_i
+        hk[i], hi[i] = last_k, last_i
     return key, idx, size
 
 
@@ -739,13 +650,10 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
     active, inheap = pb[PB_ACTIVE], pb[PB_INHEAP]
     targets = pi[PI_TARGET]
     nt = is_[IS_NTARGET]
-    old_ms = fs[FS_MASS_S]
-    Zold = fs[FS_Z]
+    old_ms, Zold = fs[FS_MASS_S], fs[FS_Z]
     nK = sp.shape[1]
-    old_coef = np.empty(nK)
     inv = 1.0 / Zold if Zold > 0.0 else 0.0
-    for q in range(nK):
-        old_coef[q] = sp[SP_F0, q] - 2.0 * inv * sp[SP_F1, q] + inv * inv * sp[SP_F2, q]
+    old_coef = sp[SP_F0] - 2.0 * inv * sp[SP_F1] + inv * inv * sp[SP_F2]
     Zc = 0.0
     for j in range(n):
         Zc += mass[j] * cov[j]
@@ -757,13 +665,8 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
     else:
         Z = Zc
     fs[FS_Z] = Z
-    for q in range(nK):
-        sp[SP_F0, q] = 0.0
-        sp[SP_F1, q] = 0.0
-        sp[SP_F2, q] = 0.0
-    g0 = 0.0
-    g1 = 0.0
-    g2 = 0.0
+    sp[SP_F0:SP_F2 + 1] = 0.0
+    g0 = g1 = g2 = 0.0
     size = 0
     pending = pb[PB_PEND]
     is_[IS_NPEND] = 0
@@ -773,8 +676,7 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
         p = pbar[j]
         pending[j] = 0
         if _is_active(c, p, Z):
-            active[j] = 1
-            inheap[j] = 0
+            active[j], inheap[j] = 1, 0
             m = mass[j]
             w0, w1, w2 = m * p * p, m * p * c, m * c * c
             g0 += w0
@@ -782,8 +684,7 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
             g2 += w2
             _add_row(sp, Phi, j, w0, w1, w2)
         else:
-            active[j] = 0
-            inheap[j] = 1
+            active[j], inheap[j] = 0, 1
             size = heap_push(hk, hi, size, max(c / p, Z), j)
     is_[IS_HEAP] = size
     fs[FS_G0], fs[FS_G1], fs[FS_G2] = g0, g1, g2
@@ -794,8 +695,7 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
     is_[IS_RESYNCS] += 1
     if is_[IS_RESYNCS] > 1 and ms > 0.0:  # the first resync initialises; later ones measure drift
         drift = abs(old_ms - ms) / ms
-        big = 0.0
-        dev = 0.0
+        big = dev = 0.0
         for q in range(nK):
             new = sp[SP_F0, q] - 2.0 * inv * sp[SP_F1, q] + inv * inv * sp[SP_F2, q]
             big = max(big, abs(new))
@@ -806,19 +706,43 @@ def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
 
 
 @njit
+def _take_row(pf, pi, fs, is_, j, n, w0, w1, w2):
+    """Queue row j of Φ as the n-th row this step adds (F_k += w_k φ_j), add w to G; returns n + 1.
+    The rows go in pi[PI_BALL] (free after the deposits), the weights in pf[PF_W0..PF_W2]."""
+    is_[IS_ROWS] += 1
+    fs[FS_G0] += w0
+    fs[FS_G1] += w1
+    fs[FS_G2] += w2
+    pi[PI_BALL, n] = j
+    pf[PF_W0, n], pf[PF_W1, n], pf[PF_W2, n] = w0, w1, w2
+    return n + 1
+
+
+@njit
+def _enter_or_wait(Phi, pf, pb, pi, hk, hi, fs, is_, j, n, size):
+    """A point off the active set: it enters (its row queued) when Z has passed its threshold
+    c̃/p̄, else its threshold goes onto the heap. Returns (rows queued, heap size)."""
+    c, p, m, Z = pf[PF_COV, j], pf[PF_PBAR, j], pf[PF_MASS, j], fs[FS_Z]
+    if _is_active(c, p, Z):
+        n = _take_row(pf, pi, fs, is_, j, n, m * p * p, m * p * c, m * c * c)
+        _prefetch_row(Phi, j)
+        pb[PB_ACTIVE, j] = 1
+    else:
+        size = heap_push(hk, hi, size, max(c / p, Z), j)
+        pb[PB_INHEAP, j] = 1
+    return n, size
+
+
+@njit
 def update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
     """Bring the accumulators up to date after this step's deposits (points in the changed
     list) and the growth of Z (points whose threshold c̃/p̄ it passed enter the active set)."""
     mass, pbar, cov, oldc = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV], pf[PF_OLDC]
-    W0, W1, W2 = pf[PF_W0], pf[PF_W1], pf[PF_W2]
     active, inheap, mark, pending = pb[PB_ACTIVE], pb[PB_INHEAP], pb[PB_MARK], pb[PB_PEND]
     chg = pi[PI_CHG]
-    rows = pi[PI_BALL]  # free after the deposits: the rows to add
     pend = pi[PI_PEND]
-    nrows = 0
     Z = fs[FS_Z]
-    g0, g1, g2 = fs[FS_G0], fs[FS_G1], fs[FS_G2]
-    size = is_[IS_HEAP]
+    nrows, size = 0, is_[IS_HEAP]
     # A point the footprint deactivates waits in the pending list, not in the heap, while the
     # footprint still covers it: its c̃ (hence its threshold) is still growing, and a heap key
     # would go stale and be popped and re-pushed. Once it is left alone its key is final.
@@ -830,25 +754,9 @@ def update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
         elif mark[j] == 1:  # covered again this step: the changed list below decides
             pend[npend] = j
             npend += 1
-        else:
+        else:  # enters if Z passed its threshold while it was pending
             pending[j] = 0
-            c = cov[j]
-            p = pbar[j]
-            if _is_active(c, p, Z):  # Z passed its threshold while it was pending
-                is_[IS_ROWS] += 1
-                m = mass[j]
-                w0, w1, w2 = m * p * p, m * p * c, m * c * c
-                g0 += w0
-                g1 += w1
-                g2 += w2
-                rows[nrows] = j
-                W0[nrows], W1[nrows], W2[nrows] = w0, w1, w2
-                nrows += 1
-                _prefetch_row(Phi, j)
-                active[j] = 1
-            else:
-                size = heap_push(hk, hi, size, max(c / p, Z), j)
-                inheap[j] = 1
+            nrows, size = _enter_or_wait(Phi, pf, pb, pi, hk, hi, fs, is_, j, nrows, size)
     for t in range(is_[IS_NCHG]):
         j = chg[t]
         mark[j] = 0
@@ -859,18 +767,10 @@ def update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
         was = active[j] == 1
         now = _is_active(c1, p, Z)
         if was or now:
-            is_[IS_ROWS] += 1
             fw = 1.0 if was else 0.0
             fn = 1.0 if now else 0.0
-            w0 = (fn - fw) * m * p * p
-            w1 = m * p * (fn * c1 - fw * c0)
-            w2 = m * (fn * c1 * c1 - fw * c0 * c0)
-            g0 += w0
-            g1 += w1
-            g2 += w2
-            rows[nrows] = j
-            W0[nrows], W1[nrows], W2[nrows] = w0, w1, w2
-            nrows += 1
+            nrows = _take_row(pf, pi, fs, is_, j, nrows, (fn - fw) * m * p * p,
+                              m * p * (fn * c1 - fw * c0), m * (fn * c1 * c1 - fw * c0 * c0))
             if c0 != 0.0:  # (an untouched point's row was requested by the deposit)
                 _prefetch_row(Phi, j)
         active[j] = 1 if now else 0
@@ -886,28 +786,12 @@ def update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
         inheap[j] = 0
         if active[j] == 1:
             continue  # a stale entry of a point that re-entered through its own deposit step
-        c = cov[j]
-        p = pbar[j]
-        if _is_active(c, p, Z):
-            is_[IS_ROWS] += 1
-            m = mass[j]
-            w0, w1, w2 = m * p * p, m * p * c, m * c * c
-            g0 += w0
-            g1 += w1
-            g2 += w2
-            rows[nrows] = j
-            W0[nrows], W1[nrows], W2[nrows] = w0, w1, w2
-            nrows += 1
-            _prefetch_row(Phi, j)
-            active[j] = 1
-        else:  # its key was stale (c̃ has grown since): wait for the true threshold
-            size = heap_push(hk, hi, size, max(c / p, Z), j)
-            inheap[j] = 1
-    _add_rows(sp, Phi, rows, W0, W1, W2, nrows)
+        # enters, or its key was stale (c̃ has grown since) and it waits for the true threshold
+        nrows, size = _enter_or_wait(Phi, pf, pb, pi, hk, hi, fs, is_, j, nrows, size)
+    _add_rows(sp, Phi, pi[PI_BALL], pf[PF_W0], pf[PF_W1], pf[PF_W2], nrows)
     is_[IS_HEAP] = size
-    fs[FS_G0], fs[FS_G1], fs[FS_G2] = g0, g1, g2
     inv = 1.0 / Z if Z > 0.0 else 0.0
-    fs[FS_MASS_S] = g0 - 2.0 * inv * g1 + inv * inv * g2
+    fs[FS_MASS_S] = fs[FS_G0] - 2.0 * inv * fs[FS_G1] + inv * inv * fs[FS_G2]
 
 
 @njit
@@ -920,8 +804,7 @@ def diffuse(sp, fs, carry):
     scale = 1.0 / ms if ms > 0.0 else 0.0
     d, a, b = sp[SP_DECAY], sp[SP_A], sp[SP_B]
     f0, f1, f2 = sp[SP_F0], sp[SP_F1], sp[SP_F2]
-    c1 = -2.0 * inv
-    c2 = inv * inv
+    c1, c2 = -2.0 * inv, inv * inv
     for q in range(sp.shape[1]):
         coef = (f0[q] + c1 * f1[q] + c2 * f2[q]) * scale
         if carry:
@@ -936,10 +819,8 @@ def sbar_at(pf, fs, j):
     """The injected source s̄ = max(p̄ - c̃/Z, 0)² / ∫s at point ``j``."""
     Z = fs[FS_Z]
     ms = fs[FS_MASS_S]
-    if not (ms > 0.0):
-        return 0.0
     p = pf[PF_PBAR, j]
-    if p == 0.0:
+    if not (ms > 0.0) or p == 0.0:
         return 0.0
     e = p - pf[PF_COV, j] / Z if Z > 0.0 else p
     return e * e / ms if e > 0.0 else 0.0
@@ -950,10 +831,7 @@ def row_dot(x, y):
     """x · y with four independent partial sums: a single running sum is bound by the
     latency of the floating-point add (the compiler may not reorder it)."""
     n = x.shape[0]
-    s0 = 0.0
-    s1 = 0.0
-    s2 = 0.0
-    s3 = 0.0
+    s0 = s1 = s2 = s3 = 0.0
     m = n - n % 4
     for q in range(0, m, 4):
         s0 += x[q] * y[q]
@@ -977,25 +855,6 @@ def project_rows(Phi, w):
             for q in range(row.shape[0]):
                 out[q] += wj * row[q]
     return out
-
-
-@njit
-def cloud_fields(pbar, cov, T, rank, Z, ms, carry, coverage, source, residual):
-    """The logged cloud's fields in the cloud's order, in one pass: coverage c̃, source
-    s = max(p̄ − c̃/Z, 0)² (on the target T, internal order), and the heat's residual s/∫s
-    (carry-over) or 0. Writes ``coverage``, ``source``, ``residual`` (n,)."""
-    s = np.zeros(len(cov))
-    for t in range(len(T)):
-        j = T[t]
-        e = pbar[j] - (cov[j] / Z if Z > 0.0 else 0.0)
-        if e > 0.0:
-            s[j] = e * e
-    inv = 1.0 / ms if (carry and ms > 0.0) else 0.0
-    for i in range(len(rank)):
-        j = rank[i]
-        coverage[i] = cov[j]
-        source[i] = s[j]
-        residual[i] = s[j] / ms if inv != 0.0 else 0.0
 
 
 @njit
@@ -1028,19 +887,14 @@ def deposit(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, x, n):
     mass, cov, oldc, phat = pf[PF_MASS], pf[PF_COV], pf[PF_OLDC], pf[PF_PHAT]
     target, mark = pb[PB_TARGET], pb[PB_MARK]
     chg = pi[PI_CHG]
-    eps2 = prm[PR_EPS2]
+    eps2, ztarget = prm[PR_EPS2], prm[PR_ZTARGET]
     have_phat = is_[IS_PHAT] == 1
-    ztarget = prm[PR_ZTARGET]
-    nchg = is_[IS_NCHG]
-    touched = is_[IS_TOUCHED]
+    nchg, touched = is_[IS_NCHG], is_[IS_TOUCHED]
     untouched = fs[FS_REF_UNTOUCHED]
-    dz = 0.0
-    dzc = 0.0
+    dz = dzc = 0.0
     for t in range(cnt):
         j = ball[t]
-        d0 = P[j, 0] - x[0]
-        d1 = P[j, 1] - x[1]
-        d2 = P[j, 2] - x[2]
+        d0, d1, d2 = P[j, 0] - x[0], P[j, 1] - x[1], P[j, 2] - x[2]
         off = d0 * n[0] + d1 * n[1] + d2 * n[2]
         r2 = max(d0 * d0 + d1 * d1 + d2 * d2 - off * off, 0.0)
         phi = math.exp(-eps2 * r2)
@@ -1092,16 +946,14 @@ def place_agent(P, perm, nodes, boxes, tpts, full, ag, nbrs, i, x0, ref, k, prm_
     d2 = np.empty(k)
     for _ in range(START_ITERATIONS):
         locate(P, perm, nodes, boxes, tpts, x, r, k, xp, nn, nb, d2)
-        m0, m1, m2 = xp[0] - x[0], xp[1] - x[1], xp[2] - x[2]
-        moved = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+        moved = math.sqrt(_dist2(xp, x))
         x[:] = xp
         r[:] = nn
         if moved < 1e-9:
             break
-    if not on_data(full, x, prm_reach):  # projected into a hole or past an edge
-        j = nb[0]
-        for d in range(3):
-            x[d] = P[j, d]
+    # projected into a hole or past an edge
+    if nearest_distance(full[0], full[1], full[2], full[3], x) > prm_reach:
+        x[:] = P[nb[0]]
     ag[i, AG_POS:AG_POS + 3] = x
     ag[i, AG_NRM:AG_NRM + 3] = r
     nbrs[i, :] = nb
@@ -1119,13 +971,11 @@ def agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full):
     r2min = np.inf
     for t in range(k):
         j = nbrs[i, t]
-        d0 = P[j, 0] - ag[i, AG_POS]
-        d1 = P[j, 1] - ag[i, AG_POS + 1]
+        d0, d1 = P[j, 0] - ag[i, AG_POS], P[j, 1] - ag[i, AG_POS + 1]
         d2 = P[j, 2] - ag[i, AG_POS + 2]
         u = d0 * ag[i, AG_T1] + d1 * ag[i, AG_T1 + 1] + d2 * ag[i, AG_T1 + 2]
         v = d0 * ag[i, AG_T2] + d1 * ag[i, AG_T2 + 1] + d2 * ag[i, AG_T2 + 2]
-        uv[t, 0] = u
-        uv[t, 1] = v
+        uv[t, 0], uv[t, 1] = u, v
         r2 = u * u + v * v
         r2min = min(r2min, r2)
         w[t] = math.exp(-eps2 * r2)
@@ -1133,10 +983,7 @@ def agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full):
     # Off the sampled surface the neighbours lie on one side: a plane, not an extrapolated cubic.
     degree = 3 if r2min <= prm[PR_H2] else 1
     gu, gv = cubic_slope(uv, vals, w, k, degree)
-    g = np.empty(3)
-    for d in range(3):
-        g[d] = ag[i, AG_T1 + d] * gu + ag[i, AG_T2 + d] * gv
-    return g
+    return ag[i, AG_T1:AG_T1 + 3] * gu + ag[i, AG_T2:AG_T2 + 3] * gv
 
 
 @njit
@@ -1147,13 +994,10 @@ def gain_gradient(P, perm, nodes, boxes, tpts, pf, pb, fs, prm, x, t1, t2, ball,
     GAIN_REACH r_a (φ < 1e-7 beyond, at the default ε = 2/r_a)."""
     eps2 = prm[PR_GAIN_EPS2] / (width * width)
     cnt = tree_ball(perm, nodes, boxes, tpts, x, reach * 2.0 / math.sqrt(eps2), ball)
-    mass, pbar, cov = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV]
-    target = pb[PB_TARGET]
+    mass, pbar, cov, target = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV], pb[PB_TARGET]
     Z = fs[FS_ZC]
     inv = 1.0 / Z if Z > 0.0 else 0.0
-    g0 = 0.0
-    g1 = 0.0
-    g2 = 0.0
+    g0 = g1 = g2 = 0.0
     for t in range(cnt):
         j = ball[t] if tmap is None else tmap[ball[t]]
         if target[j] == 0:
@@ -1169,23 +1013,13 @@ def gain_gradient(P, perm, nodes, boxes, tpts, pf, pb, fs, prm, x, t1, t2, ball,
     f = 2.0 * eps2
     a = f * (g0 * t1[0] + g1 * t1[1] + g2 * t1[2])
     b = f * (g0 * t2[0] + g1 * t2[1] + g2 * t2[2])
-    out = np.empty(3)
-    for d in range(3):
-        out[d] = a * t1[d] + b * t2[d]
-    return out
+    return a * t1 + b * t2
 
 
 @njit
 def _dist2(a, b):
     d0, d1, d2 = a[0] - b[0], a[1] - b[1], a[2] - b[2]
     return d0 * d0 + d1 * d1 + d2 * d2
-
-
-@njit
-def on_data(full, x, reach):
-    """Whether ``x`` lies within ``reach`` (metres) of a point of the cloud whose tree is ``full``
-    (perm, nodes, boxes, points)."""
-    return nearest_distance(full[0], full[1], full[2], full[3], x) <= reach
 
 
 @njit
@@ -1211,7 +1045,7 @@ def try_move(P, perm, nodes, boxes, tpts, full, x, disp, ref, k, prm, out_xp, ou
         f = limit / moved
         for d in range(3):
             out_xp[d] = x[d] + (out_xp[d] - x[d]) * f
-    return on_data(full, out_xp, prm[PR_REACH])
+    return nearest_distance(full[0], full[1], full[2], full[3], out_xp) <= prm[PR_REACH]
 
 
 @njit
@@ -1224,9 +1058,7 @@ def move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, 
     g = agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full)
     if prm[PR_GAIN] > 0.0:
         # taken where the agent's momentum carries it next (x + v dt): it cannot turn at once
-        ahead = np.empty(3)
-        for d in range(3):
-            ahead[d] = ag[i, AG_POS + d] + ag[i, AG_VEL + d] * prm[PR_DT]
+        ahead = ag[i, AG_POS:AG_POS + 3] + ag[i, AG_VEL:AG_VEL + 3] * prm[PR_DT]
         gl = gain_gradient(P, perm, nodes, boxes, tpts, pf, pb, fs, prm, ahead,
                            ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3], pi[PI_BALL])
         # plus the same gain seen wider, over the target's points only: it pulls towards residual
@@ -1234,9 +1066,7 @@ def move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, 
         gb = gain_gradient(P, tgt[0], tgt[1], tgt[2], tgt[3], pf, pb, fs, prm, ahead,
                            ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3], pi[PI_BALL], BROAD_WIDTH, BROAD_REACH, tgt[4])
         for d in range(3):
-            gl[d] += BROAD_WEIGHT * gb[d]
-        for d in range(3):
-            g[d] = prm[PR_HEAT] * g[d] + prm[PR_GAIN] * gl[d]
+            g[d] = prm[PR_HEAT] * g[d] + prm[PR_GAIN] * (gl[d] + BROAD_WEIGHT * gb[d])
     gn = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
     a_max, v_max, dt = prm[PR_AMAX], prm[PR_VMAX], prm[PR_DT]
     acc = np.zeros(3)
@@ -1245,22 +1075,16 @@ def move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, 
             acc[d] = g[d] * (a_max / gn)
     x = ag[i, AG_POS:AG_POS + 3].copy()
     nrm = ag[i, AG_NRM:AG_NRM + 3].copy()
-    v = np.empty(3)
-    for d in range(3):
-        v[d] = ag[i, AG_VEL + d] + acc[d] * dt
+    v = ag[i, AG_VEL:AG_VEL + 3] + acc * dt
     tangential(v, nrm)  # the acceleration lies in the tangent plane already; keep v there too
     speed = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
     if speed > v_max:
-        f = v_max / speed
-        for d in range(3):
-            v[d] *= f
+        v *= v_max / speed
     xp = np.empty(3)
     nn = np.empty(3)
     nb = np.empty(k, np.int64)
     d2 = np.empty(k)
-    disp = np.empty(3)
-    for d in range(3):
-        disp[d] = v[d] * dt
+    disp = v * dt
     ok = try_move(P, perm, nodes, boxes, tpts, full, x, disp, nrm, k, prm, xp, nn, nb, d2)
     if not ok:
         # The move leaves the data (an edge, a hole, a gap). Slide instead: of the tangent
@@ -1290,21 +1114,16 @@ def move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, 
             if ok:
                 break
         if not ok:  # wait where it is; the next gradient step picks a new way
-            for d in range(3):
-                v[d] = 0.0
-                xp[d] = x[d]
-                nn[d] = nrm[d]
-            for t in range(k):
-                nb[t] = nbrs[i, t]
-    for d in range(3):
-        ag[i, AG_ACC + d] = acc[d]
-        ag[i, AG_POS + d] = xp[d]
-        ag[i, AG_NRM + d] = nn[d]
-    for t in range(k):
-        nbrs[i, t] = nb[t]
+            v[:] = 0.0
+            xp[:] = x
+            nn[:] = nrm
+            nb[:] = nbrs[i]
+    ag[i, AG_ACC:AG_ACC + 3] = acc
+    ag[i, AG_POS:AG_POS + 3] = xp
+    ag[i, AG_NRM:AG_NRM + 3] = nn
+    nbrs[i, :] = nb
     tangential(v, nn)
-    for d in range(3):
-        ag[i, AG_VEL + d] = v[d]
+    ag[i, AG_VEL:AG_VEL + 3] = v
     tangent_frame(nn, ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3])
 
 
@@ -1377,10 +1196,8 @@ def score_position(perm, nodes, boxes, tpts, x, prev, has_prev, cov, touched, ta
     """Add position ``x`` (3,) to the score: its footprint on every point within SC_CUT, the
     target points it touches (within r_a), whether it is off the cloud, its step from ``prev``."""
     cnt = tree_ball(perm, nodes, boxes, tpts, x, sp_[SC_CUT], ball)
-    eps2 = sp_[SC_EPS2]
-    ra2 = sp_[SC_RA] * sp_[SC_RA]
-    near = np.inf
-    add = 0.0
+    eps2, ra2 = sp_[SC_EPS2], sp_[SC_RA] * sp_[SC_RA]
+    near, add = np.inf, 0.0
     for t in range(cnt):
         j = ball[t]
         d0, d1, d2 = tpts[j, 0] - x[0], tpts[j, 1] - x[1], tpts[j, 2] - x[2]
@@ -1406,8 +1223,7 @@ def score_epsilon(cov, tlist, pplain, ss):
     """ε = ‖max(p̄ - c/Σc, 0)‖₂ / ‖p̄‖₂ over the target points ``tlist`` (p̄ = 0 elsewhere): O(|T|)."""
     C = ss[SS_C]
     inv = 1.0 / C if C > 0.0 else 0.0
-    num = 0.0
-    den = 0.0
+    num = den = 0.0
     for t in range(tlist.shape[0]):
         j = tlist[t]
         p = pplain[j]

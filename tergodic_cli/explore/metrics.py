@@ -1,7 +1,9 @@
 """Coverage, source and the three exploration metrics as pure functions of full arrays.
 
 The :class:`~tergodic_cli.explore.explorer.Explorer` keeps incremental versions of these for
-speed; these reference forms define them (and the tests check the two agree).
+speed; these forms define them (and the tests check the two agree). The neutral score of a
+trajectory is kept step by step (:class:`CoverageScore`); its full-array definition is in
+``tests/reference_geometry.py``.
 
 All per-point arrays are (n,) float64 over the cloud; ``mass`` is the lumped mass M (m²).
 """
@@ -10,23 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def normalise(f: np.ndarray, mass: np.ndarray) -> np.ndarray:
-    """``f`` scaled to unit mass, f / ∫f with ∫f = Σ M_i f_i (eq. 2); zeros stay zeros.
-
-    Parameters
-    ----------
-    f : (n,) float
-    mass : (n,) float
-        Lumped mass, m².
-
-    Returns
-    -------
-    (n,) float
-        1/m².
-    """
-    total = float(mass @ f)
-    return f / total if total > 0 else np.zeros_like(f, dtype=float)
+from tergodic_cli.explore import kernels as K
 
 
 def source_term(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray, norm: str = "cloud") -> np.ndarray:
@@ -52,13 +38,13 @@ def source_term(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray, norm: str
     (n,) float
         s, 1/m⁴.
     """
-    if norm == "target":
-        on_target = np.where(np.asarray(p) > 0, coverage, 0.0)
-        total = float(mass @ on_target)
-        cbar = coverage / total if total > 0 else np.zeros_like(coverage, dtype=float)
-    else:
-        cbar = normalise(coverage, mass)
-    return np.maximum(normalise(p, mass) - cbar, 0.0) ** 2
+    # each to unit mass, f / ∫f with ∫f = Σ M_i f_i (eq. 2); zeros stay zeros
+    p_total = float(mass @ p)
+    pbar = p / p_total if p_total > 0 else np.zeros_like(p, dtype=float)
+    counted = np.where(np.asarray(p) > 0, coverage, 0.0) if norm == "target" else coverage
+    total = float(mass @ counted)
+    cbar = coverage / total if total > 0 else np.zeros_like(coverage, dtype=float)
+    return np.maximum(pbar - cbar, 0.0) ** 2
 
 
 def ergodicity(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray) -> float:
@@ -82,31 +68,7 @@ def ergodicity(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray) -> float:
     float
         1/m.
     """
-    e = np.maximum(normalise(p, mass) - normalise(coverage, mass), 0.0)
-    return float(np.sqrt(mass @ (e * e)))
-
-
-def residual_ref(first_heat: np.ndarray, coverage: np.ndarray) -> float:
-    """The authors' residual: ‖p̂ · [c̃ = 0]‖₂ / ‖p̂‖₂ with p̂ = u₁ / Σu₁ (plain sums and norms).
-
-    [c̃ = 0] marks points the footprint never reached. Raw, unnormalised coverage makes any
-    touched point count as done.
-
-    Parameters
-    ----------
-    first_heat : (n,) float
-        The heat u after the first step.
-    coverage : (n,) float
-        Raw coverage c̃.
-
-    Returns
-    -------
-    float
-        Dimensionless, in [0, 1].
-    """
-    p_hat = first_heat / first_heat.sum()
-    untouched = coverage == 0
-    return float(np.linalg.norm(p_hat[untouched]) / np.linalg.norm(p_hat))
+    return float(np.sqrt(mass @ source_term(p, coverage, mass)))
 
 
 def touched_fraction(p: np.ndarray, coverage: np.ndarray) -> float:
@@ -135,7 +97,7 @@ OFF_SURFACE_H = 2.0
 
 def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray, agent_radius: float,
                    h: float) -> dict:
-    """The neutral coverage score of a trajectory, from full arrays (the reference form).
+    """The neutral coverage score of a whole trajectory: :class:`CoverageScore` over its steps.
 
     Parameters
     ----------
@@ -152,29 +114,15 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
     target points within r_a of some X_t); ``off_surface_fraction`` (share of positions more than
     2h from every point); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
     """
-    from scipy.spatial import cKDTree
+    from tergodic_cli.explore.explorer import cloud_index
 
-    P = np.asarray(points, dtype=np.float64)
     X = np.asarray(positions, dtype=np.float64)
-    steps = np.linalg.norm(np.diff(X, axis=0), axis=-1) if len(X) > 1 else np.zeros(1)
-    X = X.reshape(-1, 3)
-    k = (2.0 / agent_radius) ** 2
-    c = np.zeros(len(P))
-    for a in range(0, len(X), 256):
-        d2 = ((P[:, None, :] - X[None, a:a + 256, :]) ** 2).sum(-1)
-        c += np.exp(-k * d2).sum(1)
-    p = np.asarray(target, dtype=np.float64)
-    pbar = p / p.sum()
-    cbar = c / c.sum() if c.sum() > 0 else c
-    tree = cKDTree(P)
-    near, _ = tree.query(X)
-    hit = np.zeros(len(P), dtype=bool)
-    for idx in tree.query_ball_point(X, agent_radius):
-        hit[idx] = True
-    T = p > 0
-    return {"ergodicity": float(np.linalg.norm(np.maximum(pbar - cbar, 0.0)) / np.linalg.norm(pbar)),
-            "touched_fraction": float(hit[T].mean()), "off_surface_fraction": float((near > OFF_SURFACE_H * h).mean()),
-            "step_max_m": float(steps.max())}
+    X = X.reshape(len(X), -1, 3)
+    index = cloud_index(np.ascontiguousarray(points, dtype=np.float64))
+    score = CoverageScore(index, target, agent_radius, h, X.shape[1])
+    for x in X:
+        score.add(x)
+    return score.metrics()
 
 
 class CoverageScore:
@@ -190,9 +138,6 @@ class CoverageScore:
     """
 
     def __init__(self, index, target: np.ndarray, agent_radius: float, h: float, n_agents: int = 1):
-        from tergodic_cli.explore import kernels as K
-
-        self._K = K
         self._tree = index.tree
         n = len(index.order)
         self._cov = np.zeros(n)
@@ -217,7 +162,7 @@ class CoverageScore:
         self._tlist = np.flatnonzero(p > 0)
         self._target = (p > 0).astype(np.int8)
         self._pplain = p / p.sum()
-        self._ss[self._K.SS_TOUCHED] = float(np.count_nonzero(self._touched[self._tlist]))
+        self._ss[K.SS_TOUCHED] = float(np.count_nonzero(self._touched[self._tlist]))
 
     def add(self, positions: np.ndarray) -> None:
         """Score one step.
@@ -227,7 +172,7 @@ class CoverageScore:
         positions : (N, 3) float
             The agents' positions, metres.
         """
-        K, ss = self._K, self._ss
+        ss = self._ss
         has_prev = ss[K.SS_N] > 0
         for i, x in enumerate(positions):
             K.score_position(*self._tree, x, self._prev[i], has_prev, self._cov, self._touched, self._target, ss,
@@ -242,7 +187,7 @@ class CoverageScore:
         dict
             ``ergodicity`` (dimensionless), ``touched_fraction``, ``off_surface_fraction``, ``step_max_m`` (metres).
         """
-        K, ss = self._K, self._ss
+        ss = self._ss
         n = max(ss[K.SS_N], 1.0)
         return {"ergodicity": K.score_epsilon(self._cov, self._tlist, self._pplain, ss) if ss[K.SS_N] else 1.0,
                 "touched_fraction": float(ss[K.SS_TOUCHED] / len(self._tlist)),

@@ -77,7 +77,7 @@ def compile_explorer(say: Callable[[str], None] | None = None) -> float:
     """Compile (cold disk cache) or load (warm) every explorer kernel in this process; returns seconds.
 
     A few steps of a tiny explorer take every kernel through the paths a run uses: the spectral and
-    the implicit step, the robot's deposits and resets, the logged cloud fields and the heat.
+    the implicit step, the robot's deposits and resets, and the logged heat and source.
 
     Parameters
     ----------
@@ -106,7 +106,5 @@ def compile_explorer(say: Callable[[str], None] | None = None) -> float:
         ex.step()
         ex.step(deposit_at=pts[:2], agent_at=pts[1:2])
         ex.step(deposit_at=pts[:0])
-        ex.cloud_fields()
-        ex.heat_at(np.arange(3))
         _ = ex.heat, ex.source, ex.metrics()
     return time.perf_counter() - t0
