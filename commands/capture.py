@@ -9,9 +9,6 @@ import typer
 
 from tergodic_cli.commands._common import given_options, parse_floats
 
-def register(app: typer.Typer) -> None:
-    app.command("capture", no_args_is_help=True)(capture)
-
 
 def capture(
     ctx: typer.Context,

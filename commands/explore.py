@@ -9,12 +9,6 @@ from typing import Optional
 import typer
 
 
-def register(app: typer.Typer) -> None:
-    from tergodic_cli.commands._common import EXIT_CODES
-
-    app.command("explore", no_args_is_help=True, epilog=EXIT_CODES)(explore)
-
-
 def explore(
     ctx: typer.Context,
     capture: Path = typer.Argument(..., help="Capture folder written by 'tergodic capture'."),

@@ -8,10 +8,6 @@ from typing import Optional
 import typer
 
 
-def register(app: typer.Typer) -> None:
-    app.command("precompute", no_args_is_help=True)(precompute)
-
-
 def precompute(
     ctx: typer.Context,
     capture: Path = typer.Argument(..., help="Capture folder written by 'tergodic capture'."),

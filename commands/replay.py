@@ -8,12 +8,6 @@ from typing import Optional
 import typer
 
 
-def register(app: typer.Typer) -> None:
-    from tergodic_cli.commands._common import EXIT_CODES
-
-    app.command("replay", no_args_is_help=True, epilog=EXIT_CODES)(replay)
-
-
 def replay(
     run: Path = typer.Argument(..., help="Run folder written by 'tergodic explore' (holding run.mcap), or the .mcap file."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON: the keys of summary.json plus 'truncated' and 'status' (complete, interrupted, truncated)."),

@@ -8,12 +8,6 @@ from typing import Optional
 import typer
 
 
-def register(app: typer.Typer) -> None:
-    from tergodic_cli.commands._common import EXIT_CODES
-
-    app.command("sweep", no_args_is_help=True, epilog=EXIT_CODES)(sweep)
-
-
 # The docstring's "\b" lines keep click from reflowing the GRID.toml example (it prints verbatim).
 def sweep(
     grid: Path = typer.Argument(..., help="GRID.toml: [objects.NAME] tables and a [grid] of option lists."),

@@ -89,12 +89,12 @@ class _Command(typer.core.TyperCommand):
 
 
 from tergodic_cli.commands import capture, explore, precompute, replay, sweep  # noqa: E402  (after app)
+from tergodic_cli.commands._common import EXIT_CODES  # noqa: E402
 
-for _verb in (capture, precompute, explore, replay, sweep):
-    _verb.register(app)
-for _info in app.registered_commands:
-    if _info.cls in (None, typer.core.TyperCommand):
-        _info.cls = _Command
+for _verb in (capture.capture, precompute.precompute, explore.explore, replay.replay, sweep.sweep):
+    # the verbs that can stop a robot or be resumed list their exit codes under --help
+    _epilog = None if _verb in (capture.capture, precompute.precompute) else EXIT_CODES
+    app.command(_verb.__name__, no_args_is_help=True, epilog=_epilog, cls=_Command)(_verb)
 
 
 def _on_sigterm(signum, frame) -> None:

@@ -1,14 +1,7 @@
 """A whole ``tergodic explore`` run: capture -> basis -> starts -> explorer loop -> artefacts.
 
-Artefacts in RUN_DIR (written atomically at the end; nothing partial on error):
-
-- ``trajectory.npz``: per step (T steps, N agents) ``positions`` (T, N, 3) m, ``velocities``
-  (T, N, 3) m/s, ``accelerations`` (T, N, 3) m/s², ``normals`` (T, N, 3) (the normal line of
-  eq. 28 at step k is positions[k] + s·normals[k]), ``time`` (T,) s, the metric series
-  ``ergodicity``, ``residual_ref``, ``touched_fraction``, ``step_ms`` (T,), the ``start``
-  (N, 3), and per point the final ``coverage``, ``heat``, ``source``, ``target`` (n,) and ``points`` (n, 3);
-- ``summary.json``: :func:`summarize_run` of the series plus provenance (versions, seed, basis);
-- ``run.mcap``: the per-step log (unless ``log=False``), written by :mod:`tergodic_cli.runlog`.
+The artefacts in RUN_DIR (``trajectory.npz``, ``summary.json``, ``config.json``, ``run.mcap``) are
+described in docs/explore.md; they are built in a temporary folder and renamed into place.
 """
 
 from __future__ import annotations
@@ -511,16 +504,15 @@ def make_backend(robot: str = "kinematic", robot_options: dict | None = None, ha
 
 
 def _check_robot(robot_cfg) -> None:
-    import os
-
     from tergodic_cli.robot.config import validate_robot_config
     from tergodic_cli.robot.safety import SafetyGuard
+    from tergodic_cli.runlog.viewers import require_display
 
     validate_robot_config(robot_cfg)
     # the guard's own checks (workspace box, force limit above --force); joint limits do not matter here
     SafetyGuard(robot_cfg.safety, np.zeros(7), np.ones(7), np.ones(7), float(robot_cfg.force))
-    if robot_cfg.gui and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)", "run without --gui, or on a desktop")
+    if robot_cfg.gui:
+        require_display()
 
 
 def _open_log(out: Path, cfg: ExploreConfig, basis, capture, spec: LogSpec):

@@ -1,9 +1,7 @@
 """Read a run log back: series, robot samples, clouds, events, metadata.
 
-The reader walks the file record by record, so it reads a complete log and a log
-cut short by a crash alike: a killed run yields every step up to the last complete
-chunk and ``truncated = True``. Chunk CRCs are checked, so a half-written chunk is
-dropped, never half-read.
+Record by record, so a log cut short by a crash reads up to its last complete chunk
+(``truncated = True``); chunk CRCs are checked, so a half-written chunk is dropped (docs/logging.md).
 """
 
 from __future__ import annotations
@@ -103,32 +101,23 @@ class RunLogData:
 
     def cloud_at(self, step: int) -> CloudFrame | None:
         """The last cloud logged at or before ``step`` (None if there is none)."""
-        best = None
-        for c in self.clouds:
-            if c.step <= step and (best is None or c.step >= best.step):
-                best = c
-        return best
+        before = [c for c in reversed(self.clouds) if c.step <= step]  # reversed: the later of equals
+        return max(before, key=lambda c: c.step, default=None)
 
     def robot_series(self) -> dict[str, np.ndarray]:
         """Robot samples stacked per key: numbers and equal-length vectors as (T,) / (T, k) arrays."""
         if not self.robot:
             return {}
         out: dict[str, np.ndarray] = {}
-        keys = [k for k in self.robot[0] if k != "link_poses"]
-        for k in keys:
+        for k in (k for k in self.robot[0] if k != "link_poses"):
             vals = [s.get(k) for s in self.robot]
-            if any(v is None for v in vals):
-                if k == "contact_point":  # None when not in contact
-                    out[k] = np.array([np.full(3, np.nan) if v is None else np.asarray(v, float) for v in vals])
-                continue
-            if isinstance(vals[0], str):
-                out[k] = np.array(vals)
-                continue
+            if k == "contact_point":  # None when not in contact
+                vals = [np.full(3, np.nan) if v is None else v for v in vals]
             try:
-                arr = np.array(vals, dtype=np.float64)
+                if not any(v is None for v in vals):
+                    out[k] = np.array(vals, dtype=None if isinstance(vals[0], str) else np.float64)
             except (TypeError, ValueError):
-                continue
-            out[k] = arr
+                pass
         return out
 
 
@@ -398,10 +387,8 @@ def _step_decoder(schema: Any):
 def _stack_rows(rows: list[dict]) -> dict[str, np.ndarray]:
     out: dict[str, np.ndarray] = {"step": np.array([r["step"] for r in rows], dtype=np.int64),
                                   "t": np.array([r["t"] for r in rows], dtype=np.float64)}
-    skip = {"step", "t"}
-    keys = dict.fromkeys(k for r in rows for k in r)  # every name any step had, first-seen order
-    for key in keys:
-        if key in skip:
+    for key in dict.fromkeys(k for r in rows for k in r):  # every name any step had, first-seen order
+        if key in out:
             continue
         vals = [r.get(key) for r in rows]
         if key in ("positions", "velocities", "normals"):
