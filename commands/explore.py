@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 from typing import Optional
@@ -79,8 +80,6 @@ def explore(
 
       tergodic explore cap/ --robot franka --robot-ip 172.16.0.2 --ft bota --ft-address bota.json --dry-run --out run/
     """
-    import json
-
     live_at = _check_live(live, no_log or dry_run) if live is not None else None  # exit 2 before anything is written
     from tergodic_cli.explore import ExploreConfig
     from tergodic_cli.run import LogSpec, StartSpec, apply_saved, dry_run_report, make_backend, run_explore

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Optional
 
@@ -30,8 +31,6 @@ def precompute(
 
       tergodic precompute cap2/ --config ~/.cache/tergodic/basis/KEY/config.json
     """
-    import json
-
     from tergodic_cli.basis import BasisConfig, get_basis
     from tergodic_cli.capture import load_capture
     from tergodic_cli.capture.pipeline import check_size

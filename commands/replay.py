@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Optional
 
@@ -41,8 +42,6 @@ def replay(
 
       tergodic replay run/ --html run/report.html
     """
-    import sys
-
     from tergodic_cli.errors import TergodicError
     from tergodic_cli.progress import Spinner, echo as echo_err
     from tergodic_cli.runlog import read_run_log, resolve_log_path

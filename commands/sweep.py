@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Optional
 
@@ -53,8 +54,6 @@ def sweep(
 
       tergodic sweep grid.toml --out sweep/ --engine ray --address 10.0.0.5:6379
     """
-    import json
-
     from tergodic_cli.sweep import run_sweep
     from tergodic_cli.progress import echo as echo_err
 

@@ -6,7 +6,10 @@ Every verb module imports only typer and the standard library at import time, so
 
 from __future__ import annotations
 
+import platform
+import signal
 import sys
+from importlib import metadata
 
 import typer
 
@@ -37,9 +40,6 @@ LIBRARIES = (("numpy",), ("scipy",), ("open3d", "open3d-cpu"), ("robust_laplacia
 
 def version_text() -> str:
     """``tergodic --version``: this package's version, then the key libraries' (from their metadata, no imports)."""
-    from importlib import metadata
-    import platform
-
     from tergodic_cli import __version__
 
     lines = [f"tergodic {__version__} (Python {platform.python_version()}, {platform.system()} {platform.machine()})"]
@@ -106,8 +106,6 @@ def _on_sigterm(signum, frame) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``tergodic`` console script; returns the exit code (130 on Ctrl-C, 143 on SIGTERM)."""
-    import signal
-
     try:
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
     except ValueError:  # not the main thread (an embedding caller): leave SIGTERM alone

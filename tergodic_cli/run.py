@@ -7,7 +7,7 @@ described in docs/explore.md; they are built in a temporary folder and renamed i
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -40,8 +40,6 @@ RUN_CONFIG_KIND = "tergodic.run_config"
 def _run_config(capture_dir, cfg: ExploreConfig, starts: StartSpec | None, backend, log_cloud_every: int) -> dict:
     """The sections of a run's ``config.json``: ``cfg`` as asked for (before a robot's time scaling),
     the starts (the seed in ``cfg`` makes a random start the same), the robot's config without the GUI."""
-    from dataclasses import replace
-
     spec, rc = starts or StartSpec(), backend.robot_cfg
     return {"capture": str(Path(capture_dir).resolve()), "explore": cfg.to_dict(),
             "starts": {"start": spec.start, "start_index": spec.start_index,

@@ -1,10 +1,6 @@
-"""Export a run's time series as ``.npz`` or ``.csv`` (one row per step).
+"""Export a run's time series as ``.npz`` or ``.csv`` (one row per step, float64 as logged).
 
-Columns/keys: ``step``, ``t`` (s), every logged metric, ``step_ms``, the agents'
-``positions``/``velocities``/``normals`` (object frame; (T, N, 3) in npz, flattened
-``positions_<agent>_<x|y|z>`` in csv), and for robot runs every numeric field of
-the robot sample prefixed ``robot_`` (e.g. ``robot_force_normal``,
-``robot_wrench_measured`` (T, 6)). Values are float64 exactly as logged.
+The columns (and the csv's flattened vectors) are listed in docs/logging.md (``--export``).
 """
 
 from __future__ import annotations

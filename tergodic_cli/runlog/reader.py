@@ -9,6 +9,8 @@ from __future__ import annotations
 import json
 import os
 import re
+import struct
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -255,8 +257,6 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
             raise TergodicError(f"{path} has {size - stream.count} bytes of garbage after the end of the log "
                                 f"(from byte {stream.count})",
                                 f"remove them (truncate -s {stream.count} {path}), or re-run 'tergodic explore'")
-    if not have_header:
-        raise TergodicError(f"{path} has a truncated header", "the run died at start; re-run it")
     if not complete and not truncated:
         truncated, note = True, "no footer"
     if version is None:
@@ -308,8 +308,6 @@ def _read_at(path: Path, offset: int, n: int = -1) -> bytes:
 def _has_footer(path: Path, size: int) -> bool:
     """The file ends in a footer record and the closing magic: it was finished, so a bad
     record inside it is damage, not a cut."""
-    import struct
-
     if size < len(_MAGIC) * 2 + _FOOTER_LEN:
         return False
     tail = _read_at(path, size - len(_MAGIC) - _FOOTER_LEN)
@@ -325,8 +323,6 @@ def _cut_magic(path: Path, at: int, size: int) -> bool:
 def _runs_past_end(path: Path, at: int, size: int) -> bool:
     """The record at byte ``at`` is a known record type whose length reaches past the end of the
     file: the file was cut inside it (a truncation), not damaged."""
-    import struct
-
     head = _read_at(path, at, 9)
     if len(head) < 9:
         return True
@@ -351,8 +347,6 @@ def _corrupt(path: Path, at: int, exc: BaseException | None, why: str = "") -> T
 
 def _check_summary_crc(path: Path, footer: Any, at: int) -> None:
     """The footer's CRC over the summary section (the reader does not check it)."""
-    import zlib
-
     if not footer.summary_crc or not footer.summary_start:
         return
     end = at + 1 + 8 + 16  # up to the footer's own CRC field

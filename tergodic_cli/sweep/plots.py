@@ -1,13 +1,8 @@
-"""Sweep figures in the style of the paper's Figs. 6-7 and 9-11.
-
-- ``eps_vs_nk.png``: final ergodicity (mean ± std over starts) against nK, one line per α;
-- ``eps_vs_alpha.png``: final ergodicity against α (numeric α only), one line per nK;
-- ``eps_t.png``: ergodicity over time, mean ± std band over starts, one band per nK at the α
-  nearest 10 (the paper's best), and ``eps_t_alpha.png``: one band per α at the largest nK.
+"""Sweep figures in the style of the paper's Figs. 6-7 and 9-11 (the files: docs/speed.md).
 
 Columns are objects; the top row is ``ergodicity`` (the neutral unit-mass ε), the bottom row
-``residual_ref`` (the published code's residual). When the grid varies other options too, each combination
-of them gets its own set of files (suffix ``__key=value``).
+``residual_ref`` (the published code's residual). When the grid varies other options too, each
+combination of them gets its own set of files (suffix ``__key=value``).
 """
 
 from __future__ import annotations

@@ -15,7 +15,9 @@ import hashlib
 import json
 import math
 import os
+import shutil
 import statistics
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -334,9 +336,6 @@ def _publish(out: Path, build: Callable[[Path], list[str]]) -> list[str]:
     """``build(stage)`` writes the outputs into a temporary folder inside ``out`` (same filesystem);
     the files it names are then renamed into ``out`` together. On an error the folder is removed
     and the old outputs stay as they were. Returns the names."""
-    import shutil
-    import tempfile
-
     try:
         stage = Path(tempfile.mkdtemp(prefix=".results.tmp-", dir=out))
         try:
