@@ -282,8 +282,13 @@ class _Run:
 def _write_run(out: Path, run: _Run) -> dict:
     """The explorer loop and the artefacts, written into ``out`` (the temporary run folder)."""
     cfg, explorer, say, spec = run.cfg, run.explorer, run.say, run.log or LogSpec()
+    from tergodic_cli.provenance import library_versions
+    from tergodic_cli.runlog import RunLog
+
     recorder = RunRecorder(explorer)
-    runlog = _open_log(out, cfg, run.basis, run.capture, spec) if run.log else None
+    runlog = RunLog(out / "run.mcap", config=cfg.to_dict(), seed=cfg.seed, versions=library_versions(),
+                    capture_sidecar=run.capture.meta, points=run.basis.points, target=run.capture.target,
+                    cloud_every=spec.cloud_every, live=spec.live) if run.log else None
     try:
         if runlog is not None:
             if runlog.live is not None:
@@ -511,15 +516,6 @@ def _check_robot(robot_cfg) -> None:
     SafetyGuard(robot_cfg.safety, np.zeros(7), np.ones(7), np.ones(7), float(robot_cfg.force))
     if robot_cfg.gui:
         require_display()
-
-
-def _open_log(out: Path, cfg: ExploreConfig, basis, capture, spec: LogSpec):
-    from tergodic_cli.provenance import library_versions
-    from tergodic_cli.runlog import RunLog
-
-    return RunLog(out / "run.mcap", config=cfg.to_dict(), seed=cfg.seed, versions=library_versions(),
-                  capture_sidecar=capture.meta, points=basis.points, target=capture.target, cloud_every=spec.cloud_every,
-                  live=spec.live)
 
 
 def _log_cloud(runlog, explorer: Explorer, step: int) -> None:

@@ -166,6 +166,8 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
         Not an MCAP file, a truncated header, an unknown log schema version, not a
         tergodic log, or no step at all (one line, exit 2 in the CLI).
     """
+    from foxglove_schemas_protobuf.Log_pb2 import Log
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
     from mcap.records import Attachment, Channel, Footer, Header, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader
 
@@ -184,7 +186,7 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
     truncated, note, have_header, complete = False, "", False, False
     version: str | None = None
     topic_of: dict[int, str] = {}
-    PointCloud = Log = step_decoder = None
+    step_decoder = None
     t0 = 0
 
     size = path.stat().st_size
@@ -202,7 +204,7 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
             except StopIteration:
                 break
             except Exception as exc:  # a cut (EndOfFile, short record) or damage (bad CRC, garbage)
-                if complete and _cut_magic(path, at, size):
+                if complete and _cut_magic(path, at):
                     truncated, note = True, "cut inside the closing magic"
                     break
                 if finished or complete or not _runs_past_end(path, at, size):
@@ -222,12 +224,8 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
                 elif topic == S.TOPIC_ROBOT_SAMPLE:
                     robot.append(json.loads(rec.data))
                 elif topic == S.TOPIC_CLOUD and clouds:
-                    if PointCloud is None:
-                        from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
                     cloud_frames.append(_decode_cloud(PointCloud.FromString(rec.data), rec))
                 elif topic == S.TOPIC_EVENTS:
-                    if Log is None:
-                        from foxglove_schemas_protobuf.Log_pb2 import Log
                     msg = Log.FromString(rec.data)
                     m = _EVENT_RE.match(msg.message)
                     step, text = (int(m.group(1)), m.group(2)) if m else (int(rec.sequence), msg.message)
@@ -314,7 +312,7 @@ def _has_footer(path: Path, size: int) -> bool:
     return tail[-len(_MAGIC):] == _MAGIC and tail[0] == 0x02 and struct.unpack_from("<Q", tail, 1)[0] == 20
 
 
-def _cut_magic(path: Path, at: int, size: int) -> bool:
+def _cut_magic(path: Path, at: int) -> bool:
     """After the footer the file holds only a part of the closing magic: cut in its last bytes."""
     rest = _read_at(path, at)
     return len(rest) < len(_MAGIC) and _MAGIC.startswith(rest)

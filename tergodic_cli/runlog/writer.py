@@ -136,11 +136,8 @@ class RunLog:
         self.flush_every = max(1, int(flush_every) if flush_every else min(self.cloud_every, FLUSH_EVERY))
         self.flush_seconds = float(flush_seconds)
         self.points, self.target = pts, target
-        self.n_steps = self.n_clouds = 0
-        self._closed = False
-        self._since_flush = 0
-        self._last_t = 0.0
-        self._last_flush = time.monotonic()
+        self.n_steps = self.n_clouds = self._since_flush = 0
+        self._closed, self._last_t, self._last_flush = False, 0.0, time.monotonic()
         # log times are wall-clock (viewers place the run in real time): origin + simulated t
         self.time_origin_ns = time.time_ns() if time_origin_ns is None else int(time_origin_ns)
         self._line_half = 0.25 * float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))  # the drawn normal line

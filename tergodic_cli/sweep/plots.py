@@ -20,13 +20,12 @@ METRICS = (("ergodicity", "ε (unit-mass eq. 48, dimensionless)"),
 
 
 def plot_sweep(out: Path, grid: Grid, rows: list[dict], series: dict) -> list[str]:
-    """Write the figures; returns their paths relative to ``out``."""
+    """Write the figures into ``out`` (the sweep's staging folder, renamed into place whole);
+    returns their paths relative to ``out``."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from tergodic_cli.atomic import atomic_path
 
     objects = [o.name for o in grid.objects]
     varied = grid.varied
@@ -55,8 +54,7 @@ def plot_sweep(out: Path, grid: Grid, rows: list[dict], series: dict) -> list[st
         for name, fig in figs.items():
             if fig is None:
                 continue
-            with atomic_path(out / name, suffix=".png") as tmp:
-                fig.savefig(tmp, dpi=110, format="png")
+            fig.savefig(out / name, dpi=110, format="png")
             plt.close(fig)
             files.append(name)
     return files

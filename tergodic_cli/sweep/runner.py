@@ -103,10 +103,8 @@ def materialise(spec: ObjectSpec, starts: list[int], seed: int, out: Path) -> _O
     require(bool(np.any(cap.target > 0)), f"object {spec.name}: the target is empty (no point has p > 0)",
             "check its target/marking options")
     save_capture(cap, out / "objects" / spec.name)
-    h = hashlib.sha1()
-    h.update(np.ascontiguousarray(cap.points, dtype=np.float64).tobytes())
-    h.update(np.ascontiguousarray(cap.target, dtype=np.float64).tobytes())
-    h.update(str(spec.neighbors).encode())
+    h = hashlib.sha1(b"".join(np.ascontiguousarray(a, dtype=np.float64).tobytes() for a in (cap.points, cap.target))
+                     + str(spec.neighbors).encode())  # the object's content key
     xyz = {}
     for i in starts:
         if spec.starts_file is not None:
@@ -145,6 +143,7 @@ def run_batch(task: dict) -> list[dict]:
     os.environ.setdefault("TERGODIC_NO_PROGRESS", "1")
     from tergodic_cli.explore import ExploreConfig, Explorer, summarize_run
     from tergodic_cli.explore.warm import compile_explorer
+    from tergodic_cli.run import RunRecorder
 
     compile_explorer()  # a worker's first step would otherwise load the kernels inside its timing
     out = []
@@ -157,14 +156,11 @@ def run_batch(task: dict) -> list[dict]:
             warnings: list[str] = []
             ex = Explorer(basis, task["target"], cfg, np.asarray(run["start_xyz"], dtype=np.float64)[None],
                           on_event=warnings.append)
-            T = cfg.steps
-            series = {k: np.empty(T) for k in (*SERIES, "step_ms")}
-            for k in range(T):
+            recorder = RunRecorder(ex)
+            for k in range(cfg.steps):
                 ex.step()
-                m = ex.metrics()
-                for name in SERIES:
-                    series[name][k] = m[name]
-                series["step_ms"][k] = ex.last_step_ms
+                recorder.record(k + 1)
+            series = recorder.series()
             summary = summarize_run(series, cfg.to_dict(), {"edge_events": ex.edge_events, "warnings": warnings,
                                                                   "off_surface_fraction": ex.score()["off_surface_fraction"],
                                                                   "step_max_m": ex.score()["step_max_m"]})
@@ -199,11 +195,7 @@ def _ray(address: str | None, on_event):
 def _execute(batches: list[dict], engine: str, jobs: int, address: str | None, on_event):
     """Yield each batch's records as soon as it finishes (any order): the one executor of both
     engines, running :func:`run_batch` in joblib's process pool or as Ray tasks."""
-    if engine == "joblib":
-        if jobs == 1:  # in-process: no pool to start
-            for b in batches:
-                yield run_batch(b)
-            return
+    if engine == "joblib":  # --jobs 1: joblib runs the batches in this process, no pool
         import joblib
 
         yield from joblib.Parallel(n_jobs=jobs, backend="loky", return_as="generator_unordered")(
@@ -446,16 +438,16 @@ def _collect(plan, finished: dict) -> tuple[list[dict], dict]:
 
 
 def _write_outputs(out: Path, grid: Grid, rows: list[dict], series: dict, parquet: bool) -> list[str]:
-    from tergodic_cli.atomic import atomic_path, write_npz
+    """The table and series into ``out``, the staging folder (renamed into place whole)."""
+    from tergodic_cli.atomic import write_npz
 
     columns = list(LEAD_COLUMNS) + [k for k in grid.options if k not in ("nk", "alpha")] + list(METRIC_COLUMNS)
-    with atomic_path(out / "results.csv", suffix=".csv") as tmp:
-        with open(tmp, "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
-            w.writeheader()
-            for r in rows:
-                w.writerow({k: ("" if r.get(k) is None else (repr(r[k]) if isinstance(r.get(k), float) else r[k]))
-                            for k in columns})
+    with open(out / "results.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: ("" if r.get(k) is None else (repr(r[k]) if isinstance(r.get(k), float) else r[k]))
+                        for k in columns})
     write_npz(out / "series.npz", **series)
     files = ["results.csv", "series.npz"]
     if parquet:
@@ -466,8 +458,7 @@ def _write_outputs(out: Path, grid: Grid, rows: list[dict], series: dict, parque
             raise TergodicError("--parquet needs pyarrow, which is not installed",
                                 "pip install pyarrow, or use results.csv") from None
         table = pa.table({k: [r.get(k) for r in rows] for k in columns if any(r.get(k) is not None for r in rows)})
-        with atomic_path(out / "results.parquet", suffix=".parquet") as tmp:
-            pq.write_table(table, tmp)
+        pq.write_table(table, out / "results.parquet")
         files.append("results.parquet")
     return files
 
