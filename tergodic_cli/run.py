@@ -286,9 +286,10 @@ def _write_run(out: Path, run: _Run) -> dict:
     from tergodic_cli.runlog import RunLog
 
     recorder = RunRecorder(explorer)
-    runlog = RunLog(out / "run.mcap", config=cfg.to_dict(), seed=cfg.seed, versions=library_versions(),
-                    capture_sidecar=run.capture.meta, points=run.basis.points, target=run.capture.target,
-                    cloud_every=spec.cloud_every, live=spec.live) if run.log else None
+    runlog = None if run.log is None else RunLog(
+        out / "run.mcap", config=cfg.to_dict(), seed=cfg.seed, versions=library_versions(),
+        capture_sidecar=run.capture.meta, points=run.basis.points, target=run.capture.target,
+        cloud_every=spec.cloud_every, live=spec.live)
     try:
         if runlog is not None:
             if runlog.live is not None:

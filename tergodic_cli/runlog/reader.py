@@ -1,7 +1,8 @@
 """Read a run log back: series, robot samples, clouds, events, metadata.
 
 Record by record, so a log cut short by a crash reads up to its last complete chunk
-(``truncated = True``); chunk CRCs are checked, so a half-written chunk is dropped (docs/logging.md).
+(``truncated = True``); chunk CRCs are checked, so a half-written chunk is dropped
+(docs/logging.md).
 """
 
 from __future__ import annotations
@@ -103,7 +104,7 @@ class RunLogData:
 
     def cloud_at(self, step: int) -> CloudFrame | None:
         """The last cloud logged at or before ``step`` (None if there is none)."""
-        before = [c for c in reversed(self.clouds) if c.step <= step]  # reversed: the later of equals
+        before = [c for c in reversed(self.clouds) if c.step <= step]  # later ones first
         return max(before, key=lambda c: c.step, default=None)
 
     def robot_series(self) -> dict[str, np.ndarray]:
@@ -379,7 +380,7 @@ def _step_decoder(schema: Any):
 def _stack_rows(rows: list[dict]) -> dict[str, np.ndarray]:
     out: dict[str, np.ndarray] = {"step": np.array([r["step"] for r in rows], dtype=np.int64),
                                   "t": np.array([r["t"] for r in rows], dtype=np.float64)}
-    for key in dict.fromkeys(k for r in rows for k in r):  # every name any step had, first-seen order
+    for key in dict.fromkeys(k for r in rows for k in r):  # every name, first-seen order
         if key in out:
             continue
         vals = [r.get(key) for r in rows]

@@ -83,6 +83,10 @@ class _Object:
     target: np.ndarray
     starts: dict[int, np.ndarray]
 
+    @property
+    def n_target(self) -> int:
+        return int(np.count_nonzero(self.target > 0))
+
 
 # ---------------------------------------------------------------------------------- objects
 def materialise(spec: ObjectSpec, starts: list[int], seed: int, out: Path) -> _Object:
@@ -103,8 +107,8 @@ def materialise(spec: ObjectSpec, starts: list[int], seed: int, out: Path) -> _O
     require(bool(np.any(cap.target > 0)), f"object {spec.name}: the target is empty (no point has p > 0)",
             "check its target/marking options")
     save_capture(cap, out / "objects" / spec.name)
-    h = hashlib.sha1(b"".join(np.ascontiguousarray(a, dtype=np.float64).tobytes() for a in (cap.points, cap.target))
-                     + str(spec.neighbors).encode())  # the object's content key
+    arrays = (np.ascontiguousarray(a, dtype=np.float64).tobytes() for a in (cap.points, cap.target))
+    h = hashlib.sha1(b"".join(arrays) + str(spec.neighbors).encode())  # the object's content key
     xyz = {}
     for i in starts:
         if spec.starts_file is not None:
@@ -253,17 +257,19 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
                 f"{len(obj.points)} points", f"use nk values below {len(obj.points)}")
         t0 = time.perf_counter()
         _, hit = find_basis(obj.points, grid.max_nk, spec.neighbors, cache_dir, on_event=say)
-        say(f"object {spec.name}: {len(obj.points)} points, {int(np.count_nonzero(obj.target > 0))} target; basis "
+        say(f"object {spec.name}: {len(obj.points)} points, {obj.n_target} target; basis "
             f"nK = {grid.max_nk} {'from the cache' if hit else f'computed in {time.perf_counter() - t0:.1f} s'}")
         objects.append(obj)
 
     runs_dir = out / "runs"
     runs_dir.mkdir(parents=True, exist_ok=True)
     plan: list[tuple[_Object, int, dict, str, object]] = [
-        (obj, start, combo, run_id(obj.key, start, cfg.to_dict()), cfg) for obj in objects
-        for combo in grid.combos() for cfg in [run_config(grid, obj.spec, combo)] for start in grid.starts]
+        (obj, start, combo, run_id(obj.key, start, cfg.to_dict()), cfg)
+        for obj in objects for combo in grid.combos()
+        for cfg in [run_config(grid, obj.spec, combo)] for start in grid.starts]
     # resuming: a run whose record verifies is done; one that does not is run again
-    checked = {p[3]: load_record(runs_dir, p[3]) for p in plan if (runs_dir / f"{p[3]}.json").exists()}
+    checked = {p[3]: load_record(runs_dir, p[3]) for p in plan
+               if (runs_dir / f"{p[3]}.json").exists()}
     finished = {rid: rec for rid, rec in checked.items() if not isinstance(rec, str)}
     bad = [rec for rec in checked.values() if isinstance(rec, str)]
     if bad:
@@ -290,8 +296,8 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
                 write_npz(runs_dir / f"{rec['run_id']}.npz", **rec["series"])
                 obj, start, combo, rid, cfg = by_id[rec["run_id"]]
                 record = {"run_id": rid, "object": obj.spec.name, "object_key": obj.key,
-                          "n_points": len(obj.points), "n_target": int(np.count_nonzero(obj.target > 0)),
-                          "start": start, "start_xyz": obj.starts[start].tolist(), "grid": dict(combo),
+                          "n_points": len(obj.points), "n_target": obj.n_target, "start": start,
+                          "start_xyz": obj.starts[start].tolist(), "grid": dict(combo),
                           "wall_s": rec["wall_s"], "summary": rec["summary"]}
                 record["series_sha256"] = file_sha256(runs_dir / f"{rec['run_id']}.npz")
                 record[RECORD_SHA] = record_checksum(record)
@@ -311,13 +317,13 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
             files += plot_sweep(stage, grid, table, series)
         result.wall_s = time.perf_counter() - t_start
         objs = {o.spec.name: {"source": o.spec.source, "location": o.spec.location, "key": o.key,
-                              "n_points": len(o.points), "n_target": int(np.count_nonzero(o.target > 0)),
+                              "n_points": len(o.points), "n_target": o.n_target,
                               "neighbors": o.spec.neighbors} for o in objects}
         write_json(stage / "sweep.json", {
             "grid": str(grid.path), "steps": grid.steps, "seed": grid.seed, "starts": grid.starts,
-            "options": grid.options, "objects": objs, "engine": engine, "jobs": jobs, "runs": len(plan),
-            "computed": computed, "skipped": result.skipped, "failed": failed, "wall_s": result.wall_s,
-            "files": files, "versions": library_versions()})
+            "options": grid.options, "objects": objs, "engine": engine, "jobs": jobs,
+            "runs": len(plan), "computed": computed, "skipped": result.skipped, "failed": failed,
+            "wall_s": result.wall_s, "files": files, "versions": library_versions()})
         return files + ["sweep.json"]
 
     result.files = _publish(out, build)
@@ -446,8 +452,8 @@ def _write_outputs(out: Path, grid: Grid, rows: list[dict], series: dict, parque
         w = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
         w.writeheader()
         for r in rows:
-            w.writerow({k: ("" if r.get(k) is None else (repr(r[k]) if isinstance(r.get(k), float) else r[k]))
-                        for k in columns})
+            w.writerow({k: "" if r.get(k) is None else repr(r[k]) if isinstance(r[k], float)
+                        else r[k] for k in columns})
     write_npz(out / "series.npz", **series)
     files = ["results.csv", "series.npz"]
     if parquet:
