@@ -22,11 +22,9 @@ METRICS = (("ergodicity", "ε (unit-mass eq. 48, dimensionless)"),
 def plot_sweep(out: Path, grid: Grid, rows: list[dict], series: dict) -> list[str]:
     """Write the figures into ``out`` (the sweep's staging folder, renamed into place whole);
     returns their paths relative to ``out``."""
-    import matplotlib
+    from tergodic_cli.runlog.plots import _pyplot, _save
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     objects = [o.name for o in grid.objects]
     varied = grid.varied
     variants = list(itertools.product(*(grid.options[k] for k in varied))) if varied else [()]
@@ -54,9 +52,7 @@ def plot_sweep(out: Path, grid: Grid, rows: list[dict], series: dict) -> list[st
         for name, fig in figs.items():
             if fig is None:
                 continue
-            fig.savefig(out / name, dpi=110, format="png")
-            plt.close(fig)
-            files.append(name)
+            files.append(_save(fig, out / name).name)
     return files
 
 
