@@ -1,11 +1,8 @@
 """Recompute a run's summary from its log alone, and print it.
 
-The numbers come from the logged series through the explorer's own
-``summarize_run`` (and the robot's ``summarize_robot`` when robot samples are
-present), so the replayed summary is the summary, not a re-implementation of it.
-Keys that no series determines (provenance the explore command adds, e.g.
-versions or paths) are taken from the copy of the summary stored in the log at
-close; a truncated log has none and gets only the recomputed keys.
+The numbers come from the logged series through the explorer's own ``summarize_run`` (and the
+robot's ``summarize_robot``), so the replayed summary is the summary, not a re-implementation
+of it; provenance keys come from the copy stored in the log at close (docs/logging.md).
 """
 
 from __future__ import annotations
