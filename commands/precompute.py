@@ -39,9 +39,8 @@ def precompute(
     bcfg = BasisConfig(nk=nk, neighbors=neighbors)
     if config is not None:  # the saved config, with --nk / --neighbors given on this command line on top
         from tergodic_cli.basis.cache import load_basis_config
-        from tergodic_cli.config import override
-
         from tergodic_cli.commands._common import given_options
+        from tergodic_cli.config import override
 
         bcfg = override(load_basis_config(config), bcfg, given_options(ctx) & {"nk", "neighbors"})
     cap = load_capture(capture)
