@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Optional
 
 import typer
 
 from tergodic_cli.commands._common import given_options, parse_floats
-
-def register(app: typer.Typer) -> None:
-    app.command("capture", no_args_is_help=True)(capture)
 
 
 def capture(
@@ -65,8 +63,6 @@ def capture(
 
       tergodic capture --config cap/config.json --seed 3 --out cap2/
     """
-    import json
-
     from tergodic_cli.capture import CaptureConfig, capture_cloud, save_capture
     from tergodic_cli.capture.pipeline import format_report, load_capture_config, resolve_source
     from tergodic_cli.config import override

@@ -2,17 +2,12 @@
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 from typing import Optional
 
 import typer
-
-
-def register(app: typer.Typer) -> None:
-    from tergodic_cli.commands._common import EXIT_CODES
-
-    app.command("explore", no_args_is_help=True, epilog=EXIT_CODES)(explore)
 
 
 def explore(
@@ -85,8 +80,6 @@ def explore(
 
       tergodic explore cap/ --robot franka --robot-ip 172.16.0.2 --ft bota --ft-address bota.json --dry-run --out run/
     """
-    import json
-
     live_at = _check_live(live, no_log or dry_run) if live is not None else None  # exit 2 before anything is written
     from tergodic_cli.explore import ExploreConfig
     from tergodic_cli.run import LogSpec, StartSpec, apply_saved, dry_run_report, make_backend, run_explore
@@ -97,13 +90,14 @@ def explore(
               "a_max": a_max, "dt": dt, "diffusion": diffusion, "integrator": integrator, "coverage_norm": coverage_norm,
               "seed": seed, "n_neighbors": fit_neighbors, "epsilon": epsilon, "basis_neighbors": neighbors,
               "max_start_distance": max_start_distance}
+    box = parse_floats(workspace, 6, "--workspace", "0.15,-0.6,0,0.85,0.6,0.9")  # None: not given
     spec = StartSpec(start=start, starts_file=str(starts) if starts is not None else None, start_index=start_index)
     robot_options = {
         "force": force, "contact_force": contact_force, "explore_dt": explore_dt, "normal_side": normal_side,
         "gains": gains, "gui": gui or None, "realtime": realtime or None,
         "object_pose": parse_floats(object_pose, None, "--object-pose", "0.5,0,0.2") if object_pose else None,
         "safety": {"force_limit": force_limit,
-                   **(_workspace(parse_floats(workspace, 6, "--workspace", "0.15,-0.6,0,0.85,0.6,0.9")) if workspace else {})},
+                   **({"workspace_min": box[:3], "workspace_max": box[3:]} if box else {})},
     }
     if config is not None:  # the saved run, with the options given on this command line on top
         cfg, spec, robot, robot_options, log_cloud_every = apply_saved(
@@ -171,7 +165,3 @@ def _check_live(live: str, no_log: bool) -> str:
     require(not no_log, "--live streams the run log", "drop --no-log / --dry-run, or drop --live")
     check_bindable(host, port)
     return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
-
-
-def _workspace(box: tuple[float, ...]) -> dict:
-    return {"workspace_min": tuple(box[:3]), "workspace_max": tuple(box[3:])}

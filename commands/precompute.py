@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Optional
 
 import typer
-
-
-def register(app: typer.Typer) -> None:
-    app.command("precompute", no_args_is_help=True)(precompute)
 
 
 def precompute(
@@ -34,8 +31,6 @@ def precompute(
 
       tergodic precompute cap2/ --config ~/.cache/tergodic/basis/KEY/config.json
     """
-    import json
-
     from tergodic_cli.basis import BasisConfig, get_basis
     from tergodic_cli.capture import load_capture
     from tergodic_cli.capture.pipeline import check_size
@@ -44,9 +39,8 @@ def precompute(
     bcfg = BasisConfig(nk=nk, neighbors=neighbors)
     if config is not None:  # the saved config, with --nk / --neighbors given on this command line on top
         from tergodic_cli.basis.cache import load_basis_config
-        from tergodic_cli.config import override
-
         from tergodic_cli.commands._common import given_options
+        from tergodic_cli.config import override
 
         bcfg = override(load_basis_config(config), bcfg, given_options(ctx) & {"nk", "neighbors"})
     cap = load_capture(capture)

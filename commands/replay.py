@@ -2,16 +2,11 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Optional
 
 import typer
-
-
-def register(app: typer.Typer) -> None:
-    from tergodic_cli.commands._common import EXIT_CODES
-
-    app.command("replay", no_args_is_help=True, epilog=EXIT_CODES)(replay)
 
 
 def replay(
@@ -47,8 +42,6 @@ def replay(
 
       tergodic replay run/ --html run/report.html
     """
-    import sys
-
     from tergodic_cli.errors import TergodicError
     from tergodic_cli.progress import Spinner, echo as echo_err
     from tergodic_cli.runlog import read_run_log, resolve_log_path
@@ -62,11 +55,15 @@ def replay(
     if speed <= 0:
         raise TergodicError(f"--speed must be > 0, got {speed}", "e.g. --speed 2")
     from tergodic_cli.atomic import AtomicFolder, check_output_file
-    from tergodic_cli.runlog.viewers import require_display, require_rerun
+    from tergodic_cli.runlog.export import export_series
+    from tergodic_cli.runlog.plots import plot_run
+    from tergodic_cli.runlog.report import write_html_report
+    from tergodic_cli.runlog.viewers import replay_gui, require_display, require_rerun, write_rerun
 
     # every output is checked before the (long) read, and built aside then renamed in
     if rerun is not None:
         require_rerun()
+        check_output_file(rerun, overwrite, "--rerun")
     if gui:
         require_display()
     if html is not None:
@@ -76,8 +73,6 @@ def replay(
     if export is not None:
         dest = export_out or path.parent / f"series.{export}"
         check_output_file(dest, overwrite, "--export-out")
-    if rerun is not None:
-        check_output_file(rerun, overwrite, "--rerun")
     plots = AtomicFolder(plot, overwrite=overwrite, option="--plot", what="set of plots",
                          owned=lambda name: name.endswith(".png")) if plot is not None else None
     if plots is not None:
@@ -105,27 +100,17 @@ def replay(
             typer.echo(format_table(summary, data, compare_with_file(summary, path.parent / "summary.json")))
 
     if export is not None:
-        from tergodic_cli.runlog.export import export_series
-
         export_series(data, export, dest)
         say(f"wrote {dest} ({data.steps} rows)")
     if plot is not None:
-        from tergodic_cli.runlog.plots import plot_run
-
         with plots as tmp:
             written = plot_run(data, tmp)
         for p in written:
             say(f"wrote {plot / p.name}")
     if rerun is not None:
-        from tergodic_cli.runlog.viewers import write_rerun
-
         say(f"wrote {write_rerun(data, rerun)}")
     if html is not None:
-        from tergodic_cli.runlog.report import write_html_report
-
         say(f"wrote {write_html_report(data, html)}")
     if gui:
-        from tergodic_cli.runlog.viewers import replay_gui
-
         replay_gui(data, speed=speed)
     sys.stdout.flush()

@@ -2,16 +2,11 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Optional
 
 import typer
-
-
-def register(app: typer.Typer) -> None:
-    from tergodic_cli.commands._common import EXIT_CODES
-
-    app.command("sweep", no_args_is_help=True, epilog=EXIT_CODES)(sweep)
 
 
 # The docstring's "\b" lines keep click from reflowing the GRID.toml example (it prints verbatim).
@@ -59,8 +54,6 @@ def sweep(
 
       tergodic sweep grid.toml --out sweep/ --engine ray --address 10.0.0.5:6379
     """
-    import json
-
     from tergodic_cli.sweep import run_sweep
     from tergodic_cli.progress import echo as echo_err
 

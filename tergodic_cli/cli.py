@@ -6,7 +6,10 @@ Every verb module imports only typer and the standard library at import time, so
 
 from __future__ import annotations
 
+import platform
+import signal
 import sys
+from importlib import metadata
 
 import typer
 
@@ -37,9 +40,6 @@ LIBRARIES = (("numpy",), ("scipy",), ("open3d", "open3d-cpu"), ("robust_laplacia
 
 def version_text() -> str:
     """``tergodic --version``: this package's version, then the key libraries' (from their metadata, no imports)."""
-    from importlib import metadata
-    import platform
-
     from tergodic_cli import __version__
 
     lines = [f"tergodic {__version__} (Python {platform.python_version()}, {platform.system()} {platform.machine()})"]
@@ -89,12 +89,12 @@ class _Command(typer.core.TyperCommand):
 
 
 from tergodic_cli.commands import capture, explore, precompute, replay, sweep  # noqa: E402  (after app)
+from tergodic_cli.commands._common import EXIT_CODES  # noqa: E402
 
-for _verb in (capture, precompute, explore, replay, sweep):
-    _verb.register(app)
-for _info in app.registered_commands:
-    if _info.cls in (None, typer.core.TyperCommand):
-        _info.cls = _Command
+for _verb in (capture.capture, precompute.precompute, explore.explore, replay.replay, sweep.sweep):
+    # the verbs that can stop a robot or be resumed list their exit codes under --help
+    _epilog = None if _verb in (capture.capture, precompute.precompute) else EXIT_CODES
+    app.command(_verb.__name__, no_args_is_help=True, epilog=_epilog, cls=_Command)(_verb)
 
 
 def _on_sigterm(signum, frame) -> None:
@@ -106,8 +106,6 @@ def _on_sigterm(signum, frame) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``tergodic`` console script; returns the exit code (130 on Ctrl-C, 143 on SIGTERM)."""
-    import signal
-
     try:
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
     except ValueError:  # not the main thread (an embedding caller): leave SIGTERM alone

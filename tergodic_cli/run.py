@@ -1,20 +1,13 @@
 """A whole ``tergodic explore`` run: capture -> basis -> starts -> explorer loop -> artefacts.
 
-Artefacts in RUN_DIR (written atomically at the end; nothing partial on error):
-
-- ``trajectory.npz``: per step (T steps, N agents) ``positions`` (T, N, 3) m, ``velocities``
-  (T, N, 3) m/s, ``accelerations`` (T, N, 3) m/s², ``normals`` (T, N, 3) (the normal line of
-  eq. 28 at step k is positions[k] + s·normals[k]), ``time`` (T,) s, the metric series
-  ``ergodicity``, ``residual_ref``, ``touched_fraction``, ``step_ms`` (T,), the ``start``
-  (N, 3), and per point the final ``coverage``, ``heat``, ``source``, ``target`` (n,) and ``points`` (n, 3);
-- ``summary.json``: :func:`summarize_run` of the series plus provenance (versions, seed, basis);
-- ``run.mcap``: the per-step log (unless ``log=False``), written by :mod:`tergodic_cli.runlog`.
+The artefacts in RUN_DIR (``trajectory.npz``, ``summary.json``, ``config.json``, ``run.mcap``) are
+described in docs/explore.md; they are built in a temporary folder and renamed into place.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -47,8 +40,6 @@ RUN_CONFIG_KIND = "tergodic.run_config"
 def _run_config(capture_dir, cfg: ExploreConfig, starts: StartSpec | None, backend, log_cloud_every: int) -> dict:
     """The sections of a run's ``config.json``: ``cfg`` as asked for (before a robot's time scaling),
     the starts (the seed in ``cfg`` makes a random start the same), the robot's config without the GUI."""
-    from dataclasses import replace
-
     spec, rc = starts or StartSpec(), backend.robot_cfg
     return {"capture": str(Path(capture_dir).resolve()), "explore": cfg.to_dict(),
             "starts": {"start": spec.start, "start_index": spec.start_index,
@@ -291,8 +282,14 @@ class _Run:
 def _write_run(out: Path, run: _Run) -> dict:
     """The explorer loop and the artefacts, written into ``out`` (the temporary run folder)."""
     cfg, explorer, say, spec = run.cfg, run.explorer, run.say, run.log or LogSpec()
+    from tergodic_cli.provenance import library_versions
+    from tergodic_cli.runlog import RunLog
+
     recorder = RunRecorder(explorer)
-    runlog = _open_log(out, cfg, run.basis, run.capture, spec) if run.log else None
+    runlog = None if run.log is None else RunLog(
+        out / "run.mcap", config=cfg.to_dict(), seed=cfg.seed, versions=library_versions(),
+        capture_sidecar=run.capture.meta, points=run.basis.points, target=run.capture.target,
+        cloud_every=spec.cloud_every, live=spec.live)
     try:
         if runlog is not None:
             if runlog.live is not None:
@@ -511,25 +508,15 @@ def make_backend(robot: str = "kinematic", robot_options: dict | None = None, ha
 
 
 def _check_robot(robot_cfg) -> None:
-    import os
-
     from tergodic_cli.robot.config import validate_robot_config
     from tergodic_cli.robot.safety import SafetyGuard
+    from tergodic_cli.runlog.viewers import require_display
 
     validate_robot_config(robot_cfg)
     # the guard's own checks (workspace box, force limit above --force); joint limits do not matter here
     SafetyGuard(robot_cfg.safety, np.zeros(7), np.ones(7), np.ones(7), float(robot_cfg.force))
-    if robot_cfg.gui and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)", "run without --gui, or on a desktop")
-
-
-def _open_log(out: Path, cfg: ExploreConfig, basis, capture, spec: LogSpec):
-    from tergodic_cli.provenance import library_versions
-    from tergodic_cli.runlog import RunLog
-
-    return RunLog(out / "run.mcap", config=cfg.to_dict(), seed=cfg.seed, versions=library_versions(),
-                  capture_sidecar=capture.meta, points=basis.points, target=capture.target, cloud_every=spec.cloud_every,
-                  live=spec.live)
+    if robot_cfg.gui:
+        require_display()
 
 
 def _log_cloud(runlog, explorer: Explorer, step: int) -> None:

@@ -1,10 +1,6 @@
-"""Export a run's time series as ``.npz`` or ``.csv`` (one row per step).
+"""Export a run's time series as ``.npz`` or ``.csv`` (one row per step, float64 as logged).
 
-Columns/keys: ``step``, ``t`` (s), every logged metric, ``step_ms``, the agents'
-``positions``/``velocities``/``normals`` (object frame; (T, N, 3) in npz, flattened
-``positions_<agent>_<x|y|z>`` in csv), and for robot runs every numeric field of
-the robot sample prefixed ``robot_`` (e.g. ``robot_force_normal``,
-``robot_wrench_measured`` (T, 6)). Values are float64 exactly as logged.
+The columns (and the csv's flattened vectors) are listed in docs/logging.md (``--export``).
 """
 
 from __future__ import annotations
@@ -36,17 +32,12 @@ def export_series(data: RunLogData, fmt: str, dest: str | os.PathLike) -> Path:
         return dest
     header: list[str] = []
     cols: list[np.ndarray] = []
-    for k, v in table.items():
-        if v.ndim == 1:
-            header.append(k)
-            cols.append(v)
-        elif v.ndim == 2:
-            header += [f"{k}_{j}" for j in range(v.shape[1])]
-            cols += [v[:, j] for j in range(v.shape[1])]
-        elif v.ndim == 3 and v.shape[2] == 3:
-            for a in range(v.shape[1]):
-                header += [f"{k}_{a}_{c}" for c in "xyz"]
-                cols += [v[:, a, c] for c in range(3)]
+    for k, v in table.items():  # (T,) one column, (T, k) k columns, (T, N, 3) per agent x y z
+        if v.ndim > 3 or (v.ndim == 3 and v.shape[2] != 3):
+            continue
+        header += ([k] if v.ndim == 1 else [f"{k}_{j}" for j in range(v.shape[1])] if v.ndim == 2
+                   else [f"{k}_{a}_{c}" for a in range(v.shape[1]) for c in "xyz"])
+        cols += list(v.reshape(len(v), -1).T)
     with atomic_path(dest, suffix=".csv") as tmp:
         with open(tmp, "w", newline="") as fh:
             w = csv.writer(fh)

@@ -1,10 +1,7 @@
 """``tergodic explore --live``: stream the run log's channels to Foxglove over WebSocket.
 
-The server is foxglove-sdk's, started on the same ``foxglove.Context`` as the log's MCAP
-writer, so each message is encoded once (in the log's writer process, off the explorer's
-loop) and goes to the file and to every subscribed client. With no client connected the
-server sends nothing. Messages leave at the log's block boundaries (every ``flush_every``
-steps, each cloud at once).
+foxglove-sdk's server on the log's own ``foxglove.Context``: each message is encoded once and
+goes to the file and to every subscribed client (docs/logging.md).
 """
 
 from __future__ import annotations

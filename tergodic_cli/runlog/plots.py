@@ -1,12 +1,6 @@
 """PNG figures of a run, from its log alone (matplotlib, Agg backend: no display needed).
 
-- ``ergodicity.png``: ε(t) and the reference residual;
-- ``touched.png``: fraction of the target touched, over time;
-- ``force.png`` (robot runs): measured normal force against the desired one;
-- ``cleaning.png`` (closed-loop runs): the marking left at each re-capture, against steps;
-- ``cloud_target.png``, ``cloud_coverage.png``, ``cloud_heat.png``: the last cloud from
-  three orthographic views, coloured by p, final coverage c and heat u, with the agents'
-  trajectories drawn on top.
+The files (ε, touched, force, cleaning and three cloud views) are listed in docs/logging.md.
 """
 
 from __future__ import annotations

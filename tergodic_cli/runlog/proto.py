@@ -1,28 +1,11 @@
 """``tergodic.StepRecord``: the exact per-step record, as a protobuf message built at import.
 
-Binary float64 (protobuf ``double``) is exact and costs no text formatting, which
-matters at one record per explorer step. The message is described in code (no
-generated ``_pb2`` module, no protoc); its FileDescriptorSet travels in the MCAP
-schema record, so any protobuf-aware viewer (Foxglove's Plot panel, Rerun, the
-``mcap`` tools) decodes it without tergodic.
-
-    syntax = "proto2";  package tergodic;
-    message StepRecord {
-      optional fixed64 step = 1;            // explorer step index
-      optional double t = 2;                // simulated time, s
-      optional double ergodicity = 3;       // ε after the step
-      optional double residual_ref = 4;   // residual against the reference heat
-      optional double touched_fraction = 5; // share of target points touched
-      optional double step_ms = 6;          // wall time of the explorer step, ms
-      optional uint32 n_agents = 7;
-      repeated double positions = 8 [packed = true];   // (N, 3) row-major, object frame, m
-      repeated double velocities = 9 [packed = true];  // (N, 3) m/s
-      repeated double normals = 10 [packed = true];    // (N, 3) unit
-      repeated string extra_names = 11;                // any further metrics ...
-      repeated double extra_values = 12 [packed = true];  // ... and their values
-    }
-
-proto2 keeps explicit presence: a metric that was never set reads as absent, not 0.
+Binary float64 (protobuf ``double``) is exact and costs no text formatting, at one record per
+explorer step. The proto2 message is described in code (no protoc): step (fixed64), t (s), the
+three metrics, step_ms, n_agents, then positions (m), velocities (m/s) and normals as packed (N, 3)
+row-major doubles, and extra_names / extra_values for further metrics. Its FileDescriptorSet
+travels in the MCAP schema record, so protobuf-aware viewers decode it without tergodic
+(docs/logging.md). proto2 keeps explicit presence: a metric never set reads as absent, not 0.
 """
 
 from __future__ import annotations

@@ -1,9 +1,8 @@
 """Read a run log back: series, robot samples, clouds, events, metadata.
 
-The reader walks the file record by record, so it reads a complete log and a log
-cut short by a crash alike: a killed run yields every step up to the last complete
-chunk and ``truncated = True``. Chunk CRCs are checked, so a half-written chunk is
-dropped, never half-read.
+Record by record, so a log cut short by a crash reads up to its last complete chunk
+(``truncated = True``); chunk CRCs are checked, so a half-written chunk is dropped
+(docs/logging.md).
 """
 
 from __future__ import annotations
@@ -11,6 +10,8 @@ from __future__ import annotations
 import json
 import os
 import re
+import struct
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -103,32 +104,23 @@ class RunLogData:
 
     def cloud_at(self, step: int) -> CloudFrame | None:
         """The last cloud logged at or before ``step`` (None if there is none)."""
-        best = None
-        for c in self.clouds:
-            if c.step <= step and (best is None or c.step >= best.step):
-                best = c
-        return best
+        before = [c for c in reversed(self.clouds) if c.step <= step]  # later ones first
+        return max(before, key=lambda c: c.step, default=None)
 
     def robot_series(self) -> dict[str, np.ndarray]:
         """Robot samples stacked per key: numbers and equal-length vectors as (T,) / (T, k) arrays."""
         if not self.robot:
             return {}
         out: dict[str, np.ndarray] = {}
-        keys = [k for k in self.robot[0] if k != "link_poses"]
-        for k in keys:
+        for k in (k for k in self.robot[0] if k != "link_poses"):
             vals = [s.get(k) for s in self.robot]
-            if any(v is None for v in vals):
-                if k == "contact_point":  # None when not in contact
-                    out[k] = np.array([np.full(3, np.nan) if v is None else np.asarray(v, float) for v in vals])
-                continue
-            if isinstance(vals[0], str):
-                out[k] = np.array(vals)
-                continue
+            if k == "contact_point":  # None when not in contact
+                vals = [np.full(3, np.nan) if v is None else v for v in vals]
             try:
-                arr = np.array(vals, dtype=np.float64)
+                if not any(v is None for v in vals):
+                    out[k] = np.array(vals, dtype=None if isinstance(vals[0], str) else np.float64)
             except (TypeError, ValueError):
-                continue
-            out[k] = arr
+                pass
         return out
 
 
@@ -175,6 +167,8 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
         Not an MCAP file, a truncated header, an unknown log schema version, not a
         tergodic log, or no step at all (one line, exit 2 in the CLI).
     """
+    from foxglove_schemas_protobuf.Log_pb2 import Log
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
     from mcap.records import Attachment, Channel, Footer, Header, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader
 
@@ -193,7 +187,7 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
     truncated, note, have_header, complete = False, "", False, False
     version: str | None = None
     topic_of: dict[int, str] = {}
-    PointCloud = Log = step_decoder = None
+    step_decoder = None
     t0 = 0
 
     size = path.stat().st_size
@@ -211,7 +205,7 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
             except StopIteration:
                 break
             except Exception as exc:  # a cut (EndOfFile, short record) or damage (bad CRC, garbage)
-                if complete and _cut_magic(path, at, size):
+                if complete and _cut_magic(path, at):
                     truncated, note = True, "cut inside the closing magic"
                     break
                 if finished or complete or not _runs_past_end(path, at, size):
@@ -231,12 +225,8 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
                 elif topic == S.TOPIC_ROBOT_SAMPLE:
                     robot.append(json.loads(rec.data))
                 elif topic == S.TOPIC_CLOUD and clouds:
-                    if PointCloud is None:
-                        from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
                     cloud_frames.append(_decode_cloud(PointCloud.FromString(rec.data), rec))
                 elif topic == S.TOPIC_EVENTS:
-                    if Log is None:
-                        from foxglove_schemas_protobuf.Log_pb2 import Log
                     msg = Log.FromString(rec.data)
                     m = _EVENT_RE.match(msg.message)
                     step, text = (int(m.group(1)), m.group(2)) if m else (int(rec.sequence), msg.message)
@@ -266,8 +256,6 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
             raise TergodicError(f"{path} has {size - stream.count} bytes of garbage after the end of the log "
                                 f"(from byte {stream.count})",
                                 f"remove them (truncate -s {stream.count} {path}), or re-run 'tergodic explore'")
-    if not have_header:
-        raise TergodicError(f"{path} has a truncated header", "the run died at start; re-run it")
     if not complete and not truncated:
         truncated, note = True, "no footer"
     if version is None:
@@ -319,15 +307,13 @@ def _read_at(path: Path, offset: int, n: int = -1) -> bytes:
 def _has_footer(path: Path, size: int) -> bool:
     """The file ends in a footer record and the closing magic: it was finished, so a bad
     record inside it is damage, not a cut."""
-    import struct
-
     if size < len(_MAGIC) * 2 + _FOOTER_LEN:
         return False
     tail = _read_at(path, size - len(_MAGIC) - _FOOTER_LEN)
     return tail[-len(_MAGIC):] == _MAGIC and tail[0] == 0x02 and struct.unpack_from("<Q", tail, 1)[0] == 20
 
 
-def _cut_magic(path: Path, at: int, size: int) -> bool:
+def _cut_magic(path: Path, at: int) -> bool:
     """After the footer the file holds only a part of the closing magic: cut in its last bytes."""
     rest = _read_at(path, at)
     return len(rest) < len(_MAGIC) and _MAGIC.startswith(rest)
@@ -336,8 +322,6 @@ def _cut_magic(path: Path, at: int, size: int) -> bool:
 def _runs_past_end(path: Path, at: int, size: int) -> bool:
     """The record at byte ``at`` is a known record type whose length reaches past the end of the
     file: the file was cut inside it (a truncation), not damaged."""
-    import struct
-
     head = _read_at(path, at, 9)
     if len(head) < 9:
         return True
@@ -362,8 +346,6 @@ def _corrupt(path: Path, at: int, exc: BaseException | None, why: str = "") -> T
 
 def _check_summary_crc(path: Path, footer: Any, at: int) -> None:
     """The footer's CRC over the summary section (the reader does not check it)."""
-    import zlib
-
     if not footer.summary_crc or not footer.summary_start:
         return
     end = at + 1 + 8 + 16  # up to the footer's own CRC field
@@ -398,10 +380,8 @@ def _step_decoder(schema: Any):
 def _stack_rows(rows: list[dict]) -> dict[str, np.ndarray]:
     out: dict[str, np.ndarray] = {"step": np.array([r["step"] for r in rows], dtype=np.int64),
                                   "t": np.array([r["t"] for r in rows], dtype=np.float64)}
-    skip = {"step", "t"}
-    keys = dict.fromkeys(k for r in rows for k in r)  # every name any step had, first-seen order
-    for key in keys:
-        if key in skip:
+    for key in dict.fromkeys(k for r in rows for k in r):  # every name, first-seen order
+        if key in out:
             continue
         vals = [r.get(key) for r in rows]
         if key in ("positions", "velocities", "normals"):

@@ -1,11 +1,8 @@
 """Recompute a run's summary from its log alone, and print it.
 
-The numbers come from the logged series through the explorer's own
-``summarize_run`` (and the robot's ``summarize_robot`` when robot samples are
-present), so the replayed summary is the summary, not a re-implementation of it.
-Keys that no series determines (provenance the explore command adds, e.g.
-versions or paths) are taken from the copy of the summary stored in the log at
-close; a truncated log has none and gets only the recomputed keys.
+The numbers come from the logged series through the explorer's own ``summarize_run`` (and the
+robot's ``summarize_robot``), so the replayed summary is the summary, not a re-implementation
+of it; provenance keys come from the copy stored in the log at close (docs/logging.md).
 """
 
 from __future__ import annotations
@@ -104,8 +101,7 @@ def format_table(summary: dict[str, Any], data: RunLogData, comparison: tuple[st
     """The human summary: steps, duration, ε at 200/500/end, touched, force statistics."""
     s = data.series
     lines = [f"{data.path}  (log schema {data.version}, {data.status if data.status == 'complete' else data.status.upper()})"]
-    rows: list[tuple[str, str]] = []
-    rows.append(("steps", _fmt(summary.get("steps", data.steps), "d")))
+    rows = [("steps", _fmt(summary.get("steps", data.steps), "d"))]
     t0, t1 = float(s["t"][0]), float(s["t"][-1])
     wall = float(s["step_ms"].sum()) / 1e3
     rows.append(("duration", f"{t1:.6g} s simulated (t = {t0:.6g} .. {t1:.6g}), {wall:.3g} s of explorer steps"))
@@ -158,16 +154,13 @@ def state_at(data: RunLogData, step: int) -> dict[str, Any]:
     i = data.index_of(step)
     s = data.series
     state: dict = {"step": int(s["step"][i]), "t": float(s["t"][i])}
-    for k, v in s.items():
-        if k in ("step", "t"):
-            continue
-        state[k] = v[i].tolist() if isinstance(v[i], np.ndarray) else float(v[i])
+    state.update({k: v[i].tolist() if isinstance(v[i], np.ndarray) else float(v[i])
+                  for k, v in s.items() if k not in ("step", "t")})
     if data.robot and i < len(data.robot):
         state["robot"] = {k: v for k, v in data.robot[i].items() if k != "step"}
     cloud = data.cloud_at(step)
     if cloud is not None:
-        cov = cloud.fields.get("coverage")
-        tgt = cloud.fields.get("target")
+        cov, tgt = cloud.fields.get("coverage"), cloud.fields.get("target")
         info = {"step": cloud.step, "n_points": len(cloud.points)}
         for name, values in cloud.fields.items():
             info[f"{name}_min"], info[f"{name}_max"] = float(values.min()), float(values.max())

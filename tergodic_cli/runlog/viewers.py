@@ -162,15 +162,12 @@ def write_rerun(data: RunLogData, dest: str | os.PathLike) -> Path:
     tmp = dest.with_name(f".{dest.name}.tmp")
     rec.save(str(tmp))
 
-    def at_step(step: int) -> None:
-        rec.set_time("step", sequence=int(step))
-
     s = data.series
     keys = [k for k in ("ergodicity", "residual_ref", "touched_fraction", "step_ms") if k in s]
     clouds = {c.step: c for c in data.clouds}
     rs = data.robot_series()
     for i, step in enumerate(s["step"].tolist()):
-        at_step(step)
+        rec.set_time("step", sequence=int(step))
         for k in keys:
             rec.log(f"metrics/{k}", rr.Scalars(float(s[k][i])))
         if "positions" in s and s["positions"].dtype != object:
@@ -186,7 +183,7 @@ def write_rerun(data: RunLogData, dest: str | os.PathLike) -> Path:
             rec.log("object/cloud", rr.Points3D(c.points, colors=colors.astype(np.uint8), radii=0.0008))
     for sample in data.robot or ():
         if "step" in sample:
-            at_step(int(sample["step"]))
+            rec.set_time("step", sequence=int(sample["step"]))
             _log_robot_sample(rr, rec, sample)
     rec.flush()  # blocks until everything is in the file
     rec.disconnect()

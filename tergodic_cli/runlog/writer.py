@@ -1,16 +1,9 @@
 """Write one exploration run, step by step, into a chunked, indexed MCAP file.
 
-Visual topics use Foxglove's well-known protobuf schemas, through foxglove-sdk's typed
-channels, so Foxglove and Rerun open the file as it is. The numbers replay needs are
-float64 exactly as the explorer produced them: protobuf ``double`` in
-``tergodic.StepRecord`` (proto.py), and JSON for the robot samples (Python's ``repr``
-round-trips a float64), so ``tergodic replay`` recomputes ``summary.json`` bit for bit.
-
-Crash safety: the file is written in place. Every ``flush_every`` steps (or
-``flush_seconds`` of wall time, whichever comes first) the chunk in progress is closed
-and the file flushed to the OS; each point cloud gets a chunk of its own, on disk at
-once. A run killed with SIGKILL therefore loses at most the steps since the last flush,
-and the reader recovers everything before.
+Visual topics use Foxglove's protobuf schemas through foxglove-sdk's typed channels; the numbers
+replay needs are float64 as the explorer produced them (``tergodic.StepRecord``, JSON robot
+samples), so ``tergodic replay`` recomputes ``summary.json`` bit for bit. The file is written in
+place and flushed every few steps (crash safety: docs/logging.md).
 """
 
 from __future__ import annotations
@@ -143,11 +136,8 @@ class RunLog:
         self.flush_every = max(1, int(flush_every) if flush_every else min(self.cloud_every, FLUSH_EVERY))
         self.flush_seconds = float(flush_seconds)
         self.points, self.target = pts, target
-        self.n_steps = self.n_clouds = 0
-        self._closed = False
-        self._since_flush = 0
-        self._last_t = 0.0
-        self._last_flush = time.monotonic()
+        self.n_steps = self.n_clouds = self._since_flush = 0
+        self._closed, self._last_t, self._last_flush = False, 0.0, time.monotonic()
         # log times are wall-clock (viewers place the run in real time): origin + simulated t
         self.time_origin_ns = time.time_ns() if time_origin_ns is None else int(time_origin_ns)
         self._line_half = 0.25 * float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))  # the drawn normal line

@@ -1,28 +1,6 @@
 """The sweep grid: GRID.toml -> objects and the list of runs (objects x starts x options).
 
-Format (paths are relative to the grid file)::
-
-    steps = 1000                 # explorer steps per run (default 1000)
-    seed = 0                     # seed of random starts (objects without a starts file)
-
-    [objects.bunny]              # one table per object
-    file = "bunny.ply"           # a cloud file, captured with the options below, or
-    # capture = "captures/cup"   # a capture folder ('tergodic capture'), or
-    # synthetic = "mug"          # a synthetic object ('tergodic capture --help') with marking = "X"
-    voxel = 0.003                # capture options for file/synthetic: voxel, voxel_rule, units,
-    voxel_rule = "all"           # target, marking, seed, noise (synthetic), crop, outliers
-    neighbors = 40               # robust Laplacian neighbours of the basis (default 30)
-    starts = "bun270_X.npz"      # start file (key x0_arr); without it starts are random points
-    agent_radius = 0.0075        # any ExploreConfig field: this object's value
-
-    [grid]                       # every combination of these lists is run on every object
-    start = 10                   # start indices 0..9 (or a list: [0, 3, 7])
-    nk = [25, 50, 100, 200]
-    alpha = [1, 5, 10, 50, 100]  # numbers, or schedules such as "50:10@200"
-    # a_max = [0.003, 0.006]     # any other ExploreConfig field, as a list
-
-The paper's kinematic grid (3 objects x 10 starts x 4 nK x 5 α = 600 runs) is written by
-``benchmarks/sweep.py`` (and shown in docs/speed.md).
+The format (paths relative to the grid file) is in docs/speed.md and ``tergodic sweep --help``.
 """
 
 from __future__ import annotations

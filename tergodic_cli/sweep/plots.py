@@ -1,13 +1,8 @@
-"""Sweep figures in the style of the paper's Figs. 6-7 and 9-11.
-
-- ``eps_vs_nk.png``: final ergodicity (mean ± std over starts) against nK, one line per α;
-- ``eps_vs_alpha.png``: final ergodicity against α (numeric α only), one line per nK;
-- ``eps_t.png``: ergodicity over time, mean ± std band over starts, one band per nK at the α
-  nearest 10 (the paper's best), and ``eps_t_alpha.png``: one band per α at the largest nK.
+"""Sweep figures in the style of the paper's Figs. 6-7 and 9-11 (the files: docs/speed.md).
 
 Columns are objects; the top row is ``ergodicity`` (the neutral unit-mass ε), the bottom row
-``residual_ref`` (the published code's residual). When the grid varies other options too, each combination
-of them gets its own set of files (suffix ``__key=value``).
+``residual_ref`` (the published code's residual). When the grid varies other options too, each
+combination of them gets its own set of files (suffix ``__key=value``).
 """
 
 from __future__ import annotations
@@ -25,14 +20,11 @@ METRICS = (("ergodicity", "ε (unit-mass eq. 48, dimensionless)"),
 
 
 def plot_sweep(out: Path, grid: Grid, rows: list[dict], series: dict) -> list[str]:
-    """Write the figures; returns their paths relative to ``out``."""
-    import matplotlib
+    """Write the figures into ``out`` (the sweep's staging folder, renamed into place whole);
+    returns their paths relative to ``out``."""
+    from tergodic_cli.runlog.plots import _pyplot, _save
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from tergodic_cli.atomic import atomic_path
-
+    plt = _pyplot()
     objects = [o.name for o in grid.objects]
     varied = grid.varied
     variants = list(itertools.product(*(grid.options[k] for k in varied))) if varied else [()]
@@ -60,10 +52,7 @@ def plot_sweep(out: Path, grid: Grid, rows: list[dict], series: dict) -> list[st
         for name, fig in figs.items():
             if fig is None:
                 continue
-            with atomic_path(out / name, suffix=".png") as tmp:
-                fig.savefig(tmp, dpi=110, format="png")
-            plt.close(fig)
-            files.append(name)
+            files.append(_save(fig, out / name).name)
     return files
 
 

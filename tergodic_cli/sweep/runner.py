@@ -1,22 +1,11 @@
 """Running a sweep: objects -> bases (once per object) -> runs in parallel -> one table and plots.
 
-One executor serves both engines (:func:`_execute`): it runs the same worker function,
-:func:`run_batch`, on the same batches, in joblib's local process pool (``loky``) or as tasks
-on an existing (or a local) Ray cluster, and yields each batch's results as soon as it is
-done. (joblib's own Ray backend cannot stream results back, which resuming needs.) A batch holds runs of one (object, nK); a worker loads that object's basis once (from
-the basis cache, which the driver fills before dispatching) and keeps it for its later batches.
-
-Crash safety and resuming: the driver writes each finished run as two small files,
-``runs/ID.npz`` (the per-step series) then ``runs/ID.json`` (the summary, with the sha256 of the
-series file and of its own content), each atomically; a run counts as done when its record
-verifies (:func:`load_record`), so a rerun skips it and runs a damaged one again. ID is a hash of the object's
-content, the start and the whole explore config, so a changed grid never reuses a stale run.
-The table (``results.csv``, optionally ``results.parquet``), the merged series
-(``series.npz``), the plots and ``sweep.json`` are rebuilt from the run files at the end of every
-sweep, in a temporary folder inside OUT, and moved into place once all are written.
-
-Results do not depend on the engine or the number of workers: a run is a pure function of
-its inputs, single-threaded, with no BLAS call (explore.kernels).
+docs/speed.md describes the engines, resuming and the outputs. One executor (:func:`_execute`)
+runs :func:`run_batch` on batches of one (object, nK) in joblib's process pool or as Ray tasks,
+and yields each batch's results as soon as it is done (joblib's own Ray backend cannot stream
+results back, which resuming needs). A run counts as done when its record verifies
+(:func:`load_record`). Results do not depend on the engine or the number of workers: a run is a
+pure function of its inputs, single-threaded, with no BLAS call (explore.kernels).
 """
 
 from __future__ import annotations
@@ -26,7 +15,9 @@ import hashlib
 import json
 import math
 import os
+import shutil
 import statistics
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -92,6 +83,10 @@ class _Object:
     target: np.ndarray
     starts: dict[int, np.ndarray]
 
+    @property
+    def n_target(self) -> int:
+        return int(np.count_nonzero(self.target > 0))
+
 
 # ---------------------------------------------------------------------------------- objects
 def materialise(spec: ObjectSpec, starts: list[int], seed: int, out: Path) -> _Object:
@@ -112,10 +107,8 @@ def materialise(spec: ObjectSpec, starts: list[int], seed: int, out: Path) -> _O
     require(bool(np.any(cap.target > 0)), f"object {spec.name}: the target is empty (no point has p > 0)",
             "check its target/marking options")
     save_capture(cap, out / "objects" / spec.name)
-    h = hashlib.sha1()
-    h.update(np.ascontiguousarray(cap.points, dtype=np.float64).tobytes())
-    h.update(np.ascontiguousarray(cap.target, dtype=np.float64).tobytes())
-    h.update(str(spec.neighbors).encode())
+    arrays = (np.ascontiguousarray(a, dtype=np.float64).tobytes() for a in (cap.points, cap.target))
+    h = hashlib.sha1(b"".join(arrays) + str(spec.neighbors).encode())  # the object's content key
     xyz = {}
     for i in starts:
         if spec.starts_file is not None:
@@ -154,6 +147,7 @@ def run_batch(task: dict) -> list[dict]:
     os.environ.setdefault("TERGODIC_NO_PROGRESS", "1")
     from tergodic_cli.explore import ExploreConfig, Explorer, summarize_run
     from tergodic_cli.explore.warm import compile_explorer
+    from tergodic_cli.run import RunRecorder
 
     compile_explorer()  # a worker's first step would otherwise load the kernels inside its timing
     out = []
@@ -166,14 +160,11 @@ def run_batch(task: dict) -> list[dict]:
             warnings: list[str] = []
             ex = Explorer(basis, task["target"], cfg, np.asarray(run["start_xyz"], dtype=np.float64)[None],
                           on_event=warnings.append)
-            T = cfg.steps
-            series = {k: np.empty(T) for k in (*SERIES, "step_ms")}
-            for k in range(T):
+            recorder = RunRecorder(ex)
+            for k in range(cfg.steps):
                 ex.step()
-                m = ex.metrics()
-                for name in SERIES:
-                    series[name][k] = m[name]
-                series["step_ms"][k] = ex.last_step_ms
+                recorder.record(k + 1)
+            series = recorder.series()
             summary = summarize_run(series, cfg.to_dict(), {"edge_events": ex.edge_events, "warnings": warnings,
                                                                   "off_surface_fraction": ex.score()["off_surface_fraction"],
                                                                   "step_max_m": ex.score()["step_max_m"]})
@@ -208,11 +199,7 @@ def _ray(address: str | None, on_event):
 def _execute(batches: list[dict], engine: str, jobs: int, address: str | None, on_event):
     """Yield each batch's records as soon as it finishes (any order): the one executor of both
     engines, running :func:`run_batch` in joblib's process pool or as Ray tasks."""
-    if engine == "joblib":
-        if jobs == 1:  # in-process: no pool to start
-            for b in batches:
-                yield run_batch(b)
-            return
+    if engine == "joblib":  # --jobs 1: joblib runs the batches in this process, no pool
         import joblib
 
         yield from joblib.Parallel(n_jobs=jobs, backend="loky", return_as="generator_unordered")(
@@ -241,8 +228,10 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
               address: str | None = None, cache_dir=None, plots: bool = True, parquet: bool = False,
               on_event: Callable[[str], None] | None = None) -> SweepResult:
     """Run (or resume) the sweep of ``grid_path`` into ``out``; see the module docstring."""
-    from tergodic_cli.atomic import write_json, write_npz
+    from tergodic_cli.atomic import AtomicFolder, write_json, write_npz
     from tergodic_cli.progress import track
+    from tergodic_cli.provenance import library_versions
+    from tergodic_cli.run import find_basis
 
     say = on_event or (lambda msg: None)
     t_start = time.perf_counter()
@@ -252,8 +241,6 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
     require(jobs == -1 or jobs >= 1, f"--jobs must be >= 1 (or -1: all CPUs), got {jobs}", "e.g. --jobs 2")
     grid = load_grid(grid_path)
     out = Path(out)
-    from tergodic_cli.atomic import AtomicFolder
-
     # before any work: a file, a path under a file, a folder we cannot write (it is resumed in place)
     AtomicFolder(out, overwrite=True, what="sweep").check(renamed=False)
     if engine == "ray":  # refuse early, before any work, when Ray is missing
@@ -266,33 +253,25 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
     objects = []
     for spec in grid.objects:
         obj = materialise(spec, grid.starts, grid.seed, out)
-        from tergodic_cli.run import find_basis
-
         require(grid.max_nk < len(obj.points), f"object {spec.name}: nK = {grid.max_nk} is not below its "
                 f"{len(obj.points)} points", f"use nk values below {len(obj.points)}")
         t0 = time.perf_counter()
         _, hit = find_basis(obj.points, grid.max_nk, spec.neighbors, cache_dir, on_event=say)
-        say(f"object {spec.name}: {len(obj.points)} points, {int(np.count_nonzero(obj.target > 0))} target; basis "
+        say(f"object {spec.name}: {len(obj.points)} points, {obj.n_target} target; basis "
             f"nK = {grid.max_nk} {'from the cache' if hit else f'computed in {time.perf_counter() - t0:.1f} s'}")
         objects.append(obj)
 
     runs_dir = out / "runs"
     runs_dir.mkdir(parents=True, exist_ok=True)
-    plan: list[tuple[_Object, int, dict, str, object]] = []
-    for obj in objects:
-        for combo in grid.combos():
-            cfg = run_config(grid, obj.spec, combo)
-            for start in grid.starts:
-                rid = run_id(obj.key, start, cfg.to_dict())
-                plan.append((obj, start, combo, rid, cfg))
-    finished, bad = {}, []
-    for p in plan:
-        if (runs_dir / f"{p[3]}.json").exists():
-            rec = load_record(runs_dir, p[3])
-            if isinstance(rec, str):
-                bad.append(rec)
-            else:
-                finished[p[3]] = rec
+    plan: list[tuple[_Object, int, dict, str, object]] = [
+        (obj, start, combo, run_id(obj.key, start, cfg.to_dict()), cfg)
+        for obj in objects for combo in grid.combos()
+        for cfg in [run_config(grid, obj.spec, combo)] for start in grid.starts]
+    # resuming: a run whose record verifies is done; one that does not is run again
+    checked = {p[3]: load_record(runs_dir, p[3]) for p in plan
+               if (runs_dir / f"{p[3]}.json").exists()}
+    finished = {rid: rec for rid, rec in checked.items() if not isinstance(rec, str)}
+    bad = [rec for rec in checked.values() if isinstance(rec, str)]
     if bad:
         say(f"sweep: {len(bad)} finished run record(s) do not verify (e.g. {bad[0]}); running them again")
     pending = [p for p in plan if p[3] not in finished]
@@ -315,7 +294,11 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
                     failed.append(rec)
                     continue
                 write_npz(runs_dir / f"{rec['run_id']}.npz", **rec["series"])
-                record = _record(by_id[rec["run_id"]], rec)
+                obj, start, combo, rid, cfg = by_id[rec["run_id"]]
+                record = {"run_id": rid, "object": obj.spec.name, "object_key": obj.key,
+                          "n_points": len(obj.points), "n_target": obj.n_target, "start": start,
+                          "start_xyz": obj.starts[start].tolist(), "grid": dict(combo),
+                          "wall_s": rec["wall_s"], "summary": rec["summary"]}
                 record["series_sha256"] = file_sha256(runs_dir / f"{rec['run_id']}.npz")
                 record[RECORD_SHA] = record_checksum(record)
                 write_json(runs_dir / f"{rec['run_id']}.json", record)
@@ -333,34 +316,24 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
 
             files += plot_sweep(stage, grid, table, series)
         result.wall_s = time.perf_counter() - t_start
-        _write_sweep_json(stage, grid, objects, engine, jobs, plan, computed, result, failed, files)
+        objs = {o.spec.name: {"source": o.spec.source, "location": o.spec.location, "key": o.key,
+                              "n_points": len(o.points), "n_target": o.n_target,
+                              "neighbors": o.spec.neighbors} for o in objects}
+        write_json(stage / "sweep.json", {
+            "grid": str(grid.path), "steps": grid.steps, "seed": grid.seed, "starts": grid.starts,
+            "options": grid.options, "objects": objs, "engine": engine, "jobs": jobs,
+            "runs": len(plan), "computed": computed, "skipped": result.skipped, "failed": failed,
+            "wall_s": result.wall_s, "files": files, "versions": library_versions()})
         return files + ["sweep.json"]
 
     result.files = _publish(out, build)
     return result
 
 
-def _write_sweep_json(stage: Path, grid, objects, engine, jobs, plan, computed, result, failed, files) -> None:
-    from tergodic_cli.atomic import write_json
-    from tergodic_cli.provenance import library_versions
-
-    write_json(stage / "sweep.json", {
-        "grid": str(grid.path), "steps": grid.steps, "seed": grid.seed, "starts": grid.starts,
-        "options": grid.options, "objects": {o.spec.name: {"source": o.spec.source, "location": o.spec.location,
-                                                           "key": o.key, "n_points": len(o.points),
-                                                           "n_target": int(np.count_nonzero(o.target > 0)),
-                                                           "neighbors": o.spec.neighbors} for o in objects},
-        "engine": engine, "jobs": jobs, "runs": len(plan), "computed": computed, "skipped": result.skipped,
-        "failed": failed, "wall_s": result.wall_s, "files": files, "versions": library_versions()})
-
-
 def _publish(out: Path, build: Callable[[Path], list[str]]) -> list[str]:
     """``build(stage)`` writes the outputs into a temporary folder inside ``out`` (same filesystem);
     the files it names are then renamed into ``out`` together. On an error the folder is removed
     and the old outputs stay as they were. Returns the names."""
-    import shutil
-    import tempfile
-
     try:
         stage = Path(tempfile.mkdtemp(prefix=".results.tmp-", dir=out))
         try:
@@ -436,14 +409,6 @@ def _batches(pending, grid: Grid, jobs: int, cache_dir) -> list[dict]:
     return batches
 
 
-def _record(meta, rec: dict) -> dict:
-    obj, start, combo, rid, cfg = meta
-    return {"run_id": rid, "object": obj.spec.name, "object_key": obj.key, "n_points": len(obj.points),
-            "n_target": int(np.count_nonzero(obj.target > 0)), "start": start,
-            "start_xyz": obj.starts[start].tolist(), "grid": {k: combo[k] for k in combo},
-            "wall_s": rec["wall_s"], "summary": rec["summary"]}
-
-
 def _collect(plan, finished: dict) -> tuple[list[dict], dict]:
     """The table rows and series of this grid's finished runs (sorted), from the verified records."""
     rows, series = [], {k: [] for k in SERIES}
@@ -479,16 +444,16 @@ def _collect(plan, finished: dict) -> tuple[list[dict], dict]:
 
 
 def _write_outputs(out: Path, grid: Grid, rows: list[dict], series: dict, parquet: bool) -> list[str]:
-    from tergodic_cli.atomic import atomic_path, write_npz
+    """The table and series into ``out``, the staging folder (renamed into place whole)."""
+    from tergodic_cli.atomic import write_npz
 
     columns = list(LEAD_COLUMNS) + [k for k in grid.options if k not in ("nk", "alpha")] + list(METRIC_COLUMNS)
-    with atomic_path(out / "results.csv", suffix=".csv") as tmp:
-        with open(tmp, "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
-            w.writeheader()
-            for r in rows:
-                w.writerow({k: ("" if r.get(k) is None else (repr(r[k]) if isinstance(r.get(k), float) else r[k]))
-                            for k in columns})
+    with open(out / "results.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: "" if r.get(k) is None else repr(r[k]) if isinstance(r[k], float)
+                        else r[k] for k in columns})
     write_npz(out / "series.npz", **series)
     files = ["results.csv", "series.npz"]
     if parquet:
@@ -499,19 +464,15 @@ def _write_outputs(out: Path, grid: Grid, rows: list[dict], series: dict, parque
             raise TergodicError("--parquet needs pyarrow, which is not installed",
                                 "pip install pyarrow, or use results.csv") from None
         table = pa.table({k: [r.get(k) for r in rows] for k in columns if any(r.get(k) is not None for r in rows)})
-        with atomic_path(out / "results.parquet", suffix=".parquet") as tmp:
-            pq.write_table(table, tmp)
+        pq.write_table(table, out / "results.parquet")
         files.append("results.parquet")
     return files
 
 
 def read_table(path: str | Path) -> list[dict]:
     """results.csv as a list of dicts (numbers parsed), for tests and scripts."""
-    rows = []
     with open(path, newline="") as fh:
-        for r in csv.DictReader(fh):
-            rows.append({k: _parse(v) for k, v in r.items()})
-    return rows
+        return [{k: _parse(v) for k, v in r.items()} for r in csv.DictReader(fh)]
 
 
 def _parse(v: str):
