@@ -45,11 +45,10 @@ class ImpedanceArm(Protocol):
 
     name: str
     joint_names: list[str]
-    #: (dof,) joint limits: rad, rad, rad/s, N m
+    #: (dof,) joint limits: rad, rad, rad/s
     q_min: np.ndarray
     q_max: np.ndarray
     dq_max: np.ndarray
-    tau_max: np.ndarray
     #: rate (Hz) at which the host streams references to the SDK
     stream_hz: float
 

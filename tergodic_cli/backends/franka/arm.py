@@ -27,15 +27,14 @@ from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.backends.extras import import_sdk, one_line
 from tergodic_cli.backends.impedance import ImpedanceTarget
 from tergodic_cli.robot.interfaces import ArmState
-from tergodic_cli.robot.kinematics import DQ_MAX, Q_MAX, Q_MIN, TAU_MAX
+from tergodic_cli.robot.kinematics import DQ_MAX, Q_MAX, Q_MIN
 
-#: Joint limits (rad, rad/s, N m) from Franka's datasheets.
+#: Joint limits (rad, rad/s) from Franka's datasheets.
 LIMITS = {
-    "panda": (Q_MIN, Q_MAX, DQ_MAX, TAU_MAX),
+    "panda": (Q_MIN, Q_MAX, DQ_MAX),
     "fr3": (np.array([-2.7437, -1.7837, -2.9007, -3.0421, -2.8065, 0.5445, -3.0159]),
             np.array([2.7437, 1.7837, 2.9007, -0.1518, 2.8065, 4.5169, 3.0159]),
-            np.array([2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26]),
-            TAU_MAX),
+            np.array([2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26])),
 }
 
 
@@ -95,8 +94,7 @@ class FrankyArm:
         cfg.validate()
         self.cfg = cfg
         self.joint_names = [f"panda_joint{i}" for i in range(1, 8)]
-        q_min, q_max, dq_max, tau_max = LIMITS[cfg.model]
-        self.q_min, self.q_max, self.dq_max, self.tau_max = q_min.copy(), q_max.copy(), dq_max.copy(), tau_max.copy()
+        self.q_min, self.q_max, self.dq_max = (x.copy() for x in LIMITS[cfg.model])
         self.stream_hz = float(cfg.stream_hz)
         self.robot = None
         self._fr = None
