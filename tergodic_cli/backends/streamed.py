@@ -279,10 +279,11 @@ def dry_run(arm, sensor, camera, plan) -> str:
             reads = [sensor.read() for _ in range(20)]
             W = np.array([r.wrench for r in reads])
             ts = np.array([r.t for r in reads])
-            rate = (len(ts) - 1) / (ts[-1] - ts[0]) if ts[-1] > ts[0] else float("nan")
+            rate_text = (f"{(len(ts) - 1) / (ts[-1] - ts[0]):.0f} samples/s" if ts[-1] > ts[0]
+                         else "WARNING: the sample time did not advance over 20 reads")
             ok = np.all(np.isfinite(W))
-            rate_text = f"{rate:.0f} samples/s" if math.isfinite(rate) else "WARNING: the sample time did not advance over 20 reads"
-            lines.append(f"F/T sensor {type(sensor).__name__}: {'ok' if ok else 'NON-FINITE SAMPLES'}; mean force {_fmt(W[:, :3].mean(0))} N "
+            lines.append(f"F/T sensor {type(sensor).__name__}: {'ok' if ok else 'NON-FINITE SAMPLES'}; "
+                         f"mean force {_fmt(W[:, :3].mean(0))} N "
                          f"(not tared), noise {W[:, :3].std(0).max():.3f} N, {rate_text}")
         if camera is not None:
             camera.connect()

@@ -524,9 +524,7 @@ def _unpack_constants(cst):
     v_ref = cst[3:6]
     F = cst[6:6 + 16 * m].reshape((m, 4, 4))
     axis = cst[6 + 16 * m:6 + 19 * m].reshape((m, 3))
-    qidx = np.empty(m, dtype=np.int64)
-    for k in range(m):
-        qidx[k] = int(cst[6 + 19 * m + k])
+    qidx = cst[6 + 19 * m:6 + 20 * m].astype(np.int64)
     o = 6 + 20 * m  # the fixed-size rest
     tcp_off = cst[o:o + 3]
     R_se = cst[o + 3:o + 12].reshape((3, 3))

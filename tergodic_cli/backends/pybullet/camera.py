@@ -350,7 +350,8 @@ class SimCamera:
         with quiet_native_output():
             _, _, rgba, depth, seg = p.getCameraImage(
                 cfg.width, cfg.height, viewMatrix=self._view.T.ravel().tolist(),
-                projectionMatrix=self._proj.T.ravel().tolist(), renderer=flag, physicsClientId=self.client)
+                projectionMatrix=self._proj.T.ravel().tolist(), renderer=flag,
+                physicsClientId=self.client)
         t1 = time.perf_counter()
         rgb = np.asarray(rgba, dtype=np.float64).reshape(cfg.height, cfg.width, 4)[..., :3] / 255.0
         d = np.asarray(depth, dtype=np.float64).reshape(cfg.height, cfg.width)
