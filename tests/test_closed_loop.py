@@ -96,9 +96,9 @@ def test_closed_loop_refuses_bad_input(scene):
     cases = [
         (dict(capture=plain), "simulated capture"),
         (dict(robot_cfg=RobotConfig(object_pose=(0.5, 0, 0), **FAST)), "object-pose"),
-        (dict(recapture_every=0), "recapture-every"),
-        (dict(until_clean=1.5), "until-clean"),
-        (dict(max_steps=0), "max-steps"),
+        (dict(loop_cfg=CleaningLoopConfig(recapture_every=0)), "recapture-every"),
+        (dict(loop_cfg=CleaningLoopConfig(until_clean=1.5)), "until-clean"),
+        (dict(loop_cfg=CleaningLoopConfig(max_steps=0)), "max-steps"),
     ]
     for change, needle in cases:
         kw = dict(capture=cap, explorer=ex, robot_cfg=rcfg, camera=cam)

@@ -27,14 +27,12 @@ class ImpedanceTarget:
     pose : (4, 4) target TCP pose.
     stiffness, damping : (6, 6) on (x, y, z, rx, ry, rz) errors, N/m, N m/rad; N s/m, N m s/rad.
     twist : (6,) target TCP twist (v, ω), m/s and rad/s.
-    wrench_ff : (6,) the feed-forward wrench (f, m) the reference realises, N and N m (for the log).
     """
 
     pose: np.ndarray
     stiffness: np.ndarray
     damping: np.ndarray
     twist: np.ndarray = field(default_factory=lambda: np.zeros(6))
-    wrench_ff: np.ndarray = field(default_factory=lambda: np.zeros(6))
 
 
 @runtime_checkable
@@ -45,11 +43,10 @@ class ImpedanceArm(Protocol):
 
     name: str
     joint_names: list[str]
-    #: (dof,) joint limits: rad, rad, rad/s, N m
+    #: (dof,) joint limits: rad, rad, rad/s
     q_min: np.ndarray
     q_max: np.ndarray
     dq_max: np.ndarray
-    tau_max: np.ndarray
     #: rate (Hz) at which the host streams references to the SDK
     stream_hz: float
 
@@ -85,7 +82,7 @@ class ImpedanceArm(Protocol):
         Parameters
         ----------
         target : ImpedanceTarget
-            Pose, stiffness, damping, feed-forward twist and wrench (base frame, SI units).
+            Pose, stiffness, damping and feed-forward twist (base frame, SI units).
         """
 
     def stop(self) -> None:
@@ -143,7 +140,7 @@ def line_impedance_target(p_tcp: np.ndarray, a: np.ndarray, d: np.ndarray, x_ref
     Returns
     -------
     ImpedanceTarget
-        Pose (4, 4), stiffness and damping (6, 6), twist and wrench (6,), base frame.
+        Pose (4, 4), stiffness and damping (6, 6), twist (6,), base frame.
     """
     g = gains
     R = tool_rotation(d, x_ref)
@@ -156,7 +153,6 @@ def line_impedance_target(p_tcp: np.ndarray, a: np.ndarray, d: np.ndarray, x_ref
         v = np.asarray(line_velocity, dtype=float)
         ref.twist[:3] = v - (v @ z) * z  # along the line the target rides with the TCP
     ref.twist[:3] += axial_speed * z
-    ref.wrench_ff[:3] = (force if axial is None else 0.0) * z
     return ref
 
 

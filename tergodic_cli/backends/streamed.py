@@ -48,7 +48,21 @@ class HardwareRunConfig(Config):
     force_filter_hz: float = 10.0
 
 
-class StreamedArm:
+class _PlanArm:
+    """A connected ImpedanceArm as far as planning needs it: its limits, period and present state."""
+
+    def __init__(self, arm):
+        self.dev, self.name, self.dt = arm, arm.name, 1.0 / float(arm.stream_hz)
+        self.q_min, self.q_max, self.dq_max = arm.q_min, arm.q_max, arm.dq_max
+
+    def bind(self, *args) -> None:
+        pass
+
+    def get_observation(self, sensor: bool = False) -> Observation:
+        return Observation(self.dev.read_state(), None, np.zeros(6))
+
+
+class StreamedArm(_PlanArm):
     """An :class:`~tergodic_cli.backends.impedance.ImpedanceArm` and its F/T sensor as the loop's Arm.
 
     Parameters
@@ -63,12 +77,9 @@ class StreamedArm:
         for name in ("connect", "read_state", "command_impedance", "stop", "fault", "move_joints"):
             require(hasattr(arm, name), f"the arm backend {type(arm).__name__} has no {name}()",
                     "use an ImpedanceArm backend (e.g. FrankyArm) for --robot franka")
-        self.dev, self.sensor, self.cfg = arm, sensor, robot_cfg
-        self.hw = hw or HardwareRunConfig()
-        self.name = arm.name
+        super().__init__(arm)
+        self.sensor, self.cfg, self.hw = sensor, robot_cfg, hw or HardwareRunConfig()
         self.joint_names = list(arm.joint_names)
-        self.q_min, self.q_max, self.dq_max = arm.q_min, arm.q_max, arm.dq_max
-        self.dt = 1.0 / float(arm.stream_hz)
         self._pace = pace or self._realtime
         self._t_next = None
         arm.connect()
@@ -268,10 +279,11 @@ def dry_run(arm, sensor, camera, plan) -> str:
             reads = [sensor.read() for _ in range(20)]
             W = np.array([r.wrench for r in reads])
             ts = np.array([r.t for r in reads])
-            rate = (len(ts) - 1) / (ts[-1] - ts[0]) if ts[-1] > ts[0] else float("nan")
+            rate_text = (f"{(len(ts) - 1) / (ts[-1] - ts[0]):.0f} samples/s" if ts[-1] > ts[0]
+                         else "WARNING: the sample time did not advance over 20 reads")
             ok = np.all(np.isfinite(W))
-            rate_text = f"{rate:.0f} samples/s" if math.isfinite(rate) else "WARNING: the sample time did not advance over 20 reads"
-            lines.append(f"F/T sensor {type(sensor).__name__}: {'ok' if ok else 'NON-FINITE SAMPLES'}; mean force {_fmt(W[:, :3].mean(0))} N "
+            lines.append(f"F/T sensor {type(sensor).__name__}: {'ok' if ok else 'NON-FINITE SAMPLES'}; "
+                         f"mean force {_fmt(W[:, :3].mean(0))} N "
                          f"(not tared), noise {W[:, :3].std(0).max():.3f} N, {rate_text}")
         if camera is not None:
             camera.connect()
@@ -329,20 +341,6 @@ class DryRunPlan:
     explorer: object = None
     start: tuple[float, float, float] | None = None
     hw: HardwareRunConfig | None = None
-
-
-class _PlanArm:
-    """A connected ImpedanceArm as far as planning needs it: its limits, period and present state."""
-
-    def __init__(self, arm):
-        self.dev, self.name, self.dt = arm, arm.name, 1.0 / float(arm.stream_hz)
-        self.q_min, self.q_max, self.dq_max = arm.q_min, arm.q_max, arm.dq_max
-
-    def bind(self, *args) -> None:
-        pass
-
-    def get_observation(self, sensor: bool = False) -> Observation:
-        return Observation(self.dev.read_state(), None, np.zeros(6))
 
 
 class _StartAgent:

@@ -102,13 +102,12 @@ class LineForceController:
     dt : control period, s.
     q_rest : (7,) posture the null-space spring pulls towards.
     x_ref : (3,) base-frame direction the ee x-axis is held near (the spin about the tool axis).
-    q_limits : (q_min, q_max) joint limits for the null-space limit repulsion (default: the Panda's).
 
     The arithmetic is :func:`tergodic_cli.robot.kernels.line_force_step` (compiled); this class
     holds its packed parameters ``kpk`` and state ``mut`` (PID, null-space terms).
     """
 
-    def __init__(self, gains: ControllerGains, dt: float, q_rest: np.ndarray, x_ref: np.ndarray, q_limits=None):
+    def __init__(self, gains: ControllerGains, dt: float, q_rest: np.ndarray, x_ref: np.ndarray):
         from tergodic_cli.robot import kernels as Kn
         from tergodic_cli.robot.kinematics import Q_MAX, Q_MIN
 
@@ -117,7 +116,6 @@ class LineForceController:
         self.dt = float(dt)
         self.K = tuple(float(k) for k in gains.k_trans + gains.k_rot)
         self.D = tuple(float(k) for k in gains.d_trans + gains.d_rot)
-        q_min, q_max = (Q_MIN, Q_MAX) if q_limits is None else (q_limits[0], q_limits[1])
 
         def lowpass(hz: float) -> float:  # the first-order filter's gain per step
             return 1.0 - math.exp(-2.0 * math.pi * hz * self.dt) if hz > 0 else 1.0
@@ -129,7 +127,7 @@ class LineForceController:
                         1.0 if g.pid_wrench else 0.0, lowpass(g.derivative_filter_hz)])
         #: Packed constants (kernels.KPK_*) and mutable state (kernels.MUT_*) of the compiled step.
         self.kpk = np.concatenate([self.K, self.D, prm, np.asarray(x_ref, dtype=float), np.asarray(q_rest, dtype=float),
-                                   np.asarray(q_min, dtype=float), np.asarray(q_max, dtype=float)])
+                                   Q_MIN, Q_MAX])  # the Panda's limits: the null-space repulsion
         assert self.kpk.shape == (Kn.N_KPK,)
         self.mut = np.zeros(Kn.N_MUT)
         self._vref = np.zeros(3)

@@ -23,6 +23,8 @@ from typing import TYPE_CHECKING, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
+from tergodic_cli.errors import TergodicError, require
+
 if TYPE_CHECKING:
     from tergodic_cli.robot.safety import Fault
 
@@ -288,8 +290,6 @@ class WrenchSensor:
     bad_tare: tuple[str, str] | None = None
 
     def __init__(self, frame_in_ee: np.ndarray | None = None, tare_samples: int = 50):
-        from tergodic_cli.errors import require
-
         self.frame_in_ee = np.asarray(np.eye(4) if frame_in_ee is None else frame_in_ee, float)
         require(self.frame_in_ee.shape == (4, 4), "frame_in_ee must be a (4, 4) transform",
                 "give the sensor pose in the TCP frame")
@@ -311,8 +311,6 @@ class WrenchSensor:
         """Zero the reading (tool at rest, free): the wrench now is taken off every later one."""
         ws = np.array([self._sample()[1] for _ in range(self.tare_samples)])
         if self.bad_tare is not None and not np.all(np.isfinite(ws)):
-            from tergodic_cli.errors import TergodicError
-
             raise TergodicError(*self.bad_tare)
         self.offset = ws.mean(axis=0)
 

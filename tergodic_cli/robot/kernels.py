@@ -254,27 +254,19 @@ def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use
     K, D, x_ref = kpk[KPK_K:KPK_K + 6], kpk[KPK_D:KPK_D + 6], kpk[KPK_XREF:KPK_XREF + 3]
     prm = kpk[KPK_PRM:KPK_PRM + N_CP]
     state = mut[MUT_STATE:MUT_STATE + N_CS]
-    r0, r1, r2 = T[0, 0], T[0, 1], T[0, 2]
-    r3, r4, r5 = T[1, 0], T[1, 1], T[1, 2]
-    r6, r7, r8 = T[2, 0], T[2, 1], T[2, 2]
-    vx, vy, vz = a[0] - T[0, 3], a[1] - T[1, 3], a[2] - T[2, 3]
-    dx, dy, dz = d[0], d[1], d[2]
     # The target line in the ee frame (M̃ L_a⊥ M: Rᵀ applied to a - p and to d), its motor's log.
-    tx, ty, tz, fx_, fy_, _unused = line_motor_z(
-        r0 * vx + r3 * vy + r6 * vz, r1 * vx + r4 * vy + r7 * vz, r2 * vx + r5 * vy + r8 * vz,
-        r0 * dx + r3 * dy + r6 * dz, r1 * dx + r4 * dy + r7 * dz, r2 * dx + r5 * dy + r8 * dz)
-    spin = math.atan2(r1 * x_ref[0] + r4 * x_ref[1] + r7 * x_ref[2], r0 * x_ref[0] + r3 * x_ref[1] + r6 * x_ref[2])
+    e0, e1, e2 = rot_t(T, a[0] - T[0, 3], a[1] - T[1, 3], a[2] - T[2, 3])
+    u0, u1, u2 = rot_t(T, d[0], d[1], d[2])
+    tx, ty, tz, fx_, fy_, _unused = line_motor_z(e0, e1, e2, u0, u1, u2)
+    xe0, xe1, _xe2 = rot_t(T, x_ref[0], x_ref[1], x_ref[2])
+    spin = math.atan2(xe1, xe0)
     V0, V1, V2, V3, V4, V5 = tcp_twist(J, dq, 7)  # base-frame TCP twist J q̇
     if use_vref:
         V0 -= v_ref[0]
         V1 -= v_ref[1]
         V2 -= v_ref[2]
-    ve0 = r0 * V0 + r3 * V1 + r6 * V2
-    ve1 = r1 * V0 + r4 * V1 + r7 * V2
-    ve2 = r2 * V0 + r5 * V1 + r8 * V2
-    ve3 = r0 * V3 + r3 * V4 + r6 * V5
-    ve4 = r1 * V3 + r4 * V4 + r7 * V5
-    ve5 = r2 * V3 + r5 * V4 + r8 * V5
+    ve0, ve1, ve2 = rot_t(T, V0, V1, V2)
+    ve3, ve4, ve5 = rot_t(T, V3, V4, V5)
     # Wrench PID (eqs. 40-41) on the filtered measured wrench W'_m, ee frame: W_e = W_d - W'_m with
     # W_d = (0, 0, F_d, 0, 0, 0). P and D on the full wrench (CP_WRENCH) or on the axial force alone;
     # the integral on the axial force.
@@ -306,7 +298,7 @@ def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use
     # K_L V_L - D_V V_ee + W_C (eq. 47); along the line the damping acts on the tool's own velocity.
     wx = K[0] * tx - D[0] * ve0 + c[0]
     wy = K[1] * ty - D[1] * ve1 + c[1]
-    v_ax = ve2 + (r2 * v_ref[0] + r5 * v_ref[1] + r8 * v_ref[2]) if use_vref else ve2
+    v_ax = ve2 + rot_t(T, v_ref[0], v_ref[1], v_ref[2])[2] if use_vref else ve2
     wz = fz - D[2] * v_ax
     if mode == MODE_TRACK and v_ax > prm[CP_VGUARD]:
         # Contact lost: the PID's push (up to (K_p + integral_max) F_d) would fly the tool into the
@@ -315,12 +307,8 @@ def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use
     mx = K[3] * fx_ - D[3] * ve3 + c[3]
     my = K[4] * fy_ - D[4] * ve4 + c[4]
     mz = prm[CP_SPIN] * spin - D[5] * ve5 + c[5]
-    W0 = r0 * wx + r1 * wy + r2 * wz
-    W1 = r3 * wx + r4 * wy + r5 * wz
-    W2 = r6 * wx + r7 * wy + r8 * wz
-    W3 = r0 * mx + r1 * my + r2 * mz
-    W4 = r3 * mx + r4 * my + r5 * mz
-    W5 = r6 * mx + r7 * my + r8 * mz
+    W0, W1, W2 = rot(T, wx, wy, wz)
+    W3, W4, W5 = rot(T, mx, my, mz)
     tau_spring, n_damp = mut[MUT_SPRING:MUT_SPRING + 7], mut[MUT_DAMP:MUT_DAMP + 49].reshape((7, 7))
     _posture(J, q, prm, state, kpk[KPK_QREST:KPK_QREST + 7], kpk[KPK_QMIN:KPK_QMIN + 7],
              kpk[KPK_QMAX:KPK_QMAX + 7], tau_spring, n_damp)
@@ -536,9 +524,7 @@ def _unpack_constants(cst):
     v_ref = cst[3:6]
     F = cst[6:6 + 16 * m].reshape((m, 4, 4))
     axis = cst[6 + 16 * m:6 + 19 * m].reshape((m, 3))
-    qidx = np.empty(m, dtype=np.int64)
-    for k in range(m):
-        qidx[k] = int(cst[6 + 19 * m + k])
+    qidx = cst[6 + 19 * m:6 + 20 * m].astype(np.int64)
     o = 6 + 20 * m  # the fixed-size rest
     tcp_off = cst[o:o + 3]
     R_se = cst[o + 3:o + 12].reshape((3, 3))

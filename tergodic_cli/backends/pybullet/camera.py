@@ -303,7 +303,6 @@ class SimCamera:
         except BaseException:
             self.close()
             raise
-        self.last_texture_ms = 0.0
         self.last_timing: dict[str, float] = {}
         self.last_frame: Frame | None = None
 
@@ -333,32 +332,9 @@ class SimCamera:
         self._loaded_version = self.obj.version
         return 1e3 * (time.perf_counter() - t0)
 
-    def render(self) -> Frame:
-        """Render one RGB-D frame of the current scene (reloading the object's texture if it changed).
-
-        Returns
-        -------
-        Frame
-            RGB (h, w, 3) in [0, 1], depth (h, w) metres (inf on background), body ids (h, w).
-        """
-        self.last_texture_ms = self._sync_object()
-        cfg, p = self.cfg, self._p
-        flag = p.ER_BULLET_HARDWARE_OPENGL if self.renderer == "egl" else p.ER_TINY_RENDERER
-        t0 = time.perf_counter()
-        with quiet_native_output():
-            _, _, rgba, depth, seg = p.getCameraImage(
-                cfg.width, cfg.height, viewMatrix=self._view.T.ravel().tolist(), projectionMatrix=self._proj.T.ravel().tolist(),
-                renderer=flag, physicsClientId=self.client)
-        ms = 1e3 * (time.perf_counter() - t0)
-        rgb = np.asarray(rgba, dtype=np.float64).reshape(cfg.height, cfg.width, 4)[..., :3] / 255.0
-        d = np.asarray(depth, dtype=np.float64).reshape(cfg.height, cfg.width)
-        seg = np.asarray(seg).reshape(cfg.height, cfg.width).astype(np.int64)
-        z = linearize_depth(d, cfg.near, cfg.far)
-        z[(seg < 0) | (d >= 1.0)] = np.inf
-        return Frame(rgb, z, seg, ms)
-
     def capture(self) -> tuple[np.ndarray, np.ndarray]:
-        """Render and back-project every object pixel, with the configured noise.
+        """Render the current scene (reloading the object's texture if it changed), then
+        back-project every object pixel, with the configured noise.
 
         Returns
         -------
@@ -367,21 +343,34 @@ class SimCamera:
         colors : (n, 3) float
             In [0, 1].
         """
-        frame = self.last_frame = self.render()
+        texture_ms = self._sync_object()
+        cfg, p = self.cfg, self._p
+        flag = p.ER_BULLET_HARDWARE_OPENGL if self.renderer == "egl" else p.ER_TINY_RENDERER
         t0 = time.perf_counter()
-        rows, cols = np.nonzero(np.isfinite(frame.depth))
-        z = frame.depth[rows, cols]
-        colors = frame.rgb[rows, cols]
-        if self.cfg.depth_noise > 0:
-            z = z + self._rng.normal(0.0, self.cfg.depth_noise, z.shape)
-        if self.cfg.color_noise > 0:
-            colors = np.clip(colors + self._rng.normal(0.0, self.cfg.color_noise, colors.shape), 0.0, 1.0)
+        with quiet_native_output():
+            _, _, rgba, depth, seg = p.getCameraImage(
+                cfg.width, cfg.height, viewMatrix=self._view.T.ravel().tolist(),
+                projectionMatrix=self._proj.T.ravel().tolist(), renderer=flag,
+                physicsClientId=self.client)
+        t1 = time.perf_counter()
+        rgb = np.asarray(rgba, dtype=np.float64).reshape(cfg.height, cfg.width, 4)[..., :3] / 255.0
+        d = np.asarray(depth, dtype=np.float64).reshape(cfg.height, cfg.width)
+        seg = np.asarray(seg).reshape(cfg.height, cfg.width).astype(np.int64)
+        z = linearize_depth(d, cfg.near, cfg.far)
+        z[(seg < 0) | (d >= 1.0)] = np.inf
+        self.last_frame = Frame(rgb, z, seg, 1e3 * (t1 - t0))
+        rows, cols = np.nonzero(np.isfinite(z))
+        z, colors = z[rows, cols], rgb[rows, cols]
+        if cfg.depth_noise > 0:
+            z = z + self._rng.normal(0.0, cfg.depth_noise, z.shape)
+        if cfg.color_noise > 0:
+            colors = np.clip(colors + self._rng.normal(0.0, cfg.color_noise, colors.shape), 0.0, 1.0)
         fx, fy, cx, cy = self.K
         o_u, o_v = PIXEL_SAMPLE[self.renderer]  # where a pixel is sampled: shifted principal point
-        intr = Intrinsics(self.cfg.width, self.cfg.height, fx, fy, cx - o_u, cy - o_v)
+        intr = Intrinsics(cfg.width, cfg.height, fx, fy, cx - o_u, cy - o_v)
         points = deproject(z, intr, self.T_base_cam, rows, cols)
-        self.last_timing = {"texture_ms": self.last_texture_ms, "render_ms": frame.render_ms,
-                            "back_project_ms": 1e3 * (time.perf_counter() - t0)}
+        self.last_timing = {"texture_ms": texture_ms, "render_ms": 1e3 * (t1 - t0),
+                            "back_project_ms": 1e3 * (time.perf_counter() - t1)}
         return points, colors
 
     def describe(self) -> dict:
@@ -459,8 +448,8 @@ def capture_sim(cfg: SimCaptureConfig | None = None, camera: SimCamera | None = 
         obj = camera.obj
         obj_cfg = obj.cfg if obj is not None else cfg.object
         cap.meta["frame"] = "robot_base"
-        cap.meta["provenance"].update(object=obj_cfg.object, marking=obj_cfg.marking, renderer=camera.renderer)
         cap.frame = camera.last_frame  # type: ignore[attr-defined]  # the rendered image, not saved by save_capture
+        cap.meta["provenance"].update(object=obj_cfg.object, marking=obj_cfg.marking, renderer=camera.renderer)
         cap.meta["sim"] = {
             "object": obj_cfg.to_dict(),
             "object_pose": obj.pose.tolist() if obj is not None else None,

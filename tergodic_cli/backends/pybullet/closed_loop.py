@@ -106,27 +106,18 @@ class _Cleaner:
         self.seconds = 0.0
 
     def __call__(self, contacts: list, dt: float) -> None:
-        if not contacts:
-            return
-        f = 0.0
-        x = y = z = 0.0
-        for point, _normal, force in contacts:
-            f += force
-            x += force * point[0]
-            y += force * point[1]
-            z += force * point[2]
-        if f <= self.obj.cfg.cleaning.force_min:
+        f = float(sum(c[2] for c in contacts))  # the force-weighted mean point, as SimArm.contact's
+        if not contacts or f <= self.obj.cfg.cleaning.force_min:
             return
         t = time.perf_counter()
-        self.obj.clean(np.array([[x / f, y / f, z / f]]), np.array([f]), dt)
+        self.obj.clean((sum(c[2] * c[0] for c in contacts) / f)[None, :], np.array([f]), dt)
         self.seconds += time.perf_counter() - t
         self.impulse += f * dt
         self.calls += 1
 
 
 # ----------------------------------------------------------------------------- the loop
-def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, recapture_every: int = 200, until_clean: float = 0.05,
-                     max_steps: int = 2000, camera=None,
+def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, camera=None,
                      on_step: Callable[[int, dict], None] | None = None,
                      on_event: Callable[[int, str], None] | None = None,
                      on_recapture: Callable[[int, dict], None] | None = None,
@@ -141,8 +132,6 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, recapture_every:
     explorer : :class:`~tergodic_cli.explore.Explorer` on the capture's basis and target, built with
         :func:`~tergodic_cli.robot.robot_explore_config` (its basis is reused for every re-capture).
     robot_cfg : :class:`RobotConfig` (``object_pose`` None or the identity: the sim capture says where the object is).
-    recapture_every, until_clean, max_steps : K, the remaining-marking threshold and the step budget
-        (see :class:`CleaningLoopConfig`; ``loop_cfg``, when given, overrides them).
     camera : an open :class:`~tergodic_cli.backends.pybullet.camera.SimCamera` whose ``obj`` is the scene
         (tests: a small image); None = built from the capture's record and closed at the end.
     on_step : on_step(step, robot_sample_dict) after each explorer step. The last step of a cycle is
@@ -152,6 +141,8 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, recapture_every:
     on_recapture : on_recapture(step, record) after each re-capture, ``record`` as in ``recapture_log``
         plus ``target`` (n,) the new p on the basis points and ``applied`` (False for the last one,
         which ended the loop). See :func:`log_recapture`.
+    loop_cfg : :class:`CleaningLoopConfig` (K, the remaining-marking threshold, the step budget);
+        None = its defaults.
 
     Returns
     -------
@@ -167,8 +158,7 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, recapture_every:
     from tergodic_cli.backends.pybullet.arm import RobotRun
     from tergodic_cli.robot.surface import sim_object_mesh
 
-    lc = loop_cfg or CleaningLoopConfig(recapture_every=int(recapture_every), until_clean=float(until_clean),
-                                        max_steps=int(max_steps))
+    lc = loop_cfg or CleaningLoopConfig()
     validate_loop_config(lc)
     say = on_event or (lambda step, msg: None)
     meta = getattr(capture, "meta", {}) or {}

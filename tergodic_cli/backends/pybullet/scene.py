@@ -147,8 +147,6 @@ class PyBulletScene:
         self.robot = self._load_robot(data)
         p.setPhysicsEngineParameter(contactBreakingThreshold=self._breaking_factor(), physicsClientId=cid)
         self.object: int | None = None
-        #: Robot links checked for contact with the object.
-        self.object_colliders = [SPONGE_LINK]
         self.t = 0.0
         self.steps = 0
         self.teleports = 0  # counts set_arm calls (cached kinematics are stale after one)
@@ -291,9 +289,8 @@ class PyBulletScene:
         # Only the sponge touches the object: a hand or finger hull against the concave mesh costs
         # 5-10× a physics step (docs/robot.md). Collision groups: object 2, sponge 1|2, other links 1.
         p.setCollisionFilterGroupMask(body, -1, 2, 2, physicsClientId=cid)
-        colliders = {self.link_index[n] for n in self.object_colliders}
         for link in range(-1, len(self.link_names)):
-            bits = 3 if link in colliders else 1
+            bits = 3 if link == self.sponge_link else 1
             p.setCollisionFilterGroupMask(self.robot, link, bits, bits, physicsClientId=cid)
         self.object = body
         self.object_pose = np.array(pose, dtype=float)

@@ -26,16 +26,15 @@ from tergodic_cli.config import Config
 from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.backends.extras import import_sdk, one_line
 from tergodic_cli.backends.impedance import ImpedanceTarget
-from tergodic_cli.robot.interfaces import ArmState
-from tergodic_cli.robot.kinematics import DQ_MAX, Q_MAX, Q_MIN, TAU_MAX
+from tergodic_cli.robot.interfaces import ArmState, WrenchSensor
+from tergodic_cli.robot.kinematics import DQ_MAX, Q_MAX, Q_MIN
 
-#: Joint limits (rad, rad/s, N m) from Franka's datasheets.
+#: Joint limits (rad, rad/s) from Franka's datasheets.
 LIMITS = {
-    "panda": (Q_MIN, Q_MAX, DQ_MAX, TAU_MAX),
+    "panda": (Q_MIN, Q_MAX, DQ_MAX),
     "fr3": (np.array([-2.7437, -1.7837, -2.9007, -3.0421, -2.8065, 0.5445, -3.0159]),
             np.array([2.7437, 1.7837, 2.9007, -0.1518, 2.8065, 4.5169, 3.0159]),
-            np.array([2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26]),
-            TAU_MAX),
+            np.array([2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26])),
 }
 
 
@@ -95,8 +94,7 @@ class FrankyArm:
         cfg.validate()
         self.cfg = cfg
         self.joint_names = [f"panda_joint{i}" for i in range(1, 8)]
-        q_min, q_max, dq_max, tau_max = LIMITS[cfg.model]
-        self.q_min, self.q_max, self.dq_max, self.tau_max = q_min.copy(), q_max.copy(), dq_max.copy(), tau_max.copy()
+        self.q_min, self.q_max, self.dq_max = (x.copy() for x in LIMITS[cfg.model])
         self.stream_hz = float(cfg.stream_hz)
         self.robot = None
         self._fr = None
@@ -232,6 +230,33 @@ class FrankyArm:
             self._error = f"the Franka stopped: {one_line(exc)}"
         finally:
             self._mode, self._motion = None, None
+
+
+class FrankaWrenchEstimate(WrenchSensor):
+    """The Franka's own estimate of the external wrench as a sensor (no extra hardware):
+    ``-K_F_ext_hat_K`` of a connected :class:`FrankyArm`, minus the tare.
+
+    libfranka estimates the wrench the environment applies to the robot from its joint torque
+    sensors, ``K_F_ext_hat_K`` (stiffness frame K, which is the end-effector frame unless ``set_k``
+    moved it). The sensor convention of :mod:`tergodic_cli.robot.interfaces` is the wrench the arm
+    applies to the tool, so the reading is its negative. Far noisier than a wrist sensor (about
+    ±1-2 N at the TCP from joint friction and model error): fine for a first test, not for
+    measured force tracking.
+    """
+
+    def __init__(self, arm, tare_samples: int = 20):
+        super().__init__(None, tare_samples)
+        self.arm = arm
+
+    def connect(self) -> None:
+        self.arm.connect()
+
+    def _sample(self) -> tuple[float, np.ndarray]:
+        s = self.arm._require().state
+        return float(s.time.to_sec()), -np.asarray(s.K_F_ext_hat_K, dtype=float).reshape(6)
+
+    def disconnect(self) -> None:
+        """The arm owns the connection."""
 
 
 def _gains(fr, K: np.ndarray, D: np.ndarray):
