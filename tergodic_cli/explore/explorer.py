@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 import time
 import warnings
-import weakref
 from typing import Callable
 
 import numpy as np
@@ -23,58 +22,12 @@ from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.explore import kernels as K
 from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_config
 from tergodic_cli.explore.diffusion import ImplicitDiffusion, time_step
+from tergodic_cli.explore.index import cached, cloud_index
 from tergodic_cli.explore.metrics import CoverageScore, source_term
-
-# Static per-cloud data, shared by every explorer of the same arrays (a sweep builds hundreds).
-_STORE: dict[tuple[str, int], tuple] = {}
-
-
-def _cached(kind: str, owner, build):
-    key = (kind, id(owner))
-    hit = _STORE.get(key)
-    if hit is not None and hit[0]() is owner:
-        return hit[1]
-    value = build()
-    _STORE[key] = (weakref.ref(owner, lambda _ref, key=key: _STORE.pop(key, None)), value)
-    return value
-
-
-class CloudIndex:
-    """The compiled KD-tree of a cloud and the internal point order it defines.
-
-    The explorer keeps every per-point array, and the rows of Φ, in the tree's leaf order
-    (``order``: internal i is cloud point order[i]; ``rank`` is the inverse), so that the
-    points under a footprint, and their rows of Φ, are close in memory: on a 100k-point cloud
-    this halves the step (cache and TLB misses). ``tree`` is the kernels' (perm, nodes, boxes,
-    points) in internal indices, ``points`` the cloud in internal order.
-    """
-
-    def __init__(self, points: np.ndarray):
-        perm, nodes, boxes, tpts = K.tree_build(points)
-        self.order = perm
-        self.rank = np.argsort(perm)  # the inverse permutation
-        self.points = tpts
-        self.tree = (np.arange(len(perm)), nodes, boxes, tpts)
-
-
-def cloud_index(points: np.ndarray) -> CloudIndex:
-    """The :class:`CloudIndex` of a cloud, built once per array.
-
-    Parameters
-    ----------
-    points : (n, 3) float
-        Metres.
-
-    Returns
-    -------
-    CloudIndex
-    """
-    return _cached("tree", points, lambda: CloudIndex(points))
-
 
 def _internal_phi(evecs: np.ndarray, nk: int, order: np.ndarray) -> np.ndarray:
     """Φ[:, :nk] with its rows in internal order, C-contiguous (built once per array and nK)."""
-    per_nk = _cached("phi", evecs, dict)
+    per_nk = cached("phi", evecs, dict)
     key = (nk, len(order))  # the whole cloud, or its field set (one per cloud)
     if key not in per_nk:
         per_nk[key] = np.ascontiguousarray(evecs[order, :nk], dtype=np.float64)
@@ -173,7 +126,7 @@ class Explorer:
         self._full = cloud_index(self.points)  # what lies on the data, the score, the starts
         # The fields live on the cloud, or on its thinned field set when the cloud is much denser
         # than a 3 mm capture (the implicit integrator needs the whole cloud's L).
-        fset = _cached("fields", self.points, lambda: FieldSet(self.points, self.mass, self.h))
+        fset = cached("fields", self.points, lambda: FieldSet(self.points, self.mass, self.h))
         if fset.thinned and cfg.integrator == "implicit":
             fset = FieldSet(self.points, self.mass, float("inf"))
         self._field = fset
@@ -272,7 +225,7 @@ class Explorer:
             graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
             return connected_components(graph, directed=False)[1]
 
-        parts = _cached("parts", self.points, parts_of_cloud)
+        parts = cached("parts", self.points, parts_of_cloud)
         here = parts[self._field.sel[self._order[self._nbrs[i, 0]]]]
         if np.any(self.p[parts == here] > 0):
             return

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from tergodic_cli.explore import kernels as K
+from tergodic_cli.explore.index import cloud_index
 
 
 def source_term(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray, norm: str = "cloud") -> np.ndarray:
@@ -114,8 +115,6 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
     target points within r_a of some X_t); ``off_surface_fraction`` (share of positions more than
     2h from every point); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
     """
-    from tergodic_cli.explore.explorer import cloud_index
-
     X = np.asarray(positions, dtype=np.float64)
     X = X.reshape(len(X), -1, 3)
     index = cloud_index(np.ascontiguousarray(points, dtype=np.float64))
@@ -130,7 +129,7 @@ class CoverageScore:
 
     Parameters
     ----------
-    index : the cloud's :class:`~tergodic_cli.explore.explorer.CloudIndex` (its tree and order).
+    index : the cloud's :class:`~tergodic_cli.explore.index.CloudIndex` (its tree and order).
     target : (n,) target weight p in the cloud's order.
     agent_radius : r_a, metres.
     h : mean point spacing, metres.
@@ -156,7 +155,7 @@ class CoverageScore:
         target : (n,) float
             p in [0, 1].
         index : CloudIndex
-            The cloud's index (:func:`~tergodic_cli.explore.explorer.cloud_index`).
+            The cloud's index (:func:`~tergodic_cli.explore.index.cloud_index`).
         """
         p = np.asarray(target, dtype=np.float64)[index.order]
         self._tlist = np.flatnonzero(p > 0)
