@@ -301,6 +301,23 @@ def test_unknown_object_pose_is_refused(plate, monkeypatch, franky):
         explore_with_hardware(plate.capture, scenario.explorer(plate, cfg), cfg, 3, arm, sensor)
 
 
+@pytest.mark.parametrize("roll_deg, refused", [(50.0, False), (70.0, True)])
+def test_hardware_never_presses_beyond_its_tilt_limit(plate, monkeypatch, franky, roll_deg, refused):
+    # Without reach planning the tool's axis stays within max_tool_tilt_deg (60) of straight down: a
+    # plate turned 70 deg has its whole target beyond that and is refused before anything moves.
+    world = scenario.world(plate, monkeypatch)
+    cfg = scenario.robot_config(plate)
+    cfg = cfg.with_(object_pose=tuple(cfg.object_pose) + (roll_deg, 0.0, 0.0))
+    arm, sensor = make_hardware("franka", scenario.ROBOT_IP)
+    text = dry_run(arm, sensor, None, DryRunPlan(plate.capture, cfg, start=(0.03, 0.02, 0.0))) if not refused else None
+    if refused:
+        with pytest.raises(TergodicError, match="cannot follow the surface normal anywhere"):
+            explore_with_hardware(plate.capture, scenario.explorer(plate, cfg), cfg, 3, arm, sensor)
+        assert world.robot.moves == [] and world.robot._active is None and not arm.is_connected
+    else:
+        assert "dropped" not in text and "nothing was moved" in text
+
+
 # ------------------------------------------------------------------------------------------- dry run
 def test_dry_run_reads_everything_and_moves_nothing(plate, monkeypatch, franky, bota):
     from tergodic_cli.backends import make_camera

@@ -235,10 +235,20 @@ def explore_with_hardware(capture, explorer, robot_cfg, steps: int, arm, sensor,
     try:
         driver = StreamedArm(arm, sensor, robot_cfg, hw, pace)
         with ContactRun(capture, explorer, robot_cfg, driver, T_obj, on_event=on_event) as run:
+            _keep_within_tilt(run)
             return run.run(steps, on_step)
     finally:
         if driver is None:
             _disconnect(arm, sensor)
+
+
+def _keep_within_tilt(run: ContactRun) -> None:
+    """Without a reach planner here (it needs the simulator's chain and scene) the tool's axis stays
+    within ``max_tool_tilt_deg`` of straight down: where the normal lies beyond that the target is
+    dropped before contact, so the tool never presses at an angle (issue 15)."""
+    up = run.normals @ run.T_obj[:3, :3].T[:, 2]  # the normals' vertical component, base frame
+    run.reachable = up >= math.cos(math.radians(run.max_tilt_deg)) - 1e-9
+    run.drop_unreachable()
 
 
 def _disconnect(arm, sensor) -> None:
@@ -295,7 +305,9 @@ def dry_run(arm, sensor, camera, plan) -> str:
             explorer = plan.explorer if plan.explorer is not None else _StartAgent(plan.capture, plan.robot_cfg, plan.start)
             hw = plan.hw or HardwareRunConfig()
             run = ContactRun(plan.capture, explorer, plan.robot_cfg, _PlanArm(arm),
-                             object_pose(plan.capture, plan.robot_cfg, guess=False))
+                             object_pose(plan.capture, plan.robot_cfg, guess=False),
+                             on_event=lambda step, text: lines.append(f"plan: {text}"))
+            _keep_within_tilt(run)
             a, d = run._agent_line()
             T_hover = run._hover_pose(a, d)
             tgt = line_impedance_target(a, a, d, T_hover[:3, 0], run.F_d, hw.gains)

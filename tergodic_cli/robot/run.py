@@ -123,6 +123,7 @@ class ContactRun:
         from scipy.spatial import cKDTree
 
         self.cfg = cfg
+        self.capture = capture
         self.explorer = explorer
         self.arm = arm
         self.on_event = on_event or (lambda step, msg: None)
@@ -242,6 +243,28 @@ class ContactRun:
         """The line near (a, d) the ball presses along its own contact normal: through the contact, along -normal."""
         q, n = self._ball_contact(a, d)
         return q, -n
+
+    def target(self) -> np.ndarray:
+        """(N,) the target p the explorer works on (the capture's when it has none), capture order."""
+        p = getattr(self.explorer, "p", getattr(self.capture, "target", None))
+        return np.ones(len(self.points)) if p is None else np.asarray(p, dtype=float)
+
+    def drop_unreachable(self) -> None:
+        """Drop the target where the tool cannot follow the normal (:attr:`reachable` False) from the
+        explorer, saying so before any contact; refuse when none of the target is left."""
+        target = self.target()
+        total = float(target.sum())
+        kept = target * self.reachable
+        lost = 1.0 - float(kept.sum()) / total if total > 0 else 0.0
+        if lost <= 1e-3:
+            return
+        if float(kept.sum()) <= 0:
+            raise TergodicError("the tool cannot follow the surface normal anywhere on the target (the arm's wrist "
+                                "cannot reach those orientations)", "move or turn the object with --object-pose")
+        self.on_event(0, f"robot: {100 * lost:.0f} % of the target is where the tool cannot follow the normal "
+                         f"({100 * (1 - self.reachable.mean()):.0f} % of the surface); dropped from the target")
+        if hasattr(self.explorer, "set_target"):
+            self.explorer.set_target(kept)
 
     def _reachable_at(self, x_base: np.ndarray) -> bool:
         return bool(self.reachable[self.kdtree.query(self._to_obj(x_base))[1]])

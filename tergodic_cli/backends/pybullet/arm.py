@@ -427,11 +427,10 @@ class RobotRun(ContactRun):
     def _plan_reach(self, capture, pose_given: bool) -> None:
         """Choose the object pose (when not given), mark where the tool can follow the normal, and drop
         the rest of the target from the explorer (reach.plan_reach), saying so before any contact."""
-        from tergodic_cli.errors import TergodicError
         from tergodic_cli.robot.reach import plan_reach
 
         arm = self.arm
-        target = np.asarray(getattr(self.explorer, "p", getattr(capture, "target", np.ones(len(self.points)))), dtype=float)
+        target = self.target()
         T, self.reachable = plan_reach(arm.dev._chain, self.points, self.normals, target, self._x_down,
                                        np.array(self.cfg.picture_q), arm.q_min, arm.q_max,
                                        self.T_obj if pose_given else None, self.cfg.hover_height)
@@ -451,17 +450,7 @@ class RobotRun(ContactRun):
             self.on_event(0, "robot: no --object-pose given; the object stands on a 0.2 m stand, its footprint centre "
                              f"{float(np.hypot(*T[:2, 3])):.2f} m in front of the base, turned {yaw:.0f} deg so the arm "
                              f"reaches its target (object pose {_fmt(T[:3, 3])} m)")
-        total = float(target.sum())
-        kept = target * self.reachable
-        lost = 1.0 - float(kept.sum()) / total if total > 0 else 0.0
-        if lost > 1e-3:
-            if float(kept.sum()) <= 0:
-                raise TergodicError("the tool cannot follow the surface normal anywhere on the target (the arm's wrist "
-                                    "cannot reach those orientations)", "move or turn the object with --object-pose")
-            self.on_event(0, f"robot: {100 * lost:.0f} % of the target is where the tool cannot follow the normal "
-                             f"({100 * (1 - self.reachable.mean()):.0f} % of the surface); dropped from the target")
-            if hasattr(self.explorer, "set_target"):
-                self.explorer.set_target(kept)
+        self.drop_unreachable()
 
     @property
     def scene(self) -> PyBulletScene:
