@@ -107,6 +107,29 @@ def test_an_unreachable_region_is_reported_and_dropped(mug):
         RobotRun(cap, _explorer(cap, basis, cfg, target=target), cfg)
 
 
+def test_a_start_whose_hover_pose_is_out_of_reach_moves_to_the_next(mug):
+    """The reach map is sampled: where the start's hover pose fails the arm's own IK after all, that
+    place is marked out of reach and the nearest reachable target point beyond it is tried."""
+    import tergodic_cli.robot.run as R
+
+    cap, basis = mug
+    cfg = RobotConfig(force=5.0, **FAST)
+    events, tried = [], []
+    with RobotRun(cap, _explorer(cap, basis, cfg), cfg, on_event=lambda s, m: events.append(m)) as run:
+        reach = run.arm.reach
+
+        def failing_twice(T):
+            tried.append(T[:3, 3].copy())
+            return "inverse kinematics off by 9.0 mm" if len(tried) <= 2 else reach(T)
+
+        run.arm.reach = failing_twice
+        out = run.run(3)
+    assert out["stop_reason"] == "completed" and len(tried) >= 3
+    # each failed hover's place was dropped: the next start lies beyond TRANSIT_M of it
+    assert np.linalg.norm(tried[1] - tried[0]) > R.TRANSIT_M and np.linalg.norm(tried[2] - tried[1]) > R.TRANSIT_M
+    assert any("starting at the nearest reachable target point" in m for m in events)
+
+
 def test_a_joint_near_its_limit_marks_the_place_out_of_reach(mug, monkeypatch):
     """Where the arm's posture nears a joint limit in contact (the torus's far wall drove joint 6 past
     it), the place is marked out of reach: the tool waits there, the agent moves on, the tool moves

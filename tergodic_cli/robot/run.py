@@ -53,6 +53,8 @@ CONTACT_TILT_MAX_DEG = 15.0
 MAX_TURN_DEG = 3.0
 #: Degrees the surface normal may turn over an explorer step for the line to follow it faster than that.
 GENTLE_TURN_DEG = 5.0
+#: Start points tried (nearest reachable target first) before a start out of reach is refused.
+START_TRIES = 8
 #: Metres between the agent, back in reach, and the waiting tool beyond which the tool lifts and moves over.
 TRANSIT_M = 0.012
 #: Radians from a joint's limit (inside the guard's margin), and the share of its speed limit, at
@@ -259,8 +261,12 @@ class ContactRun:
         if lost <= 1e-3:
             return
         if float(kept.sum()) <= 0:
+            sim = "sim" in (getattr(self.capture, "meta", None) or {})  # the pose is the capture's: capture anew
             raise TergodicError("the tool cannot follow the surface normal anywhere on the target (the arm's wrist "
-                                "cannot reach those orientations)", "move or turn the object with --object-pose")
+                                "cannot reach those orientations)",
+                                "capture a side the arm can reach, e.g. a mug on a stand turned sideways: tergodic "
+                                "capture --source sim --object mug --object-pose 0.5,0,0.2,0,0,-90 --camera-pose "
+                                "0.5,-0.45,0.6,0.5,0,0.25" if sim else "move or turn the object with --object-pose")
         self.on_event(0, f"robot: {100 * lost:.0f} % of the target is where the tool cannot follow the normal "
                          f"({100 * (1 - self.reachable.mean()):.0f} % of the surface); dropped from the target")
         if hasattr(self.explorer, "set_target"):
@@ -368,21 +374,29 @@ class ContactRun:
     def _move_to_hover(self) -> None:
         cfg = self.cfg
         a, d = self._agent_line()
-        if not self._reachable_at(a):  # the nearest reachable target point (the first step moves the agent there)
-            ok = np.flatnonzero(self.reachable & (np.asarray(getattr(self.explorer, "p", self.reachable), float) > 0))
-            j = ok[np.argmin(np.linalg.norm(self.points_base[ok] - a, axis=1))]
-            self.on_event(self._step(), f"robot: the tool cannot follow the normal at the start {_fmt(a)} m; starting at "
-                                        f"the nearest reachable target point {_fmt(self.points_base[j])} m")
-            a = self.points_base[j]
-            d = -self._surface_normal(a)
-        T_hover = self._hover_pose(a, d)
-        if not self.guard.inside(T_hover[:3, 3]) or not self.guard.inside(a):
-            self._unreachable(f"the start point {_fmt(a)} m or its hover pose is outside the workspace box",
-                              "move the object with --object-pose, or choose another start")
-        err = self.arm.reach(T_hover)
+        start, err = a, None
+        for _ in range(START_TRIES):
+            if not self._reachable_at(a):  # the nearest reachable target point (the first step moves the agent there)
+                ok = np.flatnonzero(self.reachable & (self.target() > 0))
+                if len(ok) == 0:
+                    break
+                a = self.points_base[ok[np.argmin(np.linalg.norm(self.points_base[ok] - a, axis=1))]]
+                d = -self._surface_normal(a)
+            T_hover = self._hover_pose(a, d)
+            if not self.guard.inside(T_hover[:3, 3]) or not self.guard.inside(a):
+                self._unreachable(f"the start point {_fmt(a)} m or its hover pose is outside the workspace box",
+                                  "move the object with --object-pose, or choose another start")
+            err = self.arm.reach(T_hover)
+            if err is None:
+                break
+            # The reach map is sampled: where the hover pose is out of reach after all, mark it so.
+            self.reachable[np.asarray(self.kdtree.query_ball_point(self._to_obj(a), TRANSIT_M), dtype=np.intp)] = False
         if err is not None:
             self._unreachable(f"the robot cannot reach the hover pose above the agent at {_fmt(a)} m ({err})",
                               "move the object closer with --object-pose, or choose another start")
+        if a is not start:
+            self.on_event(self._step(), f"robot: the tool cannot follow the normal at the start {_fmt(start)} m; "
+                                        f"starting at the nearest reachable target point {_fmt(a)} m")
         self._start_line = (a, d)
         self._x_ref = T_hover[:3, 0].copy()
         self.arm.spin_ref = self._x_ref

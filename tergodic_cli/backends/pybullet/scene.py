@@ -120,8 +120,11 @@ class PyBulletScene:
 
     def __init__(self, sponge: SpongeSpec | None = None, gui: bool = False, dt: float = 1e-3,
                  solver_iterations: int = 10):
-        import pybullet as p
-        import pybullet_data
+        from tergodic_cli.backends.pybullet.camera import quiet_native_output
+
+        with quiet_native_output():  # PyBullet's build banner, printed from C at import
+            import pybullet as p
+            import pybullet_data
 
         self.p = p
         self.sponge = sponge or SpongeSpec()
