@@ -215,6 +215,24 @@ def test_start_off_the_surface_is_projected_with_a_warning_and_far_starts_are_re
                  (SPHERE_C + [0, 0, SPHERE_R + 0.1])[None])
 
 
+def test_a_target_on_parts_no_agent_starts_on_is_named(sphere):
+    # Two copies of the sphere 5 cm apart (a gap no agent crosses), the whole surface the target:
+    # one agent leaves half of it untouched, which the run says; one agent on each part does not.
+    pts, _ = sphere
+    two = np.vstack([pts, pts + [0.15, 0.0, 0.0]])
+    basis = compute_basis(two, 40, 30)
+    cfg = ExploreConfig(nk=40, agent_radius=0.012)
+    north = SPHERE_C + [0.0, 0.0, SPHERE_R]
+    msgs = []
+    Explorer(basis, np.ones(len(two)), cfg, north[None], on_event=msgs.append)
+    said = [m for m in msgs if "parts of the cloud no agent starts on" in m]
+    assert len(said) == 1 and said[0].startswith("warning: 50 % of the target")
+    msgs.clear()
+    Explorer(basis, np.ones(len(two)), ExploreConfig(nk=40, agent_radius=0.012, n_agents=2),
+             np.array([north, north + [0.15, 0.0, 0.0]]), on_event=msgs.append)
+    assert not any("no agent starts on" in m for m in msgs)
+
+
 def test_bad_targets_and_configs_are_refused(sphere):
     pts, basis = sphere
     ok = ExploreConfig(nk=80, agent_radius=0.012)

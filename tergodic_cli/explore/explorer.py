@@ -206,6 +206,13 @@ class Explorer:
                 self.on_event(f"warning: start {np.array2string(x0, precision=4)} is {d0 * 1e3:.1f} mm off the cloud; "
                           f"projected onto the surface at {np.array2string(self.positions[i], precision=4)}")
             self._to_target_part(i, hint)
+        parts = self._parts()
+        left = (self.p > 0) & ~np.isin(parts, [self._part_of(i) for i in range(N)])
+        share = float(self.mass[left] @ self.p[left]) / float(self.mass @ self.p)
+        if share > 0.01:  # an agent never crosses a gap: that share stays untouched
+            self.on_event(f"warning: {100 * share:.0f} % of the target lies on parts of the cloud no agent starts "
+                          f"on (gaps wider than {2 * K.SURFACE_REACH * self.h * 1e3:.1f} mm, which an agent never "
+                          "crosses); give more --agents, or capture those parts separately")
 
     def _to_target_part(self, i: int, hint: np.ndarray) -> None:
         """Move agent i to the target's part of the cloud when its start is on a part the agent
@@ -214,6 +221,20 @@ class Explorer:
         The parts (built once per cloud) join the points closer than 2 x SURFACE_REACH h, so an
         agent that stays within SURFACE_REACH h of the data can cross between any two points of
         one part and no others."""
+        parts, here = self._parts(), self._part_of(i)
+        if np.any(self.p[parts == here] > 0):
+            return
+        reachable = np.flatnonzero(np.isin(parts, np.unique(parts[self.p > 0])))
+        x = self.positions[i].copy()
+        j = reachable[np.argmin(np.linalg.norm(self.points[reachable] - x, axis=1))]
+        K.place_agent(self._P, *self._tree, self._full.tree, self._ag, self._nbrs, i, self.points[j].copy(), hint,
+                      self._k, self._prm[K.PR_REACH])
+        self.on_event(f"warning: start {np.array2string(x, precision=4)} is on a part of the cloud the target is not on "
+                  f"(a gap wider than {2 * K.SURFACE_REACH * self.h * 1e3:.1f} mm); starting at the nearest point "
+                  f"of the target's part, {np.linalg.norm(self.points[j] - x) * 1e3:.1f} mm away")
+
+    def _parts(self) -> np.ndarray:
+        """(n,) the cloud's parts (built once per cloud): its points joined closer than 2 x SURFACE_REACH h."""
 
         def parts_of_cloud():
             from scipy.sparse import coo_matrix
@@ -225,18 +246,11 @@ class Explorer:
             graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
             return connected_components(graph, directed=False)[1]
 
-        parts = cached("parts", self.points, parts_of_cloud)
-        here = parts[self._field.sel[self._order[self._nbrs[i, 0]]]]
-        if np.any(self.p[parts == here] > 0):
-            return
-        reachable = np.flatnonzero(np.isin(parts, np.unique(parts[self.p > 0])))
-        x = self.positions[i].copy()
-        j = reachable[np.argmin(np.linalg.norm(self.points[reachable] - x, axis=1))]
-        K.place_agent(self._P, *self._tree, self._full.tree, self._ag, self._nbrs, i, self.points[j].copy(), hint,
-                      self._k, self._prm[K.PR_REACH])
-        self.on_event(f"warning: start {np.array2string(x, precision=4)} is on a part of the cloud the target is not on "
-                  f"(a gap wider than {2 * K.SURFACE_REACH * self.h * 1e3:.1f} mm); starting at the nearest point "
-                  f"of the target's part, {np.linalg.norm(self.points[j] - x) * 1e3:.1f} mm away")
+        return cached("parts", self.points, parts_of_cloud)
+
+    def _part_of(self, i: int) -> int:
+        """The part of the cloud agent i stands on."""
+        return int(self._parts()[self._field.sel[self._order[self._nbrs[i, 0]]]])
 
     # ------------------------------------------------------------------ target and state
     def set_target(self, target: np.ndarray, reset_coverage: bool = False) -> None:
