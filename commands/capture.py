@@ -32,6 +32,7 @@ def capture(
     voxel_rule: str = typer.Option("fraction", "--voxel-rule", help="p per voxel: 'fraction' of target points (default), 'all' (target only if every point is; the authors' code), or 'intensity' (mean ink intensity: faint ink counts; needs a noise-free colour, e.g. --source sim)."),
     crop: Optional[str] = typer.Option(None, "--crop", help="Passthrough box xmin,ymin,zmin,xmax,ymax,zmax in metres."),
     outliers: Optional[str] = typer.Option(None, "--outliers", help="Statistical outlier removal NB,STD, e.g. 20,2.0."),
+    keep_isolated: bool = typer.Option(False, "--keep-isolated", help="Keep stray points (by default a point with fewer than 2 others within 8 median spacings, a flying pixel, is dropped after the voxel grid)."),
     target: str = typer.Option("red", "--target", help="Target colour: red, green, blue, yellow, orange, magenta, cyan, black, white; hsv:H1-H2,SMIN,VMIN; or 'all' for uniform coverage."),
     units: str = typer.Option("m", "--units", help="Units of the input coordinates (the cloud file, or the sim .obj): m or mm."),
     drop_invalid: bool = typer.Option(False, "--drop-invalid", help="Drop NaN/inf points instead of refusing the cloud."),
@@ -85,13 +86,15 @@ def capture(
         voxel_rule=voxel_rule,
         crop=parse_floats(crop, 6, "--crop", "-0.2,-0.2,0,0.2,0.2,0.3") if crop else None,
         outliers=_parse_outliers(outliers) if outliers else None,
+        drop_isolated=not keep_isolated,
         target=target,
         drop_invalid=drop_invalid,
         colour_depth=colour_depth,
         max_points=max_points,
     )
     if saved is not None:  # the saved capture, with the options given on this command line on top
-        cfg = override(saved, cfg, given, {"from_file": ("path",), "sim_object": ("path", "synthetic")})
+        cfg = override(saved, cfg, given, {"from_file": ("path",), "sim_object": ("path", "synthetic"),
+                                              "keep_isolated": ("drop_isolated",)})
     from tergodic_cli.atomic import write_png
     from tergodic_cli.capture.artefact import check_out_folder
 

@@ -157,6 +157,28 @@ def test_summary_reports_stages_share_spacing_and_extent(tmp_path, bowl):
     assert 0 < side["target"]["share"] < 0.5
 
 
+def test_stray_points_are_dropped_unless_kept(tmp_path, bowl):
+    # 40 flying pixels scattered 0.2-0.4 m from the bowl: dropped, every one of them and nothing
+    # else, so h is the bowl's own; --keep-isolated keeps them. (No voxel grid: strays move its origin.)
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(40, 3))
+    stray = bowl.points.mean(0) + u / np.linalg.norm(u, axis=1, keepdims=True) * rng.uniform(0.2, 0.4, (40, 1))
+    pts = np.vstack([bowl.points, stray])
+    cols = np.vstack([bowl.colors, np.full((40, 3), 0.5)])
+    np.savez(tmp_path / "s.npz", points=pts, colors=cols)
+    np.savez(tmp_path / "clean.npz", points=bowl.points, colors=bowl.colors)
+    for name in ("s", "clean"):
+        assert run_cli("capture", "--from", tmp_path / f"{name}.npz", "--voxel", "0", "--out", tmp_path / name).code == 0
+    res = run_cli("capture", "--from", tmp_path / "s.npz", "--voxel", "0", "--keep-isolated", "--out", tmp_path / "kept")
+    assert res.code == 0, res.err
+    clean, dropped, kept = (load_capture(tmp_path / n) for n in ("clean", "s", "kept"))
+    assert dropped.n_points == clean.n_points and kept.n_points == clean.n_points + 40
+    assert np.array_equal(dropped.points, clean.points)
+    assert dropped.meta["spacing_h_m"] == clean.meta["spacing_h_m"] < kept.meta["spacing_h_m"]
+    assert [f["stage"] for f in dropped.meta["filters"]][-1] == "isolated"
+    assert [f["stage"] for f in clean.meta["filters"]] == ["input"]  # a clean cloud loses none
+
+
 # ---- bad input: one line, exit 2, no traceback, nothing partial written -------------------------
 
 def _bad(tmp_path, *args, needles=()):

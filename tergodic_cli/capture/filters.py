@@ -6,6 +6,10 @@ from __future__ import annotations
 import numpy as np
 
 VOXEL_RULES = ("fraction", "all", "intensity")
+#: A point with fewer than ISOLATED_MIN others within ISOLATED_RADIUS median nearest-neighbour
+#: distances is a stray point (a flying pixel): dropped by default, since it inflates the spacing h
+#: and ties far-apart points together in the Laplacian.
+ISOLATED_RADIUS, ISOLATED_MIN = 8.0, 2
 
 
 def remove_statistical_outliers(points: np.ndarray, nb_neighbors: int, std_ratio: float) -> np.ndarray:
@@ -97,3 +101,25 @@ def mean_spacing(points: np.ndarray, k: int = 3) -> float:
     pts = np.ascontiguousarray(points, dtype=np.float64)
     dists, _ = cKDTree(pts).query(pts, k=k + 1)  # the first neighbour is the point itself
     return float(dists[:, 1:].mean())
+
+
+def isolated_points(points: np.ndarray) -> np.ndarray:
+    """Mask (n,) of stray points: fewer than ISOLATED_MIN other points within ISOLATED_RADIUS times
+    the cloud's median nearest-neighbour distance.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Metres.
+
+    Returns
+    -------
+    (n,) bool
+        True for the stray points.
+    """
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(points)
+    d, _ = tree.query(points, k=2)
+    r = ISOLATED_RADIUS * float(np.median(d[:, 1]))
+    return tree.query_ball_point(points, r, return_length=True) - 1 < ISOLATED_MIN

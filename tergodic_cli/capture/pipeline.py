@@ -1,4 +1,4 @@
-"""The capture pipeline: read -> units -> validity -> passthrough -> outliers -> segment -> voxel.
+"""The capture pipeline: read -> units -> validity -> passthrough -> outliers -> segment -> voxel -> isolated.
 
 Segmentation runs on the raw points, before the voxel grid, so that the default
 voxel rule can give p as the share of target-coloured points in each voxel.
@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from tergodic_cli.capture.artefact import CAPTURE_CONFIG_KIND, Capture
-from tergodic_cli.capture.filters import (VOXEL_RULES, mean_spacing, remove_statistical_outliers,
-                                          voxel_downsample)
+from tergodic_cli.capture.filters import (ISOLATED_MIN, VOXEL_RULES, isolated_points, mean_spacing,
+                                          remove_statistical_outliers, voxel_downsample)
 from tergodic_cli.capture.segment import parse_target, target_weight
 from tergodic_cli.config import Config
 from tergodic_cli.errors import TergodicError, require
@@ -50,6 +50,7 @@ class CaptureConfig(Config):
     voxel_rule: str = "fraction"  # "fraction" | "all" | "intensity" (faint ink weighs in too; the closed loop's)
     crop: tuple[float, float, float, float, float, float] | None = None  # xmin,ymin,zmin,xmax,ymax,zmax (m)
     outliers: tuple[int, float] | None = None  # (nb_neighbors, std_ratio)
+    drop_isolated: bool = True  # stray points (filters.isolated_points), after the voxel grid
     target: str = "red"
     drop_invalid: bool = False
     colour_depth: int | None = None  # 8 or 16 bits per channel when the file does not say; None: by the values
@@ -172,6 +173,12 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
         n_unique = len(np.unique(points, axis=0))
         require(n_unique == len(points), f"the cloud has {len(points) - n_unique} duplicate points",
                 "merge them with a voxel filter (--voxel 0.003) or remove them from the file")
+    if cfg.drop_isolated and len(points) > ISOLATED_MIN:
+        lone = isolated_points(points)
+        if lone.any():
+            points, p = points[~lone], p[~lone]
+            colors = colors[~lone] if colors is not None else None
+            stages.append(("isolated", len(points)))
     require(len(points) >= MIN_POINTS, f"only {len(points)} points remain after filtering",
             "use a smaller --voxel or a wider --crop")
     n_target = int((p > 0).sum())
