@@ -269,8 +269,13 @@ class _Reader:
         if usize != points * dtype.itemsize:
             self.fail("body", f"the compressed block holds {usize} bytes but POINTS {points} needs {points * dtype.itemsize}",
                       _FIX_PCD_COUNT)
-        raw = _lzf_decompress(self.blob[pos + 8:pos + 8 + csize], usize)
-        if raw is None:
+        import lzf  # python-neo-lzf: liblzf, as PCL writes it
+
+        try:
+            raw = lzf.decompress(self.blob[pos + 8:pos + 8 + csize], usize)
+        except ValueError:
+            raw = None
+        if raw is None or len(raw) != usize:
             self.fail("body", "the compressed block is corrupt")
         rec = np.empty(points, dtype=dtype)
         off = 0
@@ -461,34 +466,6 @@ def _int(text: str) -> int | None:
     return int(text) if re.fullmatch(r"[+-]?\d+", text or "") else None
 
 
-def _lzf_decompress(data: bytes, size: int) -> bytes | None:
-    """LZF (liblzf) decompression in pure Python; None when the stream is corrupt."""
-    out = bytearray()
-    i, n = 0, len(data)
-    try:
-        while i < n:
-            ctrl = data[i]
-            i += 1
-            if ctrl < 32:
-                out += data[i:i + ctrl + 1]
-                i += ctrl + 1
-            else:
-                length = ctrl >> 5
-                if length == 7:
-                    length += data[i]
-                    i += 1
-                ref = len(out) - ((ctrl & 0x1F) << 8) - data[i] - 1
-                i += 1
-                if ref < 0:
-                    return None
-                for _ in range(length + 2):
-                    out.append(out[ref])
-                    ref += 1
-    except IndexError:
-        return None
-    return bytes(out) if len(out) == size else None
-
-
 def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None) -> None:
     """Write a binary little-endian PLY (double xyz, uchar rgb), the reference clouds' layout.
 
@@ -503,17 +480,13 @@ def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None) -
     colors : (n, 3) float or None
         In [0, 1].
     """
-    props = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
-    columns = [points[:, 0], points[:, 1], points[:, 2]]
+    columns = {a: points[:, i].astype("<f8") for i, a in enumerate("xyz")}
     if colors is not None:
-        props += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-        columns += list(np.clip(np.rint(colors * 255.0), 0, 255).astype(np.uint8).T)
-    rec = np.empty(len(points), dtype=props)
-    for (name, _), column in zip(props, columns):
-        rec[name] = column
+        rgb = np.clip(np.rint(colors * 255.0), 0, 255).astype(np.uint8)
+        columns.update(red=rgb[:, 0], green=rgb[:, 1], blue=rgb[:, 2])
+    rec = np.rec.fromarrays(list(columns.values()), names=list(columns))  # packed, in this order
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
-    header += [f"property {'double' if t == '<f8' else 'uchar'} {name}" for name, t in props]
-    header.append("end_header")
+    header += [f"property {'double' if c.dtype == '<f8' else 'uchar'} {n}" for n, c in columns.items()]
     with open(path, "wb") as fh:
-        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(("\n".join(header) + "\nend_header\n").encode("ascii"))
         fh.write(rec.tobytes())
