@@ -9,7 +9,6 @@ from __future__ import annotations
 import platform
 import signal
 import sys
-from importlib import metadata
 
 import typer
 
@@ -33,25 +32,20 @@ app = typer.Typer(
     context_settings={"help_option_names": ["-h", "--help"]},
 )
 
-#: The libraries whose versions ``--version`` prints (distribution names; the first one installed counts).
-LIBRARIES = (("numpy",), ("scipy",), ("open3d", "open3d-cpu"), ("robust_laplacian", "robust-laplacian"),
-             ("pybullet",), ("numba",), ("mcap",))
+#: The libraries whose versions ``--version`` prints (an alias distribution is named: open3d-cpu).
+LIBRARIES = ("numpy", "scipy", "open3d", "robust_laplacian", "pybullet", "numba", "mcap")
 
 
 def version_text() -> str:
     """``tergodic --version``: this package's version, then the key libraries' (from their metadata, no imports)."""
     from tergodic_cli import __version__
+    from tergodic_cli.provenance import installed
 
     lines = [f"tergodic {__version__} (Python {platform.python_version()}, {platform.system()} {platform.machine()})"]
-    for names in LIBRARIES:
-        found = "not installed"
-        for dist in names:
-            try:
-                found = metadata.version(dist) + (f" ({dist})" if dist != names[0] else "")
-                break
-            except metadata.PackageNotFoundError:
-                continue
-        lines.append(f"  {names[0]} {found}")
+    for name in LIBRARIES:
+        found = installed(name)
+        text = "not installed" if found is None else found[0] + (f" ({found[1]})" if found[1] != name else "")
+        lines.append(f"  {name} {text}")
     return "\n".join(lines)
 
 
