@@ -36,8 +36,8 @@ from tergodic_cli.basis.core import Basis, compute_basis
 from tergodic_cli.capture.artefact import SIDECAR_SHA, sidecar_checksum
 from tergodic_cli.config import CONFIG_FILE, Config, write_config
 
-__all__ = ["BasisConfig", "CacheMiss", "load_basis_config", "array_checksum", "default_cache_dir", "geometry_key", "get_basis",
-           "read_checked"]
+__all__ = ["BasisConfig", "CacheMiss", "load_basis_config", "array_checksum", "default_cache_dir", "geometry_key",
+           "get_basis"]
 
 QUANTUM_M = 1e-6
 _DEGENERATE = 1e-7
@@ -95,23 +95,9 @@ def default_cache_dir() -> Path:
     return Path(base) / "tergodic"
 
 
-def canonical_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
-    """The cloud's canonical frame: principal axes, each signed by its third moment.
-
-    Parameters
-    ----------
-    points : (n, 3) float
-        Metres.
-
-    Returns
-    -------
-    centroid : (3,) float
-        Metres.
-    R : (3, 3) float
-        Rotation whose rows are the canonical axes.
-    invariant : bool
-        Whether the frame is well defined (rigid-motion invariant).
-    """
+def _canonical_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Centroid, rotation R whose rows are the principal axes each signed by its third moment,
+    and whether that frame is well defined (rigid-motion invariant)."""
     centroid = points.mean(axis=0)
     centred = points - centroid
     cov = centred.T @ centred / len(points)
@@ -130,15 +116,9 @@ def canonical_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
 
 
 def _canonical_order(q: np.ndarray) -> tuple[np.ndarray, bytes]:
-    """An order sorting the integer coordinates q (n, 3) lexicographically (x, then y, then z),
-    and bytes that identify the sorted coordinates (hashed into the key).
-
-    When every axis spans fewer than 2**21 quanta (2.1 m) the three coordinates are packed
-    into one int64 and sorted once (numpy's SIMD sort: 10x faster than ``np.lexsort``);
-    the bytes are the offsets and the sorted packed keys. Points that quantise to the same
-    µm cell tie, and their relative order is whatever the sort gives (deterministic for a
-    given input).
-    """
+    """An order sorting the integer coordinates q (n, 3) by x, y then z, and bytes identifying
+    the sorted coordinates. Spans under 2**21 quanta pack into one int64 and sort once (10x
+    faster than ``np.lexsort``); points in the same µm cell keep the sort's (deterministic) order."""
     lo = q.min(axis=0)
     span = q.max(axis=0) - lo
     if len(q) and np.all(span < (1 << _BITS)):
@@ -170,7 +150,7 @@ def geometry_key(points: np.ndarray, cfg: BasisConfig) -> tuple[str, np.ndarray,
     canon : (n, 3) float
         The canonical coordinates, metres, in canonical order.
     """
-    centroid, R, invariant = canonical_frame(points)
+    centroid, R, invariant = _canonical_frame(points)
     canon = (points - centroid) @ R.T if invariant else points
     q = np.rint(canon / QUANTUM_M).astype(np.int64)
     order, identity = _canonical_order(q)
@@ -216,26 +196,8 @@ def array_checksum(a: np.ndarray) -> str:
     return h.hexdigest()
 
 
-def read_checked(path: Path, expected: str | None) -> np.ndarray:
-    """Read a ``.npy`` file and check its checksum; never unpickles.
-
-    Parameters
-    ----------
-    path : Path
-        A ``.npy`` file of a cache entry.
-    expected : str or None
-        Its checksum (:func:`array_checksum`).
-
-    Returns
-    -------
-    ndarray
-        The array.
-
-    Raises
-    ------
-    CacheMiss
-        unreadable, truncated, an object dtype, or a checksum mismatch.
-    """
+def _read_checked(path: Path, expected: str | None) -> np.ndarray:
+    """A ``.npy`` of an entry, never unpickled; CacheMiss when unreadable or its checksum differs."""
     try:
         a = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError, TypeError) as exc:
@@ -299,7 +261,7 @@ def _load_entry(entry: Path, points: np.ndarray, order: np.ndarray, canon: np.nd
         raise CacheMiss("basis.json was edited or is from an older tergodic (its checksum does not match)")
     if set(checksums) != set(_ARRAY_NAMES):
         raise CacheMiss("checksum mismatch (corrupt or modified)")
-    arrays = {name: read_checked(entry / f"{name}.npy", checksums[name]) for name in _ARRAY_NAMES}
+    arrays = {name: _read_checked(entry / f"{name}.npy", checksums[name]) for name in _ARRAY_NAMES}
     # Guard against key collisions: the cached geometry must be this geometry.
     cached = arrays["canonical_points"]
     if cached.shape != canon.shape or np.abs(cached - canon).max() > 10 * QUANTUM_M:

@@ -42,18 +42,8 @@ class EigensolverFailure(RuntimeError):
 # Pieces
 
 
-def component_null_basis(L: sp.spmatrix, sqrt_mass: np.ndarray) -> np.ndarray:
-    """Orthonormal null vectors of A = S⁻¹ L S⁻¹, one per connected component.
-
-    Parameters
-    ----------
-    L : (n, n) sparse, symmetric, zero row sums.
-    sqrt_mass : (n,) √diag(M).
-
-    Returns
-    -------
-    Z : (n, c) float64, column i is s restricted to component i, unit norm.
-    """
+def _null_basis(L: sp.spmatrix, sqrt_mass: np.ndarray) -> np.ndarray:
+    """Orthonormal null vectors Z (n, c) of A = S⁻¹ L S⁻¹: s on each connected component."""
     from scipy.sparse.csgraph import connected_components
 
     graph = sp.csr_matrix(L, copy=True)
@@ -147,24 +137,11 @@ class ShiftedMatrix:
         return sp.csc_matrix((data, self.A.indices, self.A.indptr), shape=self.A.shape)
 
 
-def choose_shift(A: "ShiftedMatrix", area: float, n_wanted: int, n_null: int,
-                 max_tries: int = 4) -> tuple[float, SymmetricFactor]:
-    """A shift σ with about ``SHIFT_SHARE`` of the ``n_wanted`` non-zero eigenvalues below it.
-
-    Starts from Weyl's law for a surface (λ_k ≈ 4πk / area), then corrects with the
-    exact count below σ from each factorisation's inertia, assuming N(λ) ∝ λ (2-D).
-
-    Parameters
-    ----------
-    A : the symmetric form S⁻¹ L S⁻¹ (n, n), as a :class:`ShiftedMatrix`.
-    area : total area Σ M (m²).
-    n_wanted : wanted non-zero eigenvalues.
-    n_null : dimension of the null space (connected components).
-
-    Returns
-    -------
-    sigma, factor of A − σ I (``n_negative`` = n_null + eigenvalues in (0, σ)).
-    """
+def _choose_shift(A: "ShiftedMatrix", area: float, n_wanted: int, n_null: int,
+                  max_tries: int = 4) -> tuple[float, SymmetricFactor]:
+    """σ with about ``SHIFT_SHARE`` of the ``n_wanted`` non-zero eigenvalues below it, and the
+    factor of A − σI: Weyl's law for a surface (λ_k ≈ 4πk / area) first, then corrected by
+    each factor's inertia (the exact count below σ), assuming N(λ) ∝ λ (2-D)."""
     target = max(1.0, SHIFT_SHARE * n_wanted)
     sigma = 4.0 * math.pi * (n_wanted + n_null) / area * SHIFT_SHARE * 0.75
     best = None
@@ -364,7 +341,7 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
     L = sp.csr_matrix(L)
     n = L.shape[0]
     s = np.sqrt(mass)
-    Z = component_null_basis(L, s)
+    Z = _null_basis(L, s)
     c = Z.shape[1]
     report["components"] = c
     ne = nk - c
@@ -374,7 +351,7 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
     A = L.tocoo()
     A = ShiftedMatrix(sp.csc_matrix((A.data / (s[A.row] * s[A.col]), (A.row, A.col)), shape=L.shape))  # S⁻¹ L S⁻¹
     if interior_shift:
-        sigma, factor = choose_shift(A, float(mass.sum()), ne, c)
+        sigma, factor = _choose_shift(A, float(mass.sum()), ne, c)
     else:
         # 1 % of Weyl's first non-zero eigenvalue below zero: A − σI is positive definite.
         sigma = -0.01 * 4.0 * math.pi / float(mass.sum())
@@ -442,32 +419,12 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
     return evals, evecs
 
 
-def dense_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, report: dict | None = None):
-    """LAPACK on the dense symmetric form, null space deflated exactly (small clouds).
-
-    Parameters
-    ----------
-    L : (n, n) sparse
-        The Laplacian.
-    mass : (n,) float
-        Lumped mass, m².
-    nk : int
-        Eigenpairs wanted.
-    report : dict, optional
-        Filled with the method and its checks.
-
-    Returns
-    -------
-    evals : (nk,) float
-        Ascending, 1/m².
-    evecs : (n, nk) float
-        Φᵀ M Φ = I.
-    """
+def _dense_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, report: dict):
+    """LAPACK on the dense symmetric form, null space deflated exactly (small clouds)."""
     from scipy.linalg import eigh
 
-    report = {} if report is None else report
     s = np.sqrt(mass)
-    Z = component_null_basis(L, s)
+    Z = _null_basis(L, s)
     c = Z.shape[1]
     report.update(method="dense", components=c)
     ne = nk - c
@@ -559,7 +516,7 @@ def smallest_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int 
     n = L.shape[0]
     attempts = []
     if n <= DENSE_MAX_N or (3 * nk >= n and n <= DENSE_CAP_N):
-        attempts.append(("dense", lambda: dense_eigenpairs(L, mass, nk, report)))
+        attempts.append(("dense", lambda: _dense_eigenpairs(L, mass, nk, report)))
     else:
         attempts.append(("lanczos", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed,
                                                                report=report)))
