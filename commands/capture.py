@@ -64,15 +64,19 @@ def capture(
       tergodic capture --config cap/config.json --seed 3 --out cap2/
     """
     from tergodic_cli.capture import CaptureConfig, capture_cloud, save_capture
-    from tergodic_cli.capture.pipeline import format_report, load_capture_config, resolve_source
-    from tergodic_cli.config import override
+    from tergodic_cli.capture.artefact import CAPTURE_CONFIG_KIND
+    from tergodic_cli.config import override, read_config
 
     given = given_options(ctx)
-    saved, sections = load_capture_config(config) if config is not None else (None, {})
+    saved, sections = None, {}  # sections: the saved object and camera of a simulated capture
+    if config is not None:
+        sections = read_config(config, CAPTURE_CONFIG_KIND,
+                               "give the config.json that 'tergodic capture' wrote beside a capture")
+        saved = CaptureConfig.from_dict(sections.get("capture"), f"--config {config}: capture")
     if saved is not None and not given & {"source", "from_file", "synthetic", "sim_object"}:
         kind = saved.source
     else:
-        kind = resolve_source(source, from_file, synthetic, sim_object)
+        kind = _resolve_source(source, from_file, synthetic, sim_object)
     cfg = CaptureConfig(
         source=kind,
         path=str(from_file) if from_file is not None else (sim_object if kind == "sim" and sim_object not in _BUILTIN else None),
@@ -137,7 +141,7 @@ def capture(
     if json_out:
         typer.echo(json.dumps(cap.meta, indent=2))
         return
-    typer.echo(format_report(cap))
+    typer.echo(_report(cap.meta))
     if kind == "realsense":
         r = cap.meta["realsense"]
         typer.echo(f"realsense {r['name']} ({r['serial']}): {r['intrinsics']['width']}x{r['intrinsics']['height']}, "
@@ -151,6 +155,40 @@ def capture(
 
 
 _BUILTIN = ("bowl", "plate", "mug")
+_SOURCES = ("file", "synthetic", "sim", "realsense")
+
+
+def _resolve_source(source: str | None, from_file, synthetic, sim_object) -> str:
+    """``--source``, or the one of --from / --synthetic / --object given; one line when it is
+    missing, unknown or conflicting."""
+    from tergodic_cli.errors import require
+
+    given = [name for name, value in (("file", from_file), ("synthetic", synthetic), ("sim", sim_object)) if value is not None]
+    usage = "use --from FILE, --synthetic OBJECT (see --help) or --source sim --object bowl|plate|mug|FILE.obj"
+    if source is None:
+        require(len(given) == 1, "give exactly one source", usage)
+        return given[0]
+    require(source in _SOURCES, f"unknown --source '{source}'", f"use one of {', '.join(_SOURCES)}")
+    others = [g for g in given if g != source]
+    require(not others, f"--source {source} does not go with "
+            f"{', '.join('--' + {'file': 'from', 'sim': 'object'}.get(g, g) for g in others)}", usage)
+    require(source != "file" or from_file is not None, "--source file needs --from FILE", usage)
+    require(source != "synthetic" or synthetic is not None, "--source synthetic needs --synthetic OBJECT", usage)
+    return source
+
+
+def _report(m: dict) -> str:
+    """The capture's stages with their counts, target share, spacing and extent."""
+    lines = ["stage               points"]
+    lines += [f"  {f['stage']:<17} {f['points']:>7}" for f in m["filters"]]
+    t = m["target"]
+    ext = " x ".join(f"{e * 1e3:.1f}" for e in m["extent_m"])
+    lines += [
+        f"target '{t['spec']}' ({t['voxel_rule']}): {m['counts']['target']} of {m['counts']['output']} points ({100 * t['share']:.1f}%)",
+        f"mean spacing h: {m['spacing_h_m'] * 1e3:.3f} mm    extent: {ext} mm",
+    ]
+    return "\n".join(lines)
+
 
 def _parse_outliers(text: str) -> tuple[int, float]:
     nb, std = parse_floats(text, 2, "--outliers", "20,2.0")

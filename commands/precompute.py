@@ -38,11 +38,14 @@ def precompute(
 
     bcfg = BasisConfig(nk=nk, neighbors=neighbors)
     if config is not None:  # the saved config, with --nk / --neighbors given on this command line on top
-        from tergodic_cli.basis.cache import load_basis_config
+        from tergodic_cli.basis.cache import BASIS_CONFIG_KIND
         from tergodic_cli.commands._common import given_options
-        from tergodic_cli.config import override
+        from tergodic_cli.config import override, read_config
 
-        bcfg = override(load_basis_config(config), bcfg, given_options(ctx) & {"nk", "neighbors"})
+        d = read_config(config, BASIS_CONFIG_KIND,
+                        "give the config.json of a basis cache entry (see 'tergodic precompute --json')")
+        saved = BasisConfig.from_dict(d.get("basis"), f"--config {config}: basis")
+        bcfg = override(saved, bcfg, given_options(ctx) & {"nk", "neighbors"})
     cap = load_capture(capture)
     check_size(capture, cap.n_points, max_points)
     basis, hit = get_basis(cap.points, bcfg, cache_dir, force=force, on_event=echo_err)

@@ -36,7 +36,7 @@ from tergodic_cli.basis.core import Basis, compute_basis
 from tergodic_cli.capture.artefact import SIDECAR_SHA, sidecar_checksum
 from tergodic_cli.config import CONFIG_FILE, Config, write_config
 
-__all__ = ["BasisConfig", "CacheMiss", "load_basis_config", "array_checksum", "default_cache_dir", "geometry_key",
+__all__ = ["BasisConfig", "CacheMiss", "array_checksum", "default_cache_dir", "geometry_key",
            "get_basis"]
 
 QUANTUM_M = 1e-6
@@ -61,24 +61,6 @@ class BasisConfig(Config):
     nk: int = 200
     neighbors: int = 30
     solver: str = "lanczos-interior-shift"
-
-
-def load_basis_config(path: str | Path) -> BasisConfig:
-    """Read a basis entry's ``config.json``.
-
-    Parameters
-    ----------
-    path : str or Path
-        ``<cache>/basis/<key>/config.json``.
-
-    Returns
-    -------
-    BasisConfig
-    """
-    from tergodic_cli.config import read_config
-
-    d = read_config(path, BASIS_CONFIG_KIND, "give the config.json of a basis cache entry (see 'tergodic precompute --json')")
-    return BasisConfig.from_dict(d.get("basis"), f"--config {path}: basis")
 
 
 def default_cache_dir() -> Path:
