@@ -9,9 +9,14 @@ from typing import Iterable, Iterator, TypeVar
 T = TypeVar("T")
 
 
-def progress_enabled() -> bool:
-    """Bars are on unless ``TERGODIC_NO_PROGRESS`` is set."""
-    return not os.environ.get("TERGODIC_NO_PROGRESS")
+def _console():
+    """The stderr console of bars and spinners; None when off or not a terminal (a file, a pipe)."""
+    if os.environ.get("TERGODIC_NO_PROGRESS"):
+        return None
+    from rich.console import Console
+
+    console = Console(file=sys.stderr)
+    return console if console.is_terminal else None
 
 
 #: The rich consoles of the bars and spinners on screen now, innermost last (see :func:`echo`).
@@ -34,16 +39,12 @@ def track(iterable: Iterable[T], total: int | None = None, description: str = ""
     ``weight(item)``: how many units an item completes (default 1), e.g. the runs in a batch, so the
     bar counts what the user was told about. It is applied after the item's loop body.
     """
-    if not progress_enabled():
+    console = _console()
+    if console is None:
         yield from iterable
         return
-    from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    console = Console(file=sys.stderr)
-    if not console.is_terminal:  # no animation in a file or pipe, and rich would leave a blank line
-        yield from iterable
-        return
     columns = (
         TextColumn("[progress.description]{task.description}"),
         BarColumn(),
@@ -70,12 +71,8 @@ class Spinner:
         self._status = None
 
     def __enter__(self) -> "Spinner":
-        if progress_enabled():
-            from rich.console import Console
-
-            console = Console(file=sys.stderr)
-            if not console.is_terminal:
-                return self
+        console = _console()
+        if console is not None:
             self._status = console.status(self.description)
             self._status.__enter__()
             _LIVE.append(console)
