@@ -16,6 +16,7 @@ import re
 from pathlib import Path
 
 import numpy as np
+from numpy.lib.recfunctions import structured_to_unstructured
 
 from tergodic_cli.errors import TergodicError
 
@@ -161,10 +162,7 @@ class _Reader:
         if not any(p[0] == "list" for e in after for p in e[2]):
             rest = sum(count * row_dtype(props).itemsize for _, count, props, _ in after)
         label = ("vertices", f"{n} vertices", "'element vertex'", _FIX_PLY_COUNT)
-        rec = self._records(offset, dtype, n, label, rest)
-        table = np.empty((n, len(dtype.names)))
-        for j, name in enumerate(dtype.names):
-            table[:, j] = rec[name]
+        table = structured_to_unstructured(self._records(offset, dtype, n, label, rest), np.float64)
         props = elements[vi][2]
         return table, lambda i, j: f"vertex {i}" + (f" ('{props[j][1]}')" if j is not None else "")
 
@@ -246,9 +244,7 @@ class _Reader:
                 rec = self._records(pos, dtype, points, label, 0)
             else:
                 rec = self._pcd_compressed(pos, dtype, points)
-            table = np.empty((points, len(kinds)))
-            for j in range(len(kinds)):
-                table[:, j] = rec[f"f{j}"]
+            table = structured_to_unstructured(rec, np.float64)
             if packed is not None:
                 bits = rec[f"f{names.index(packed)}"].view(np.uint32)
             where = lambda i, j: f"point {i}" + (f" ('{names[j]}')" if j is not None else "")
