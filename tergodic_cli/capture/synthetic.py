@@ -186,27 +186,23 @@ def _plate_profile(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return PLATE_LIFT * t**2, 2 * PLATE_LIFT * t / PLATE_RIM
 
 
-def _plate_sheet(r, theta, n):
-    z, slope = _plate_profile(r)
-    c, s = np.cos(theta), np.sin(theta)
-    pts = np.column_stack([r * c, r * s, z])
-    normals = _unit(np.column_stack([-slope * c, -slope * s, np.ones(n)]))
-    return _Sheet(pts, normals, pts[:, :2], np.ones(n, bool), PLATE_FLAT + PLATE_RIM)
-
-
 def _plate(rng, spacing):
     outer = PLATE_FLAT + PLATE_RIM
     n = _count(np.pi * outer**2, spacing)
     r = outer * np.sqrt(rng.uniform(0, 1, n))
     theta = rng.uniform(0, 2 * np.pi, n)
-    return _plate_sheet(r, theta, n)
+    z, slope = _plate_profile(r)
+    c, s = np.cos(theta), np.sin(theta)
+    pts = np.column_stack([r * c, r * s, z])
+    normals = _unit(np.column_stack([-slope * c, -slope * s, np.ones(n)]))
+    return _Sheet(pts, normals, pts[:, :2], np.ones(n, bool), outer)
 
 
 def _holed_plate(rng, spacing):
     # The plate's samples with those over the hole removed: the hole is a true gap in the sheet.
     sheet = _plate(rng, spacing)
     keep = np.hypot(sheet.points[:, 0] - HOLE_CENTRE[0], sheet.points[:, 1] - HOLE_CENTRE[1]) >= HOLE_RADIUS
-    return _Sheet(sheet.points[keep], sheet.normals[keep], sheet.chart[keep], sheet.visible[keep], sheet.size)
+    return _Sheet(*(a[keep] for a in sheet[:4]), sheet.size)
 
 
 def _cylinder(rng, spacing, radius, z0, z1, outward, visible):
