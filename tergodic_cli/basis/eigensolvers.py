@@ -164,33 +164,17 @@ def _choose_shift(A: "ShiftedMatrix", area: float, n_wanted: int, n_null: int,
     return best
 
 
-def lanczos(apply_op, q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, check_from: int,
-            check_every):
-    """Symmetric Lanczos with full reorthogonalisation and a deflated subspace.
+def _lanczos(apply_op, q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, check_from: int,
+             check_every):
+    """Symmetric Lanczos with full reorthogonalisation, ``Z`` (n, c) kept out of the Krylov space.
 
-    After the three-term step, each new vector is orthogonalised against all previous
-    ones and against ``Z`` by classical Gram-Schmidt (``Z`` is stored in front of the
-    Lanczos vectors, so one matrix-vector product does both), repeated only when it
-    cancelled badly (Daniel-Gragg-Kaufman-Stewart), so the basis stays orthonormal to
-    machine precision and Ritz vectors are as accurate as their residuals say. The
-    projections are computed in double precision; when they are tiny (the usual case)
-    the correction is applied from a float32 copy of the basis, which halves the memory
-    traffic of that pass.
-
-    Parameters
-    ----------
-    apply_op : callable (n,) -> (n,), a symmetric operator.
-    q0 : (n,) unit start vector, orthogonal to ``Z``.
-    Z : (n, c) orthonormal vectors kept out of the Krylov space.
-    max_dim : largest Krylov dimension.
-    on_check : callable(alpha (m,), beta (m + 1,), m) -> bool, True when converged;
-        ``beta[i]`` couples q_{i-1} and q_i (beta[0] = 0), ``beta[m]`` is the residual coupling.
-    check_from : first Krylov dimension at which ``on_check`` is called.
-    check_every : callable(m) -> steps to the next check.
-
-    Returns
-    -------
-    Q (≥ m + 1, n) whose first m rows are the Lanczos vectors, and m.
+    Each new vector is orthogonalised by classical Gram-Schmidt against ``Z`` (stored in front
+    of the Lanczos vectors: one product does both) and every previous vector, repeated only
+    when it cancelled badly (Daniel-Gragg-Kaufman-Stewart); a tiny correction is applied from
+    a float32 copy of the basis (half the memory traffic). ``on_check(alpha (m,), beta (m + 1,),
+    m)`` is called from ``check_from`` steps on, then every ``check_every(m)``; True stops.
+    ``beta[i]`` couples q_{i-1} and q_i, ``beta[m]`` is the residual coupling. Returns Q
+    (≥ m + 1, n), whose first m rows are the Lanczos vectors, and m.
     """
     n = q0.size
     c = Z.shape[1]
@@ -404,7 +388,7 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
     max_dim = int(min(n - c - 1, 3 * ne + 100))
     # Lanczos typically needs ne + ~7 √ne steps here; start checking a little before.
     check_from = int(min(max_dim, ne + max(8, 5 * math.sqrt(ne))))
-    Q, m = lanczos(factor.solve, q0, Z, max_dim, on_check, check_from,
+    Q, m = _lanczos(factor.solve, q0, Z, max_dim, on_check, check_from,
                    check_every=lambda m: state.get("next_in", max(4, m // 20)))
     Y = Q[:m].T @ state["U"]  # Ritz vectors as columns, (n, ne)
     evals, evecs = _finish(Y, L, s, Z, nk, float(np.max(state["lam"])), report)
@@ -514,17 +498,12 @@ def smallest_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int 
     """
     report = {} if report is None else report
     n = L.shape[0]
-    attempts = []
     if n <= DENSE_MAX_N or (3 * nk >= n and n <= DENSE_CAP_N):
-        attempts.append(("dense", lambda: _dense_eigenpairs(L, mass, nk, report)))
-    else:
-        attempts.append(("lanczos", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed,
-                                                               report=report)))
-        # Another start vector: a copy of a repeated eigenvalue the first one missed may show.
-        attempts.append(("lanczos-restart", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed + 1,
-                                                                       report=report)))
-        attempts.append(("lanczos-negative-shift", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed, report=report,
-                                                                              interior_shift=False)))
+        attempts = [("dense", lambda: _dense_eigenpairs(L, mass, nk, report))]
+    else:  # another start vector may show a copy of a repeated eigenvalue the first one missed
+        lanczos = functools.partial(lanczos_eigenpairs, L, mass, nk, report=report)
+        attempts = [("lanczos", lambda: lanczos(seed=seed)), ("lanczos-restart", lambda: lanczos(seed=seed + 1)),
+                    ("lanczos-negative-shift", lambda: lanczos(seed=seed, interior_shift=False))]
     for name, attempt in attempts:
         try:
             with _blas_controller().limit(limits=1, user_api="blas"):
