@@ -73,10 +73,8 @@ def capture(
         sections = read_config(config, CAPTURE_CONFIG_KIND,
                                "give the config.json that 'tergodic capture' wrote beside a capture")
         saved = CaptureConfig.from_dict(sections.get("capture"), f"--config {config}: capture")
-    if saved is not None and not given & {"source", "from_file", "synthetic", "sim_object"}:
-        kind = saved.source
-    else:
-        kind = _resolve_source(source, from_file, synthetic, sim_object)
+    sourced = saved is not None and not given & {"source", "from_file", "synthetic", "sim_object"}
+    kind = saved.source if sourced else _resolve_source(source, from_file, synthetic, sim_object)
     cfg = CaptureConfig(
         source=kind,
         path=str(from_file) if from_file is not None else (sim_object if kind == "sim" and sim_object not in _BUILTIN else None),
@@ -100,7 +98,7 @@ def capture(
     from tergodic_cli.capture.artefact import check_out_folder
 
     check_out_folder(out, overwrite)  # before any work: a refused --out costs nothing
-    frame = None
+    frame, configs = None, {"capture": cfg}  # a realsense camera's settings are in capture.json only
     if kind == "sim":
         from tergodic_cli.backends.pybullet.camera import SimCameraConfig, SimCaptureConfig, capture_sim
         from tergodic_cli.capture.textured import SimObjectConfig
@@ -120,17 +118,15 @@ def capture(
                 now = getattr(sim, part)
                 old = from_dict(type(now), sections.get(part) or {}, f"--config {config}: {part}")
                 setattr(sim, part, override(old, now, given, renamed))
-        configs = {"capture": cfg, "object": sim.object, "camera": sim.camera}
+        configs.update(object=sim.object, camera=sim.camera)
         cap = capture_sim(sim)
         frame = getattr(cap, "frame", None)
     elif kind == "realsense":
         from tergodic_cli.backends.realsense.capture import capture_realsense
 
-        configs = {"capture": cfg}  # the camera's settings are in capture.json; a repeat takes them from the options
         cap = capture_realsense(cfg, serial=serial, width=width, height=height,
                                 camera_pose=parse_floats(camera_pose, None, "--camera-pose", "0.3,0,0.6,1,0,0,0"))
     else:
-        configs = {"capture": cfg}
         from tergodic_cli.progress import Spinner
 
         with Spinner("capture: reading, filtering and segmenting the cloud"):  # seconds for millions of points

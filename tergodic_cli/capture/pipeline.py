@@ -75,11 +75,10 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     Capture
         The filtered cloud, its target weight p (n,) in [0, 1] and the sidecar ``meta``.
     """
-    _validate_config(cfg)
-    if on_event is None:
-        import sys
+    from tergodic_cli.progress import echo
 
-        on_event = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
+    _validate_config(cfg)
+    on_event = on_event or echo
     t0 = time.perf_counter()
     target_range = parse_target(cfg.target)
     stages: list[tuple[str, int]] = []  # points left after each stage, for the printed summary

@@ -424,22 +424,16 @@ class _Reader:
         # The file's type says it when it can (ushort is 16-bit, float is 0..1); else --colour-depth; else the values.
         depth = declared.get(types[0], self.colour_depth)
         hi = float(vals.max()) if vals.size else 0.0
-        if depth is None:  # text, NPZ or an unusual PLY type: decide by the values, refuse when ambiguous
-            if hi <= 1.0:
-                depth = 0
-            elif hi <= 255.0:
-                depth = 8
-            else:
-                i, j = np.argwhere(finite & (rgb > 255))[0]
-                self.fail(where(int(i), ic[j]), f"colour value {rgb[i, j]:g} is above 255: not 8-bit colour",
-                          "pass --colour-depth 16 if the colours are 16-bit (0..65535)")
+        if depth is None:  # text, NPZ or an unusual PLY type: 0..1 or 8-bit by the values, above is refused
+            depth = 0 if hi <= 1.0 else 8
         limit = {0: 1.0, 8: 255.0, 16: 65535.0}[depth]
         if hi > limit:
             i, j = np.argwhere(finite & (rgb > limit))[0]
             label = "0..1 (float type)" if depth == 0 else f"{depth}-bit"
             fix = ("pass --colour-depth 16 if the colours are 16-bit (0..65535)" if depth in (0, 8) and hi <= 65535
                    else "re-export the colours as 8-bit (0..255)")
-            self.fail(where(int(i), ic[j]), f"colour value {rgb[i, j]:g} is out of range for {label} colour", fix)
+            self.fail(where(int(i), ic[j]), f"colour value {rgb[i, j]:g} is above {limit:g}: out of range for "
+                      f"{label} colour", fix)
         return rgb / limit
 
 
