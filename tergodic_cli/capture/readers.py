@@ -123,10 +123,6 @@ class _Reader:
         vi = names.index("vertex")
         _, n, props, vline = elements[vi]
         pnames = [p[-1] for p in props]
-        for axis in ("x", "y", "z"):
-            if axis not in pnames:
-                self.fail("header", f"the vertex element has no '{axis}' property",
-                          "re-export the cloud; PLY needs x, y, z vertex properties")
         if any(p[0] == "list" for p in props):
             self.fail(f"header line {vline}", "list properties on vertices are not supported", "re-export xyz and colours only")
         if fmt == "ascii":
@@ -211,9 +207,6 @@ class _Reader:
         if width is not None and width * (height or 1) != points:
             self.fail("header", f"WIDTH x HEIGHT = {width * (height or 1)} but POINTS = {points}",
                       _FIX_PCD_COUNT)
-        for axis in ("x", "y", "z"):
-            if axis not in fields:
-                self.fail("header", f"no '{axis}' field", "re-export the cloud with x, y, z fields")
         names, kinds = [], []  # one column per scalar
         for f, s, t, c in zip(fields, size, types, counts):
             if (t, s) not in _PCD_AS_PLY:
@@ -232,9 +225,7 @@ class _Reader:
             rows = self._ascii_rows(lines, 0, points, first, f"POINTS {points}", _FIX_PCD_COUNT)
             table = self._parse_rows(rows, len(names), lambda i: first + i)
             if packed is not None:
-                col = table[:, names.index(packed)]
-                ok = np.isfinite(col)
-                col = np.where(ok, col, 0)
+                col = np.nan_to_num(table[:, names.index(packed)], nan=0, posinf=0, neginf=0)
                 bits = col.astype(np.float32).view(np.uint32) if kinds[names.index(packed)][0] == "F" else col.astype(np.uint32)
             where = lambda i, j: f"line {first + i}" + (f" ('{names[j]}')" if j is not None else "")
         elif data in ("binary", "binary_compressed"):
@@ -402,7 +393,10 @@ class _Reader:
     def _columns(self, table, names, types, where):
         """Pick x, y, z and the colour channels; check their finiteness and the colour depth.
         Other columns (normals, curvature, intensity) are not used, so their NaNs do not matter."""
-        ix = [names.index(a) for a in ("x", "y", "z")]
+        missing = [a for a in "xyz" if a not in names]
+        if missing:
+            self.fail("header", f"no '{missing[0]}' coordinate", "re-export the cloud with x, y, z")
+        ix = [names.index(a) for a in "xyz"]
         ic = next(([names.index(c) for c in trio] for trio in
                    (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue"))
                    if all(c in names for c in trio)), [])
