@@ -189,20 +189,14 @@ def _read_checked(path: Path, expected: str | None) -> np.ndarray:
     return a
 
 
+_ARRAY_NAMES = ("points_order", "canonical_points", "evals", "evecs", "mass", "L_data", "L_indices", "L_indptr", "h")
+
+
 def _to_arrays(basis: Basis, order: np.ndarray, canon: np.ndarray) -> dict[str, np.ndarray]:
     """The arrays of an entry, in the computing cloud's point order (plus its canonical order)."""
     L = sp.csr_matrix(basis.L)
-    return {
-        "points_order": np.asarray(order, dtype=np.int64),
-        "canonical_points": canon,
-        "evals": basis.evals,
-        "evecs": basis.evecs,
-        "mass": basis.mass,
-        "L_data": L.data,
-        "L_indices": L.indices,
-        "L_indptr": L.indptr,
-        "h": np.array(basis.h),
-    }
+    return dict(zip(_ARRAY_NAMES, (np.asarray(order, dtype=np.int64), canon, basis.evals, basis.evecs, basis.mass,
+                                   L.data, L.indices, L.indptr, np.array(basis.h))))
 
 
 def _from_arrays(arrays: dict[str, np.ndarray], points: np.ndarray, order: np.ndarray, meta: dict) -> Basis:
@@ -223,9 +217,6 @@ def _from_arrays(arrays: dict[str, np.ndarray], points: np.ndarray, order: np.nd
     rows = stored_order[inv]
     return Basis(points, L[rows][:, rows].tocsr(), arrays["mass"][rows], arrays["evals"], arrays["evecs"][rows],
                  float(arrays["h"]), meta)
-
-
-_ARRAY_NAMES = ("points_order", "canonical_points", "evals", "evecs", "mass", "L_data", "L_indices", "L_indptr", "h")
 
 
 def _load_entry(entry: Path, points: np.ndarray, order: np.ndarray, canon: np.ndarray) -> Basis:

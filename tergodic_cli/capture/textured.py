@@ -68,8 +68,8 @@ class SimObjectConfig(Config):
     marking : "X", "ring", "dots", "patches" (drawn in the chart like the synthetic generator) or a path to a
         .png (alpha = marking intensity; without alpha, non-white pixels are marking).
     pose : x,y,z (m) [+ roll,pitch,yaw (deg) | + qx,qy,qz,qw]: the object frame in the robot base frame.
-        None = :func:`default_pose`: 0.5 m in front of the base, where the robot stage places
-        synthetic objects; the mug turned by 180 deg so its marking faces the robot and camera.
+        None: 0.5 m in front of the base, where the robot stage places synthetic objects;
+        the mug turned by 180 deg (yaw) so its marking faces the robot and camera.
     texture_size : texels per side of the chart texture (pattern markings).
     mesh_edge : target triangle edge of built-in meshes, metres.
     units : units of a user .obj, "m" or "mm".
@@ -84,11 +84,6 @@ class SimObjectConfig(Config):
     units: str = "m"
     seed: int = 0
     cleaning: CleaningModel = field(default_factory=CleaningModel)
-
-
-def default_pose(kind: str) -> tuple[float, ...]:
-    """The default object pose x,y,z,roll,pitch,yaw (m, deg) in the robot base frame."""
-    return (0.5, 0.0, 0.0, 0.0, 0.0, 180.0) if kind == "mug" else (0.5, 0.0, 0.0)
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -282,14 +277,6 @@ def chart_to_uv(chart: np.ndarray, box: np.ndarray, height: int) -> np.ndarray:
     return np.column_stack([unit[:, 0], (RESERVED_ROWS + unit[:, 1] * height) / total])
 
 
-def texel_chart(width: int, height: int, box: np.ndarray) -> np.ndarray:
-    """Chart coordinates (height, width, 2) of the centres of the chart texels (image row 0 at the top)."""
-    u = (np.arange(width) + 0.5) / width
-    v = (height - np.arange(height) - 0.5) / height  # row 0 is the top of the chart
-    U, Vv = np.meshgrid(u, v)
-    return np.stack([box[0, 0] + U * (box[1, 0] - box[0, 0]), box[0, 1] + Vv * (box[1, 1] - box[0, 1])], axis=-1)
-
-
 def rasterize_uv(vertices: np.ndarray, triangles: np.ndarray, uv: np.ndarray, width: int, height: int) -> np.ndarray:
     """3-D surface point under every texel centre: (height, width, 3) metres, NaN where no triangle covers it.
 
@@ -382,7 +369,8 @@ class TexturedObject:
         cfg = cfg or SimObjectConfig()
         cfg.cleaning.validate()
         self.cfg = cfg
-        self.pose = parse_pose(cfg.pose if cfg.pose is not None else default_pose(cfg.object), "--object-pose")
+        default = (0.5, 0.0, 0.0, 0.0, 0.0, 180.0) if cfg.object == "mug" else (0.5, 0.0, 0.0)
+        self.pose = parse_pose(cfg.pose if cfg.pose is not None else default, "--object-pose")
         builtin = cfg.object in BUILTIN_OBJECTS
         image_marking = cfg.marking not in PATTERN_MARKINGS
         if image_marking:
@@ -415,7 +403,10 @@ class TexturedObject:
             self.ink_rgb[:height] = ink
             self.intensity[:height] = image_m
         else:
-            chart = texel_chart(width, height, mesh.box).reshape(-1, 2)
+            # the chart texels' centres (image row 0 at the chart's top)
+            U, V = np.meshgrid((np.arange(width) + 0.5) / width, (height - np.arange(height) - 0.5) / height)
+            lo, span = mesh.box[0], mesh.box[1] - mesh.box[0]
+            chart = np.column_stack([lo[0] + U.ravel() * span[0], lo[1] + V.ravel() * span[1]])
             # the generator's drawing rules and dots' draw, so both agree exactly
             mark = _MARKS[cfg.marking](chart, mesh.size, np.random.default_rng(cfg.seed + 1))
             self.intensity[:height] = mark.reshape(height, width)
@@ -510,11 +501,11 @@ class TexturedObject:
             self._obj_body = f"o tergodic_object\n{v}\n{vt}\n{vn}\nusemtl marked\ns off\n{f}\n"
         return self._obj_body
 
-    def create_body(self, client: int, folder: str | Path, collision: bool = False) -> int:
+    def create_body(self, client: int, folder: str | Path) -> int:
         """Add the object to PyBullet ``client`` at ``pose`` with its current texture; returns the body id.
 
         folder : where the mesh and texture files go (PyBullet loads meshes from files).
-        collision : also give it a static concave triangle-mesh collision shape (front faces).
+        The body is visual only: the robot's scene gives the object its collision shape.
 
         The mesh file has no material: a texture that came from an .mtl cannot be replaced later
         under the EGL renderer, while one set with ``changeVisualShape`` can (:meth:`update_texture`).
@@ -527,11 +518,7 @@ class TexturedObject:
         mesh_path.write_text(self._obj_body_text())
         vis = p.createVisualShape(p.GEOM_MESH, fileName=str(mesh_path), physicsClientId=client)
         require(vis >= 0, f"PyBullet could not load {mesh_path}", "check the mesh file")
-        col = -1
-        if collision:
-            col = p.createCollisionShape(p.GEOM_MESH, vertices=self.vertices.tolist(), indices=self.triangles.ravel().tolist(),
-                                         flags=p.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=client)
-        body = p.createMultiBody(0.0, col, vis, basePosition=self.pose[:3, 3].tolist(),
+        body = p.createMultiBody(0.0, -1, vis, basePosition=self.pose[:3, 3].tolist(),
                                  baseOrientation=matrix_to_quat(self.pose[:3, :3]).tolist(), physicsClientId=client)
         self.update_texture(client, body, folder)
         return body
