@@ -164,10 +164,8 @@ class _Reader:
 
     # ------------------------------------------------------------------------------- PCD
     def pcd(self):
-        fields = size = types = counts = None
-        dims, data = {}, None  # WIDTH, HEIGHT, POINTS
-        pos, lineno = 0, 0
-        while data is None:
+        head, pos, lineno = {}, 0, 0  # KEY -> its values (WIDTH, HEIGHT, POINTS: the number)
+        while "DATA" not in head:
             nl = self.blob.find(b"\n", pos)
             if nl < 0:
                 self.fail("header", "no DATA line (not a PCD, or truncated?)", "re-export it as PCD")
@@ -177,29 +175,23 @@ class _Reader:
                 continue
             key, *vals = line.split()
             key = key.upper()
-            if key == "FIELDS":
-                fields = vals
-            elif key == "SIZE":
-                size = [_int(v) for v in vals]
-            elif key == "TYPE":
-                types = [v.upper() for v in vals]
-            elif key == "COUNT":
-                counts = [_int(v) for v in vals]
-            elif key in ("WIDTH", "HEIGHT", "POINTS"):
+            if key in ("WIDTH", "HEIGHT", "POINTS"):
                 value = _int(vals[0]) if len(vals) == 1 else None
                 if value is None or value < 0:
                     self.fail(f"line {lineno}", f"bad {key} '{' '.join(vals)}'", "re-export it as PCD")
-                dims[key] = value
-            elif key == "DATA":
-                data = vals[0].lower() if vals else ""
-            elif key not in ("VERSION", "VIEWPOINT"):
+                vals = value
+            elif key not in ("FIELDS", "SIZE", "TYPE", "COUNT", "DATA", "VERSION", "VIEWPOINT"):
                 self.fail(f"line {lineno}", f"cannot parse the PCD header line '{_printable(line[:60])}'", "re-export it as PCD")
+            head[key] = vals
+        fields, data = head.get("FIELDS"), (head["DATA"] or [""])[0].lower()
         if not fields:
             self.fail("header", "no FIELDS line", "re-export it as PCD")
-        width, height, points = (dims.get(key) for key in ("WIDTH", "HEIGHT", "POINTS"))
+        width, height, points = (head.get(key) for key in ("WIDTH", "HEIGHT", "POINTS"))
         k = len(fields)
+        size, counts = ([_int(v) for v in head[key]] if key in head else None for key in ("SIZE", "COUNT"))
+        types = [v.upper() for v in head.get("TYPE", [])]
         counts = counts or [1] * k
-        if size is None or types is None or len(size) != k or len(types) != k or len(counts) != k \
+        if size is None or len(size) != k or len(types) != k or len(counts) != k \
                 or None in size or None in counts:
             self.fail("header", f"FIELDS, SIZE, TYPE and COUNT disagree ({k} fields)", "re-export it as PCD")
         if points is None:
