@@ -76,21 +76,13 @@ def capture(
     sourced = saved is not None and not given & {"source", "from_file", "synthetic", "sim_object"}
     kind = saved.source if sourced else _resolve_source(source, from_file, synthetic, sim_object)
     cfg = CaptureConfig(
-        source=kind,
+        source=kind, marking=marking, seed=seed, noise=noise, voxel=voxel, voxel_rule=voxel_rule, target=target,
         path=str(from_file) if from_file is not None else (sim_object if kind == "sim" and sim_object not in _BUILTIN else None),
         synthetic=(synthetic or "bowl") if kind != "sim" else (sim_object or "bowl"),
-        marking=marking,
-        seed=seed,
-        noise=noise,
         units=units if kind != "sim" else "m",  # a sim cloud is in metres; --units applies to the .obj
-        voxel=voxel,
-        voxel_rule=voxel_rule,
         crop=parse_floats(crop, 6, "--crop", "-0.2,-0.2,0,0.2,0.2,0.3") if crop else None,
         outliers=_parse_outliers(outliers) if outliers else None,
-        target=target,
-        drop_invalid=drop_invalid,
-        colour_depth=colour_depth,
-        max_points=max_points,
+        drop_invalid=drop_invalid, colour_depth=colour_depth, max_points=max_points,
     )
     if saved is not None:  # the saved capture, with the options given on this command line on top
         cfg = override(saved, cfg, given, {"from_file": ("path",), "sim_object": ("path", "synthetic")})

@@ -289,14 +289,8 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
     t = time.perf_counter()
     arrays = _to_arrays(basis, order, canon)
     meta = {
-        "kind": "tergodic.basis",
-        "format_version": FORMAT_VERSION,
-        "layout": CACHE_LAYOUT,
-        "key": key,
-        "config": cfg.to_dict(),
-        "n_points": len(points),
-        "rigid_invariant": invariant,
-        "h_m": basis.h,
+        "kind": "tergodic.basis", "format_version": FORMAT_VERSION, "layout": CACHE_LAYOUT, "key": key,
+        "config": cfg.to_dict(), "n_points": len(points), "rigid_invariant": invariant, "h_m": basis.h,
         "lambda_range": [float(basis.evals[0]), float(basis.evals[-1])],
         "timings": timings,
         "versions": library_versions(),

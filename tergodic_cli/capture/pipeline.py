@@ -157,30 +157,19 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
 
     h = mean_spacing(points)
     lo, hi = points.min(axis=0), points.max(axis=0)
+    from tergodic_cli.provenance import library_versions
+
     meta = {
-        "kind": "tergodic.capture",
-        "format_version": 1,
-        "units": "m",
-        "input_units": cfg.units,
+        "kind": "tergodic.capture", "format_version": 1, "units": "m", "input_units": cfg.units,
         "provenance": provenance,
         "config": cfg.to_dict(),
         "filters": [{"stage": name, "points": n} for name, n in stages],
         "counts": {"input": stages[0][1], "output": len(points), "target": n_target},
-        "target": {
-            "spec": cfg.target,
-            "voxel_rule": cfg.voxel_rule if cfg.voxel > 0 else "per-point",
-            "share": n_target / len(points),
-            "mass": float(p.sum()),
-        },
-        "spacing_h_m": h,
-        "extent_m": (hi - lo).tolist(),
-        "bbox_m": [lo.tolist(), hi.tolist()],
-        "seed": cfg.seed,
-        "seconds": time.perf_counter() - t0,
+        "target": {"spec": cfg.target, "voxel_rule": cfg.voxel_rule if cfg.voxel > 0 else "per-point",
+                   "share": n_target / len(points), "mass": float(p.sum())},
+        "spacing_h_m": h, "extent_m": (hi - lo).tolist(), "bbox_m": [lo.tolist(), hi.tolist()],
+        "seed": cfg.seed, "seconds": time.perf_counter() - t0, "versions": library_versions(),
     }
-    from tergodic_cli.provenance import library_versions
-
-    meta["versions"] = library_versions()
     return Capture(points, colors, p, meta)
 
 
