@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 from typing import Iterable, Iterator, TypeVar
@@ -63,22 +64,16 @@ def track(iterable: Iterable[T], total: int | None = None, description: str = ""
             _LIVE.remove(console)
 
 
-class Spinner:
-    """A context manager that shows a labelled spinner while a blocking call runs."""
-
-    def __init__(self, description: str):
-        self.description = description
-        self._status = None
-
-    def __enter__(self) -> "Spinner":
-        console = _console()
-        if console is not None:
-            self._status = console.status(self.description)
-            self._status.__enter__()
-            _LIVE.append(console)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if self._status is not None:
-            _LIVE.remove(self._status.console)
-            self._status.__exit__(*exc)
+@contextlib.contextmanager
+def Spinner(description: str) -> Iterator[None]:  # noqa: N802  (used like a class: ``with Spinner(...)``)
+    """Show a labelled spinner while a blocking call runs."""
+    console = _console()
+    if console is None:
+        yield
+        return
+    with console.status(description):
+        _LIVE.append(console)
+        try:
+            yield
+        finally:
+            _LIVE.remove(console)
