@@ -113,12 +113,8 @@ def compute_laplacian(points: np.ndarray, n_neighbors: int, validate: bool = Tru
 
 
 def solve_eigenpairs(L: sp.csr_matrix, mass: np.ndarray, nk: int) -> tuple[np.ndarray, np.ndarray]:
-    """The ``nk`` smallest eigenpairs of L φ = λ M φ, ascending and M-orthonormal.
-
-    Shift-invert Lanczos with the null space (one constant per connected component)
-    deflated exactly, a shift inside the wanted window and a certified result; see
-    :mod:`tergodic_cli.basis.eigensolvers`. Eigenvalues agree with ARPACK shift-invert
-    (the authors' ``eigsh(L, nK, M, sigma=1e-12)``) to ~1e-12 relative.
+    """The ``nk`` smallest eigenpairs of L φ = λ M φ, ascending and M-orthonormal, certified
+    (:func:`~tergodic_cli.basis.eigensolvers.smallest_eigenpairs`).
 
     Parameters
     ----------

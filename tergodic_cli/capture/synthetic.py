@@ -271,19 +271,18 @@ def _box(rng, spacing):
     # edge, so every marking centred on the origin straddles that sharp edge.
     a, b, c = BOX_SIZE
     parts = []
-    for face, area in (("top", a * b), ("+x", b * c), ("-x", b * c), ("+y", a * c), ("-y", a * c)):
+    faces = (("top", 1, a * b), ("x", 1, b * c), ("x", -1, b * c), ("y", 1, a * c), ("y", -1, a * c))
+    for face, sign, area in faces:
         n = _count(area, spacing)
         s, t = rng.uniform(-0.5, 0.5, n), rng.uniform(0.0, 1.0, n)  # t: depth below the top, in units of c
         down = c * t
         if face == "top":
             x, y, z, normal = a * s, b * (t - 0.5), np.full(n, c), (0, 0, 1)
             u, v = x - a / 2, y
-        elif face in ("+x", "-x"):
-            sign = 1 if face == "+x" else -1
+        elif face == "x":
             x, y, z, normal = np.full(n, sign * a / 2), b * s, c - down, (sign, 0, 0)
             u, v = (down if sign > 0 else -a - down), y
         else:
-            sign = 1 if face == "+y" else -1
             x, y, z, normal = a * s, np.full(n, sign * b / 2), c - down, (0, sign, 0)
             u, v = x - a / 2, sign * (b / 2 + down)
         pts = np.column_stack([x, y, z])

@@ -221,8 +221,7 @@ def read_obj(path: str | Path, units: str = "m") -> tuple[np.ndarray, np.ndarray
                         ti = int(idx[1]) if len(idx) > 1 and idx[1] else 0
                         # OBJ indices are 1-based; negative ones count back from the last element.
                         face.append((vi - 1 if vi > 0 else len(pos) + vi, (ti - 1 if ti > 0 else len(tex) + ti) if ti else -1))
-                    for k in range(1, len(face) - 1):
-                        corners.append((face[0], face[k], face[k + 1]))
+                    corners += [(face[0], face[k], face[k + 1]) for k in range(1, len(face) - 1)]
     except (ValueError, IndexError):
         raise TergodicError(f"{path} is not a readable .obj (bad v/vt/f line)", "re-export the mesh as a Wavefront .obj") from None
     require(len(pos) >= 3 and len(corners) > 0, f"{path} has no triangles", "give a mesh with faces (f lines)")
