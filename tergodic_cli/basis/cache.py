@@ -240,10 +240,9 @@ def _load_entry(entry: Path, points: np.ndarray, order: np.ndarray, canon: np.nd
     if cached.shape != canon.shape or np.abs(cached - canon).max() > 10 * QUANTUM_M:
         raise CacheMiss("geometry does not match its key")
     try:
-        basis = _from_arrays(arrays, points, order, meta)
+        return _from_arrays(arrays, points, order, meta)
     except (KeyError, TypeError, ValueError, IndexError) as exc:
         raise CacheMiss(f"inconsistent ({type(exc).__name__})") from None
-    return basis
 
 
 def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None = None, force: bool = False,

@@ -269,12 +269,9 @@ def tridiagonal_eigh(alpha: np.ndarray, beta: np.ndarray) -> tuple[np.ndarray, n
 
 def _finish(Y: np.ndarray, L: sp.spmatrix, s: np.ndarray, Z: np.ndarray, nk: int,
             lam_scale: float, report: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Certify Ritz vectors Y (n, ne) of A and return (evals (nk,), evecs φ (n, nk)).
-
-    The columns of Y are orthonormal and orthogonal to Z (fully reorthogonalised Lanczos
-    or LAPACK guarantee it to machine precision). Eigenvalues are Rayleigh quotients;
-    every true residual must satisfy ‖A y − λ y‖ ≤ max(TOL_RESIDUAL · max λ, TOL_BACKWARD · ‖A‖).
-    """
+    """Certify Ritz vectors Y (n, ne) of A, orthonormal and orthogonal to Z, and return (evals (nk,),
+    evecs φ (n, nk)). Eigenvalues are Rayleigh quotients; every true residual must satisfy
+    ‖A y − λ y‖ ≤ max(TOL_RESIDUAL · max λ, TOL_BACKWARD · ‖A‖)."""
     n, ne = Y.shape
     c = Z.shape[1]
     evecs = np.empty((n, c + ne))
@@ -456,13 +453,9 @@ def arpack_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, sigma: float = 
 
 @functools.lru_cache(maxsize=1)
 def _blas_controller():
-    """The ``threadpoolctl`` controller that limits BLAS to one thread around each solve.
-
-    The solver's dense work is level-2 BLAS and thin products, bound by memory bandwidth:
-    a second BLAS thread gains little on a quiet machine and costs 2-3x when the other
-    core is busy (measured: 2.4-3.0 s instead of 0.8-1.1 s at 3684 points, nK = 200).
-    The controller (a scan of the loaded libraries, ~5 ms) is built once per process.
-    """
+    """The controller limiting BLAS to one thread per solve, built once (~5 ms). The solver's dense
+    work is memory-bound: a second thread gains little on a quiet machine and costs 2-3x when the
+    other core is busy (2.4-3.0 s instead of 0.8-1.1 s at 3684 points, nK = 200)."""
     from threadpoolctl import ThreadpoolController
 
     return ThreadpoolController()

@@ -376,11 +376,9 @@ class _Reader:
                 i, j = (int(v) for v in np.argwhere(huge)[0])
                 self.fail(where(i, j), f"value {table[i, j]:.3g} beside {int(bad.sum())} NaN/inf values: the body looks corrupt",
                           "re-export the cloud (check its declared types and byte order)")
-            rows = np.flatnonzero(bad.any(axis=1))
-            i = int(rows[0])
-            j = int(np.flatnonzero(bad[i])[0])
-            self.fail(where(i, j), f"non-finite value {table[i, j]} ({len(rows)} {'point' if len(rows) == 1 else 'points'} with NaN or inf in all)", _FIX_INVALID)
-        return table
+            i, j = (int(v) for v in np.argwhere(bad)[0])  # the first row with one, its first column
+            rows = int(bad.any(axis=1).sum())
+            self.fail(where(i, j), f"non-finite value {table[i, j]} ({rows} {'point' if rows == 1 else 'points'} with NaN or inf in all)", _FIX_INVALID)
 
     def _columns(self, table, names, types, where):
         """Pick x, y, z and the colour channels; check their finiteness and the colour depth.

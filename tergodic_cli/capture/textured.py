@@ -333,10 +333,7 @@ def read_marking_image(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     require(8 <= min(h, w) and max(h, w) <= MAX_IMAGE_SIDE, f"marking image {path} is {w}x{h} pixels",
             f"give an image between 8 and {MAX_IMAGE_SIDE} pixels per side")
     ink = rgba[..., :3]
-    if has_alpha:
-        intensity = rgba[..., 3]
-    else:
-        intensity = (~np.all(ink >= WHITE_LEVEL, axis=-1)).astype(np.float64)
+    intensity = rgba[..., 3] if has_alpha else (~np.all(ink >= WHITE_LEVEL, axis=-1)).astype(np.float64)
     require(float(intensity.max()) > 0, f"marking image {path} has no marking (all white or transparent)",
             "draw the marking in a colour, or give it an alpha channel")
     return ink, intensity
@@ -395,11 +392,11 @@ class TexturedObject:
         uv_front = chart_to_uv(mesh.chart, mesh.box, height)
 
         # Colours: clean surface everywhere; ink and intensity only in the chart rows.
-        self.clean_rgb = np.broadcast_to(SURFACE_RGB, (self.height, width, 3)).copy()
-        self.ink_rgb = np.broadcast_to(MARKING_RGB, (self.height, width, 3)).copy()
+        clean = np.broadcast_to(SURFACE_RGB, (self.height, width, 3))
+        ink_rgb = np.broadcast_to(MARKING_RGB, (self.height, width, 3)).copy()
         self.intensity = np.zeros((self.height, width))
         if image_marking:
-            self.ink_rgb[:height] = ink
+            ink_rgb[:height] = ink
             self.intensity[:height] = image_m
         else:
             # the chart texels' centres (image row 0 at the chart's top)
@@ -433,7 +430,8 @@ class TexturedObject:
         self._render_triangles = np.concatenate([mesh.triangles, mesh.triangles[:, [0, 2, 1]] + n])
         self.version = 0
         self._obj_body: str | None = None
-        self._blend: tuple[np.ndarray, np.ndarray] | None = None
+        # float32 in 0..255, as texture_rgb blends them at every re-capture
+        self._blend = ((255.0 * clean).astype(np.float32) + 0.5, (255.0 * (ink_rgb - clean)).astype(np.float32))
 
     # ------------------------------------------------------------------ marking state
     def marking_remaining(self) -> float:
@@ -484,9 +482,6 @@ class TexturedObject:
     # ------------------------------------------------------------------ texture and assets
     def texture_rgb(self) -> np.ndarray:
         """The current texture, (H, W, 3) uint8: clean colour blended to the ink colour by m."""
-        if self._blend is None:  # float32 in 0..255: the blend runs at every re-capture
-            self._blend = ((255.0 * self.clean_rgb).astype(np.float32) + 0.5,
-                           (255.0 * (self.ink_rgb - self.clean_rgb)).astype(np.float32))
         base, delta = self._blend
         rgb = base + self.intensity[..., None].astype(np.float32) * delta
         return np.clip(rgb, 0, 255).astype(np.uint8)  # +0.5 above makes the cast round
