@@ -32,9 +32,12 @@ import numpy as np
 import scipy.sparse as sp
 
 from tergodic_cli import FORMAT_VERSION
+from tergodic_cli.atomic import check_parent_writable
 from tergodic_cli.basis.core import Basis, compute_basis
 from tergodic_cli.capture.artefact import SIDECAR_SHA, sidecar_checksum
 from tergodic_cli.config import CONFIG_FILE, Config, write_config
+from tergodic_cli.errors import os_error
+from tergodic_cli.progress import Spinner
 
 __all__ = ["BasisConfig", "CacheMiss", "array_checksum", "default_cache_dir", "geometry_key",
            "get_basis"]
@@ -276,14 +279,11 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
         except CacheMiss as miss:
             if str(miss):
                 say(f"warning: cached basis {entry} is unusable: {miss}; recomputing")
-    from tergodic_cli.atomic import check_parent_writable
-    from tergodic_cli.progress import Spinner
-
     # before minutes of work, not after
     check_parent_writable(entry, entry.parent.parent, _CACHE_OPTION)
     with Spinner(f"computing basis: Laplacian + {cfg.nk} eigenpairs of {len(points)} points"):
         basis = compute_basis(points, cfg.nk, cfg.neighbors, timings)
-    from tergodic_cli.provenance import library_versions
+    from tergodic_cli.provenance import library_versions  # importlib.metadata: only when recorded
 
     t = time.perf_counter()
     arrays = _to_arrays(basis, order, canon)
@@ -300,8 +300,6 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
     try:
         _write_entry(entry, arrays, meta, cfg)
     except OSError as exc:  # a full disk or a vanished permission: one line, nothing partial (see _write_entry)
-        from tergodic_cli.errors import os_error
-
         raise os_error(exc, entry.parent.parent, "write the basis cache",
                        f"free space or choose another {_CACHE_OPTION}") from None
     meta["timings"]["write_ms"] = 1e3 * (time.perf_counter() - t)  # in memory only (after the write)

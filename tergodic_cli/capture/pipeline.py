@@ -15,9 +15,12 @@ import numpy as np
 from tergodic_cli.capture.artefact import Capture
 from tergodic_cli.capture.filters import (VOXEL_RULES, mean_spacing, remove_statistical_outliers,
                                           voxel_downsample)
+from tergodic_cli.capture.readers import read_cloud
 from tergodic_cli.capture.segment import parse_target, target_weight
+from tergodic_cli.capture.synthetic import check_noise, generate_synthetic
 from tergodic_cli.config import Config
 from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.progress import echo
 
 MIN_POINTS = 10
 #: A tabletop object larger than this many metres was almost surely given in millimetres.
@@ -75,8 +78,6 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     Capture
         The filtered cloud, its target weight p (n,) in [0, 1] and the sidecar ``meta``.
     """
-    from tergodic_cli.progress import echo
-
     _validate_config(cfg)
     on_event = on_event or echo
     t0 = time.perf_counter()
@@ -86,13 +87,9 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     if raw is not None:
         points, colors = raw
     elif cfg.source == "file":
-        from tergodic_cli.capture.readers import read_cloud
-
         points, colors = read_cloud(cfg.path, drop_invalid=cfg.drop_invalid, colour_depth=cfg.colour_depth)
         provenance["path"] = str(cfg.path)
     elif cfg.source == "synthetic":
-        from tergodic_cli.capture.synthetic import generate_synthetic
-
         syn = generate_synthetic(cfg.synthetic, cfg.marking, cfg.seed, noise=cfg.noise)
         points, colors = syn.points, syn.colors
         provenance.update(object=cfg.synthetic, marking=cfg.marking, seed=cfg.seed)
@@ -157,7 +154,7 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
 
     h = mean_spacing(points)
     lo, hi = points.min(axis=0), points.max(axis=0)
-    from tergodic_cli.provenance import library_versions
+    from tergodic_cli.provenance import library_versions  # importlib.metadata: only when recorded
 
     meta = {
         "kind": "tergodic.capture", "format_version": 1, "units": "m", "input_units": cfg.units,
@@ -174,8 +171,6 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
 
 
 def _validate_config(cfg: CaptureConfig) -> None:
-    from tergodic_cli.capture.synthetic import check_noise
-
     noise = check_noise(cfg.noise)
     require(noise == 0 or cfg.source == "synthetic", f"--noise is for --synthetic objects, not a {cfg.source} cloud",
             "drop --noise (a camera's or a file's cloud has its own noise)")

@@ -16,7 +16,6 @@ import re
 from pathlib import Path
 
 import numpy as np
-from numpy.lib.recfunctions import structured_to_unstructured
 
 from tergodic_cli.errors import TergodicError
 
@@ -158,6 +157,8 @@ class _Reader:
         if not any(p[0] == "list" for e in after for p in e[2]):
             rest = sum(count * row_dtype(props).itemsize for _, count, props, _ in after)
         label = ("vertices", f"{n} vertices", "'element vertex'", _FIX_PLY_COUNT)
+        from numpy.lib.recfunctions import structured_to_unstructured  # numpy.ma: 60 ms, so here
+
         table = structured_to_unstructured(self._records(offset, dtype, n, label, rest), np.float64)
         props = elements[vi][2]
         return table, lambda i, j: f"vertex {i}" + (f" ('{props[j][1]}')" if j is not None else "")
@@ -227,6 +228,8 @@ class _Reader:
                 rec = self._records(pos, dtype, points, label, 0)
             else:
                 rec = self._pcd_compressed(pos, dtype, points)
+            from numpy.lib.recfunctions import structured_to_unstructured  # numpy.ma: 60 ms, so here
+
             table = structured_to_unstructured(rec, np.float64)
             if packed is not None:
                 bits = rec[f"f{names.index(packed)}"].view(np.uint32)
