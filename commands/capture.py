@@ -63,9 +63,11 @@ def capture(
 
       tergodic capture --config cap/config.json --seed 3 --out cap2/
     """
+    from tergodic_cli.atomic import write_png
     from tergodic_cli.capture import CaptureConfig, capture_cloud, save_capture
-    from tergodic_cli.capture.artefact import CAPTURE_CONFIG_KIND
-    from tergodic_cli.config import override, read_config
+    from tergodic_cli.capture.artefact import CAPTURE_CONFIG_KIND, check_out_folder
+    from tergodic_cli.config import from_dict, override, read_config
+    from tergodic_cli.progress import Spinner
 
     given = given_options(ctx)
     saved, sections = None, {}  # sections: the saved object and camera of a simulated capture
@@ -86,9 +88,6 @@ def capture(
     )
     if saved is not None:  # the saved capture, with the options given on this command line on top
         cfg = override(saved, cfg, given, {"from_file": ("path",), "sim_object": ("path", "synthetic")})
-    from tergodic_cli.atomic import write_png
-    from tergodic_cli.capture.artefact import check_out_folder
-
     check_out_folder(out, overwrite)  # before any work: a refused --out costs nothing
     frame, configs = None, {"capture": cfg}  # a realsense camera's settings are in capture.json only
     if kind == "sim":
@@ -103,8 +102,6 @@ def capture(
             pipeline=cfg,
         )
         if saved is not None:
-            from tergodic_cli.config import from_dict
-
             for part, renamed in (("object", {"sim_object": ("object",), "object_pose": ("pose",)}),
                                   ("camera", {"camera_pose": ("pose",), "fov": ("fov_deg",)})):
                 now = getattr(sim, part)
@@ -119,8 +116,6 @@ def capture(
         cap = capture_realsense(cfg, serial=serial, width=width, height=height,
                                 camera_pose=parse_floats(camera_pose, None, "--camera-pose", "0.3,0,0.6,1,0,0,0"))
     else:
-        from tergodic_cli.progress import Spinner
-
         with Spinner("capture: reading, filtering and segmenting the cloud"):  # seconds for millions of points
             cap = capture_cloud(cfg)
     # What the camera saw goes beside the artefact (not part of it), inside the same atomic folder.

@@ -25,7 +25,8 @@ PATTERN_MARKINGS = ("X", "ring", "dots", "patches")
 
 # The same surfaces as the synthetic point-cloud generator.
 from tergodic_cli.capture.synthetic import (  # noqa: E402
-    BOWL_MAX_POLAR_DEG, BOWL_RADIUS, MUG_HEIGHT, MUG_RADIUS, PLATE_FLAT, PLATE_LIFT, PLATE_RIM)
+    _MARKS, BOWL_MAX_POLAR_DEG, BOWL_RADIUS, MARKING_RGB, MUG_HEIGHT, MUG_RADIUS, PLATE_FLAT,
+    PLATE_LIFT, PLATE_RIM, SURFACE_RGB)
 
 #: Rows of plain clean colour appended below the chart, for the back faces.
 RESERVED_ROWS = 8
@@ -360,7 +361,6 @@ class TexturedObject:
     def __init__(self, cfg: SimObjectConfig | None = None):
         from scipy.spatial import cKDTree
 
-        from tergodic_cli.capture.synthetic import _MARKS, MARKING_RGB, SURFACE_RGB
 
         cfg = cfg or SimObjectConfig()
         cfg.cleaning.validate()
