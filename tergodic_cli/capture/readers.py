@@ -12,6 +12,7 @@ before a bad one without failing and prints its own ``RPly:`` lines.
 
 from __future__ import annotations
 
+import io
 import re
 from pathlib import Path
 
@@ -124,21 +125,17 @@ class _Reader:
         pnames = [p[-1] for p in props]
         if any(p[0] == "list" for p in props):
             self.fail(f"header line {vline}", "list properties on vertices are not supported", "re-export xyz and colours only")
-        if fmt == "ascii":
-            table, where = self._ply_ascii(elements, vi, body_start, n_header_lines)
+        if fmt == "ascii":  # one line per row: the vertices come after the earlier elements' rows
+            skip = sum(count for _, count, _, _ in elements[:vi])
+            first = n_header_lines + 1  # file line number of the body's first line
+            lines = self.blob[body_start:].decode("ascii", "replace").split("\n")
+            rows = self._ascii_rows(lines, skip, n, first, f"{n} vertices", _FIX_PLY_COUNT,
+                                    more_follow=len(elements) > vi + 1)
+            table = self._parse_rows(rows, len(props), lambda i: first + skip + i)
+            where = lambda i, j: f"line {first + skip + i}" + (f" ('{props[j][1]}')" if j is not None else "")
         else:
             table, where = self._ply_binary(elements, vi, body_start, "<" if fmt.endswith("little_endian") else ">")
         return self._columns(table, pnames, [p[0] for p in props], where)
-
-    def _ply_ascii(self, elements, vi, body_start, n_header_lines):
-        lines = self.blob[body_start:].decode("ascii", "replace").split("\n")
-        first = n_header_lines + 1  # file line number of the body's first line
-        skip = sum(count for _, count, _, _ in elements[:vi])  # one line per row of earlier elements
-        n, props = elements[vi][1], elements[vi][2]
-        rows = self._ascii_rows(lines, skip, n, first, f"{n} vertices", _FIX_PLY_COUNT,
-                                more_follow=len(elements) > vi + 1)
-        table = self._parse_rows(rows, len(props), lambda i: first + skip + i)
-        return table, lambda i, j: f"line {first + skip + i}" + (f" ('{props[j][1]}')" if j is not None else "")
 
     def _ply_binary(self, elements, vi, body_start, endian):
         def row_dtype(props):
@@ -287,7 +284,6 @@ class _Reader:
 
     # ------------------------------------------------------------------------------- NPZ
     def npz(self):
-        import io
         import zipfile
 
         try:
@@ -348,8 +344,6 @@ class _Reader:
 
     def _parse_rows(self, rows, k, line_of, fix="every row needs the columns the header declares"):
         """Rows of text into an (n, k) float table; a row with another column count fails naming its line."""
-        import io
-
         try:  # fast path in C; on any doubt, the row-by-row scan below finds and names the bad line
             table = np.loadtxt(io.StringIO("\n".join(rows)), dtype=np.float64, ndmin=2, comments=None)
             if table.shape == (len(rows), k):
