@@ -17,7 +17,11 @@ import math
 import warnings
 
 import numpy as np
+import qdldl
 import scipy.sparse as sp
+from scipy.linalg.lapack import dstevd
+from scipy.sparse.csgraph import connected_components
+from threadpoolctl import ThreadpoolController
 
 #: Lanczos convergence: ‖OP y − θ y‖ ≤ TOL_RITZ |θ| for every wanted Ritz pair.
 TOL_RITZ = 1e-10
@@ -44,8 +48,6 @@ class EigensolverFailure(RuntimeError):
 
 def _null_basis(L: sp.spmatrix, sqrt_mass: np.ndarray) -> np.ndarray:
     """Orthonormal null vectors Z (n, c) of A = S⁻¹ L S⁻¹: s on each connected component."""
-    from scipy.sparse.csgraph import connected_components
-
     graph = sp.csr_matrix(L, copy=True)
     graph.data = np.abs(graph.data)
     graph.eliminate_zeros()
@@ -69,8 +71,6 @@ class SymmetricFactor:
     """
 
     def __init__(self, K: sp.spmatrix, check_accuracy: bool = True):
-        import qdldl
-
         K = sp.csc_matrix(K)
         self.n = K.shape[0]
         try:
@@ -255,8 +255,6 @@ def tridiagonal_eigh(alpha: np.ndarray, beta: np.ndarray) -> tuple[np.ndarray, n
     evecs : (m, m) float
         Orthonormal columns.
     """
-    from scipy.linalg.lapack import dstevd
-
     w, z, info = dstevd(alpha, beta, compute_v=1)
     if info:
         raise EigensolverFailure(f"dstevd failed (info {info})")
@@ -456,8 +454,6 @@ def _blas_controller():
     """The controller limiting BLAS to one thread per solve, built once (~5 ms). The solver's dense
     work is memory-bound: a second thread gains little on a quiet machine and costs 2-3x when the
     other core is busy (2.4-3.0 s instead of 0.8-1.1 s at 3684 points, nK = 200)."""
-    from threadpoolctl import ThreadpoolController
-
     return ThreadpoolController()
 
 
