@@ -12,7 +12,8 @@ import sys
 
 import typer
 
-from tergodic_cli.errors import TergodicError
+from tergodic_cli.errors import Terminated, TergodicError, os_cause
+from tergodic_cli.progress import echo
 
 
 app = typer.Typer(
@@ -92,8 +93,6 @@ for _verb in (capture.capture, precompute.precompute, explore.explore, replay.re
 
 
 def _on_sigterm(signum, frame) -> None:
-    from tergodic_cli.errors import Terminated
-
     Terminated.received = True
     raise Terminated()
 
@@ -104,9 +103,7 @@ def main(argv: list[str] | None = None) -> int:
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
     except ValueError:  # not the main thread (an embedding caller): leave SIGTERM alone
         previous = None
-    from tergodic_cli.commands.explore import expand_live
-
-    argv = expand_live(sys.argv[1:] if argv is None else argv)  # --live [HOST:PORT]: an optional value
+    argv = explore.expand_live(sys.argv[1:] if argv is None else argv)  # --live [HOST:PORT]: an optional value
     try:
         result = app(args=argv, prog_name="tergodic", standalone_mode=False)
         return int(result) if isinstance(result, int) else 0
@@ -114,8 +111,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"tergodic: error: {exc}", file=sys.stderr)
         return exc.exit_code
     except OSError as exc:  # the operating system's refusals not caught nearer: still one line, no traceback
-        from tergodic_cli.errors import os_cause
-
         where = f" {exc.filename}" if exc.filename else ""
         print(f"tergodic: error: cannot complete:{where} {os_cause(exc)}; check the paths and free space", file=sys.stderr)
         return 2
@@ -140,8 +135,6 @@ def main(argv: list[str] | None = None) -> int:
 
 def _interrupted(exc: BaseException) -> int:
     """Ctrl-C or SIGTERM: one line (a verb's own, e.g. how to resume), no traceback; the exit code."""
-    from tergodic_cli.progress import echo
-
     code = getattr(exc, "exit_code", 130)
     echo(f"tergodic: {getattr(exc, 'message', None) or ('terminated' if code == 143 else 'interrupted')}")
     return code
