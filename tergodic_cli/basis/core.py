@@ -9,6 +9,7 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
+from tergodic_cli.capture.filters import mean_spacing
 from tergodic_cli.errors import TergodicError, require
 
 
@@ -161,8 +162,6 @@ def compute_basis(points: np.ndarray, nk: int, n_neighbors: int, timings: dict |
     Basis
         L (n, n), mass (n,) m², evals (nk,) 1/m², evecs (n, nk), spacing h in metres.
     """
-    from tergodic_cli.capture.filters import mean_spacing
-
     timings = {} if timings is None else timings
     check_geometry(points)
     require(nk < len(points), f"--nk {nk} is not below the number of points ({len(points)})", f"use --nk < {len(points)}")
