@@ -74,10 +74,8 @@ def default_cache_dir() -> Path:
     Path
         ``$TERGODIC_CACHE_DIR``, else ``$XDG_CACHE_HOME/tergodic``, else ``~/.cache/tergodic``.
     """
-    if os.environ.get("TERGODIC_CACHE_DIR"):
-        return Path(os.environ["TERGODIC_CACHE_DIR"])
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "tergodic"
+    return Path(os.environ.get("TERGODIC_CACHE_DIR") or Path(base) / "tergodic")
 
 
 def _canonical_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:

@@ -103,8 +103,7 @@ def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, 
     if capture.colors is not None:
         arrays["colors"] = capture.colors.astype(np.float32)
     with _folder(out_dir, overwrite) as tmp:
-        with open(tmp / ARRAYS, "wb") as fh:
-            np.savez(fh, **arrays)
+        np.savez(tmp / ARRAYS, **arrays)  # the name ends in .npz: numpy adds no suffix
         write_ply(tmp / "cloud.ply", capture.points, capture.colors)
         if extra is not None:
             extra(tmp)

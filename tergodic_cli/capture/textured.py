@@ -495,11 +495,11 @@ class TexturedObject:
             self._obj_body = f"o tergodic_object\n{v}\n{vt}\n{vn}\nusemtl marked\ns off\n{f}\n"
         return self._obj_body
 
-    def create_body(self, client: int, folder: str | Path) -> int:
+    def create_body(self, client: int, folder: str | Path, collision: bool = False) -> int:
         """Add the object to PyBullet ``client`` at ``pose`` with its current texture; returns the body id.
 
         folder : where the mesh and texture files go (PyBullet loads meshes from files).
-        The body is visual only: the robot's scene gives the object its collision shape.
+        collision : also give it a static concave triangle-mesh collision shape (front faces).
 
         The mesh file has no material: a texture that came from an .mtl cannot be replaced later
         under the EGL renderer, while one set with ``changeVisualShape`` can (:meth:`update_texture`).
@@ -512,7 +512,11 @@ class TexturedObject:
         mesh_path.write_text(self._obj_body_text())
         vis = p.createVisualShape(p.GEOM_MESH, fileName=str(mesh_path), physicsClientId=client)
         require(vis >= 0, f"PyBullet could not load {mesh_path}", "check the mesh file")
-        body = p.createMultiBody(0.0, -1, vis, basePosition=self.pose[:3, 3].tolist(),
+        col = -1
+        if collision:
+            col = p.createCollisionShape(p.GEOM_MESH, vertices=self.vertices.tolist(), indices=self.triangles.ravel().tolist(),
+                                         flags=p.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=client)
+        body = p.createMultiBody(0.0, col, vis, basePosition=self.pose[:3, 3].tolist(),
                                  baseOrientation=matrix_to_quat(self.pose[:3, :3]).tolist(), physicsClientId=client)
         self.update_texture(client, body, folder)
         return body
