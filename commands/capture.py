@@ -64,42 +64,35 @@ def capture(
 
       tergodic capture --config cap/config.json --seed 3 --out cap2/
     """
+    from tergodic_cli.atomic import write_png
     from tergodic_cli.capture import CaptureConfig, capture_cloud, save_capture
-    from tergodic_cli.capture.pipeline import format_report, load_capture_config, resolve_source
-    from tergodic_cli.config import override
+    from tergodic_cli.capture.artefact import CAPTURE_CONFIG_KIND, check_out_folder
+    from tergodic_cli.config import from_dict, override, read_config
+    from tergodic_cli.progress import Spinner
 
     given = given_options(ctx)
-    saved, sections = load_capture_config(config) if config is not None else (None, {})
-    if saved is not None and not given & {"source", "from_file", "synthetic", "sim_object"}:
-        kind = saved.source
-    else:
-        kind = resolve_source(source, from_file, synthetic, sim_object)
+    saved, sections = None, {}  # sections: the saved object and camera of a simulated capture
+    if config is not None:
+        sections = read_config(config, CAPTURE_CONFIG_KIND,
+                               "give the config.json that 'tergodic capture' wrote beside a capture")
+        saved = CaptureConfig.from_dict(sections.get("capture"), f"--config {config}: capture")
+    sourced = saved is not None and not given & {"source", "from_file", "synthetic", "sim_object"}
+    kind = saved.source if sourced else _resolve_source(source, from_file, synthetic, sim_object)
     cfg = CaptureConfig(
-        source=kind,
+        source=kind, marking=marking, seed=seed, noise=noise, voxel=voxel, voxel_rule=voxel_rule, target=target,
         path=str(from_file) if from_file is not None else (sim_object if kind == "sim" and sim_object not in _BUILTIN else None),
         synthetic=(synthetic or "bowl") if kind != "sim" else (sim_object or "bowl"),
-        marking=marking,
-        seed=seed,
-        noise=noise,
         units=units if kind != "sim" else "m",  # a sim cloud is in metres; --units applies to the .obj
-        voxel=voxel,
-        voxel_rule=voxel_rule,
         crop=parse_floats(crop, 6, "--crop", "-0.2,-0.2,0,0.2,0.2,0.3") if crop else None,
         outliers=_parse_outliers(outliers) if outliers else None,
         drop_isolated=not keep_isolated,
-        target=target,
-        drop_invalid=drop_invalid,
-        colour_depth=colour_depth,
-        max_points=max_points,
+        drop_invalid=drop_invalid, colour_depth=colour_depth, max_points=max_points,
     )
     if saved is not None:  # the saved capture, with the options given on this command line on top
         cfg = override(saved, cfg, given, {"from_file": ("path",), "sim_object": ("path", "synthetic"),
-                                              "keep_isolated": ("drop_isolated",)})
-    from tergodic_cli.atomic import write_png
-    from tergodic_cli.capture.artefact import check_out_folder
-
+                                           "keep_isolated": ("drop_isolated",)})
     check_out_folder(out, overwrite)  # before any work: a refused --out costs nothing
-    frame = None
+    frame, configs = None, {"capture": cfg}  # a realsense camera's settings are in capture.json only
     if kind == "sim":
         from tergodic_cli.backends.pybullet.camera import SimCameraConfig, SimCaptureConfig, capture_sim
         from tergodic_cli.capture.textured import SimObjectConfig
@@ -112,26 +105,20 @@ def capture(
             pipeline=cfg,
         )
         if saved is not None:
-            from tergodic_cli.config import from_dict
-
             for part, renamed in (("object", {"sim_object": ("object",), "object_pose": ("pose",)}),
                                   ("camera", {"camera_pose": ("pose",), "fov": ("fov_deg",)})):
                 now = getattr(sim, part)
                 old = from_dict(type(now), sections.get(part) or {}, f"--config {config}: {part}")
                 setattr(sim, part, override(old, now, given, renamed))
-        configs = {"capture": cfg, "object": sim.object, "camera": sim.camera}
+        configs.update(object=sim.object, camera=sim.camera)
         cap = capture_sim(sim)
         frame = getattr(cap, "frame", None)
     elif kind == "realsense":
         from tergodic_cli.backends.realsense.capture import capture_realsense
 
-        configs = {"capture": cfg}  # the camera's settings are in capture.json; a repeat takes them from the options
         cap = capture_realsense(cfg, serial=serial, width=width, height=height,
                                 camera_pose=parse_floats(camera_pose, None, "--camera-pose", "0.3,0,0.6,1,0,0,0"))
     else:
-        configs = {"capture": cfg}
-        from tergodic_cli.progress import Spinner
-
         with Spinner("capture: reading, filtering and segmenting the cloud"):  # seconds for millions of points
             cap = capture_cloud(cfg)
     # What the camera saw goes beside the artefact (not part of it), inside the same atomic folder.
@@ -140,7 +127,7 @@ def capture(
     if json_out:
         typer.echo(json.dumps(cap.meta, indent=2))
         return
-    typer.echo(format_report(cap))
+    typer.echo(_report(cap.meta))
     if kind == "realsense":
         r = cap.meta["realsense"]
         typer.echo(f"realsense {r['name']} ({r['serial']}): {r['intrinsics']['width']}x{r['intrinsics']['height']}, "
@@ -154,6 +141,40 @@ def capture(
 
 
 _BUILTIN = ("bowl", "plate", "mug")
+_SOURCES = ("file", "synthetic", "sim", "realsense")
+
+
+def _resolve_source(source: str | None, from_file, synthetic, sim_object) -> str:
+    """``--source``, or the one of --from / --synthetic / --object given; one line when it is
+    missing, unknown or conflicting."""
+    from tergodic_cli.errors import require
+
+    given = [name for name, value in (("file", from_file), ("synthetic", synthetic), ("sim", sim_object)) if value is not None]
+    usage = "use --from FILE, --synthetic OBJECT (see --help) or --source sim --object bowl|plate|mug|FILE.obj"
+    if source is None:
+        require(len(given) == 1, "give exactly one source", usage)
+        return given[0]
+    require(source in _SOURCES, f"unknown --source '{source}'", f"use one of {', '.join(_SOURCES)}")
+    others = [g for g in given if g != source]
+    require(not others, f"--source {source} does not go with "
+            f"{', '.join('--' + {'file': 'from', 'sim': 'object'}.get(g, g) for g in others)}", usage)
+    require(source != "file" or from_file is not None, "--source file needs --from FILE", usage)
+    require(source != "synthetic" or synthetic is not None, "--source synthetic needs --synthetic OBJECT", usage)
+    return source
+
+
+def _report(m: dict) -> str:
+    """The capture's stages with their counts, target share, spacing and extent."""
+    lines = ["stage               points"]
+    lines += [f"  {f['stage']:<17} {f['points']:>7}" for f in m["filters"]]
+    t = m["target"]
+    ext = " x ".join(f"{e * 1e3:.1f}" for e in m["extent_m"])
+    lines += [
+        f"target '{t['spec']}' ({t['voxel_rule']}): {m['counts']['target']} of {m['counts']['output']} points ({100 * t['share']:.1f}%)",
+        f"mean spacing h: {m['spacing_h_m'] * 1e3:.3f} mm    extent: {ext} mm",
+    ]
+    return "\n".join(lines)
+
 
 def _parse_outliers(text: str) -> tuple[int, float]:
     nb, std = parse_floats(text, 2, "--outliers", "20,2.0")

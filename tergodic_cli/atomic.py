@@ -96,9 +96,8 @@ def write_json(target: str | os.PathLike, obj: Any) -> None:
 
 def write_npz(dest: str | os.PathLike, **arrays: np.ndarray) -> None:
     """Write arrays to an uncompressed ``.npz``, atomically (no pickled objects)."""
-    with atomic_path(dest, suffix=".npz") as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
+    with atomic_path(dest, suffix=".npz") as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)
 
 
 def _json_default(obj: Any) -> Any:

@@ -9,11 +9,11 @@ from __future__ import annotations
 import platform
 import signal
 import sys
-from importlib import metadata
 
 import typer
 
-from tergodic_cli.errors import TergodicError
+from tergodic_cli.errors import Terminated, TergodicError, os_cause
+from tergodic_cli.progress import echo
 
 
 app = typer.Typer(
@@ -33,25 +33,20 @@ app = typer.Typer(
     context_settings={"help_option_names": ["-h", "--help"]},
 )
 
-#: The libraries whose versions ``--version`` prints (distribution names; the first one installed counts).
-LIBRARIES = (("numpy",), ("scipy",), ("open3d", "open3d-cpu"), ("robust_laplacian", "robust-laplacian"),
-             ("pybullet",), ("numba",), ("mcap",))
+#: The libraries whose versions ``--version`` prints (an alias distribution is named: open3d-cpu).
+LIBRARIES = ("numpy", "scipy", "open3d", "robust_laplacian", "pybullet", "numba", "mcap")
 
 
 def version_text() -> str:
     """``tergodic --version``: this package's version, then the key libraries' (from their metadata, no imports)."""
     from tergodic_cli import __version__
+    from tergodic_cli.provenance import installed
 
     lines = [f"tergodic {__version__} (Python {platform.python_version()}, {platform.system()} {platform.machine()})"]
-    for names in LIBRARIES:
-        found = "not installed"
-        for dist in names:
-            try:
-                found = metadata.version(dist) + (f" ({dist})" if dist != names[0] else "")
-                break
-            except metadata.PackageNotFoundError:
-                continue
-        lines.append(f"  {names[0]} {found}")
+    for name in LIBRARIES:
+        found = installed(name)
+        text = "not installed" if found is None else found[0] + (f" ({found[1]})" if found[1] != name else "")
+        lines.append(f"  {name} {text}")
     return "\n".join(lines)
 
 
@@ -98,8 +93,6 @@ for _verb in (capture.capture, precompute.precompute, explore.explore, replay.re
 
 
 def _on_sigterm(signum, frame) -> None:
-    from tergodic_cli.errors import Terminated
-
     Terminated.received = True
     raise Terminated()
 
@@ -110,9 +103,7 @@ def main(argv: list[str] | None = None) -> int:
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
     except ValueError:  # not the main thread (an embedding caller): leave SIGTERM alone
         previous = None
-    from tergodic_cli.commands.explore import expand_live
-
-    argv = expand_live(sys.argv[1:] if argv is None else argv)  # --live [HOST:PORT]: an optional value
+    argv = explore.expand_live(sys.argv[1:] if argv is None else argv)  # --live [HOST:PORT]: an optional value
     try:
         result = app(args=argv, prog_name="tergodic", standalone_mode=False)
         return int(result) if isinstance(result, int) else 0
@@ -120,8 +111,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"tergodic: error: {exc}", file=sys.stderr)
         return exc.exit_code
     except OSError as exc:  # the operating system's refusals not caught nearer: still one line, no traceback
-        from tergodic_cli.errors import os_cause
-
         where = f" {exc.filename}" if exc.filename else ""
         print(f"tergodic: error: cannot complete:{where} {os_cause(exc)}; check the paths and free space", file=sys.stderr)
         return 2
@@ -146,8 +135,6 @@ def main(argv: list[str] | None = None) -> int:
 
 def _interrupted(exc: BaseException) -> int:
     """Ctrl-C or SIGTERM: one line (a verb's own, e.g. how to resume), no traceback; the exit code."""
-    from tergodic_cli.progress import echo
-
     code = getattr(exc, "exit_code", 130)
     echo(f"tergodic: {getattr(exc, 'message', None) or ('terminated' if code == 143 else 'interrupted')}")
     return code

@@ -121,10 +121,8 @@ def override(saved, now, given, renamed: dict | None = None):
     dataclass
         A copy of ``saved``.
     """
-    from dataclasses import replace
-
     fields = {f for opt in given for f in (renamed or {}).get(opt, (opt,)) if hasattr(now, f)}
-    return replace(saved, **{f: getattr(now, f) for f in fields})
+    return dataclasses.replace(saved, **{f: getattr(now, f) for f in fields})
 
 
 def write_config(path: str | Path, kind: str, **sections) -> None:

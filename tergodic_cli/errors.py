@@ -47,18 +47,16 @@ class Interrupted(KeyboardInterrupt):
         self.exit_code = getattr(cause, "exit_code", 130)
 
 
-#: The operating system's causes, in the words of the one-line message.
+#: The operating system's causes in the words of the one-line message, where they differ from
+#: its own (lower-cased) text; ENOSPC for numpy's short writes, which carry no errno.
 _CAUSES = {
     "ENOSPC": "no space left on device",
-    "EDQUOT": "disk quota exceeded",
     "EROFS": "read-only filesystem",
-    "EACCES": "permission denied",
     "EPERM": "permission denied",
     "ENOTDIR": "a part of the path is a file, not a folder",
     "EISDIR": "it is a folder",
     "EEXIST": "it already exists",
     "ENAMETOOLONG": "the name is too long",
-    "EIO": "input/output error",
 }
 
 

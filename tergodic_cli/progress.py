@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 from typing import Iterable, Iterator, TypeVar
@@ -9,9 +10,14 @@ from typing import Iterable, Iterator, TypeVar
 T = TypeVar("T")
 
 
-def progress_enabled() -> bool:
-    """Bars are on unless ``TERGODIC_NO_PROGRESS`` is set."""
-    return not os.environ.get("TERGODIC_NO_PROGRESS")
+def _console():
+    """The stderr console of bars and spinners; None when off or not a terminal (a file, a pipe)."""
+    if os.environ.get("TERGODIC_NO_PROGRESS"):
+        return None
+    from rich.console import Console
+
+    console = Console(file=sys.stderr)
+    return console if console.is_terminal else None
 
 
 #: The rich consoles of the bars and spinners on screen now, innermost last (see :func:`echo`).
@@ -34,23 +40,14 @@ def track(iterable: Iterable[T], total: int | None = None, description: str = ""
     ``weight(item)``: how many units an item completes (default 1), e.g. the runs in a batch, so the
     bar counts what the user was told about. It is applied after the item's loop body.
     """
-    if not progress_enabled():
+    console = _console()
+    if console is None:
         yield from iterable
         return
-    from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    console = Console(file=sys.stderr)
-    if not console.is_terminal:  # no animation in a file or pipe, and rich would leave a blank line
-        yield from iterable
-        return
-    columns = (
-        TextColumn("[progress.description]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-    )
+    columns = (TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
+               TimeElapsedColumn(), TimeRemainingColumn())
     with Progress(*columns, console=console) as bar:
         _LIVE.append(console)
         try:
@@ -62,26 +59,16 @@ def track(iterable: Iterable[T], total: int | None = None, description: str = ""
             _LIVE.remove(console)
 
 
-class Spinner:
-    """A context manager that shows a labelled spinner while a blocking call runs."""
-
-    def __init__(self, description: str):
-        self.description = description
-        self._status = None
-
-    def __enter__(self) -> "Spinner":
-        if progress_enabled():
-            from rich.console import Console
-
-            console = Console(file=sys.stderr)
-            if not console.is_terminal:
-                return self
-            self._status = console.status(self.description)
-            self._status.__enter__()
-            _LIVE.append(console)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if self._status is not None:
-            _LIVE.remove(self._status.console)
-            self._status.__exit__(*exc)
+@contextlib.contextmanager
+def Spinner(description: str) -> Iterator[None]:  # noqa: N802  (used like a class: ``with Spinner(...)``)
+    """Show a labelled spinner while a blocking call runs."""
+    console = _console()
+    if console is None:
+        yield
+        return
+    with console.status(description):
+        _LIVE.append(console)
+        try:
+            yield
+        finally:
+            _LIVE.remove(console)

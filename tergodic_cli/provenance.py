@@ -14,15 +14,18 @@ _ALIASES = {"open3d": ("open3d-cpu",)}
 _PACKAGES = ("tergodic", "numpy", "scipy", "open3d", "robust-laplacian", "pybullet", "pygafro", "mcap")
 
 
+def installed(name: str) -> tuple[str, str] | None:
+    """(version, distribution) of ``name`` or of another distribution of its module; None when absent."""
+    for dist in (name,) + _ALIASES.get(name, ()):
+        with contextlib.suppress(metadata.PackageNotFoundError):
+            return metadata.version(dist), dist
+    return None
+
+
 @functools.lru_cache(maxsize=1)
 def _versions() -> tuple[tuple[str, str], ...]:
     out = {"python": sys.version.split()[0], "platform": platform.platform()}
-    for name in _PACKAGES:
-        found = []
-        for dist in (name,) + _ALIASES.get(name, ()):
-            with contextlib.suppress(metadata.PackageNotFoundError):
-                found.append(metadata.version(dist))
-        out[name] = (found or ["absent"])[0]
+    out.update({name: (installed(name) or ("absent",))[0] for name in _PACKAGES})
     return tuple(out.items())
 
 

@@ -9,6 +9,7 @@ which says one line when the disk cache is cold, and ``make setup`` fills the ca
 
 from __future__ import annotations
 
+import os
 import sys
 import tempfile
 import time
@@ -33,8 +34,6 @@ def compile_robot() -> float:
 
 
 def main() -> int:
-    import os
-
     os.environ.setdefault("TERGODIC_NO_PROGRESS", "1")
     cold = not explorer_kernels_cached()
     t = compile_explorer()

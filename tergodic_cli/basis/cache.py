@@ -32,12 +32,15 @@ import numpy as np
 import scipy.sparse as sp
 
 from tergodic_cli import FORMAT_VERSION
+from tergodic_cli.atomic import check_parent_writable
 from tergodic_cli.basis.core import Basis, compute_basis
 from tergodic_cli.capture.artefact import SIDECAR_SHA, sidecar_checksum
 from tergodic_cli.config import CONFIG_FILE, Config, write_config
+from tergodic_cli.errors import os_error
+from tergodic_cli.progress import Spinner
 
-__all__ = ["BasisConfig", "CacheMiss", "load_basis_config", "array_checksum", "default_cache_dir", "geometry_key", "get_basis",
-           "read_checked"]
+__all__ = ["BasisConfig", "CacheMiss", "array_checksum", "default_cache_dir", "geometry_key",
+           "get_basis"]
 
 QUANTUM_M = 1e-6
 _DEGENERATE = 1e-7
@@ -63,24 +66,6 @@ class BasisConfig(Config):
     solver: str = "lanczos-interior-shift"
 
 
-def load_basis_config(path: str | Path) -> BasisConfig:
-    """Read a basis entry's ``config.json``.
-
-    Parameters
-    ----------
-    path : str or Path
-        ``<cache>/basis/<key>/config.json``.
-
-    Returns
-    -------
-    BasisConfig
-    """
-    from tergodic_cli.config import read_config
-
-    d = read_config(path, BASIS_CONFIG_KIND, "give the config.json of a basis cache entry (see 'tergodic precompute --json')")
-    return BasisConfig.from_dict(d.get("basis"), f"--config {path}: basis")
-
-
 def default_cache_dir() -> Path:
     """The cache root.
 
@@ -89,29 +74,13 @@ def default_cache_dir() -> Path:
     Path
         ``$TERGODIC_CACHE_DIR``, else ``$XDG_CACHE_HOME/tergodic``, else ``~/.cache/tergodic``.
     """
-    if os.environ.get("TERGODIC_CACHE_DIR"):
-        return Path(os.environ["TERGODIC_CACHE_DIR"])
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "tergodic"
+    return Path(os.environ.get("TERGODIC_CACHE_DIR") or Path(base) / "tergodic")
 
 
-def canonical_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
-    """The cloud's canonical frame: principal axes, each signed by its third moment.
-
-    Parameters
-    ----------
-    points : (n, 3) float
-        Metres.
-
-    Returns
-    -------
-    centroid : (3,) float
-        Metres.
-    R : (3, 3) float
-        Rotation whose rows are the canonical axes.
-    invariant : bool
-        Whether the frame is well defined (rigid-motion invariant).
-    """
+def _canonical_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Centroid, rotation R whose rows are the principal axes each signed by its third moment,
+    and whether that frame is well defined (rigid-motion invariant)."""
     centroid = points.mean(axis=0)
     centred = points - centroid
     cov = centred.T @ centred / len(points)
@@ -130,15 +99,9 @@ def canonical_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
 
 
 def _canonical_order(q: np.ndarray) -> tuple[np.ndarray, bytes]:
-    """An order sorting the integer coordinates q (n, 3) lexicographically (x, then y, then z),
-    and bytes that identify the sorted coordinates (hashed into the key).
-
-    When every axis spans fewer than 2**21 quanta (2.1 m) the three coordinates are packed
-    into one int64 and sorted once (numpy's SIMD sort: 10x faster than ``np.lexsort``);
-    the bytes are the offsets and the sorted packed keys. Points that quantise to the same
-    µm cell tie, and their relative order is whatever the sort gives (deterministic for a
-    given input).
-    """
+    """An order sorting the integer coordinates q (n, 3) by x, y then z, and bytes identifying
+    the sorted coordinates. Spans under 2**21 quanta pack into one int64 and sort once (10x
+    faster than ``np.lexsort``); points in the same µm cell keep the sort's (deterministic) order."""
     lo = q.min(axis=0)
     span = q.max(axis=0) - lo
     if len(q) and np.all(span < (1 << _BITS)):
@@ -170,7 +133,7 @@ def geometry_key(points: np.ndarray, cfg: BasisConfig) -> tuple[str, np.ndarray,
     canon : (n, 3) float
         The canonical coordinates, metres, in canonical order.
     """
-    centroid, R, invariant = canonical_frame(points)
+    centroid, R, invariant = _canonical_frame(points)
     canon = (points - centroid) @ R.T if invariant else points
     q = np.rint(canon / QUANTUM_M).astype(np.int64)
     order, identity = _canonical_order(q)
@@ -216,26 +179,8 @@ def array_checksum(a: np.ndarray) -> str:
     return h.hexdigest()
 
 
-def read_checked(path: Path, expected: str | None) -> np.ndarray:
-    """Read a ``.npy`` file and check its checksum; never unpickles.
-
-    Parameters
-    ----------
-    path : Path
-        A ``.npy`` file of a cache entry.
-    expected : str or None
-        Its checksum (:func:`array_checksum`).
-
-    Returns
-    -------
-    ndarray
-        The array.
-
-    Raises
-    ------
-    CacheMiss
-        unreadable, truncated, an object dtype, or a checksum mismatch.
-    """
+def _read_checked(path: Path, expected: str | None) -> np.ndarray:
+    """A ``.npy`` of an entry, never unpickled; CacheMiss when unreadable or its checksum differs."""
     try:
         a = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError, TypeError) as exc:
@@ -245,20 +190,14 @@ def read_checked(path: Path, expected: str | None) -> np.ndarray:
     return a
 
 
+_ARRAY_NAMES = ("points_order", "canonical_points", "evals", "evecs", "mass", "L_data", "L_indices", "L_indptr", "h")
+
+
 def _to_arrays(basis: Basis, order: np.ndarray, canon: np.ndarray) -> dict[str, np.ndarray]:
     """The arrays of an entry, in the computing cloud's point order (plus its canonical order)."""
     L = sp.csr_matrix(basis.L)
-    return {
-        "points_order": np.asarray(order, dtype=np.int64),
-        "canonical_points": canon,
-        "evals": basis.evals,
-        "evecs": basis.evecs,
-        "mass": basis.mass,
-        "L_data": L.data,
-        "L_indices": L.indices,
-        "L_indptr": L.indptr,
-        "h": np.array(basis.h),
-    }
+    return dict(zip(_ARRAY_NAMES, (np.asarray(order, dtype=np.int64), canon, basis.evals, basis.evecs, basis.mass,
+                                   L.data, L.indices, L.indptr, np.array(basis.h))))
 
 
 def _from_arrays(arrays: dict[str, np.ndarray], points: np.ndarray, order: np.ndarray, meta: dict) -> Basis:
@@ -281,9 +220,6 @@ def _from_arrays(arrays: dict[str, np.ndarray], points: np.ndarray, order: np.nd
                  float(arrays["h"]), meta)
 
 
-_ARRAY_NAMES = ("points_order", "canonical_points", "evals", "evecs", "mass", "L_data", "L_indices", "L_indptr", "h")
-
-
 def _load_entry(entry: Path, points: np.ndarray, order: np.ndarray, canon: np.ndarray) -> Basis:
     meta_path = entry / "basis.json"
     if not meta_path.exists():
@@ -299,16 +235,15 @@ def _load_entry(entry: Path, points: np.ndarray, order: np.ndarray, canon: np.nd
         raise CacheMiss("basis.json was edited or is from an older tergodic (its checksum does not match)")
     if set(checksums) != set(_ARRAY_NAMES):
         raise CacheMiss("checksum mismatch (corrupt or modified)")
-    arrays = {name: read_checked(entry / f"{name}.npy", checksums[name]) for name in _ARRAY_NAMES}
+    arrays = {name: _read_checked(entry / f"{name}.npy", checksums[name]) for name in _ARRAY_NAMES}
     # Guard against key collisions: the cached geometry must be this geometry.
     cached = arrays["canonical_points"]
     if cached.shape != canon.shape or np.abs(cached - canon).max() > 10 * QUANTUM_M:
         raise CacheMiss("geometry does not match its key")
     try:
-        basis = _from_arrays(arrays, points, order, meta)
+        return _from_arrays(arrays, points, order, meta)
     except (KeyError, TypeError, ValueError, IndexError) as exc:
         raise CacheMiss(f"inconsistent ({type(exc).__name__})") from None
-    return basis
 
 
 def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None = None, force: bool = False,
@@ -342,26 +277,17 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
         except CacheMiss as miss:
             if str(miss):
                 say(f"warning: cached basis {entry} is unusable: {miss}; recomputing")
-    from tergodic_cli.atomic import check_parent_writable
-    from tergodic_cli.progress import Spinner
-
     # before minutes of work, not after
     check_parent_writable(entry, entry.parent.parent, _CACHE_OPTION)
     with Spinner(f"computing basis: Laplacian + {cfg.nk} eigenpairs of {len(points)} points"):
         basis = compute_basis(points, cfg.nk, cfg.neighbors, timings)
-    from tergodic_cli.provenance import library_versions
+    from tergodic_cli.provenance import library_versions  # importlib.metadata: only when recorded
 
     t = time.perf_counter()
     arrays = _to_arrays(basis, order, canon)
     meta = {
-        "kind": "tergodic.basis",
-        "format_version": FORMAT_VERSION,
-        "layout": CACHE_LAYOUT,
-        "key": key,
-        "config": cfg.to_dict(),
-        "n_points": len(points),
-        "rigid_invariant": invariant,
-        "h_m": basis.h,
+        "kind": "tergodic.basis", "format_version": FORMAT_VERSION, "layout": CACHE_LAYOUT, "key": key,
+        "config": cfg.to_dict(), "n_points": len(points), "rigid_invariant": invariant, "h_m": basis.h,
         "lambda_range": [float(basis.evals[0]), float(basis.evals[-1])],
         "timings": timings,
         "versions": library_versions(),
@@ -372,8 +298,6 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
     try:
         _write_entry(entry, arrays, meta, cfg)
     except OSError as exc:  # a full disk or a vanished permission: one line, nothing partial (see _write_entry)
-        from tergodic_cli.errors import os_error
-
         raise os_error(exc, entry.parent.parent, "write the basis cache",
                        f"free space or choose another {_CACHE_OPTION}") from None
     meta["timings"]["write_ms"] = 1e3 * (time.perf_counter() - t)  # in memory only (after the write)

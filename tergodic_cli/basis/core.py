@@ -9,6 +9,7 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
+from tergodic_cli.capture.filters import mean_spacing
 from tergodic_cli.errors import TergodicError, require
 
 
@@ -113,12 +114,8 @@ def compute_laplacian(points: np.ndarray, n_neighbors: int, validate: bool = Tru
 
 
 def solve_eigenpairs(L: sp.csr_matrix, mass: np.ndarray, nk: int) -> tuple[np.ndarray, np.ndarray]:
-    """The ``nk`` smallest eigenpairs of L φ = λ M φ, ascending and M-orthonormal.
-
-    Shift-invert Lanczos with the null space (one constant per connected component)
-    deflated exactly, a shift inside the wanted window and a certified result; see
-    :mod:`tergodic_cli.basis.eigensolvers`. Eigenvalues agree with ARPACK shift-invert
-    (the authors' ``eigsh(L, nK, M, sigma=1e-12)``) to ~1e-12 relative.
+    """The ``nk`` smallest eigenpairs of L φ = λ M φ, ascending and M-orthonormal, certified
+    (:func:`~tergodic_cli.basis.eigensolvers.smallest_eigenpairs`).
 
     Parameters
     ----------
@@ -165,8 +162,6 @@ def compute_basis(points: np.ndarray, nk: int, n_neighbors: int, timings: dict |
     Basis
         L (n, n), mass (n,) m², evals (nk,) 1/m², evecs (n, nk), spacing h in metres.
     """
-    from tergodic_cli.capture.filters import mean_spacing
-
     timings = {} if timings is None else timings
     check_geometry(points)
     require(nk < len(points), f"--nk {nk} is not below the number of points ({len(points)})", f"use --nk < {len(points)}")

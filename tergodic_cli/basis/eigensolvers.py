@@ -17,7 +17,11 @@ import math
 import warnings
 
 import numpy as np
+import qdldl
 import scipy.sparse as sp
+from scipy.linalg.lapack import dstevd
+from scipy.sparse.csgraph import connected_components
+from threadpoolctl import ThreadpoolController
 
 #: Lanczos convergence: ‖OP y − θ y‖ ≤ TOL_RITZ |θ| for every wanted Ritz pair.
 TOL_RITZ = 1e-10
@@ -42,20 +46,8 @@ class EigensolverFailure(RuntimeError):
 # Pieces
 
 
-def component_null_basis(L: sp.spmatrix, sqrt_mass: np.ndarray) -> np.ndarray:
-    """Orthonormal null vectors of A = S⁻¹ L S⁻¹, one per connected component.
-
-    Parameters
-    ----------
-    L : (n, n) sparse, symmetric, zero row sums.
-    sqrt_mass : (n,) √diag(M).
-
-    Returns
-    -------
-    Z : (n, c) float64, column i is s restricted to component i, unit norm.
-    """
-    from scipy.sparse.csgraph import connected_components
-
+def _null_basis(L: sp.spmatrix, sqrt_mass: np.ndarray) -> np.ndarray:
+    """Orthonormal null vectors Z (n, c) of A = S⁻¹ L S⁻¹: s on each connected component."""
     graph = sp.csr_matrix(L, copy=True)
     graph.data = np.abs(graph.data)
     graph.eliminate_zeros()
@@ -79,8 +71,6 @@ class SymmetricFactor:
     """
 
     def __init__(self, K: sp.spmatrix, check_accuracy: bool = True):
-        import qdldl
-
         K = sp.csc_matrix(K)
         self.n = K.shape[0]
         try:
@@ -147,24 +137,11 @@ class ShiftedMatrix:
         return sp.csc_matrix((data, self.A.indices, self.A.indptr), shape=self.A.shape)
 
 
-def choose_shift(A: "ShiftedMatrix", area: float, n_wanted: int, n_null: int,
-                 max_tries: int = 4) -> tuple[float, SymmetricFactor]:
-    """A shift σ with about ``SHIFT_SHARE`` of the ``n_wanted`` non-zero eigenvalues below it.
-
-    Starts from Weyl's law for a surface (λ_k ≈ 4πk / area), then corrects with the
-    exact count below σ from each factorisation's inertia, assuming N(λ) ∝ λ (2-D).
-
-    Parameters
-    ----------
-    A : the symmetric form S⁻¹ L S⁻¹ (n, n), as a :class:`ShiftedMatrix`.
-    area : total area Σ M (m²).
-    n_wanted : wanted non-zero eigenvalues.
-    n_null : dimension of the null space (connected components).
-
-    Returns
-    -------
-    sigma, factor of A − σ I (``n_negative`` = n_null + eigenvalues in (0, σ)).
-    """
+def _choose_shift(A: "ShiftedMatrix", area: float, n_wanted: int, n_null: int,
+                  max_tries: int = 4) -> tuple[float, SymmetricFactor]:
+    """σ with about ``SHIFT_SHARE`` of the ``n_wanted`` non-zero eigenvalues below it, and the
+    factor of A − σI: Weyl's law for a surface (λ_k ≈ 4πk / area) first, then corrected by
+    each factor's inertia (the exact count below σ), assuming N(λ) ∝ λ (2-D)."""
     target = max(1.0, SHIFT_SHARE * n_wanted)
     sigma = 4.0 * math.pi * (n_wanted + n_null) / area * SHIFT_SHARE * 0.75
     best = None
@@ -187,33 +164,17 @@ def choose_shift(A: "ShiftedMatrix", area: float, n_wanted: int, n_null: int,
     return best
 
 
-def lanczos(apply_op, q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, check_from: int,
-            check_every):
-    """Symmetric Lanczos with full reorthogonalisation and a deflated subspace.
+def _lanczos(apply_op, q0: np.ndarray, Z: np.ndarray, max_dim: int, on_check, check_from: int,
+             check_every):
+    """Symmetric Lanczos with full reorthogonalisation, ``Z`` (n, c) kept out of the Krylov space.
 
-    After the three-term step, each new vector is orthogonalised against all previous
-    ones and against ``Z`` by classical Gram-Schmidt (``Z`` is stored in front of the
-    Lanczos vectors, so one matrix-vector product does both), repeated only when it
-    cancelled badly (Daniel-Gragg-Kaufman-Stewart), so the basis stays orthonormal to
-    machine precision and Ritz vectors are as accurate as their residuals say. The
-    projections are computed in double precision; when they are tiny (the usual case)
-    the correction is applied from a float32 copy of the basis, which halves the memory
-    traffic of that pass.
-
-    Parameters
-    ----------
-    apply_op : callable (n,) -> (n,), a symmetric operator.
-    q0 : (n,) unit start vector, orthogonal to ``Z``.
-    Z : (n, c) orthonormal vectors kept out of the Krylov space.
-    max_dim : largest Krylov dimension.
-    on_check : callable(alpha (m,), beta (m + 1,), m) -> bool, True when converged;
-        ``beta[i]`` couples q_{i-1} and q_i (beta[0] = 0), ``beta[m]`` is the residual coupling.
-    check_from : first Krylov dimension at which ``on_check`` is called.
-    check_every : callable(m) -> steps to the next check.
-
-    Returns
-    -------
-    Q (≥ m + 1, n) whose first m rows are the Lanczos vectors, and m.
+    Each new vector is orthogonalised by classical Gram-Schmidt against ``Z`` (stored in front
+    of the Lanczos vectors: one product does both) and every previous vector, repeated only
+    when it cancelled badly (Daniel-Gragg-Kaufman-Stewart); a tiny correction is applied from
+    a float32 copy of the basis (half the memory traffic). ``on_check(alpha (m,), beta (m + 1,),
+    m)`` is called from ``check_from`` steps on, then every ``check_every(m)``; True stops.
+    ``beta[i]`` couples q_{i-1} and q_i, ``beta[m]`` is the residual coupling. Returns Q
+    (≥ m + 1, n), whose first m rows are the Lanczos vectors, and m.
     """
     n = q0.size
     c = Z.shape[1]
@@ -294,8 +255,6 @@ def tridiagonal_eigh(alpha: np.ndarray, beta: np.ndarray) -> tuple[np.ndarray, n
     evecs : (m, m) float
         Orthonormal columns.
     """
-    from scipy.linalg.lapack import dstevd
-
     w, z, info = dstevd(alpha, beta, compute_v=1)
     if info:
         raise EigensolverFailure(f"dstevd failed (info {info})")
@@ -308,12 +267,9 @@ def tridiagonal_eigh(alpha: np.ndarray, beta: np.ndarray) -> tuple[np.ndarray, n
 
 def _finish(Y: np.ndarray, L: sp.spmatrix, s: np.ndarray, Z: np.ndarray, nk: int,
             lam_scale: float, report: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Certify Ritz vectors Y (n, ne) of A and return (evals (nk,), evecs φ (n, nk)).
-
-    The columns of Y are orthonormal and orthogonal to Z (fully reorthogonalised Lanczos
-    or LAPACK guarantee it to machine precision). Eigenvalues are Rayleigh quotients;
-    every true residual must satisfy ‖A y − λ y‖ ≤ max(TOL_RESIDUAL · max λ, TOL_BACKWARD · ‖A‖).
-    """
+    """Certify Ritz vectors Y (n, ne) of A, orthonormal and orthogonal to Z, and return (evals (nk,),
+    evecs φ (n, nk)). Eigenvalues are Rayleigh quotients; every true residual must satisfy
+    ‖A y − λ y‖ ≤ max(TOL_RESIDUAL · max λ, TOL_BACKWARD · ‖A‖)."""
     n, ne = Y.shape
     c = Z.shape[1]
     evecs = np.empty((n, c + ne))
@@ -364,7 +320,7 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
     L = sp.csr_matrix(L)
     n = L.shape[0]
     s = np.sqrt(mass)
-    Z = component_null_basis(L, s)
+    Z = _null_basis(L, s)
     c = Z.shape[1]
     report["components"] = c
     ne = nk - c
@@ -374,7 +330,7 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
     A = L.tocoo()
     A = ShiftedMatrix(sp.csc_matrix((A.data / (s[A.row] * s[A.col]), (A.row, A.col)), shape=L.shape))  # S⁻¹ L S⁻¹
     if interior_shift:
-        sigma, factor = choose_shift(A, float(mass.sum()), ne, c)
+        sigma, factor = _choose_shift(A, float(mass.sum()), ne, c)
     else:
         # 1 % of Weyl's first non-zero eigenvalue below zero: A − σI is positive definite.
         sigma = -0.01 * 4.0 * math.pi / float(mass.sum())
@@ -427,7 +383,7 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
     max_dim = int(min(n - c - 1, 3 * ne + 100))
     # Lanczos typically needs ne + ~7 √ne steps here; start checking a little before.
     check_from = int(min(max_dim, ne + max(8, 5 * math.sqrt(ne))))
-    Q, m = lanczos(factor.solve, q0, Z, max_dim, on_check, check_from,
+    Q, m = _lanczos(factor.solve, q0, Z, max_dim, on_check, check_from,
                    check_every=lambda m: state.get("next_in", max(4, m // 20)))
     Y = Q[:m].T @ state["U"]  # Ritz vectors as columns, (n, ne)
     evals, evecs = _finish(Y, L, s, Z, nk, float(np.max(state["lam"])), report)
@@ -442,32 +398,12 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
     return evals, evecs
 
 
-def dense_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, report: dict | None = None):
-    """LAPACK on the dense symmetric form, null space deflated exactly (small clouds).
-
-    Parameters
-    ----------
-    L : (n, n) sparse
-        The Laplacian.
-    mass : (n,) float
-        Lumped mass, m².
-    nk : int
-        Eigenpairs wanted.
-    report : dict, optional
-        Filled with the method and its checks.
-
-    Returns
-    -------
-    evals : (nk,) float
-        Ascending, 1/m².
-    evecs : (n, nk) float
-        Φᵀ M Φ = I.
-    """
+def _dense_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, report: dict):
+    """LAPACK on the dense symmetric form, null space deflated exactly (small clouds)."""
     from scipy.linalg import eigh
 
-    report = {} if report is None else report
     s = np.sqrt(mass)
-    Z = component_null_basis(L, s)
+    Z = _null_basis(L, s)
     c = Z.shape[1]
     report.update(method="dense", components=c)
     ne = nk - c
@@ -515,15 +451,9 @@ def arpack_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, sigma: float = 
 
 @functools.lru_cache(maxsize=1)
 def _blas_controller():
-    """The ``threadpoolctl`` controller that limits BLAS to one thread around each solve.
-
-    The solver's dense work is level-2 BLAS and thin products, bound by memory bandwidth:
-    a second BLAS thread gains little on a quiet machine and costs 2-3x when the other
-    core is busy (measured: 2.4-3.0 s instead of 0.8-1.1 s at 3684 points, nK = 200).
-    The controller (a scan of the loaded libraries, ~5 ms) is built once per process.
-    """
-    from threadpoolctl import ThreadpoolController
-
+    """The controller limiting BLAS to one thread per solve, built once (~5 ms). The solver's dense
+    work is memory-bound: a second thread gains little on a quiet machine and costs 2-3x when the
+    other core is busy (2.4-3.0 s instead of 0.8-1.1 s at 3684 points, nK = 200)."""
     return ThreadpoolController()
 
 
@@ -557,17 +487,12 @@ def smallest_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int 
     """
     report = {} if report is None else report
     n = L.shape[0]
-    attempts = []
     if n <= DENSE_MAX_N or (3 * nk >= n and n <= DENSE_CAP_N):
-        attempts.append(("dense", lambda: dense_eigenpairs(L, mass, nk, report)))
-    else:
-        attempts.append(("lanczos", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed,
-                                                               report=report)))
-        # Another start vector: a copy of a repeated eigenvalue the first one missed may show.
-        attempts.append(("lanczos-restart", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed + 1,
-                                                                       report=report)))
-        attempts.append(("lanczos-negative-shift", lambda: lanczos_eigenpairs(L, mass, nk, seed=seed, report=report,
-                                                                              interior_shift=False)))
+        attempts = [("dense", lambda: _dense_eigenpairs(L, mass, nk, report))]
+    else:  # another start vector may show a copy of a repeated eigenvalue the first one missed
+        lanczos = functools.partial(lanczos_eigenpairs, L, mass, nk, report=report)
+        attempts = [("lanczos", lambda: lanczos(seed=seed)), ("lanczos-restart", lambda: lanczos(seed=seed + 1)),
+                    ("lanczos-negative-shift", lambda: lanczos(seed=seed, interior_shift=False))]
     for name, attempt in attempts:
         try:
             with _blas_controller().limit(limits=1, user_api="blas"):

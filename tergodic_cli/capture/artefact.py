@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from tergodic_cli.atomic import AtomicFolder, _json_default, file_sha256
+from tergodic_cli.capture.readers import write_ply
+from tergodic_cli.config import CONFIG_FILE, write_config
 from tergodic_cli.errors import TergodicError, os_error
 
 SIDECAR = "capture.json"
@@ -97,20 +99,15 @@ def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, 
     Path
         The sidecar ``out_dir/capture.json``.
     """
-    from tergodic_cli.capture.readers import write_ply
-
     arrays = {"points": capture.points.astype(np.float64), "target": capture.target.astype(np.float64)}
     if capture.colors is not None:
         arrays["colors"] = capture.colors.astype(np.float32)
     with _folder(out_dir, overwrite) as tmp:
-        with open(tmp / ARRAYS, "wb") as fh:
-            np.savez(fh, **arrays)
+        np.savez(tmp / ARRAYS, **arrays)  # the name ends in .npz: numpy adds no suffix
         write_ply(tmp / "cloud.ply", capture.points, capture.colors)
         if extra is not None:
             extra(tmp)
         if config is not None:
-            from tergodic_cli.config import CONFIG_FILE, write_config
-
             write_config(tmp / CONFIG_FILE, CAPTURE_CONFIG_KIND, **config)
         meta = dict(capture.meta)
         meta.pop(SIDECAR_SHA, None)

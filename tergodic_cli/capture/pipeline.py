@@ -12,12 +12,15 @@ from pathlib import Path
 
 import numpy as np
 
-from tergodic_cli.capture.artefact import CAPTURE_CONFIG_KIND, Capture
+from tergodic_cli.capture.artefact import Capture
 from tergodic_cli.capture.filters import (ISOLATED_MIN, VOXEL_RULES, isolated_points, mean_spacing,
                                           remove_statistical_outliers, voxel_downsample)
+from tergodic_cli.capture.readers import read_cloud
 from tergodic_cli.capture.segment import parse_target, target_weight
+from tergodic_cli.capture.synthetic import check_noise, generate_synthetic
 from tergodic_cli.config import Config
 from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.progress import echo
 
 MIN_POINTS = 10
 #: A tabletop object larger than this many metres was almost surely given in millimetres.
@@ -58,28 +61,6 @@ class CaptureConfig(Config):
     allow_empty_target: bool = False  # re-captures of a cleaned object may have no marking left
 
 
-def load_capture_config(path: str | Path) -> tuple[CaptureConfig, dict]:
-    """Read a capture's ``config.json``.
-
-    Parameters
-    ----------
-    path : str or Path
-        ``CAP/config.json``.
-
-    Returns
-    -------
-    cfg : CaptureConfig
-        The pipeline's config.
-    sections : dict
-        The other sections as written (``object`` and ``camera`` of a simulated capture).
-    """
-    from tergodic_cli.config import read_config
-
-    d = read_config(path, CAPTURE_CONFIG_KIND, "give the config.json that 'tergodic capture' wrote beside a capture")
-    cfg = CaptureConfig.from_dict(d.get("capture"), f"--config {path}: capture")
-    return cfg, {k: v for k, v in d.items() if k not in ("kind", "version", "capture")}
-
-
 def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] | None = None,
                   on_event=None) -> Capture:
     """Run the capture pipeline for ``cfg``.
@@ -99,10 +80,7 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
         The filtered cloud, its target weight p (n,) in [0, 1] and the sidecar ``meta``.
     """
     _validate_config(cfg)
-    if on_event is None:
-        import sys
-
-        on_event = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
+    on_event = on_event or echo
     t0 = time.perf_counter()
     target_range = parse_target(cfg.target)
     stages: list[tuple[str, int]] = []  # points left after each stage, for the printed summary
@@ -110,13 +88,9 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     if raw is not None:
         points, colors = raw
     elif cfg.source == "file":
-        from tergodic_cli.capture.readers import read_cloud
-
         points, colors = read_cloud(cfg.path, drop_invalid=cfg.drop_invalid, colour_depth=cfg.colour_depth)
         provenance["path"] = str(cfg.path)
     elif cfg.source == "synthetic":
-        from tergodic_cli.capture.synthetic import generate_synthetic
-
         syn = generate_synthetic(cfg.synthetic, cfg.marking, cfg.seed, noise=cfg.noise)
         points, colors = syn.points, syn.colors
         provenance.update(object=cfg.synthetic, marking=cfg.marking, seed=cfg.seed)
@@ -166,7 +140,7 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     if len(points) > cfg.max_points:  # before the duplicate check and the k-d tree
         n = len(points)
         on_event(f"warning: {n:,} points after filtering, above the {cfg.max_points:,}-point "
-                 f"limit: precompute would need {size_estimate(n)}; use a coarser --voxel "
+                 f"limit: precompute would need {_size_estimate(n)}; use a coarser --voxel "
                  f"(e.g. 0.003), or --max-points {n} to accept")
     if cfg.voxel <= 0:
         p = weight
@@ -187,36 +161,23 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
 
     h = mean_spacing(points)
     lo, hi = points.min(axis=0), points.max(axis=0)
+    from tergodic_cli.provenance import library_versions  # importlib.metadata: only when recorded
+
     meta = {
-        "kind": "tergodic.capture",
-        "format_version": 1,
-        "units": "m",
-        "input_units": cfg.units,
+        "kind": "tergodic.capture", "format_version": 1, "units": "m", "input_units": cfg.units,
         "provenance": provenance,
         "config": cfg.to_dict(),
         "filters": [{"stage": name, "points": n} for name, n in stages],
         "counts": {"input": stages[0][1], "output": len(points), "target": n_target},
-        "target": {
-            "spec": cfg.target,
-            "voxel_rule": cfg.voxel_rule if cfg.voxel > 0 else "per-point",
-            "share": n_target / len(points),
-            "mass": float(p.sum()),
-        },
-        "spacing_h_m": h,
-        "extent_m": (hi - lo).tolist(),
-        "bbox_m": [lo.tolist(), hi.tolist()],
-        "seed": cfg.seed,
-        "seconds": time.perf_counter() - t0,
+        "target": {"spec": cfg.target, "voxel_rule": cfg.voxel_rule if cfg.voxel > 0 else "per-point",
+                   "share": n_target / len(points), "mass": float(p.sum())},
+        "spacing_h_m": h, "extent_m": (hi - lo).tolist(), "bbox_m": [lo.tolist(), hi.tolist()],
+        "seed": cfg.seed, "seconds": time.perf_counter() - t0, "versions": library_versions(),
     }
-    from tergodic_cli.provenance import library_versions
-
-    meta["versions"] = library_versions()
     return Capture(points, colors, p, meta)
 
 
 def _validate_config(cfg: CaptureConfig) -> None:
-    from tergodic_cli.capture.synthetic import check_noise
-
     noise = check_noise(cfg.noise)
     require(noise == 0 or cfg.source == "synthetic", f"--noise is for --synthetic objects, not a {cfg.source} cloud",
             "drop --noise (a camera's or a file's cloud has its own noise)")
@@ -254,19 +215,8 @@ def _check_extent(points: np.ndarray, units: str, label: str = "") -> None:
                             "pass --units m" if units == "mm" else "check the file's units")
 
 
-def size_estimate(n: int) -> str:
-    """What precompute would roughly need.
-
-    Parameters
-    ----------
-    n : int
-        Points of the capture.
-
-    Returns
-    -------
-    str
-        Memory and time at nK = 200, e.g. "~1.6 GB and over 28 s".
-    """
+def _size_estimate(n: int) -> str:
+    """What precompute would roughly need at nK = 200, e.g. "~1.6 GB and over 28 s"."""
     gb, seconds = n * BYTES_PER_POINT / 1e9, n * SECONDS_PER_POINT
     memory = f"~{gb:.1f} GB" if gb >= 1 else f"~{max(gb * 1e3, 1):.0f} MB"
     return f"{memory} and over {seconds / 60:.0f} min" if seconds >= 60 else f"{memory} and over {max(seconds, 1):.0f} s"
@@ -286,61 +236,4 @@ def check_size(where, n: int, limit: int) -> None:
     """
     if n > limit:
         raise TergodicError(f"{where} has {n:,} points, above the {limit:,}-point limit: precompute would need "
-                            f"{size_estimate(n)}", f"re-capture with a coarser --voxel (e.g. 0.003), or pass --max-points {n}")
-
-
-#: The capture sources of ``tergodic capture --source``.
-SOURCES = ("file", "synthetic", "sim", "realsense")
-
-
-def resolve_source(source: str | None, from_file=None, synthetic=None, sim_object=None) -> str:
-    """The capture source, from ``--source`` or from whichever of --from / --synthetic / --object is given.
-
-    Parameters
-    ----------
-    source : str or None
-        One of :data:`SOURCES`, or None to infer it.
-    from_file, synthetic, sim_object : object or None
-        The options given (not None).
-
-    Returns
-    -------
-    str
-        One of :data:`SOURCES`; a missing, unknown or conflicting choice raises :class:`TergodicError`.
-    """
-    given = [name for name, value in (("file", from_file), ("synthetic", synthetic), ("sim", sim_object)) if value is not None]
-    usage = "use --from FILE, --synthetic OBJECT (see --help) or --source sim --object bowl|plate|mug|FILE.obj"
-    if source is None:
-        require(len(given) == 1, "give exactly one source", usage)
-        return given[0]
-    require(source in SOURCES, f"unknown --source '{source}'", f"use one of {', '.join(SOURCES)}")
-    others = [g for g in given if g != source]
-    require(not others, f"--source {source} does not go with "
-            f"{', '.join('--' + {'file': 'from', 'sim': 'object'}.get(g, g) for g in others)}", usage)
-    require(source != "file" or from_file is not None, "--source file needs --from FILE", usage)
-    require(source != "synthetic" or synthetic is not None, "--source synthetic needs --synthetic OBJECT", usage)
-    return source
-
-
-def format_report(cap: Capture) -> str:
-    """A readable summary of a capture.
-
-    Parameters
-    ----------
-    cap : Capture
-
-    Returns
-    -------
-    str
-        Several lines: stages with counts, target share, spacing and extent.
-    """
-    m = cap.meta
-    lines = ["stage               points"]
-    lines += [f"  {f['stage']:<17} {f['points']:>7}" for f in m["filters"]]
-    t = m["target"]
-    ext = " x ".join(f"{e * 1e3:.1f}" for e in m["extent_m"])
-    lines += [
-        f"target '{t['spec']}' ({t['voxel_rule']}): {m['counts']['target']} of {m['counts']['output']} points ({100 * t['share']:.1f}%)",
-        f"mean spacing h: {m['spacing_h_m'] * 1e3:.3f} mm    extent: {ext} mm",
-    ]
-    return "\n".join(lines)
+                            f"{_size_estimate(n)}", f"re-capture with a coarser --voxel (e.g. 0.003), or pass --max-points {n}")

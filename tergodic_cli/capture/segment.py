@@ -135,18 +135,11 @@ def rgb_to_hsv(rgb: np.ndarray) -> np.ndarray:
     (n, 3) float
         Hue in degrees [0, 360), saturation and value in [0, 1].
     """
-    r, g, b = rgb[:, 0], rgb[:, 1], rgb[:, 2]
-    cmax = rgb.max(axis=1)
-    cmin = rgb.min(axis=1)
-    delta = cmax - cmin
-    hue = np.zeros(len(rgb))
-    nz = delta > 0
-    rmax = nz & (cmax == r)
-    gmax = nz & (cmax == g) & ~rmax
-    bmax = nz & ~rmax & ~gmax
-    hue[rmax] = ((g[rmax] - b[rmax]) / delta[rmax]) % 6.0
-    hue[gmax] = (b[gmax] - r[gmax]) / delta[gmax] + 2.0
-    hue[bmax] = (r[bmax] - g[bmax]) / delta[bmax] + 4.0
+    r, g, b = rgb.T
+    cmax, delta = rgb.max(axis=1), np.ptp(rgb, axis=1)
+    d = np.where(delta > 0, delta, 1.0)  # grey (delta 0) has hue 0
+    hue = np.select([delta == 0, cmax == r, cmax == g], [0.0, ((g - b) / d) % 6.0, (b - r) / d + 2.0],
+                    (r - g) / d + 4.0).astype(np.float64)
     sat = np.where(cmax > 0, delta / np.where(cmax > 0, cmax, 1.0), 0.0)
     return np.column_stack([hue * 60.0, sat, cmax])
 

@@ -186,27 +186,23 @@ def _plate_profile(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return PLATE_LIFT * t**2, 2 * PLATE_LIFT * t / PLATE_RIM
 
 
-def _plate_sheet(r, theta, n):
-    z, slope = _plate_profile(r)
-    c, s = np.cos(theta), np.sin(theta)
-    pts = np.column_stack([r * c, r * s, z])
-    normals = _unit(np.column_stack([-slope * c, -slope * s, np.ones(n)]))
-    return _Sheet(pts, normals, pts[:, :2], np.ones(n, bool), PLATE_FLAT + PLATE_RIM)
-
-
 def _plate(rng, spacing):
     outer = PLATE_FLAT + PLATE_RIM
     n = _count(np.pi * outer**2, spacing)
     r = outer * np.sqrt(rng.uniform(0, 1, n))
     theta = rng.uniform(0, 2 * np.pi, n)
-    return _plate_sheet(r, theta, n)
+    z, slope = _plate_profile(r)
+    c, s = np.cos(theta), np.sin(theta)
+    pts = np.column_stack([r * c, r * s, z])
+    normals = _unit(np.column_stack([-slope * c, -slope * s, np.ones(n)]))
+    return _Sheet(pts, normals, pts[:, :2], np.ones(n, bool), outer)
 
 
 def _holed_plate(rng, spacing):
     # The plate's samples with those over the hole removed: the hole is a true gap in the sheet.
     sheet = _plate(rng, spacing)
     keep = np.hypot(sheet.points[:, 0] - HOLE_CENTRE[0], sheet.points[:, 1] - HOLE_CENTRE[1]) >= HOLE_RADIUS
-    return _Sheet(sheet.points[keep], sheet.normals[keep], sheet.chart[keep], sheet.visible[keep], sheet.size)
+    return _Sheet(*(a[keep] for a in sheet[:4]), sheet.size)
 
 
 def _cylinder(rng, spacing, radius, z0, z1, outward, visible):
@@ -275,19 +271,18 @@ def _box(rng, spacing):
     # edge, so every marking centred on the origin straddles that sharp edge.
     a, b, c = BOX_SIZE
     parts = []
-    for face, area in (("top", a * b), ("+x", b * c), ("-x", b * c), ("+y", a * c), ("-y", a * c)):
+    faces = (("top", 1, a * b), ("x", 1, b * c), ("x", -1, b * c), ("y", 1, a * c), ("y", -1, a * c))
+    for face, sign, area in faces:
         n = _count(area, spacing)
         s, t = rng.uniform(-0.5, 0.5, n), rng.uniform(0.0, 1.0, n)  # t: depth below the top, in units of c
         down = c * t
         if face == "top":
             x, y, z, normal = a * s, b * (t - 0.5), np.full(n, c), (0, 0, 1)
             u, v = x - a / 2, y
-        elif face in ("+x", "-x"):
-            sign = 1 if face == "+x" else -1
+        elif face == "x":
             x, y, z, normal = np.full(n, sign * a / 2), b * s, c - down, (sign, 0, 0)
             u, v = (down if sign > 0 else -a - down), y
         else:
-            sign = 1 if face == "+y" else -1
             x, y, z, normal = a * s, np.full(n, sign * b / 2), c - down, (0, sign, 0)
             u, v = x - a / 2, sign * (b / 2 + down)
         pts = np.column_stack([x, y, z])

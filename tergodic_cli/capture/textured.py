@@ -25,7 +25,8 @@ PATTERN_MARKINGS = ("X", "ring", "dots", "patches")
 
 # The same surfaces as the synthetic point-cloud generator.
 from tergodic_cli.capture.synthetic import (  # noqa: E402
-    BOWL_MAX_POLAR_DEG, BOWL_RADIUS, MUG_HEIGHT, MUG_RADIUS, PLATE_FLAT, PLATE_LIFT, PLATE_RIM)
+    _MARKS, BOWL_MAX_POLAR_DEG, BOWL_RADIUS, MARKING_RGB, MUG_HEIGHT, MUG_RADIUS, PLATE_FLAT,
+    PLATE_LIFT, PLATE_RIM, SURFACE_RGB)
 
 #: Rows of plain clean colour appended below the chart, for the back faces.
 RESERVED_ROWS = 8
@@ -68,8 +69,8 @@ class SimObjectConfig(Config):
     marking : "X", "ring", "dots", "patches" (drawn in the chart like the synthetic generator) or a path to a
         .png (alpha = marking intensity; without alpha, non-white pixels are marking).
     pose : x,y,z (m) [+ roll,pitch,yaw (deg) | + qx,qy,qz,qw]: the object frame in the robot base frame.
-        None = :func:`default_pose`: 0.5 m in front of the base, where the robot stage places
-        synthetic objects; the mug turned by 180 deg so its marking faces the robot and camera.
+        None: 0.5 m in front of the base, where the robot stage places synthetic objects;
+        the mug turned by 180 deg (yaw) so its marking faces the robot and camera.
     texture_size : texels per side of the chart texture (pattern markings).
     mesh_edge : target triangle edge of built-in meshes, metres.
     units : units of a user .obj, "m" or "mm".
@@ -84,11 +85,6 @@ class SimObjectConfig(Config):
     units: str = "m"
     seed: int = 0
     cleaning: CleaningModel = field(default_factory=CleaningModel)
-
-
-def default_pose(kind: str) -> tuple[float, ...]:
-    """The default object pose x,y,z,roll,pitch,yaw (m, deg) in the robot base frame."""
-    return (0.5, 0.0, 0.0, 0.0, 0.0, 180.0) if kind == "mug" else (0.5, 0.0, 0.0)
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -226,8 +222,7 @@ def read_obj(path: str | Path, units: str = "m") -> tuple[np.ndarray, np.ndarray
                         ti = int(idx[1]) if len(idx) > 1 and idx[1] else 0
                         # OBJ indices are 1-based; negative ones count back from the last element.
                         face.append((vi - 1 if vi > 0 else len(pos) + vi, (ti - 1 if ti > 0 else len(tex) + ti) if ti else -1))
-                    for k in range(1, len(face) - 1):
-                        corners.append((face[0], face[k], face[k + 1]))
+                    corners += [(face[0], face[k], face[k + 1]) for k in range(1, len(face) - 1)]
     except (ValueError, IndexError):
         raise TergodicError(f"{path} is not a readable .obj (bad v/vt/f line)", "re-export the mesh as a Wavefront .obj") from None
     require(len(pos) >= 3 and len(corners) > 0, f"{path} has no triangles", "give a mesh with faces (f lines)")
@@ -280,14 +275,6 @@ def chart_to_uv(chart: np.ndarray, box: np.ndarray, height: int) -> np.ndarray:
     unit = (chart - box[0]) / (box[1] - box[0])
     total = height + RESERVED_ROWS
     return np.column_stack([unit[:, 0], (RESERVED_ROWS + unit[:, 1] * height) / total])
-
-
-def texel_chart(width: int, height: int, box: np.ndarray) -> np.ndarray:
-    """Chart coordinates (height, width, 2) of the centres of the chart texels (image row 0 at the top)."""
-    u = (np.arange(width) + 0.5) / width
-    v = (height - np.arange(height) - 0.5) / height  # row 0 is the top of the chart
-    U, Vv = np.meshgrid(u, v)
-    return np.stack([box[0, 0] + U * (box[1, 0] - box[0, 0]), box[0, 1] + Vv * (box[1, 1] - box[0, 1])], axis=-1)
 
 
 def rasterize_uv(vertices: np.ndarray, triangles: np.ndarray, uv: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -347,10 +334,7 @@ def read_marking_image(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     require(8 <= min(h, w) and max(h, w) <= MAX_IMAGE_SIDE, f"marking image {path} is {w}x{h} pixels",
             f"give an image between 8 and {MAX_IMAGE_SIDE} pixels per side")
     ink = rgba[..., :3]
-    if has_alpha:
-        intensity = rgba[..., 3]
-    else:
-        intensity = (~np.all(ink >= WHITE_LEVEL, axis=-1)).astype(np.float64)
+    intensity = rgba[..., 3] if has_alpha else (~np.all(ink >= WHITE_LEVEL, axis=-1)).astype(np.float64)
     require(float(intensity.max()) > 0, f"marking image {path} has no marking (all white or transparent)",
             "draw the marking in a colour, or give it an alpha channel")
     return ink, intensity
@@ -377,12 +361,12 @@ class TexturedObject:
     def __init__(self, cfg: SimObjectConfig | None = None):
         from scipy.spatial import cKDTree
 
-        from tergodic_cli.capture.synthetic import _MARKS, MARKING_RGB, SURFACE_RGB
 
         cfg = cfg or SimObjectConfig()
         cfg.cleaning.validate()
         self.cfg = cfg
-        self.pose = parse_pose(cfg.pose if cfg.pose is not None else default_pose(cfg.object), "--object-pose")
+        default = (0.5, 0.0, 0.0, 0.0, 0.0, 180.0) if cfg.object == "mug" else (0.5, 0.0, 0.0)
+        self.pose = parse_pose(cfg.pose if cfg.pose is not None else default, "--object-pose")
         builtin = cfg.object in BUILTIN_OBJECTS
         image_marking = cfg.marking not in PATTERN_MARKINGS
         if image_marking:
@@ -408,14 +392,17 @@ class TexturedObject:
         uv_front = chart_to_uv(mesh.chart, mesh.box, height)
 
         # Colours: clean surface everywhere; ink and intensity only in the chart rows.
-        self.clean_rgb = np.broadcast_to(SURFACE_RGB, (self.height, width, 3)).copy()
-        self.ink_rgb = np.broadcast_to(MARKING_RGB, (self.height, width, 3)).copy()
+        clean = np.broadcast_to(SURFACE_RGB, (self.height, width, 3))
+        ink_rgb = np.broadcast_to(MARKING_RGB, (self.height, width, 3)).copy()
         self.intensity = np.zeros((self.height, width))
         if image_marking:
-            self.ink_rgb[:height] = ink
+            ink_rgb[:height] = ink
             self.intensity[:height] = image_m
         else:
-            chart = texel_chart(width, height, mesh.box).reshape(-1, 2)
+            # the chart texels' centres (image row 0 at the chart's top)
+            U, V = np.meshgrid((np.arange(width) + 0.5) / width, (height - np.arange(height) - 0.5) / height)
+            lo, span = mesh.box[0], mesh.box[1] - mesh.box[0]
+            chart = np.column_stack([lo[0] + U.ravel() * span[0], lo[1] + V.ravel() * span[1]])
             # the generator's drawing rules and dots' draw, so both agree exactly
             mark = _MARKS[cfg.marking](chart, mesh.size, np.random.default_rng(cfg.seed + 1))
             self.intensity[:height] = mark.reshape(height, width)
@@ -443,7 +430,8 @@ class TexturedObject:
         self._render_triangles = np.concatenate([mesh.triangles, mesh.triangles[:, [0, 2, 1]] + n])
         self.version = 0
         self._obj_body: str | None = None
-        self._blend: tuple[np.ndarray, np.ndarray] | None = None
+        # float32 in 0..255, as texture_rgb blends them at every re-capture
+        self._blend = ((255.0 * clean).astype(np.float32) + 0.5, (255.0 * (ink_rgb - clean)).astype(np.float32))
 
     # ------------------------------------------------------------------ marking state
     def marking_remaining(self) -> float:
@@ -494,9 +482,6 @@ class TexturedObject:
     # ------------------------------------------------------------------ texture and assets
     def texture_rgb(self) -> np.ndarray:
         """The current texture, (H, W, 3) uint8: clean colour blended to the ink colour by m."""
-        if self._blend is None:  # float32 in 0..255: the blend runs at every re-capture
-            self._blend = ((255.0 * self.clean_rgb).astype(np.float32) + 0.5,
-                           (255.0 * (self.ink_rgb - self.clean_rgb)).astype(np.float32))
         base, delta = self._blend
         rgb = base + self.intensity[..., None].astype(np.float32) * delta
         return np.clip(rgb, 0, 255).astype(np.uint8)  # +0.5 above makes the cast round
