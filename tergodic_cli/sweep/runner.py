@@ -125,17 +125,14 @@ _BASES: dict[tuple, object] = {}
 
 def _basis_for(key: str, points, neighbors: int, max_nk: int, nk: int, cache_dir):
     """The (object, nK) basis in this process: loaded once from the cache (largest nK), then truncated."""
-    full = _BASES.get((key, max_nk))
-    if full is None:
+    if (key, max_nk) not in _BASES:
         from tergodic_cli.run import find_basis
 
-        full, _ = find_basis(points, max_nk, neighbors, cache_dir)
-        _BASES[(key, max_nk)] = full
-    part = _BASES.get((key, max_nk, nk))
-    if part is None:
-        part = full if nk == full.nk else full.truncated(nk)
-        _BASES[(key, max_nk, nk)] = part
-    return part
+        _BASES[(key, max_nk)] = find_basis(points, max_nk, neighbors, cache_dir)[0]
+    if (key, max_nk, nk) not in _BASES:
+        full = _BASES[(key, max_nk)]
+        _BASES[(key, max_nk, nk)] = full if nk == full.nk else full.truncated(nk)
+    return _BASES[(key, max_nk, nk)]
 
 
 def run_batch(task: dict) -> list[dict]:
@@ -177,25 +174,6 @@ def run_batch(task: dict) -> list[dict]:
 
 
 # ---------------------------------------------------------------------------------- engines
-def _ray(address: str | None, on_event):
-    """The ray module (imported by run_sweep already), initialised on ``address`` (or a new local
-    cluster), and a cleanup callable."""
-    import ray
-
-    started = False
-    if not ray.is_initialized():
-        try:
-            ray.init(address=address, include_dashboard=False, log_to_driver=False, configure_logging=False)
-        except (ConnectionError, RuntimeError, ValueError) as exc:
-            where = address or "a new local cluster"
-            raise TergodicError(f"cannot start or reach Ray at {where} ({str(exc).splitlines()[0][:80]})",
-                                "start a cluster with 'ray start --head' and pass --address HOST:PORT") from None
-        started = True
-    on_event(f"ray: {int(ray.cluster_resources().get('CPU', 0))} CPUs "
-             f"({'started locally' if started else 'existing cluster'})")
-    return ray, (ray.shutdown if started else (lambda: None))
-
-
 def _execute(batches: list[dict], engine: str, jobs: int, address: str | None, on_event):
     """Yield each batch's records as soon as it finishes (any order): the one executor of both
     engines, running :func:`run_batch` in joblib's process pool or as Ray tasks."""
@@ -205,7 +183,18 @@ def _execute(batches: list[dict], engine: str, jobs: int, address: str | None, o
         yield from joblib.Parallel(n_jobs=jobs, backend="loky", return_as="generator_unordered")(
             joblib.delayed(run_batch)(b) for b in batches)
         return
-    ray, cleanup = _ray(address, on_event)
+    import ray  # imported by run_sweep already
+
+    started = not ray.is_initialized()  # a cluster we start, we also shut down
+    if started:
+        try:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False, configure_logging=False)
+        except (ConnectionError, RuntimeError, ValueError) as exc:
+            where = address or "a new local cluster"
+            raise TergodicError(f"cannot start or reach Ray at {where} ({str(exc).splitlines()[0][:80]})",
+                                "start a cluster with 'ray start --head' and pass --address HOST:PORT") from None
+    on_event(f"ray: {int(ray.cluster_resources().get('CPU', 0))} CPUs "
+             f"({'started locally' if started else 'existing cluster'})")
     try:
         remote = ray.remote(num_cpus=1, max_retries=2)(run_batch)
         cpus = max(int(ray.cluster_resources().get("CPU", 1)), 1)
@@ -220,7 +209,8 @@ def _execute(batches: list[dict], engine: str, jobs: int, address: str | None, o
             done, running = ray.wait(running, num_returns=1)
             yield ray.get(done[0])
     finally:
-        cleanup()
+        if started:
+            ray.shutdown()
 
 
 # ---------------------------------------------------------------------------------- the sweep
@@ -411,8 +401,7 @@ def _batches(pending, grid: Grid, jobs: int, cache_dir) -> list[dict]:
 
 def _collect(plan, finished: dict) -> tuple[list[dict], dict]:
     """The table rows and series of this grid's finished runs (sorted), from the verified records."""
-    rows, series = [], {k: [] for k in SERIES}
-    ids = []
+    rows, series = [], []
     for obj, start, combo, rid, cfg in plan:
         if rid not in finished:
             continue
@@ -427,20 +416,18 @@ def _collect(plan, finished: dict) -> tuple[list[dict], dict]:
                      **{f"{k}_at_{m}": s[f"{k}_at"][m] for k in SERIES for m in ("200", "500")},
                      **{k: s.get(k) for k in ("off_surface_fraction", "step_max_m", "edge_events")},
                      "step_ms_median": s["step_ms_median"], "wall_s": rec["wall_s"]})
-        for k in SERIES:
-            series[k].append(run_series[k])
-        ids.append(rid)
+        series.append(run_series)
+
     def sort_key(i: int) -> tuple:
         r = rows[i]
         others = [str(r.get(k)) for k in r if k not in LEAD_COLUMNS and k not in METRIC_COLUMNS]
         return r["object"], r["nk"], alpha_key(r["alpha"]), others, r["start"]
 
     order = sorted(range(len(rows)), key=sort_key)
-    rows = [rows[i] for i in order]
-    merged = {"run_id": np.array([ids[i] for i in order], dtype="U16")}
+    merged = {"run_id": np.array([rows[i]["run_id"] for i in order], dtype="U16")}
     for k in SERIES:
-        merged[k] = np.stack([series[k][i] for i in order]) if order else np.zeros((0, 0), np.float32)
-    return rows, merged
+        merged[k] = np.stack([series[i][k] for i in order]) if order else np.zeros((0, 0), np.float32)
+    return [rows[i] for i in order], merged
 
 
 def _write_outputs(out: Path, grid: Grid, rows: list[dict], series: dict, parquet: bool) -> list[str]:
