@@ -103,18 +103,15 @@ def resolve_starts(spec: StartSpec, points: np.ndarray, n_agents: int, seed: int
     rng = np.random.default_rng(seed)
     if spec.starts_file is not None:
         require(spec.start is None, "--start and --starts are both given", "use one of them")
-        path = Path(spec.starts_file)
-        require(path.is_file(), f"--starts {path} does not exist", "give an .npz with key x0_arr (n, 3) in metres")
+        path, fix = Path(spec.starts_file), "give an .npz with key x0_arr (n, 3) in metres"
+        require(path.is_file(), f"--starts {path} does not exist", fix)
         try:
             with np.load(path, allow_pickle=False) as data:
-                require("x0_arr" in data.files, f"--starts {path} has no key x0_arr (keys: {', '.join(data.files)})",
-                        "give an .npz with key x0_arr (n, 3) in metres")
-                x0 = np.asarray(data["x0_arr"], dtype=np.float64)
-        except TergodicError:
-            raise
+                keys = data.files
+                x0 = np.asarray(data["x0_arr"], dtype=np.float64) if "x0_arr" in keys else None
         except Exception as exc:
-            raise TergodicError(f"--starts {path} is unreadable ({type(exc).__name__})",
-                                "give an .npz with key x0_arr (n, 3) in metres") from None
+            raise TergodicError(f"--starts {path} is unreadable ({type(exc).__name__})", fix) from None
+        require(x0 is not None, f"--starts {path} has no key x0_arr (keys: {', '.join(keys)})", fix)
         require(x0.ndim == 2 and x0.shape[1] == 3 and len(x0) > 0, f"--starts x0_arr has shape {x0.shape}, not (n, 3)",
                 "give start positions as rows x, y, z in metres")
         i = 0 if spec.start_index is None else int(spec.start_index)
@@ -567,6 +564,7 @@ def _provenance(run: _Run, robot_extra: dict, logged: bool) -> dict:
     from tergodic_cli.provenance import library_versions
 
     starts, capture, basis, explorer, cfg = run.starts or StartSpec(), run.capture, run.basis, run.explorer, run.cfg
+    score = explorer.score()
     extra = {
         "robot": run.backend.name,
         "capture": {"path": str(Path(run.capture_dir)), "n_points": int(capture.n_points),
@@ -578,8 +576,7 @@ def _provenance(run: _Run, robot_extra: dict, logged: bool) -> dict:
                      "epsilon_per_m": cfg.footprint_epsilon, "edge_events": int(explorer.edge_events),
                      "diffusion": cfg.diffusion, "integrator": cfg.integrator},
         # the neutral score's surface checks (issue 13): positions > 2h off the cloud, longest step
-        "off_surface_fraction": explorer.score()["off_surface_fraction"],
-        "step_max_m": explorer.score()["step_max_m"],
+        "off_surface_fraction": score["off_surface_fraction"], "step_max_m": score["step_max_m"],
         "starts": {"start": starts.start, "starts_file": starts.starts_file, "start_index": starts.start_index,
                    "xyz": np.asarray(run.start_xyz).tolist()},
         "files": ["trajectory.npz", "summary.json", "config.json"] + (["run.mcap"] if logged else []),
