@@ -21,12 +21,12 @@ import numpy as np
 from tergodic_cli.atomic import _json_default
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.runlog import schema as S
+from tergodic_cli.runlog.proto import METRIC_FIELDS, VECTOR_FIELDS
 
 #: Default cadence of chunk flushes, in explorer steps.
 FLUSH_EVERY = 50
 #: Upper bound on a chunk's uncompressed size; a chunk is also closed at every flush.
 CHUNK_BYTES = 4 * 1024 * 1024
-_METRIC_FIELDS = ("ergodicity", "residual_ref", "touched_fraction")
 
 
 def _dumps(obj: Any) -> str:
@@ -275,15 +275,14 @@ class RunLog:
         for k, v in metrics.items():
             if not isinstance(k, str) or k in ("step", "t", "step_ms"):
                 raise TergodicError(f"run log metric name {k!r} is not allowed", "use another name")
-            if k in _METRIC_FIELDS:
+            if k in METRIC_FIELDS:
                 setattr(rec, k, float(v))
             else:
                 rec.extra_names.append(k)
                 rec.extra_values.append(float(v))
         Pl, Vl, Nl = P.tolist(), V.tolist(), Nn.tolist()
-        rec.positions.extend(P.ravel().tolist())
-        rec.velocities.extend(V.ravel().tolist())
-        rec.normals.extend(Nn.ravel().tolist())
+        for name, A in zip(VECTOR_FIELDS, (P, V, Nn)):
+            getattr(rec, name).extend(A.ravel().tolist())
         stamp = _stamp(M, t_ns)
         half = self._line_half
         shaft_d = 0.02 * half + 1e-4
