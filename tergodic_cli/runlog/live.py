@@ -23,9 +23,7 @@ _FIX = "give HOST:PORT, e.g. --live 127.0.0.1:8765 (or --live alone for that def
 def parse_live(text: str | None) -> tuple[str, int]:
     """``HOST:PORT``, ``:PORT``, ``PORT`` or ``[IPv6]:PORT`` -> (host, port); host defaults to 127.0.0.1."""
     raw = (text or "").strip() or DEFAULT
-    host, sep, port_txt = raw.rpartition(":")
-    if not sep:
-        host, port_txt = "", raw
+    host, _, port_txt = raw.rpartition(":")  # no ":": the host is ""
     host = host.strip() or DEFAULT_HOST
     if host.startswith("[") and host.endswith("]"):
         host = host[1:-1]

@@ -395,8 +395,6 @@ def _time_origin(info: dict) -> int:
 
 def _assign_cloud_steps(clouds: list[CloudFrame], series: dict[str, np.ndarray]) -> None:
     """A cloud belongs to the last step logged at or before its log time (writers number messages differently)."""
-    if not clouds:
-        return
     t_ns = np.rint(series["t"] * 1e9).astype(np.int64)
     order = np.argsort(t_ns, kind="stable")
     for c in clouds:

@@ -105,10 +105,7 @@ def format_table(summary: dict[str, Any], data: RunLogData, comparison: tuple[st
     t0, t1 = float(s["t"][0]), float(s["t"][-1])
     wall = float(s["step_ms"].sum()) / 1e3
     rows.append(("duration", f"{t1:.6g} s simulated (t = {t0:.6g} .. {t1:.6g}), {wall:.3g} s of explorer steps"))
-    at = summary.get("ergodicity_at") or {}
-    for key in ("200", "500", "1000"):
-        if at.get(key) is not None:
-            rows.append((f"ε at step {key}", _fmt(at.get(key))))
+    rows += [(f"ε at step {k}", _fmt(v)) for k, v in (summary.get("ergodicity_at") or {}).items() if v is not None]
     rows.append(("ε at end (unit-mass, 0 best)", _fmt(summary.get("ergodicity"))))
     rows.append(("authors' residual at end", _fmt(summary.get("residual_ref"))))
     tf = summary.get("touched_fraction")
@@ -123,11 +120,11 @@ def format_table(summary: dict[str, Any], data: RunLogData, comparison: tuple[st
         rows += _robot_rows(summary)
         rs = data.robot_series()
         if "force_normal" in rs:
-            f = rs["force_normal"]
-            contact = rs.get("in_contact")
-            fc = f[contact.astype(bool)] if contact is not None and contact.any() else f
+            f, contact = rs["force_normal"], rs.get("in_contact")
+            some = contact is not None and contact.any()
+            fc = f[contact.astype(bool)] if some else f
             rows.append(("normal force", f"mean {fc.mean():.3g} N, std {fc.std():.3g} N, max {f.max():.3g} N"
-                         + (" (samples in contact)" if contact is not None and contact.any() else "")))
+                         + (" (samples in contact)" if some else "")))
     if data.events:
         rows.append(("events", str(len(data.events))))
     rows.append(("clouds logged", str(data.topics.get(S.TOPIC_CLOUD, {}).get("count", 0))))
