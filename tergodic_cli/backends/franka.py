@@ -96,13 +96,9 @@ class FrankyArm:
         self.joint_names = [f"panda_joint{i}" for i in range(1, 8)]
         self.q_min, self.q_max, self.dq_max = (x.copy() for x in LIMITS[cfg.model])
         self.stream_hz = float(cfg.stream_hz)
-        self.robot = None
-        self._fr = None
+        self.robot = self._fr = self._motion = self._gains_key = self._error = None
         self._mode: str | None = None  # None | "impedance"
-        self._motion = None
-        self._gains_key: bytes | None = None
         self.measured_tau = np.zeros(7)
-        self._error: str | None = None
 
     # ------------------------------------------------------------------ connection
     @property
@@ -185,8 +181,7 @@ class FrankyArm:
                 "this is a bug in the caller; please report it")
         ref = fr.CartesianReference(target=fr.Affine(T),
                                     target_twist=fr.Twist(np.asarray(target.twist[:3], float), np.asarray(target.twist[3:], float)))
-        K = np.asarray(target.stiffness, dtype=float)
-        D = np.asarray(target.damping, dtype=float)
+        K, D = np.asarray(target.stiffness, dtype=float), np.asarray(target.damping, dtype=float)
         key = np.round(np.concatenate([K.ravel(), D.ravel()]), 6).tobytes()
         if self._mode != "impedance":
             clip = float(self.cfg.error_clip)

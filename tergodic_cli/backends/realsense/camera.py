@@ -63,12 +63,8 @@ class RealSenseCamera:
     def __init__(self, cfg: RealSenseConfig | None = None):
         self.cfg = cfg or RealSenseConfig()
         self.cfg.validate()
-        self.pipeline = None
-        self.intrinsics: Intrinsics | None = None
-        self.depth_scale: float | None = None
-        self.serial: str | None = None
-        self.name: str | None = None
-        self._align = None
+        # set by connect(): the stream, its intrinsics and depth scale (m per unit), the device
+        self.pipeline = self.intrinsics = self.depth_scale = self.serial = self.name = self._align = None
 
     def connect(self) -> None:
         if self.pipeline is not None:
