@@ -30,8 +30,7 @@ def export_series(data: RunLogData, fmt: str, dest: str | os.PathLike) -> Path:
     if fmt == "npz":
         write_npz(dest, **table)
         return dest
-    header: list[str] = []
-    cols: list[np.ndarray] = []
+    header, cols = [], []
     for k, v in table.items():  # (T,) one column, (T, k) k columns, (T, N, 3) per agent x y z
         if v.ndim > 3 or (v.ndim == 3 and v.shape[2] != 3):
             continue

@@ -72,14 +72,10 @@ def plot_run(data: RunLogData, out_dir: str | os.PathLike) -> list[Path]:
     written.append(_single(plt, out / "touched.png", f"Target touched over time{note}", tlabel,
                            "target touched (%)", touched))
 
-    rs = data.robot_series()
-    if rs:
-        written += _plot_force(plt, data, rs, out)
-    written += _plot_cleaning(plt, data, out)
-
-    cloud = data.clouds[-1] if data.clouds else None
-    if cloud is not None:
-        traj = data.series.get("positions")
+    written += _plot_force(plt, data, data.robot_series(), out, note)
+    written += _plot_cleaning(plt, data, out, note)
+    if data.clouds:
+        cloud, traj = data.clouds[-1], data.series.get("positions")
         for field, cmap, label, line in (("target", "cividis", "target weight p (0-1, unitless)", "red"),
                                          ("coverage", "viridis", "coverage c̃ (summed footprint, unitless)", "white"),
                                          ("heat", "inferno", "heat u (1/m²)", "cyan")):
@@ -122,7 +118,7 @@ def _plot_ergodicity(plt, t, tlabel: str, s: dict, note: str, path: Path) -> Pat
     return _save(fig, path)
 
 
-def _plot_force(plt, data: RunLogData, rs: dict[str, np.ndarray], out: Path) -> list[Path]:
+def _plot_force(plt, data: RunLogData, rs: dict[str, np.ndarray], out: Path, note: str) -> list[Path]:
     """Measured normal force against the desired one (wrench_desired's z, the tool axis), per explorer step."""
     if "force_normal" not in rs and "wrench_measured" not in rs:
         return []
@@ -140,11 +136,11 @@ def _plot_force(plt, data: RunLogData, rs: dict[str, np.ndarray], out: Path) -> 
                             label="not in contact")
         ax.set_ylim(bottom=0)
 
-    title = "Contact force against desired" + (" (truncated log)" if data.truncated else "")
-    return [_single(plt, out / "force.png", title, "simulated time (s)", "force (N)", draw)]
+    return [_single(plt, out / "force.png", f"Contact force against desired{note}", "simulated time (s)",
+                    "force (N)", draw)]
 
 
-def _plot_cleaning(plt, data: RunLogData, out: Path) -> list[Path]:
+def _plot_cleaning(plt, data: RunLogData, out: Path, note: str) -> list[Path]:
     """Closed-loop runs: the share of the initial marking left after each re-capture, against steps.
 
     The robot sample of each cycle's last step carries ``marking_remaining`` (what the camera sees)
@@ -164,7 +160,6 @@ def _plot_cleaning(plt, data: RunLogData, out: Path) -> list[Path]:
                     ms=4, label="ink left in the texture (true)")
         ax.set_ylim(0, 105)
 
-    note = " (truncated log)" if data.truncated else ""
     return [_single(plt, out / "cleaning.png", f"Cleaning: marking left at each re-capture{note}",
                     "explorer step", "marking left (% of the initial)", draw)]
 
