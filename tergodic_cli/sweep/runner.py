@@ -271,7 +271,6 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
     by_id = {p[3]: p for p in pending}
     batches = _batches(pending, grid, jobs, cache_dir)
     failed: list[dict] = []
-    computed = 0
     if batches:
         from tergodic_cli.explore.warm import compile_explorer
 
@@ -283,20 +282,20 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
                 if "error" in rec:
                     failed.append(rec)
                     continue
-                write_npz(runs_dir / f"{rec['run_id']}.npz", **rec["series"])
                 obj, start, combo, rid, cfg = by_id[rec["run_id"]]
+                write_npz(runs_dir / f"{rid}.npz", **rec["series"])
                 record = {"run_id": rid, "object": obj.spec.name, "object_key": obj.key,
                           "n_points": len(obj.points), "n_target": obj.n_target, "start": start,
                           "start_xyz": obj.starts[start].tolist(), "grid": dict(combo),
-                          "wall_s": rec["wall_s"], "summary": rec["summary"]}
-                record["series_sha256"] = file_sha256(runs_dir / f"{rec['run_id']}.npz")
+                          "wall_s": rec["wall_s"], "summary": rec["summary"],
+                          "series_sha256": file_sha256(runs_dir / f"{rid}.npz")}
                 record[RECORD_SHA] = record_checksum(record)
-                write_json(runs_dir / f"{rec['run_id']}.json", record)
-                finished[rec["run_id"]] = (json.loads(json.dumps(record, default=_json_default)),
-                                           {k: np.asarray(v) for k, v in rec["series"].items()})
-                computed += 1
+                write_json(runs_dir / f"{rid}.json", record)
+                finished[rid] = (json.loads(json.dumps(record, default=_json_default)),
+                                 {k: np.asarray(v) for k, v in rec["series"].items()})
     table, series = _collect(plan, finished)
-    result = SweepResult(out=out, n_runs=len(plan), computed=computed,
+    # every pending run gives one record: its result or its error
+    result = SweepResult(out=out, n_runs=len(plan), computed=len(pending) - len(failed),
                          skipped=len(plan) - len(pending), failed=failed, table=table)
 
     def build(stage: Path) -> list[str]:
@@ -312,7 +311,7 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
         write_json(stage / "sweep.json", {
             "grid": str(grid.path), "steps": grid.steps, "seed": grid.seed, "starts": grid.starts,
             "options": grid.options, "objects": objs, "engine": engine, "jobs": jobs,
-            "runs": len(plan), "computed": computed, "skipped": result.skipped, "failed": failed,
+            "runs": len(plan), "computed": result.computed, "skipped": result.skipped, "failed": failed,
             "wall_s": result.wall_s, "files": files, "versions": library_versions()})
         return files + ["sweep.json"]
 
