@@ -96,10 +96,7 @@ class LiveServer:
             return
         deadline = time.monotonic() + wait_s
         while time.monotonic() < deadline:
-            with socket.socket() as s:
-                s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-                try:
-                    s.bind((self.host, self.port))
-                    return
-                except OSError:
-                    time.sleep(0.02)
+            try:
+                return check_bindable(self.host, self.port)
+            except TergodicError:
+                time.sleep(0.02)
