@@ -19,18 +19,14 @@ from tergodic_cli.errors import TergodicError
 from tergodic_cli.runlog import schema as S
 from tergodic_cli.runlog.reader import RunLogData
 
-#: summarize_run's series keys.
-SERIES_KEYS = S.SERIES_METRICS + ("step_ms",)
-
-
 def recompute_summary(data: RunLogData) -> dict[str, Any]:
     """The summary.json dict, recomputed from the log (without the ``truncated`` flag)."""
-    from tergodic_cli.explore import summarize_run
+    from tergodic_cli.explore.summary import SERIES, summarize_run
 
-    missing = [k for k in SERIES_KEYS if k not in data.series]
+    missing = [k for k in SERIES if k not in data.series]
     if missing:
         raise TergodicError(f"{data.path} has no series {', '.join(missing)}", "the log was not written by 'tergodic explore'")
-    series = {k: data.series[k] for k in SERIES_KEYS}
+    series = {k: data.series[k] for k in SERIES}
     robot = {}  # summarize_robot over the logged robot samples
     if data.robot:
         from tergodic_cli.robot import summarize_robot
