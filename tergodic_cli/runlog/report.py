@@ -146,10 +146,7 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
     clouds = data.clouds
     if not clouds and pos is None:
         return None, embedded
-    fig = go.Figure()
-    idx = slice(None)
-    fields: list[str] = []
-    shown: list[int] = []
+    fig, idx, fields, shown = go.Figure(), slice(None), [], []  # idx: the points shown
     if clouds:
         last = clouds[-1]
         n = len(last.points)
@@ -186,10 +183,9 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
                               for i in shown]
     if pos is not None:
         for k in range(pos.shape[1]):
-            colour = _AGENT_COLOURS[k % len(_AGENT_COLOURS)]
             fig.add_trace(go.Scatter3d(x=pos[:, k, 0], y=pos[:, k, 1], z=pos[:, k, 2], mode="lines",
-                                       name=f"agent {k} trajectory", line=dict(color=colour, width=3),
-                                       hoverinfo="skip"))
+                                       name=f"agent {k} trajectory", hoverinfo="skip",
+                                       line=dict(color=_AGENT_COLOURS[k % len(_AGENT_COLOURS)], width=3)))
         at = pos[-1] if not clouds else pos[_row_of(steps, clouds[-1].step)]
         fig.add_trace(go.Scatter3d(x=at[:, 0], y=at[:, 1], z=at[:, 2], mode="markers", name="agents at the cloud's step",
                                    marker=dict(size=8, color="white", line=dict(color="black", width=3), symbol="diamond")))
