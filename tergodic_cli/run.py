@@ -576,6 +576,5 @@ def _provenance(run: _Run, robot_extra: dict, logged: bool) -> dict:
         "files": ["trajectory.npz", "summary.json", "config.json"] + (["run.mcap"] if logged else []),
         "versions": library_versions(),
     }
-    for key, value in (robot_extra or {}).items():  # the robot's summary extras, merged in (CONTRACTS.md)
-        extra.setdefault(key, value)
-    return extra
+    # the robot's summary extras, merged in (CONTRACTS.md)
+    return {**extra, **{k: v for k, v in robot_extra.items() if k not in extra}}

@@ -163,13 +163,11 @@ class FrankyArm:
             if self._mode is not None:
                 robot.poll_motion()  # re-raises an exception the control thread stored
         except Exception as exc:
-            self._error = f"the Franka stopped: {one_line(exc)}"
-            self._mode = None
+            self._error, self._mode = f"the Franka stopped: {one_line(exc)}", None
             return self._error
         if robot.has_errors:
             self._error = "the Franka reports an error (see Desk); it stopped"
-            return self._error
-        return None
+        return self._error
 
     # ------------------------------------------------------------------ commands
     def command_impedance(self, target: ImpedanceTarget) -> None:
