@@ -20,6 +20,7 @@ import numpy as np
 
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.runlog import schema as S
+from tergodic_cli.runlog.proto import FULL_NAME, METRIC_FIELDS, VECTOR_FIELDS
 
 _MAGIC = b"\x89MCAP0\r\n"
 _EVENT_RE = re.compile(r"^step (\d+): (.*)$", re.S)
@@ -348,8 +349,6 @@ def _step_decoder(schema: Any):
     """bytes -> row dict for the step records, decoded with the schema stored in the file."""
     from mcap_protobuf.decoder import DecoderFactory
 
-    from tergodic_cli.runlog.proto import FULL_NAME, METRIC_FIELDS, VECTOR_FIELDS
-
     if schema.encoding != "protobuf" or schema.name != FULL_NAME:
         raise TergodicError(f"step records have schema {schema.name!r} ({schema.encoding})",
                             "this log was not written by a tergodic that this version reads")
@@ -357,12 +356,10 @@ def _step_decoder(schema: Any):
 
     def row(data: bytes) -> dict:
         m = decode(data)
-        out = {"step": m.step, "t": m.t,
-               **{k: getattr(m, k) if m.HasField(k) else None for k in METRIC_FIELDS},
-               "step_ms": m.step_ms, **dict(zip(m.extra_names, m.extra_values))}
-        for k in VECTOR_FIELDS:
-            out[k] = np.asarray(getattr(m, k), dtype=np.float64).reshape(m.n_agents, 3)
-        return out
+        vec = {k: np.asarray(getattr(m, k), np.float64).reshape(m.n_agents, 3) for k in VECTOR_FIELDS}
+        return {"step": m.step, "t": m.t, **{k: getattr(m, k) if m.HasField(k) else None
+                                             for k in METRIC_FIELDS},
+                "step_ms": m.step_ms, **dict(zip(m.extra_names, m.extra_values)), **vec}
 
     return row
 
@@ -374,7 +371,7 @@ def _stack_rows(rows: list[dict]) -> dict[str, np.ndarray]:
         if key in out:
             continue
         vals = [r.get(key) for r in rows]
-        if key in ("positions", "velocities", "normals"):
+        if key in VECTOR_FIELDS:
             try:
                 out[key] = np.array(vals, dtype=np.float64)
             except ValueError:  # the agent count changed mid-run: keep per-step arrays
