@@ -39,7 +39,7 @@ RUN_CONFIG_KIND = "tergodic.run_config"
 
 
 def _run_config(run: _Run, log_cloud_every: int) -> dict:
-    """The sections of a run's ``config.json``: its config as asked for (before a robot's time scaling),
+    """The sections of a run's ``config.json``: the config as given (before a robot's time scaling),
     the starts (the seed in ``cfg`` makes a random start the same), the robot's config without the GUI."""
     spec, backend = run.starts or StartSpec(), run.backend
     rc = backend.robot_cfg
@@ -112,7 +112,8 @@ def resolve_starts(spec: StartSpec, points: np.ndarray, n_agents: int, seed: int
                 keys = data.files
                 x0 = np.asarray(data["x0_arr"], dtype=np.float64) if "x0_arr" in keys else None
         except Exception as exc:
-            raise TergodicError(f"--starts {path} is unreadable ({type(exc).__name__})", fix) from None
+            raise TergodicError(f"--starts {path} is unreadable ({type(exc).__name__})",
+                                fix) from None
         require(x0 is not None, f"--starts {path} has no key x0_arr (keys: {', '.join(keys)})", fix)
         require(x0.ndim == 2 and x0.shape[1] == 3 and len(x0) > 0, f"--starts x0_arr has shape {x0.shape}, not (n, 3)",
                 "give start positions as rows x, y, z in metres")

@@ -136,9 +136,10 @@ def validate_config(cfg: ExploreConfig) -> None:
     require(int(cfg.nk) >= 1, f"--nk must be >= 1, got {cfg.nk}", "e.g. --nk 200")
     require(int(cfg.n_agents) >= 1, f"--agents must be >= 1, got {cfg.n_agents}", "e.g. --agents 1")
     for opt, v, unit, eg in (("--agent-radius", cfg.agent_radius, "metres", "0.0075 (7.5 mm)"),
-                             ("--v-max", cfg.v_max, "m/s", "0.003"), ("--a-max", cfg.a_max, "m/s²", "0.003"),
-                             ("--dt", cfg.dt, "s", "1")):
-        require(math.isfinite(v) and v > 0, f"{opt} must be > 0 {unit}, got {v}", f"e.g. {opt} {eg}")
+                             ("--v-max", cfg.v_max, "m/s", "0.003"),
+                             ("--a-max", cfg.a_max, "m/s²", "0.003"), ("--dt", cfg.dt, "s", "1")):
+        require(math.isfinite(v) and v > 0, f"{opt} must be > 0 {unit}, got {v}",
+                f"e.g. {opt} {eg}")
     for opt, v, choices in (("--diffusion", cfg.diffusion, DIFFUSIONS),
                             ("--coverage-norm", cfg.coverage_norm, COVERAGE_NORMS),
                             ("--integrator", cfg.integrator, INTEGRATORS)):

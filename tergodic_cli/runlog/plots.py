@@ -118,7 +118,7 @@ def _plot_ergodicity(plt, t, tlabel: str, s: dict, note: str, path: Path) -> Pat
     return _save(fig, path)
 
 
-def _plot_force(plt, data: RunLogData, rs: dict[str, np.ndarray], out: Path, note: str) -> list[Path]:
+def _plot_force(plt, data: RunLogData, rs: dict, out: Path, note: str) -> list[Path]:
     """Measured normal force against the desired one (wrench_desired's z, the tool axis), per explorer step."""
     if "force_normal" not in rs and "wrench_measured" not in rs:
         return []
@@ -136,8 +136,8 @@ def _plot_force(plt, data: RunLogData, rs: dict[str, np.ndarray], out: Path, not
                             label="not in contact")
         ax.set_ylim(bottom=0)
 
-    return [_single(plt, out / "force.png", f"Contact force against desired{note}", "simulated time (s)",
-                    "force (N)", draw)]
+    return [_single(plt, out / "force.png", f"Contact force against desired{note}",
+                    "simulated time (s)", "force (N)", draw)]
 
 
 def _plot_cleaning(plt, data: RunLogData, out: Path, note: str) -> list[Path]:

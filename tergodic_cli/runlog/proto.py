@@ -30,7 +30,8 @@ def _file_descriptor_proto() -> Any:
     # field numbers 1.. in this order; the last five are repeated (the doubles packed)
     D = F.TYPE_DOUBLE
     types = (F.TYPE_FIXED64, D, D, D, D, D, F.TYPE_UINT32, D, D, D, F.TYPE_STRING, D)
-    names = ("step", "t", *METRIC_FIELDS, "step_ms", "n_agents", *VECTOR_FIELDS, "extra_names", "extra_values")
+    names = ("step", "t", *METRIC_FIELDS, "step_ms", "n_agents", *VECTOR_FIELDS,
+             "extra_names", "extra_values")
     for number, (name, ftype) in enumerate(zip(names, types), start=1):
         repeated = number > 7
         f = msg.field.add(name=name, number=number, type=ftype,

@@ -356,7 +356,8 @@ def _step_decoder(schema: Any):
 
     def row(data: bytes) -> dict:
         m = decode(data)
-        vec = {k: np.asarray(getattr(m, k), np.float64).reshape(m.n_agents, 3) for k in VECTOR_FIELDS}
+        vec = {k: np.asarray(getattr(m, k), dtype=np.float64).reshape(m.n_agents, 3)
+               for k in VECTOR_FIELDS}
         return {"step": m.step, "t": m.t, **{k: getattr(m, k) if m.HasField(k) else None
                                              for k in METRIC_FIELDS},
                 "step_ms": m.step_ms, **dict(zip(m.extra_names, m.extra_values)), **vec}

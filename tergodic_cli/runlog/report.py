@@ -185,7 +185,8 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
         for k in range(pos.shape[1]):
             fig.add_trace(go.Scatter3d(x=pos[:, k, 0], y=pos[:, k, 1], z=pos[:, k, 2], mode="lines",
                                        name=f"agent {k} trajectory", hoverinfo="skip",
-                                       line=dict(color=_AGENT_COLOURS[k % len(_AGENT_COLOURS)], width=3)))
+                                       line=dict(color=_AGENT_COLOURS[k % len(_AGENT_COLOURS)],
+                                                 width=3)))
         at = pos[-1] if not clouds else pos[_row_of(steps, clouds[-1].step)]
         fig.add_trace(go.Scatter3d(x=at[:, 0], y=at[:, 1], z=at[:, 2], mode="markers", name="agents at the cloud's step",
                                    marker=dict(size=8, color="white", line=dict(color="black", width=3), symbol="diamond")))
@@ -215,7 +216,8 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
                                      args=[[str(i)], dict(mode="immediate", frame=dict(duration=0, redraw=True),
                                                         transition=dict(duration=0))]))
         fig.frames = frames
-        vis = lambda j: [t == j for t in range(len(fields))] + [True] * (len(fig.data) - len(fields))  # noqa: E731
+        nf = len(fields)
+        vis = lambda j: [t == j for t in range(nf)] + [True] * (len(fig.data) - nf)  # noqa: E731
         fig.add_annotation(text="colour by", x=0.0, y=0.985, xref="paper", yref="paper", xanchor="left",
                            yanchor="top", showarrow=False, font=dict(size=13))
         fig.update_layout(
@@ -225,7 +227,8 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
             updatemenus=[
                 dict(type="buttons", direction="right", x=0.09, y=1.0, xanchor="left", yanchor="top", showactive=True,
                      active=min(1, len(fields) - 1), pad=dict(r=4, t=4), bgcolor="#f4f4f4",
-                     buttons=[dict(label=fig.data[j].name, method="restyle", args=[{"visible": vis(j)}])
+                     buttons=[dict(label=fig.data[j].name, method="restyle",
+                                   args=[{"visible": vis(j)}])
                               for j in range(len(fields))]),
                 dict(type="buttons", direction="right", x=0.0, y=0.06, xanchor="left", yanchor="bottom",
                      pad=dict(r=4), showactive=False, bgcolor="#f4f4f4",

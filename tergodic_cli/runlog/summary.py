@@ -101,7 +101,8 @@ def format_table(summary: dict[str, Any], data: RunLogData, comparison: tuple[st
     t0, t1 = float(s["t"][0]), float(s["t"][-1])
     wall = float(s["step_ms"].sum()) / 1e3
     rows.append(("duration", f"{t1:.6g} s simulated (t = {t0:.6g} .. {t1:.6g}), {wall:.3g} s of explorer steps"))
-    rows += [(f"ε at step {k}", _fmt(v)) for k, v in (summary.get("ergodicity_at") or {}).items() if v is not None]
+    rows += [(f"ε at step {k}", _fmt(v)) for k, v in (summary.get("ergodicity_at") or {}).items()
+             if v is not None]
     rows.append(("ε at end (unit-mass, 0 best)", _fmt(summary.get("ergodicity"))))
     rows.append(("authors' residual at end", _fmt(summary.get("residual_ref"))))
     tf = summary.get("touched_fraction")

@@ -94,7 +94,7 @@ class NetFTSensor(WrenchSensor):
         self.cfg = cfg
         self.host, self.port = cfg.host_port()
         super().__init__(cfg.frame_in_ee, cfg.tare_samples)
-        # scale (6,): counts -> N, N m; _latest: (serial, t, wrench, record) from the receiver thread
+        # scale (6,): counts -> N, N m; _latest: (serial, t, wrench, record) from the receiver
         self.scale = self.sock = self._thread = self._latest = self.last_record = None
         self._stop, self._cv = threading.Event(), threading.Condition()
         self._serial, self._returned, self.lost = 0, -1, 0
@@ -109,8 +109,8 @@ class NetFTSensor(WrenchSensor):
         cfg = self.cfg
         cal = (fetch_calibration(self.host, cfg.http_port)
                if cfg.counts_per_force is None or cfg.counts_per_torque is None else
-               {"counts_per_force": cfg.counts_per_force, "counts_per_torque": cfg.counts_per_torque,
-                "force_unit": cfg.force_unit, "torque_unit": cfg.torque_unit})
+               {"counts_per_force": cfg.counts_per_force, "force_unit": cfg.force_unit,
+                "counts_per_torque": cfg.counts_per_torque, "torque_unit": cfg.torque_unit})
         fu, tu = cal["force_unit"], cal["torque_unit"]
         require(fu in rdt.FORCE_UNITS, f"unknown Net F/T force unit '{fu}'", f"set the box to one of {', '.join(rdt.FORCE_UNITS)}")
         require(tu in rdt.TORQUE_UNITS, f"unknown Net F/T torque unit '{tu}'", f"set the box to one of {', '.join(rdt.TORQUE_UNITS)}")

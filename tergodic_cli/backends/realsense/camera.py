@@ -64,7 +64,8 @@ class RealSenseCamera:
         self.cfg = cfg or RealSenseConfig()
         self.cfg.validate()
         # set by connect(): the stream, its intrinsics and depth scale (m per unit), the device
-        self.pipeline = self.intrinsics = self.depth_scale = self.serial = self.name = self._align = None
+        self.pipeline = self.intrinsics = self.depth_scale = None
+        self.serial = self.name = self._align = None
 
     def connect(self) -> None:
         if self.pipeline is not None:
