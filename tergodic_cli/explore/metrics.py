@@ -116,8 +116,7 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
     """
     from tergodic_cli.explore.explorer import cloud_index
 
-    X = np.asarray(positions, dtype=np.float64)
-    X = X.reshape(len(X), -1, 3)
+    X = np.asarray(positions, dtype=np.float64).reshape(len(positions), -1, 3)
     index = cloud_index(np.ascontiguousarray(points, dtype=np.float64))
     score = CoverageScore(index, target, agent_radius, h, X.shape[1])
     for x in X:

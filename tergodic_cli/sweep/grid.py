@@ -58,8 +58,7 @@ class Grid:
         return max(int(v) for v in self.options["nk"])
 
     def combos(self) -> list[dict]:
-        keys = list(self.options)
-        return [dict(zip(keys, values)) for values in itertools.product(*(self.options[k] for k in keys))]
+        return [dict(zip(self.options, values)) for values in itertools.product(*self.options.values())]
 
     @property
     def n_runs(self) -> int:

@@ -97,11 +97,9 @@ def materialise(spec: ObjectSpec, starts: list[int], seed: int, out: Path) -> _O
     if spec.source == "capture":
         cap = load_capture(spec.location)
     else:
-        kw = dict(spec.capture_options)
-        cfg = (CaptureConfig(source="file", path=spec.location, **kw) if spec.source == "file"
-               else CaptureConfig(source="synthetic", synthetic=spec.location, **kw))
+        where = {"path": spec.location} if spec.source == "file" else {"synthetic": spec.location}
         try:
-            cap = capture_cloud(cfg)
+            cap = capture_cloud(CaptureConfig(source=spec.source, **where, **spec.capture_options))
         except TypeError as exc:
             raise TergodicError(f"object {spec.name}: bad capture option ({exc})", "see 'tergodic capture --help'") from None
     require(bool(np.any(cap.target > 0)), f"object {spec.name}: the target is empty (no point has p > 0)",
