@@ -49,6 +49,4 @@ def export_series(data: RunLogData, fmt: str, dest: str | os.PathLike) -> Path:
 def _cell(x) -> str:
     if isinstance(x, (np.floating, float)):
         return repr(float(x))  # shortest exact form: the csv round-trips float64
-    if isinstance(x, (np.integer, int)):
-        return str(int(x))
-    return str(x)
+    return str(x)  # integers (numpy's print as Python's)

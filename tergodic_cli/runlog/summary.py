@@ -8,7 +8,6 @@ of it; provenance keys come from the copy stored in the log at close (docs/loggi
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -63,7 +62,7 @@ def _fmt(x: Any, spec: str = ".6g") -> str:
     if isinstance(x, bool):
         return str(x).lower()
     if isinstance(x, (int, float)):
-        return "nan" if isinstance(x, float) and math.isnan(x) else format(x, spec)
+        return format(x, spec)  # NaN formats as "nan"
     return str(x)
 
 
