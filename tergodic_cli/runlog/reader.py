@@ -12,6 +12,7 @@ import os
 import re
 import struct
 import zlib
+from contextlib import suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -117,11 +118,9 @@ class RunLogData:
             vals = [s.get(k) for s in self.robot]
             if k == "contact_point":  # None when not in contact
                 vals = [np.full(3, np.nan) if v is None else v for v in vals]
-            try:
+            with suppress(TypeError, ValueError):  # ragged or not numbers: left out
                 if not any(v is None for v in vals):
                     out[k] = np.array(vals, dtype=None if isinstance(vals[0], str) else np.float64)
-            except (TypeError, ValueError):
-                pass
         return out
 
 

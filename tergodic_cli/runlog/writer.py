@@ -12,7 +12,7 @@ import json
 import math
 import os
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any, Iterator, Mapping
 
@@ -209,10 +209,8 @@ class RunLog:
             yield
         except (OSError, RuntimeError) as exc:
             self._closed = True
-            try:
+            with suppress(Exception):  # best effort on the error path
                 self._w.close()
-            except Exception:  # noqa: BLE001 - best effort on the error path
-                pass
             self._stop_live()
             raise TergodicError(f"writing {self.path} failed: {exc}", "check free disk space and permissions") from None
 
@@ -436,7 +434,5 @@ class RunLog:
         if exc_type is None:
             return self.close(None)
         status = "interrupted" if issubclass(exc_type, KeyboardInterrupt) else f"error: {exc_type.__name__}"
-        try:
+        with suppress(TergodicError):  # the original exception matters more
             self.close(None, status=status)
-        except TergodicError:
-            pass  # the original exception matters more

@@ -19,6 +19,7 @@ import shutil
 import statistics
 import tempfile
 import time
+from contextlib import suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -463,8 +464,6 @@ def _parse(v: str):
     if v == "":
         return None
     for cast in (int, float):
-        try:
+        with suppress(ValueError):
             return cast(v)
-        except ValueError:
-            pass
     return v

@@ -16,6 +16,7 @@ import socket
 import threading
 import time
 import xml.etree.ElementTree as ET
+from contextlib import suppress
 from dataclasses import dataclass
 
 import numpy as np
@@ -176,10 +177,8 @@ class NetFTSensor(WrenchSensor):
         if sock is None:
             return
         self._stop.set()
-        try:
+        with suppress(OSError):
             sock.send(rdt.request(rdt.CMD_STOP, 0))
-        except OSError:
-            pass
         if self._thread is not None:
             self._thread.join(timeout=1.0)
         sock.close()
