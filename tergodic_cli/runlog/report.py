@@ -300,15 +300,13 @@ def _series_figure(data: RunLogData) -> tuple[Any, dict]:
     for r, (_, ytitle, traces, yopts) in enumerate(rows, start=1):
         for tr in traces:
             fig.add_trace(tr, row=r, col=1)
-        fig.update_yaxes(title_text=ytitle, row=r, col=1, **yopts)
+        fig.update_yaxes(title_text=ytitle, row=r, col=1, gridcolor="#e5e5e5", **yopts)
         # the explorer's rows share one time axis, the robot's rows another (the physics clock)
         fig.update_xaxes(matches="x" if r <= n_explorer else f"x{n_explorer + 1}", row=r, col=1,
-                         showticklabels=True)
+                         showticklabels=True, gridcolor="#e5e5e5")
     fig.update_xaxes(title_text="simulated time t (s)", row=n_explorer, col=1)
     if len(rows) > n_explorer:
         fig.update_xaxes(title_text="robot simulated time (s)", row=len(rows), col=1)
-    fig.update_xaxes(gridcolor="#e5e5e5")
-    fig.update_yaxes(gridcolor="#e5e5e5")
     fig.update_annotations(font_size=13)
     fig.update_layout(height=max(820, 250 * len(rows)), margin=dict(l=70, r=20, t=40, b=50),
                       paper_bgcolor="white", plot_bgcolor="white", hovermode="x unified",
