@@ -108,8 +108,7 @@ class FrankyArm:
     def connect(self) -> None:
         if self.robot is not None:
             return
-        fr = import_sdk("franky")
-        self._fr = fr
+        fr = self._fr = import_sdk("franky")
         cfg = self.cfg
         rt = fr.RealtimeConfig.Enforce if cfg.realtime == "enforce" else fr.RealtimeConfig.Ignore
         try:
@@ -140,8 +139,7 @@ class FrankyArm:
         try:
             self.stop()
         finally:
-            self.robot = None
-            self._mode = None
+            self.robot = self._mode = None
 
     # ------------------------------------------------------------------ state
     def read_state(self) -> ArmState:
