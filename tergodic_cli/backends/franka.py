@@ -252,8 +252,7 @@ class FrankaWrenchEstimate(WrenchSensor):
 
 def _gains(fr, K: np.ndarray, D: np.ndarray):
     g = fr.CartesianImpedanceGains()
-    g.stiffness = K
-    g.damping = D
+    g.stiffness, g.damping = K, D
     return g
 
 

@@ -141,9 +141,7 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
     import plotly.graph_objects as go
 
     embedded: dict[str, Any] = {}
-    pos = _positions(data)
-    steps = data.series["step"]
-    clouds = data.clouds
+    pos, steps, clouds = _positions(data), data.series["step"], data.clouds
     if not clouds and pos is None:
         return None, embedded
     fig, idx, fields, shown = go.Figure(), slice(None), [], []  # idx: the points shown

@@ -168,8 +168,7 @@ class NetFTSensor(WrenchSensor):
         with self._cv:
             self._cv.wait_for(lambda: self._latest is not None and self._latest[0] != self._returned, timeout=self.cfg.fresh_timeout)
             serial, t, w, rec = self._latest
-        self._returned = serial
-        self.last_record = rec
+        self._returned, self.last_record = serial, rec
         return t, w
 
     def disconnect(self) -> None:
