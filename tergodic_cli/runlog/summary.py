@@ -146,9 +146,9 @@ def state_at(data: RunLogData, step: int) -> dict[str, Any]:
     lists), the robot sample, the ranges of the last cloud logged at or before it, and the events so far."""
     i = data.index_of(step)
     s = data.series
-    state: dict = {"step": int(s["step"][i]), "t": float(s["t"][i])}
-    state.update({k: v[i].tolist() if isinstance(v[i], np.ndarray) else float(v[i])
-                  for k, v in s.items() if k not in ("step", "t")})
+    state: dict = {"step": int(s["step"][i]), "t": float(s["t"][i]),
+                   **{k: v[i].tolist() if isinstance(v[i], np.ndarray) else float(v[i])
+                      for k, v in s.items() if k not in ("step", "t")}}
     if data.robot and i < len(data.robot):
         state["robot"] = {k: v for k, v in data.robot[i].items() if k != "step"}
     cloud = data.cloud_at(step)
@@ -188,7 +188,6 @@ def format_state(state: dict[str, Any]) -> str:
         c = state["cloud"]
         extra = ", ".join(f"{k} {v:.4g}" for k, v in c.items() if k not in ("step", "n_points"))
         lines.append(f"  cloud (logged at step {c['step']}, {c['n_points']} points): {extra}")
-    ev = state["events_so_far"]
-    if ev:
+    if ev := state["events_so_far"]:
         lines.append(f"  last event: step {ev[-1]['step']}: {ev[-1]['text']}")
     return "\n".join(lines)
