@@ -43,9 +43,7 @@ def _single(plt, path: Path, title: str, xlabel: str, ylabel: str, draw) -> Path
     """One axes: ``draw(ax)`` plots, then the labels, a grid and a legend of the labelled lines."""
     fig, ax = plt.subplots(figsize=(7, 4))
     draw(ax)
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    ax.set_title(title)
+    ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
     ax.grid(True, alpha=0.3)
     if ax.get_legend_handles_labels()[0]:
         ax.legend()
@@ -103,8 +101,7 @@ def _plot_ergodicity(plt, t, tlabel: str, s: dict, note: str, path: Path) -> Pat
     ax.plot(t, eps, color="C0")
     if log_scale(eps):
         ax.set_yscale("log")
-    ax.set_ylabel("ε (eq. 48)")
-    ax.set_title(f"Ergodicity ε over time{note}")
+    ax.set(ylabel="ε (eq. 48)", title=f"Ergodicity ε over time{note}")
     if ref:
         ax2 = axes[1, 0]
         ax2.plot(t, s[ref], color="C1")
@@ -210,8 +207,7 @@ def _plot_cloud(plt, cloud, field: str, cmap: str, label: str, traj, path: Path,
         ax.xaxis.set_major_locator(MaxNLocator(5))
         ax.yaxis.set_major_locator(MaxNLocator(5))
         ax.set_title(name, fontsize=10)
-        ax.set_xlabel("xyz"[h] + " (mm)")
-        ax.set_ylabel("xyz"[v] + " (mm)")
+        ax.set(xlabel="xyz"[h] + " (mm)", ylabel="xyz"[v] + " (mm)")
         ax.grid(True, alpha=0.2)
     cax = fig.add_subplot(gs[:, 2])
     fig.colorbar(sc, cax=cax, label=label, extend="max" if vmax < np.nanmax(vals) else "neither")
