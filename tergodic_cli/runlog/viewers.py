@@ -105,9 +105,7 @@ def replay_gui(data: RunLogData, speed: float = 1.0) -> int:
         start = time.monotonic()
         for i in range(len(q)):
             set_joints(client, body, idx, q[i])
-            wait = (t[i] - t[0]) / max(speed, 1e-6) - (time.monotonic() - start)
-            if wait > 0:
-                time.sleep(wait)
+            time.sleep(max(0.0, (t[i] - t[0]) / max(speed, 1e-6) - (time.monotonic() - start)))
     finally:
         p.disconnect(client)
     return 0
