@@ -41,8 +41,7 @@ def export_series(data: RunLogData, fmt: str, dest: str | os.PathLike) -> Path:
         with open(tmp, "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(header)
-            for i in range(data.steps):
-                w.writerow([_cell(c[i]) for c in cols])
+            w.writerows([_cell(c[i]) for c in cols] for i in range(data.steps))
     return dest
 
 

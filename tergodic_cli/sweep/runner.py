@@ -435,9 +435,8 @@ def _write_outputs(out: Path, grid: Grid, rows: list[dict], series: dict, parque
     with open(out / "results.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
         w.writeheader()
-        for r in rows:
-            w.writerow({k: "" if r.get(k) is None else repr(r[k]) if isinstance(r[k], float)
-                        else r[k] for k in columns})
+        w.writerows({k: "" if r.get(k) is None else repr(r[k]) if isinstance(r[k], float) else r[k]
+                     for k in columns} for r in rows)
     write_npz(out / "series.npz", **series)
     files = ["results.csv", "series.npz"]
     if parquet:
