@@ -7,6 +7,7 @@ described in docs/explore.md; they are built in a temporary folder and renamed i
 from __future__ import annotations
 
 import json
+from contextlib import nullcontext
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
@@ -37,11 +38,12 @@ class StartSpec:
 RUN_CONFIG_KIND = "tergodic.run_config"
 
 
-def _run_config(capture_dir, cfg: ExploreConfig, starts: StartSpec | None, backend, log_cloud_every: int) -> dict:
-    """The sections of a run's ``config.json``: ``cfg`` as asked for (before a robot's time scaling),
+def _run_config(run: _Run, log_cloud_every: int) -> dict:
+    """The sections of a run's ``config.json``: the config as given (before a robot's time scaling),
     the starts (the seed in ``cfg`` makes a random start the same), the robot's config without the GUI."""
-    spec, rc = starts or StartSpec(), backend.robot_cfg
-    return {"capture": str(Path(capture_dir).resolve()), "explore": cfg.to_dict(),
+    spec, backend = run.starts or StartSpec(), run.backend
+    rc = backend.robot_cfg
+    return {"capture": str(Path(run.capture_dir).resolve()), "explore": run.user_cfg.to_dict(),
             "starts": {"start": spec.start, "start_index": spec.start_index,
                        "starts_file": str(Path(spec.starts_file).resolve()) if spec.starts_file else None},
             "robot": backend.name,
@@ -103,18 +105,16 @@ def resolve_starts(spec: StartSpec, points: np.ndarray, n_agents: int, seed: int
     rng = np.random.default_rng(seed)
     if spec.starts_file is not None:
         require(spec.start is None, "--start and --starts are both given", "use one of them")
-        path = Path(spec.starts_file)
-        require(path.is_file(), f"--starts {path} does not exist", "give an .npz with key x0_arr (n, 3) in metres")
+        path, fix = Path(spec.starts_file), "give an .npz with key x0_arr (n, 3) in metres"
+        require(path.is_file(), f"--starts {path} does not exist", fix)
         try:
             with np.load(path, allow_pickle=False) as data:
-                require("x0_arr" in data.files, f"--starts {path} has no key x0_arr (keys: {', '.join(data.files)})",
-                        "give an .npz with key x0_arr (n, 3) in metres")
-                x0 = np.asarray(data["x0_arr"], dtype=np.float64)
-        except TergodicError:
-            raise
+                keys = data.files
+                x0 = np.asarray(data["x0_arr"], dtype=np.float64) if "x0_arr" in keys else None
         except Exception as exc:
             raise TergodicError(f"--starts {path} is unreadable ({type(exc).__name__})",
-                                "give an .npz with key x0_arr (n, 3) in metres") from None
+                                fix) from None
+        require(x0 is not None, f"--starts {path} has no key x0_arr (keys: {', '.join(keys)})", fix)
         require(x0.ndim == 2 and x0.shape[1] == 3 and len(x0) > 0, f"--starts x0_arr has shape {x0.shape}, not (n, 3)",
                 "give start positions as rows x, y, z in metres")
         i = 0 if spec.start_index is None else int(spec.start_index)
@@ -140,10 +140,7 @@ def resolve_starts(spec: StartSpec, points: np.ndarray, n_agents: int, seed: int
                                 "e.g. --start 0.01,0.02,0.05 (metres), --start 120, or --start random") from None
         require(0 <= idx < n, f"--start index {idx} is outside 0..{n - 1}", f"use an index below {n}")
         first = points[idx]
-    if n_agents == 1:
-        return first[None, :]
-    others = points[rng.choice(n, size=n_agents - 1, replace=False)]
-    return np.vstack([first[None, :], others])
+    return np.vstack([first[None, :], points[rng.choice(n, size=n_agents - 1, replace=False)]])
 
 
 def find_basis(points: np.ndarray, nk: int, neighbors: int, cache_dir=None,
@@ -155,16 +152,16 @@ def find_basis(points: np.ndarray, nk: int, neighbors: int, cache_dir=None,
 
     root = Path(cache_dir or default_cache_dir()) / "basis"
     candidates: set[tuple[int, str, str]] = set()
-    if root.is_dir():
-        for meta_path in root.glob("*/basis.json"):
-            try:
-                meta = json.loads(meta_path.read_text())
-                bcfg = meta["config"]
-                if (int(meta["n_points"]) == len(points) and int(bcfg["neighbors"]) == neighbors
-                        and int(bcfg["nk"]) >= nk):
-                    candidates.add((int(bcfg["nk"]), str(bcfg.get("solver", BasisConfig.solver)), meta_path.parent.name))
-            except (OSError, ValueError, KeyError, TypeError):
-                continue  # unreadable entries are get_basis' business
+    for meta_path in root.glob("*/basis.json"):  # none when the folder is missing
+        try:
+            meta = json.loads(meta_path.read_text())
+            bcfg = meta["config"]
+            if (int(meta["n_points"]) == len(points) and int(bcfg["neighbors"]) == neighbors
+                    and int(bcfg["nk"]) >= nk):
+                candidates.add((int(bcfg["nk"]), str(bcfg.get("solver", BasisConfig.solver)),
+                                meta_path.parent.name))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue  # unreadable entries are get_basis' business
     for cand_nk, solver, key in sorted(candidates):
         bcfg = BasisConfig(nk=cand_nk, neighbors=neighbors, solver=solver)
         if geometry_key(points, bcfg)[0] == key:
@@ -290,7 +287,8 @@ def _write_run(out: Path, run: _Run) -> dict:
         out / "run.mcap", config=cfg.to_dict(), seed=cfg.seed, versions=library_versions(),
         capture_sidecar=run.capture.meta, points=run.basis.points, target=run.capture.target,
         cloud_every=spec.cloud_every, live=spec.live)
-    try:
+    # leaving the block on an error closes the log "interrupted" (Ctrl-C) or "error: ..."
+    with runlog if runlog is not None else nullcontext():
         if runlog is not None:
             if runlog.live is not None:
                 say(f"live: {runlog.live.url} (Foxglove: Open connection)")
@@ -331,16 +329,10 @@ def _write_run(out: Path, run: _Run) -> dict:
         from tergodic_cli.config import CONFIG_FILE, write_config
 
         write_json(out / "summary.json", summary)
-        write_config(out / CONFIG_FILE, RUN_CONFIG_KIND, **_run_config(run.capture_dir, run.user_cfg, run.starts,
-                                                                        run.backend, spec.cloud_every))
+        write_config(out / CONFIG_FILE, RUN_CONFIG_KIND, **_run_config(run, spec.cloud_every))
         if runlog is not None:
             runlog.close(summary, status="interrupted" if summary.get("interrupted") else "ok")  # robot made safe
-            runlog = None
         return summary
-    except BaseException as exc:
-        if runlog is not None:
-            runlog.__exit__(type(exc), exc, None)  # marks the log "interrupted" (Ctrl-C) or "error: ..."
-        raise
 
 
 def make_robot_config(robot_config_cls, options: dict | None):
@@ -567,6 +559,7 @@ def _provenance(run: _Run, robot_extra: dict, logged: bool) -> dict:
     from tergodic_cli.provenance import library_versions
 
     starts, capture, basis, explorer, cfg = run.starts or StartSpec(), run.capture, run.basis, run.explorer, run.cfg
+    score = explorer.score()
     extra = {
         "robot": run.backend.name,
         "capture": {"path": str(Path(run.capture_dir)), "n_points": int(capture.n_points),
@@ -578,13 +571,11 @@ def _provenance(run: _Run, robot_extra: dict, logged: bool) -> dict:
                      "epsilon_per_m": cfg.footprint_epsilon, "edge_events": int(explorer.edge_events),
                      "diffusion": cfg.diffusion, "integrator": cfg.integrator},
         # the neutral score's surface checks (issue 13): positions > 2h off the cloud, longest step
-        "off_surface_fraction": explorer.score()["off_surface_fraction"],
-        "step_max_m": explorer.score()["step_max_m"],
+        "off_surface_fraction": score["off_surface_fraction"], "step_max_m": score["step_max_m"],
         "starts": {"start": starts.start, "starts_file": starts.starts_file, "start_index": starts.start_index,
                    "xyz": np.asarray(run.start_xyz).tolist()},
         "files": ["trajectory.npz", "summary.json", "config.json"] + (["run.mcap"] if logged else []),
         "versions": library_versions(),
     }
-    for key, value in (robot_extra or {}).items():  # the robot's summary extras, merged in (CONTRACTS.md)
-        extra.setdefault(key, value)
-    return extra
+    # the robot's summary extras, merged in (CONTRACTS.md)
+    return {**extra, **{k: v for k, v in robot_extra.items() if k not in extra}}

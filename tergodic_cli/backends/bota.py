@@ -99,9 +99,8 @@ class BotaSensor(WrenchSensor):
         if self._last_us is not None and us < self._last_us and self._last_us - us > WRAP_US // 2:
             self._wraps += 1
         self._last_us = us
-        st = fr.status
         w = np.array(list(fr.force) + list(fr.torque), dtype=float)
-        if int(st.invalid) or int(st.overrange) or w.shape != (6,):
+        if int(fr.status.invalid) or int(fr.status.overrange) or w.shape != (6,):
             w = np.full(6, np.nan)
         return 1e-6 * (us + self._wraps * WRAP_US), w
 

@@ -96,13 +96,9 @@ class FrankyArm:
         self.joint_names = [f"panda_joint{i}" for i in range(1, 8)]
         self.q_min, self.q_max, self.dq_max = (x.copy() for x in LIMITS[cfg.model])
         self.stream_hz = float(cfg.stream_hz)
-        self.robot = None
-        self._fr = None
+        self.robot = self._fr = self._motion = self._gains_key = self._error = None
         self._mode: str | None = None  # None | "impedance"
-        self._motion = None
-        self._gains_key: bytes | None = None
         self.measured_tau = np.zeros(7)
-        self._error: str | None = None
 
     # ------------------------------------------------------------------ connection
     @property
@@ -112,8 +108,7 @@ class FrankyArm:
     def connect(self) -> None:
         if self.robot is not None:
             return
-        fr = import_sdk("franky")
-        self._fr = fr
+        fr = self._fr = import_sdk("franky")
         cfg = self.cfg
         rt = fr.RealtimeConfig.Enforce if cfg.realtime == "enforce" else fr.RealtimeConfig.Ignore
         try:
@@ -144,8 +139,7 @@ class FrankyArm:
         try:
             self.stop()
         finally:
-            self.robot = None
-            self._mode = None
+            self.robot = self._mode = None
 
     # ------------------------------------------------------------------ state
     def read_state(self) -> ArmState:
@@ -167,13 +161,11 @@ class FrankyArm:
             if self._mode is not None:
                 robot.poll_motion()  # re-raises an exception the control thread stored
         except Exception as exc:
-            self._error = f"the Franka stopped: {one_line(exc)}"
-            self._mode = None
+            self._error, self._mode = f"the Franka stopped: {one_line(exc)}", None
             return self._error
         if robot.has_errors:
             self._error = "the Franka reports an error (see Desk); it stopped"
-            return self._error
-        return None
+        return self._error
 
     # ------------------------------------------------------------------ commands
     def command_impedance(self, target: ImpedanceTarget) -> None:
@@ -185,8 +177,7 @@ class FrankyArm:
                 "this is a bug in the caller; please report it")
         ref = fr.CartesianReference(target=fr.Affine(T),
                                     target_twist=fr.Twist(np.asarray(target.twist[:3], float), np.asarray(target.twist[3:], float)))
-        K = np.asarray(target.stiffness, dtype=float)
-        D = np.asarray(target.damping, dtype=float)
+        K, D = np.asarray(target.stiffness, dtype=float), np.asarray(target.damping, dtype=float)
         key = np.round(np.concatenate([K.ravel(), D.ravel()]), 6).tobytes()
         if self._mode != "impedance":
             clip = float(self.cfg.error_clip)
@@ -261,8 +252,7 @@ class FrankaWrenchEstimate(WrenchSensor):
 
 def _gains(fr, K: np.ndarray, D: np.ndarray):
     g = fr.CartesianImpedanceGains()
-    g.stiffness = K
-    g.damping = D
+    g.stiffness, g.damping = K, D
     return g
 
 

@@ -134,17 +134,16 @@ def validate_config(cfg: ExploreConfig) -> None:
     require(int(cfg.steps) >= 1, f"--steps must be >= 1, got {cfg.steps}", "e.g. --steps 1000")
     parse_alpha(cfg.alpha)
     require(int(cfg.nk) >= 1, f"--nk must be >= 1, got {cfg.nk}", "e.g. --nk 200")
-    require(math.isfinite(cfg.agent_radius) and cfg.agent_radius > 0,
-            f"--agent-radius must be > 0 metres, got {cfg.agent_radius}", "e.g. --agent-radius 0.0075 (7.5 mm)")
     require(int(cfg.n_agents) >= 1, f"--agents must be >= 1, got {cfg.n_agents}", "e.g. --agents 1")
-    require(cfg.v_max > 0 and math.isfinite(cfg.v_max), f"--v-max must be > 0 m/s, got {cfg.v_max}", "e.g. --v-max 0.003")
-    require(cfg.a_max > 0 and math.isfinite(cfg.a_max), f"--a-max must be > 0 m/s², got {cfg.a_max}", "e.g. --a-max 0.003")
-    require(cfg.dt > 0 and math.isfinite(cfg.dt), f"--dt must be > 0 s, got {cfg.dt}", "e.g. --dt 1")
-    require(cfg.diffusion in DIFFUSIONS, f"--diffusion '{cfg.diffusion}' is unknown", f"use one of {', '.join(DIFFUSIONS)}")
-    require(cfg.coverage_norm in COVERAGE_NORMS, f"--coverage-norm '{cfg.coverage_norm}' is unknown",
-            f"use one of {', '.join(COVERAGE_NORMS)}")
-    require(cfg.integrator in INTEGRATORS, f"--integrator '{cfg.integrator}' is unknown",
-            f"use one of {', '.join(INTEGRATORS)}")
+    for opt, v, unit, eg in (("--agent-radius", cfg.agent_radius, "metres", "0.0075 (7.5 mm)"),
+                             ("--v-max", cfg.v_max, "m/s", "0.003"),
+                             ("--a-max", cfg.a_max, "m/s²", "0.003"), ("--dt", cfg.dt, "s", "1")):
+        require(math.isfinite(v) and v > 0, f"{opt} must be > 0 {unit}, got {v}",
+                f"e.g. {opt} {eg}")
+    for opt, v, choices in (("--diffusion", cfg.diffusion, DIFFUSIONS),
+                            ("--coverage-norm", cfg.coverage_norm, COVERAGE_NORMS),
+                            ("--integrator", cfg.integrator, INTEGRATORS)):
+        require(v in choices, f"{opt} '{v}' is unknown", f"use one of {', '.join(choices)}")
     require(int(cfg.resync_every) >= 0, f"resync_every must be >= 0 steps, got {cfg.resync_every}",
             "e.g. 1000 (0: never, 1: a full recompute every step)")
     require(int(cfg.n_neighbors) >= MIN_NEIGHBORS, f"--fit-neighbors {cfg.n_neighbors} is too few for a cubic fit",

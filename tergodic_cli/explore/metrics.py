@@ -115,8 +115,7 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
     target points within r_a of some X_t); ``off_surface_fraction`` (share of positions more than
     2h from every point); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
     """
-    X = np.asarray(positions, dtype=np.float64)
-    X = X.reshape(len(X), -1, 3)
+    X = np.asarray(positions, dtype=np.float64).reshape(len(positions), -1, 3)
     index = cloud_index(np.ascontiguousarray(points, dtype=np.float64))
     score = CoverageScore(index, target, agent_radius, h, X.shape[1])
     for x in X:

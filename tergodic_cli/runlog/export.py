@@ -30,8 +30,7 @@ def export_series(data: RunLogData, fmt: str, dest: str | os.PathLike) -> Path:
     if fmt == "npz":
         write_npz(dest, **table)
         return dest
-    header: list[str] = []
-    cols: list[np.ndarray] = []
+    header, cols = [], []
     for k, v in table.items():  # (T,) one column, (T, k) k columns, (T, N, 3) per agent x y z
         if v.ndim > 3 or (v.ndim == 3 and v.shape[2] != 3):
             continue
@@ -42,14 +41,11 @@ def export_series(data: RunLogData, fmt: str, dest: str | os.PathLike) -> Path:
         with open(tmp, "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(header)
-            for i in range(data.steps):
-                w.writerow([_cell(c[i]) for c in cols])
+            w.writerows([_cell(c[i]) for c in cols] for i in range(data.steps))
     return dest
 
 
 def _cell(x) -> str:
     if isinstance(x, (np.floating, float)):
         return repr(float(x))  # shortest exact form: the csv round-trips float64
-    if isinstance(x, (np.integer, int)):
-        return str(int(x))
-    return str(x)
+    return str(x)  # integers (numpy's print as Python's)

@@ -23,9 +23,7 @@ _FIX = "give HOST:PORT, e.g. --live 127.0.0.1:8765 (or --live alone for that def
 def parse_live(text: str | None) -> tuple[str, int]:
     """``HOST:PORT``, ``:PORT``, ``PORT`` or ``[IPv6]:PORT`` -> (host, port); host defaults to 127.0.0.1."""
     raw = (text or "").strip() or DEFAULT
-    host, sep, port_txt = raw.rpartition(":")
-    if not sep:
-        host, port_txt = "", raw
+    host, _, port_txt = raw.rpartition(":")  # no ":": the host is ""
     host = host.strip() or DEFAULT_HOST
     if host.startswith("[") and host.endswith("]"):
         host = host[1:-1]
@@ -98,10 +96,7 @@ class LiveServer:
             return
         deadline = time.monotonic() + wait_s
         while time.monotonic() < deadline:
-            with socket.socket() as s:
-                s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-                try:
-                    s.bind((self.host, self.port))
-                    return
-                except OSError:
-                    time.sleep(0.02)
+            try:
+                return check_bindable(self.host, self.port)
+            except TergodicError:
+                time.sleep(0.02)

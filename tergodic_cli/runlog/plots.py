@@ -43,9 +43,7 @@ def _single(plt, path: Path, title: str, xlabel: str, ylabel: str, draw) -> Path
     """One axes: ``draw(ax)`` plots, then the labels, a grid and a legend of the labelled lines."""
     fig, ax = plt.subplots(figsize=(7, 4))
     draw(ax)
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    ax.set_title(title)
+    ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
     ax.grid(True, alpha=0.3)
     if ax.get_legend_handles_labels()[0]:
         ax.legend()
@@ -72,14 +70,10 @@ def plot_run(data: RunLogData, out_dir: str | os.PathLike) -> list[Path]:
     written.append(_single(plt, out / "touched.png", f"Target touched over time{note}", tlabel,
                            "target touched (%)", touched))
 
-    rs = data.robot_series()
-    if rs:
-        written += _plot_force(plt, data, rs, out)
-    written += _plot_cleaning(plt, data, out)
-
-    cloud = data.clouds[-1] if data.clouds else None
-    if cloud is not None:
-        traj = data.series.get("positions")
+    written += _plot_force(plt, data, data.robot_series(), out, note)
+    written += _plot_cleaning(plt, data, out, note)
+    if data.clouds:
+        cloud, traj = data.clouds[-1], data.series.get("positions")
         for field, cmap, label, line in (("target", "cividis", "target weight p (0-1, unitless)", "red"),
                                          ("coverage", "viridis", "coverage c̃ (summed footprint, unitless)", "white"),
                                          ("heat", "inferno", "heat u (1/m²)", "cyan")):
@@ -107,8 +101,7 @@ def _plot_ergodicity(plt, t, tlabel: str, s: dict, note: str, path: Path) -> Pat
     ax.plot(t, eps, color="C0")
     if log_scale(eps):
         ax.set_yscale("log")
-    ax.set_ylabel("ε (eq. 48)")
-    ax.set_title(f"Ergodicity ε over time{note}")
+    ax.set(ylabel="ε (eq. 48)", title=f"Ergodicity ε over time{note}")
     if ref:
         ax2 = axes[1, 0]
         ax2.plot(t, s[ref], color="C1")
@@ -122,7 +115,7 @@ def _plot_ergodicity(plt, t, tlabel: str, s: dict, note: str, path: Path) -> Pat
     return _save(fig, path)
 
 
-def _plot_force(plt, data: RunLogData, rs: dict[str, np.ndarray], out: Path) -> list[Path]:
+def _plot_force(plt, data: RunLogData, rs: dict, out: Path, note: str) -> list[Path]:
     """Measured normal force against the desired one (wrench_desired's z, the tool axis), per explorer step."""
     if "force_normal" not in rs and "wrench_measured" not in rs:
         return []
@@ -140,11 +133,11 @@ def _plot_force(plt, data: RunLogData, rs: dict[str, np.ndarray], out: Path) -> 
                             label="not in contact")
         ax.set_ylim(bottom=0)
 
-    title = "Contact force against desired" + (" (truncated log)" if data.truncated else "")
-    return [_single(plt, out / "force.png", title, "simulated time (s)", "force (N)", draw)]
+    return [_single(plt, out / "force.png", f"Contact force against desired{note}",
+                    "simulated time (s)", "force (N)", draw)]
 
 
-def _plot_cleaning(plt, data: RunLogData, out: Path) -> list[Path]:
+def _plot_cleaning(plt, data: RunLogData, out: Path, note: str) -> list[Path]:
     """Closed-loop runs: the share of the initial marking left after each re-capture, against steps.
 
     The robot sample of each cycle's last step carries ``marking_remaining`` (what the camera sees)
@@ -164,7 +157,6 @@ def _plot_cleaning(plt, data: RunLogData, out: Path) -> list[Path]:
                     ms=4, label="ink left in the texture (true)")
         ax.set_ylim(0, 105)
 
-    note = " (truncated log)" if data.truncated else ""
     return [_single(plt, out / "cleaning.png", f"Cleaning: marking left at each re-capture{note}",
                     "explorer step", "marking left (% of the initial)", draw)]
 
@@ -186,8 +178,7 @@ def _plot_cloud(plt, cloud, field: str, cmap: str, label: str, traj, path: Path,
     extents, in millimetres; a flat view keeps a readable height (its axis limits widen instead)."""
     from matplotlib.ticker import MaxNLocator
 
-    pts = cloud.points
-    vals = cloud.fields[field]
+    pts, vals = cloud.points, cloud.fields[field]
     vmin, vmax = _color_range(vals)
     span = pts.max(0) - pts.min(0)
     big = float(span.max()) or 1.0
@@ -216,8 +207,7 @@ def _plot_cloud(plt, cloud, field: str, cmap: str, label: str, traj, path: Path,
         ax.xaxis.set_major_locator(MaxNLocator(5))
         ax.yaxis.set_major_locator(MaxNLocator(5))
         ax.set_title(name, fontsize=10)
-        ax.set_xlabel("xyz"[h] + " (mm)")
-        ax.set_ylabel("xyz"[v] + " (mm)")
+        ax.set(xlabel="xyz"[h] + " (mm)", ylabel="xyz"[v] + " (mm)")
         ax.grid(True, alpha=0.2)
     cax = fig.add_subplot(gs[:, 2])
     fig.colorbar(sc, cax=cax, label=label, extend="max" if vmax < np.nanmax(vals) else "neither")

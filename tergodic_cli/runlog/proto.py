@@ -27,16 +27,16 @@ def _file_descriptor_proto() -> Any:
     F = d.FieldDescriptorProto
     fdp = d.FileDescriptorProto(name="tergodic/StepRecord.proto", package=PACKAGE, syntax="proto2")
     msg = fdp.message_type.add(name=NAME)
-    fields = [("step", 1, F.TYPE_FIXED64, F.LABEL_OPTIONAL), ("t", 2, F.TYPE_DOUBLE, F.LABEL_OPTIONAL),
-              ("ergodicity", 3, F.TYPE_DOUBLE, F.LABEL_OPTIONAL), ("residual_ref", 4, F.TYPE_DOUBLE, F.LABEL_OPTIONAL),
-              ("touched_fraction", 5, F.TYPE_DOUBLE, F.LABEL_OPTIONAL), ("step_ms", 6, F.TYPE_DOUBLE, F.LABEL_OPTIONAL),
-              ("n_agents", 7, F.TYPE_UINT32, F.LABEL_OPTIONAL),
-              ("positions", 8, F.TYPE_DOUBLE, F.LABEL_REPEATED), ("velocities", 9, F.TYPE_DOUBLE, F.LABEL_REPEATED),
-              ("normals", 10, F.TYPE_DOUBLE, F.LABEL_REPEATED), ("extra_names", 11, F.TYPE_STRING, F.LABEL_REPEATED),
-              ("extra_values", 12, F.TYPE_DOUBLE, F.LABEL_REPEATED)]
-    for name, number, ftype, label in fields:
-        f = msg.field.add(name=name, number=number, type=ftype, label=label)
-        if label == F.LABEL_REPEATED and ftype == F.TYPE_DOUBLE:
+    # field numbers 1.. in this order; the last five are repeated (the doubles packed)
+    D = F.TYPE_DOUBLE
+    types = (F.TYPE_FIXED64, D, D, D, D, D, F.TYPE_UINT32, D, D, D, F.TYPE_STRING, D)
+    names = ("step", "t", *METRIC_FIELDS, "step_ms", "n_agents", *VECTOR_FIELDS,
+             "extra_names", "extra_values")
+    for number, (name, ftype) in enumerate(zip(names, types), start=1):
+        repeated = number > 7
+        f = msg.field.add(name=name, number=number, type=ftype,
+                          label=F.LABEL_REPEATED if repeated else F.LABEL_OPTIONAL)
+        if repeated and ftype == F.TYPE_DOUBLE:
             f.options.packed = True
     return fdp
 

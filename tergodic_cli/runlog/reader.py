@@ -12,6 +12,7 @@ import os
 import re
 import struct
 import zlib
+from contextlib import suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,7 @@ import numpy as np
 
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.runlog import schema as S
+from tergodic_cli.runlog.proto import FULL_NAME, METRIC_FIELDS, VECTOR_FIELDS
 
 _MAGIC = b"\x89MCAP0\r\n"
 _EVENT_RE = re.compile(r"^step (\d+): (.*)$", re.S)
@@ -116,11 +118,9 @@ class RunLogData:
             vals = [s.get(k) for s in self.robot]
             if k == "contact_point":  # None when not in contact
                 vals = [np.full(3, np.nan) if v is None else v for v in vals]
-            try:
+            with suppress(TypeError, ValueError):  # ragged or not numbers: left out
                 if not any(v is None for v in vals):
                     out[k] = np.array(vals, dtype=None if isinstance(vals[0], str) else np.float64)
-            except (TypeError, ValueError):
-                pass
         return out
 
 
@@ -174,21 +174,14 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
 
     path = resolve_log_path(path)
     _check_head(path)
-
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
     counts: dict[int, int] = {}
     metadata: dict[str, dict[str, str]] = {}
     attachments: dict[str, bytes] = {}
-    rows: list[dict] = []
-    robot: list[dict] = []
-    cloud_frames: list[CloudFrame] = []
-    events: list[tuple[int, float, str]] = []
+    rows, robot, cloud_frames, events = [], [], [], []
     truncated, note, have_header, complete = False, "", False, False
-    version: str | None = None
-    topic_of: dict[int, str] = {}
-    step_decoder = None
-    t0 = 0
+    step_decoder, t0 = None, 0
 
     size = path.stat().st_size
     finished = _has_footer(path, size)
@@ -216,16 +209,16 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
                 truncated, note = True, f"{type(exc).__name__}: {exc}".strip().rstrip(":")
                 break
             if isinstance(rec, Message):
-                topic = topic_of.get(rec.channel_id)
+                ch = channels.get(rec.channel_id)
+                topic = ch and ch.topic
                 counts[rec.channel_id] = counts.get(rec.channel_id, 0) + 1
                 if topic == S.TOPIC_METRICS:
-                    if step_decoder is None:
-                        step_decoder = _step_decoder(schemas[channels[rec.channel_id].schema_id])
+                    step_decoder = step_decoder or _step_decoder(schemas[ch.schema_id])
                     rows.append(step_decoder(rec.data))
                 elif topic == S.TOPIC_ROBOT_SAMPLE:
                     robot.append(json.loads(rec.data))
                 elif topic == S.TOPIC_CLOUD and clouds:
-                    cloud_frames.append(_decode_cloud(PointCloud.FromString(rec.data), rec))
+                    cloud_frames.append(_decode_cloud(PointCloud.FromString(rec.data), rec, t0))
                 elif topic == S.TOPIC_EVENTS:
                     msg = Log.FromString(rec.data)
                     m = _EVENT_RE.match(msg.message)
@@ -233,18 +226,17 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
                     events.append((step, (rec.log_time - t0) / 1e9, text))  # t0: metadata first
             elif isinstance(rec, Channel):
                 channels[rec.id] = rec
-                topic_of[rec.id] = rec.topic
             elif isinstance(rec, Schema):
                 schemas[rec.id] = rec
             elif isinstance(rec, Metadata):
                 metadata[rec.name] = dict(rec.metadata)
                 if rec.name == S.META_TERGODIC:
-                    version = rec.metadata.get("log_schema_version")
                     t0 = _time_origin(rec.metadata)  # version 2: wall-clock log times
-                    if version not in S.SUPPORTED_VERSIONS:
-                        raise TergodicError(
-                            f"{path} uses log schema version {version!r}; this tergodic reads {', '.join(S.SUPPORTED_VERSIONS)}",
-                            "replay it with the tergodic version that wrote it (see its 'tergodic' metadata)")
+                    if (v := rec.metadata.get("log_schema_version")) not in S.SUPPORTED_VERSIONS:
+                        raise TergodicError(f"{path} uses log schema version {v!r}; this tergodic "
+                                            f"reads {', '.join(S.SUPPORTED_VERSIONS)}",
+                                            "replay it with the tergodic version that wrote it "
+                                            "(see its 'tergodic' metadata)")
             elif isinstance(rec, Attachment):
                 attachments[rec.name] = rec.data
             elif isinstance(rec, Header):
@@ -258,7 +250,8 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
                                 f"remove them (truncate -s {stream.count} {path}), or re-run 'tergodic explore'")
     if not complete and not truncated:
         truncated, note = True, "no footer"
-    if version is None:
+    version = metadata.get(S.META_TERGODIC, {}).get("log_schema_version")
+    if S.META_TERGODIC not in metadata:
         if truncated:
             raise TergodicError(f"{path} is cut off before its metadata (the run died at start)", "re-run it")
         raise TergodicError(f"{path} is not a tergodic run log (no '{S.META_TERGODIC}' metadata)", _RUN_FIX)
@@ -281,9 +274,6 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
 
     seed_txt = metadata.get(S.META_SEED, {}).get("seed", "")
     series = _stack_rows(rows)
-    for c in cloud_frames:  # log times are wall-clock from version 2 on (t0 + simulated t)
-        c.t_ns -= t0
-        c.t = c.t_ns / 1e9
     _assign_cloud_steps(cloud_frames, series)
     sidecar = attachments.get(S.ATTACHMENT_SIDECAR)
     return RunLogData(
@@ -358,8 +348,6 @@ def _step_decoder(schema: Any):
     """bytes -> row dict for the step records, decoded with the schema stored in the file."""
     from mcap_protobuf.decoder import DecoderFactory
 
-    from tergodic_cli.runlog.proto import FULL_NAME, METRIC_FIELDS, VECTOR_FIELDS
-
     if schema.encoding != "protobuf" or schema.name != FULL_NAME:
         raise TergodicError(f"step records have schema {schema.name!r} ({schema.encoding})",
                             "this log was not written by a tergodic that this version reads")
@@ -367,12 +355,11 @@ def _step_decoder(schema: Any):
 
     def row(data: bytes) -> dict:
         m = decode(data)
-        out = {"step": m.step, "t": m.t,
-               **{k: getattr(m, k) if m.HasField(k) else None for k in METRIC_FIELDS},
-               "step_ms": m.step_ms, **dict(zip(m.extra_names, m.extra_values))}
-        for k in VECTOR_FIELDS:
-            out[k] = np.asarray(getattr(m, k), dtype=np.float64).reshape(m.n_agents, 3)
-        return out
+        vec = {k: np.asarray(getattr(m, k), dtype=np.float64).reshape(m.n_agents, 3)
+               for k in VECTOR_FIELDS}
+        return {"step": m.step, "t": m.t, **{k: getattr(m, k) if m.HasField(k) else None
+                                             for k in METRIC_FIELDS},
+                "step_ms": m.step_ms, **dict(zip(m.extra_names, m.extra_values)), **vec}
 
     return row
 
@@ -384,7 +371,7 @@ def _stack_rows(rows: list[dict]) -> dict[str, np.ndarray]:
         if key in out:
             continue
         vals = [r.get(key) for r in rows]
-        if key in ("positions", "velocities", "normals"):
+        if key in VECTOR_FIELDS:
             try:
                 out[key] = np.array(vals, dtype=np.float64)
             except ValueError:  # the agent count changed mid-run: keep per-step arrays
@@ -405,8 +392,6 @@ def _time_origin(info: dict) -> int:
 
 def _assign_cloud_steps(clouds: list[CloudFrame], series: dict[str, np.ndarray]) -> None:
     """A cloud belongs to the last step logged at or before its log time (writers number messages differently)."""
-    if not clouds:
-        return
     t_ns = np.rint(series["t"] * 1e9).astype(np.int64)
     order = np.argsort(t_ns, kind="stable")
     for c in clouds:
@@ -430,7 +415,8 @@ def _arrays(sample: dict) -> dict:
 _NUMPY_OF = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}  # foxglove NumericType
 
 
-def _decode_cloud(msg: Any, rec: Any) -> CloudFrame:
+def _decode_cloud(msg: Any, rec: Any, t0: int) -> CloudFrame:
+    """``t0``: the log's time origin (log times are wall-clock from version 2 on)."""
     stride = msg.point_stride
     n = len(msg.data) // stride if stride else 0
     dtype = np.dtype({"names": [f.name for f in msg.fields],
@@ -439,7 +425,8 @@ def _decode_cloud(msg: Any, rec: Any) -> CloudFrame:
     arr = np.frombuffer(msg.data, dtype=dtype, count=n)
     pts = np.column_stack([arr["x"], arr["y"], arr["z"]]).astype(np.float64)
     fields = {f.name: arr[f.name].astype(np.float64) for f in msg.fields if f.name not in ("x", "y", "z")}
-    return CloudFrame(step=int(rec.sequence), t=rec.log_time / 1e9, points=pts, fields=fields, t_ns=int(rec.log_time))
+    t_ns = int(rec.log_time) - t0
+    return CloudFrame(step=int(rec.sequence), t=t_ns / 1e9, points=pts, fields=fields, t_ns=t_ns)
 
 
 __all__ = ["CloudFrame", "RunLogData", "read_run_log", "resolve_log_path"]

@@ -141,15 +141,10 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
     import plotly.graph_objects as go
 
     embedded: dict[str, Any] = {}
-    pos = _positions(data)
-    steps = data.series["step"]
-    clouds = data.clouds
+    pos, steps, clouds = _positions(data), data.series["step"], data.clouds
     if not clouds and pos is None:
         return None, embedded
-    fig = go.Figure()
-    idx = slice(None)
-    fields: list[str] = []
-    shown: list[int] = []
+    fig, idx, fields, shown = go.Figure(), slice(None), [], []  # idx: the points shown
     if clouds:
         last = clouds[-1]
         n = len(last.points)
@@ -167,10 +162,10 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
             notes.append(f"{len(clouds)} clouds were logged; the slider shows {len(shown)} of them, evenly spaced.")
         pts = _f32(last.points[idx])
         for j, f in enumerate(fields):
-            cmap, cbar, _ = _FIELDS.get(f, ("Viridis", f, f))
+            cmap, cbar, label = _FIELDS.get(f, ("Viridis", f, f))
             vmin, vmax = _color_range(np.concatenate([clouds[i].fields[f][idx] for i in shown if f in clouds[i].fields]))
             fig.add_trace(go.Scatter3d(
-                x=pts[:, 0], y=pts[:, 1], z=pts[:, 2], mode="markers", name=_FIELDS.get(f, ("", "", f))[2],
+                x=pts[:, 0], y=pts[:, 1], z=pts[:, 2], mode="markers", name=label,
                 visible=(j == min(1, len(fields) - 1)),  # coverage first: what the run did
                 marker=dict(size=2.6, color=_f32(last.fields[f][idx]), colorscale=cmap, cmin=vmin, cmax=vmax,
                             colorbar=dict(title=dict(text=cbar), thickness=14, len=0.75, x=0.98)),
@@ -184,14 +179,12 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
                                   else {"points": _nested(_f32(clouds[i].points[idx]))}),
                                **{f: _nested(_f32(clouds[i].fields[f][idx])) for f in fields if f in clouds[i].fields}}
                               for i in shown]
-    n_cloud_traces = len(fields)
-    n_agents = 0 if pos is None else pos.shape[1]
     if pos is not None:
-        for k in range(n_agents):
-            colour = _AGENT_COLOURS[k % len(_AGENT_COLOURS)]
+        for k in range(pos.shape[1]):
             fig.add_trace(go.Scatter3d(x=pos[:, k, 0], y=pos[:, k, 1], z=pos[:, k, 2], mode="lines",
-                                       name=f"agent {k} trajectory", line=dict(color=colour, width=3),
-                                       hoverinfo="skip"))
+                                       name=f"agent {k} trajectory", hoverinfo="skip",
+                                       line=dict(color=_AGENT_COLOURS[k % len(_AGENT_COLOURS)],
+                                                 width=3)))
         at = pos[-1] if not clouds else pos[_row_of(steps, clouds[-1].step)]
         fig.add_trace(go.Scatter3d(x=at[:, 0], y=at[:, 1], z=at[:, 2], mode="markers", name="agents at the cloud's step",
                                    marker=dict(size=8, color="white", line=dict(color="black", width=3), symbol="diamond")))
@@ -216,13 +209,13 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
                 a = pos[_row_of(steps, c.step)]
                 fdata.append(go.Scatter3d(x=a[:, 0], y=a[:, 1], z=a[:, 2]))
                 traces.append(agent_trace)
-            name = str(i)
-            frames.append(go.Frame(name=name, data=fdata, traces=traces))
+            frames.append(go.Frame(name=str(i), data=fdata, traces=traces))
             slider_steps.append(dict(method="animate", label=f"{c.step}",
-                                     args=[[name], dict(mode="immediate", frame=dict(duration=0, redraw=True),
+                                     args=[[str(i)], dict(mode="immediate", frame=dict(duration=0, redraw=True),
                                                         transition=dict(duration=0))]))
         fig.frames = frames
-        vis = lambda j: [t == j for t in range(n_cloud_traces)] + [True] * (len(fig.data) - n_cloud_traces)  # noqa: E731
+        nf = len(fields)
+        vis = lambda j: [t == j for t in range(nf)] + [True] * (len(fig.data) - nf)  # noqa: E731
         fig.add_annotation(text="colour by", x=0.0, y=0.985, xref="paper", yref="paper", xanchor="left",
                            yanchor="top", showarrow=False, font=dict(size=13))
         fig.update_layout(
@@ -232,8 +225,9 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
             updatemenus=[
                 dict(type="buttons", direction="right", x=0.09, y=1.0, xanchor="left", yanchor="top", showactive=True,
                      active=min(1, len(fields) - 1), pad=dict(r=4, t=4), bgcolor="#f4f4f4",
-                     buttons=[dict(label=_FIELDS.get(f, ("", "", f))[2], method="restyle", args=[{"visible": vis(j)}])
-                              for j, f in enumerate(fields)]),
+                     buttons=[dict(label=fig.data[j].name, method="restyle",
+                                   args=[{"visible": vis(j)}])
+                              for j in range(len(fields))]),
                 dict(type="buttons", direction="right", x=0.0, y=0.06, xanchor="left", yanchor="bottom",
                      pad=dict(r=4), showactive=False, bgcolor="#f4f4f4",
                      buttons=[dict(label="▶ play", method="animate",
@@ -304,15 +298,13 @@ def _series_figure(data: RunLogData) -> tuple[Any, dict]:
     for r, (_, ytitle, traces, yopts) in enumerate(rows, start=1):
         for tr in traces:
             fig.add_trace(tr, row=r, col=1)
-        fig.update_yaxes(title_text=ytitle, row=r, col=1, **yopts)
+        fig.update_yaxes(title_text=ytitle, row=r, col=1, gridcolor="#e5e5e5", **yopts)
         # the explorer's rows share one time axis, the robot's rows another (the physics clock)
         fig.update_xaxes(matches="x" if r <= n_explorer else f"x{n_explorer + 1}", row=r, col=1,
-                         showticklabels=True)
+                         showticklabels=True, gridcolor="#e5e5e5")
     fig.update_xaxes(title_text="simulated time t (s)", row=n_explorer, col=1)
     if len(rows) > n_explorer:
         fig.update_xaxes(title_text="robot simulated time (s)", row=len(rows), col=1)
-    fig.update_xaxes(gridcolor="#e5e5e5")
-    fig.update_yaxes(gridcolor="#e5e5e5")
     fig.update_annotations(font_size=13)
     fig.update_layout(height=max(820, 250 * len(rows)), margin=dict(l=70, r=20, t=40, b=50),
                       paper_bgcolor="white", plot_bgcolor="white", hovermode="x unified",

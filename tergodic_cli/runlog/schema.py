@@ -53,9 +53,6 @@ ATTACHMENT_SIDECAR = "capture.json"
 #: Float fields of every PointCloud point after x, y, z, in order (all float32).
 CLOUD_FIELDS = ("target", "coverage", "heat", "source")
 
-#: Metric keys that form summarize_run's series, besides step_ms.
-SERIES_METRICS = ("ergodicity", "residual_ref", "touched_fraction")
-
 _NUM = {"type": "number"}
 _ARRAY = {"type": "array", "items": _NUM}
 _WRENCH = {"type": "object", "properties": {k: _NUM for k in ("fx", "fy", "fz", "tx", "ty", "tz")}}

@@ -8,7 +8,6 @@ of it; provenance keys come from the copy stored in the log at close (docs/loggi
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -19,18 +18,14 @@ from tergodic_cli.errors import TergodicError
 from tergodic_cli.runlog import schema as S
 from tergodic_cli.runlog.reader import RunLogData
 
-#: summarize_run's series keys.
-SERIES_KEYS = S.SERIES_METRICS + ("step_ms",)
-
-
 def recompute_summary(data: RunLogData) -> dict[str, Any]:
     """The summary.json dict, recomputed from the log (without the ``truncated`` flag)."""
-    from tergodic_cli.explore import summarize_run
+    from tergodic_cli.explore.summary import SERIES, summarize_run
 
-    missing = [k for k in SERIES_KEYS if k not in data.series]
+    missing = [k for k in SERIES if k not in data.series]
     if missing:
         raise TergodicError(f"{data.path} has no series {', '.join(missing)}", "the log was not written by 'tergodic explore'")
-    series = {k: data.series[k] for k in SERIES_KEYS}
+    series = {k: data.series[k] for k in SERIES}
     robot = {}  # summarize_robot over the logged robot samples
     if data.robot:
         from tergodic_cli.robot import summarize_robot
@@ -67,7 +62,7 @@ def _fmt(x: Any, spec: str = ".6g") -> str:
     if isinstance(x, bool):
         return str(x).lower()
     if isinstance(x, (int, float)):
-        return "nan" if isinstance(x, float) and math.isnan(x) else format(x, spec)
+        return format(x, spec)  # NaN formats as "nan"
     return str(x)
 
 
@@ -105,10 +100,8 @@ def format_table(summary: dict[str, Any], data: RunLogData, comparison: tuple[st
     t0, t1 = float(s["t"][0]), float(s["t"][-1])
     wall = float(s["step_ms"].sum()) / 1e3
     rows.append(("duration", f"{t1:.6g} s simulated (t = {t0:.6g} .. {t1:.6g}), {wall:.3g} s of explorer steps"))
-    at = summary.get("ergodicity_at") or {}
-    for key in ("200", "500", "1000"):
-        if at.get(key) is not None:
-            rows.append((f"ε at step {key}", _fmt(at.get(key))))
+    rows += [(f"ε at step {k}", _fmt(v)) for k, v in (summary.get("ergodicity_at") or {}).items()
+             if v is not None]
     rows.append(("ε at end (unit-mass, 0 best)", _fmt(summary.get("ergodicity"))))
     rows.append(("authors' residual at end", _fmt(summary.get("residual_ref"))))
     tf = summary.get("touched_fraction")
@@ -123,11 +116,11 @@ def format_table(summary: dict[str, Any], data: RunLogData, comparison: tuple[st
         rows += _robot_rows(summary)
         rs = data.robot_series()
         if "force_normal" in rs:
-            f = rs["force_normal"]
-            contact = rs.get("in_contact")
-            fc = f[contact.astype(bool)] if contact is not None and contact.any() else f
+            f, contact = rs["force_normal"], rs.get("in_contact")
+            some = contact is not None and contact.any()
+            fc = f[contact.astype(bool)] if some else f
             rows.append(("normal force", f"mean {fc.mean():.3g} N, std {fc.std():.3g} N, max {f.max():.3g} N"
-                         + (" (samples in contact)" if contact is not None and contact.any() else "")))
+                         + (" (samples in contact)" if some else "")))
     if data.events:
         rows.append(("events", str(len(data.events))))
     rows.append(("clouds logged", str(data.topics.get(S.TOPIC_CLOUD, {}).get("count", 0))))
@@ -153,9 +146,9 @@ def state_at(data: RunLogData, step: int) -> dict[str, Any]:
     lists), the robot sample, the ranges of the last cloud logged at or before it, and the events so far."""
     i = data.index_of(step)
     s = data.series
-    state: dict = {"step": int(s["step"][i]), "t": float(s["t"][i])}
-    state.update({k: v[i].tolist() if isinstance(v[i], np.ndarray) else float(v[i])
-                  for k, v in s.items() if k not in ("step", "t")})
+    state: dict = {"step": int(s["step"][i]), "t": float(s["t"][i]),
+                   **{k: v[i].tolist() if isinstance(v[i], np.ndarray) else float(v[i])
+                      for k, v in s.items() if k not in ("step", "t")}}
     if data.robot and i < len(data.robot):
         state["robot"] = {k: v for k, v in data.robot[i].items() if k != "step"}
     cloud = data.cloud_at(step)
@@ -195,7 +188,6 @@ def format_state(state: dict[str, Any]) -> str:
         c = state["cloud"]
         extra = ", ".join(f"{k} {v:.4g}" for k, v in c.items() if k not in ("step", "n_points"))
         lines.append(f"  cloud (logged at step {c['step']}, {c['n_points']} points): {extra}")
-    ev = state["events_so_far"]
-    if ev:
+    if ev := state["events_so_far"]:
         lines.append(f"  last event: step {ev[-1]['step']}: {ev[-1]['text']}")
     return "\n".join(lines)

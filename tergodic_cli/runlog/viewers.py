@@ -105,9 +105,7 @@ def replay_gui(data: RunLogData, speed: float = 1.0) -> int:
         start = time.monotonic()
         for i in range(len(q)):
             set_joints(client, body, idx, q[i])
-            wait = (t[i] - t[0]) / max(speed, 1e-6) - (time.monotonic() - start)
-            if wait > 0:
-                time.sleep(wait)
+            time.sleep(max(0.0, (t[i] - t[0]) / max(speed, 1e-6) - (time.monotonic() - start)))
     finally:
         p.disconnect(client)
     return 0
@@ -174,8 +172,7 @@ def write_rerun(data: RunLogData, dest: str | os.PathLike) -> Path:
             rec.log("object/agents", rr.Points3D(s["positions"][i], radii=0.002, colors=[0, 180, 255]))
         if "force_normal" in rs:
             rec.log("robot/force_normal", rr.Scalars(float(rs["force_normal"][i])))
-        if step in clouds:
-            c = clouds[step]
+        if (c := clouds.get(step)) is not None:
             cov = c.fields.get("coverage", np.zeros(len(c.points)))
             tgt = c.fields.get("target", np.zeros(len(c.points)))
             g = np.clip(cov / (cov.max() or 1.0), 0, 1)

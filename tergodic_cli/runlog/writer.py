@@ -12,7 +12,7 @@ import json
 import math
 import os
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any, Iterator, Mapping
 
@@ -21,12 +21,12 @@ import numpy as np
 from tergodic_cli.atomic import _json_default
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.runlog import schema as S
+from tergodic_cli.runlog.proto import METRIC_FIELDS, VECTOR_FIELDS
 
 #: Default cadence of chunk flushes, in explorer steps.
 FLUSH_EVERY = 50
 #: Upper bound on a chunk's uncompressed size; a chunk is also closed at every flush.
 CHUNK_BYTES = 4 * 1024 * 1024
-_METRIC_FIELDS = ("ergodicity", "residual_ref", "touched_fraction")
 
 
 def _dumps(obj: Any) -> str:
@@ -209,10 +209,8 @@ class RunLog:
             yield
         except (OSError, RuntimeError) as exc:
             self._closed = True
-            try:
+            with suppress(Exception):  # best effort on the error path
                 self._w.close()
-            except Exception:  # noqa: BLE001 - best effort on the error path
-                pass
             self._stop_live()
             raise TergodicError(f"writing {self.path} failed: {exc}", "check free disk space and permissions") from None
 
@@ -233,8 +231,7 @@ class RunLog:
         self._require_open()
         with self._writing():
             self._w.flush()
-        self._since_flush = 0
-        self._last_flush = time.monotonic()
+        self._since_flush, self._last_flush = 0, time.monotonic()
 
     # -- per step ------------------------------------------------------------------------------
     def log_step(self, step: int, t: float, *, positions: np.ndarray, velocities: np.ndarray,
@@ -275,15 +272,14 @@ class RunLog:
         for k, v in metrics.items():
             if not isinstance(k, str) or k in ("step", "t", "step_ms"):
                 raise TergodicError(f"run log metric name {k!r} is not allowed", "use another name")
-            if k in _METRIC_FIELDS:
+            if k in METRIC_FIELDS:
                 setattr(rec, k, float(v))
             else:
                 rec.extra_names.append(k)
                 rec.extra_values.append(float(v))
         Pl, Vl, Nl = P.tolist(), V.tolist(), Nn.tolist()
-        rec.positions.extend(P.ravel().tolist())
-        rec.velocities.extend(V.ravel().tolist())
-        rec.normals.extend(Nn.ravel().tolist())
+        for name, A in zip(VECTOR_FIELDS, (P, V, Nn)):
+            getattr(rec, name).extend(A.ravel().tolist())
         stamp = _stamp(M, t_ns)
         half = self._line_half
         shaft_d = 0.02 * half + 1e-4
@@ -437,7 +433,5 @@ class RunLog:
         if exc_type is None:
             return self.close(None)
         status = "interrupted" if issubclass(exc_type, KeyboardInterrupt) else f"error: {exc_type.__name__}"
-        try:
+        with suppress(TergodicError):  # the original exception matters more
             self.close(None, status=status)
-        except TergodicError:
-            pass  # the original exception matters more

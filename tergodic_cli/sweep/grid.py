@@ -58,16 +58,11 @@ class Grid:
         return max(int(v) for v in self.options["nk"])
 
     def combos(self) -> list[dict]:
-        keys = list(self.options)
-        return [dict(zip(keys, values)) for values in itertools.product(*(self.options[k] for k in keys))]
+        return [dict(zip(self.options, values)) for values in itertools.product(*self.options.values())]
 
     @property
     def n_runs(self) -> int:
         return len(self.objects) * len(self.starts) * math.prod(len(v) for v in self.options.values())
-
-
-def _err(problem: str, fix: str = FIX) -> TergodicError:
-    return TergodicError(problem, fix)
 
 
 def load_grid(path: str | Path) -> Grid:
@@ -77,12 +72,12 @@ def load_grid(path: str | Path) -> Grid:
     try:
         data = tomllib.loads(path.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise _err(f"{path} is not valid TOML ({str(exc).splitlines()[0][:80]})", "fix the syntax") from None
+        raise TergodicError(f"{path} is not valid TOML ({str(exc).splitlines()[0][:80]})", "fix the syntax") from None
     base = path.resolve().parent
     unknown = set(data) - {"steps", "seed", "objects", "grid"}
     if unknown:
-        raise _err(f"{path.name}: unknown top-level key(s) {', '.join(sorted(unknown))}",
-                   "top level takes steps, seed, [objects.NAME] and [grid]")
+        raise TergodicError(f"{path.name}: unknown top-level key(s) {', '.join(sorted(unknown))}",
+                            "top level takes steps, seed, [objects.NAME] and [grid]")
     steps = data.get("steps", 1000)
     require(isinstance(steps, int) and steps >= 1, f"{path.name}: steps must be an integer >= 1, got {steps!r}",
             "e.g. steps = 1000")
@@ -107,8 +102,8 @@ def load_grid(path: str | Path) -> Grid:
         if key == "start":
             continue
         if key in ("steps", "seed", "basis_neighbors"):
-            raise _err(f"{path.name}: [grid] {key} cannot vary per run",
-                       "set steps/seed at the top level and neighbors per object")
+            raise TergodicError(f"{path.name}: [grid] {key} cannot vary per run",
+                                "set steps/seed at the top level and neighbors per object")
         require(key in EXPLORE_KEYS, f"{path.name}: [grid] {key} is not an explore option",
                 f"use nk, alpha or one of: {', '.join(k for k in EXPLORE_KEYS if k not in ('nk', 'alpha'))}")
         values = values if isinstance(values, list) else [values]
@@ -125,9 +120,9 @@ def load_grid(path: str | Path) -> Grid:
             try:
                 validate_config(run_config(g, obj, combo))
             except TergodicError as exc:
-                raise _err(f"{path.name}: object {obj.name}: {exc.problem}", exc.fix) from None
+                raise TergodicError(f"{path.name}: object {obj.name}: {exc.problem}", exc.fix) from None
             except (TypeError, ValueError) as exc:
-                raise _err(f"{path.name}: object {obj.name}: bad option value ({exc})") from None
+                raise TergodicError(f"{path.name}: object {obj.name}: bad option value ({exc})", FIX) from None
     return g
 
 
@@ -139,8 +134,7 @@ def _parse_object(name: str, spec, base: Path, fname: str) -> ObjectSpec:
     source = given[0]
     location = str(spec[source])
     if source in ("file", "capture"):
-        p = Path(location)
-        p = p if p.is_absolute() else base / p
+        p = base / location  # an absolute location stays as it is
         require(p.exists(), f"{fname}: [objects.{name}] {source} {location} does not exist",
                 "paths are relative to the grid file")
         location = str(p)
@@ -157,17 +151,16 @@ def _parse_object(name: str, spec, base: Path, fname: str) -> ObjectSpec:
                     ">= 3", "e.g. neighbors = 40")
             obj.neighbors = value
         elif key == "starts":
-            p = Path(str(value))
-            p = p if p.is_absolute() else base / p
+            p = base / str(value)
             require(p.is_file(), f"{fname}: [objects.{name}] starts {value} does not exist",
                     "give an .npz with key x0_arr (n, 3) metres, relative to the grid file")
             obj.starts_file = str(p)
         elif key in EXPLORE_KEYS and key not in ("nk",):
             obj.explore[key] = str(value) if key == "alpha" else value
         else:
-            raise _err(f"{fname}: [objects.{name}] unknown key {key}",
-                       f"use {'/'.join(SOURCES)}, neighbors, starts, capture options ({', '.join(CAPTURE_KEYS)}) "
-                       "or explore options (agent_radius, a_max, ...)")
+            raise TergodicError(f"{fname}: [objects.{name}] unknown key {key}",
+                                f"use {'/'.join(SOURCES)}, neighbors, starts, capture options ({', '.join(CAPTURE_KEYS)}) "
+                                "or explore options (agent_radius, a_max, ...)")
     return obj
 
 

@@ -49,10 +49,7 @@ def plot_sweep(out: Path, grid: Grid, rows: list[dict], series: dict) -> list[st
             f"eps_t_alpha{suffix}.png": _time_plot(plt, sel, objects, series, index, "alpha", alphas,
                                                    {"nk": max(nks)}, f"nK = {max(nks)}", "α"),
         }
-        for name, fig in figs.items():
-            if fig is None:
-                continue
-            files.append(_save(fig, out / name).name)
+        files += [_save(fig, out / name).name for name, fig in figs.items() if fig is not None]
     return files
 
 

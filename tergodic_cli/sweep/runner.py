@@ -19,6 +19,7 @@ import shutil
 import statistics
 import tempfile
 import time
+from contextlib import suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -97,11 +98,9 @@ def materialise(spec: ObjectSpec, starts: list[int], seed: int, out: Path) -> _O
     if spec.source == "capture":
         cap = load_capture(spec.location)
     else:
-        kw = dict(spec.capture_options)
-        cfg = (CaptureConfig(source="file", path=spec.location, **kw) if spec.source == "file"
-               else CaptureConfig(source="synthetic", synthetic=spec.location, **kw))
+        where = {"path": spec.location} if spec.source == "file" else {"synthetic": spec.location}
         try:
-            cap = capture_cloud(cfg)
+            cap = capture_cloud(CaptureConfig(source=spec.source, **where, **spec.capture_options))
         except TypeError as exc:
             raise TergodicError(f"object {spec.name}: bad capture option ({exc})", "see 'tergodic capture --help'") from None
     require(bool(np.any(cap.target > 0)), f"object {spec.name}: the target is empty (no point has p > 0)",
@@ -125,17 +124,14 @@ _BASES: dict[tuple, object] = {}
 
 def _basis_for(key: str, points, neighbors: int, max_nk: int, nk: int, cache_dir):
     """The (object, nK) basis in this process: loaded once from the cache (largest nK), then truncated."""
-    full = _BASES.get((key, max_nk))
-    if full is None:
+    if (key, max_nk) not in _BASES:
         from tergodic_cli.run import find_basis
 
-        full, _ = find_basis(points, max_nk, neighbors, cache_dir)
-        _BASES[(key, max_nk)] = full
-    part = _BASES.get((key, max_nk, nk))
-    if part is None:
-        part = full if nk == full.nk else full.truncated(nk)
-        _BASES[(key, max_nk, nk)] = part
-    return part
+        _BASES[(key, max_nk)] = find_basis(points, max_nk, neighbors, cache_dir)[0]
+    if (key, max_nk, nk) not in _BASES:
+        full = _BASES[(key, max_nk)]
+        _BASES[(key, max_nk, nk)] = full if nk == full.nk else full.truncated(nk)
+    return _BASES[(key, max_nk, nk)]
 
 
 def run_batch(task: dict) -> list[dict]:
@@ -177,25 +173,6 @@ def run_batch(task: dict) -> list[dict]:
 
 
 # ---------------------------------------------------------------------------------- engines
-def _ray(address: str | None, on_event):
-    """The ray module (imported by run_sweep already), initialised on ``address`` (or a new local
-    cluster), and a cleanup callable."""
-    import ray
-
-    started = False
-    if not ray.is_initialized():
-        try:
-            ray.init(address=address, include_dashboard=False, log_to_driver=False, configure_logging=False)
-        except (ConnectionError, RuntimeError, ValueError) as exc:
-            where = address or "a new local cluster"
-            raise TergodicError(f"cannot start or reach Ray at {where} ({str(exc).splitlines()[0][:80]})",
-                                "start a cluster with 'ray start --head' and pass --address HOST:PORT") from None
-        started = True
-    on_event(f"ray: {int(ray.cluster_resources().get('CPU', 0))} CPUs "
-             f"({'started locally' if started else 'existing cluster'})")
-    return ray, (ray.shutdown if started else (lambda: None))
-
-
 def _execute(batches: list[dict], engine: str, jobs: int, address: str | None, on_event):
     """Yield each batch's records as soon as it finishes (any order): the one executor of both
     engines, running :func:`run_batch` in joblib's process pool or as Ray tasks."""
@@ -205,13 +182,23 @@ def _execute(batches: list[dict], engine: str, jobs: int, address: str | None, o
         yield from joblib.Parallel(n_jobs=jobs, backend="loky", return_as="generator_unordered")(
             joblib.delayed(run_batch)(b) for b in batches)
         return
-    ray, cleanup = _ray(address, on_event)
+    import ray  # imported by run_sweep already
+
+    started = not ray.is_initialized()  # a cluster we start, we also shut down
+    if started:
+        try:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False, configure_logging=False)
+        except (ConnectionError, RuntimeError, ValueError) as exc:
+            where = address or "a new local cluster"
+            raise TergodicError(f"cannot start or reach Ray at {where} ({str(exc).splitlines()[0][:80]})",
+                                "start a cluster with 'ray start --head' and pass --address HOST:PORT") from None
+    on_event(f"ray: {int(ray.cluster_resources().get('CPU', 0))} CPUs "
+             f"({'started locally' if started else 'existing cluster'})")
     try:
         remote = ray.remote(num_cpus=1, max_retries=2)(run_batch)
         cpus = max(int(ray.cluster_resources().get("CPU", 1)), 1)
         limit = cpus if jobs == -1 else min(jobs, cpus)
-        todo = list(batches)
-        running = []
+        todo, running = list(batches), []
         # Keep a bounded number of tasks in flight (2 per worker slot): the driver writes results
         # while the cluster works, and a crash loses at most the batches in flight.
         while todo or running:
@@ -220,7 +207,8 @@ def _execute(batches: list[dict], engine: str, jobs: int, address: str | None, o
             done, running = ray.wait(running, num_returns=1)
             yield ray.get(done[0])
     finally:
-        cleanup()
+        if started:
+            ray.shutdown()
 
 
 # ---------------------------------------------------------------------------------- the sweep
@@ -281,7 +269,6 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
     by_id = {p[3]: p for p in pending}
     batches = _batches(pending, grid, jobs, cache_dir)
     failed: list[dict] = []
-    computed = 0
     if batches:
         from tergodic_cli.explore.warm import compile_explorer
 
@@ -293,20 +280,20 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
                 if "error" in rec:
                     failed.append(rec)
                     continue
-                write_npz(runs_dir / f"{rec['run_id']}.npz", **rec["series"])
                 obj, start, combo, rid, cfg = by_id[rec["run_id"]]
+                write_npz(runs_dir / f"{rid}.npz", **rec["series"])
                 record = {"run_id": rid, "object": obj.spec.name, "object_key": obj.key,
                           "n_points": len(obj.points), "n_target": obj.n_target, "start": start,
                           "start_xyz": obj.starts[start].tolist(), "grid": dict(combo),
-                          "wall_s": rec["wall_s"], "summary": rec["summary"]}
-                record["series_sha256"] = file_sha256(runs_dir / f"{rec['run_id']}.npz")
+                          "wall_s": rec["wall_s"], "summary": rec["summary"],
+                          "series_sha256": file_sha256(runs_dir / f"{rid}.npz")}
                 record[RECORD_SHA] = record_checksum(record)
-                write_json(runs_dir / f"{rec['run_id']}.json", record)
-                finished[rec["run_id"]] = (json.loads(json.dumps(record, default=_json_default)),
-                                           {k: np.asarray(v) for k, v in rec["series"].items()})
-                computed += 1
+                write_json(runs_dir / f"{rid}.json", record)
+                finished[rid] = (json.loads(json.dumps(record, default=_json_default)),
+                                 {k: np.asarray(v) for k, v in rec["series"].items()})
     table, series = _collect(plan, finished)
-    result = SweepResult(out=out, n_runs=len(plan), computed=computed,
+    # every pending run gives one record: its result or its error
+    result = SweepResult(out=out, n_runs=len(plan), computed=len(pending) - len(failed),
                          skipped=len(plan) - len(pending), failed=failed, table=table)
 
     def build(stage: Path) -> list[str]:
@@ -322,7 +309,7 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
         write_json(stage / "sweep.json", {
             "grid": str(grid.path), "steps": grid.steps, "seed": grid.seed, "starts": grid.starts,
             "options": grid.options, "objects": objs, "engine": engine, "jobs": jobs,
-            "runs": len(plan), "computed": computed, "skipped": result.skipped, "failed": failed,
+            "runs": len(plan), "computed": result.computed, "skipped": result.skipped, "failed": failed,
             "wall_s": result.wall_s, "files": files, "versions": library_versions()})
         return files + ["sweep.json"]
 
@@ -411,8 +398,7 @@ def _batches(pending, grid: Grid, jobs: int, cache_dir) -> list[dict]:
 
 def _collect(plan, finished: dict) -> tuple[list[dict], dict]:
     """The table rows and series of this grid's finished runs (sorted), from the verified records."""
-    rows, series = [], {k: [] for k in SERIES}
-    ids = []
+    rows, series = [], []
     for obj, start, combo, rid, cfg in plan:
         if rid not in finished:
             continue
@@ -427,20 +413,18 @@ def _collect(plan, finished: dict) -> tuple[list[dict], dict]:
                      **{f"{k}_at_{m}": s[f"{k}_at"][m] for k in SERIES for m in ("200", "500")},
                      **{k: s.get(k) for k in ("off_surface_fraction", "step_max_m", "edge_events")},
                      "step_ms_median": s["step_ms_median"], "wall_s": rec["wall_s"]})
-        for k in SERIES:
-            series[k].append(run_series[k])
-        ids.append(rid)
+        series.append(run_series)
+
     def sort_key(i: int) -> tuple:
         r = rows[i]
         others = [str(r.get(k)) for k in r if k not in LEAD_COLUMNS and k not in METRIC_COLUMNS]
         return r["object"], r["nk"], alpha_key(r["alpha"]), others, r["start"]
 
     order = sorted(range(len(rows)), key=sort_key)
-    rows = [rows[i] for i in order]
-    merged = {"run_id": np.array([ids[i] for i in order], dtype="U16")}
+    merged = {"run_id": np.array([rows[i]["run_id"] for i in order], dtype="U16")}
     for k in SERIES:
-        merged[k] = np.stack([series[k][i] for i in order]) if order else np.zeros((0, 0), np.float32)
-    return rows, merged
+        merged[k] = np.stack([series[i][k] for i in order]) if order else np.zeros((0, 0), np.float32)
+    return [rows[i] for i in order], merged
 
 
 def _write_outputs(out: Path, grid: Grid, rows: list[dict], series: dict, parquet: bool) -> list[str]:
@@ -451,9 +435,8 @@ def _write_outputs(out: Path, grid: Grid, rows: list[dict], series: dict, parque
     with open(out / "results.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
         w.writeheader()
-        for r in rows:
-            w.writerow({k: "" if r.get(k) is None else repr(r[k]) if isinstance(r[k], float)
-                        else r[k] for k in columns})
+        w.writerows({k: "" if r.get(k) is None else repr(r[k]) if isinstance(r[k], float) else r[k]
+                     for k in columns} for r in rows)
     write_npz(out / "series.npz", **series)
     files = ["results.csv", "series.npz"]
     if parquet:
@@ -479,8 +462,6 @@ def _parse(v: str):
     if v == "":
         return None
     for cast in (int, float):
-        try:
+        with suppress(ValueError):
             return cast(v)
-        except ValueError:
-            pass
     return v

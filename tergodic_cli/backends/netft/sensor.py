@@ -16,6 +16,7 @@ import socket
 import threading
 import time
 import xml.etree.ElementTree as ET
+from contextlib import suppress
 from dataclasses import dataclass
 
 import numpy as np
@@ -94,16 +95,10 @@ class NetFTSensor(WrenchSensor):
         self.cfg = cfg
         self.host, self.port = cfg.host_port()
         super().__init__(cfg.frame_in_ee, cfg.tare_samples)
-        self.scale = None  # (6,) counts -> N, N m
-        self.sock: socket.socket | None = None
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
-        self._cv = threading.Condition()
-        self._latest: tuple[int, float, np.ndarray, tuple] | None = None  # (serial, t, wrench, record)
-        self._serial = 0
-        self._returned = -1
-        self.last_record: tuple | None = None
-        self.lost = 0
+        # scale (6,): counts -> N, N m; _latest: (serial, t, wrench, record) from the receiver
+        self.scale = self.sock = self._thread = self._latest = self.last_record = None
+        self._stop, self._cv = threading.Event(), threading.Condition()
+        self._serial, self._returned, self.lost = 0, -1, 0
 
     @property
     def is_connected(self) -> bool:
@@ -113,11 +108,10 @@ class NetFTSensor(WrenchSensor):
         if self.sock is not None:
             return
         cfg = self.cfg
-        if cfg.counts_per_force is None or cfg.counts_per_torque is None:
-            cal = fetch_calibration(self.host, cfg.http_port)
-        else:
-            cal = {"counts_per_force": cfg.counts_per_force, "counts_per_torque": cfg.counts_per_torque,
-                   "force_unit": cfg.force_unit, "torque_unit": cfg.torque_unit}
+        cal = (fetch_calibration(self.host, cfg.http_port)
+               if cfg.counts_per_force is None or cfg.counts_per_torque is None else
+               {"counts_per_force": cfg.counts_per_force, "force_unit": cfg.force_unit,
+                "counts_per_torque": cfg.counts_per_torque, "torque_unit": cfg.torque_unit})
         fu, tu = cal["force_unit"], cal["torque_unit"]
         require(fu in rdt.FORCE_UNITS, f"unknown Net F/T force unit '{fu}'", f"set the box to one of {', '.join(rdt.FORCE_UNITS)}")
         require(tu in rdt.TORQUE_UNITS, f"unknown Net F/T torque unit '{tu}'", f"set the box to one of {', '.join(rdt.TORQUE_UNITS)}")
@@ -174,8 +168,7 @@ class NetFTSensor(WrenchSensor):
         with self._cv:
             self._cv.wait_for(lambda: self._latest is not None and self._latest[0] != self._returned, timeout=self.cfg.fresh_timeout)
             serial, t, w, rec = self._latest
-        self._returned = serial
-        self.last_record = rec
+        self._returned, self.last_record = serial, rec
         return t, w
 
     def disconnect(self) -> None:
@@ -183,10 +176,8 @@ class NetFTSensor(WrenchSensor):
         if sock is None:
             return
         self._stop.set()
-        try:
+        with suppress(OSError):
             sock.send(rdt.request(rdt.CMD_STOP, 0))
-        except OSError:
-            pass
         if self._thread is not None:
             self._thread.join(timeout=1.0)
         sock.close()

@@ -63,12 +63,9 @@ class RealSenseCamera:
     def __init__(self, cfg: RealSenseConfig | None = None):
         self.cfg = cfg or RealSenseConfig()
         self.cfg.validate()
-        self.pipeline = None
-        self.intrinsics: Intrinsics | None = None
-        self.depth_scale: float | None = None
-        self.serial: str | None = None
-        self.name: str | None = None
-        self._align = None
+        # set by connect(): the stream, its intrinsics and depth scale (m per unit), the device
+        self.pipeline = self.intrinsics = self.depth_scale = None
+        self.serial = self.name = self._align = None
 
     def connect(self) -> None:
         if self.pipeline is not None:
@@ -97,8 +94,7 @@ class RealSenseCamera:
         except RuntimeError as exc:
             raise TergodicError(f"the RealSense {serial} cannot stream {cfg.width}x{cfg.height} at {cfg.fps} fps: {' '.join(str(exc).split())[:160]}",
                                 "choose a profile it supports (e.g. 640x480 at 30 fps) with --width/--height") from None
-        self.pipeline = pipeline
-        self.serial = serial
+        self.pipeline, self.serial = pipeline, serial
         try:
             self.depth_scale = float(profile.get_device().first_depth_sensor().get_depth_scale())
             intr = profile.get_stream(rs.stream.color).as_video_stream_profile().get_intrinsics()
