@@ -108,7 +108,8 @@ class FrankyArm:
     def connect(self) -> None:
         if self.robot is not None:
             return
-        fr = self._fr = import_sdk("franky")
+        fr = import_sdk("franky")
+        self._fr = fr
         cfg = self.cfg
         rt = fr.RealtimeConfig.Enforce if cfg.realtime == "enforce" else fr.RealtimeConfig.Ignore
         try:
@@ -139,7 +140,8 @@ class FrankyArm:
         try:
             self.stop()
         finally:
-            self.robot = self._mode = None
+            self.robot = None
+            self._mode = None
 
     # ------------------------------------------------------------------ state
     def read_state(self) -> ArmState:
@@ -252,7 +254,8 @@ class FrankaWrenchEstimate(WrenchSensor):
 
 def _gains(fr, K: np.ndarray, D: np.ndarray):
     g = fr.CartesianImpedanceGains()
-    g.stiffness, g.damping = K, D
+    g.stiffness = K
+    g.damping = D
     return g
 
 

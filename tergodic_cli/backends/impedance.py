@@ -187,7 +187,9 @@ class ForceLoop:
     """
 
     def __init__(self, gains: LineImpedanceGains, force_desired: float):
-        self.g, self.F_d, self.trim = gains, float(force_desired), 0.0
+        self.g = gains
+        self.F_d = float(force_desired)
+        self.trim = 0.0
 
     def start_from(self, f_now: float) -> None:
         """Bumpless start: the command continues from the force pressed now (e.g. at first contact).

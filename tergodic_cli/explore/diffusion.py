@@ -37,7 +37,8 @@ class ImplicitDiffusion:
     def __init__(self, L: sp.spmatrix, mass: np.ndarray, dt: float):
         from scipy.sparse.linalg import splu
 
-        self.mass, self.dt = mass, float(dt)
+        self.mass = mass
+        self.dt = float(dt)
         # M + δt L is symmetric positive definite: a symmetric fill-reducing ordering and no
         # pivoting roughly halve the factor's fill (and the per-step solve) against COLAMD.
         self._lu = splu((sp.diags(mass) + self.dt * L).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,

@@ -178,7 +178,8 @@ def _plot_cloud(plt, cloud, field: str, cmap: str, label: str, traj, path: Path,
     extents, in millimetres; a flat view keeps a readable height (its axis limits widen instead)."""
     from matplotlib.ticker import MaxNLocator
 
-    pts, vals = cloud.points, cloud.fields[field]
+    pts = cloud.points
+    vals = cloud.fields[field]
     vmin, vmax = _color_range(vals)
     span = pts.max(0) - pts.min(0)
     big = float(span.max()) or 1.0

@@ -141,7 +141,9 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
     import plotly.graph_objects as go
 
     embedded: dict[str, Any] = {}
-    pos, steps, clouds = _positions(data), data.series["step"], data.clouds
+    pos = _positions(data)
+    steps = data.series["step"]
+    clouds = data.clouds
     if not clouds and pos is None:
         return None, embedded
     fig, idx, fields, shown = go.Figure(), slice(None), [], []  # idx: the points shown

@@ -231,7 +231,8 @@ class RunLog:
         self._require_open()
         with self._writing():
             self._w.flush()
-        self._since_flush, self._last_flush = 0, time.monotonic()
+        self._since_flush = 0
+        self._last_flush = time.monotonic()
 
     # -- per step ------------------------------------------------------------------------------
     def log_step(self, step: int, t: float, *, positions: np.ndarray, velocities: np.ndarray,

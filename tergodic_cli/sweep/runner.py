@@ -198,7 +198,8 @@ def _execute(batches: list[dict], engine: str, jobs: int, address: str | None, o
         remote = ray.remote(num_cpus=1, max_retries=2)(run_batch)
         cpus = max(int(ray.cluster_resources().get("CPU", 1)), 1)
         limit = cpus if jobs == -1 else min(jobs, cpus)
-        todo, running = list(batches), []
+        todo = list(batches)
+        running = []
         # Keep a bounded number of tasks in flight (2 per worker slot): the driver writes results
         # while the cluster works, and a crash loses at most the batches in flight.
         while todo or running:

@@ -168,7 +168,8 @@ class NetFTSensor(WrenchSensor):
         with self._cv:
             self._cv.wait_for(lambda: self._latest is not None and self._latest[0] != self._returned, timeout=self.cfg.fresh_timeout)
             serial, t, w, rec = self._latest
-        self._returned, self.last_record = serial, rec
+        self._returned = serial
+        self.last_record = rec
         return t, w
 
     def disconnect(self) -> None:

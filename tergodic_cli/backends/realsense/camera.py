@@ -94,7 +94,8 @@ class RealSenseCamera:
         except RuntimeError as exc:
             raise TergodicError(f"the RealSense {serial} cannot stream {cfg.width}x{cfg.height} at {cfg.fps} fps: {' '.join(str(exc).split())[:160]}",
                                 "choose a profile it supports (e.g. 640x480 at 30 fps) with --width/--height") from None
-        self.pipeline, self.serial = pipeline, serial
+        self.pipeline = pipeline
+        self.serial = serial
         try:
             self.depth_scale = float(profile.get_device().first_depth_sensor().get_depth_scale())
             intr = profile.get_stream(rs.stream.color).as_video_stream_profile().get_intrinsics()
