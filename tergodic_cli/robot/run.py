@@ -379,6 +379,7 @@ class ContactRun:
             if not self._reachable_at(a):  # the nearest reachable target point (the first step moves the agent there)
                 ok = np.flatnonzero(self.reachable & (self.target() > 0))
                 if len(ok) == 0:
+                    err = err or "no reachable target point is left"
                     break
                 a = self.points_base[ok[np.argmin(np.linalg.norm(self.points_base[ok] - a, axis=1))]]
                 d = -self._surface_normal(a)
