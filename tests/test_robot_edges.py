@@ -40,6 +40,8 @@ def test_torus_hole_blocks_the_tool():
 
 
 def test_box_edge_crossed_below_the_force_limit():
+    """Across the box's top edge the tool lifts and moves over (rolling over it held the agent back
+    ~30 steps) and touches the wall below the force limit."""
     pytest.importorskip("pybullet")
     pytest.importorskip("pygafro")
     from test_robot_sim import FAST
@@ -68,6 +70,14 @@ def test_box_edge_crossed_below_the_force_limit():
         samples = []
         out = run.run(60, lambda k, s: samples.append(s))
         assert out["final_state"] == "done", out["stop_reason"]
+        hops = [t for t in out["transitions"] if "crossed a sharp edge" in t["reason"]]
+        assert hops and out["move_overs"] >= 1
+        # it moved over: in contact at the top edge before the first hop, on the wall just after it
+        at = lambda s: run._to_obj(s["contact_point"])  # noqa: E731
+        before = [at(s) for s in samples if s["step"] <= hops[0]["step"] and s["in_contact"]]
+        after = [at(s) for s in samples if s["step"] > hops[0]["step"] and s["in_contact"]]
+        assert before[-1][2] > c - 0.005 and before[-1][0] > a / 2 - 0.005
+        assert after[0][0] > a / 2 - 1e-3 and after[0][2] < c - 0.002, (before[-1], after[0])
         cps = np.array([run._to_obj(s["contact_point"]) for s in samples if s["in_contact"]])
         limit = run.guard.force_limit
     assert (cps[:, 2] > c - 1e-3).any() and (cps[:, 2] < c - 0.008).any()  # on the top, then over the edge

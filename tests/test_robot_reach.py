@@ -241,3 +241,72 @@ def test_hover_posture_is_not_a_twisted_elbow():
         assert abs(q[0]) < 0.3 and abs(q[2]) < 0.3 and margin(q) > margin(q1) + 0.1
     finally:
         scene.close()
+
+
+def test_a_press_at_an_angle_lifts_and_touches_again_and_a_repeat_is_a_fault(mug):
+    """A soft sponge near a sharp edge wraps it and its contact normals tilt: two steps in a row over
+    CONTACT_TILT_MAX_DEG lift the tool, which touches again on the agent's line (RESEATS times within
+    RESEAT_WINDOW steps); one more ends the run lifted, exit 3. Injected: the press-angle reading."""
+    import tergodic_cli.robot.run as R
+
+    cap, basis = mug
+    cfg = RobotConfig(force=5.0, **FAST)
+    events = []
+    with RobotRun(cap, _explorer(cap, basis, cfg), cfg, on_event=lambda s, m: events.append(m)) as run:
+        contact = run.arm.contact
+        tilted_steps = {3, 4}  # two steps in a row: one lift, then the run goes on
+
+        def reading(obs):
+            cp, f, press = contact(obs)
+            return cp, f, (20.0 if run._step() in tilted_steps else press)
+
+        run.arm.contact = reading
+        out = run.run(12)
+        assert out["stop_reason"] == "completed" and out["move_overs"] == 1
+        assert [t["to"] for t in out["transitions"]].count("approach") == 2  # touched again
+        assert any("touching again on the agent's line" in m for m in events)
+
+    with RobotRun(cap, _explorer(cap, basis, cfg), cfg) as run:
+        contact = run.arm.contact
+        run.arm.contact = lambda obs: (*contact(obs)[:2], 20.0)  # always tilted
+        out = run.run(30)
+        assert out["final_state"] == "stopped" and "off the surface normal" in out["stop_reason"]
+        assert fault_exit_code(out) == 3 and out["move_overs"] == R.RESEATS
+        assert sum(c[2] for c in run.scene.sponge_contacts()) == 0.0  # lifted
+
+
+def test_an_agent_left_waiting_restarts_at_the_hottest_reachable_point(mug, monkeypatch):
+    """Alone in the dropped part nothing is deposited where the agent goes, so it can settle there for
+    good (the torus: 900 steps); after WAIT_STEPS it restarts at the reachable target point with the
+    highest heat and the tool moves over to it. Forced: no turn allowed, the tool's spot out of reach."""
+    import tergodic_cli.robot.run as R
+
+    cap, basis = mug
+    cfg = RobotConfig(force=5.0, **FAST)
+    monkeypatch.setattr(R, "MAX_TURN_DEG", 0.0)
+    monkeypatch.setattr(R, "GENTLE_TURN_DEG", -1.0)
+    monkeypatch.setattr(R, "WAIT_STEPS", 2)
+    monkeypatch.setattr(R, "TRANSIT_M", 1.0)  # no move-over while it waits: only the restart ends the wait
+    ex = _explorer(cap, basis, cfg)
+    chosen = []
+    with RobotRun(cap, ex, cfg) as run:
+        hottest = run._hottest_reachable
+
+        def watch():
+            ok = np.flatnonzero(run.reachable & (run.target() > 0))
+            expect = cap.points[ok[np.argmax(ex.heat[ok])]]  # computed here from the explorer's own heat
+            x = hottest()
+            chosen.append((x, expect, ex.step_index))
+            return x
+
+        run._hottest_reachable = watch
+        run.begin()
+        with run.guarded():
+            run.engage()
+            spot = run._to_obj(run._start_line[0])
+            run.reachable[np.linalg.norm(cap.points - spot, axis=1) < 0.002] = False
+            run.explore(8)
+        assert run.fault is None
+    assert chosen, "the waiting agent never restarted"
+    x, expect, k = chosen[0]
+    assert np.allclose(x, expect) and k >= R.WAIT_STEPS

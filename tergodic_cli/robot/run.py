@@ -62,6 +62,16 @@ TRANSIT_M = 0.012
 JOINT_NEAR, SPEED_NEAR = 0.1, 0.4
 #: Cosine of the normals' spread beyond which the ball's contact is taken to be at an edge.
 EDGE_COS = math.cos(math.radians(10.0))
+#: Degrees the agent's line turns over one step above which it crossed a sharp edge: the tool lifts
+#: and moves over (rolling over a box's edge at MAX_TURN_DEG held the agent back for ~30 steps).
+HOP_TURN_DEG = 30.0
+#: Press-angle lifts (the tool touching again on the agent's line) allowed within RESEAT_WINDOW steps;
+#: one more is a fault.
+RESEATS, RESEAT_WINDOW = 2, 50
+#: Explorer steps the tool waits on the reach boundary before the agent restarts at the hottest reachable
+#: target point: alone in the dropped part (p = 0, nothing deposited) it can settle at a ripple of the
+#: truncated spectral heat and stay there (the torus: 900 steps).
+WAIT_STEPS = 15
 
 
 def robot_explore_config(cfg, explore_dt: float):
@@ -169,6 +179,8 @@ class ContactRun:
         #: follows the normal; the simulation plans its reach instead, robot/reach.py).
         self.max_tilt_deg = cfg.max_tool_tilt_deg
         self._told_unreachable = False
+        self.hops = 0  # lift-and-move-overs (sharp edges, back in reach, press-angle lifts)
+        self._reseats: list[int] = []  # steps of the press-angle lifts
         self._cb_s = 0.0
         self._deferred = None
         self.interrupted = False
@@ -271,6 +283,14 @@ class ContactRun:
                          f"({100 * (1 - self.reachable.mean()):.0f} % of the surface); dropped from the target")
         if hasattr(self.explorer, "set_target"):
             self.explorer.set_target(kept)
+
+    def _hottest_reachable(self) -> np.ndarray | None:
+        """(3,) the reachable target point (capture frame) where the explorer's heat u is highest; None: none left."""
+        ok = np.flatnonzero(self.reachable & (self.target() > 0))
+        heat = getattr(self.explorer, "heat", None)
+        if len(ok) == 0 or heat is None:
+            return None
+        return self.points[ok[int(np.argmax(np.asarray(heat)[ok]))]]
 
     def _reachable_at(self, x_base: np.ndarray) -> bool:
         return bool(self.reachable[self.kdtree.query(self._to_obj(x_base))[1]])
@@ -467,6 +487,7 @@ class ContactRun:
         n_sub = self.n_sub
         a_cur, d_cur = self._start_line
         self._tilted = waiting = False
+        waited = 0
         obs = self.arm.get_observation()
         self.guard.feed_target(self.t)
         step = int(getattr(ex, "step_index", 0))
@@ -481,7 +502,11 @@ class ContactRun:
             try:
                 # While the agent is in the unreachable part the tool waits and the agent moves on its
                 # own (reset to the waiting tool it would be sent straight back: a deadlock).
-                ex.step(deposit_at=deposit, agent_at=None if waiting else self._to_obj(obs.state.ee_pose[:3, 3])[None, :])
+                at = None if waiting else self._to_obj(obs.state.ee_pose[:3, 3])[None, :]
+                waited = waited + 1 if waiting else 0
+                if self.max_tilt_deg is None and waited > WAIT_STEPS and (hot := self._hottest_reachable()) is not None:
+                    at, waited = hot[None, :], 0
+                ex.step(deposit_at=deposit, agent_at=at)
             except TergodicError as exc:
                 fault = Fault("explorer", "hold", f"the explorer failed ({exc}); holding position", self.t)
                 self._fault_sample(fault, before + 1, obs, a_cur, d_cur, on_step, record=True)
@@ -509,21 +534,23 @@ class ContactRun:
                     near = self.kdtree.query_ball_point(self._to_obj(a_new), TRANSIT_M)
                     self.reachable[np.asarray(near, dtype=np.intp)] = False
                     waiting = True
-                if self.max_tilt_deg is None and not waiting and float(np.linalg.norm(a_new - a_cur)) > TRANSIT_M:
-                    # The agent came back into reach away from the waiting tool: lift, move over, touch again.
+                turn = math.degrees(math.acos(min(1.0, float(d_new @ d_cur))))
+                n_c, smooth_c = self._surface_normal(a_cur, smooth=True)
+                far = float(np.linalg.norm(a_new - a_cur))
+                sharp = turn > HOP_TURN_DEG and not (smooth and smooth_c)
+                if self.max_tilt_deg is None and not waiting and (far > TRANSIT_M or sharp):
+                    # Back in reach away from the waiting tool, or across a sharp edge: lift, move over, touch again.
                     self._last_line = (a_cur, d_cur)
-                    self.to_picture(f"the agent is back in reach {1e3 * float(np.linalg.norm(a_new - a_cur)):.0f} mm "
-                                    "from the waiting tool; moving over")
-                    self.engage()
-                    ts[Kn.TS_COUNT], ts[Kn.TS_RUN] = 1.0, 0.0
+                    self._move_over(f"the agent is back in reach {1e3 * far:.0f} mm from the waiting tool; moving over"
+                                    if far > TRANSIT_M else f"the agent crossed a sharp edge ({turn:.0f} deg); moving over")
                     a_cur, d_cur = a_new, d_new = self._start_line
                     obs = self.arm.get_observation()
-                turn = math.degrees(math.acos(min(1.0, float(d_new @ d_cur))))
+                    turn = 0.0
+                    n_c, smooth_c = self._surface_normal(a_cur, smooth=True)
                 # On a gentle curve the line may turn as fast as the surface's own normal over the step
                 # (+1 deg): at a flat MAX_TURN_DEG the bowl's 3.4 deg per 3 mm held the agent back
                 # (--gains paper: eps 1.30 x the kinematic agent's). At an edge (the cloud's normals
                 # spread) or on a tight curve (the torus's tube, 8.6 deg per step) it stays MAX_TURN_DEG.
-                n_c, smooth_c = self._surface_normal(a_cur, smooth=True)
                 geo = math.degrees(math.acos(min(1.0, float(n_a @ n_c))))
                 limit = max(MAX_TURN_DEG, geo + 1.0) if smooth and smooth_c and geo <= GENTLE_TURN_DEG else MAX_TURN_DEG
                 if self.max_tilt_deg is None and turn > limit:
@@ -569,7 +596,8 @@ class ContactRun:
             # sees single-sample transients when it touches both faces; a wrong axis stays wrong).
             press = self._measure(obs)["press_angle_deg"] if sample["in_contact"] else 0.0
             tilted, self._tilted = self._tilted, press > CONTACT_TILT_MAX_DEG
-            if tilted and self._tilted:
+            self._reseats = [j for j in self._reseats if j > step - RESEAT_WINDOW]
+            if tilted and self._tilted and (len(self._reseats) >= RESEATS or self.max_tilt_deg is not None):
                 self._fault_sample(Fault("reach", "retreat", f"the tool presses {press:.0f} deg off the surface "
                                          f"normal in contact (limit {CONTACT_TILT_MAX_DEG:.0f}); lifting the tool off the "
                                          "surface", self.t), step, obs, a_cur, d_cur, on_step, record=True)
@@ -578,6 +606,16 @@ class ContactRun:
                 self._deferred = (on_step, step)
             else:
                 self._emit(on_step, step)
+            if tilted and self._tilted and k < steps - 1:
+                # A soft sponge near a sharp edge wraps it (its contact normals tilt) and slides over
+                # it: lift and touch again on the agent's own line; only a repeat is a fault.
+                self._reseats.append(step)
+                self._tilted = False
+                self._last_line = (a_cur, d_cur)
+                self._move_over(f"the tool pressed {press:.0f} deg off the surface normal (limit "
+                                f"{CONTACT_TILT_MAX_DEG:.0f}); lifting and touching again on the agent's line")
+                a_cur, d_cur = self._start_line
+                obs = self.arm.get_observation()
         ts[Kn.TS_COUNT] = 0.0
         self._last_line = (a_cur, d_cur)
         self._start_line = self._last_line  # a further explore() continues from here
@@ -714,6 +752,17 @@ class ContactRun:
         """``steps`` explorer steps in contact (state ``explore``); see :meth:`_explore`."""
         self._explore(int(steps), on_step, defer_last)
 
+    def _move_over(self, reason: str) -> None:
+        """explore -> retreat along the tool axis -> hover above the agent -> approach -> explore."""
+        step = self._step()
+        self.sm.go(S.RETREAT, self.t, step, reason)
+        a, d = self._last_line
+        self._retreat(a, d, step)
+        self.hops += 1
+        self.engage()
+        self.ts[Kn.TS_COUNT], self.ts[Kn.TS_RUN] = 1.0, 0.0
+        self.guard.feed_target(self.t)
+
     def to_picture(self, reason: str) -> None:
         """explore -> retreat along the tool axis -> move to the picture pose, state ``picture``."""
         step = self._step()
@@ -766,6 +815,7 @@ class ContactRun:
             "backend": self.arm.name,
             "final_state": self.sm.state,
             "interrupted": bool(self.interrupted),
+            "move_overs": self.hops,
             "sim_seconds": robot_s,
             "robot_seconds": robot_s,
             "wall_seconds": wall,

@@ -1,7 +1,8 @@
 """The robot's discrete states (paper V-A3) and their logged transitions.
 
 picture -> hover -> approach -> explore -> retreat -> done; any fault -> hold or retreat -> stopped.
-The closed loop (issue 6) cycles: ... explore -> retreat -> picture (re-capture) -> hover -> ... -> picture -> done.
+Where the tool cannot press across (a sharp edge, a gap in reach) it moves over: explore -> retreat
+-> hover -> approach -> explore. The closed loop (issue 6) cycles: ... explore -> retreat -> picture (re-capture) -> hover -> ... -> picture -> done.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ ALLOWED = {
     HOVER: {APPROACH, HOLD, RETREAT, STOPPED},
     APPROACH: {EXPLORE, RETREAT, HOLD, STOPPED},
     EXPLORE: {RETREAT, HOLD, STOPPED},
-    RETREAT: {PICTURE, DONE, HOLD, STOPPED},
+    RETREAT: {PICTURE, HOVER, DONE, HOLD, STOPPED},
     HOLD: {STOPPED},
     DONE: set(),
     STOPPED: set(),
