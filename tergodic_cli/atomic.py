@@ -185,13 +185,11 @@ class AtomicFolder:
                 raise self._error(err) from None
             return False
         if issubclass(exc_type, KeyboardInterrupt) and self.keep_partial and self.tmp is not None:
-            try:
+            with contextlib.suppress(OSError):  # keep the interrupt; the partial folder is lost
                 if any(self.tmp.iterdir()):
                     self._swap_in()
                     self.kept = True
                     return False
-            except OSError:
-                pass  # keep the interrupt; the partial folder is lost
         tmp = str(self.tmp) if self.tmp is not None else None
         # a write into our folder that failed (e.g. reported by the log's writer process) on a full
         # disk: looked at before the discard frees the space
@@ -234,10 +232,8 @@ class AtomicFolder:
             shutil.rmtree(self.tmp, ignore_errors=True)
             self.tmp = None
         for parent in reversed(self._created):
-            try:
+            with contextlib.suppress(OSError):
                 parent.rmdir()
-            except OSError:
-                pass
 
     def _error(self, exc: BaseException, full: bool | None = None):
         full = _full(exc) if full is None else full

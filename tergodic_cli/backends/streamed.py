@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import time
+from contextlib import suppress
 from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
 from typing import Callable
@@ -331,10 +332,8 @@ def dry_run(arm, sensor, camera, plan) -> str:
         lines.append("dry run: nothing was moved")
     finally:
         for dev in reversed(opened):
-            try:
+            with suppress(Exception):  # a report must not be lost to a failing close
                 dev.disconnect()
-            except Exception:  # noqa: BLE001 - a report must not be lost to a failing close
-                pass
     return "\n".join(lines)
 
 

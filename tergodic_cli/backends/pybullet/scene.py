@@ -17,6 +17,7 @@ import math
 import os
 import re
 import tempfile
+from contextlib import suppress
 
 import numpy as np
 
@@ -322,8 +323,6 @@ class PyBulletScene:
 
     def close(self) -> None:
         if self.cid is not None and self.cid >= 0:
-            try:
+            with suppress(self.p.error):
                 self.p.disconnect(physicsClientId=self.cid)
-            except self.p.error:
-                pass
             self.cid = -1
