@@ -481,7 +481,6 @@ def make_backend(robot: str = "kinematic", robot_options: dict | None = None, ha
     require(robot in ROBOTS, f"--robot '{robot}' is unknown", f"use one of {', '.join(ROBOTS)}")
     require(recapture_every is None or robot == "pybullet", "--recapture-every needs the simulated robot",
             "add --robot pybullet (with a 'tergodic capture --source sim' capture)")
-    require(recapture_every is None or recapture_every >= 1, f"--recapture-every must be >= 1, got {recapture_every}", "e.g. 200")
     require(0.0 <= until_clean < 1.0, f"--until-clean must be in [0, 1), got {until_clean}", "e.g. 0.05 (5% of the marking left)")
     require(not dry_run or robot == "franka", "--dry-run needs a real robot", "use it with --robot franka")
     if robot == "kinematic":
