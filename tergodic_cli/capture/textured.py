@@ -361,7 +361,6 @@ class TexturedObject:
     def __init__(self, cfg: SimObjectConfig | None = None):
         from scipy.spatial import cKDTree
 
-
         cfg = cfg or SimObjectConfig()
         cfg.cleaning.validate()
         self.cfg = cfg

@@ -235,10 +235,8 @@ class PyBulletScene:
         p = self.p
         idx = list(range(len(self.link_names)))
         states = p.getLinkStates(self.robot, idx, computeForwardKinematics=True, physicsClientId=self.cid)
-        out = {"panda_link0": np.array([0, 0, 0, 0, 0, 0, 1.0])}
-        for name, s in zip(self.link_names, states):
-            out[name] = np.array(tuple(s[4]) + tuple(s[5]))
-        return out
+        return {"panda_link0": np.array([0, 0, 0, 0, 0, 0, 1.0]),
+                **{name: np.array(tuple(s[4]) + tuple(s[5])) for name, s in zip(self.link_names, states)}}
 
     def tool_load(self):
         """:class:`ToolLoad` of everything beyond the sensor joint, in the sensor frame."""
