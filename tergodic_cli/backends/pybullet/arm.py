@@ -462,9 +462,7 @@ class RobotRun(ContactRun):
         self.on_event(0, f"robot: collision mesh from the {self.mesh_source}")
 
     def result(self) -> dict:
-        out = super().result()
-        out.update({"setup_seconds": self.setup_s, "mesh_source": self.mesh_source})
-        return out
+        return {**super().result(), "setup_seconds": self.setup_s, "mesh_source": self.mesh_source}
 
 
 def explore_with_robot(capture, explorer, robot_cfg: RobotConfig, steps: int,

@@ -286,11 +286,10 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, camera=None,
                     break
             run.finish(stop)
         total_wall = time.perf_counter() - pause0
-        out = run.result()
         ms = [r["ms"] for r in log]
-        last_rec = log[-1] if log else rec0
-        out.update({
-            "marking_remaining": last_rec["marking_remaining"] if log else None,
+        return {
+            **run.result(),
+            "marking_remaining": log[-1]["marking_remaining"] if log else None,
             "marking_remaining_true": float(obj.marking_remaining()),
             "recaptures": len(log),
             "recapture_ms_median": float(np.median(ms)) if ms else None,
@@ -309,8 +308,7 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, camera=None,
             "realtime_factor_overall": run.scene.t / total_wall if total_wall > 0 else None,
             "closed_loop": {**lc.to_dict(), "camera": {**camera.cfg.to_dict(), "renderer": camera.renderer},
                             "cleaning_model": asdict(obj.cfg.cleaning)},
-        })
-        return out
+        }
     finally:
         if run is not None:
             run.close()
