@@ -390,16 +390,15 @@ class PyBullet(Kinematic):
         self.recapture_every, self.until_clean, self.max_steps = recapture_every, until_clean, max_steps
 
     def check(self, capture, start_xyz) -> None:
-        _check_robot(self.robot_cfg)
+        guard = _check_robot(self.robot_cfg)
         from tergodic_cli.robot.run import object_pose
         from tergodic_cli.robot.surface import check_reachable, transform_points
 
         # the same placement as the run, so an unreachable pose is refused before the run folder
         T_obj = object_pose(capture, self.robot_cfg)
         check_reachable(transform_points(T_obj, capture.points))
-        ws = self.robot_cfg.safety
         for a in transform_points(T_obj, np.atleast_2d(start_xyz)):
-            if not (np.all(a >= np.asarray(ws.workspace_min)) and np.all(a <= np.asarray(ws.workspace_max))):
+            if not guard.inside(a):
                 raise TergodicError(f"the start point ({', '.join(f'{v:.3f}' for v in a)}) m is outside the workspace box",
                                     "move the object with --object-pose, widen --workspace, or choose another start")
 
@@ -498,16 +497,17 @@ def make_backend(robot: str = "kinematic", robot_options: dict | None = None, ha
     return backend
 
 
-def _check_robot(robot_cfg) -> None:
+def _check_robot(robot_cfg):
+    """The robot config's checks and its :class:`SafetyGuard` (workspace box, force limit above --force)."""
     from tergodic_cli.robot.config import validate_robot_config
     from tergodic_cli.robot.safety import SafetyGuard
     from tergodic_cli.runlog.viewers import require_display
 
     validate_robot_config(robot_cfg)
-    # the guard's own checks (workspace box, force limit above --force); joint limits do not matter here
-    SafetyGuard(robot_cfg.safety, np.zeros(7), np.ones(7), np.ones(7), float(robot_cfg.force))
+    guard = SafetyGuard(robot_cfg.safety, np.zeros(7), np.ones(7), np.ones(7), float(robot_cfg.force))  # joint limits unused
     if robot_cfg.gui:
         require_display()
+    return guard
 
 
 def _log_cloud(runlog, explorer: Explorer, step: int) -> None:
