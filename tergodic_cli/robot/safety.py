@@ -20,11 +20,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tergodic_cli.config import Config
 from tergodic_cli.errors import require
 
 
 @dataclass
-class SafetyConfig:
+class SafetyConfig(Config):
     """Limits, SI units.
 
     force_limit : |F| of the contact force that triggers a retreat, N; None = force_limit_factor × F_d,
@@ -48,9 +49,6 @@ class SafetyConfig:
     workspace_max: tuple[float, float, float] = (0.85, 0.6, 0.9)
     sensor_timeout: float = 0.02
     explorer_timeout: float = 0.5
-
-    def to_dict(self) -> dict:
-        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
 
 
 @dataclass
