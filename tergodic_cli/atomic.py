@@ -101,9 +101,7 @@ def write_npz(dest: str | os.PathLike, **arrays: np.ndarray) -> None:
 
 
 def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
+    if isinstance(obj, (np.generic, np.ndarray)):  # numpy scalars' tolist() is their item()
         return obj.tolist()
     if isinstance(obj, Path):
         return str(obj)
