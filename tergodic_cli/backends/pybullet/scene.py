@@ -246,7 +246,7 @@ class PyBulletScene:
         T_sensor = self.sensor_frame_world()
         total, mc = 0.0, np.zeros(3)
         for j in range(p.getNumJoints(rob, physicsClientId=cid)):
-            if j == self.sensor_joint or self._is_beyond(j, self.sensor_joint):
+            if self.sensor_joint in self.chain_to(j):
                 m = p.getDynamicsInfo(rob, j, physicsClientId=cid)[0]
                 com = np.array(p.getLinkState(rob, j, computeForwardKinematics=True, physicsClientId=cid)[0])
                 total += m
@@ -257,14 +257,13 @@ class PyBulletScene:
         inertia = np.array(p.getDynamicsInfo(rob, self.link_index["panda_hand"], physicsClientId=cid)[2], dtype=float)
         return ToolLoad(total, com_sensor, inertia)
 
-    def _is_beyond(self, j: int, ancestor: int) -> bool:
-        p = self.p
+    def chain_to(self, j: int) -> list[int]:
+        """The robot's links from the base to link ``j`` (included), in that order."""
+        chain = []
         while j >= 0:
-            parent = p.getJointInfo(self.robot, j, physicsClientId=self.cid)[16]
-            if parent == ancestor:
-                return True
-            j = parent
-        return False
+            chain.append(j)
+            j = self.p.getJointInfo(self.robot, j, physicsClientId=self.cid)[16]
+        return chain[::-1]
 
     def sensor_frame_world(self) -> np.ndarray:
         """(4, 4) world pose of the F/T frame: the hand's inertial frame (where PyBullet reports the reaction)."""
