@@ -231,15 +231,12 @@ def read_obj(path: str | Path, units: str = "m") -> tuple[np.ndarray, np.ndarray
     require(flat[:, 0].min() >= 0 and flat[:, 0].max() < len(V), f"{path} has face indices outside its vertex list",
             "re-export the mesh")
     has_uv = len(tex) > 0 and bool(np.all(flat[:, 1] >= 0))
-    if has_uv:
-        T = np.asarray(tex, dtype=float)
-        require(flat[:, 1].max() < len(T), f"{path} has texture indices outside its vt list", "re-export the mesh")
-        pairs, inverse = np.unique(flat, axis=0, return_inverse=True)
-        vertices, uvs = V[pairs[:, 0]], T[pairs[:, 1]]
-        triangles = inverse.reshape(-1, 3)
-    else:
-        used, inverse = np.unique(flat[:, 0], return_inverse=True)
-        vertices, uvs, triangles = V[used], None, inverse.reshape(-1, 3)
+    require(not has_uv or flat[:, 1].max() < len(tex), f"{path} has texture indices outside its vt list",
+            "re-export the mesh")
+    # one output vertex per (vertex, uv) pair used, or per vertex used
+    pairs, inverse = np.unique(flat if has_uv else flat[:, :1], axis=0, return_inverse=True)
+    vertices, triangles = V[pairs[:, 0]], inverse.reshape(-1, 3)
+    uvs = np.asarray(tex, dtype=float)[pairs[:, 1]] if has_uv else None
     require(units in ("m", "mm"), f"unknown mesh units '{units}'", "use m or mm")
     if units == "mm":
         vertices = vertices * 1e-3
