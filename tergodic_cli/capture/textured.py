@@ -541,8 +541,7 @@ def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     v = vertices[triangles]
     fn = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
     n = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(n, triangles[:, k], fn)
+    np.add.at(n, triangles.T, fn[None])  # every face's normal onto its three corners
     norm = np.linalg.norm(n, axis=1, keepdims=True)
     return n / np.where(norm > 0, norm, 1.0)
 
