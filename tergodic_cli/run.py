@@ -7,7 +7,7 @@ described in docs/explore.md; they are built in a temporary folder and renamed i
 from __future__ import annotations
 
 import json
-from contextlib import nullcontext
+from contextlib import nullcontext, suppress
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
@@ -153,15 +153,13 @@ def find_basis(points: np.ndarray, nk: int, neighbors: int, cache_dir=None,
     root = Path(cache_dir or default_cache_dir()) / "basis"
     candidates: set[tuple[int, str, str]] = set()
     for meta_path in root.glob("*/basis.json"):  # none when the folder is missing
-        try:
+        with suppress(OSError, ValueError, KeyError, TypeError):  # unreadable entries are get_basis' business
             meta = json.loads(meta_path.read_text())
             bcfg = meta["config"]
             if (int(meta["n_points"]) == len(points) and int(bcfg["neighbors"]) == neighbors
                     and int(bcfg["nk"]) >= nk):
                 candidates.add((int(bcfg["nk"]), str(bcfg.get("solver", BasisConfig.solver)),
                                 meta_path.parent.name))
-        except (OSError, ValueError, KeyError, TypeError):
-            continue  # unreadable entries are get_basis' business
     for cand_nk, solver, key in sorted(candidates):
         bcfg = BasisConfig(nk=cand_nk, neighbors=neighbors, solver=solver)
         if geometry_key(points, bcfg)[0] == key:
