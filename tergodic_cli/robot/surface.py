@@ -215,7 +215,7 @@ def transform_points(T: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.asarray(x, dtype=float) @ T[:3, :3].T + T[:3, 3]
 
 
-def check_reachable(points_base: np.ndarray, reach: float = 0.8, ws=None) -> None:
+def check_reachable(points_base: np.ndarray, reach: float = 0.8) -> None:
     """Refuse objects the Panda cannot reach from its base (distance from the shoulder)."""
     shoulder = np.array([0.0, 0.0, 0.333])
     d = np.linalg.norm(points_base - shoulder, axis=1)
