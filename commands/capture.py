@@ -67,6 +67,7 @@ def capture(
     from tergodic_cli.atomic import write_png
     from tergodic_cli.capture import CaptureConfig, capture_cloud, save_capture
     from tergodic_cli.capture.artefact import CAPTURE_CONFIG_KIND, check_out_folder
+    from tergodic_cli.capture.textured import BUILTIN_OBJECTS, SimObjectConfig
     from tergodic_cli.config import from_dict, override, read_config
     from tergodic_cli.progress import Spinner
 
@@ -80,7 +81,7 @@ def capture(
     kind = saved.source if sourced else _resolve_source(source, from_file, synthetic, sim_object)
     cfg = CaptureConfig(
         source=kind, marking=marking, seed=seed, noise=noise, voxel=voxel, voxel_rule=voxel_rule, target=target,
-        path=str(from_file) if from_file is not None else (sim_object if kind == "sim" and sim_object not in _BUILTIN else None),
+        path=str(from_file) if from_file is not None else (sim_object if kind == "sim" and sim_object not in BUILTIN_OBJECTS else None),
         synthetic=(synthetic or "bowl") if kind != "sim" else (sim_object or "bowl"),
         units=units if kind != "sim" else "m",  # a sim cloud is in metres; --units applies to the .obj
         crop=parse_floats(crop, 6, "--crop", "-0.2,-0.2,0,0.2,0.2,0.3") if crop else None,
@@ -95,7 +96,6 @@ def capture(
     frame, configs = None, {"capture": cfg}  # a realsense camera's settings are in capture.json only
     if kind == "sim":
         from tergodic_cli.backends.pybullet.camera import SimCameraConfig, SimCaptureConfig, capture_sim
-        from tergodic_cli.capture.textured import SimObjectConfig
 
         sim = SimCaptureConfig(
             object=SimObjectConfig(object=sim_object or "bowl", marking=marking, units=units, seed=seed,
@@ -140,7 +140,6 @@ def capture(
     typer.echo(f"wrote {sidecar.parent}/ (cloud.npz, cloud.ply, capture.json, config.json{', camera_rgb.png' if frame is not None else ''})")
 
 
-_BUILTIN = ("bowl", "plate", "mug")
 _SOURCES = ("file", "synthetic", "sim", "realsense")
 
 

@@ -101,9 +101,7 @@ def write_npz(dest: str | os.PathLike, **arrays: np.ndarray) -> None:
 
 
 def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
+    if isinstance(obj, (np.generic, np.ndarray)):  # numpy scalars' tolist() is their item()
         return obj.tolist()
     if isinstance(obj, Path):
         return str(obj)
@@ -185,13 +183,11 @@ class AtomicFolder:
                 raise self._error(err) from None
             return False
         if issubclass(exc_type, KeyboardInterrupt) and self.keep_partial and self.tmp is not None:
-            try:
+            with contextlib.suppress(OSError):  # keep the interrupt; the partial folder is lost
                 if any(self.tmp.iterdir()):
                     self._swap_in()
                     self.kept = True
                     return False
-            except OSError:
-                pass  # keep the interrupt; the partial folder is lost
         tmp = str(self.tmp) if self.tmp is not None else None
         # a write into our folder that failed (e.g. reported by the log's writer process) on a full
         # disk: looked at before the discard frees the space
@@ -234,10 +230,8 @@ class AtomicFolder:
             shutil.rmtree(self.tmp, ignore_errors=True)
             self.tmp = None
         for parent in reversed(self._created):
-            try:
+            with contextlib.suppress(OSError):
                 parent.rmdir()
-            except OSError:
-                pass
 
     def _error(self, exc: BaseException, full: bool | None = None):
         full = _full(exc) if full is None else full

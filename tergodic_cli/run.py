@@ -7,7 +7,7 @@ described in docs/explore.md; they are built in a temporary folder and renamed i
 from __future__ import annotations
 
 import json
-from contextlib import nullcontext
+from contextlib import nullcontext, suppress
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
@@ -153,15 +153,13 @@ def find_basis(points: np.ndarray, nk: int, neighbors: int, cache_dir=None,
     root = Path(cache_dir or default_cache_dir()) / "basis"
     candidates: set[tuple[int, str, str]] = set()
     for meta_path in root.glob("*/basis.json"):  # none when the folder is missing
-        try:
+        with suppress(OSError, ValueError, KeyError, TypeError):  # unreadable entries are get_basis' business
             meta = json.loads(meta_path.read_text())
             bcfg = meta["config"]
             if (int(meta["n_points"]) == len(points) and int(bcfg["neighbors"]) == neighbors
                     and int(bcfg["nk"]) >= nk):
                 candidates.add((int(bcfg["nk"]), str(bcfg.get("solver", BasisConfig.solver)),
                                 meta_path.parent.name))
-        except (OSError, ValueError, KeyError, TypeError):
-            continue  # unreadable entries are get_basis' business
     for cand_nk, solver, key in sorted(candidates):
         bcfg = BasisConfig(nk=cand_nk, neighbors=neighbors, solver=solver)
         if geometry_key(points, bcfg)[0] == key:
@@ -390,16 +388,15 @@ class PyBullet(Kinematic):
         self.recapture_every, self.until_clean, self.max_steps = recapture_every, until_clean, max_steps
 
     def check(self, capture, start_xyz) -> None:
-        _check_robot(self.robot_cfg)
+        guard = _check_robot(self.robot_cfg)
         from tergodic_cli.robot.run import object_pose
         from tergodic_cli.robot.surface import check_reachable, transform_points
 
         # the same placement as the run, so an unreachable pose is refused before the run folder
         T_obj = object_pose(capture, self.robot_cfg)
         check_reachable(transform_points(T_obj, capture.points))
-        ws = self.robot_cfg.safety
         for a in transform_points(T_obj, np.atleast_2d(start_xyz)):
-            if not (np.all(a >= np.asarray(ws.workspace_min)) and np.all(a <= np.asarray(ws.workspace_max))):
+            if not guard.inside(a):
                 raise TergodicError(f"the start point ({', '.join(f'{v:.3f}' for v in a)}) m is outside the workspace box",
                                     "move the object with --object-pose, widen --workspace, or choose another start")
 
@@ -481,7 +478,6 @@ def make_backend(robot: str = "kinematic", robot_options: dict | None = None, ha
     require(robot in ROBOTS, f"--robot '{robot}' is unknown", f"use one of {', '.join(ROBOTS)}")
     require(recapture_every is None or robot == "pybullet", "--recapture-every needs the simulated robot",
             "add --robot pybullet (with a 'tergodic capture --source sim' capture)")
-    require(recapture_every is None or recapture_every >= 1, f"--recapture-every must be >= 1, got {recapture_every}", "e.g. 200")
     require(0.0 <= until_clean < 1.0, f"--until-clean must be in [0, 1), got {until_clean}", "e.g. 0.05 (5% of the marking left)")
     require(not dry_run or robot == "franka", "--dry-run needs a real robot", "use it with --robot franka")
     if robot == "kinematic":
@@ -499,16 +495,17 @@ def make_backend(robot: str = "kinematic", robot_options: dict | None = None, ha
     return backend
 
 
-def _check_robot(robot_cfg) -> None:
+def _check_robot(robot_cfg):
+    """The robot config's checks and its :class:`SafetyGuard` (workspace box, force limit above --force)."""
     from tergodic_cli.robot.config import validate_robot_config
     from tergodic_cli.robot.safety import SafetyGuard
     from tergodic_cli.runlog.viewers import require_display
 
     validate_robot_config(robot_cfg)
-    # the guard's own checks (workspace box, force limit above --force); joint limits do not matter here
-    SafetyGuard(robot_cfg.safety, np.zeros(7), np.ones(7), np.ones(7), float(robot_cfg.force))
+    guard = SafetyGuard(robot_cfg.safety, np.zeros(7), np.ones(7), np.ones(7), float(robot_cfg.force))  # joint limits unused
     if robot_cfg.gui:
         require_display()
+    return guard
 
 
 def _log_cloud(runlog, explorer: Explorer, step: int) -> None:

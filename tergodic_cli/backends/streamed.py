@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import time
+from contextlib import suppress
 from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
 from typing import Callable
@@ -265,7 +266,7 @@ def dry_run(arm, sensor, camera, plan) -> str:
     Parameters
     ----------
     arm : an ImpedanceArm; sensor : a WrenchSensor or None; camera : a Camera or None.
-    plan : a :class:`DryRunPlan` (capture, explorer, robot config, hardware config).
+    plan : a :class:`DryRunPlan` (capture, robot config, start, hardware config).
 
     Returns the report (several lines). Devices connected here are disconnected again; no
     command, move or reference is ever sent.
@@ -302,7 +303,7 @@ def dry_run(arm, sensor, camera, plan) -> str:
             lines.append(f"camera {type(camera).__name__}: {len(pts)} valid points"
                          + (f", depth {pts[:, 2].min():.3f}..{pts[:, 2].max():.3f} m" if len(pts) else ""))
         if plan is not None:
-            explorer = plan.explorer if plan.explorer is not None else _StartAgent(plan.capture, plan.robot_cfg, plan.start)
+            explorer = _StartAgent(plan.capture, plan.robot_cfg, plan.start)
             hw = plan.hw or HardwareRunConfig()
             run = ContactRun(plan.capture, explorer, plan.robot_cfg, _PlanArm(arm),
                              object_pose(plan.capture, plan.robot_cfg, guess=False),
@@ -331,10 +332,8 @@ def dry_run(arm, sensor, camera, plan) -> str:
         lines.append("dry run: nothing was moved")
     finally:
         for dev in reversed(opened):
-            try:
+            with suppress(Exception):  # a report must not be lost to a failing close
                 dev.disconnect()
-            except Exception:  # noqa: BLE001 - a report must not be lost to a failing close
-                pass
     return "\n".join(lines)
 
 
@@ -343,14 +342,12 @@ class DryRunPlan:
     """What :func:`dry_run` plans against.
 
     capture : the Capture; robot_cfg : the RobotConfig; hw : the HardwareRunConfig (None = defaults).
-    explorer : a fresh Explorer (its first agent position and normal), or None to plan from
-    ``start`` (x,y,z in the capture frame, m; None = the capture's point nearest its centroid)
+    start : x,y,z in the capture frame, m (None = the capture's point nearest its centroid), planned
     with the capture's own normals, which needs no basis.
     """
 
     capture: object
     robot_cfg: object
-    explorer: object = None
     start: tuple[float, float, float] | None = None
     hw: HardwareRunConfig | None = None
 

@@ -231,15 +231,12 @@ def read_obj(path: str | Path, units: str = "m") -> tuple[np.ndarray, np.ndarray
     require(flat[:, 0].min() >= 0 and flat[:, 0].max() < len(V), f"{path} has face indices outside its vertex list",
             "re-export the mesh")
     has_uv = len(tex) > 0 and bool(np.all(flat[:, 1] >= 0))
-    if has_uv:
-        T = np.asarray(tex, dtype=float)
-        require(flat[:, 1].max() < len(T), f"{path} has texture indices outside its vt list", "re-export the mesh")
-        pairs, inverse = np.unique(flat, axis=0, return_inverse=True)
-        vertices, uvs = V[pairs[:, 0]], T[pairs[:, 1]]
-        triangles = inverse.reshape(-1, 3)
-    else:
-        used, inverse = np.unique(flat[:, 0], return_inverse=True)
-        vertices, uvs, triangles = V[used], None, inverse.reshape(-1, 3)
+    require(not has_uv or flat[:, 1].max() < len(tex), f"{path} has texture indices outside its vt list",
+            "re-export the mesh")
+    # one output vertex per (vertex, uv) pair used, or per vertex used
+    pairs, inverse = np.unique(flat if has_uv else flat[:, :1], axis=0, return_inverse=True)
+    vertices, triangles = V[pairs[:, 0]], inverse.reshape(-1, 3)
+    uvs = np.asarray(tex, dtype=float)[pairs[:, 1]] if has_uv else None
     require(units in ("m", "mm"), f"unknown mesh units '{units}'", "use m or mm")
     if units == "mm":
         vertices = vertices * 1e-3
@@ -360,7 +357,6 @@ class TexturedObject:
 
     def __init__(self, cfg: SimObjectConfig | None = None):
         from scipy.spatial import cKDTree
-
 
         cfg = cfg or SimObjectConfig()
         cfg.cleaning.validate()
@@ -545,8 +541,7 @@ def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     v = vertices[triangles]
     fn = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
     n = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(n, triangles[:, k], fn)
+    np.add.at(n, triangles.T, fn[None])  # every face's normal onto its three corners
     norm = np.linalg.norm(n, axis=1, keepdims=True)
     return n / np.where(norm > 0, norm, 1.0)
 

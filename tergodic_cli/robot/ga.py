@@ -32,14 +32,10 @@ from tergodic_cli.rotations import matrix_to_quat, quat_to_matrix  # noqa: F401 
 
 
 def rotvec_to_matrix(phi: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) of the rotation vector ``phi`` (3,) in radians (Rodrigues)."""
-    phi = np.asarray(phi, dtype=float)
-    theta = float(np.linalg.norm(phi))
-    if theta < 1e-12:
-        return np.eye(3) + skew(phi)
-    k = phi / theta
-    K = skew(k)
-    return np.eye(3) + math.sin(theta) * K + (1.0 - math.cos(theta)) * (K @ K)
+    """Rotation matrix (3, 3) of the rotation vector ``phi`` (3,) in radians (scipy's Rotation)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.asarray(phi, dtype=float)).as_matrix()
 
 
 def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:

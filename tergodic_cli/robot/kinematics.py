@@ -1,11 +1,11 @@
 """Franka kinematics with pygafro: motor forward kinematics (eq. 14), the geometric Jacobian
-(eqs. 15-16), the ee-frame Jacobian (eqs. 42-45), and inverse kinematics for the set-up moves.
+(eqs. 15-16) and the ee-frame Jacobian (eqs. 42-45); inverse kinematics is :func:`~tergodic_cli.robot.reach.ik`.
 
 pygafro's ``FrankaEmikaRobot`` ends at the Franka hand's TCP (flange + 0.1034 m, rotated -45°
 about z). Our TCP is the sponge tip, a fixed motor further along the same z-axis; the offset
 is measured once against the backend (:func:`tool_offset`) and checked to be a pure z shift.
 
-These run at set-up (inverse kinematics) and in tests, never in the 1 kHz loop: one pygafro
+These run at set-up (the TCP path of a joint move) and in tests, never in the 1 kHz loop: one pygafro
 Jacobian costs 57 µs against 1.2 µs compiled (docs/robot.md, "Why matrix form").
 """
 
@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from tergodic_cli.errors import TergodicError
-from tergodic_cli.robot.ga import adjoint, matrix_to_rotvec, motor_inverse, twist_from_gafro
+from tergodic_cli.robot.ga import adjoint, motor_inverse, twist_from_gafro
 
 #: Franka Emika datasheet limits (stricter than the pybullet URDF's).
 Q_MIN = np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973])
@@ -58,42 +58,6 @@ class FrankaModel:
         R = self.fk(q)[:3, :3]
         Je = self.jacobian_ee(q)
         return np.vstack([R @ Je[:3], R @ Je[3:]])
-
-    def ik(self, target: np.ndarray, q0: np.ndarray, q_rest: np.ndarray | None = None, iters: int = 300,
-           tol: float = 1e-5, margin: float = 0.05) -> tuple[np.ndarray, float, float]:
-        """Damped least squares inverse kinematics for a TCP pose.
-
-        Parameters
-        ----------
-        target : (4, 4) desired TCP pose, base frame.
-        q0 : (7,) start configuration. q_rest : (7,) posture favoured in the null space.
-        margin : radians kept from the joint limits.
-
-        Returns
-        -------
-        (q, position error m, orientation error rad).
-        """
-        q = np.clip(np.asarray(q0, dtype=float), self.q_min + margin, self.q_max - margin)
-        q_rest = q if q_rest is None else np.asarray(q_rest, dtype=float)
-        lam2 = 1e-4
-        pe = oe = np.inf
-        for _ in range(iters):
-            T = self.fk(q)
-            e_p = target[:3, 3] - T[:3, 3]
-            e_o = matrix_to_rotvec(target[:3, :3] @ T[:3, :3].T)
-            pe, oe = float(np.linalg.norm(e_p)), float(np.linalg.norm(e_o))
-            if pe < tol and oe < 10 * tol:
-                break
-            J = self.jacobian_base(q)
-            e = np.concatenate([e_p, e_o])
-            JJt = J @ J.T + lam2 * np.eye(6)
-            Jpinv = J.T @ np.linalg.inv(JJt)
-            dq = Jpinv @ e + (np.eye(7) - Jpinv @ J) @ (0.2 * (q_rest - q))
-            step = float(np.max(np.abs(dq)))
-            if step > 0.2:
-                dq *= 0.2 / step
-            q = np.clip(q + dq, self.q_min + margin, self.q_max - margin)
-        return q, pe, oe
 
 
 def tool_offset(model: FrankaModel, q: np.ndarray, T_tcp: np.ndarray) -> np.ndarray:

@@ -20,11 +20,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tergodic_cli.config import Config
 from tergodic_cli.errors import require
 
 
 @dataclass
-class SafetyConfig:
+class SafetyConfig(Config):
     """Limits, SI units.
 
     force_limit : |F| of the contact force that triggers a retreat, N; None = force_limit_factor × F_d,
@@ -48,9 +49,6 @@ class SafetyConfig:
     workspace_max: tuple[float, float, float] = (0.85, 0.6, 0.9)
     sensor_timeout: float = 0.02
     explorer_timeout: float = 0.5
-
-    def to_dict(self) -> dict:
-        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
 
 
 @dataclass
@@ -108,7 +106,7 @@ class SafetyGuard:
     def __init__(self, cfg: SafetyConfig, q_min: np.ndarray, q_max: np.ndarray, dq_max: np.ndarray,
                  force_desired: float):
         self.cfg = cfg
-        lo, hi = np.asarray(cfg.workspace_min, float), np.asarray(cfg.workspace_max, float)
+        lo, hi = np.ascontiguousarray(cfg.workspace_min, float), np.ascontiguousarray(cfg.workspace_max, float)
         require(lo.shape == (3,) and hi.shape == (3,) and bool(np.all(lo < hi)),
                 "the workspace box needs min < max on every axis", "e.g. min 0.15,-0.6,0 and max 0.85,0.6,0.9 (metres)")
         self.ws_lo, self.ws_hi = lo, hi
@@ -117,14 +115,13 @@ class SafetyGuard:
         require(self.force_limit > max(force_desired, 0.0),
                 f"the force limit {self.force_limit:g} N is not above the desired force {force_desired:g} N",
                 "raise --force-limit or lower --force")
+        # new arrays, so contiguous as the compiled checks want them
         self.q_lo = np.asarray(q_min, float) + cfg.joint_margin
         self.q_hi = np.asarray(q_max, float) - cfg.joint_margin
         self.dq_hi = np.asarray(dq_max, float) * cfg.velocity_factor
         from tergodic_cli.robot import kernels
 
         self._k = kernels
-        self.q_lo, self.q_hi, self.dq_hi = (np.ascontiguousarray(x) for x in (self.q_lo, self.q_hi, self.dq_hi))
-        self.ws_lo, self.ws_hi = np.ascontiguousarray(self.ws_lo), np.ascontiguousarray(self.ws_hi)
         self._sensor_t: float | None = None
         self._sensor_seen_at = 0.0
         self._target_t: float | None = None
@@ -157,9 +154,7 @@ class SafetyGuard:
     def check_force(self, t: float, wrench_ee) -> Fault | None:
         """|F| of the contact force against the limit."""
         code, f = self._k.force_fault(np.asarray(wrench_ee, dtype=float), self.force_limit)
-        if code != self._k.OK:  # also catches NaN
-            return self.force_fault_reason(t, f)
-        return None
+        return None if code == self._k.OK else self.force_fault_reason(t, f)  # a NaN force is a fault too
 
     def force_fault_reason(self, t: float, f: float) -> Fault:
         return Fault("force", "retreat", f"contact force {f:.1f} N over the {self.force_limit:.1f} N limit; retreating", t,

@@ -19,7 +19,6 @@ HOLD = "hold"  # a fault: joint impedance at the present position
 DONE = "done"  # finished normally, holding still
 STOPPED = "stopped"  # finished after a fault, holding still
 
-STATES = (PICTURE, HOVER, APPROACH, EXPLORE, RETREAT, HOLD, DONE, STOPPED)
 ALLOWED = {
     PICTURE: {HOVER, DONE, RETREAT, HOLD, STOPPED},
     HOVER: {APPROACH, HOLD, RETREAT, STOPPED},
@@ -48,7 +47,6 @@ class StateMachine:
     state: str = PICTURE
     on_event: Callable[[int, str], None] | None = None
     history: list[Transition] = field(default_factory=list)
-    t_enter: float = 0.0
 
     def go(self, target: str, t: float, step: int, reason: str) -> None:
         if target not in ALLOWED[self.state]:
@@ -57,7 +55,6 @@ class StateMachine:
         if self.on_event is not None:
             self.on_event(step, f"robot {self.state} -> {target} at t={t:.3f} s: {reason}")
         self.state = target
-        self.t_enter = t
 
     @property
     def finished(self) -> bool:

@@ -27,9 +27,7 @@ def _columns(samples) -> tuple[dict[str, list], int]:
         n = len(next(iter(samples.values()))) if samples else 0
         return {k: list(v) for k, v in samples.items()}, n
     rows = list(samples)
-    keys: set[str] = set()
-    for r in rows:
-        keys.update(r.keys())
+    keys = set().union(*(r.keys() for r in rows))
     return {k: [r.get(k) for r in rows] for k in keys}, len(rows)
 
 
@@ -120,10 +118,8 @@ def summarize_robot(samples: Iterable[Mapping] | Mapping[str, Iterable], settle_
     out["explore_samples"] = int(explore.sum())
     out["steady_samples"] = int(good.sum())
     wall = cols.get("t_wall")
-    if wall is not None and wall[-1] is not None and float(wall[-1]) > 0:
-        out["realtime_factor"] = _num(t[-1] / float(wall[-1]))
-    else:
-        out["realtime_factor"] = None
+    ran = wall is not None and wall[-1] is not None and float(wall[-1]) > 0
+    out["realtime_factor"] = _num(t[-1] / float(wall[-1])) if ran else None
     for key in ("contact_ergodicity", "contact_touched_fraction", "agent_ergodicity", "agent_touched_fraction"):
         vals = [v for v in cols.get(key, []) if v is not None]
         out[key] = _num(vals[-1]) if vals else None

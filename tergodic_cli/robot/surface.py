@@ -194,26 +194,11 @@ def parse_object_pose(values) -> np.ndarray:
     """The capture frame's pose in the robot base frame as a (4, 4) transform.
 
     values : 3 numbers x,y,z (m); 6 numbers x,y,z,roll,pitch,yaw (m, degrees, fixed-axis XYZ);
-        or 7 numbers x,y,z,qx,qy,qz,qw.
+        or 7 numbers x,y,z,qx,qy,qz,qw (the simulated scene's object pose, one parser).
     """
-    v = [float(x) for x in values]
-    fix = "give --object-pose x,y,z[,roll,pitch,yaw] in metres and degrees, e.g. 0.5,0,0 or 0.5,0,0,0,0,90"
-    require(len(v) in (3, 6, 7), f"--object-pose needs 3, 6 or 7 numbers, got {len(v)}", fix)
-    require(all(math.isfinite(x) for x in v), "--object-pose has a non-finite number", fix)
-    require(max(abs(x) for x in v[:3]) < 3.0, f"--object-pose position {v[:3]} is metres beyond any robot's reach",
-            "give the position in metres (not millimetres), e.g. 0.5,0,0")
-    if len(v) == 3:
-        R = np.eye(3)
-    elif len(v) == 6:
-        r, p, y = (math.radians(a) for a in v[3:])
-        R = rotvec_to_matrix(np.array([0, 0, y])) @ rotvec_to_matrix(np.array([0, p, 0])) @ rotvec_to_matrix(np.array([r, 0, 0]))
-    else:
-        from tergodic_cli.robot.ga import quat_to_matrix
+    from tergodic_cli.capture.textured import parse_pose
 
-        q = np.array(v[3:])
-        require(abs(np.linalg.norm(q) - 1.0) < 1e-3, "--object-pose quaternion is not unit length", fix)
-        R = quat_to_matrix(q / np.linalg.norm(q))
-    return pose_matrix(R, np.array(v[:3]))
+    return parse_pose(values, "--object-pose")
 
 
 def default_object_pose(points: np.ndarray, reach: float = DEFAULT_REACH, yaw_deg: float = 0.0) -> np.ndarray:
@@ -230,7 +215,7 @@ def transform_points(T: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.asarray(x, dtype=float) @ T[:3, :3].T + T[:3, 3]
 
 
-def check_reachable(points_base: np.ndarray, reach: float = 0.8, ws=None) -> None:
+def check_reachable(points_base: np.ndarray, reach: float = 0.8) -> None:
     """Refuse objects the Panda cannot reach from its base (distance from the shoulder)."""
     shoulder = np.array([0.0, 0.0, 0.333])
     d = np.linalg.norm(points_base - shoulder, axis=1)

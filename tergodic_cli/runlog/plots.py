@@ -56,12 +56,11 @@ def plot_run(data: RunLogData, out_dir: str | os.PathLike) -> list[Path]:
     plt = _pyplot()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    written: list[Path] = []
     s = data.series
     t, tlabel = data.series["t"], "simulated time t (s)"
     note = " (truncated log)" if data.truncated else ""
 
-    written.append(_plot_ergodicity(plt, t, tlabel, s, note, out / "ergodicity.png"))
+    written = [_plot_ergodicity(plt, t, tlabel, s, note, out / "ergodicity.png")]
 
     def touched(ax) -> None:
         ax.plot(t, 100 * s["touched_fraction"], color="C2")

@@ -24,6 +24,7 @@ from tergodic_cli.robot import kernels as Kn
 from tergodic_cli.robot.config import RobotConfig, validate_robot_config
 from tergodic_cli.robot.controller import JointImpedance, LineForceController, min_jerk
 from tergodic_cli.robot.interfaces import ArmState, ContactWrench, LineTarget, Observation
+from tergodic_cli.robot.reach import ik, posture
 from tergodic_cli.robot.run import SETTLE_S, ContactRun, _fmt, object_pose
 from tergodic_cli.robot.surface import (SurfaceMesh, check_reachable, curved_edge, near_border, reconstruct_mesh,
                                          sim_object_mesh, transform_points)
@@ -184,8 +185,6 @@ class SimArm:
 
     def _ik_hover(self, T: np.ndarray):
         """The hover posture (reach.posture: several seeds, no twisted elbow), the line controller's rest posture."""
-        from tergodic_cli.robot.reach import posture
-
         key = T.tobytes()
         if key not in self._ik:
             self._ik[key] = posture(self.dev._chain, T, np.array(self.cfg.picture_q), self.q_min, self.q_max)
@@ -219,7 +218,8 @@ class SimArm:
             return q_near
         T_up = T.copy()
         T_up[2, 3] = z_top
-        q_up, pe, oe = self.model.ik(T_up, q_near, q_rest=np.asarray(q_near, dtype=float))
+        q_up, pe, oe = ik(self.dev._chain, T_up, q_near, self.q_min, self.q_max, q_rest=np.asarray(q_near, dtype=float),
+                          iters=300, margin=0.05)
         return q_up if pe < 1e-3 and oe < 1e-2 and self.guard.inside(T_up[:3, 3]) else q_near
 
     def _move_joints(self, q_target: np.ndarray, check):
@@ -462,9 +462,7 @@ class RobotRun(ContactRun):
         self.on_event(0, f"robot: collision mesh from the {self.mesh_source}")
 
     def result(self) -> dict:
-        out = super().result()
-        out.update({"setup_seconds": self.setup_s, "mesh_source": self.mesh_source})
-        return out
+        return {**super().result(), "setup_seconds": self.setup_s, "mesh_source": self.mesh_source}
 
 
 def explore_with_robot(capture, explorer, robot_cfg: RobotConfig, steps: int,

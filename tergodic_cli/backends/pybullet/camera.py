@@ -244,10 +244,8 @@ def quiet_native_output():
         os.dup2(devnull, 2)
         yield
     finally:
-        try:
+        with contextlib.suppress(OSError, AttributeError):
             ctypes.CDLL(None).fflush(None)
-        except (OSError, AttributeError):
-            pass
         os.dup2(saved[0], 1)
         os.dup2(saved[1], 2)
         for fd in (*saved, devnull):

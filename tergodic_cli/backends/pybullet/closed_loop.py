@@ -197,6 +197,7 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, camera=None,
         log: list[dict] = []
 
         def recapture(step: int, check_key: bool = False) -> tuple[dict, np.ndarray]:
+            cpu = time.process_time()
             t0 = time.perf_counter()
             cap = capture_sim(sim_cfg, camera=camera, allow_empty_target=True)
             t1 = time.perf_counter()
@@ -223,14 +224,12 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, camera=None,
                    "ms": 1e3 * (t3 - t0), "capture_ms": 1e3 * (t1 - t0), "transfer_ms": 1e3 * (t2 - t1),
                    "key_ms": 1e3 * (t3 - t2), "texture_ms": float(timing.get("texture_ms", 0.0)),
                    "render_ms": float(timing.get("render_ms", 0.0)), "pipeline_ms": float(timing.get("pipeline_ms", 0.0)),
-                   "basis_cache_hit": bool(hit), "same_points": same, "cpu_ms": None}
+                   "basis_cache_hit": bool(hit), "same_points": same, "cpu_ms": 1e3 * (time.process_time() - cpu)}
             return rec, p
 
         # Capture 0, at the picture pose before anything moves: the rebuilt scene must show what the
         # capture showed (it also warms the renderer up).
-        cpu = time.process_time()
         rec0, p0 = recapture(0, check_key=True)
-        rec0["cpu_ms"] = 1e3 * (time.process_time() - cpu)
         mass0 = rec0["mass"]
         require(mass0 > 0, "the loop's first picture sees no marking", "check the capture's camera and --target colour")
         # the full marking weighs 1 under both rules: capture 0 sees at least the capture's marking
@@ -256,10 +255,8 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, camera=None,
                 step = run._step()
                 run.to_picture(f"{n} explorer steps in this cycle ({done} of {lc.max_steps}); re-capturing")
                 t_pause = time.perf_counter()
-                cpu = time.process_time()
                 rec, p = recapture(step)
                 p = p * run.reachable  # reach: the part the tool cannot follow stays dropped (robot/reach.py)
-                rec["cpu_ms"] = 1e3 * (time.process_time() - cpu)
                 run.paused_s += time.perf_counter() - t_pause
                 log.append(rec)
                 clean = rec["marking_remaining"] <= lc.until_clean or not np.any(p > 0)
@@ -289,11 +286,10 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, camera=None,
                     break
             run.finish(stop)
         total_wall = time.perf_counter() - pause0
-        out = run.result()
         ms = [r["ms"] for r in log]
-        last_rec = log[-1] if log else rec0
-        out.update({
-            "marking_remaining": last_rec["marking_remaining"] if log else None,
+        return {
+            **run.result(),
+            "marking_remaining": log[-1]["marking_remaining"] if log else None,
             "marking_remaining_true": float(obj.marking_remaining()),
             "recaptures": len(log),
             "recapture_ms_median": float(np.median(ms)) if ms else None,
@@ -312,8 +308,7 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, camera=None,
             "realtime_factor_overall": run.scene.t / total_wall if total_wall > 0 else None,
             "closed_loop": {**lc.to_dict(), "camera": {**camera.cfg.to_dict(), "renderer": camera.renderer},
                             "cleaning_model": asdict(obj.cfg.cleaning)},
-        })
-        return out
+        }
     finally:
         if run is not None:
             run.close()

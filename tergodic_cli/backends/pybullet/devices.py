@@ -29,12 +29,7 @@ def kinematic_chain(scene: PyBulletScene) -> tuple[np.ndarray, np.ndarray, np.nd
     joint states are restored afterwards.
     """
     p, cid, rob = scene.p, scene.cid, scene.robot
-    chain = []
-    j = scene.tcp_link
-    while j >= 0:
-        chain.append(j)
-        j = p.getJointInfo(rob, j, physicsClientId=cid)[16]
-    chain.reverse()
+    chain = scene.chain_to(scene.tcp_link)
     saved = p.getJointStates(rob, scene.movable, physicsClientId=cid)
     try:
         for jj in scene.movable:

@@ -17,6 +17,7 @@ import math
 import os
 import re
 import tempfile
+from contextlib import suppress
 
 import numpy as np
 
@@ -234,10 +235,8 @@ class PyBulletScene:
         p = self.p
         idx = list(range(len(self.link_names)))
         states = p.getLinkStates(self.robot, idx, computeForwardKinematics=True, physicsClientId=self.cid)
-        out = {"panda_link0": np.array([0, 0, 0, 0, 0, 0, 1.0])}
-        for name, s in zip(self.link_names, states):
-            out[name] = np.array(tuple(s[4]) + tuple(s[5]))
-        return out
+        return {"panda_link0": np.array([0, 0, 0, 0, 0, 0, 1.0]),
+                **{name: np.array(tuple(s[4]) + tuple(s[5])) for name, s in zip(self.link_names, states)}}
 
     def tool_load(self):
         """:class:`ToolLoad` of everything beyond the sensor joint, in the sensor frame."""
@@ -247,7 +246,7 @@ class PyBulletScene:
         T_sensor = self.sensor_frame_world()
         total, mc = 0.0, np.zeros(3)
         for j in range(p.getNumJoints(rob, physicsClientId=cid)):
-            if j == self.sensor_joint or self._is_beyond(j, self.sensor_joint):
+            if self.sensor_joint in self.chain_to(j):
                 m = p.getDynamicsInfo(rob, j, physicsClientId=cid)[0]
                 com = np.array(p.getLinkState(rob, j, computeForwardKinematics=True, physicsClientId=cid)[0])
                 total += m
@@ -258,14 +257,13 @@ class PyBulletScene:
         inertia = np.array(p.getDynamicsInfo(rob, self.link_index["panda_hand"], physicsClientId=cid)[2], dtype=float)
         return ToolLoad(total, com_sensor, inertia)
 
-    def _is_beyond(self, j: int, ancestor: int) -> bool:
-        p = self.p
+    def chain_to(self, j: int) -> list[int]:
+        """The robot's links from the base to link ``j`` (included), in that order."""
+        chain = []
         while j >= 0:
-            parent = p.getJointInfo(self.robot, j, physicsClientId=self.cid)[16]
-            if parent == ancestor:
-                return True
-            j = parent
-        return False
+            chain.append(j)
+            j = self.p.getJointInfo(self.robot, j, physicsClientId=self.cid)[16]
+        return chain[::-1]
 
     def sensor_frame_world(self) -> np.ndarray:
         """(4, 4) world pose of the F/T frame: the hand's inertial frame (where PyBullet reports the reaction)."""
@@ -322,8 +320,6 @@ class PyBulletScene:
 
     def close(self) -> None:
         if self.cid is not None and self.cid >= 0:
-            try:
+            with suppress(self.p.error):
                 self.p.disconnect(physicsClientId=self.cid)
-            except self.p.error:
-                pass
             self.cid = -1
