@@ -278,7 +278,8 @@ def test_a_press_at_an_angle_lifts_and_touches_again_and_a_repeat_is_a_fault(mug
 def test_an_agent_left_waiting_restarts_at_the_hottest_reachable_point(mug, monkeypatch):
     """Alone in the dropped part nothing is deposited where the agent goes, so it can settle there for
     good (the torus: 900 steps); after WAIT_STEPS it restarts at the reachable target point with the
-    highest heat and the tool moves over to it. Forced: no turn allowed, the tool's spot out of reach."""
+    highest heat, away from the reach boundary, and the tool moves over to it. Forced: no turn
+    allowed, the tool's spot out of reach."""
     import tergodic_cli.robot.run as R
 
     cap, basis = mug
@@ -286,15 +287,17 @@ def test_an_agent_left_waiting_restarts_at_the_hottest_reachable_point(mug, monk
     monkeypatch.setattr(R, "MAX_TURN_DEG", 0.0)
     monkeypatch.setattr(R, "GENTLE_TURN_DEG", -1.0)
     monkeypatch.setattr(R, "WAIT_STEPS", 2)
-    monkeypatch.setattr(R, "TRANSIT_M", 1.0)  # no move-over while it waits: only the restart ends the wait
     ex = _explorer(cap, basis, cfg)
     chosen = []
     with RobotRun(cap, ex, cfg) as run:
         hottest = run._hottest_reachable
 
-        def watch():
+        def watch():  # expected: the hottest of the reachable target points 12 mm or more from any unreachable one
             ok = np.flatnonzero(run.reachable & (run.target() > 0))
-            expect = cap.points[ok[np.argmax(ex.heat[ok])]]  # computed here from the explorer's own heat
+            out = cap.points[~run.reachable]
+            gap = np.array([np.min(np.linalg.norm(out - x, axis=1)) for x in cap.points[ok]])
+            ok = ok[gap >= R.TRANSIT_M] if (gap >= R.TRANSIT_M).any() else ok
+            expect = cap.points[ok[np.argmax(ex.heat[ok])]]
             x = hottest()
             chosen.append((x, expect, ex.step_index))
             return x

@@ -26,6 +26,7 @@ from dataclasses import replace
 from typing import Callable
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.robot import kernels as Kn
@@ -132,8 +133,6 @@ class ContactRun:
     """
 
     def __init__(self, capture, explorer, cfg, arm, T_obj: np.ndarray, on_event: Callable[[int, str], None] | None = None):
-        from scipy.spatial import cKDTree
-
         self.cfg = cfg
         self.capture = capture
         self.explorer = explorer
@@ -285,11 +284,17 @@ class ContactRun:
             self.explorer.set_target(kept)
 
     def _hottest_reachable(self) -> np.ndarray | None:
-        """(3,) the reachable target point (capture frame) where the explorer's heat u is highest; None: none left."""
+        """(3,) the reachable target point (capture frame) where the explorer's heat u is highest, among
+        those TRANSIT_M or more inside the reachable part where there are any; None: none left."""
         ok = np.flatnonzero(self.reachable & (self.target() > 0))
         heat = getattr(self.explorer, "heat", None)
         if len(ok) == 0 or heat is None:
             return None
+        if not self.reachable.all():
+            # On the boundary the agent's next step leads straight back out of reach (the torus: the
+            # same restart every 16 steps for 300 steps, the tool never moving).
+            inner = cKDTree(self.points[~self.reachable]).query(self.points[ok])[0] >= TRANSIT_M
+            ok = ok[inner] if inner.any() else ok
         return self.points[ok[int(np.argmax(np.asarray(heat)[ok]))]]
 
     def _reachable_at(self, x_base: np.ndarray) -> bool:
@@ -541,8 +546,11 @@ class ContactRun:
                 if self.max_tilt_deg is None and not waiting and (far > TRANSIT_M or sharp):
                     # Back in reach away from the waiting tool, or across a sharp edge: lift, move over, touch again.
                     self._last_line = (a_cur, d_cur)
-                    self._move_over(f"the agent is back in reach {1e3 * far:.0f} mm from the waiting tool; moving over"
-                                    if far > TRANSIT_M else f"the agent crossed a sharp edge ({turn:.0f} deg); moving over")
+                    if far > TRANSIT_M:
+                        self._move_over(f"the agent is back in reach {1e3 * far:.0f} mm from the waiting tool; moving over",
+                                        far=True)
+                    else:
+                        self._move_over(f"the agent crossed a sharp edge ({turn:.0f} deg); moving over")
                     a_cur, d_cur = a_new, d_new = self._start_line
                     obs = self.arm.get_observation()
                     turn = 0.0
@@ -752,12 +760,16 @@ class ContactRun:
         """``steps`` explorer steps in contact (state ``explore``); see :meth:`_explore`."""
         self._explore(int(steps), on_step, defer_last)
 
-    def _move_over(self, reason: str) -> None:
-        """explore -> retreat along the tool axis -> hover above the agent -> approach -> explore."""
-        step = self._step()
-        self.sm.go(S.RETREAT, self.t, step, reason)
-        a, d = self._last_line
-        self._retreat(a, d, step)
+    def _move_over(self, reason: str, far: bool = False) -> None:
+        """explore -> retreat along the tool axis -> hover above the agent -> approach -> explore.
+        ``far``: through the picture pose (a joint-space move across the object could sweep through it)."""
+        if far:
+            self.to_picture(reason)
+        else:
+            step = self._step()
+            self.sm.go(S.RETREAT, self.t, step, reason)
+            a, d = self._last_line
+            self._retreat(a, d, step)
         self.hops += 1
         self.engage()
         self.ts[Kn.TS_COUNT], self.ts[Kn.TS_RUN] = 1.0, 0.0
