@@ -154,6 +154,16 @@ def test_a_joint_near_its_limit_marks_the_place_out_of_reach(mug, monkeypatch):
     assert kept[d < 0.005].any()  # without the rule those places stay reachable
 
 
+def _explore_from_an_unreachable_spot(run, cap, steps):
+    """Touch at the start, mark the tool's own 2 mm there out of reach, then explore ``steps``."""
+    run.begin()
+    with run.guarded():
+        run.engage()
+        spot = run._to_obj(run._start_line[0])
+        run.reachable[np.linalg.norm(cap.points - spot, axis=1) < 0.002] = False
+        run.explore(steps)
+
+
 def test_the_agent_moves_on_when_the_rolled_contact_is_out_of_reach(mug, monkeypatch):
     """Where the turn limit leaves the tool's next line on an unreachable point while the agent's own
     point is reachable, the tool waits and the agent moves on by itself (reset to the standing tool it
@@ -167,12 +177,7 @@ def test_the_agent_moves_on_when_the_rolled_contact_is_out_of_reach(mug, monkeyp
     monkeypatch.setattr(R, "GENTLE_TURN_DEG", -1.0)
     events = []
     with RobotRun(cap, _explorer(cap, basis, cfg), cfg, on_event=lambda s, m: events.append(m)) as run:
-        run.begin()
-        with run.guarded():
-            run.engage()
-            spot = run._to_obj(run._start_line[0])
-            run.reachable[np.linalg.norm(cap.points - spot, axis=1) < 0.002] = False
-            run.explore(15)
+        _explore_from_an_unreachable_spot(run, cap, 15)
         assert run.fault is None and run.sm.state == "explore"
     assert any("moving over" in m for m in events)
 
@@ -303,12 +308,7 @@ def test_an_agent_left_waiting_restarts_at_the_hottest_reachable_point(mug, monk
             return x
 
         run._hottest_reachable = watch
-        run.begin()
-        with run.guarded():
-            run.engage()
-            spot = run._to_obj(run._start_line[0])
-            run.reachable[np.linalg.norm(cap.points - spot, axis=1) < 0.002] = False
-            run.explore(8)
+        _explore_from_an_unreachable_spot(run, cap, 8)
         assert run.fault is None
     assert chosen, "the waiting agent never restarted"
     x, expect, k = chosen[0]
