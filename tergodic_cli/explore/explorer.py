@@ -26,15 +26,6 @@ from tergodic_cli.explore.diffusion import ImplicitDiffusion, time_step
 from tergodic_cli.explore.index import cached, cloud_index
 from tergodic_cli.explore.metrics import CoverageScore, source_term
 
-def _internal_phi(evecs: np.ndarray, nk: int, order: np.ndarray) -> np.ndarray:
-    """Φ[:, :nk] with its rows in internal order, C-contiguous (built once per array and nK)."""
-    per_nk = cached("phi", evecs, dict)
-    key = (nk, len(order))  # the whole cloud, or its field set (one per cloud)
-    if key not in per_nk:
-        per_nk[key] = np.ascontiguousarray(evecs[order, :nk], dtype=np.float64)
-    return per_nk[key]
-
-
 #: The explorer keeps coverage, source and heat on the cloud thinned to a voxel grid of this size
 #: (metres) when the cloud is much denser: the paper's capture voxel, where its α and footprint were
 #: tuned. A step then costs about the same on any sampling of an object (docs/explore.md).
@@ -129,7 +120,11 @@ class Explorer:
         self._field = fset
         index = cloud_index(fset.points)
         self._order, self._rank, self._P, self._tree = index.order, index.rank, index.points, index.tree
-        self._phi = _internal_phi(basis.evecs, cfg.nk, fset.sel[self._order])
+        phis = cached("phi", basis.evecs, dict)  # Φ[:, :nK], rows in internal order: once per nK and point set
+        key = (cfg.nk, len(fset.sel))  # the whole cloud, or its field set (one per cloud)
+        if key not in phis:
+            phis[key] = np.ascontiguousarray(basis.evecs[fset.sel[self._order], : cfg.nk], dtype=np.float64)
+        self._phi = phis[key]
         n = len(fset.sel)
         if self.r_a < self.h:
             self.on_event(f"warning: agent radius {self.r_a * 1e3:.2f} mm is below the point spacing h = "
