@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import io
 import re
+from contextlib import suppress
 from pathlib import Path
 
 import numpy as np
@@ -285,8 +286,6 @@ class _Reader:
                     self.fail("", "no 'points' array", "save the cloud with np.savez(points=..., colors=...)")
                 points = data["points"]
                 colors = data["colors"] if "colors" in data.files else None
-        except TergodicError:
-            raise
         except (ValueError, OSError, EOFError, zipfile.BadZipFile, KeyError):  # corrupt zip, object arrays
             self.fail("", "not a readable NPZ (corrupt, or holding pickled objects)", "re-save it with np.savez (numbers only)")
         for field, arr in (("points", points), ("colors", colors)):
@@ -337,12 +336,10 @@ class _Reader:
 
     def _parse_rows(self, rows, k, line_of, fix="every row needs the columns the header declares"):
         """Rows of text into an (n, k) float table; a row with another column count fails naming its line."""
-        try:  # fast path in C; on any doubt, the row-by-row scan below finds and names the bad line
+        with suppress(ValueError):  # fast path in C; on any doubt, the row-by-row scan below finds and names the bad line
             table = np.loadtxt(io.StringIO("\n".join(rows)), dtype=np.float64, ndmin=2, comments=None)
             if table.shape == (len(rows), k):
                 return table
-        except ValueError:
-            pass
         split = [r.replace(",", " ").split() for r in rows]
         for i, toks in enumerate(split):
             if len(toks) != k:
