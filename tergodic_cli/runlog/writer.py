@@ -40,10 +40,7 @@ def _quat_to(axis: int, v) -> tuple[float, float, float, float]:
     """
     x, y, z = (float(c) for c in v)
     n = math.sqrt(x * x + y * y + z * z)
-    if axis == 0:
-        q = (0.0, -z, y, n + x)  # [x̂ × v, |v| + x̂·v]
-    else:
-        q = (-y, x, 0.0, n + z)  # [ẑ × v, |v| + ẑ·v]
+    q = (0.0, -z, y, n + x) if axis == 0 else (-y, x, 0.0, n + z)  # [axis × v, |v| + axis·v]
     qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     if qn < 1e-12 * max(n, 1e-300):
         if n == 0.0:
