@@ -55,9 +55,7 @@ class FieldSet:
         d = np.linalg.norm(points - centre[group], axis=1)
         order = np.lexsort((d, group))
         self.sel = np.sort(order[np.unique(group[order], return_index=True)[1]])
-        slot = np.empty(len(counts), dtype=np.int64)
-        slot[group[self.sel]] = np.arange(len(self.sel))
-        self.rep = slot[group]
+        self.rep = np.argsort(group[self.sel])[group]  # each point's voxel's slot in sel (group[sel] inverted)
         self.mass = np.bincount(self.rep, weights=mass, minlength=len(self.sel))
         self.points = np.ascontiguousarray(points[self.sel])
         self.h = mean_spacing(self.points)
