@@ -145,15 +145,14 @@ class _Reader:
                 self.fail(f"header line {line}", f"element '{name}' with list properties comes before the vertices",
                           "re-export with the vertices first")
             offset += count * row_dtype(props).itemsize
-        dtype = row_dtype(elements[vi][2])
-        n = elements[vi][1]
+        _, n, props, _ = elements[vi]
+        dtype = row_dtype(props)
         after = elements[vi + 1:]
         rest = None  # the rest's length is known when it has fixed-size rows only
         if not any(p[0] == "list" for e in after for p in e[2]):
             rest = sum(count * row_dtype(props).itemsize for _, count, props, _ in after)
         label = ("vertices", f"{n} vertices", "'element vertex'", _FIX_PLY_COUNT)
         table = _float_columns(self._records(offset, dtype, n, label, rest))
-        props = elements[vi][2]
         return table, lambda i, j: f"vertex {i}" + (f" ('{props[j][1]}')" if j is not None else "")
 
     # ------------------------------------------------------------------------------- PCD
