@@ -331,8 +331,7 @@ class RunLog:
         q = robot.get("q")
         if q is not None:
             q = np.asarray(q, dtype=np.float64).ravel().tolist()
-            dq = np.asarray(robot.get("dq", np.zeros(len(q))), dtype=np.float64).ravel().tolist()
-            tau = np.asarray(robot.get("tau", np.zeros(len(q))), dtype=np.float64).ravel().tolist()
+            dq, tau = (np.asarray(robot.get(k, np.zeros(len(q))), dtype=np.float64).ravel().tolist() for k in ("dq", "tau"))
             names = list(robot.get("joint_names") or [f"joint{i + 1}" for i in range(len(q))])
             joints = [M.JointState(name=str(name), position=a, velocity=b, effort=c)
                       for name, a, b, c in zip(names, q, dq, tau)]
