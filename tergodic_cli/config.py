@@ -76,9 +76,9 @@ def _coerce(hint, value, where: str):
         if value is None and type(None) in args:
             return None
         options = [a for a in args if a is not type(None)]
-        hint = options[0] if len(options) == 1 else hint
         if len(options) > 1:
             return value  # a free union: the stage's validation checks it
+        hint = options[0]
         args = typing.get_args(hint)
     if dataclasses.is_dataclass(hint):
         return from_dict(hint, value, where)

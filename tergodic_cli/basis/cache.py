@@ -212,10 +212,8 @@ def _from_arrays(arrays: dict[str, np.ndarray], points: np.ndarray, order: np.nd
     L = sp.csr_matrix((arrays["L_data"], arrays["L_indices"], arrays["L_indptr"]), shape=(n, n))
     if np.array_equal(order, stored_order):  # the caller's order is the stored one: no copies
         return Basis(points, L, arrays["mass"], arrays["evals"], arrays["evecs"], float(arrays["h"]), meta)
-    # Caller's row i is canonical point inv[i], which is stored row stored_order[inv[i]].
-    inv = np.empty_like(order)
-    inv[order] = np.arange(n)
-    rows = stored_order[inv]
+    # Caller's row i is canonical point k = argsort(order)[i] (order inverted), stored as row stored_order[k].
+    rows = stored_order[np.argsort(order)]
     return Basis(points, L[rows][:, rows].tocsr(), arrays["mass"][rows], arrays["evals"], arrays["evecs"][rows],
                  float(arrays["h"]), meta)
 

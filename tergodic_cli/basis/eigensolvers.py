@@ -80,27 +80,24 @@ class SymmetricFactor:
         self.solve = self._solver.solve
         self._set_inertia(self._solver.factors()[1], K if check_accuracy else None)
 
-    def refactor(self, K: sp.spmatrix, check_accuracy: bool = False) -> "SymmetricFactor":
-        """Factorise K in place.
+    def refactor(self, K: sp.spmatrix) -> "SymmetricFactor":
+        """Factorise K in place (its inertia only: no accuracy check).
 
         Parameters
         ----------
         K : (n, n) sparse
             Same sparsity pattern as the first matrix.
-        check_accuracy : bool
-            Check the factor's residual.
 
         Returns
         -------
         SymmetricFactor
             ``self``.
         """
-        K = sp.csc_matrix(K)
         try:
             self._solver.update(sp.triu(K, format="csc"), upper=True)
         except Exception as exc:
             raise EigensolverFailure(f"LDL factorisation failed ({exc})") from None
-        self._set_inertia(self._solver.factors()[1], K if check_accuracy else None)
+        self._set_inertia(self._solver.factors()[1], None)
         return self
 
     def _set_inertia(self, d, K: sp.spmatrix | None) -> None:
@@ -137,28 +134,25 @@ class ShiftedMatrix:
         return sp.csc_matrix((data, self.A.indices, self.A.indptr), shape=self.A.shape)
 
 
-def _choose_shift(A: "ShiftedMatrix", area: float, n_wanted: int, n_null: int,
-                  max_tries: int = 4) -> tuple[float, SymmetricFactor]:
+def _choose_shift(A: "ShiftedMatrix", area: float, n_wanted: int, n_null: int) -> tuple[float, SymmetricFactor]:
     """σ with about ``SHIFT_SHARE`` of the ``n_wanted`` non-zero eigenvalues below it, and the
     factor of A − σI: Weyl's law for a surface (λ_k ≈ 4πk / area) first, then corrected by
     each factor's inertia (the exact count below σ), assuming N(λ) ∝ λ (2-D)."""
     target = max(1.0, SHIFT_SHARE * n_wanted)
     sigma = 4.0 * math.pi * (n_wanted + n_null) / area * SHIFT_SHARE * 0.75
     best = None
-    for _ in range(max_tries):
+    for _ in range(4):
         try:
             factor = SymmetricFactor(A(sigma))
         except EigensolverFailure:
             sigma *= 0.97  # nudged off a pivot breakdown
             continue
         below = factor.n_negative - n_null
-        ok_high = below <= 0.8 * n_wanted and below < n_wanted
-        if ok_high:
+        if below <= 0.8 * n_wanted:
             best = (sigma, factor)
             if below >= 0.3 * n_wanted:
                 return best
-        ratio = target / max(below, 0.5)
-        sigma *= min(4.0, max(0.25, ratio))
+        sigma *= min(4.0, max(0.25, target / max(below, 0.5)))
     if best is None:
         raise EigensolverFailure("no usable shift found")
     return best
@@ -265,38 +259,35 @@ def tridiagonal_eigh(alpha: np.ndarray, beta: np.ndarray) -> tuple[np.ndarray, n
 # Solvers
 
 
-def _finish(Y: np.ndarray, L: sp.spmatrix, s: np.ndarray, Z: np.ndarray, nk: int,
-            lam_scale: float, report: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Certify Ritz vectors Y (n, ne) of A, orthonormal and orthogonal to Z, and return (evals (nk,),
-    evecs φ (n, nk)). Eigenvalues are Rayleigh quotients; every true residual must satisfy
-    ‖A y − λ y‖ ≤ max(TOL_RESIDUAL · max λ, TOL_BACKWARD · ‖A‖)."""
+def _finish(Y: np.ndarray, L: sp.spmatrix, s: np.ndarray, Z: np.ndarray, lam_scale: float,
+            report: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Certify Ritz vectors Y (n, ne >= 1) of A, orthonormal and orthogonal to Z (n, c), and return
+    (evals (c + ne,), evecs φ (n, c + ne)). Eigenvalues are Rayleigh quotients; every true residual
+    must satisfy ‖A y − λ y‖ ≤ max(TOL_RESIDUAL · max λ, TOL_BACKWARD · ‖A‖)."""
     n, ne = Y.shape
     c = Z.shape[1]
     evecs = np.empty((n, c + ne))
     evecs[:, :c] = Z / s[:, None]
     Phi = evecs[:, c:]
     np.divide(Y, s[:, None], out=Phi)  # φ = S⁻¹ y
-    if ne:
-        AY = L @ Phi  # L φ, (n, ne)
-        AY /= s[:, None]  # A y
-        lam = np.einsum("ij,ij->j", Y, AY)
-        AY -= Y * lam
-        res = np.sqrt(np.einsum("ij,ij->j", AY, AY))
-        lam_top = max(lam_scale, float(np.max(np.abs(lam))))
-        a_norm = float(np.max((abs(L) @ (1.0 / s)) / s))  # Gershgorin bound on ‖A‖
-        worst = float(res.max() / lam_top)
-        report["max_relative_residual"] = worst
-        if not res.max() <= max(TOL_RESIDUAL * lam_top, TOL_BACKWARD * a_norm):
-            raise EigensolverFailure(f"residual {worst:.1e} (relative to λ_max) above {TOL_RESIDUAL:.0e}")
-        if np.any(lam <= 0):
-            raise EigensolverFailure("a non-null Ritz value is not positive")
-    else:
-        lam = np.zeros(0)
+    AY = L @ Phi  # L φ, (n, ne)
+    AY /= s[:, None]  # A y
+    lam = np.einsum("ij,ij->j", Y, AY)
+    AY -= Y * lam
+    res = np.sqrt(np.einsum("ij,ij->j", AY, AY))
+    lam_top = max(lam_scale, float(np.max(np.abs(lam))))
+    a_norm = float(np.max((abs(L) @ (1.0 / s)) / s))  # Gershgorin bound on ‖A‖
+    worst = float(res.max() / lam_top)
+    report["max_relative_residual"] = worst
+    if not res.max() <= max(TOL_RESIDUAL * lam_top, TOL_BACKWARD * a_norm):
+        raise EigensolverFailure(f"residual {worst:.1e} (relative to λ_max) above {TOL_RESIDUAL:.0e}")
+    if np.any(lam <= 0):
+        raise EigensolverFailure("a non-null Ritz value is not positive")
     evals = np.concatenate([np.zeros(c), lam])
     order = np.argsort(evals, kind="stable")
     if np.any(np.diff(order) < 0):
         evals, evecs = evals[order], np.ascontiguousarray(evecs[:, order])
-    return evals[:nk], (evecs if c + ne == nk else np.ascontiguousarray(evecs[:, :nk]))
+    return evals, evecs
 
 
 def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int = 0,
@@ -386,7 +377,7 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
     Q, m = _lanczos(factor.solve, q0, Z, max_dim, on_check, check_from,
                    check_every=lambda m: state.get("next_in", max(4, m // 20)))
     Y = Q[:m].T @ state["U"]  # Ritz vectors as columns, (n, ne)
-    evals, evecs = _finish(Y, L, s, Z, nk, float(np.max(state["lam"])), report)
+    evals, evecs = _finish(Y, L, s, Z, float(np.max(state["lam"])), report)
     # Completeness: Sylvester's law must count exactly nk eigenvalues below a point τ just
     # above the largest one found. This catches an eigenvalue Lanczos skipped (e.g. one
     # copy of an exactly repeated eigenvalue), above σ where the first count cannot see.
@@ -415,7 +406,7 @@ def _dense_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, report: dict):
     # Lift the null space above the spectrum so the first ne eigenpairs are the wanted ones.
     A += (2.0 * np.abs(A).sum(axis=1).max() + 1.0) * (Z @ Z.T)
     w, Y = eigh(A, subset_by_index=[0, ne - 1], driver="evr")
-    return _finish(np.ascontiguousarray(Y), L, s, Z, nk, float(np.max(np.abs(w))), report)
+    return _finish(np.ascontiguousarray(Y), L, s, Z, float(np.max(np.abs(w))), report)
 
 
 def arpack_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, sigma: float = 1e-12,

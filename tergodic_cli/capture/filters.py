@@ -53,10 +53,9 @@ def voxel_downsample(points: np.ndarray, colors: np.ndarray | None, target: np.n
     colors : (n, 3) float64 in [0, 1], or None.
     target : (n,) target weight in [0, 1] (bool: target-coloured points).
     voxel : voxel edge length in metres (> 0).
-    rule : ``"fraction"`` or ``"intensity"``: p is the mean target weight in the voxel (the share of
-        target points for a bool ``target``);
-        ``"all"``: p is 1 only when every point in the voxel weighs 1 (the
-        authors' public code), else 0.
+    rule : one of VOXEL_RULES (the pipeline checks it). ``"fraction"`` or ``"intensity"``: p is the
+        mean target weight in the voxel (the share of target points for a bool ``target``);
+        ``"all"``: p is 1 only when every point in the voxel weighs 1 (the authors' public code), else 0.
 
     Returns
     -------
@@ -78,8 +77,6 @@ def voxel_downsample(points: np.ndarray, colors: np.ndarray | None, target: np.n
     p = mean_of(target.astype(np.float64))
     if rule == "all":
         p = (p >= 1.0).astype(np.float64)
-    elif rule not in ("fraction", "intensity"):
-        raise ValueError(f"unknown voxel rule {rule!r}")
     return mean_of(points), (mean_of(colors) if colors is not None else None), p
 
 

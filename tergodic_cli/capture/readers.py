@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import io
 import re
+from contextlib import suppress
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +22,6 @@ import numpy as np
 from tergodic_cli.errors import TergodicError
 
 SUPPORTED = (".ply", ".pcd", ".xyz", ".xyzrgb", ".txt", ".npz")
-COLOUR_DEPTHS = (8, 16)
 
 _FIX_EXPORT = "re-export the cloud"
 _FIX_INVALID = "remove those rows, or pass --drop-invalid to drop them"
@@ -40,8 +40,8 @@ def read_cloud(path: str | Path, drop_invalid: bool = False,
     drop_invalid : bool
         Keep rows with NaN/inf (the pipeline drops them) instead of refusing.
     colour_depth : int, optional
-        8 or 16 bits per channel for integer colours whose depth the file does not say (text,
-        NPZ); None reads 0..1 as floats, 0..255 as 8-bit and refuses more.
+        8 or 16 bits per channel (checked by the pipeline) for integer colours whose depth the
+        file does not say (text, NPZ); None reads 0..1 as floats, 0..255 as 8-bit and refuses more.
 
     Returns
     -------
@@ -51,8 +51,6 @@ def read_cloud(path: str | Path, drop_invalid: bool = False,
         In [0, 1]; None for a colourless cloud.
     """
     path = Path(path)
-    if colour_depth is not None and colour_depth not in COLOUR_DEPTHS:
-        raise TergodicError(f"--colour-depth {colour_depth} is not supported", "use --colour-depth 8 or 16")
     if not path.exists():
         raise TergodicError(f"no such file: {path}", "check the path given to --from")
     if not path.is_file():
@@ -69,7 +67,7 @@ def read_cloud(path: str | Path, drop_invalid: bool = False,
         raise TergodicError(f"cannot read {path}: {(exc.strerror or str(exc)).lower()}", "check the file's permissions") from None
     if not blob:
         raise TergodicError(f"{path.name} is an empty file", "re-export the point cloud")
-    reader = _Reader(path, blob, drop_invalid, colour_depth)
+    reader = _Reader(path.name, blob, drop_invalid, colour_depth)
     read = {".ply": reader.ply, ".pcd": reader.pcd, ".npz": reader.npz}.get(suffix, reader.text)
     with np.errstate(all="ignore"):  # a garbage body's NaNs are reported as such, not as numpy warnings
         return read()
@@ -78,8 +76,8 @@ def read_cloud(path: str | Path, drop_invalid: bool = False,
 class _Reader:
     """One file's bytes and the options that decide what is an error."""
 
-    def __init__(self, path: Path, blob: bytes, drop_invalid: bool, colour_depth: int | None):
-        self.path, self.name, self.blob = path, path.name, blob
+    def __init__(self, name: str, blob: bytes, drop_invalid: bool, colour_depth: int | None):
+        self.name, self.blob = name, blob
         self.drop_invalid, self.colour_depth = drop_invalid, colour_depth
 
     def fail(self, where: str, problem: str, fix: str = _FIX_EXPORT):
@@ -147,17 +145,14 @@ class _Reader:
                 self.fail(f"header line {line}", f"element '{name}' with list properties comes before the vertices",
                           "re-export with the vertices first")
             offset += count * row_dtype(props).itemsize
-        dtype = row_dtype(elements[vi][2])
-        n = elements[vi][1]
+        _, n, props, _ = elements[vi]
+        dtype = row_dtype(props)
         after = elements[vi + 1:]
         rest = None  # the rest's length is known when it has fixed-size rows only
         if not any(p[0] == "list" for e in after for p in e[2]):
             rest = sum(count * row_dtype(props).itemsize for _, count, props, _ in after)
         label = ("vertices", f"{n} vertices", "'element vertex'", _FIX_PLY_COUNT)
-        from numpy.lib.recfunctions import structured_to_unstructured  # numpy.ma: 60 ms, so here
-
-        table = structured_to_unstructured(self._records(offset, dtype, n, label, rest), np.float64)
-        props = elements[vi][2]
+        table = _float_columns(self._records(offset, dtype, n, label, rest))
         return table, lambda i, j: f"vertex {i}" + (f" ('{props[j][1]}')" if j is not None else "")
 
     # ------------------------------------------------------------------------------- PCD
@@ -225,9 +220,7 @@ class _Reader:
                 rec = self._records(pos, dtype, points, label, 0)
             else:
                 rec = self._pcd_compressed(pos, dtype, points)
-            from numpy.lib.recfunctions import structured_to_unstructured  # numpy.ma: 60 ms, so here
-
-            table = structured_to_unstructured(rec, np.float64)
+            table = _float_columns(rec)
             if packed is not None:
                 bits = rec[f"f{names.index(packed)}"].view(np.uint32)
             where = lambda i, j: f"point {i}" + (f" ('{names[j]}')" if j is not None else "")
@@ -292,8 +285,6 @@ class _Reader:
                     self.fail("", "no 'points' array", "save the cloud with np.savez(points=..., colors=...)")
                 points = data["points"]
                 colors = data["colors"] if "colors" in data.files else None
-        except TergodicError:
-            raise
         except (ValueError, OSError, EOFError, zipfile.BadZipFile, KeyError):  # corrupt zip, object arrays
             self.fail("", "not a readable NPZ (corrupt, or holding pickled objects)", "re-save it with np.savez (numbers only)")
         for field, arr in (("points", points), ("colors", colors)):
@@ -344,12 +335,10 @@ class _Reader:
 
     def _parse_rows(self, rows, k, line_of, fix="every row needs the columns the header declares"):
         """Rows of text into an (n, k) float table; a row with another column count fails naming its line."""
-        try:  # fast path in C; on any doubt, the row-by-row scan below finds and names the bad line
+        with suppress(ValueError):  # fast path in C; on any doubt, the row-by-row scan below finds and names the bad line
             table = np.loadtxt(io.StringIO("\n".join(rows)), dtype=np.float64, ndmin=2, comments=None)
             if table.shape == (len(rows), k):
                 return table
-        except ValueError:
-            pass
         split = [r.replace(",", " ").split() for r in rows]
         for i, toks in enumerate(split):
             if len(toks) != k:
@@ -431,6 +420,11 @@ _PCD_AS_PLY = {("U", 1): "uchar", ("U", 2): "ushort", ("F", 4): "float", ("F", 8
 def _printable(text: str) -> str:
     """Quoted file content for a one-line message: control characters become '?'."""
     return "".join(ch if ch.isprintable() else "?" for ch in text)
+
+
+def _float_columns(rec: np.ndarray) -> np.ndarray:
+    """(n, k) float64 of a structured array's k scalar fields (numpy.lib.recfunctions imports numpy.ma: 60 ms)."""
+    return np.column_stack([rec[name].astype(np.float64) for name in rec.dtype.names])
 
 
 def _int(text: str) -> int | None:

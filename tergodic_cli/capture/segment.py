@@ -21,7 +21,7 @@ from tergodic_cli.errors import TergodicError
 
 @dataclass(frozen=True)
 class HsvRange:
-    """An HSV box: hue interval in degrees (may wrap through 0), lower/upper s and v bounds."""
+    """An HSV box: hue interval in degrees (may wrap through 0; 0..360 is any hue), lower/upper s and v bounds."""
 
     hue_lo: float
     hue_hi: float
@@ -29,7 +29,6 @@ class HsvRange:
     s_max: float = 1.0
     v_min: float = 0.0
     v_max: float = 1.0
-    any_hue: bool = False
 
     def contains(self, hsv: np.ndarray) -> np.ndarray:
         """Which colours are in the range.
@@ -44,9 +43,7 @@ class HsvRange:
         (n,) bool
         """
         h, s, v = hsv[:, 0], hsv[:, 1], hsv[:, 2]
-        if self.any_hue:
-            hue_ok = np.ones(len(h), dtype=bool)
-        elif self.hue_lo <= self.hue_hi:
+        if self.hue_lo <= self.hue_hi:
             hue_ok = (h >= self.hue_lo) & (h <= self.hue_hi)
         else:  # wraps through 0/360, e.g. red
             hue_ok = (h >= self.hue_lo) | (h <= self.hue_hi)
@@ -65,7 +62,7 @@ class HsvRange:
         (n,) float in [0, 1]
         """
         inside = self.contains(hsv)
-        if self.any_hue or self.s_min <= FAINT_S:  # no saturation to ramp on (black, white, grey ranges)
+        if self.s_min <= FAINT_S:  # no saturation to ramp on (black, white, grey ranges)
             return inside.astype(np.float64)
         pale = HsvRange(self.hue_lo, self.hue_hi, FAINT_S, self.s_min, self.v_min, self.v_max).contains(hsv)
         ramp = np.clip((hsv[:, 1] - FAINT_S) / (self.s_min - FAINT_S), 0.0, 1.0)
@@ -80,8 +77,8 @@ _CHROMATIC = {"red": 0.0, "orange": 30.0, "yellow": 60.0, "green": 120.0, "cyan"
 HUE_TOLERANCE_DEG = 20.0
 NAMED = {name: HsvRange((c - HUE_TOLERANCE_DEG) % 360.0, (c + HUE_TOLERANCE_DEG) % 360.0, s_min=0.5, v_min=0.25)
          for name, c in _CHROMATIC.items()}
-NAMED["black"] = HsvRange(0.0, 360.0, v_max=0.2, any_hue=True)
-NAMED["white"] = HsvRange(0.0, 360.0, s_max=0.2, v_min=0.8, any_hue=True)
+NAMED["black"] = HsvRange(0.0, 360.0, v_max=0.2)
+NAMED["white"] = HsvRange(0.0, 360.0, s_max=0.2, v_min=0.8)
 
 
 def parse_target(spec: str) -> HsvRange | None:

@@ -242,8 +242,7 @@ def _thin_mug(rng, spacing):
 def _sphere(rng, spacing):
     radius = SPHERE_RADIUS
     n = _count(4 * np.pi * radius**2, spacing)
-    v = rng.normal(size=(n, 3))
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    v = _unit(rng.normal(size=(n, 3)))
     pts = radius * v + np.array([0, 0, radius])
     return _Sheet(pts, v, pts[:, :2], v[:, 2] > 0, radius)  # marking only on the upper half
 

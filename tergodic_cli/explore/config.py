@@ -131,10 +131,9 @@ def validate_config(cfg: ExploreConfig) -> None:
     ----------
     cfg : ExploreConfig
     """
-    require(int(cfg.steps) >= 1, f"--steps must be >= 1, got {cfg.steps}", "e.g. --steps 1000")
+    for opt, v, eg in (("--steps", cfg.steps, 1000), ("--nk", cfg.nk, 200), ("--agents", cfg.n_agents, 1)):
+        require(int(v) >= 1, f"{opt} must be >= 1, got {v}", f"e.g. {opt} {eg}")
     parse_alpha(cfg.alpha)
-    require(int(cfg.nk) >= 1, f"--nk must be >= 1, got {cfg.nk}", "e.g. --nk 200")
-    require(int(cfg.n_agents) >= 1, f"--agents must be >= 1, got {cfg.n_agents}", "e.g. --agents 1")
     for opt, v, unit, eg in (("--agent-radius", cfg.agent_radius, "metres", "0.0075 (7.5 mm)"),
                              ("--v-max", cfg.v_max, "m/s", "0.003"),
                              ("--a-max", cfg.a_max, "m/s²", "0.003"), ("--dt", cfg.dt, "s", "1")):

@@ -18,21 +18,13 @@ from typing import Callable
 
 import numpy as np
 
+from tergodic_cli.capture.filters import mean_spacing
 from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.explore import kernels as K
 from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_config
 from tergodic_cli.explore.diffusion import ImplicitDiffusion, time_step
 from tergodic_cli.explore.index import cached, cloud_index
 from tergodic_cli.explore.metrics import CoverageScore, source_term
-
-def _internal_phi(evecs: np.ndarray, nk: int, order: np.ndarray) -> np.ndarray:
-    """Φ[:, :nk] with its rows in internal order, C-contiguous (built once per array and nK)."""
-    per_nk = cached("phi", evecs, dict)
-    key = (nk, len(order))  # the whole cloud, or its field set (one per cloud)
-    if key not in per_nk:
-        per_nk[key] = np.ascontiguousarray(evecs[order, :nk], dtype=np.float64)
-    return per_nk[key]
-
 
 #: The explorer keeps coverage, source and heat on the cloud thinned to a voxel grid of this size
 #: (metres) when the cloud is much denser: the paper's capture voxel, where its α and footprint were
@@ -53,8 +45,6 @@ class FieldSet:
             self.sel, self.rep, self.mass, self.points, self.h = np.arange(n), np.arange(n), mass, points, h
             self.thinned = False
             return
-        from scipy.spatial import cKDTree
-
         cell = np.floor((points - points.min(axis=0)) / FIELD_VOXEL).astype(np.int64)
         _, group, counts = np.unique(cell, axis=0, return_inverse=True, return_counts=True)
         group = group.ravel()
@@ -65,13 +55,10 @@ class FieldSet:
         d = np.linalg.norm(points - centre[group], axis=1)
         order = np.lexsort((d, group))
         self.sel = np.sort(order[np.unique(group[order], return_index=True)[1]])
-        slot = np.empty(len(counts), dtype=np.int64)
-        slot[group[self.sel]] = np.arange(len(self.sel))
-        self.rep = slot[group]
+        self.rep = np.argsort(group[self.sel])[group]  # each point's voxel's slot in sel (group[sel] inverted)
         self.mass = np.bincount(self.rep, weights=mass, minlength=len(self.sel))
         self.points = np.ascontiguousarray(points[self.sel])
-        dist, _ = cKDTree(self.points).query(self.points, 4)
-        self.h = float(dist[:, 1:].mean())
+        self.h = mean_spacing(self.points)
         self.thinned = True
 
 
@@ -119,7 +106,6 @@ class Explorer:
         self.mass = basis.mass
         self.h = float(basis.h)
         self.evals = basis.evals[: cfg.nk]
-        self._L = basis.L
         self.eps = cfg.footprint_epsilon
         self.r_a = float(cfg.agent_radius)
         self._k = int(cfg.n_neighbors)
@@ -132,7 +118,11 @@ class Explorer:
         self._field = fset
         index = cloud_index(fset.points)
         self._order, self._rank, self._P, self._tree = index.order, index.rank, index.points, index.tree
-        self._phi = _internal_phi(basis.evecs, cfg.nk, fset.sel[self._order])
+        phis = cached("phi", basis.evecs, dict)  # Φ[:, :nK], rows in internal order: once per nK and point set
+        key = (cfg.nk, len(fset.sel))  # the whole cloud, or its field set (one per cloud)
+        if key not in phis:
+            phis[key] = np.ascontiguousarray(basis.evecs[fset.sel[self._order], : cfg.nk], dtype=np.float64)
+        self._phi = phis[key]
         n = len(fset.sel)
         if self.r_a < self.h:
             self.on_event(f"warning: agent radius {self.r_a * 1e3:.2f} mm is below the point spacing h = "
@@ -141,7 +131,6 @@ class Explorer:
         self._mode = (K.HEAT_FULL if not self._spectral else
                       K.HEAT_CARRY if cfg.diffusion == "carry" else K.HEAT_SOURCE)
         self._schedule = parse_alpha(cfg.alpha)
-        self._multi_alpha = len(self._schedule) > 1
         self._alpha = None
         self._implicit: dict[float, ImplicitDiffusion] = {}
 
@@ -172,8 +161,6 @@ class Explorer:
         self._u_orig = np.zeros(n if not self._spectral else 0)  # ... and in the cloud's order
         self.step_index, self.last_step_ms = 0, 0.0
         self._score = None
-        self.set_target(target)
-
         starts = np.asarray(starts, dtype=np.float64)
         require(starts.ndim == 2 and starts.shape[1] == 3, f"starts must be an (N, 3) array, got shape {starts.shape}",
                 "give one x,y,z start per agent")
@@ -191,7 +178,7 @@ class Explorer:
         self._reset_status = np.full(N, -1, dtype=np.int64)
         self._no_deposits = np.zeros((0, 3))
         self._resync = int(cfg.resync_every)
-        self._bind()
+        self.set_target(target)
         hint = np.asarray(cfg.normal_hint, dtype=float)
         hint = hint / np.linalg.norm(hint)
         for i, x0 in enumerate(starts):
@@ -318,19 +305,15 @@ class Explorer:
         else:
             self._score.set_target(p, self._full)
         self._set_metrics(float("nan"))
-        if hasattr(self, "_state"):
-            self._bind()
+        # the step kernel's state arguments, bound once per target (the heap arrays change with it)
+        self._state = (self._P, *self._tree, self._full.tree, self._tgt, self._phi, self._pf,
+                       self._pb, self._pi, self._sp, self._heap_keys, self._heap_idx, self._fs,
+                       self._is, self._prm, self._ag, self._nbrs, self._k)
 
     def _set_metrics(self, residual_ref: float) -> None:
         sc = self._score.metrics()
         self._metrics = {"ergodicity": sc["ergodicity"], "residual_ref": residual_ref,
                          "touched_fraction": sc["touched_fraction"]}
-
-    def _bind(self) -> None:
-        """The step kernel's state arguments, bound once (the heap arrays change with the target)."""
-        self._state = (self._P, *self._tree, self._full.tree, self._tgt, self._phi, self._pf,
-                       self._pb, self._pi, self._sp, self._heap_keys, self._heap_idx, self._fs,
-                       self._is, self._prm, self._ag, self._nbrs, self._k)
 
     @property
     def edge_events(self) -> int:
@@ -363,11 +346,6 @@ class Explorer:
         return self._field.sel[self._order[self._nbrs]]
 
     @property
-    def evecs(self) -> np.ndarray:
-        """(n, nK) the eigenvectors in use, in the cloud's order."""
-        return self._basis.evecs[:, : self.cfg.nk]
-
-    @property
     def source(self) -> np.ndarray:
         return source_term(self.p, self.coverage, self.mass, norm=self.cfg.coverage_norm)
 
@@ -391,7 +369,7 @@ class Explorer:
             return self._u_orig.copy()
         f = self._field
         if f.thinned:  # the spectral part on every point; the residual from each one's field point
-            u = K.expand_rows(np.ascontiguousarray(self.evecs), self._sp[K.SP_A])
+            u = K.expand_rows(np.ascontiguousarray(self._basis.evecs[:, : self.cfg.nk]), self._sp[K.SP_A])
         else:
             u = K.expand_rows(self._phi, self._sp[K.SP_A])[self._rank]
         if self._mode == K.HEAT_CARRY:
@@ -434,7 +412,7 @@ class Explorer:
             elif self.cfg.integrator == "resolvent":
                 self._sp[K.SP_DECAY] = 1.0 / (1.0 + self.evals * dt)  # eq. 4: (M + δt L)⁻¹ M in the eigenbasis
             elif alpha not in self._implicit:
-                self._implicit[alpha] = ImplicitDiffusion(self._L, self.mass, dt)
+                self._implicit[alpha] = ImplicitDiffusion(self._basis.L, self.mass, dt)
 
     # ------------------------------------------------------------------ the step
     def step(self, deposit_at: np.ndarray | None = None, agent_at: np.ndarray | None = None) -> None:
@@ -448,8 +426,7 @@ class Explorer:
             gradient step, e.g. the measured tool tip (eq. 22).
         """
         t0 = time.perf_counter()
-        if self._alpha is None or self._multi_alpha:
-            self._set_alpha()
+        self._set_alpha()
         if deposit_at is None:
             deposits, n_dep = self._no_deposits, -1
         else:

@@ -39,23 +39,11 @@ def summarize_run(series: dict[str, np.ndarray], config: dict, extra: dict | Non
     if any(len(a) != steps for a in arrays.values()):
         raise ValueError("all series must have one value per step")
 
-    def final(name: str) -> float | None:
-        return _num(arrays[name][-1]) if steps else None
-
     def at(name: str) -> dict[str, float | None]:
         return {str(m): (_num(arrays[name][m - 1]) if steps >= m else None) for m in MILESTONES}
 
-    summary = {
-        "steps": steps,
-        "ergodicity": final("ergodicity"),
-        "residual_ref": final("residual_ref"),
-        "touched_fraction": final("touched_fraction"),
-        "ergodicity_at": at("ergodicity"),
-        "residual_ref_at": at("residual_ref"),
-        "touched_fraction_at": at("touched_fraction"),
-        "step_ms_median": _num(np.median(arrays["step_ms"])) if steps else None,
-        "seed": config.get("seed"),
-        "config": dict(config),
-    }
-    summary.update(extra or {})
-    return summary
+    metrics = ("ergodicity", "residual_ref", "touched_fraction")  # final values, then at the milestones
+    return {"steps": steps, **{k: _num(arrays[k][-1]) if steps else None for k in metrics},
+            **{f"{k}_at": at(k) for k in metrics},
+            "step_ms_median": _num(np.median(arrays["step_ms"])) if steps else None,
+            "seed": config.get("seed"), "config": dict(config), **(extra or {})}

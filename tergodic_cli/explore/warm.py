@@ -20,11 +20,10 @@ def _cached(dispatcher) -> bool:
     """Whether numba's disk cache holds a compiled version of ``dispatcher`` for its current source."""
     if getattr(dispatcher, "signatures", None):
         return True  # compiled (or loaded) in this process already
-    cache = getattr(dispatcher, "_cache", None)
     try:
         # numba's own index reader: empty when the index is missing, from another numba, or
         # stale (the kernels' source changed since). Private API, hence the fallback below.
-        return bool(cache._cache_file._load_index())
+        return bool(dispatcher._cache._cache_file._load_index())
     except Exception:
         name = getattr(dispatcher, "__qualname__", getattr(dispatcher, "__name__", ""))
         module = sys.modules.get(getattr(dispatcher, "__module__", ""), None)

@@ -142,8 +142,7 @@ def _check_head(path: Path) -> None:
     head = _read_at(path, 0, len(_MAGIC) + 9)
     if len(head) == 0:
         raise TergodicError(f"{path} is empty (0 bytes)", "the run wrote nothing; re-run 'tergodic explore'")
-    n = min(len(head), len(_MAGIC))
-    if head[:n] != _MAGIC[:n]:
+    if not _MAGIC.startswith(head[:len(_MAGIC)]):
         raise TergodicError(f"{path} is not an MCAP file (bad magic bytes)", _RUN_FIX)
     if len(head) < len(_MAGIC) + 9:
         raise TergodicError(f"{path} has a truncated header ({len(head)} bytes)", "the run died at start; re-run it")

@@ -40,10 +40,7 @@ def _quat_to(axis: int, v) -> tuple[float, float, float, float]:
     """
     x, y, z = (float(c) for c in v)
     n = math.sqrt(x * x + y * y + z * z)
-    if axis == 0:
-        q = (0.0, -z, y, n + x)  # [x̂ × v, |v| + x̂·v]
-    else:
-        q = (-y, x, 0.0, n + z)  # [ẑ × v, |v| + ẑ·v]
+    q = (0.0, -z, y, n + x) if axis == 0 else (-y, x, 0.0, n + z)  # [axis × v, |v| + axis·v]
     qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     if qn < 1e-12 * max(n, 1e-300):
         if n == 0.0:
@@ -111,7 +108,7 @@ class RunLog:
                  versions: Mapping[str, Any] | None = None, capture_sidecar: Mapping[str, Any] | None = None,
                  points: np.ndarray, target: np.ndarray | None = None, cloud_every: int = 50,
                  compression: str = "lz4", flush_every: int | None = None, flush_seconds: float = 2.0,
-                 chunk_bytes: int = CHUNK_BYTES, time_origin_ns: int | None = None, live: Any = None):
+                 time_origin_ns: int | None = None, live: Any = None):
         import foxglove
         from foxglove import channels as C
         from foxglove.mcap import MCAPCompression, MCAPWriteOptions
@@ -154,7 +151,7 @@ class RunLog:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         # zstd level 1: clouds compress ~30% faster than at the default 3, for ~1% more bytes (measured)
         opts = MCAPWriteOptions(compression=MCAPCompression.Zstd if compression == "zstd" else MCAPCompression.Lz4,
-                                profile=S.PROFILE, chunk_size=int(chunk_bytes), compression_threads=0,
+                                profile=S.PROFILE, chunk_size=CHUNK_BYTES, compression_threads=0,
                                 compression_level=1 if compression == "zstd" else 0)
         try:  # written in place (not temp+rename): a killed run must leave its log behind
             self._w = foxglove.open_mcap(str(self.path), allow_overwrite=True, context=ctx, writer_options=opts)
@@ -263,8 +260,7 @@ class RunLog:
         t = float(t)
         if step < 0 or not 0.0 <= t < math.inf:
             raise TergodicError(f"run log got step {step} at t = {t}", "steps must be >= 0 and times finite, >= 0")
-        P, V, Nn = (np.asarray(a, dtype=np.float64).reshape(-1, 3) for a in (positions, velocities,
-                                                                             normals))
+        P, V, Nn = (np.asarray(a, dtype=np.float64).reshape(-1, 3) for a in (positions, velocities, normals))
         if not (len(P) == len(V) == len(Nn)) or len(P) == 0:
             raise TergodicError(f"run log got {len(P)} positions, {len(V)} velocities, "
                                 f"{len(Nn)} normals", "pass (N, 3) arrays for N >= 1 agents")
@@ -278,14 +274,13 @@ class RunLog:
             else:
                 rec.extra_names.append(k)
                 rec.extra_values.append(float(v))
-        Pl, Vl, Nl = P.tolist(), V.tolist(), Nn.tolist()
         for name, A in zip(VECTOR_FIELDS, (P, V, Nn)):
             getattr(rec, name).extend(A.ravel().tolist())
         stamp = _stamp(M, t_ns)
         half = self._line_half
         shaft_d = 0.02 * half + 1e-4
         poses, entities = [], []
-        for i, (p, v, nrm) in enumerate(zip(Pl, Vl, Nl)):
+        for i, (p, v, nrm) in enumerate(zip(P.tolist(), V.tolist(), Nn.tolist())):
             pos = M.Vector3(x=p[0], y=p[1], z=p[2])
             poses.append(M.Pose(position=pos, orientation=_quat(M, *_quat_to(2, nrm))))  # z along the normal
             speed = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
@@ -336,8 +331,7 @@ class RunLog:
         q = robot.get("q")
         if q is not None:
             q = np.asarray(q, dtype=np.float64).ravel().tolist()
-            dq = np.asarray(robot.get("dq", np.zeros(len(q))), dtype=np.float64).ravel().tolist()
-            tau = np.asarray(robot.get("tau", np.zeros(len(q))), dtype=np.float64).ravel().tolist()
+            dq, tau = (np.asarray(robot.get(k, np.zeros(len(q))), dtype=np.float64).ravel().tolist() for k in ("dq", "tau"))
             names = list(robot.get("joint_names") or [f"joint{i + 1}" for i in range(len(q))])
             joints = [M.JointState(name=str(name), position=a, velocity=b, effort=c)
                       for name, a, b, c in zip(names, q, dq, tau)]
