@@ -178,7 +178,7 @@ class ContactRun:
         #: follows the normal; the simulation plans its reach instead, robot/reach.py).
         self.max_tilt_deg = cfg.max_tool_tilt_deg
         self._told_unreachable = False
-        self.hops = 0  # lift-and-move-overs (sharp edges, back in reach, press-angle lifts)
+        self.move_overs = 0  # lift-and-move-overs (sharp edges, back in reach, press-angle lifts)
         self._reseats: list[int] = []  # steps of the press-angle lifts
         self._cb_s = 0.0
         self._deferred = None
@@ -545,14 +545,13 @@ class ContactRun:
                 sharp = turn > HOP_TURN_DEG and not (smooth and smooth_c)
                 if self.max_tilt_deg is None and not waiting and (far > TRANSIT_M or sharp):
                     # Back in reach away from the waiting tool, or across a sharp edge: lift, move over, touch again.
-                    self._last_line = (a_cur, d_cur)
                     if far > TRANSIT_M:
-                        self._move_over(f"the agent is back in reach {1e3 * far:.0f} mm from the waiting tool; moving over",
-                                        far=True)
+                        a_cur, d_cur, obs = self._move_over(f"the agent is back in reach {1e3 * far:.0f} mm from the "
+                                                            "waiting tool; moving over", (a_cur, d_cur), far=True)
                     else:
-                        self._move_over(f"the agent crossed a sharp edge ({turn:.0f} deg); moving over")
-                    a_cur, d_cur = a_new, d_new = self._start_line
-                    obs = self.arm.get_observation()
+                        a_cur, d_cur, obs = self._move_over(f"the agent crossed a sharp edge ({turn:.0f} deg); moving over",
+                                                            (a_cur, d_cur))
+                    a_new, d_new = a_cur, d_cur
                     turn = 0.0
                     n_c, smooth_c = self._surface_normal(a_cur, smooth=True)
                 # On a gentle curve the line may turn as fast as the surface's own normal over the step
@@ -619,11 +618,9 @@ class ContactRun:
                 # it: lift and touch again on the agent's own line; only a repeat is a fault.
                 self._reseats.append(step)
                 self._tilted = False
-                self._last_line = (a_cur, d_cur)
-                self._move_over(f"the tool pressed {press:.0f} deg off the surface normal (limit "
-                                f"{CONTACT_TILT_MAX_DEG:.0f}); lifting and touching again on the agent's line")
-                a_cur, d_cur = self._start_line
-                obs = self.arm.get_observation()
+                a_cur, d_cur, obs = self._move_over(f"the tool pressed {press:.0f} deg off the surface normal (limit "
+                                                    f"{CONTACT_TILT_MAX_DEG:.0f}); lifting and touching again on the "
+                                                    "agent's line", (a_cur, d_cur))
         ts[Kn.TS_COUNT] = 0.0
         self._last_line = (a_cur, d_cur)
         self._start_line = self._last_line  # a further explore() continues from here
@@ -760,9 +757,11 @@ class ContactRun:
         """``steps`` explorer steps in contact (state ``explore``); see :meth:`_explore`."""
         self._explore(int(steps), on_step, defer_last)
 
-    def _move_over(self, reason: str, far: bool = False) -> None:
-        """explore -> retreat along the tool axis -> hover above the agent -> approach -> explore.
-        ``far``: through the picture pose (a joint-space move across the object could sweep through it)."""
+    def _move_over(self, reason: str, line: tuple[np.ndarray, np.ndarray], far: bool = False):
+        """explore -> retreat along the tool's ``line`` (a, d) -> hover above the agent -> approach -> explore.
+        ``far``: through the picture pose (a joint-space move across the object could sweep through it).
+        Returns the new line's point and direction and the observation there."""
+        self._last_line = line
         if far:
             self.to_picture(reason)
         else:
@@ -770,10 +769,11 @@ class ContactRun:
             self.sm.go(S.RETREAT, self.t, step, reason)
             a, d = self._last_line
             self._retreat(a, d, step)
-        self.hops += 1
+        self.move_overs += 1
         self.engage()
         self.ts[Kn.TS_COUNT], self.ts[Kn.TS_RUN] = 1.0, 0.0
         self.guard.feed_target(self.t)
+        return (*self._start_line, self.arm.get_observation())
 
     def to_picture(self, reason: str) -> None:
         """explore -> retreat along the tool axis -> move to the picture pose, state ``picture``."""
@@ -827,7 +827,7 @@ class ContactRun:
             "backend": self.arm.name,
             "final_state": self.sm.state,
             "interrupted": bool(self.interrupted),
-            "move_overs": self.hops,
+            "move_overs": self.move_overs,
             "sim_seconds": robot_s,
             "robot_seconds": robot_s,
             "wall_seconds": wall,
