@@ -14,8 +14,10 @@ import csv
 import hashlib
 import json
 import math
+import multiprocessing
 import os
 import shutil
+import signal
 import statistics
 import tempfile
 import time
@@ -141,6 +143,10 @@ def run_batch(task: dict) -> list[dict]:
     or an ``error`` message.
     """
     os.environ.setdefault("TERGODIC_NO_PROGRESS", "1")
+    if multiprocessing.current_process().name != "MainProcess":
+        # A pool worker: Ctrl-C reaches the whole process group, and the driver stops the pool
+        # itself; a worker interrupted inside numba's compiler printed llvmlite's traceback.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     from tergodic_cli.explore import ExploreConfig, Explorer, summarize_run
     from tergodic_cli.explore.warm import compile_explorer
     from tergodic_cli.run import RunRecorder
