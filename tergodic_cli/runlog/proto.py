@@ -44,11 +44,9 @@ def _file_descriptor_proto() -> Any:
 @lru_cache(maxsize=1)
 def step_record_class() -> type:
     """The generated message class (its own descriptor pool: never clashes with another definition)."""
-    from google.protobuf import descriptor_pool, message_factory
+    from google.protobuf import message_factory
 
-    pool = descriptor_pool.DescriptorPool()
-    pool.Add(_file_descriptor_proto())
-    return message_factory.GetMessageClass(pool.FindMessageTypeByName(FULL_NAME))
+    return message_factory.GetMessages([_file_descriptor_proto()])[FULL_NAME]
 
 
 @lru_cache(maxsize=1)
@@ -56,6 +54,4 @@ def step_record_schema() -> bytes:
     """The serialized FileDescriptorSet stored in the MCAP schema record."""
     from google.protobuf import descriptor_pb2
 
-    fds = descriptor_pb2.FileDescriptorSet()
-    fds.file.append(_file_descriptor_proto())
-    return fds.SerializeToString()
+    return descriptor_pb2.FileDescriptorSet(file=[_file_descriptor_proto()]).SerializeToString()
