@@ -66,15 +66,8 @@ class _Command(typer.core.TyperCommand):
     """Usage lines in the usual form, ``tergodic sweep [OPTIONS] GRID``; typer writes ``{grid}``."""
 
     def collect_usage_pieces(self, ctx) -> list[str]:
-        pieces = [self.options_metavar] if self.options_metavar else []
-        for param in self.get_params(ctx):
-            if isinstance(param, typer.core.TyperArgument):
-                name = (param.metavar or param.name).upper()
-                name = name if param.required else f"[{name}]"
-                pieces.append(name + ("..." if param.nargs != 1 else ""))
-            else:
-                pieces.extend(param.get_usage_pieces(ctx))
-        return pieces
+        pieces = super().collect_usage_pieces(ctx)
+        return [piece.replace("{", "").replace("}", "").upper() for piece in pieces]
 
     def invoke(self, ctx):
         try:
