@@ -82,14 +82,13 @@ def explore(
     """
     live_at = _check_live(live, no_log or dry_run) if live is not None else None  # exit 2 before anything is written
     from tergodic_cli.explore import ExploreConfig
-    from tergodic_cli.run import LogSpec, StartSpec, apply_saved, dry_run_report, make_backend, run_explore
+    from tergodic_cli.run import RENAMED, LogSpec, StartSpec, apply_saved, dry_run_report, make_backend, run_explore
     from tergodic_cli.commands._common import given_options, parse_floats
     from tergodic_cli.progress import echo as echo_err
 
-    fields = {"steps": steps, "alpha": alpha, "nk": nk, "agent_radius": agent_radius, "n_agents": agents, "v_max": v_max,
-              "a_max": a_max, "dt": dt, "diffusion": diffusion, "integrator": integrator, "coverage_norm": coverage_norm,
-              "seed": seed, "n_neighbors": fit_neighbors, "epsilon": epsilon, "basis_neighbors": neighbors,
-              "max_start_distance": max_start_distance}
+    # the options that set ExploreConfig fields, renamed as for --config's override (run.RENAMED)
+    fields = {f: v for opt, v in ctx.params.items() for f in RENAMED.get(opt, (opt,))
+              if f in ExploreConfig.__dataclass_fields__}
     box = parse_floats(workspace, 6, "--workspace", "0.15,-0.6,0,0.85,0.6,0.9")  # None: not given
     spec = StartSpec(start=start, starts_file=str(starts) if starts is not None else None, start_index=start_index)
     robot_options = {
