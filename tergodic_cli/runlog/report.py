@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from tergodic_cli.atomic import atomic_path, check_output_file
-from tergodic_cli.errors import TergodicError, os_error
+from tergodic_cli.errors import TergodicError
 from tergodic_cli.runlog.plots import RESIDUAL_KEYS, _color_range, log_scale
 from tergodic_cli.runlog.reader import RunLogData
 
@@ -98,8 +98,6 @@ def write_html_report(data: RunLogData, path: str | os.PathLike) -> Path:
     try:
         with atomic_path(path, suffix=".html") as tmp:
             tmp.write_text(page, encoding="utf-8")
-    except OSError as exc:
-        raise os_error(exc, path, "write", _FIX) from None
     except TergodicError as exc:  # atomic_path's own line: keep its cause, say which option to change
         raise TergodicError(exc.problem, f"{exc.fix}; or {_FIX}" if exc.fix else _FIX) from None
     return path
