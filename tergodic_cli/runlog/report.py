@@ -240,8 +240,8 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
     fig.update_layout(
         title=dict(text="Cloud and trajectory (object frame)", x=0.02, y=0.985, font=dict(size=16)),
         height=820, margin=dict(l=0, r=0, t=40, b=10), paper_bgcolor="white",
-        scene=dict(aspectmode="data", xaxis=dict(title=dict(text="x (m)"), **axis),
-                   yaxis=dict(title=dict(text="y (m)"), **axis), zaxis=dict(title=dict(text="z (m)"), **axis),
+        scene=dict(aspectmode="data",
+                   **{f"{c}axis": dict(title=dict(text=f"{c} (m)"), **axis) for c in "xyz"},
                    camera=dict(eye=dict(x=1.3, y=-1.3, z=1.0)), domain=dict(x=[0, 0.9], y=[0.1, 0.93])),
         legend=dict(x=0.01, y=0.1, yanchor="bottom", bgcolor="rgba(255,255,255,0.7)"),
     )
