@@ -396,9 +396,8 @@ class PyBullet(Kinematic):
         T_obj = object_pose(capture, self.robot_cfg)
         check_reachable(transform_points(T_obj, capture.points))
         for a in transform_points(T_obj, np.atleast_2d(start_xyz)):
-            if not guard.inside(a):
-                raise TergodicError(f"the start point ({', '.join(f'{v:.3f}' for v in a)}) m is outside the workspace box",
-                                    "move the object with --object-pose, widen --workspace, or choose another start")
+            require(guard.inside(a), f"the start point ({', '.join(f'{v:.3f}' for v in a)}) m is outside the workspace box",
+                    "move the object with --object-pose, widen --workspace, or choose another start")
 
     def explore_config(self, cfg: ExploreConfig) -> ExploreConfig:
         """The robot runs the explorer at its own step period with the same path per step."""

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from tergodic_cli.errors import TergodicError
+from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.runlog import schema as S
 from tergodic_cli.runlog.proto import FULL_NAME, METRIC_FIELDS, VECTOR_FIELDS
 
@@ -127,12 +127,10 @@ class RunLogData:
 def resolve_log_path(path: str | os.PathLike) -> Path:
     """``RUN_DIR`` -> ``RUN_DIR/run.mcap``; a file path is returned as it is."""
     p = Path(path)
-    if not p.exists():
-        raise TergodicError(f"{p} does not exist", _RUN_FIX)
+    require(p.exists(), f"{p} does not exist", _RUN_FIX)
     if p.is_dir():
         f = p / "run.mcap"
-        if not f.exists():
-            raise TergodicError(f"{p} has no run.mcap", _RUN_FIX)
+        require(f.exists(), f"{p} has no run.mcap", _RUN_FIX)
         return f
     return p
 
