@@ -35,7 +35,7 @@ from tergodic_cli.robot.controller import guarded_approach_speed
 from tergodic_cli.robot.ga import matrix_to_quat, point_line_distance, pose_matrix
 from tergodic_cli.robot.reach import tool_rotation
 from tergodic_cli.robot.interfaces import LineTarget
-from tergodic_cli.robot.safety import Fault, SafetyGuard, resolve_stop
+from tergodic_cli.robot.safety import Fault, SafetyGuard, _fmt, resolve_stop
 from tergodic_cli.robot.summary import SETTLE_S as STEADY_S, summarize_robot
 from tergodic_cli.robot.surface import oriented_normals, resolve_side, transform_points
 
@@ -224,7 +224,9 @@ class ContactRun:
             nf = self.T_obj[:3, :3] @ self.closest(self._to_obj(a))[1]
             if abs(float(nf @ d)) < EDGE_COS:
                 d = -nf if nf @ d < 0 else nf
-        return self._ball_line(a, d)
+        # The line near (a, d) the ball presses along its own contact normal: through the contact, along -normal.
+        q, n = self._ball_contact(a, d)
+        return q, -n
 
     def _ball_contact(self, a: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Where the sponge's ball on the line (a, d) touches the cloud (base frame) and the unit contact
@@ -251,11 +253,6 @@ class ContactRun:
         q = self._to_base(q)
         n = c - q
         return q, n / np.linalg.norm(n)
-
-    def _ball_line(self, a: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The line near (a, d) the ball presses along its own contact normal: through the contact, along -normal."""
-        q, n = self._ball_contact(a, d)
-        return q, -n
 
     def target(self) -> np.ndarray:
         """(N,) the target p the explorer works on (the capture's when it has none), capture order."""
@@ -767,8 +764,7 @@ class ContactRun:
         else:
             step = self._step()
             self.sm.go(S.RETREAT, self.t, step, reason)
-            a, d = self._last_line
-            self._retreat(a, d, step)
+            self._retreat(*self._last_line, step)
         self.move_overs += 1
         self.engage()
         self.ts[Kn.TS_COUNT], self.ts[Kn.TS_RUN] = 1.0, 0.0
@@ -779,8 +775,7 @@ class ContactRun:
         """explore -> retreat along the tool axis -> move to the picture pose, state ``picture``."""
         step = self._step()
         self.sm.go(S.RETREAT, self.t, step, reason)
-        a, d = self._last_line
-        self._retreat(a, d, step)
+        self._retreat(*self._last_line, step)
         self.sm.go(S.PICTURE, self.t, step, "retreated; moving to the picture pose")
         fault = self.arm.to_picture(self.check)
         if fault is not None:
@@ -791,8 +786,7 @@ class ContactRun:
         step = self._step()
         if self.sm.state == S.EXPLORE:
             self.sm.go(S.RETREAT, self.t, step, reason)
-            a, d = self._last_line
-            self._retreat(a, d, step)
+            self._retreat(*self._last_line, step)
             reason = "retreated; done"
         self.sm.go(S.DONE, self.t, step, reason)
         self.arm.hold(SETTLE_S)
@@ -907,7 +901,3 @@ def clamp_tilt(d: np.ndarray, max_deg: float) -> np.ndarray:
     if n < 1e-12:
         return down.copy()
     return lim * down + math.sin(math.radians(max_deg)) * side / n
-
-
-def _fmt(x) -> str:
-    return "(" + ", ".join(f"{float(v):.3f}" for v in np.ravel(x)) + ")"
