@@ -20,7 +20,7 @@ from tergodic_cli.robot.interfaces import LineTarget  # noqa: E402
 from tergodic_cli.robot.kinematics import FrankaModel, tool_offset  # noqa: E402
 from gafro_matrix import jacobian_base, jacobian_ee  # noqa: E402
 from tergodic_cli.backends.pybullet import PyBulletArm, PyBulletScene  # noqa: E402
-from tergodic_cli.robot.surface import mesh_distance, oriented_normals, reconstruct_mesh  # noqa: E402
+from tergodic_cli.robot.surface import oriented_normals, reconstruct_mesh  # noqa: E402
 
 #: Quick runs: a faster set-up move and a lower hover than the defaults.
 FAST = dict(move_speed=1.6, hover_height=0.02)
@@ -44,6 +44,15 @@ def _explorer(cap, basis, cfg: RobotConfig, seed=0):
 def _at_rest(run: RobotRun) -> float:
     st = run.arm.dev.read_state()
     return float(np.max(np.abs(st.dq)))
+
+
+def mesh_distance(mesh, points: np.ndarray) -> np.ndarray:
+    """Unsigned distance (m) from ``points`` (k, 3) to the mesh (open3d raycasting scene)."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)), o3d.core.Tensor(mesh.triangles.astype(np.uint32)))
+    return scene.compute_distance(o3d.core.Tensor(np.asarray(points, dtype=np.float32))).numpy().astype(float)
 
 
 # ---------------------------------------------------------------------------------- the arm and its models
