@@ -217,7 +217,7 @@ class ContactRun:
             n_b = -n_b
         d = -n_b / np.linalg.norm(n_b)
         if self.max_tilt_deg is not None:
-            return a, clamp_tilt(d, self.max_tilt_deg)
+            return a, turn_towards(np.array([0.0, 0.0, -1.0]), d, self.max_tilt_deg)  # the limit off straight down
         if self.closest is not None and not self._surface_normal(a, smooth=True)[1]:
             # Near an edge the cloud's normal is a blend of the faces': the ball would be placed to touch
             # the edge from wherever the agent is; the face's own normal puts it on the agent's face.
@@ -881,23 +881,13 @@ class _AgentCoverage:
 
 
 def turn_towards(d0: np.ndarray, d1: np.ndarray, max_deg: float) -> np.ndarray:
-    """Unit (3,): ``d0`` rotated towards ``d1`` (both unit) by at most ``max_deg`` degrees."""
+    """Unit (3,): ``d0`` rotated towards ``d1`` (both unit) by at most ``max_deg`` degrees; ``d0``
+    when ``d1`` is its opposite (no direction to turn in)."""
     ang = math.acos(max(-1.0, min(1.0, float(d0 @ d1))))
     if ang <= math.radians(max_deg):
         return d1
     side = d1 - (d0 @ d1) * d0
-    return math.cos(math.radians(max_deg)) * d0 + math.sin(math.radians(max_deg)) * side / np.linalg.norm(side)
-
-
-def clamp_tilt(d: np.ndarray, max_deg: float) -> np.ndarray:
-    """``d`` (3,) unit, rotated towards straight down (-z) until it is within ``max_deg`` of it."""
-    down = np.array([0.0, 0.0, -1.0])
-    c = float(d @ down)
-    lim = math.cos(math.radians(max_deg))
-    if c >= lim:
-        return d
-    side = d - c * down
     n = float(np.linalg.norm(side))
     if n < 1e-12:
-        return down.copy()
-    return lim * down + math.sin(math.radians(max_deg)) * side / n
+        return d0.copy()
+    return math.cos(math.radians(max_deg)) * d0 + math.sin(math.radians(max_deg)) * side / n
