@@ -542,12 +542,9 @@ class ContactRun:
                 sharp = turn > HOP_TURN_DEG and not (smooth and smooth_c)
                 if self.max_tilt_deg is None and not waiting and (far > TRANSIT_M or sharp):
                     # Back in reach away from the waiting tool, or across a sharp edge: lift, move over, touch again.
-                    if far > TRANSIT_M:
-                        a_cur, d_cur, obs = self._move_over(f"the agent is back in reach {1e3 * far:.0f} mm from the "
-                                                            "waiting tool; moving over", (a_cur, d_cur), far=True)
-                    else:
-                        a_cur, d_cur, obs = self._move_over(f"the agent crossed a sharp edge ({turn:.0f} deg); moving over",
-                                                            (a_cur, d_cur))
+                    why = (f"the agent is back in reach {1e3 * far:.0f} mm from the waiting tool" if far > TRANSIT_M
+                           else f"the agent crossed a sharp edge ({turn:.0f} deg)")
+                    a_cur, d_cur, obs = self._move_over(f"{why}; moving over", (a_cur, d_cur), far=far > TRANSIT_M)
                     a_new, d_new = a_cur, d_cur
                     turn = 0.0
                     n_c, smooth_c = self._surface_normal(a_cur, smooth=True)
