@@ -166,9 +166,8 @@ class ContactRun:
         self.stop_reason: str | None = None
         self.fault: Fault | None = None
         self._shadow = _AgentCoverage(explorer)
-        self._x_ref = arm.get_observation(sensor=False).state.ee_pose[:3, 0].copy()
         #: The tool's spin pointing straight down (reach.tool_rotation): the arm's at the start.
-        self._x_down = self._x_ref.copy()
+        self._x_down = arm.get_observation(sensor=False).state.ee_pose[:3, 0].copy()
         #: (N,) where the tool can follow the normal (a backend that plans its reach narrows it).
         self.reachable = np.ones(len(self.points), dtype=bool)
         #: x (3,) -> (the closest point (3,), its face's unit normal (3,), either sign) of the object's
@@ -297,11 +296,6 @@ class ContactRun:
     def _reachable_at(self, x_base: np.ndarray) -> bool:
         return bool(self.reachable[self.kdtree.query(self._to_obj(x_base))[1]])
 
-    def _update_spin_ref(self, d: np.ndarray) -> None:
-        # The spin is a continuous function of the tool axis (no flips, the wrist mid-range).
-        self._x_ref = tool_rotation(d, self._x_down)[:, 0]
-        self.arm.spin_ref = self._x_ref
-
     # ------------------------------------------------------------------ one control period
     def check(self, obs) -> Fault | None:
         """The guard's checks on one observation (the backend's own fault first)."""
@@ -421,8 +415,7 @@ class ContactRun:
             self.on_event(self._step(), f"robot: the tool cannot follow the normal at the start {_fmt(start)} m; "
                                         f"starting at the nearest reachable target point {_fmt(a)} m")
         self._start_line = (a, d)
-        self._x_ref = T_hover[:3, 0].copy()
-        self.arm.spin_ref = self._x_ref
+        self.arm.spin_ref = T_hover[:3, 0].copy()
         step = self._step()
         self.sm.go(S.HOVER, self.t, step, f"moving to the hover pose {cfg.hover_height * 1e3:.0f} mm above the start {_fmt(a)} m")
         fault = self.arm.move_to(T_hover, self.check)
@@ -570,7 +563,8 @@ class ContactRun:
                     self.on_event(step, f"robot: the agent entered the unreachable part at {_fmt(a_new)} m; the tool "
                                         "waits on the last reachable point")
                 self.guard.feed_target(self.t)
-                self._update_spin_ref(d_next)
+                # The spin is a continuous function of the tool axis (no flips, the wrist mid-range).
+                self.arm.spin_ref = tool_rotation(d_next, self._x_down)[:, 0]
             self._shadow.deposit()
             # The line target glides from the previous agent line to the new one over the interval.
             A = a_cur + s * (a_next - a_cur)
