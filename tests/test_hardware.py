@@ -8,6 +8,7 @@ quasi-static fake world (tests/fakes/world.py). Every backend runs the same expl
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -295,7 +296,7 @@ def test_ctrl_c_retreats_and_summarises(plate, monkeypatch, franky):
 
 def test_unknown_object_pose_is_refused(plate, monkeypatch, franky):
     scenario.world(plate, monkeypatch)
-    cfg = scenario.robot_config(plate).with_(object_pose=None)
+    cfg = replace(scenario.robot_config(plate), object_pose=None)
     arm, sensor = make_hardware("franka", scenario.ROBOT_IP)
     with pytest.raises(TergodicError, match="pose in the robot base frame is unknown"):
         explore_with_hardware(plate.capture, scenario.explorer(plate, cfg), cfg, 3, arm, sensor)
@@ -307,7 +308,7 @@ def test_hardware_never_presses_beyond_its_tilt_limit(plate, monkeypatch, franky
     # plate turned 70 deg has its whole target beyond that and is refused before anything moves.
     world = scenario.world(plate, monkeypatch)
     cfg = scenario.robot_config(plate)
-    cfg = cfg.with_(object_pose=tuple(cfg.object_pose) + (roll_deg, 0.0, 0.0))
+    cfg = replace(cfg, object_pose=tuple(cfg.object_pose) + (roll_deg, 0.0, 0.0))
     arm, sensor = make_hardware("franka", scenario.ROBOT_IP)
     text = dry_run(arm, sensor, None, DryRunPlan(plate.capture, cfg, start=(0.03, 0.02, 0.0))) if not refused else None
     if refused:

@@ -9,6 +9,8 @@ import pytest
 
 pygafro = pytest.importorskip("pygafro")
 
+from gafro_matrix import adjoint, skew, twist_from_gafro  # noqa: E402
+
 from tergodic_cli.robot import ga  # noqa: E402
 from tergodic_cli.robot.controller import ControllerGains, LineForceController  # noqa: E402
 from tergodic_cli.robot.interfaces import ArmState, ContactWrench, ToolLoad  # noqa: E402
@@ -34,7 +36,7 @@ def coadjoint(T):
     R, t = T[:3, :3], T[:3, 3]
     A = np.zeros((6, 6))
     A[:3, :3] = R
-    A[3:, :3] = ga.skew(t) @ R
+    A[3:, :3] = skew(t) @ R
     A[3:, 3:] = R
     return A
 
@@ -111,7 +113,7 @@ def test_power_is_invariant_under_motors():
     for _ in range(10):
         T = _random_motor(rng)
         V, W = rng.normal(size=6), rng.normal(size=6)
-        assert (ga.adjoint(T) @ V) @ (coadjoint(T) @ W) == pytest.approx(V @ W, rel=1e-12, abs=1e-12)
+        assert (adjoint(T) @ V) @ (coadjoint(T) @ W) == pytest.approx(V @ W, rel=1e-12, abs=1e-12)
 
 
 def test_sandwich_matrices_match_pygafro():
@@ -123,7 +125,7 @@ def test_sandwich_matrices_match_pygafro():
         V, W = rng.normal(size=6), rng.normal(size=6)
         Vg = pygafro.Twist(twist_to_gafro(V)).transform(M)
         Wg = pygafro.Wrench(wrench_to_gafro(W)).transform(M)
-        np.testing.assert_allclose(ga.twist_from_gafro(np.asarray(Vg.vector())), ga.adjoint(T) @ V, atol=1e-12)
+        np.testing.assert_allclose(twist_from_gafro(np.asarray(Vg.vector())), adjoint(T) @ V, atol=1e-12)
         np.testing.assert_allclose(wrench_from_gafro(np.asarray(Wg.vector())), coadjoint(T) @ W, atol=1e-12)
         a, d = rng.normal(size=3), rng.normal(size=3)
         d /= np.linalg.norm(d)
@@ -144,7 +146,7 @@ def test_log_exp_round_trips():
         # pygafro: exp(B) then MotorLogarithm gives B back, and its exp is our exp.
         M = pygafro.Motor(pygafro.MotorGenerator(twist_to_gafro(V)))
         np.testing.assert_allclose(gafro_motor_matrix(M), motor_exp(V), atol=1e-12)
-        np.testing.assert_allclose(ga.twist_from_gafro(_gafro_twist_vec(pygafro.MotorLogarithm(M))), V, atol=1e-9)
+        np.testing.assert_allclose(twist_from_gafro(_gafro_twist_vec(pygafro.MotorLogarithm(M))), V, atol=1e-9)
 
 
 def test_rotation_helpers_round_trip():
@@ -175,7 +177,7 @@ def test_line_motor_maps_ee_axis_onto_target_and_matches_gafro(seed):
     Mg = pygafro.Line.Z().getMotor(gafro_line(a, d))
     np.testing.assert_allclose(gafro_motor_matrix(Mg), T, atol=1e-10)
     # ... and eq. 37's logarithm is pygafro's.
-    np.testing.assert_allclose(ga.twist_from_gafro(_gafro_twist_vec(pygafro.MotorLogarithm(Mg))),
+    np.testing.assert_allclose(twist_from_gafro(_gafro_twist_vec(pygafro.MotorLogarithm(Mg))),
                                np.concatenate([t, phi]), atol=1e-9)
     # It is the smallest such screw: the rotation angle is the angle between the lines.
     assert np.linalg.norm(phi) == pytest.approx(math.acos(d[2]), abs=1e-12)
@@ -196,7 +198,7 @@ def _ga_control_law(T, J_base, dq, a, d, W_meas, g: ControllerGains, f_cmd_z) ->
     # Eq. 35-36 in the ee frame: L_ee = e0 ∧ e3 ∧ e∞ and M̃ L_a⊥ M.
     L_a_ee = Mr.apply(gafro_line(a, d))
     M_line = pygafro.Line.Z().getMotor(L_a_ee)
-    V_L = ga.twist_from_gafro(_gafro_twist_vec(pygafro.MotorLogarithm(M_line)))  # eq. 37, (t, φ)
+    V_L = twist_from_gafro(_gafro_twist_vec(pygafro.MotorLogarithm(M_line)))  # eq. 37, (t, φ)
     K = np.array(g.k_trans + g.k_rot)
     W_L = K * V_L  # eq. 38 read as an identity inertia (see controller.py)
     W_L[2] = 0.0  # no stiffness along the line
@@ -208,7 +210,7 @@ def _ga_control_law(T, J_base, dq, a, d, W_meas, g: ControllerGains, f_cmd_z) ->
         B0 = np.concatenate([B_tcp[:3] - np.cross(B_tcp[3:], T[:3, 3]), B_tcp[3:]])
         Bg = pygafro.Twist(twist_to_gafro(B0)).transform(Mr)
         cols.append(Bg)
-    V_ee = sum((ga.twist_from_gafro(np.asarray(c.vector())) * dq[i] for i, c in enumerate(cols)), np.zeros(6))
+    V_ee = sum((twist_from_gafro(np.asarray(c.vector())) * dq[i] for i, c in enumerate(cols)), np.zeros(6))
     W_V = np.array(g.d_trans + g.d_rot) * V_ee  # eq. 46
     # eq. 40's output: on the tool axis (a float), or the full wrench (6,)
     W_C = np.array([0.0, 0.0, f_cmd_z, 0.0, 0.0, 0.0]) if np.ndim(f_cmd_z) == 0 else np.asarray(f_cmd_z)

@@ -104,7 +104,7 @@ def test_robot_config_validation():
                         (dict(contact_force=6.0), "contact threshold")]:
         with pytest.raises(TergodicError, match=needle):
             validate_robot_config(RobotConfig(**bad))
-    assert RobotConfig().substeps == 200
+    assert round(RobotConfig().explore_dt / RobotConfig().physics_dt) == 200  # control steps per explorer step
     assert RobotConfig(contact_force=None, force=5.0).contact_threshold == pytest.approx(1.0)
 
 

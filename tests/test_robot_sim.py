@@ -18,8 +18,9 @@ from tergodic_cli.backends.pybullet import RobotRun, explore_with_robot  # noqa:
 from tergodic_cli.robot import RobotConfig, robot_explore_config  # noqa: E402
 from tergodic_cli.robot.interfaces import LineTarget  # noqa: E402
 from tergodic_cli.robot.kinematics import FrankaModel, tool_offset  # noqa: E402
+from gafro_matrix import jacobian_base, jacobian_ee  # noqa: E402
 from tergodic_cli.backends.pybullet import PyBulletArm, PyBulletScene  # noqa: E402
-from tergodic_cli.robot.surface import mesh_distance, oriented_normals, reconstruct_mesh  # noqa: E402
+from tergodic_cli.robot.surface import oriented_normals, reconstruct_mesh  # noqa: E402
 
 #: Quick runs: a faster set-up move and a lower hover than the defaults.
 FAST = dict(move_speed=1.6, hover_height=0.02)
@@ -45,6 +46,15 @@ def _at_rest(run: RobotRun) -> float:
     return float(np.max(np.abs(st.dq)))
 
 
+def mesh_distance(mesh, points: np.ndarray) -> np.ndarray:
+    """Unsigned distance (m) from ``points`` (k, 3) to the mesh (open3d raycasting scene)."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)), o3d.core.Tensor(mesh.triangles.astype(np.uint32)))
+    return scene.compute_distance(o3d.core.Tensor(np.asarray(points, dtype=np.float32))).numpy().astype(float)
+
+
 # ---------------------------------------------------------------------------------- the arm and its models
 def test_gafro_kinematics_match_pybullet():
     # Eqs. 14-16, 42-45 (pygafro motors) against PyBullet's own forward kinematics and calculateJacobian.
@@ -63,10 +73,10 @@ def test_gafro_kinematics_match_pybullet():
             sc.set_arm(q)
             st = arm.read_state()
             np.testing.assert_allclose(model.fk(q), st.ee_pose, atol=1e-6)
-            np.testing.assert_allclose(model.jacobian_base(q), st.jacobian, atol=1e-6)
+            np.testing.assert_allclose(jacobian_base(model, q), st.jacobian, atol=1e-6)
             R = st.ee_pose[:3, :3]
             Jee = np.vstack([R.T @ st.jacobian[:3], R.T @ st.jacobian[3:]])
-            np.testing.assert_allclose(model.jacobian_ee(q), Jee, atol=1e-6)
+            np.testing.assert_allclose(jacobian_ee(model, q), Jee, atol=1e-6)
             # and the Jacobian is the derivative of the pose (finite differences, independent of both models)
             dq = rng.normal(size=7) * 1e-4
             dx = 0.5 * (model.fk(q + dq)[:3, 3] - model.fk(q - dq)[:3, 3])

@@ -181,20 +181,23 @@ class FrankyArm:
                                     target_twist=fr.Twist(np.asarray(target.twist[:3], float), np.asarray(target.twist[3:], float)))
         K, D = np.asarray(target.stiffness, dtype=float), np.asarray(target.damping, dtype=float)
         key = np.round(np.concatenate([K.ravel(), D.ravel()]), 6).tobytes()
-        if self._mode != "impedance":
+        start = self._mode != "impedance"
+        if start:
             clip = float(self.cfg.error_clip)
-            motion = fr.CartesianImpedanceTrackingMotion(
+            self._motion = fr.CartesianImpedanceTrackingMotion(
                 max_delta_tau=float(self.cfg.max_delta_tau), lower_joint_limits=self.q_min, upper_joint_limits=self.q_max,
                 translational_error_clip=np.full(3, clip), gains_time_constant=0.02)
-            motion.set_gains(_gains(fr, K, D))
-            motion.set_reference(ref)
-            robot.move(motion, asynchronous=True)
-            self._motion, self._mode, self._gains_key = motion, "impedance", key
-        else:
-            if key != self._gains_key:
-                self._motion.set_gains(_gains(fr, K, D))
-                self._gains_key = key
-            self._motion.set_reference(ref)
+            self._gains_key = None
+        if key != self._gains_key:
+            gains = fr.CartesianImpedanceGains()
+            gains.stiffness = K
+            gains.damping = D
+            self._motion.set_gains(gains)
+            self._gains_key = key
+        self._motion.set_reference(ref)
+        if start:
+            robot.move(self._motion, asynchronous=True)
+            self._mode = "impedance"
 
     def move_joints(self, q: np.ndarray, speed: float | None = None) -> None:
         """Blocking joint-space move (franky plans it with Ruckig); ends a torque-mode controller first."""
@@ -250,13 +253,6 @@ class FrankaWrenchEstimate(WrenchSensor):
 
     def disconnect(self) -> None:
         """The arm owns the connection."""
-
-
-def _gains(fr, K: np.ndarray, D: np.ndarray):
-    g = fr.CartesianImpedanceGains()
-    g.stiffness = K
-    g.damping = D
-    return g
 
 
 def _connect_fix(exc: BaseException) -> str:

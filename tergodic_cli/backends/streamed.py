@@ -27,7 +27,8 @@ from tergodic_cli.robot import kernels as Kn
 from tergodic_cli.robot.controller import min_jerk
 from tergodic_cli.robot.ga import matrix_to_rotvec, pose_matrix, rotvec_to_matrix
 from tergodic_cli.robot.interfaces import ContactWrench, LineTarget, Observation, ToolLoad
-from tergodic_cli.robot.run import SETTLE_S, ContactRun, _fmt, object_pose
+from tergodic_cli.robot.run import SETTLE_S, ContactRun, object_pose
+from tergodic_cli.robot.safety import _fmt
 
 
 @dataclass

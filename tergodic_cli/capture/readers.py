@@ -93,7 +93,6 @@ class _Reader:
         nl = self.blob.find(b"\n", end)
         body_start = len(self.blob) if nl < 0 else nl + 1
         header = self.blob[:end].decode("ascii", "replace").splitlines()
-        n_header_lines = len(header) + 1
         fmt, elements = None, []  # [name, count, [(type, name) | ("list", ct, it, name)], header line]
         for lineno, line in enumerate(header, 1):
             parts = line.split()
@@ -125,7 +124,7 @@ class _Reader:
             self.fail(f"header line {vline}", "list properties on vertices are not supported", "re-export xyz and colours only")
         if fmt == "ascii":  # one line per row: the vertices come after the earlier elements' rows
             skip = sum(count for _, count, _, _ in elements[:vi])
-            first = n_header_lines + 1  # file line number of the body's first line
+            first = len(header) + 2  # file line number of the body's first line (after end_header's)
             lines = self.blob[body_start:].decode("ascii", "replace").split("\n")
             rows = self._ascii_rows(lines, skip, n, first, f"{n} vertices", _FIX_PLY_COUNT,
                                     more_follow=len(elements) > vi + 1)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 from tergodic_cli.config import Config
 from tergodic_cli.errors import require
@@ -102,14 +102,6 @@ class RobotConfig(Config):
     @property
     def contact_threshold(self) -> float:
         return float(self.contact_force) if self.contact_force is not None else 0.2 * self.force
-
-    @property
-    def substeps(self) -> int:
-        """Control steps per explorer step."""
-        return int(round(self.explore_dt / self.physics_dt))
-
-    def with_(self, **changes) -> "RobotConfig":
-        return replace(self, **changes)
 
 
 def validate_robot_config(cfg: RobotConfig) -> None:

@@ -58,11 +58,6 @@ def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
     return theta / (2.0 * math.sin(theta)) * w
 
 
-def skew(a: np.ndarray) -> np.ndarray:
-    """The (3, 3) matrix [a]× with [a]× b = a × b."""
-    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-
-
 # ---------------------------------------------------------------------------------- motors
 
 
@@ -78,12 +73,6 @@ def motor_inverse(T: np.ndarray) -> np.ndarray:
     """The reverse motor M̃ as a (4, 4) transform: (Rᵀ, -Rᵀ t)."""
     R, t = T[:3, :3], T[:3, 3]
     return pose_matrix(R.T, -R.T @ t)
-
-
-def adjoint(T: np.ndarray) -> np.ndarray:
-    """6×6 adjoint of the motor T acting on twists (v, ω): the matrix of M V M̃."""
-    R, t = T[:3, :3], T[:3, 3]
-    return np.block([[R, skew(t) @ R], [np.zeros((3, 3)), R]])
 
 
 # ---------------------------------------------------------------------------------- lines
@@ -170,9 +159,3 @@ def line_motor_z(ax: float, ay: float, az: float, dx: float, dy: float, dz: floa
     # Rotation by θ about u through c1 = σ e_z, then slide δ along u: t = c1 - R c1 + δ u,
     # and R e_z = d (the rotation maps the ee axis onto the target direction), so R c1 = σ d.
     return (-sigma * dx + delta * ux, -sigma * dy + delta * uy, sigma - sigma * dz, theta * ux, theta * uy, 0.0)
-
-
-# ---------------------------------------------------------------------------------- pygafro
-def twist_from_gafro(c: np.ndarray) -> np.ndarray:
-    """(v, ω) of pygafro Twist coefficients [e12, e13, e23, e1∞, e2∞, e3∞] (set-up code only)."""
-    return np.array([c[3], c[4], c[5], c[2], -c[1], c[0]])

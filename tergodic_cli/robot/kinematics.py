@@ -1,5 +1,6 @@
-"""Franka kinematics with pygafro: motor forward kinematics (eq. 14), the geometric Jacobian
-(eqs. 15-16) and the ee-frame Jacobian (eqs. 42-45); inverse kinematics is :func:`~tergodic_cli.robot.reach.ik`.
+"""Franka kinematics with pygafro: motor forward kinematics (eq. 14); its geometric and ee-frame
+Jacobians (eqs. 15-16, 42-45) are formed by the tests only (tests/gafro_matrix.py): the loop computes
+them compiled (``kernels.fk_jacobian``); inverse kinematics is :func:`~tergodic_cli.robot.reach.ik`.
 
 pygafro's ``FrankaEmikaRobot`` ends at the Franka hand's TCP (flange + 0.1034 m, rotated -45°
 about z). Our TCP is the sponge tip, a fixed motor further along the same z-axis; the offset
@@ -14,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from tergodic_cli.errors import TergodicError
-from tergodic_cli.robot.ga import adjoint, motor_inverse, twist_from_gafro
+from tergodic_cli.robot.ga import motor_inverse
 
 #: Franka Emika datasheet limits (stricter than the pybullet URDF's).
 Q_MIN = np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973])
@@ -42,22 +43,6 @@ class FrankaModel:
     def fk(self, q: np.ndarray) -> np.ndarray:
         """(4, 4) pose of our TCP in the base frame."""
         return self.flange_motor(q) @ self.tool
-
-    def jacobian_spatial(self, q: np.ndarray) -> np.ndarray:
-        """(6, 7) geometric Jacobian J_G (eqs. 15-16): columns are the joint screws B'_i as base-frame
-        twists (v at the base origin, ω)."""
-        cols = self.robot.getEEGeometricJacobian(np.asarray(q, dtype=float))
-        return np.column_stack([twist_from_gafro(np.asarray(c.vector())) for c in cols])
-
-    def jacobian_ee(self, q: np.ndarray) -> np.ndarray:
-        """(6, 7) ee-frame Jacobian J_G^ee = M̃ J_G M (eq. 45) at our TCP, rows (v, ω) in the TCP frame."""
-        return adjoint(motor_inverse(self.fk(q))) @ self.jacobian_spatial(q)
-
-    def jacobian_base(self, q: np.ndarray) -> np.ndarray:
-        """(6, 7) base-frame Jacobian at the TCP point (v of the TCP, ω), like PyBullet's calculateJacobian."""
-        R = self.fk(q)[:3, :3]
-        Je = self.jacobian_ee(q)
-        return np.vstack([R @ Je[:3], R @ Je[3:]])
 
 
 def tool_offset(model: FrankaModel, q: np.ndarray, T_tcp: np.ndarray) -> np.ndarray:

@@ -35,7 +35,7 @@ from tergodic_cli.robot.controller import guarded_approach_speed
 from tergodic_cli.robot.ga import matrix_to_quat, point_line_distance, pose_matrix
 from tergodic_cli.robot.reach import tool_rotation
 from tergodic_cli.robot.interfaces import LineTarget
-from tergodic_cli.robot.safety import Fault, SafetyGuard, resolve_stop
+from tergodic_cli.robot.safety import Fault, SafetyGuard, _fmt, resolve_stop
 from tergodic_cli.robot.summary import SETTLE_S as STEADY_S, summarize_robot
 from tergodic_cli.robot.surface import oriented_normals, resolve_side, transform_points
 
@@ -166,9 +166,8 @@ class ContactRun:
         self.stop_reason: str | None = None
         self.fault: Fault | None = None
         self._shadow = _AgentCoverage(explorer)
-        self._x_ref = arm.get_observation(sensor=False).state.ee_pose[:3, 0].copy()
         #: The tool's spin pointing straight down (reach.tool_rotation): the arm's at the start.
-        self._x_down = self._x_ref.copy()
+        self._x_down = arm.get_observation(sensor=False).state.ee_pose[:3, 0].copy()
         #: (N,) where the tool can follow the normal (a backend that plans its reach narrows it).
         self.reachable = np.ones(len(self.points), dtype=bool)
         #: x (3,) -> (the closest point (3,), its face's unit normal (3,), either sign) of the object's
@@ -217,14 +216,16 @@ class ContactRun:
             n_b = -n_b
         d = -n_b / np.linalg.norm(n_b)
         if self.max_tilt_deg is not None:
-            return a, clamp_tilt(d, self.max_tilt_deg)
+            return a, turn_towards(np.array([0.0, 0.0, -1.0]), d, self.max_tilt_deg)  # the limit off straight down
         if self.closest is not None and not self._surface_normal(a, smooth=True)[1]:
             # Near an edge the cloud's normal is a blend of the faces': the ball would be placed to touch
             # the edge from wherever the agent is; the face's own normal puts it on the agent's face.
             nf = self.T_obj[:3, :3] @ self.closest(self._to_obj(a))[1]
             if abs(float(nf @ d)) < EDGE_COS:
                 d = -nf if nf @ d < 0 else nf
-        return self._ball_line(a, d)
+        # The line near (a, d) the ball presses along its own contact normal: through the contact, along -normal.
+        q, n = self._ball_contact(a, d)
+        return q, -n
 
     def _ball_contact(self, a: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Where the sponge's ball on the line (a, d) touches the cloud (base frame) and the unit contact
@@ -251,11 +252,6 @@ class ContactRun:
         q = self._to_base(q)
         n = c - q
         return q, n / np.linalg.norm(n)
-
-    def _ball_line(self, a: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The line near (a, d) the ball presses along its own contact normal: through the contact, along -normal."""
-        q, n = self._ball_contact(a, d)
-        return q, -n
 
     def target(self) -> np.ndarray:
         """(N,) the target p the explorer works on (the capture's when it has none), capture order."""
@@ -299,11 +295,6 @@ class ContactRun:
 
     def _reachable_at(self, x_base: np.ndarray) -> bool:
         return bool(self.reachable[self.kdtree.query(self._to_obj(x_base))[1]])
-
-    def _update_spin_ref(self, d: np.ndarray) -> None:
-        # The spin is a continuous function of the tool axis (no flips, the wrist mid-range).
-        self._x_ref = tool_rotation(d, self._x_down)[:, 0]
-        self.arm.spin_ref = self._x_ref
 
     # ------------------------------------------------------------------ one control period
     def check(self, obs) -> Fault | None:
@@ -424,8 +415,7 @@ class ContactRun:
             self.on_event(self._step(), f"robot: the tool cannot follow the normal at the start {_fmt(start)} m; "
                                         f"starting at the nearest reachable target point {_fmt(a)} m")
         self._start_line = (a, d)
-        self._x_ref = T_hover[:3, 0].copy()
-        self.arm.spin_ref = self._x_ref
+        self.arm.spin_ref = T_hover[:3, 0].copy()
         step = self._step()
         self.sm.go(S.HOVER, self.t, step, f"moving to the hover pose {cfg.hover_height * 1e3:.0f} mm above the start {_fmt(a)} m")
         fault = self.arm.move_to(T_hover, self.check)
@@ -545,12 +535,9 @@ class ContactRun:
                 sharp = turn > HOP_TURN_DEG and not (smooth and smooth_c)
                 if self.max_tilt_deg is None and not waiting and (far > TRANSIT_M or sharp):
                     # Back in reach away from the waiting tool, or across a sharp edge: lift, move over, touch again.
-                    if far > TRANSIT_M:
-                        a_cur, d_cur, obs = self._move_over(f"the agent is back in reach {1e3 * far:.0f} mm from the "
-                                                            "waiting tool; moving over", (a_cur, d_cur), far=True)
-                    else:
-                        a_cur, d_cur, obs = self._move_over(f"the agent crossed a sharp edge ({turn:.0f} deg); moving over",
-                                                            (a_cur, d_cur))
+                    why = (f"the agent is back in reach {1e3 * far:.0f} mm from the waiting tool" if far > TRANSIT_M
+                           else f"the agent crossed a sharp edge ({turn:.0f} deg)")
+                    a_cur, d_cur, obs = self._move_over(f"{why}; moving over", (a_cur, d_cur), far=far > TRANSIT_M)
                     a_new, d_new = a_cur, d_cur
                     turn = 0.0
                     n_c, smooth_c = self._surface_normal(a_cur, smooth=True)
@@ -576,7 +563,8 @@ class ContactRun:
                     self.on_event(step, f"robot: the agent entered the unreachable part at {_fmt(a_new)} m; the tool "
                                         "waits on the last reachable point")
                 self.guard.feed_target(self.t)
-                self._update_spin_ref(d_next)
+                # The spin is a continuous function of the tool axis (no flips, the wrist mid-range).
+                self.arm.spin_ref = tool_rotation(d_next, self._x_down)[:, 0]
             self._shadow.deposit()
             # The line target glides from the previous agent line to the new one over the interval.
             A = a_cur + s * (a_next - a_cur)
@@ -767,8 +755,7 @@ class ContactRun:
         else:
             step = self._step()
             self.sm.go(S.RETREAT, self.t, step, reason)
-            a, d = self._last_line
-            self._retreat(a, d, step)
+            self._retreat(*self._last_line, step)
         self.move_overs += 1
         self.engage()
         self.ts[Kn.TS_COUNT], self.ts[Kn.TS_RUN] = 1.0, 0.0
@@ -779,8 +766,7 @@ class ContactRun:
         """explore -> retreat along the tool axis -> move to the picture pose, state ``picture``."""
         step = self._step()
         self.sm.go(S.RETREAT, self.t, step, reason)
-        a, d = self._last_line
-        self._retreat(a, d, step)
+        self._retreat(*self._last_line, step)
         self.sm.go(S.PICTURE, self.t, step, "retreated; moving to the picture pose")
         fault = self.arm.to_picture(self.check)
         if fault is not None:
@@ -791,8 +777,7 @@ class ContactRun:
         step = self._step()
         if self.sm.state == S.EXPLORE:
             self.sm.go(S.RETREAT, self.t, step, reason)
-            a, d = self._last_line
-            self._retreat(a, d, step)
+            self._retreat(*self._last_line, step)
             reason = "retreated; done"
         self.sm.go(S.DONE, self.t, step, reason)
         self.arm.hold(SETTLE_S)
@@ -887,27 +872,13 @@ class _AgentCoverage:
 
 
 def turn_towards(d0: np.ndarray, d1: np.ndarray, max_deg: float) -> np.ndarray:
-    """Unit (3,): ``d0`` rotated towards ``d1`` (both unit) by at most ``max_deg`` degrees."""
+    """Unit (3,): ``d0`` rotated towards ``d1`` (both unit) by at most ``max_deg`` degrees; ``d0``
+    when ``d1`` is its opposite (no direction to turn in)."""
     ang = math.acos(max(-1.0, min(1.0, float(d0 @ d1))))
     if ang <= math.radians(max_deg):
         return d1
     side = d1 - (d0 @ d1) * d0
-    return math.cos(math.radians(max_deg)) * d0 + math.sin(math.radians(max_deg)) * side / np.linalg.norm(side)
-
-
-def clamp_tilt(d: np.ndarray, max_deg: float) -> np.ndarray:
-    """``d`` (3,) unit, rotated towards straight down (-z) until it is within ``max_deg`` of it."""
-    down = np.array([0.0, 0.0, -1.0])
-    c = float(d @ down)
-    lim = math.cos(math.radians(max_deg))
-    if c >= lim:
-        return d
-    side = d - c * down
     n = float(np.linalg.norm(side))
     if n < 1e-12:
-        return down.copy()
-    return lim * down + math.sin(math.radians(max_deg)) * side / n
-
-
-def _fmt(x) -> str:
-    return "(" + ", ".join(f"{float(v):.3f}" for v in np.ravel(x)) + ")"
+        return d0.copy()
+    return math.cos(math.radians(max_deg)) * d0 + math.sin(math.radians(max_deg)) * side / n

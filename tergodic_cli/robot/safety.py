@@ -131,13 +131,11 @@ class SafetyGuard:
         """Joint position/velocity limits, TCP speed and the workspace box (compiled: runs at 1 kHz)."""
         q = np.asarray(q, dtype=float)
         dq = np.asarray(dq, dtype=float)
-        code, j = self._k.state_fault(q, dq, np.asarray(tcp, dtype=float), float(tcp_speed), self.q_lo, self.q_hi,
-                                      self.dq_hi, float(self.cfg.tcp_speed_max), self.ws_lo, self.ws_hi)
-        return None if code == self._k.OK else self.state_fault_reason(t, code, j, q, dq, tcp, tcp_speed)
-
-    def state_fault_reason(self, t: float, code: int, j: int, q, dq, tcp, tcp_speed: float) -> Fault:
-        """The :class:`Fault` of a code from :func:`~tergodic_cli.robot.kernels.state_fault`."""
         k = self._k
+        code, j = k.state_fault(q, dq, np.asarray(tcp, dtype=float), float(tcp_speed), self.q_lo, self.q_hi,
+                                self.dq_hi, float(self.cfg.tcp_speed_max), self.ws_lo, self.ws_hi)
+        if code == k.OK:
+            return None
         if code == k.F_JOINT_POS:
             return Fault("joint_position", "hold",
                          f"joint {j + 1} at {q[j]:+.3f} rad is outside its limits [{self.q_lo[j]:+.3f}, {self.q_hi[j]:+.3f}] rad; "
@@ -154,9 +152,8 @@ class SafetyGuard:
     def check_force(self, t: float, wrench_ee) -> Fault | None:
         """|F| of the contact force against the limit."""
         code, f = self._k.force_fault(np.asarray(wrench_ee, dtype=float), self.force_limit)
-        return None if code == self._k.OK else self.force_fault_reason(t, f)  # a NaN force is a fault too
-
-    def force_fault_reason(self, t: float, f: float) -> Fault:
+        if code == self._k.OK:  # a NaN force is a fault too
+            return None
         return Fault("force", "retreat", f"contact force {f:.1f} N over the {self.force_limit:.1f} N limit; retreating", t,
                      {"force": f})
 

@@ -181,15 +181,6 @@ def near_border(mesh: SurfaceMesh, points: np.ndarray, width: float) -> np.ndarr
     return cKDTree(samples).query(np.asarray(points, dtype=float), distance_upper_bound=width)[0] < width
 
 
-def mesh_distance(mesh: SurfaceMesh, points: np.ndarray) -> np.ndarray:
-    """Unsigned distance (m) from ``points`` (k, 3) to the mesh (open3d raycasting scene)."""
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)), o3d.core.Tensor(mesh.triangles.astype(np.uint32)))
-    return scene.compute_distance(o3d.core.Tensor(np.asarray(points, dtype=np.float32))).numpy().astype(float)
-
-
 def parse_object_pose(values) -> np.ndarray:
     """The capture frame's pose in the robot base frame as a (4, 4) transform.
 

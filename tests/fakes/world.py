@@ -19,7 +19,9 @@ import threading
 import numpy as np
 from scipy.spatial import cKDTree
 
-from tergodic_cli.robot.ga import matrix_to_rotvec, skew
+from gafro_matrix import jacobian_spatial, skew
+
+from tergodic_cli.robot.ga import matrix_to_rotvec
 from tergodic_cli.robot.kinematics import FrankaModel
 
 G = 9.81
@@ -81,7 +83,7 @@ class FakeWorld:
     def _refresh(self, jacobian: bool = True) -> None:
         self.T = self.model.fk(self.q) @ self.ne_t_ee
         if jacobian or self.J is None:
-            Js = self.model.jacobian_spatial(self.q)  # (v at the base origin, ω)
+            Js = jacobian_spatial(self.model, self.q)  # (v at the base origin, ω)
             p = self.T[:3, 3]
             self.J = np.vstack([Js[:3] - skew(p) @ Js[3:], Js[3:]])  # v of the TCP point
             self._j_age = 0
