@@ -24,10 +24,11 @@ from tergodic_cli.robot import kernels as Kn
 from tergodic_cli.robot.config import RobotConfig, validate_robot_config
 from tergodic_cli.robot.controller import JointImpedance, LineForceController, min_jerk
 from tergodic_cli.robot.interfaces import ArmState, ContactWrench, LineTarget, Observation
-from tergodic_cli.robot.reach import ik, posture
+from tergodic_cli.robot.kinematics import FrankaModel, tool_offset
+from tergodic_cli.robot.reach import ik, plan_reach, posture
 from tergodic_cli.robot.run import SETTLE_S, ContactRun, _fmt, object_pose
-from tergodic_cli.robot.surface import (SurfaceMesh, check_reachable, curved_edge, near_border, reconstruct_mesh,
-                                         sim_object_mesh, transform_points)
+from tergodic_cli.robot.surface import (SurfaceMesh, check_reachable, curved_edge, near_border, oriented_normals,
+                                         reconstruct_mesh, resolve_side, sim_object_mesh, transform_points)
 
 #: N/m of the approach's axial position servo: its set-point advances at the guarded speed, so a
 #: steady push on the tool (gravity-model error, posture torques) cannot make it touch faster (a
@@ -52,8 +53,6 @@ class SimArm:
     name = "pybullet"
 
     def __init__(self, cfg: RobotConfig, mesh, T_mesh: np.ndarray):
-        from tergodic_cli.robot.kinematics import FrankaModel, tool_offset
-
         self.cfg = cfg
         self.mesh = mesh
         self.scene = PyBulletScene(cfg.sponge, gui=cfg.gui, dt=cfg.physics_dt, solver_iterations=cfg.solver_iterations)
@@ -386,7 +385,6 @@ class RobotRun(ContactRun):
     def __init__(self, capture, explorer, cfg: RobotConfig, on_event: Callable[[int, str], None] | None = None,
                  scene_mesh=None):
         from tergodic_cli.capture.filters import mean_spacing
-        from tergodic_cli.robot.surface import oriented_normals, resolve_side
 
         validate_robot_config(cfg)
         t_setup = time.perf_counter()
@@ -427,8 +425,6 @@ class RobotRun(ContactRun):
     def _plan_reach(self, capture, pose_given: bool) -> None:
         """Choose the object pose (when not given), mark where the tool can follow the normal, and drop
         the rest of the target from the explorer (reach.plan_reach), saying so before any contact."""
-        from tergodic_cli.robot.reach import plan_reach
-
         arm = self.arm
         target = self.target()
         T, self.reachable = plan_reach(arm.dev._chain, self.points, self.normals, target, self._x_down,

@@ -23,7 +23,8 @@ import numpy as np
 
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.robot.config import SpongeSpec
-from tergodic_cli.robot.ga import pose_matrix, quat_to_matrix
+from tergodic_cli.robot.ga import matrix_to_quat, pose_matrix, quat_to_matrix
+from tergodic_cli.robot.interfaces import ToolLoad
 
 ARM_JOINTS = tuple(f"panda_joint{i}" for i in range(1, 8))
 SENSOR_JOINT = "panda_hand_joint"  # fixed joint flange -> hand: the wrist F/T sensor
@@ -240,8 +241,6 @@ class PyBulletScene:
 
     def tool_load(self):
         """:class:`ToolLoad` of everything beyond the sensor joint, in the sensor frame."""
-        from tergodic_cli.robot.interfaces import ToolLoad
-
         p, cid, rob = self.p, self.cid, self.robot
         T_sensor = self.sensor_frame_world()
         total, mc = 0.0, np.zeros(3)
@@ -276,8 +275,6 @@ class PyBulletScene:
     def add_object(self, vertices: np.ndarray, triangles: np.ndarray, pose: np.ndarray,
                    color=(0.85, 0.83, 0.8, 1.0)) -> int:
         """A static concave triangle mesh (vertices (n, 3) m, triangles (k, 3)) at ``pose`` (4, 4)."""
-        from tergodic_cli.robot.ga import matrix_to_quat
-
         p, cid = self.p, self.cid
         kw = dict(vertices=np.asarray(vertices, float).tolist(), indices=np.asarray(triangles, np.int64).ravel().tolist())
         # Internal-edge correction: without it the sponge bumps on every triangle edge it slides over.
@@ -299,8 +296,6 @@ class PyBulletScene:
 
     def move_object(self, pose: np.ndarray) -> None:
         """Teleport the object (fault injection: the object is bumped)."""
-        from tergodic_cli.robot.ga import matrix_to_quat
-
         self.p.resetBasePositionAndOrientation(self.object, pose[:3, 3].tolist(), matrix_to_quat(pose[:3, :3]).tolist(),
                                                physicsClientId=self.cid)
         self.object_pose = np.array(pose, dtype=float)
