@@ -156,7 +156,7 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, camera=None,
     from tergodic_cli.backends.pybullet.camera import SimCamera, SimCaptureConfig, capture_sim, target_on_points
     from tergodic_cli.capture.textured import TexturedObject
     from tergodic_cli.backends.pybullet.arm import RobotRun
-    from tergodic_cli.robot.surface import sim_object_mesh
+    from tergodic_cli.robot.surface import parse_object_pose, sim_object_mesh
 
     lc = loop_cfg or CleaningLoopConfig()
     validate_loop_config(lc)
@@ -166,8 +166,6 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, camera=None,
     require(meta.get("frame") == "robot_base", "the capture is not in the robot base frame",
             "use a 'tergodic capture --source sim' capture unchanged")
     if robot_cfg.object_pose is not None:  # the identity is harmless (the cloud is in the base frame already)
-        from tergodic_cli.robot.surface import parse_object_pose
-
         require(bool(np.allclose(parse_object_pose(robot_cfg.object_pose), np.eye(4))),
                 "--object-pose cannot move a simulated capture's object",
                 "drop --object-pose; place the object when capturing: tergodic capture --source sim --object-pose ...")
