@@ -86,12 +86,9 @@ class PyBulletArm:
             raise TergodicError("the PyBullet scene is closed", "build a new scene")
         self._connected = True
 
-    def _require(self) -> None:
+    def read_state(self) -> ArmState:
         if not self.is_connected:
             raise TergodicError("the arm is not connected", "call connect() first")
-
-    def read_state(self) -> ArmState:
-        self._require()
         sc = self.scene
         p, cid, rob = sc.p, sc.cid, sc.robot
         states = p.getJointStates(rob, self._read_idx, physicsClientId=cid)
