@@ -174,23 +174,15 @@ def _front_direction(kind: str, points: np.ndarray) -> np.ndarray:
     return np.column_stack([points[:, 0], points[:, 1], np.zeros(len(points))])
 
 
-def _orient(vertices: np.ndarray, triangles: np.ndarray, wanted: np.ndarray) -> np.ndarray:
-    """Flip triangles whose counter-clockwise normal disagrees with ``wanted`` (k, 3)."""
-    v = vertices[triangles]
-    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-    flip = np.einsum("ij,ij->i", n, wanted) < 0
-    out = triangles.copy()
-    out[flip] = out[flip][:, [0, 2, 1]]
-    return out
-
-
 def builtin_mesh(kind: str, edge: float = 0.003) -> ChartMesh:
     """The built-in object ``kind`` as a chart mesh whose front faces show the marked side."""
     if kind not in _BUILDERS:
         raise TergodicError(f"unknown sim object '{kind}'", f"use one of {', '.join(BUILTIN_OBJECTS)} or a path to a .obj file")
     mesh = _BUILDERS[kind](edge)
-    centroids = mesh.vertices[mesh.triangles].mean(axis=1)
-    mesh.triangles = _orient(mesh.vertices, mesh.triangles, _front_direction(kind, centroids))
+    # flip the triangles whose counter-clockwise normal disagrees with the front direction
+    v = mesh.vertices[mesh.triangles]
+    flip = np.einsum("ij,ij->i", np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), _front_direction(kind, v.mean(axis=1))) < 0
+    mesh.triangles[flip] = mesh.triangles[flip][:, [0, 2, 1]]
     return mesh
 
 
