@@ -104,10 +104,8 @@ def generate_synthetic(kind: str, marking: str = "X", seed: int = 0, spacing: fl
     -------
     SyntheticCloud with n points, n ≈ area / spacing².
     """
-    if kind not in OBJECTS:
-        raise TergodicError(f"unknown synthetic object '{kind}'", f"use one of {', '.join(OBJECTS)}")
-    if marking not in MARKINGS:
-        raise TergodicError(f"unknown marking '{marking}'", f"use one of {', '.join(MARKINGS)}")
+    require(kind in OBJECTS, f"unknown synthetic object '{kind}'", f"use one of {', '.join(OBJECTS)}")
+    require(marking in MARKINGS, f"unknown marking '{marking}'", f"use one of {', '.join(MARKINGS)}")
     noise = check_noise(noise)
     rng = np.random.default_rng(seed)
     sheet = _SHAPES[kind](rng, spacing)

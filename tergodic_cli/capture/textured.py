@@ -176,8 +176,7 @@ def _front_direction(kind: str, points: np.ndarray) -> np.ndarray:
 
 def builtin_mesh(kind: str, edge: float = 0.003) -> ChartMesh:
     """The built-in object ``kind`` as a chart mesh whose front faces show the marked side."""
-    if kind not in _BUILDERS:
-        raise TergodicError(f"unknown sim object '{kind}'", f"use one of {', '.join(BUILTIN_OBJECTS)} or a path to a .obj file")
+    require(kind in _BUILDERS, f"unknown sim object '{kind}'", f"use one of {', '.join(BUILTIN_OBJECTS)} or a path to a .obj file")
     mesh = _BUILDERS[kind](edge)
     # flip the triangles whose counter-clockwise normal disagrees with the front direction
     v = mesh.vertices[mesh.triangles]

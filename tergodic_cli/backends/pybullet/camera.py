@@ -26,7 +26,7 @@ from tergodic_cli.backends.factory import camera_pose_matrix
 from tergodic_cli.capture.textured import SimObjectConfig, TexturedObject
 from tergodic_cli.config import Config
 from tergodic_cli.robot.ga import matrix_to_quat, motor_inverse, pose_matrix
-from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.errors import require
 
 if TYPE_CHECKING:
     from tergodic_cli.capture import Capture, CaptureConfig
@@ -313,8 +313,7 @@ class SimCamera:
             plugin = p.loadPlugin(spec.origin, "_eglRendererPlugin", physicsClientId=self.client) if spec and spec.origin else -1
             if plugin >= 0:
                 return "egl"
-            if wanted == "egl":
-                raise TergodicError("the EGL renderer plugin did not load (no EGL/GPU driver?)", "use --renderer tiny")
+            require(wanted != "egl", "the EGL renderer plugin did not load (no EGL/GPU driver?)", "use --renderer tiny")
         return "tiny"
 
     def _sync_object(self) -> float:

@@ -21,7 +21,7 @@ from contextlib import suppress
 
 import numpy as np
 
-from tergodic_cli.errors import TergodicError
+from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.robot.config import SpongeSpec
 from tergodic_cli.robot.ga import matrix_to_quat, pose_matrix, quat_to_matrix
 from tergodic_cli.robot.interfaces import ToolLoad
@@ -88,8 +88,7 @@ def panda_sponge_urdf(data: str, sponge: SpongeSpec, arm_collision: bool = True)
         text, n = re.subn(pattern, "", text, flags=re.S)
     hand = ('<parent link="panda_link8"/>\n    <child link="panda_hand"/>\n'
             '    <origin rpy="0 0 -0.785398163397" xyz="0 0 0"/>')
-    if hand not in text or "panda_leftfinger" in text:
-        raise TergodicError("pybullet_data's panda.urdf is not the expected file", "use pybullet 3.2.7")
+    require(hand in text and "panda_leftfinger" not in text, "pybullet_data's panda.urdf is not the expected file", "use pybullet 3.2.7")
     text = text.replace(hand, '<parent link="panda_link7"/>\n    <child link="panda_hand"/>\n'
                               '    <origin rpy="0 0 -0.785398163397" xyz="0 0 0.107"/>')
     i0, i1 = text.index('<link name="panda_hand">'), text.index("</link>", text.index('<link name="panda_hand">'))
@@ -97,8 +96,7 @@ def panda_sponge_urdf(data: str, sponge: SpongeSpec, arm_collision: bool = True)
     inertial, sponge_visual, sponge_collision = _hand_with_sponge(sponge)
     hand_link, n_in = re.subn(_HAND_INERTIAL, inertial, hand_link)
     hand_link, n_col = re.subn(r"<collision>.*?</collision>", sponge_collision, hand_link, flags=re.S)
-    if n_in != 1 or n_col != 1:
-        raise TergodicError("pybullet_data's panda.urdf is not the expected file", "use pybullet 3.2.7")
+    require(n_in == 1 and n_col == 1, "pybullet_data's panda.urdf is not the expected file", "use pybullet 3.2.7")
     hand_link = re.sub(r"(</visual>)", lambda m: m.group(1) + _FINGER_VISUALS.format(m=meshes) + sponge_visual,
                        hand_link, count=1)
     text = text[:i0] + hand_link + text[i1:]
@@ -140,8 +138,7 @@ class PyBulletScene:
                                     "run without --gui (DIRECT mode) or set DISPLAY") from None
         else:
             self.cid = p.connect(p.DIRECT)
-        if self.cid < 0:
-            raise TergodicError("cannot start a PyBullet client", "check the pybullet installation")
+        require(self.cid >= 0, "cannot start a PyBullet client", "check the pybullet installation")
         cid = self.cid
         p.resetSimulation(physicsClientId=cid)
         p.setGravity(0, 0, -9.81, physicsClientId=cid)
