@@ -388,7 +388,6 @@ class RobotRun(ContactRun):
 
         validate_robot_config(cfg)
         t_setup = time.perf_counter()
-        say = on_event or (lambda step, msg: None)
         points = np.asarray(capture.points, dtype=float)
         meta = getattr(capture, "meta", {}) or {}
         pose_given = cfg.object_pose is not None or meta.get("frame") == "robot_base"
@@ -413,7 +412,7 @@ class RobotRun(ContactRun):
         self.T_mesh = T_obj @ self._T_mesh_obj  # mesh frame -> base frame
         arm = SimArm(cfg, mesh, self.T_mesh)
         try:
-            super().__init__(capture, explorer, cfg, arm, T_obj, on_event=say)
+            super().__init__(capture, explorer, cfg, arm, T_obj, on_event=on_event)
             self.max_tilt_deg = None  # the tool follows the normal; what the arm cannot reach is dropped
             self.closest = closest_point_fn(mesh, self._T_mesh_obj)
             self._plan_reach(capture, pose_given)
