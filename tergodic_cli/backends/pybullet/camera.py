@@ -305,12 +305,11 @@ class SimCamera:
         self.last_frame: Frame | None = None
 
     def _pick_renderer(self, wanted: str) -> str:
-        p = self._p
         if wanted in ("auto", "egl"):
             import importlib.util
 
             spec = importlib.util.find_spec("eglRenderer")  # shipped with the pybullet wheel
-            plugin = p.loadPlugin(spec.origin, "_eglRendererPlugin", physicsClientId=self.client) if spec and spec.origin else -1
+            plugin = self._p.loadPlugin(spec.origin, "_eglRendererPlugin", physicsClientId=self.client) if spec and spec.origin else -1
             if plugin >= 0:
                 return "egl"
             require(wanted != "egl", "the EGL renderer plugin did not load (no EGL/GPU driver?)", "use --renderer tiny")

@@ -204,18 +204,16 @@ class PyBulletScene:
         track on the bowl 0.7 -> 1.0 mm, force error +20 %). The factor below restores 0.42 mm.
         The setting is process-wide in Bullet (every client), and only the sponge ever touches.
         """
-        p, cid = self.p, self.cid
-        com = np.array(p.getDynamicsInfo(self.robot, self.sponge_link, physicsClientId=cid)[3])
+        com = np.array(self.p.getDynamicsInfo(self.robot, self.sponge_link, physicsClientId=self.cid)[3])
         ball = np.array([0.0, 0.0, self.sponge.offset])
         r = math.sqrt(3.0) * self.sponge.radius
         return 0.02 * r / (float(np.linalg.norm(ball - com)) + r)
 
     def set_arm(self, q: np.ndarray) -> None:
         """Teleport the arm to ``q`` (7,) at rest (set-up only, never mid-run)."""
-        p = self.p
         self.teleports += 1
         for j, qi in zip(self.arm_joints, q):
-            p.resetJointState(self.robot, j, float(qi), 0.0, physicsClientId=self.cid)
+            self.p.resetJointState(self.robot, j, float(qi), 0.0, physicsClientId=self.cid)
 
     def link_pose(self, link: int) -> np.ndarray:
         """(4, 4) world pose of a link frame (forward kinematics recomputed)."""
@@ -230,9 +228,8 @@ class PyBulletScene:
 
     def link_poses(self) -> dict[str, np.ndarray]:
         """{link name: (7,) xyz + quaternion xyzw} of every robot link, base frame, for logging."""
-        p = self.p
         idx = list(range(len(self.link_names)))
-        states = p.getLinkStates(self.robot, idx, computeForwardKinematics=True, physicsClientId=self.cid)
+        states = self.p.getLinkStates(self.robot, idx, computeForwardKinematics=True, physicsClientId=self.cid)
         return {"panda_link0": np.array([0, 0, 0, 0, 0, 0, 1.0]),
                 **{name: np.array(tuple(s[4]) + tuple(s[5])) for name, s in zip(self.link_names, states)}}
 
@@ -263,9 +260,8 @@ class PyBulletScene:
 
     def sensor_frame_world(self) -> np.ndarray:
         """(4, 4) world pose of the F/T frame: the hand's inertial frame (where PyBullet reports the reaction)."""
-        p = self.p
         T_hand = self.link_pose(self.link_index["panda_hand"])
-        info = p.getDynamicsInfo(self.robot, self.link_index["panda_hand"], physicsClientId=self.cid)
+        info = self.p.getDynamicsInfo(self.robot, self.link_index["panda_hand"], physicsClientId=self.cid)
         return T_hand @ pose_matrix(quat_to_matrix(info[4]), np.array(info[3]))
 
     # ------------------------------------------------------------------ object
