@@ -537,10 +537,11 @@ def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return n / np.where(norm > 0, norm, 1.0)
 
 
-def parse_pose(values, option: str) -> np.ndarray:
-    """A pose as a (4, 4) transform from 3 (x,y,z m), 6 (+ roll,pitch,yaw deg, fixed axes XYZ) or 7 (+ qx,qy,qz,qw) numbers."""
+def parse_pose(values, option: str, fix: str | None = None) -> np.ndarray:
+    """A pose as a (4, 4) transform from 3 (x,y,z m), 6 (+ roll,pitch,yaw deg, fixed axes XYZ) or 7 (+ qx,qy,qz,qw) numbers;
+    ``fix``: the errors' hint (default: the forms of an ``option`` pose)."""
     v = [float(x) for x in values]
-    fix = f"give {option} x,y,z[,roll,pitch,yaw] (m, deg) or x,y,z,qx,qy,qz,qw, e.g. 0.5,0,0"
+    fix = fix or f"give {option} x,y,z[,roll,pitch,yaw] (m, deg) or x,y,z,qx,qy,qz,qw, e.g. 0.5,0,0"
     require(len(v) in (3, 6, 7), f"{option} needs 3, 6 or 7 numbers, got {len(v)}", fix)
     require(all(np.isfinite(v)), f"{option} has a non-finite number", fix)
     require(max(abs(x) for x in v[:3]) < 5.0, f"{option} position {v[:3]} is not in metres near the robot", fix)

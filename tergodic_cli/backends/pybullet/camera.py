@@ -22,8 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from tergodic_cli.backends.camera import Intrinsics, deproject
-from tergodic_cli.backends.factory import camera_pose_matrix
-from tergodic_cli.capture.textured import SimObjectConfig, TexturedObject
+from tergodic_cli.capture.textured import SimObjectConfig, TexturedObject, parse_pose
 from tergodic_cli.config import Config
 from tergodic_cli.robot.ga import matrix_to_quat, motor_inverse, pose_matrix
 from tergodic_cli.errors import require
@@ -214,9 +213,8 @@ def camera_pose(pose, target_default: np.ndarray) -> np.ndarray:
         return look_at(DEFAULT_EYE, target_default)
     v = [float(x) for x in pose]
     require(len(v) in (6, 7), f"--camera-pose needs 6 or 7 numbers, got {len(v)}", fix)
-    require(all(np.isfinite(v)), "--camera-pose has a non-finite number", fix)
-    require(max(abs(x) for x in v[:3]) < 5.0, f"--camera-pose position {v[:3]} is not in metres near the robot", fix)
-    return look_at(v[:3], v[3:]) if len(v) == 6 else camera_pose_matrix(v, fix)
+    T = parse_pose(v, "--camera-pose", fix)  # an object pose's checks; 6 numbers are eye and target here
+    return look_at(v[:3], v[3:]) if len(v) == 6 else T
 
 
 # ----------------------------------------------------------------------------- quiet native output
