@@ -85,7 +85,7 @@ def panda_sponge_urdf(data: str, sponge: SpongeSpec, arm_collision: bool = True)
                     r'<link name="panda_grasptarget">.*?</link>', r'<joint name="panda_grasptarget_hand".*?</joint>',
                     r'<joint name="panda_joint8".*?</joint>', r'<link name="panda_link8"\s*/>',
                     r'<link name="panda_link8">.*?</link>'):
-        text, n = re.subn(pattern, "", text, flags=re.S)
+        text = re.sub(pattern, "", text, flags=re.S)
     hand = ('<parent link="panda_link8"/>\n    <child link="panda_hand"/>\n'
             '    <origin rpy="0 0 -0.785398163397" xyz="0 0 0"/>')
     require(hand in text and "panda_leftfinger" not in text, "pybullet_data's panda.urdf is not the expected file", "use pybullet 3.2.7")
