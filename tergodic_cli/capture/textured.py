@@ -388,8 +388,7 @@ class TexturedObject:
         else:
             # the chart texels' centres (image row 0 at the chart's top)
             U, V = np.meshgrid((np.arange(width) + 0.5) / width, (height - np.arange(height) - 0.5) / height)
-            lo, span = mesh.box[0], mesh.box[1] - mesh.box[0]
-            chart = np.column_stack([lo[0] + U.ravel() * span[0], lo[1] + V.ravel() * span[1]])
+            chart = mesh.box[0] + np.column_stack([U.ravel(), V.ravel()]) * (mesh.box[1] - mesh.box[0])
             # the generator's drawing rules and dots' draw, so both agree exactly
             mark = _MARKS[cfg.marking](chart, mesh.size, np.random.default_rng(cfg.seed + 1))
             self.intensity[:height] = mark.reshape(height, width)

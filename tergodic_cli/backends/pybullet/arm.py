@@ -393,11 +393,11 @@ class RobotRun(ContactRun):
         pose_given = cfg.object_pose is not None or meta.get("frame") == "robot_base"
         T_obj = object_pose(capture, cfg)
         check_reachable(transform_points(T_obj, points))
-        sim = meta.get("sim") if isinstance(meta.get("sim"), dict) else None
+        sim = meta.get("sim")
         if scene_mesh is not None:
             mesh, T_mesh = scene_mesh
             self.mesh_source = "given"
-        elif sim is not None and sim.get("object"):
+        elif isinstance(sim, dict) and sim.get("object"):
             # A simulated capture: press on the object the camera rendered (its own surface), not on a
             # mesh rebuilt from the cloud; the cleaning model fades exactly that surface.
             mesh, T_mesh = sim_object_mesh(sim, cfg.mesh_edge)

@@ -423,7 +423,7 @@ def capture_sim(cfg: SimCaptureConfig | None = None, camera: SimCamera | None = 
     from tergodic_cli.capture import CaptureConfig, capture_cloud
 
     cfg = cfg or SimCaptureConfig()
-    pipe = cfg.pipeline if cfg.pipeline is not None else CaptureConfig(source="sim")
+    pipe = cfg.pipeline or CaptureConfig(source="sim")
     own = camera is None
     if own:
         camera = SimCamera(cfg.camera, TexturedObject(cfg.object))
