@@ -233,7 +233,7 @@ class SimArm:
         duration = max(1.0, 1.875 * dist / cfg.move_speed, 1.875 * length / (0.5 * self.guard.cfg.tcp_speed_max))
         n = int(round(duration / self.dt))
         path = [min_jerk(q0, q_target, duration, (i + 1) * self.dt) for i in range(n + int(round(SETTLE_S / self.dt)))]
-        QD, DQD = np.array([a for a, _ in path]), np.array([b for _, b in path])
+        QD, DQD = map(np.array, zip(*path))
         if self.fast:
             return self._joint_fast(QD, DQD)
         for qd, dqd in zip(QD, DQD):
