@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -415,7 +416,6 @@ class TexturedObject:
         self._render_normals = np.concatenate([normals, -normals])
         self._render_triangles = np.concatenate([mesh.triangles, mesh.triangles[:, [0, 2, 1]] + n])
         self.version = 0
-        self._obj_body: str | None = None
         # float32 in 0..255, as texture_rgb blends them at every re-capture
         self._blend = ((255.0 * clean).astype(np.float32) + 0.5, (255.0 * (ink_rgb - clean)).astype(np.float32))
 
@@ -472,14 +472,13 @@ class TexturedObject:
         rgb = base + self.intensity[..., None].astype(np.float32) * delta
         return np.clip(rgb, 0, 255).astype(np.uint8)  # +0.5 above makes the cast round
 
+    @cached_property
     def _obj_body_text(self) -> str:
-        if self._obj_body is None:
-            v = "\n".join(f"v {x:.7f} {y:.7f} {z:.7f}" for x, y, z in self._render_vertices)
-            vt = "\n".join(f"vt {u:.7f} {w:.7f}" for u, w in self._render_uvs)
-            vn = "\n".join(f"vn {x:.6f} {y:.6f} {z:.6f}" for x, y, z in self._render_normals)
-            f = "\n".join(f"f {a}/{a}/{a} {b}/{b}/{b} {c}/{c}/{c}" for a, b, c in self._render_triangles + 1)
-            self._obj_body = f"o tergodic_object\n{v}\n{vt}\n{vn}\nusemtl marked\ns off\n{f}\n"
-        return self._obj_body
+        v = "\n".join(f"v {x:.7f} {y:.7f} {z:.7f}" for x, y, z in self._render_vertices)
+        vt = "\n".join(f"vt {u:.7f} {w:.7f}" for u, w in self._render_uvs)
+        vn = "\n".join(f"vn {x:.6f} {y:.6f} {z:.6f}" for x, y, z in self._render_normals)
+        f = "\n".join(f"f {a}/{a}/{a} {b}/{b}/{b} {c}/{c}/{c}" for a, b, c in self._render_triangles + 1)
+        return f"o tergodic_object\n{v}\n{vt}\n{vn}\nusemtl marked\ns off\n{f}\n"
 
     def create_body(self, client: int, folder: str | Path, collision: bool = False) -> int:
         """Add the object to PyBullet ``client`` at ``pose`` with its current texture; returns the body id.
@@ -495,7 +494,7 @@ class TexturedObject:
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         mesh_path = folder / "mesh.obj"
-        mesh_path.write_text(self._obj_body_text())
+        mesh_path.write_text(self._obj_body_text)
         vis = p.createVisualShape(p.GEOM_MESH, fileName=str(mesh_path), physicsClientId=client)
         require(vis >= 0, f"PyBullet could not load {mesh_path}", "check the mesh file")
         col = -1
