@@ -101,8 +101,7 @@ def panda_sponge_urdf(data: str, sponge: SpongeSpec, arm_collision: bool = True)
                        hand_link, count=1)
     text = text[:i0] + hand_link + text[i1:]
     if not arm_collision:  # only the sponge has a collision shape
-        head, tail = text[:i0], text[i0:]
-        text = re.sub(r"<collision>.*?</collision>", "", head, flags=re.S) + tail
+        text = re.sub(r"<collision>.*?</collision>", "", text[:i0], flags=re.S) + text[i0:]
     return text
 
 
@@ -307,7 +306,7 @@ class PyBulletScene:
         self.t = self.steps * self.dt
 
     def close(self) -> None:
-        if self.cid is not None and self.cid >= 0:
+        if self.cid >= 0:
             with suppress(self.p.error):
                 self.p.disconnect(physicsClientId=self.cid)
             self.cid = -1
