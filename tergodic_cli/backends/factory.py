@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.errors import require
 from tergodic_cli.backends.extras import import_sdk
 
 ROBOTS = ("franka",)
@@ -74,9 +74,8 @@ def camera_pose_matrix(values, fix: str = "give x,y,z,qx,qy,qz,qw with a unit qu
     from tergodic_cli.robot.ga import pose_matrix, quat_to_matrix
 
     v = [float(x) for x in values]
-    if len(v) != 7:
-        raise TergodicError(f"--camera-pose for a real camera needs 7 numbers, got {len(v)}",
-                            "give the optical frame's pose from your hand-eye calibration: x,y,z,qx,qy,qz,qw (m)")
+    require(len(v) == 7, f"--camera-pose for a real camera needs 7 numbers, got {len(v)}",
+            "give the optical frame's pose from your hand-eye calibration: x,y,z,qx,qy,qz,qw (m)")
     q = np.array(v[3:])
     require(bool(np.all(np.isfinite(v))) and abs(np.linalg.norm(q) - 1.0) < 1e-3, "--camera-pose quaternion is not unit length",
             fix)

@@ -104,10 +104,8 @@ def generate_synthetic(kind: str, marking: str = "X", seed: int = 0, spacing: fl
     -------
     SyntheticCloud with n points, n ≈ area / spacing².
     """
-    if kind not in OBJECTS:
-        raise TergodicError(f"unknown synthetic object '{kind}'", f"use one of {', '.join(OBJECTS)}")
-    if marking not in MARKINGS:
-        raise TergodicError(f"unknown marking '{marking}'", f"use one of {', '.join(MARKINGS)}")
+    require(kind in OBJECTS, f"unknown synthetic object '{kind}'", f"use one of {', '.join(OBJECTS)}")
+    require(marking in MARKINGS, f"unknown marking '{marking}'", f"use one of {', '.join(MARKINGS)}")
     noise = check_noise(noise)
     rng = np.random.default_rng(seed)
     sheet = _SHAPES[kind](rng, spacing)
@@ -232,7 +230,7 @@ def _mug(rng, spacing):
 def _thin_mug(rng, spacing):
     # Two sheets 4 mm apart (the hard case for a local surface fit); the marking is on the outside.
     inner = MUG_RADIUS - MUG_WALL
-    return _join(_cylinder(rng, spacing, MUG_RADIUS, 0.0, MUG_HEIGHT, True, True),
+    return _join(_mug(rng, spacing),
                  _cylinder(rng, spacing, inner, MUG_FLOOR, MUG_HEIGHT, False, False),
                  _annulus(rng, spacing, inner, MUG_RADIUS, MUG_HEIGHT, False),
                  _annulus(rng, spacing, 0.0, inner, MUG_FLOOR, False),

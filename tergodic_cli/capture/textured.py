@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -174,23 +175,14 @@ def _front_direction(kind: str, points: np.ndarray) -> np.ndarray:
     return np.column_stack([points[:, 0], points[:, 1], np.zeros(len(points))])
 
 
-def _orient(vertices: np.ndarray, triangles: np.ndarray, wanted: np.ndarray) -> np.ndarray:
-    """Flip triangles whose counter-clockwise normal disagrees with ``wanted`` (k, 3)."""
-    v = vertices[triangles]
-    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-    flip = np.einsum("ij,ij->i", n, wanted) < 0
-    out = triangles.copy()
-    out[flip] = out[flip][:, [0, 2, 1]]
-    return out
-
-
 def builtin_mesh(kind: str, edge: float = 0.003) -> ChartMesh:
     """The built-in object ``kind`` as a chart mesh whose front faces show the marked side."""
-    if kind not in _BUILDERS:
-        raise TergodicError(f"unknown sim object '{kind}'", f"use one of {', '.join(BUILTIN_OBJECTS)} or a path to a .obj file")
+    require(kind in _BUILDERS, f"unknown sim object '{kind}'", f"use one of {', '.join(BUILTIN_OBJECTS)} or a path to a .obj file")
     mesh = _BUILDERS[kind](edge)
-    centroids = mesh.vertices[mesh.triangles].mean(axis=1)
-    mesh.triangles = _orient(mesh.vertices, mesh.triangles, _front_direction(kind, centroids))
+    # flip the triangles whose counter-clockwise normal disagrees with the front direction
+    v = mesh.vertices[mesh.triangles]
+    flip = np.einsum("ij,ij->i", np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), _front_direction(kind, v.mean(axis=1))) < 0
+    mesh.triangles[flip] = mesh.triangles[flip][:, [0, 2, 1]]
     return mesh
 
 
@@ -397,8 +389,7 @@ class TexturedObject:
         else:
             # the chart texels' centres (image row 0 at the chart's top)
             U, V = np.meshgrid((np.arange(width) + 0.5) / width, (height - np.arange(height) - 0.5) / height)
-            lo, span = mesh.box[0], mesh.box[1] - mesh.box[0]
-            chart = np.column_stack([lo[0] + U.ravel() * span[0], lo[1] + V.ravel() * span[1]])
+            chart = mesh.box[0] + np.column_stack([U.ravel(), V.ravel()]) * (mesh.box[1] - mesh.box[0])
             # the generator's drawing rules and dots' draw, so both agree exactly
             mark = _MARKS[cfg.marking](chart, mesh.size, np.random.default_rng(cfg.seed + 1))
             self.intensity[:height] = mark.reshape(height, width)
@@ -425,7 +416,6 @@ class TexturedObject:
         self._render_normals = np.concatenate([normals, -normals])
         self._render_triangles = np.concatenate([mesh.triangles, mesh.triangles[:, [0, 2, 1]] + n])
         self.version = 0
-        self._obj_body: str | None = None
         # float32 in 0..255, as texture_rgb blends them at every re-capture
         self._blend = ((255.0 * clean).astype(np.float32) + 0.5, (255.0 * (ink_rgb - clean)).astype(np.float32))
 
@@ -482,14 +472,13 @@ class TexturedObject:
         rgb = base + self.intensity[..., None].astype(np.float32) * delta
         return np.clip(rgb, 0, 255).astype(np.uint8)  # +0.5 above makes the cast round
 
+    @cached_property
     def _obj_body_text(self) -> str:
-        if self._obj_body is None:
-            v = "\n".join(f"v {x:.7f} {y:.7f} {z:.7f}" for x, y, z in self._render_vertices)
-            vt = "\n".join(f"vt {u:.7f} {w:.7f}" for u, w in self._render_uvs)
-            vn = "\n".join(f"vn {x:.6f} {y:.6f} {z:.6f}" for x, y, z in self._render_normals)
-            f = "\n".join(f"f {a}/{a}/{a} {b}/{b}/{b} {c}/{c}/{c}" for a, b, c in self._render_triangles + 1)
-            self._obj_body = f"o tergodic_object\n{v}\n{vt}\n{vn}\nusemtl marked\ns off\n{f}\n"
-        return self._obj_body
+        v = "\n".join(f"v {x:.7f} {y:.7f} {z:.7f}" for x, y, z in self._render_vertices)
+        vt = "\n".join(f"vt {u:.7f} {w:.7f}" for u, w in self._render_uvs)
+        vn = "\n".join(f"vn {x:.6f} {y:.6f} {z:.6f}" for x, y, z in self._render_normals)
+        f = "\n".join(f"f {a}/{a}/{a} {b}/{b}/{b} {c}/{c}/{c}" for a, b, c in self._render_triangles + 1)
+        return f"o tergodic_object\n{v}\n{vt}\n{vn}\nusemtl marked\ns off\n{f}\n"
 
     def create_body(self, client: int, folder: str | Path, collision: bool = False) -> int:
         """Add the object to PyBullet ``client`` at ``pose`` with its current texture; returns the body id.
@@ -505,7 +494,7 @@ class TexturedObject:
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         mesh_path = folder / "mesh.obj"
-        mesh_path.write_text(self._obj_body_text())
+        mesh_path.write_text(self._obj_body_text)
         vis = p.createVisualShape(p.GEOM_MESH, fileName=str(mesh_path), physicsClientId=client)
         require(vis >= 0, f"PyBullet could not load {mesh_path}", "check the mesh file")
         col = -1
@@ -546,10 +535,11 @@ def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return n / np.where(norm > 0, norm, 1.0)
 
 
-def parse_pose(values, option: str) -> np.ndarray:
-    """A pose as a (4, 4) transform from 3 (x,y,z m), 6 (+ roll,pitch,yaw deg, fixed axes XYZ) or 7 (+ qx,qy,qz,qw) numbers."""
+def parse_pose(values, option: str, fix: str | None = None) -> np.ndarray:
+    """A pose as a (4, 4) transform from 3 (x,y,z m), 6 (+ roll,pitch,yaw deg, fixed axes XYZ) or 7 (+ qx,qy,qz,qw) numbers;
+    ``fix``: the errors' hint (default: the forms of an ``option`` pose)."""
     v = [float(x) for x in values]
-    fix = f"give {option} x,y,z[,roll,pitch,yaw] (m, deg) or x,y,z,qx,qy,qz,qw, e.g. 0.5,0,0"
+    fix = fix or f"give {option} x,y,z[,roll,pitch,yaw] (m, deg) or x,y,z,qx,qy,qz,qw, e.g. 0.5,0,0"
     require(len(v) in (3, 6, 7), f"{option} needs 3, 6 or 7 numbers, got {len(v)}", fix)
     require(all(np.isfinite(v)), f"{option} has a non-finite number", fix)
     require(max(abs(x) for x in v[:3]) < 5.0, f"{option} position {v[:3]} is not in metres near the robot", fix)

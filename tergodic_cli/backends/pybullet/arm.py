@@ -24,10 +24,11 @@ from tergodic_cli.robot import kernels as Kn
 from tergodic_cli.robot.config import RobotConfig, validate_robot_config
 from tergodic_cli.robot.controller import JointImpedance, LineForceController, min_jerk
 from tergodic_cli.robot.interfaces import ArmState, ContactWrench, LineTarget, Observation
-from tergodic_cli.robot.reach import ik, posture
+from tergodic_cli.robot.kinematics import FrankaModel, tool_offset
+from tergodic_cli.robot.reach import ik, plan_reach, posture
 from tergodic_cli.robot.run import SETTLE_S, ContactRun, _fmt, object_pose
-from tergodic_cli.robot.surface import (SurfaceMesh, check_reachable, curved_edge, near_border, reconstruct_mesh,
-                                         sim_object_mesh, transform_points)
+from tergodic_cli.robot.surface import (SurfaceMesh, check_reachable, curved_edge, near_border, oriented_normals,
+                                         reconstruct_mesh, resolve_side, sim_object_mesh, transform_points)
 
 #: N/m of the approach's axial position servo: its set-point advances at the guarded speed, so a
 #: steady push on the tool (gravity-model error, posture torques) cannot make it touch faster (a
@@ -52,8 +53,6 @@ class SimArm:
     name = "pybullet"
 
     def __init__(self, cfg: RobotConfig, mesh, T_mesh: np.ndarray):
-        from tergodic_cli.robot.kinematics import FrankaModel, tool_offset
-
         self.cfg = cfg
         self.mesh = mesh
         self.scene = PyBulletScene(cfg.sponge, gui=cfg.gui, dt=cfg.physics_dt, solver_iterations=cfg.solver_iterations)
@@ -234,7 +233,7 @@ class SimArm:
         duration = max(1.0, 1.875 * dist / cfg.move_speed, 1.875 * length / (0.5 * self.guard.cfg.tcp_speed_max))
         n = int(round(duration / self.dt))
         path = [min_jerk(q0, q_target, duration, (i + 1) * self.dt) for i in range(n + int(round(SETTLE_S / self.dt)))]
-        QD, DQD = np.array([a for a, _ in path]), np.array([b for _, b in path])
+        QD, DQD = map(np.array, zip(*path))
         if self.fast:
             return self._joint_fast(QD, DQD)
         for qd, dqd in zip(QD, DQD):
@@ -386,21 +385,19 @@ class RobotRun(ContactRun):
     def __init__(self, capture, explorer, cfg: RobotConfig, on_event: Callable[[int, str], None] | None = None,
                  scene_mesh=None):
         from tergodic_cli.capture.filters import mean_spacing
-        from tergodic_cli.robot.surface import oriented_normals, resolve_side
 
         validate_robot_config(cfg)
         t_setup = time.perf_counter()
-        say = on_event or (lambda step, msg: None)
         points = np.asarray(capture.points, dtype=float)
         meta = getattr(capture, "meta", {}) or {}
         pose_given = cfg.object_pose is not None or meta.get("frame") == "robot_base"
         T_obj = object_pose(capture, cfg)
         check_reachable(transform_points(T_obj, points))
-        sim = meta.get("sim") if isinstance(meta.get("sim"), dict) else None
+        sim = meta.get("sim")
         if scene_mesh is not None:
             mesh, T_mesh = scene_mesh
             self.mesh_source = "given"
-        elif sim is not None and sim.get("object"):
+        elif isinstance(sim, dict) and sim.get("object"):
             # A simulated capture: press on the object the camera rendered (its own surface), not on a
             # mesh rebuilt from the cloud; the cleaning model fades exactly that surface.
             mesh, T_mesh = sim_object_mesh(sim, cfg.mesh_edge)
@@ -415,7 +412,7 @@ class RobotRun(ContactRun):
         self.T_mesh = T_obj @ self._T_mesh_obj  # mesh frame -> base frame
         arm = SimArm(cfg, mesh, self.T_mesh)
         try:
-            super().__init__(capture, explorer, cfg, arm, T_obj, on_event=say)
+            super().__init__(capture, explorer, cfg, arm, T_obj, on_event=on_event)
             self.max_tilt_deg = None  # the tool follows the normal; what the arm cannot reach is dropped
             self.closest = closest_point_fn(mesh, self._T_mesh_obj)
             self._plan_reach(capture, pose_given)
@@ -427,8 +424,6 @@ class RobotRun(ContactRun):
     def _plan_reach(self, capture, pose_given: bool) -> None:
         """Choose the object pose (when not given), mark where the tool can follow the normal, and drop
         the rest of the target from the explorer (reach.plan_reach), saying so before any contact."""
-        from tergodic_cli.robot.reach import plan_reach
-
         arm = self.arm
         target = self.target()
         T, self.reachable = plan_reach(arm.dev._chain, self.points, self.normals, target, self._x_down,

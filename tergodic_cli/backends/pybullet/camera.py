@@ -22,11 +22,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from tergodic_cli.backends.camera import Intrinsics, deproject
-from tergodic_cli.backends.factory import camera_pose_matrix
-from tergodic_cli.capture.textured import SimObjectConfig, TexturedObject
+from tergodic_cli.capture.textured import SimObjectConfig, TexturedObject, parse_pose
 from tergodic_cli.config import Config
 from tergodic_cli.robot.ga import matrix_to_quat, motor_inverse, pose_matrix
-from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.errors import require
 
 if TYPE_CHECKING:
     from tergodic_cli.capture import Capture, CaptureConfig
@@ -214,9 +213,8 @@ def camera_pose(pose, target_default: np.ndarray) -> np.ndarray:
         return look_at(DEFAULT_EYE, target_default)
     v = [float(x) for x in pose]
     require(len(v) in (6, 7), f"--camera-pose needs 6 or 7 numbers, got {len(v)}", fix)
-    require(all(np.isfinite(v)), "--camera-pose has a non-finite number", fix)
-    require(max(abs(x) for x in v[:3]) < 5.0, f"--camera-pose position {v[:3]} is not in metres near the robot", fix)
-    return look_at(v[:3], v[3:]) if len(v) == 6 else camera_pose_matrix(v, fix)
+    T = parse_pose(v, "--camera-pose", fix)  # an object pose's checks; 6 numbers are eye and target here
+    return look_at(v[:3], v[3:]) if len(v) == 6 else T
 
 
 # ----------------------------------------------------------------------------- quiet native output
@@ -305,16 +303,14 @@ class SimCamera:
         self.last_frame: Frame | None = None
 
     def _pick_renderer(self, wanted: str) -> str:
-        p = self._p
         if wanted in ("auto", "egl"):
             import importlib.util
 
             spec = importlib.util.find_spec("eglRenderer")  # shipped with the pybullet wheel
-            plugin = p.loadPlugin(spec.origin, "_eglRendererPlugin", physicsClientId=self.client) if spec and spec.origin else -1
+            plugin = self._p.loadPlugin(spec.origin, "_eglRendererPlugin", physicsClientId=self.client) if spec and spec.origin else -1
             if plugin >= 0:
                 return "egl"
-            if wanted == "egl":
-                raise TergodicError("the EGL renderer plugin did not load (no EGL/GPU driver?)", "use --renderer tiny")
+            require(wanted != "egl", "the EGL renderer plugin did not load (no EGL/GPU driver?)", "use --renderer tiny")
         return "tiny"
 
     def _sync_object(self) -> float:
@@ -427,7 +423,7 @@ def capture_sim(cfg: SimCaptureConfig | None = None, camera: SimCamera | None = 
     from tergodic_cli.capture import CaptureConfig, capture_cloud
 
     cfg = cfg or SimCaptureConfig()
-    pipe = cfg.pipeline if cfg.pipeline is not None else CaptureConfig(source="sim")
+    pipe = cfg.pipeline or CaptureConfig(source="sim")
     own = camera is None
     if own:
         camera = SimCamera(cfg.camera, TexturedObject(cfg.object))

@@ -156,7 +156,7 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, camera=None,
     from tergodic_cli.backends.pybullet.camera import SimCamera, SimCaptureConfig, capture_sim, target_on_points
     from tergodic_cli.capture.textured import TexturedObject
     from tergodic_cli.backends.pybullet.arm import RobotRun
-    from tergodic_cli.robot.surface import sim_object_mesh
+    from tergodic_cli.robot.surface import parse_object_pose, sim_object_mesh
 
     lc = loop_cfg or CleaningLoopConfig()
     validate_loop_config(lc)
@@ -166,13 +166,11 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, camera=None,
     require(meta.get("frame") == "robot_base", "the capture is not in the robot base frame",
             "use a 'tergodic capture --source sim' capture unchanged")
     if robot_cfg.object_pose is not None:  # the identity is harmless (the cloud is in the base frame already)
-        from tergodic_cli.robot.surface import parse_object_pose
-
         require(bool(np.allclose(parse_object_pose(robot_cfg.object_pose), np.eye(4))),
                 "--object-pose cannot move a simulated capture's object",
                 "drop --object-pose; place the object when capturing: tergodic capture --source sim --object-pose ...")
     points = np.asarray(explorer.points, dtype=np.float64)
-    require(points.shape == np.asarray(capture.points).shape and bool(np.array_equal(points, capture.points)),
+    require(bool(np.array_equal(points, capture.points)),
             "the explorer's basis is not built on this capture's points", "build the explorer on the capture's basis")
     require(float(np.sum(capture.target)) > 0, "the initial capture sees no marking",
             "capture an object with a marking (e.g. --marking X)")
@@ -204,7 +202,7 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, camera=None,
             # The renderer is deterministic and the geometry unchanged: the re-captured cloud is the
             # basis' own points, in the same order, and p maps one to one. Otherwise (depth noise, a
             # moved object) it goes to the nearest basis point, on the same basis all the same.
-            same = cap.points.shape == points.shape and bool(np.array_equal(cap.points, points))
+            same = bool(np.array_equal(cap.points, points))
             p = cap.target.copy() if same else target_on_points(points, cap)
             t2 = time.perf_counter()
             # Identical points have the basis' cache key by construction; compute it when they are not
@@ -222,8 +220,8 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, camera=None,
                    "target_points": int(np.count_nonzero(cap.target > 0)),
                    "target_points_on_basis": int(np.count_nonzero(p > 0)),
                    "ms": 1e3 * (t3 - t0), "capture_ms": 1e3 * (t1 - t0), "transfer_ms": 1e3 * (t2 - t1),
-                   "key_ms": 1e3 * (t3 - t2), "texture_ms": float(timing.get("texture_ms", 0.0)),
-                   "render_ms": float(timing.get("render_ms", 0.0)), "pipeline_ms": float(timing.get("pipeline_ms", 0.0)),
+                   "key_ms": 1e3 * (t3 - t2), "texture_ms": timing["texture_ms"],
+                   "render_ms": timing["render_ms"], "pipeline_ms": timing["pipeline_ms"],
                    "basis_cache_hit": bool(hit), "same_points": same, "cpu_ms": 1e3 * (time.process_time() - cpu)}
             return rec, p
 
@@ -300,7 +298,7 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, camera=None,
             "basis_recomputed": False,
             "basis_cache_hits": int(sum(r["basis_cache_hit"] for r in log)),
             "clean_reached": bool(clean),
-            "loop_stop": stop if not run.stop_reason else run.stop_reason,
+            "loop_stop": run.stop_reason or stop,
             "steps_done": int(run._step()),
             "cleaning_impulse_Ns": cleaner.impulse,
             "cleaning_updates": cleaner.calls,

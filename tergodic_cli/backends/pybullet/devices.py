@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tergodic_cli.errors import TergodicError
+from tergodic_cli.errors import require
 from tergodic_cli.robot.ga import motor_inverse
 from tergodic_cli.robot.interfaces import ArmState, WrenchReading, WrenchSensor
 from tergodic_cli.robot.kernels import fk_jacobian
@@ -82,16 +82,11 @@ class PyBulletArm:
         return self._connected and self.scene.cid >= 0
 
     def connect(self) -> None:
-        if self.scene.cid < 0:
-            raise TergodicError("the PyBullet scene is closed", "build a new scene")
+        require(self.scene.cid >= 0, "the PyBullet scene is closed", "build a new scene")
         self._connected = True
 
-    def _require(self) -> None:
-        if not self.is_connected:
-            raise TergodicError("the arm is not connected", "call connect() first")
-
     def read_state(self) -> ArmState:
-        self._require()
+        require(self.is_connected, "the arm is not connected", "call connect() first")
         sc = self.scene
         p, cid, rob = sc.p, sc.cid, sc.robot
         states = p.getJointStates(rob, self._read_idx, physicsClientId=cid)

@@ -21,9 +21,10 @@ from contextlib import suppress
 
 import numpy as np
 
-from tergodic_cli.errors import TergodicError
+from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.robot.config import SpongeSpec
-from tergodic_cli.robot.ga import pose_matrix, quat_to_matrix
+from tergodic_cli.robot.ga import matrix_to_quat, pose_matrix, quat_to_matrix
+from tergodic_cli.robot.interfaces import ToolLoad
 
 ARM_JOINTS = tuple(f"panda_joint{i}" for i in range(1, 8))
 SENSOR_JOINT = "panda_hand_joint"  # fixed joint flange -> hand: the wrist F/T sensor
@@ -84,11 +85,10 @@ def panda_sponge_urdf(data: str, sponge: SpongeSpec, arm_collision: bool = True)
                     r'<link name="panda_grasptarget">.*?</link>', r'<joint name="panda_grasptarget_hand".*?</joint>',
                     r'<joint name="panda_joint8".*?</joint>', r'<link name="panda_link8"\s*/>',
                     r'<link name="panda_link8">.*?</link>'):
-        text, n = re.subn(pattern, "", text, flags=re.S)
+        text = re.sub(pattern, "", text, flags=re.S)
     hand = ('<parent link="panda_link8"/>\n    <child link="panda_hand"/>\n'
             '    <origin rpy="0 0 -0.785398163397" xyz="0 0 0"/>')
-    if hand not in text or "panda_leftfinger" in text:
-        raise TergodicError("pybullet_data's panda.urdf is not the expected file", "use pybullet 3.2.7")
+    require(hand in text and "panda_leftfinger" not in text, "pybullet_data's panda.urdf is not the expected file", "use pybullet 3.2.7")
     text = text.replace(hand, '<parent link="panda_link7"/>\n    <child link="panda_hand"/>\n'
                               '    <origin rpy="0 0 -0.785398163397" xyz="0 0 0.107"/>')
     i0, i1 = text.index('<link name="panda_hand">'), text.index("</link>", text.index('<link name="panda_hand">'))
@@ -96,14 +96,12 @@ def panda_sponge_urdf(data: str, sponge: SpongeSpec, arm_collision: bool = True)
     inertial, sponge_visual, sponge_collision = _hand_with_sponge(sponge)
     hand_link, n_in = re.subn(_HAND_INERTIAL, inertial, hand_link)
     hand_link, n_col = re.subn(r"<collision>.*?</collision>", sponge_collision, hand_link, flags=re.S)
-    if n_in != 1 or n_col != 1:
-        raise TergodicError("pybullet_data's panda.urdf is not the expected file", "use pybullet 3.2.7")
+    require(n_in == 1 and n_col == 1, "pybullet_data's panda.urdf is not the expected file", "use pybullet 3.2.7")
     hand_link = re.sub(r"(</visual>)", lambda m: m.group(1) + _FINGER_VISUALS.format(m=meshes) + sponge_visual,
                        hand_link, count=1)
     text = text[:i0] + hand_link + text[i1:]
     if not arm_collision:  # only the sponge has a collision shape
-        head, tail = text[:i0], text[i0:]
-        text = re.sub(r"<collision>.*?</collision>", "", head, flags=re.S) + tail
+        text = re.sub(r"<collision>.*?</collision>", "", text[:i0], flags=re.S) + text[i0:]
     return text
 
 
@@ -139,8 +137,7 @@ class PyBulletScene:
                                     "run without --gui (DIRECT mode) or set DISPLAY") from None
         else:
             self.cid = p.connect(p.DIRECT)
-        if self.cid < 0:
-            raise TergodicError("cannot start a PyBullet client", "check the pybullet installation")
+        require(self.cid >= 0, "cannot start a PyBullet client", "check the pybullet installation")
         cid = self.cid
         p.resetSimulation(physicsClientId=cid)
         p.setGravity(0, 0, -9.81, physicsClientId=cid)
@@ -206,18 +203,16 @@ class PyBulletScene:
         track on the bowl 0.7 -> 1.0 mm, force error +20 %). The factor below restores 0.42 mm.
         The setting is process-wide in Bullet (every client), and only the sponge ever touches.
         """
-        p, cid = self.p, self.cid
-        com = np.array(p.getDynamicsInfo(self.robot, self.sponge_link, physicsClientId=cid)[3])
+        com = np.array(self.p.getDynamicsInfo(self.robot, self.sponge_link, physicsClientId=self.cid)[3])
         ball = np.array([0.0, 0.0, self.sponge.offset])
         r = math.sqrt(3.0) * self.sponge.radius
         return 0.02 * r / (float(np.linalg.norm(ball - com)) + r)
 
     def set_arm(self, q: np.ndarray) -> None:
         """Teleport the arm to ``q`` (7,) at rest (set-up only, never mid-run)."""
-        p = self.p
         self.teleports += 1
         for j, qi in zip(self.arm_joints, q):
-            p.resetJointState(self.robot, j, float(qi), 0.0, physicsClientId=self.cid)
+            self.p.resetJointState(self.robot, j, float(qi), 0.0, physicsClientId=self.cid)
 
     def link_pose(self, link: int) -> np.ndarray:
         """(4, 4) world pose of a link frame (forward kinematics recomputed)."""
@@ -232,16 +227,13 @@ class PyBulletScene:
 
     def link_poses(self) -> dict[str, np.ndarray]:
         """{link name: (7,) xyz + quaternion xyzw} of every robot link, base frame, for logging."""
-        p = self.p
         idx = list(range(len(self.link_names)))
-        states = p.getLinkStates(self.robot, idx, computeForwardKinematics=True, physicsClientId=self.cid)
+        states = self.p.getLinkStates(self.robot, idx, computeForwardKinematics=True, physicsClientId=self.cid)
         return {"panda_link0": np.array([0, 0, 0, 0, 0, 0, 1.0]),
                 **{name: np.array(tuple(s[4]) + tuple(s[5])) for name, s in zip(self.link_names, states)}}
 
     def tool_load(self):
         """:class:`ToolLoad` of everything beyond the sensor joint, in the sensor frame."""
-        from tergodic_cli.robot.interfaces import ToolLoad
-
         p, cid, rob = self.p, self.cid, self.robot
         T_sensor = self.sensor_frame_world()
         total, mc = 0.0, np.zeros(3)
@@ -267,17 +259,14 @@ class PyBulletScene:
 
     def sensor_frame_world(self) -> np.ndarray:
         """(4, 4) world pose of the F/T frame: the hand's inertial frame (where PyBullet reports the reaction)."""
-        p = self.p
         T_hand = self.link_pose(self.link_index["panda_hand"])
-        info = p.getDynamicsInfo(self.robot, self.link_index["panda_hand"], physicsClientId=self.cid)
+        info = self.p.getDynamicsInfo(self.robot, self.link_index["panda_hand"], physicsClientId=self.cid)
         return T_hand @ pose_matrix(quat_to_matrix(info[4]), np.array(info[3]))
 
     # ------------------------------------------------------------------ object
     def add_object(self, vertices: np.ndarray, triangles: np.ndarray, pose: np.ndarray,
                    color=(0.85, 0.83, 0.8, 1.0)) -> int:
         """A static concave triangle mesh (vertices (n, 3) m, triangles (k, 3)) at ``pose`` (4, 4)."""
-        from tergodic_cli.robot.ga import matrix_to_quat
-
         p, cid = self.p, self.cid
         kw = dict(vertices=np.asarray(vertices, float).tolist(), indices=np.asarray(triangles, np.int64).ravel().tolist())
         # Internal-edge correction: without it the sponge bumps on every triangle edge it slides over.
@@ -299,8 +288,6 @@ class PyBulletScene:
 
     def move_object(self, pose: np.ndarray) -> None:
         """Teleport the object (fault injection: the object is bumped)."""
-        from tergodic_cli.robot.ga import matrix_to_quat
-
         self.p.resetBasePositionAndOrientation(self.object, pose[:3, 3].tolist(), matrix_to_quat(pose[:3, :3]).tolist(),
                                                physicsClientId=self.cid)
         self.object_pose = np.array(pose, dtype=float)
@@ -319,7 +306,7 @@ class PyBulletScene:
         self.t = self.steps * self.dt
 
     def close(self) -> None:
-        if self.cid is not None and self.cid >= 0:
+        if self.cid >= 0:
             with suppress(self.p.error):
                 self.p.disconnect(physicsClientId=self.cid)
             self.cid = -1
