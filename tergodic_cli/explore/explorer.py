@@ -354,12 +354,14 @@ class Explorer:
         T = self._T
         return np.maximum(self._pf[K.PF_PBAR, T] - (self._cov[T] / Z if Z > 0 else 0.0), 0.0) ** 2
 
-    def _sbar(self) -> np.ndarray:
-        """(m,) the injected source s/∫s as the step used it (running Z and ∫s), internal order."""
+    def _sbar(self, Z: float | None = None) -> np.ndarray:
+        """(m,) the injected source s/∫s in internal order: as the step used it (running Z and ∫s), or
+        with coverage normaliser ``Z`` and ∫s summed afresh."""
         out = np.zeros(len(self._field.sel))
-        ms = self._fs[K.FS_MASS_S]
-        if ms > 0:
-            out[self._T] = self._s_target(self._fs[K.FS_Z]) / ms
+        s = self._s_target(self._fs[K.FS_Z] if Z is None else Z)
+        total = self._fs[K.FS_MASS_S] if Z is None else float(self._pf[K.PF_MASS, self._T] @ s)
+        if total > 0:
+            out[self._T] = s / total
         return out
 
     @property
@@ -464,13 +466,7 @@ class Explorer:
 
     def _diffuse_full(self) -> None:
         """The implicit integrator on the whole field: u <- (M + δt L)⁻¹ M u + s̄ (carry) or u = ... s̄."""
-        T = self._T
-        s = self._s_target(self._fs[K.FS_Z])
-        total = float(self._pf[K.PF_MASS, T] @ s)
-        sbar = np.zeros(len(self.points))
-        if total > 0:
-            sbar[T] = s / total
-        sbar = sbar[self._rank]  # the sparse operator works in the cloud's order
+        sbar = self._sbar(self._fs[K.FS_Z])[self._rank]  # the sparse operator works in the cloud's order
         op = self._implicit[self._alpha]
         if self.cfg.diffusion == "carry":
             self._u_orig[:] = op.apply(self._u_orig) + sbar
@@ -487,10 +483,7 @@ class Explorer:
         if self._prm[K.PR_ZTARGET] == 0.0:
             u += self._sbar()
         else:  # the published code's s̄₁ has the cloud-normalised coverage (eq. 2), whatever drives the agents
-            e = self._s_target(self._fs[K.FS_ZC])
-            total = float(self._pf[K.PF_MASS, self._T] @ e)
-            if total > 0:
-                u[self._T] += e / total
+            u += self._sbar(self._fs[K.FS_ZC])
         total = float(u.sum())
         if not (total > 0 and math.isfinite(total)):
             raise TergodicError("the heat after the first step has no positive mass",
