@@ -435,14 +435,13 @@ class Explorer:
             deposits = np.ascontiguousarray(deposit_at, dtype=np.float64).reshape(-1, 3)
             n_dep = len(deposits)
         status = self._reset_status
+        status[:] = -1  # no reset; 0: reset to self._resets, which the kernel turns to -2 when it is refused
         if agent_at is not None:
             at = np.asarray(agent_at, dtype=np.float64).reshape(-1, 3)
             require(len(at) == len(self.positions), f"agent_at has {len(at)} rows for {len(self.positions)} agents",
                     "give one position per agent")
             self._resets[:] = at
             status[:] = 0
-        else:
-            status[:] = -1
         args = (*self._state, deposits, n_dep, self._resets, status, self._mode, self._resync,
                 self._u_full)
         if self._spectral:
@@ -451,9 +450,8 @@ class Explorer:
             K.step_kernel(*args, 1)
             self._diffuse_full()
             K.step_kernel(*args, 2)
-        if agent_at is not None:
-            for i in np.flatnonzero(status == -2):
-                self.on_event(f"warning: step {self.step_index}: agent {i} reset point is "
+        for i in np.flatnonzero(status == -2):
+            self.on_event(f"warning: step {self.step_index}: agent {i} reset point is "
                           f"{self._resets[i, 0] * 1e3:.1f} mm off the cloud; ignored")
         self.step_index += 1
         if self._is[K.IS_PHAT] == 0:
