@@ -281,14 +281,11 @@ class Explorer:
         # The source's c̄ = c̃/Z: Z over the target (cfg.coverage_norm "target") or the cloud (eq. 2).
         self._prm[K.PR_ZTARGET] = 1.0 if self.cfg.coverage_norm == "target" and len(T) < n else 0.0
         self._heap_keys, self._heap_idx = np.zeros(len(T)), np.zeros(len(T), dtype=np.int64)
-        keep = self._is[[K.IS_EDGE, K.IS_FOOTPRINT, K.IS_ROWS, K.IS_POPS]]  # run diagnostics survive a new target
-        drift = self._fs[K.FS_DRIFT]
-        self._is[:] = 0
-        self._is[[K.IS_EDGE, K.IS_FOOTPRINT, K.IS_ROWS, K.IS_POPS]] = keep
+        # the state restarts; the run's diagnostics (edge events, work counters, resync drift) survive a new target
+        self._is[np.isin(np.arange(K.N_IS), [K.IS_EDGE, K.IS_FOOTPRINT, K.IS_ROWS, K.IS_POPS], invert=True)] = 0
         self._is[K.IS_NTARGET] = len(T)
         self._is[K.IS_TOUCHED] = int(np.count_nonzero(self._cov[T] > 0))
-        self._fs[:] = 0.0
-        self._fs[K.FS_DRIFT] = drift
+        self._fs[np.arange(K.N_FS) != K.FS_DRIFT] = 0.0
         K.resync(self._phi, self._pf, self._pb, self._pi, self._sp, self._heap_keys, self._heap_idx, self._fs,
                  self._is, self._prm[K.PR_ZTARGET])
         self._ref_norm2 = 1.0
