@@ -339,7 +339,8 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
         valid = np.flatnonzero(lam > 0)
         if len(valid) < ne:
             return False
-        sel = valid[np.argsort(lam[valid], kind="stable")[:ne]]
+        ranked = valid[np.argsort(lam[valid], kind="stable")]
+        sel = ranked[:ne]
         res = np.linalg.norm(coupling @ U[m - len(coupling):m, sel], axis=0)
         worst = float(np.max(res / (TOL_RITZ * np.abs(theta[sel]))))
         # Check again when the worst residual should pass, at the rate it fell since the
@@ -357,13 +358,11 @@ def lanczos_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, *, seed: int =
             state["next_in"] = max(4, m // 20)
             return False  # an eigenvalue below σ is still missing
         # The next Ritz value up and how far below it the next eigenvalue can be (for the count check).
-        rest = valid[np.argsort(lam[valid], kind="stable")[ne:]]
-        if len(rest):
-            i = rest[0]
+        next_lo = -np.inf
+        if len(ranked) > ne and theta[ranked[ne]] > 0:
+            i = ranked[ne]
             r_next = float(np.linalg.norm(coupling @ U[m - len(coupling):m, i]))
-            next_lo = sigma + 1.0 / (theta[i] + r_next) if theta[i] > 0 else -np.inf
-        else:
-            next_lo = -np.inf
+            next_lo = sigma + 1.0 / (theta[i] + r_next)
         state.update(U=U[:, sel], lam=lam[sel], next_lo=next_lo)
         return True
 
