@@ -38,10 +38,9 @@ class ImplicitDiffusion:
         from scipy.sparse.linalg import splu
 
         self.mass = mass
-        self.dt = float(dt)
         # M + δt L is symmetric positive definite: a symmetric fill-reducing ordering and no
         # pivoting roughly halve the factor's fill (and the per-step solve) against COLAMD.
-        self._lu = splu((sp.diags(mass) + self.dt * L).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+        self._lu = splu((sp.diags(mass) + float(dt) * L).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                         options={"SymmetricMode": True})
 
     def apply(self, u: np.ndarray) -> np.ndarray:
