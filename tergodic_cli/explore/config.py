@@ -115,8 +115,7 @@ def parse_alpha(text: str | float) -> list[tuple[int, float]]:
             start = 0 if i == 0 else int(at)
         except ValueError:
             raise TergodicError(f"--alpha '{text}' is not a number or schedule", fix) from None
-        if i == 0 and at:
-            raise TergodicError(f"--alpha '{text}': the first α applies from step 0 and takes no @STEP", fix)
+        require(i > 0 or not at, f"--alpha '{text}': the first α applies from step 0 and takes no @STEP", fix)
         require(math.isfinite(alpha) and alpha > 0, f"--alpha must be > 0, got {value!r}", fix)
         if stages:
             require(start > stages[-1][0], f"--alpha '{text}': switch steps must increase and be > 0", fix)

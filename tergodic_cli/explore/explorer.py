@@ -19,7 +19,7 @@ from typing import Callable
 import numpy as np
 
 from tergodic_cli.capture.filters import mean_spacing
-from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.errors import require
 from tergodic_cli.explore import kernels as K
 from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_config
 from tergodic_cli.explore.diffusion import ImplicitDiffusion, time_step
@@ -480,9 +480,8 @@ class Explorer:
         else:  # the published code's s̄₁ has the cloud-normalised coverage (eq. 2), whatever drives the agents
             u += self._sbar(self._fs[K.FS_ZC])
         total = float(u.sum())
-        if not (total > 0 and math.isfinite(total)):
-            raise TergodicError("the heat after the first step has no positive mass",
-                                "check the target and the basis (non-finite eigenvectors?)")
+        require(total > 0 and math.isfinite(total), "the heat after the first step has no positive mass",
+                "check the target and the basis (non-finite eigenvectors?)")
         phat = u / total
         self._pf[K.PF_PHAT] = phat
         self._ref_norm2 = float(phat @ phat)

@@ -75,9 +75,8 @@ def load_grid(path: str | Path) -> Grid:
         raise TergodicError(f"{path} is not valid TOML ({str(exc).splitlines()[0][:80]})", "fix the syntax") from None
     base = path.resolve().parent
     unknown = set(data) - {"steps", "seed", "objects", "grid"}
-    if unknown:
-        raise TergodicError(f"{path.name}: unknown top-level key(s) {', '.join(sorted(unknown))}",
-                            "top level takes steps, seed, [objects.NAME] and [grid]")
+    require(not unknown, f"{path.name}: unknown top-level key(s) {', '.join(sorted(unknown))}",
+            "top level takes steps, seed, [objects.NAME] and [grid]")
     steps = data.get("steps", 1000)
     require(isinstance(steps, int) and steps >= 1, f"{path.name}: steps must be an integer >= 1, got {steps!r}",
             "e.g. steps = 1000")
@@ -101,9 +100,8 @@ def load_grid(path: str | Path) -> Grid:
     for key, values in grid.items():
         if key == "start":
             continue
-        if key in ("steps", "seed", "basis_neighbors"):
-            raise TergodicError(f"{path.name}: [grid] {key} cannot vary per run",
-                                "set steps/seed at the top level and neighbors per object")
+        require(key not in ("steps", "seed", "basis_neighbors"), f"{path.name}: [grid] {key} cannot vary per run",
+                "set steps/seed at the top level and neighbors per object")
         require(key in EXPLORE_KEYS, f"{path.name}: [grid] {key} is not an explore option",
                 f"use nk, alpha or one of: {', '.join(k for k in EXPLORE_KEYS if k not in ('nk', 'alpha'))}")
         values = values if isinstance(values, list) else [values]
