@@ -466,9 +466,7 @@ def read_table(path: str | Path) -> list[dict]:
 
 
 def _parse(v: str):
-    if v == "":
-        return None
     for cast in (int, float):
         with suppress(ValueError):
             return cast(v)
-    return v
+    return v or None  # an empty cell (neither cast takes "")
