@@ -387,7 +387,7 @@ def load_record(runs_dir: Path, rid: str):
 def _batches(pending, grid: Grid, jobs: int, cache_dir) -> list[dict]:
     """Runs grouped by (object, nK), cut into batches small enough to keep every worker busy."""
     workers = max(jobs, 1) if jobs != -1 else (os.cpu_count() or 2)
-    size = max(1, min(25, math.ceil(len(pending) / (4 * workers)))) if pending else 1
+    size = max(1, min(25, math.ceil(len(pending) / (4 * workers))))
     groups: dict[tuple, list] = {}
     for obj, start, combo, rid, cfg in pending:
         groups.setdefault((obj.spec.name, cfg.nk), []).append((obj, start, rid, cfg))
