@@ -296,8 +296,7 @@ def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, e
                           "series_sha256": file_sha256(runs_dir / f"{rid}.npz")}
                 record[RECORD_SHA] = record_checksum(record)
                 write_json(runs_dir / f"{rid}.json", record)
-                finished[rid] = (json.loads(json.dumps(record, default=_json_default)),
-                                 {k: np.asarray(v) for k, v in rec["series"].items()})
+                finished[rid] = (json.loads(json.dumps(record, default=_json_default)), rec["series"])
     table, series = _collect(plan, finished)
     # every pending run gives one record: its result or its error
     result = SweepResult(out=out, n_runs=len(plan), computed=len(pending) - len(failed),
