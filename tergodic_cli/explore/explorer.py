@@ -41,9 +41,9 @@ class FieldSet:
 
     def __init__(self, points: np.ndarray, mass: np.ndarray, h: float):
         n = len(points)
-        if h >= THIN_BELOW * FIELD_VOXEL:
+        self.thinned = h < THIN_BELOW * FIELD_VOXEL
+        if not self.thinned:
             self.sel, self.rep, self.mass, self.points, self.h = np.arange(n), np.arange(n), mass, points, h
-            self.thinned = False
             return
         cell = np.floor((points - points.min(axis=0)) / FIELD_VOXEL).astype(np.int64)
         _, group, counts = np.unique(cell, axis=0, return_inverse=True, return_counts=True)
@@ -59,7 +59,6 @@ class FieldSet:
         self.mass = np.bincount(self.rep, weights=mass, minlength=len(self.sel))
         self.points = np.ascontiguousarray(points[self.sel])
         self.h = mean_spacing(self.points)
-        self.thinned = True
 
 
 class Explorer:
