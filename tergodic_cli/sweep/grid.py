@@ -8,7 +8,6 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
-import math
 import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -62,7 +61,7 @@ class Grid:
 
     @property
     def n_runs(self) -> int:
-        return len(self.objects) * len(self.starts) * math.prod(len(v) for v in self.options.values())
+        return len(self.objects) * len(self.starts) * len(self.combos())
 
 
 def load_grid(path: str | Path) -> Grid:
