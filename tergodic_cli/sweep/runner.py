@@ -145,7 +145,8 @@ def run_batch(task: dict) -> list[dict]:
     os.environ.setdefault("TERGODIC_NO_PROGRESS", "1")
     if multiprocessing.current_process().name != "MainProcess":
         # A pool worker: Ctrl-C reaches the whole process group, and the driver stops the pool
-        # itself; a worker interrupted inside numba's compiler printed llvmlite's traceback.
+        # itself; a worker interrupted inside numba's compiler printed llvmlite's traceback. (Kept
+        # for a worker the pool respawns later: the first ones start ignoring it, see _execute.)
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     from tergodic_cli.explore import ExploreConfig, Explorer, summarize_run
     from tergodic_cli.explore.warm import compile_explorer
@@ -185,8 +186,17 @@ def _execute(batches: list[dict], engine: str, jobs: int, address: str | None, o
     if engine == "joblib":  # --jobs 1: joblib runs the batches in this process, no pool
         import joblib
 
-        yield from joblib.Parallel(n_jobs=jobs, backend="loky", return_as="generator_unordered")(
-            joblib.delayed(run_batch)(b) for b in batches)
+        # The pool starts its workers in this call. They inherit an ignored SIGINT through fork and
+        # exec, so a Ctrl-C while one still imports prints no traceback (a blocked mask is not
+        # enough: the resource tracker's start unblocks it). One pressed in this short window is lost.
+        handler = signal.signal(signal.SIGINT, signal.SIG_IGN) if jobs != 1 else None
+        try:
+            results = joblib.Parallel(n_jobs=jobs, backend="loky", return_as="generator_unordered")(
+                joblib.delayed(run_batch)(b) for b in batches)
+        finally:
+            if handler is not None:
+                signal.signal(signal.SIGINT, handler)
+        yield from results
         return
     import ray  # imported by run_sweep already
 
