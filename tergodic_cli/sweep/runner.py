@@ -189,13 +189,13 @@ def _execute(batches: list[dict], engine: str, jobs: int, address: str | None, o
         # The pool starts its workers in this call. They inherit an ignored SIGINT through fork and
         # exec, so a Ctrl-C while one still imports prints no traceback (a blocked mask is not
         # enough: the resource tracker's start unblocks it). One pressed in this short window is lost.
-        handler = signal.signal(signal.SIGINT, signal.SIG_IGN) if jobs != 1 else None
+        # (With --jobs 1 the call runs nothing: the batches run as the results are read.)
+        handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
         try:
             results = joblib.Parallel(n_jobs=jobs, backend="loky", return_as="generator_unordered")(
                 joblib.delayed(run_batch)(b) for b in batches)
         finally:
-            if handler is not None:
-                signal.signal(signal.SIGINT, handler)
+            signal.signal(signal.SIGINT, handler)
         yield from results
         return
     import ray  # imported by run_sweep already
