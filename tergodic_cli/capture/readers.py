@@ -129,7 +129,7 @@ class _Reader:
             rows = self._ascii_rows(lines, skip, n, first, f"{n} vertices", _FIX_PLY_COUNT,
                                     more_follow=len(elements) > vi + 1)
             table = self._parse_rows(rows, len(props), lambda i: first + skip + i)
-            where = lambda i, j: f"line {first + skip + i}" + (f" ('{props[j][1]}')" if j is not None else "")
+            where = lambda i, j: f"line {first + skip + i} ('{props[j][1]}')"
         else:
             table, where = self._ply_binary(elements, vi, body_start, "<" if fmt.endswith("little_endian") else ">")
         return self._columns(table, pnames, [p[0] for p in props], where)
@@ -152,7 +152,7 @@ class _Reader:
             rest = sum(count * row_dtype(props).itemsize for _, count, props, _ in after)
         label = ("vertices", f"{n} vertices", "'element vertex'", _FIX_PLY_COUNT)
         table = _float_columns(self._records(offset, dtype, n, label, rest))
-        return table, lambda i, j: f"vertex {i}" + (f" ('{props[j][1]}')" if j is not None else "")
+        return table, lambda i, j: f"vertex {i} ('{props[j][1]}')"
 
     # ------------------------------------------------------------------------------- PCD
     def pcd(self):
@@ -211,7 +211,7 @@ class _Reader:
             if packed is not None:
                 col = np.nan_to_num(table[:, names.index(packed)], nan=0, posinf=0, neginf=0)
                 bits = col.astype(np.float32).view(np.uint32) if kinds[names.index(packed)][0] == "F" else col.astype(np.uint32)
-            where = lambda i, j: f"line {first + i}" + (f" ('{names[j]}')" if j is not None else "")
+            where = lambda i, j: f"line {first + i} ('{names[j]}')"
         elif data in ("binary", "binary_compressed"):
             dtype = np.dtype([(f"f{j}", f"<{t.lower()}{s}") for j, (t, s) in enumerate(kinds)])
             if data == "binary":
@@ -222,7 +222,7 @@ class _Reader:
             table = _float_columns(rec)
             if packed is not None:
                 bits = rec[f"f{names.index(packed)}"].view(np.uint32)
-            where = lambda i, j: f"point {i}" + (f" ('{names[j]}')" if j is not None else "")
+            where = lambda i, j: f"point {i} ('{names[j]}')"
         else:
             self.fail("header", f"unknown PCD DATA '{data}'", "re-export it as ascii or binary PCD")
         if bits is not None:  # three 8-bit columns
@@ -272,7 +272,7 @@ class _Reader:
             self.fail(f"line {lineno[0]}", f"{k} columns", "use 3 (x y z) or 6 (x y z r g b) columns per line")
         table = self._parse_rows(data_lines, k, lambda i: lineno[i], "use 3 (x y z) or 6 (x y z r g b) columns on every line")
         return self._columns(table, ["x", "y", "z", "r", "g", "b"][:k], [None] * k,
-                             lambda i, j: f"line {lineno[i]}" + (f" (column {j + 1})" if j is not None else ""))
+                             lambda i, j: f"line {lineno[i]} (column {j + 1})")
 
     # ------------------------------------------------------------------------------- NPZ
     def npz(self):
@@ -301,7 +301,7 @@ class _Reader:
             names += ["r", "g", "b"]
             types += ["uchar" if colors.dtype == np.uint8 else None] * 3  # uint16 may hold 8-bit values: ambiguous
         return self._columns(table, names, types,
-                             lambda i, j: f"row {i}" + (f" of '{'points' if j < 3 else 'colors'}'" if j is not None else ""))
+                             lambda i, j: f"row {i} of '{'points' if j < 3 else 'colors'}'")
 
     # ---------------------------------------------------------------------------- common
     def _ascii_rows(self, lines, skip, n, first, declared, fix, more_follow=False):
@@ -376,7 +376,7 @@ class _Reader:
                    (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue"))
                    if all(c in names for c in trio)), [])
         used = ix + ic
-        self._finite(table[:, used], lambda i, j: where(i, used[j] if j is not None else None))
+        self._finite(table[:, used], lambda i, j: where(i, used[j]))
         points = np.ascontiguousarray(table[:, ix])
         if not ic:
             return points, None
