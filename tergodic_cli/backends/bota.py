@@ -96,7 +96,7 @@ class BotaSensor(WrenchSensor):
             raise TergodicError("the Bota sensor is not connected", "call connect() first")
         fr = self.driver.read_frame_blocking()
         us = int(fr.timestamp)
-        if self._last_us is not None and us < self._last_us and self._last_us - us > WRAP_US // 2:
+        if self._last_us is not None and self._last_us - us > WRAP_US // 2:
             self._wraps += 1
         self._last_us = us
         w = np.array(list(fr.force) + list(fr.torque), dtype=float)
