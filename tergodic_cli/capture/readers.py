@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tergodic_cli.errors import TergodicError
+from tergodic_cli.errors import TergodicError, require
 
 SUPPORTED = (".ply", ".pcd", ".xyz", ".xyzrgb", ".txt", ".npz")
 
@@ -51,22 +51,16 @@ def read_cloud(path: str | Path, drop_invalid: bool = False,
         In [0, 1]; None for a colourless cloud.
     """
     path = Path(path)
-    if not path.exists():
-        raise TergodicError(f"no such file: {path}", "check the path given to --from")
-    if not path.is_file():
-        raise TergodicError(f"not a file: {path}", "give a PLY, PCD, XYZRGB or NPZ file to --from")
+    require(path.exists(), f"no such file: {path}", "check the path given to --from")
+    require(path.is_file(), f"not a file: {path}", "give a PLY, PCD, XYZRGB or NPZ file to --from")
     suffix = path.suffix.lower()
-    if suffix not in SUPPORTED:
-        raise TergodicError(
-            f"unknown point-cloud extension '{suffix}' for {path.name}",
-            f"use one of {', '.join(SUPPORTED)}",
-        )
+    require(suffix in SUPPORTED, f"unknown point-cloud extension '{suffix}' for {path.name}",
+            f"use one of {', '.join(SUPPORTED)}")
     try:
         blob = path.read_bytes()
     except OSError as exc:
         raise TergodicError(f"cannot read {path}: {(exc.strerror or str(exc)).lower()}", "check the file's permissions") from None
-    if not blob:
-        raise TergodicError(f"{path.name} is an empty file", "re-export the point cloud")
+    require(len(blob) > 0, f"{path.name} is an empty file", "re-export the point cloud")
     reader = _Reader(path.name, blob, drop_invalid, colour_depth)
     read = {".ply": reader.ply, ".pcd": reader.pcd, ".npz": reader.npz}.get(suffix, reader.text)
     with np.errstate(all="ignore"):  # a garbage body's NaNs are reported as such, not as numpy warnings
