@@ -159,8 +159,7 @@ class NetFTSensor(WrenchSensor):
                 self._cv.notify_all()
 
     def _sample(self) -> tuple[float, np.ndarray]:
-        if self.sock is None:
-            raise TergodicError("the Net F/T is not connected", "call connect() first")
+        require(self.sock is not None, "the Net F/T is not connected", "call connect() first")
         with self._cv:
             self._cv.wait_for(lambda: self._latest is not None and self._latest[0] != self._returned, timeout=self.cfg.fresh_timeout)
             serial, t, w, rec = self._latest
