@@ -192,9 +192,9 @@ class _Reader:
             for ci in range(c):
                 names.append(f if c == 1 else f"{f}[{ci}]")
                 kinds.append((t, s))
-        packed = next((f for f in ("rgb", "rgba") if f in names), None)
-        if packed is not None and kinds[names.index(packed)][1] != 4:
-            self.fail("header", f"field '{packed}' has SIZE {kinds[names.index(packed)][1]}, expected 4 (packed 8-bit colour)",
+        packed = next((names.index(f) for f in ("rgb", "rgba") if f in names), None)  # its column
+        if packed is not None and kinds[packed][1] != 4:
+            self.fail("header", f"field '{names[packed]}' has SIZE {kinds[packed][1]}, expected 4 (packed 8-bit colour)",
                       "re-export it as PCD")
         bits = None  # packed colours: 0x00RRGGBB in a float's or uint32's bits (PCL's layout)
         if data == "ascii":
@@ -203,8 +203,8 @@ class _Reader:
             rows = self._ascii_rows(lines, 0, points, first, f"POINTS {points}", _FIX_PCD_COUNT)
             table = self._parse_rows(rows, len(names), lambda i: first + i)
             if packed is not None:
-                col = np.nan_to_num(table[:, names.index(packed)], nan=0, posinf=0, neginf=0)
-                bits = col.astype(np.float32).view(np.uint32) if kinds[names.index(packed)][0] == "F" else col.astype(np.uint32)
+                col = np.nan_to_num(table[:, packed], nan=0, posinf=0, neginf=0)
+                bits = col.astype(np.float32).view(np.uint32) if kinds[packed][0] == "F" else col.astype(np.uint32)
             where = lambda i, j: f"line {first + i} ('{names[j]}')"
         elif data in ("binary", "binary_compressed"):
             dtype = np.dtype([(f"f{j}", f"<{t.lower()}{s}") for j, (t, s) in enumerate(kinds)])
@@ -215,7 +215,7 @@ class _Reader:
                 rec = self._pcd_compressed(pos, dtype, points)
             table = _float_columns(rec)
             if packed is not None:
-                bits = rec[f"f{names.index(packed)}"].view(np.uint32)
+                bits = rec[f"f{packed}"].view(np.uint32)
             where = lambda i, j: f"point {i} ('{names[j]}')"
         else:
             self.fail("header", f"unknown PCD DATA '{data}'", "re-export it as ascii or binary PCD")
