@@ -42,7 +42,7 @@ class HsvRange:
         -------
         (n,) bool
         """
-        h, s, v = hsv[:, 0], hsv[:, 1], hsv[:, 2]
+        h, s, v = hsv.T
         if self.hue_lo <= self.hue_hi:
             hue_ok = (h >= self.hue_lo) & (h <= self.hue_hi)
         else:  # wraps through 0/360, e.g. red
