@@ -125,7 +125,7 @@ class NetFTSensor(WrenchSensor):
         try:
             sock.connect((self.host, self.port))
             sock.settimeout(0.1)
-            sock.send(rdt.request(rdt.CMD_START_REALTIME, 0))
+            sock.send(rdt.request(rdt.CMD_START_REALTIME))
         except OSError as exc:
             sock.close()
             raise TergodicError(f"cannot reach the Net F/T at {self.host}:{self.port}: {exc}", "check the address and the network cable") from None
@@ -173,7 +173,7 @@ class NetFTSensor(WrenchSensor):
             return
         self._stop.set()
         with suppress(OSError):
-            sock.send(rdt.request(rdt.CMD_STOP, 0))
+            sock.send(rdt.request(rdt.CMD_STOP))
         if self._thread is not None:
             self._thread.join(timeout=1.0)
         sock.close()
