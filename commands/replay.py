@@ -42,16 +42,14 @@ def replay(
 
       tergodic replay run/ --html run/report.html
     """
-    from tergodic_cli.errors import TergodicError
+    from tergodic_cli.errors import TergodicError, require
     from tergodic_cli.progress import Spinner, echo as echo_err
     from tergodic_cli.runlog import read_run_log, resolve_log_path
     from tergodic_cli.runlog.summary import (compare_with_file, format_state, format_table, recompute_summary,
                                              state_at, to_json)
 
-    if export is not None and export not in ("npz", "csv"):
-        raise TergodicError(f"--export '{export}' is not a format", "use --export npz or --export csv")
-    if rerun is not None and rerun.suffix != ".rrd":
-        raise TergodicError(f"--rerun {rerun} does not end in .rrd", "e.g. --rerun run.rrd")
+    require(export in (None, "npz", "csv"), f"--export '{export}' is not a format", "use --export npz or --export csv")
+    require(rerun is None or rerun.suffix == ".rrd", f"--rerun {rerun} does not end in .rrd", "e.g. --rerun run.rrd")
     if speed <= 0:
         raise TergodicError(f"--speed must be > 0, got {speed}", "e.g. --speed 2")
     from tergodic_cli.atomic import AtomicFolder, check_output_file

@@ -17,7 +17,7 @@ from typing import Any, Iterator
 import numpy as np
 
 # os_cause: one wording of the OS's causes, for every verb
-from tergodic_cli.errors import TergodicError, os_cause
+from tergodic_cli.errors import TergodicError, os_cause, require
 
 
 @contextlib.contextmanager
@@ -52,12 +52,10 @@ def check_output_file(path: str | os.PathLike, overwrite: bool, option: str) -> 
     folder we cannot write, or exists without ``overwrite`` (it is then written atomically)."""
     shown = Path(path)
     target = Path(os.path.abspath(path))
-    if target.is_dir():
-        raise TergodicError(f"{option} {shown} is a folder, not a file", f"choose another {option}")
+    require(not target.is_dir(), f"{option} {shown} is a folder, not a file", f"choose another {option}")
     check_parent_writable(target, shown, option)
-    if target.exists() and not overwrite:
-        raise TergodicError(f"{option} {shown} already exists",
-                            f"pass --overwrite to replace it, or choose another {option}")
+    require(overwrite or not target.exists(), f"{option} {shown} already exists",
+            f"pass --overwrite to replace it, or choose another {option}")
 
 
 def check_parent_writable(target: Path, shown, option: str) -> None:
@@ -67,9 +65,7 @@ def check_parent_writable(target: Path, shown, option: str) -> None:
     parent = Path(os.path.abspath(target)).parent
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent
-    if not parent.is_dir():
-        raise TergodicError(f"{option} {shown} is under {parent}, which is a file, not a folder",
-                            f"choose another {option}")
+    require(parent.is_dir(), f"{option} {shown} is under {parent}, which is a file, not a folder", f"choose another {option}")
     if not os.access(parent, os.W_OK | os.X_OK):
         ro = bool(os.statvfs(parent).f_flag & os.ST_RDONLY)
         raise TergodicError(f"cannot write {option} {shown}: {'read-only filesystem' if ro else 'permission denied'}"
@@ -91,7 +87,7 @@ def _umask() -> int:
 def write_json(target: str | os.PathLike, obj: Any) -> None:
     """Write ``obj`` as indented JSON, atomically."""
     with atomic_path(target) as tmp:
-        tmp.write_text(json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
+        tmp.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
 
 
 def write_npz(dest: str | os.PathLike, **arrays: np.ndarray) -> None:

@@ -92,11 +92,10 @@ class BotaSensor(WrenchSensor):
         return cfg
 
     def _sample(self) -> tuple[float, np.ndarray]:
-        if self.driver is None:
-            raise TergodicError("the Bota sensor is not connected", "call connect() first")
+        require(self.driver is not None, "the Bota sensor is not connected", "call connect() first")
         fr = self.driver.read_frame_blocking()
         us = int(fr.timestamp)
-        if self._last_us is not None and us < self._last_us and self._last_us - us > WRAP_US // 2:
+        if self._last_us is not None and self._last_us - us > WRAP_US // 2:
             self._wraps += 1
         self._last_us = us
         w = np.array(list(fr.force) + list(fr.torque), dtype=float)

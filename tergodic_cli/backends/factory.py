@@ -57,20 +57,18 @@ def make_hardware(robot: str = "franka", robot_ip: str | None = None, ft: str | 
     return arm, sensor
 
 
-def make_camera(source: str = "realsense", serial: str | None = None, width: int = 640, height: int = 480, fps: int = 30,
-                T_base_cam=None, depth_min: float = 0.1, depth_max: float = 1.5):
-    """A :class:`~tergodic_cli.backends.camera.Camera`, not yet connected (the SDK is checked now)."""
+def make_camera(source: str = "realsense", **options):
+    """A :class:`~tergodic_cli.backends.camera.Camera`, not yet connected (the SDK is checked now); ``options``:
+    the :class:`~tergodic_cli.backends.realsense.RealSenseConfig` fields (serial, width, height, fps, depth_min, ...)."""
     require(source in CAMERAS, f"unknown camera source '{source}'", f"use one of {', '.join(CAMERAS)}")
     import_sdk("pyrealsense2")
     from tergodic_cli.backends.realsense import RealSenseCamera, RealSenseConfig
 
-    return RealSenseCamera(RealSenseConfig(serial=serial, width=width, height=height, fps=fps, depth_min=depth_min,
-                                           depth_max=depth_max, T_base_cam=T_base_cam))
+    return RealSenseCamera(RealSenseConfig(**options))
 
 
-def camera_pose_matrix(values, fix: str = "give x,y,z,qx,qy,qz,qw with a unit quaternion"):
-    """7 numbers x,y,z,qx,qy,qz,qw (the optical frame in the base frame) -> (4, 4); ``fix``: of a
-    quaternion that is not unit length."""
+def camera_pose_matrix(values):
+    """7 numbers x,y,z,qx,qy,qz,qw (the optical frame in the base frame) -> (4, 4)."""
     from tergodic_cli.robot.ga import pose_matrix, quat_to_matrix
 
     v = [float(x) for x in values]
@@ -78,5 +76,5 @@ def camera_pose_matrix(values, fix: str = "give x,y,z,qx,qy,qz,qw with a unit qu
             "give the optical frame's pose from your hand-eye calibration: x,y,z,qx,qy,qz,qw (m)")
     q = np.array(v[3:])
     require(bool(np.all(np.isfinite(v))) and abs(np.linalg.norm(q) - 1.0) < 1e-3, "--camera-pose quaternion is not unit length",
-            fix)
+            "give x,y,z,qx,qy,qz,qw with a unit quaternion")
     return pose_matrix(quat_to_matrix(q / np.linalg.norm(q)), np.array(v[:3]))

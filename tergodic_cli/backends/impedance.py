@@ -201,11 +201,8 @@ class ForceLoop:
         f_now : float
             The measured contact force, N.
         """
-        if self.g.force_ki <= 0:
-            self.trim = 0.0
-            return
         lim = self.g.force_trim_max * self.F_d
-        self.trim = min(max(float(f_now) - self.F_d, -lim), lim)
+        self.trim = 0.0 if self.g.force_ki <= 0 else min(max(float(f_now) - self.F_d, -lim), lim)
 
     def track(self, f_meas: float, dt: float) -> float:
         """One step of the integral trim.

@@ -26,7 +26,7 @@ import numpy as np
 from tergodic_cli.atomic import AtomicFolder, _json_default, file_sha256
 from tergodic_cli.capture.readers import write_ply
 from tergodic_cli.config import CONFIG_FILE, write_config
-from tergodic_cli.errors import TergodicError, os_error
+from tergodic_cli.errors import TergodicError, os_error, require
 
 SIDECAR = "capture.json"
 ARRAYS = "cloud.npz"
@@ -136,8 +136,7 @@ def load_capture(path: str | Path) -> Capture:
     folder = path.parent if path.name == SIDECAR else path
     sidecar = folder / SIDECAR
     rerun = "re-run 'tergodic capture ... --out DIR --overwrite'"
-    if not sidecar.exists():
-        raise TergodicError(f"{folder} is not a capture (no {SIDECAR})", "run 'tergodic capture ... --out DIR' first and pass DIR")
+    require(sidecar.exists(), f"{folder} is not a capture (no {SIDECAR})", "run 'tergodic capture ... --out DIR' first and pass DIR")
     try:
         meta = json.loads(sidecar.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError):
@@ -146,17 +145,14 @@ def load_capture(path: str | Path) -> Capture:
         raise os_error(exc, sidecar, "read", "check the capture folder's permissions") from None
     if not isinstance(meta, dict) or SIDECAR_SHA not in meta or not isinstance(meta.get("arrays"), dict):
         raise TergodicError(f"{sidecar} is a stub or from an older tergodic (no checksum)", rerun)
-    if meta[SIDECAR_SHA] != sidecar_checksum(meta):
-        raise TergodicError(f"{sidecar} was edited (its checksum does not match its content)", rerun)
+    require(meta[SIDECAR_SHA] == sidecar_checksum(meta), f"{sidecar} was edited (its checksum does not match its content)", rerun)
     arrays = folder / ARRAYS
-    if not arrays.exists():
-        raise TergodicError(f"{folder} has no {ARRAYS}", rerun)
+    require(arrays.exists(), f"{folder} has no {ARRAYS}", rerun)
     try:
         actual = file_sha256(arrays)
     except OSError as exc:
         raise os_error(exc, arrays, "read", "check the capture folder's permissions") from None
-    if meta["arrays"].get("sha256") != actual:
-        raise TergodicError(f"{arrays} does not match the checksum in {SIDECAR} (modified?)", rerun)
+    require(meta["arrays"].get("sha256") == actual, f"{arrays} does not match the checksum in {SIDECAR} (modified?)", rerun)
     try:
         with np.load(arrays, allow_pickle=False) as data:
             points = np.asarray(data["points"], dtype=np.float64)
@@ -164,8 +160,8 @@ def load_capture(path: str | Path) -> Capture:
             colors = np.asarray(data["colors"], dtype=np.float64) if "colors" in data.files else None
     except Exception as exc:
         raise TergodicError(f"{arrays} is unreadable ({type(exc).__name__})", rerun) from None
-    if points.ndim != 2 or points.shape[1] != 3 or target.shape != (len(points),):
-        raise TergodicError(f"{arrays} has inconsistent shapes", rerun)
+    require(points.ndim == 2 and points.shape[1] == 3 and target.shape == (len(points),),
+            f"{arrays} has inconsistent shapes", rerun)
     return Capture(points, colors, target, meta)
 
 

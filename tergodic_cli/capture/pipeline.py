@@ -199,20 +199,15 @@ def _validate_config(cfg: CaptureConfig) -> None:
 def _check_extent(points: np.ndarray, units: str, label: str = "") -> None:
     """Refuse a cloud whose span says the units are wrong; only then is the message about units."""
     extent = float(np.ptp(points, axis=0).max())
-    if extent > CORRUPT_EXTENT_M:
-        raise TergodicError(f"{label}the cloud spans {extent:.3g} m, too large even for millimetres (corrupt values in the file?)",
-                            "check the file's body, or --crop away the stray points (metres)")
-    if extent > MAX_EXTENT_M:
-        raise TergodicError(f"{label}the cloud spans {extent:.3g} m, which looks like millimetres read as metres",
-                            "pass --units mm" if units == "m" else "check the file's units")
-    if extent == 0.0:
-        raise TergodicError(f"{label}all {len(points)} points are identical", "check the file: it holds one point repeated")
-    if extent < DEGENERATE_EXTENT_M:
-        raise TergodicError(f"{label}the cloud spans only {extent:.3g} m, too small even for metres read as millimetres "
-                            "(nearly identical or corrupt points)", "check the file's body")
-    if extent < MIN_EXTENT_M:
-        raise TergodicError(f"{label}the cloud spans only {extent * 1e3:.3g} mm, which looks like metres read as millimetres",
-                            "pass --units m" if units == "mm" else "check the file's units")
+    require(extent <= CORRUPT_EXTENT_M, f"{label}the cloud spans {extent:.3g} m, too large even for millimetres "
+            "(corrupt values in the file?)", "check the file's body, or --crop away the stray points (metres)")
+    require(extent <= MAX_EXTENT_M, f"{label}the cloud spans {extent:.3g} m, which looks like millimetres read as metres",
+            "pass --units mm" if units == "m" else "check the file's units")
+    require(extent != 0.0, f"{label}all {len(points)} points are identical", "check the file: it holds one point repeated")
+    require(extent >= DEGENERATE_EXTENT_M, f"{label}the cloud spans only {extent:.3g} m, too small even for metres read as "
+            "millimetres (nearly identical or corrupt points)", "check the file's body")
+    require(extent >= MIN_EXTENT_M, f"{label}the cloud spans only {extent * 1e3:.3g} mm, which looks like metres read as "
+            "millimetres", "pass --units m" if units == "mm" else "check the file's units")
 
 
 def _size_estimate(n: int) -> str:
@@ -234,6 +229,5 @@ def check_size(where, n: int, limit: int) -> None:
     limit : int
         The ``--max-points`` limit.
     """
-    if n > limit:
-        raise TergodicError(f"{where} has {n:,} points, above the {limit:,}-point limit: precompute would need "
-                            f"{_size_estimate(n)}", f"re-capture with a coarser --voxel (e.g. 0.003), or pass --max-points {n}")
+    require(n <= limit, f"{where} has {n:,} points, above the {limit:,}-point limit: precompute would need "
+            f"{_size_estimate(n)}", f"re-capture with a coarser --voxel (e.g. 0.003), or pass --max-points {n}")

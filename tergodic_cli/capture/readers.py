@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tergodic_cli.errors import TergodicError
+from tergodic_cli.errors import TergodicError, require
 
 SUPPORTED = (".ply", ".pcd", ".xyz", ".xyzrgb", ".txt", ".npz")
 
@@ -51,22 +51,16 @@ def read_cloud(path: str | Path, drop_invalid: bool = False,
         In [0, 1]; None for a colourless cloud.
     """
     path = Path(path)
-    if not path.exists():
-        raise TergodicError(f"no such file: {path}", "check the path given to --from")
-    if not path.is_file():
-        raise TergodicError(f"not a file: {path}", "give a PLY, PCD, XYZRGB or NPZ file to --from")
+    require(path.exists(), f"no such file: {path}", "check the path given to --from")
+    require(path.is_file(), f"not a file: {path}", "give a PLY, PCD, XYZRGB or NPZ file to --from")
     suffix = path.suffix.lower()
-    if suffix not in SUPPORTED:
-        raise TergodicError(
-            f"unknown point-cloud extension '{suffix}' for {path.name}",
-            f"use one of {', '.join(SUPPORTED)}",
-        )
+    require(suffix in SUPPORTED, f"unknown point-cloud extension '{suffix}' for {path.name}",
+            f"use one of {', '.join(SUPPORTED)}")
     try:
         blob = path.read_bytes()
     except OSError as exc:
         raise TergodicError(f"cannot read {path}: {(exc.strerror or str(exc)).lower()}", "check the file's permissions") from None
-    if not blob:
-        raise TergodicError(f"{path.name} is an empty file", "re-export the point cloud")
+    require(len(blob) > 0, f"{path.name} is an empty file", "re-export the point cloud")
     reader = _Reader(path.name, blob, drop_invalid, colour_depth)
     read = {".ply": reader.ply, ".pcd": reader.pcd, ".npz": reader.npz}.get(suffix, reader.text)
     with np.errstate(all="ignore"):  # a garbage body's NaNs are reported as such, not as numpy warnings
@@ -129,7 +123,7 @@ class _Reader:
             rows = self._ascii_rows(lines, skip, n, first, f"{n} vertices", _FIX_PLY_COUNT,
                                     more_follow=len(elements) > vi + 1)
             table = self._parse_rows(rows, len(props), lambda i: first + skip + i)
-            where = lambda i, j: f"line {first + skip + i}" + (f" ('{props[j][1]}')" if j is not None else "")
+            where = lambda i, j: f"line {first + skip + i} ('{props[j][1]}')"
         else:
             table, where = self._ply_binary(elements, vi, body_start, "<" if fmt.endswith("little_endian") else ">")
         return self._columns(table, pnames, [p[0] for p in props], where)
@@ -152,7 +146,7 @@ class _Reader:
             rest = sum(count * row_dtype(props).itemsize for _, count, props, _ in after)
         label = ("vertices", f"{n} vertices", "'element vertex'", _FIX_PLY_COUNT)
         table = _float_columns(self._records(offset, dtype, n, label, rest))
-        return table, lambda i, j: f"vertex {i}" + (f" ('{props[j][1]}')" if j is not None else "")
+        return table, lambda i, j: f"vertex {i} ('{props[j][1]}')"
 
     # ------------------------------------------------------------------------------- PCD
     def pcd(self):
@@ -198,9 +192,9 @@ class _Reader:
             for ci in range(c):
                 names.append(f if c == 1 else f"{f}[{ci}]")
                 kinds.append((t, s))
-        packed = next((f for f in ("rgb", "rgba") if f in names), None)
-        if packed is not None and kinds[names.index(packed)][1] != 4:
-            self.fail("header", f"field '{packed}' has SIZE {kinds[names.index(packed)][1]}, expected 4 (packed 8-bit colour)",
+        packed = next((names.index(f) for f in ("rgb", "rgba") if f in names), None)  # its column
+        if packed is not None and kinds[packed][1] != 4:
+            self.fail("header", f"field '{names[packed]}' has SIZE {kinds[packed][1]}, expected 4 (packed 8-bit colour)",
                       "re-export it as PCD")
         bits = None  # packed colours: 0x00RRGGBB in a float's or uint32's bits (PCL's layout)
         if data == "ascii":
@@ -209,9 +203,9 @@ class _Reader:
             rows = self._ascii_rows(lines, 0, points, first, f"POINTS {points}", _FIX_PCD_COUNT)
             table = self._parse_rows(rows, len(names), lambda i: first + i)
             if packed is not None:
-                col = np.nan_to_num(table[:, names.index(packed)], nan=0, posinf=0, neginf=0)
-                bits = col.astype(np.float32).view(np.uint32) if kinds[names.index(packed)][0] == "F" else col.astype(np.uint32)
-            where = lambda i, j: f"line {first + i}" + (f" ('{names[j]}')" if j is not None else "")
+                col = np.nan_to_num(table[:, packed], nan=0, posinf=0, neginf=0)
+                bits = col.astype(np.float32).view(np.uint32) if kinds[packed][0] == "F" else col.astype(np.uint32)
+            where = lambda i, j: f"line {first + i} ('{names[j]}')"
         elif data in ("binary", "binary_compressed"):
             dtype = np.dtype([(f"f{j}", f"<{t.lower()}{s}") for j, (t, s) in enumerate(kinds)])
             if data == "binary":
@@ -221,8 +215,8 @@ class _Reader:
                 rec = self._pcd_compressed(pos, dtype, points)
             table = _float_columns(rec)
             if packed is not None:
-                bits = rec[f"f{names.index(packed)}"].view(np.uint32)
-            where = lambda i, j: f"point {i}" + (f" ('{names[j]}')" if j is not None else "")
+                bits = rec[f"f{packed}"].view(np.uint32)
+            where = lambda i, j: f"point {i} ('{names[j]}')"
         else:
             self.fail("header", f"unknown PCD DATA '{data}'", "re-export it as ascii or binary PCD")
         if bits is not None:  # three 8-bit columns
@@ -272,7 +266,7 @@ class _Reader:
             self.fail(f"line {lineno[0]}", f"{k} columns", "use 3 (x y z) or 6 (x y z r g b) columns per line")
         table = self._parse_rows(data_lines, k, lambda i: lineno[i], "use 3 (x y z) or 6 (x y z r g b) columns on every line")
         return self._columns(table, ["x", "y", "z", "r", "g", "b"][:k], [None] * k,
-                             lambda i, j: f"line {lineno[i]}" + (f" (column {j + 1})" if j is not None else ""))
+                             lambda i, j: f"line {lineno[i]} (column {j + 1})")
 
     # ------------------------------------------------------------------------------- NPZ
     def npz(self):
@@ -301,7 +295,7 @@ class _Reader:
             names += ["r", "g", "b"]
             types += ["uchar" if colors.dtype == np.uint8 else None] * 3  # uint16 may hold 8-bit values: ambiguous
         return self._columns(table, names, types,
-                             lambda i, j: f"row {i}" + (f" of '{'points' if j < 3 else 'colors'}'" if j is not None else ""))
+                             lambda i, j: f"row {i} of '{'points' if j < 3 else 'colors'}'")
 
     # ---------------------------------------------------------------------------- common
     def _ascii_rows(self, lines, skip, n, first, declared, fix, more_follow=False):
@@ -376,7 +370,7 @@ class _Reader:
                    (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue"))
                    if all(c in names for c in trio)), [])
         used = ix + ic
-        self._finite(table[:, used], lambda i, j: where(i, used[j] if j is not None else None))
+        self._finite(table[:, used], lambda i, j: where(i, used[j]))
         points = np.ascontiguousarray(table[:, ix])
         if not ic:
             return points, None

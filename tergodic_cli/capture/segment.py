@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tergodic_cli.errors import TergodicError
+from tergodic_cli.errors import TergodicError, require
 
 
 @dataclass(frozen=True)
@@ -42,7 +42,7 @@ class HsvRange:
         -------
         (n,) bool
         """
-        h, s, v = hsv[:, 0], hsv[:, 1], hsv[:, 2]
+        h, s, v = hsv.T
         if self.hue_lo <= self.hue_hi:
             hue_ok = (h >= self.hue_lo) & (h <= self.hue_hi)
         else:  # wraps through 0/360, e.g. red
@@ -161,7 +161,6 @@ def target_weight(colors: np.ndarray | None, target: HsvRange | None, n: int) ->
     """
     if target is None:
         return np.ones(n)
-    if colors is None:
-        raise TergodicError("the cloud has no colours, so no target can be segmented",
-                            "give a coloured cloud, or pass --target all for uniform coverage")
+    require(colors is not None, "the cloud has no colours, so no target can be segmented",
+            "give a coloured cloud, or pass --target all for uniform coverage")
     return target.weight(rgb_to_hsv(colors))

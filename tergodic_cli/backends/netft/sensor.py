@@ -98,7 +98,7 @@ class NetFTSensor(WrenchSensor):
         # scale (6,): counts -> N, N m; _latest: (serial, t, wrench, record) from the receiver
         self.scale = self.sock = self._thread = self._latest = self.last_record = None
         self._stop, self._cv = threading.Event(), threading.Condition()
-        self._serial, self._returned, self.lost = 0, -1, 0
+        self._serial, self._returned = 0, -1
 
     @property
     def is_connected(self) -> bool:
@@ -125,7 +125,7 @@ class NetFTSensor(WrenchSensor):
         try:
             sock.connect((self.host, self.port))
             sock.settimeout(0.1)
-            sock.send(rdt.request(rdt.CMD_START_REALTIME, 0))
+            sock.send(rdt.request(rdt.CMD_START_REALTIME))
         except OSError as exc:
             sock.close()
             raise TergodicError(f"cannot reach the Net F/T at {self.host}:{self.port}: {exc}", "check the address and the network cable") from None
@@ -141,7 +141,6 @@ class NetFTSensor(WrenchSensor):
                                     "check the address, that RDT is enabled on the box, and that no firewall drops UDP 49152")
 
     def _receive(self) -> None:
-        last_seq = None
         while not self._stop.is_set():
             try:
                 data = self.sock.recv(1024)
@@ -153,9 +152,6 @@ class NetFTSensor(WrenchSensor):
                 seq, ft_seq, status, counts = rdt.parse_record(data)
             except ValueError:
                 continue
-            if last_seq is not None and seq != (last_seq + 1) & 0xFFFFFFFF:
-                self.lost += (seq - last_seq - 1) & 0xFFFFFFFF
-            last_seq = seq
             w = np.asarray(counts, dtype=float) * self.scale if status == 0 else np.full(6, np.nan)
             with self._cv:
                 self._serial += 1
@@ -163,8 +159,7 @@ class NetFTSensor(WrenchSensor):
                 self._cv.notify_all()
 
     def _sample(self) -> tuple[float, np.ndarray]:
-        if self.sock is None:
-            raise TergodicError("the Net F/T is not connected", "call connect() first")
+        require(self.sock is not None, "the Net F/T is not connected", "call connect() first")
         with self._cv:
             self._cv.wait_for(lambda: self._latest is not None and self._latest[0] != self._returned, timeout=self.cfg.fresh_timeout)
             serial, t, w, rec = self._latest
@@ -178,7 +173,7 @@ class NetFTSensor(WrenchSensor):
             return
         self._stop.set()
         with suppress(OSError):
-            sock.send(rdt.request(rdt.CMD_STOP, 0))
+            sock.send(rdt.request(rdt.CMD_STOP))
         if self._thread is not None:
             self._thread.join(timeout=1.0)
         sock.close()

@@ -110,8 +110,7 @@ class RealSenseCamera:
             raise
 
     def read_frame(self) -> RGBDFrame:
-        if self.pipeline is None:
-            raise TergodicError("the RealSense camera is not connected", "call connect() first")
+        require(self.pipeline is not None, "the RealSense camera is not connected", "call connect() first")
         try:
             frames = self.pipeline.wait_for_frames(int(self.cfg.timeout_ms))
         except RuntimeError as exc:
@@ -119,8 +118,7 @@ class RealSenseCamera:
                                 "check the USB 3 connection and that no other program holds the camera") from None
         aligned = self._align.process(frames)
         depth, color = aligned.get_depth_frame(), aligned.get_color_frame()
-        if not depth or not color:
-            raise TergodicError("the RealSense frame set lacks depth or colour", "retry; if it persists, replug the camera")
+        require(depth and color, "the RealSense frame set lacks depth or colour", "retry; if it persists, replug the camera")
         z = np.asanyarray(depth.get_data()).astype(np.float64) * self.depth_scale
         rgb = np.asanyarray(color.get_data()).astype(np.float64) / 255.0
         T = np.eye(4) if self.cfg.T_base_cam is None else np.asarray(self.cfg.T_base_cam, dtype=float)

@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.errors import require
 
 
 def capture_realsense(cfg, serial: str | None = None, width: int = 640, height: int = 480, fps: int = 30,
@@ -38,9 +38,8 @@ def capture_realsense(cfg, serial: str | None = None, width: int = 640, height: 
         require(frames >= 1, f"frames must be >= 1, got {frames}", "e.g. 1")
         clouds = [cam.read() for _ in range(int(frames))]  # merged into one cloud
         points = np.concatenate([p for p, _ in clouds])
-        if len(points) == 0:
-            raise TergodicError("the camera returned no valid depth pixels",
-                                "check the working range (objects closer than ~0.1 m have no depth) and the lighting")
+        require(len(points) > 0, "the camera returned no valid depth pixels",
+                "check the working range (objects closer than ~0.1 m have no depth) and the lighting")
         colors = np.concatenate([c for _, c in clouds])
         cap = capture_cloud(replace(cfg, source="realsense"), raw=(points, colors))
         t2 = time.perf_counter()
