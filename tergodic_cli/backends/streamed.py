@@ -28,7 +28,7 @@ from tergodic_cli.robot.controller import min_jerk
 from tergodic_cli.robot.ga import matrix_to_rotvec, pose_matrix, rotvec_to_matrix
 from tergodic_cli.robot.interfaces import ContactWrench, LineTarget, Observation, ToolLoad
 from tergodic_cli.robot.run import SETTLE_S, ContactRun, object_pose
-from tergodic_cli.robot.safety import _fmt
+from tergodic_cli.robot.safety import fmt_xyz
 
 
 @dataclass
@@ -278,8 +278,8 @@ def dry_run(arm, sensor, camera, plan) -> str:
         opened.append(arm)
         st = arm.read_state()
         T = st.ee_pose
-        lines.append(f"arm {arm.name}: connected; TCP at {_fmt(T[:3, 3])} m, tool axis {_fmt(T[:3, 2])}, "
-                     f"q = {_fmt(st.q)} rad")
+        lines.append(f"arm {arm.name}: connected; TCP at {fmt_xyz(T[:3, 3])} m, tool axis {fmt_xyz(T[:3, 2])}, "
+                     f"q = {fmt_xyz(st.q)} rad")
         reason = arm.fault() if hasattr(arm, "fault") else None
         lines.append(f"  robot status: {reason or 'no error'}")
         margin = np.minimum(st.q - arm.q_min, arm.q_max - st.q)
@@ -295,7 +295,7 @@ def dry_run(arm, sensor, camera, plan) -> str:
                          else "WARNING: the sample time did not advance over 20 reads")
             ok = np.all(np.isfinite(W))
             lines.append(f"F/T sensor {type(sensor).__name__}: {'ok' if ok else 'NON-FINITE SAMPLES'}; "
-                         f"mean force {_fmt(W[:, :3].mean(0))} N "
+                         f"mean force {fmt_xyz(W[:, :3].mean(0))} N "
                          f"(not tared), noise {W[:, :3].std(0).max():.3f} N, {rate_text}")
         if camera is not None:
             camera.connect()
@@ -314,19 +314,20 @@ def dry_run(arm, sensor, camera, plan) -> str:
             T_hover = run._hover_pose(a, d)
             tgt = line_impedance_target(a, a, d, T_hover[:3, 0], run.F_d, hw.gains)
             sc = run.safety
-            lines.append(f"plan: object frame at {_fmt(run.T_obj[:3, 3])} m; start {_fmt(a)} m, tool axis {_fmt(d)}")
+            lines.append(f"plan: object frame at {fmt_xyz(run.T_obj[:3, 3])} m; start {fmt_xyz(a)} m, tool axis {fmt_xyz(d)}")
             lines.append(f"  1. {'joint move to the picture pose, then ' if hw.go_to_picture else ''}Cartesian move to the hover pose "
-                         f"{_fmt(T_hover[:3, 3])} m ({np.linalg.norm(T_hover[:3, 3] - T[:3, 3]) * 1e3:.0f} mm away, "
+                         f"{fmt_xyz(T_hover[:3, 3])} m ({np.linalg.norm(T_hover[:3, 3] - T[:3, 3]) * 1e3:.0f} mm away, "
                          f"<= {hw.move_speed * 1e3:.0f} mm/s)")
             lines.append(f"  2. tare, approach along the normal at {plan.robot_cfg.approach_speed * 1e3:.0f} mm/s until "
                          f"{run.threshold:g} N")
-            lines.append(f"  3. press {run.F_d:g} N: first reference {_fmt(tgt.pose[:3, 3])} m "
+            lines.append(f"  3. press {run.F_d:g} N: first reference {fmt_xyz(tgt.pose[:3, 3])} m "
                          f"({run.F_d / hw.gains.k_normal * 1e3:.1f} mm past the surface along the normal, "
                          f"k_normal {hw.gains.k_normal:g} N/m, k_lateral {hw.gains.k_lateral:g} N/m)")
             lines.append(f"  4. {run.n_sub} references per explorer step of {plan.robot_cfg.explore_dt:g} s "
                          f"({arm.stream_hz:g} Hz to the SDK's 1 kHz impedance loop)")
             inside = all(run.guard.inside(x) for x in (a, T_hover[:3, 3]))
-            lines.append(f"limits: force {run.guard.force_limit:g} N (retreat), workspace {_fmt(sc.workspace_min)}..{_fmt(sc.workspace_max)} m "
+            lines.append(f"limits: force {run.guard.force_limit:g} N (retreat), workspace "
+                         f"{fmt_xyz(sc.workspace_min)}..{fmt_xyz(sc.workspace_max)} m "
                          f"({'start inside' if inside else 'START OUTSIDE'}), TCP speed {sc.tcp_speed_max:g} m/s, "
                          f"joint velocity {sc.velocity_factor:g} x limits, sensor watchdog {sc.sensor_timeout * 1e3:.0f} ms, "
                          f"explorer watchdog {sc.explorer_timeout:g} s")

@@ -35,7 +35,7 @@ from tergodic_cli.robot.controller import guarded_approach_speed
 from tergodic_cli.robot.ga import matrix_to_quat, point_line_distance, pose_matrix
 from tergodic_cli.robot.reach import tool_rotation
 from tergodic_cli.robot.interfaces import LineTarget
-from tergodic_cli.robot.safety import Fault, SafetyGuard, _fmt, resolve_stop
+from tergodic_cli.robot.safety import Fault, SafetyGuard, fmt_xyz, resolve_stop
 from tergodic_cli.robot.summary import SETTLE_S as STEADY_S, summarize_robot
 from tergodic_cli.robot.surface import oriented_normals, resolve_side, transform_points
 
@@ -108,7 +108,7 @@ def object_pose(capture, robot_cfg, guess: bool = True, on_event=None) -> np.nda
     T = default_object_pose(np.asarray(capture.points, dtype=float))
     if on_event is not None:
         on_event(0, "robot: no --object-pose given; the cloud's footprint centre is placed 0.5 m in front "
-                    f"of the base on a 0.2 m stand (object pose {_fmt(T[:3, 3])} m)")
+                    f"of the base on a 0.2 m stand (object pose {fmt_xyz(T[:3, 3])} m)")
     return T
 
 
@@ -401,7 +401,7 @@ class ContactRun:
                 d = -self._surface_normal(a)
             T_hover = self._hover_pose(a, d)
             if not self.guard.inside(T_hover[:3, 3]) or not self.guard.inside(a):
-                self._unreachable(f"the start point {_fmt(a)} m or its hover pose is outside the workspace box",
+                self._unreachable(f"the start point {fmt_xyz(a)} m or its hover pose is outside the workspace box",
                                   "move the object with --object-pose, or choose another start")
             err = self.arm.reach(T_hover)
             if err is None:
@@ -409,15 +409,15 @@ class ContactRun:
             # The reach map is sampled: where the hover pose is out of reach after all, mark it so.
             self.reachable[np.asarray(self.kdtree.query_ball_point(self._to_obj(a), TRANSIT_M), dtype=np.intp)] = False
         if err is not None:
-            self._unreachable(f"the robot cannot reach the hover pose above the agent at {_fmt(a)} m ({err})",
+            self._unreachable(f"the robot cannot reach the hover pose above the agent at {fmt_xyz(a)} m ({err})",
                               "move the object closer with --object-pose, or choose another start")
         if a is not start:
-            self.on_event(self._step(), f"robot: the tool cannot follow the normal at the start {_fmt(start)} m; "
-                                        f"starting at the nearest reachable target point {_fmt(a)} m")
+            self.on_event(self._step(), f"robot: the tool cannot follow the normal at the start {fmt_xyz(start)} m; "
+                                        f"starting at the nearest reachable target point {fmt_xyz(a)} m")
         self._start_line = (a, d)
         self.arm.spin_ref = T_hover[:3, 0].copy()
         step = self._step()
-        self.sm.go(S.HOVER, self.t, step, f"moving to the hover pose {cfg.hover_height * 1e3:.0f} mm above the start {_fmt(a)} m")
+        self.sm.go(S.HOVER, self.t, step, f"moving to the hover pose {cfg.hover_height * 1e3:.0f} mm above the start {fmt_xyz(a)} m")
         fault = self.arm.move_to(T_hover, self.check)
         if fault is not None:
             self._stop(fault, step)
@@ -560,7 +560,7 @@ class ContactRun:
                     a_next, d_next = a_new, d_new
                 elif not self._told_unreachable:
                     self._told_unreachable = True
-                    self.on_event(step, f"robot: the agent entered the unreachable part at {_fmt(a_new)} m; the tool "
+                    self.on_event(step, f"robot: the agent entered the unreachable part at {fmt_xyz(a_new)} m; the tool "
                                         "waits on the last reachable point")
                 self.guard.feed_target(self.t)
                 # The spin is a continuous function of the tool axis (no flips, the wrist mid-range).

@@ -146,8 +146,8 @@ class SafetyGuard:
         if code == k.F_TCP_SPEED:
             return Fault("tcp_speed", "hold", f"the tool moves at {tcp_speed:.2f} m/s, over {self.cfg.tcp_speed_max:.2f} m/s; "
                          "holding position", t)
-        return Fault("workspace", "hold", f"the tool at {_fmt(tcp)} m left the workspace box {_fmt(self.ws_lo)}..{_fmt(self.ws_hi)} m; "
-                     "holding position", t)
+        return Fault("workspace", "hold", f"the tool at {fmt_xyz(tcp)} m left the workspace box "
+                     f"{fmt_xyz(self.ws_lo)}..{fmt_xyz(self.ws_hi)} m; holding position", t)
 
     def check_force(self, t: float, wrench_ee) -> Fault | None:
         """|F| of the contact force against the limit."""
@@ -185,8 +185,8 @@ class SafetyGuard:
         if not np.all(np.isfinite(point)):
             return Fault("target", "hold", "the explorer produced a non-finite target; holding position", t)
         if not self.inside(point):
-            return Fault("workspace", "hold", f"target {_fmt(point)} m is outside the workspace box "
-                         f"{_fmt(self.ws_lo)}..{_fmt(self.ws_hi)} m; holding position", t)
+            return Fault("workspace", "hold", f"target {fmt_xyz(point)} m is outside the workspace box "
+                         f"{fmt_xyz(self.ws_lo)}..{fmt_xyz(self.ws_hi)} m; holding position", t)
         return None
 
     def feed_target(self, t: float) -> None:
@@ -201,5 +201,6 @@ class SafetyGuard:
         return None
 
 
-def _fmt(x) -> str:
+def fmt_xyz(x) -> str:
+    """A point in messages: "(x, y, z)" in metres, 3 decimals."""
     return "(" + ", ".join(f"{float(v):.3f}" for v in x) + ")"

@@ -26,7 +26,7 @@ from tergodic_cli.robot.controller import JointImpedance, LineForceController, m
 from tergodic_cli.robot.interfaces import ArmState, ContactWrench, LineTarget, Observation
 from tergodic_cli.robot.kinematics import FrankaModel, tool_offset
 from tergodic_cli.robot.reach import ik, plan_reach, posture
-from tergodic_cli.robot.run import SETTLE_S, ContactRun, _fmt, object_pose
+from tergodic_cli.robot.run import SETTLE_S, ContactRun, fmt_xyz, object_pose
 from tergodic_cli.robot.surface import (SurfaceMesh, check_reachable, curved_edge, near_border, oriented_normals,
                                          reconstruct_mesh, resolve_side, sim_object_mesh, transform_points)
 
@@ -444,7 +444,7 @@ class RobotRun(ContactRun):
             yaw = math.degrees(math.atan2(T[1, 0], T[0, 0]))
             self.on_event(0, "robot: no --object-pose given; the object stands on a 0.2 m stand, its footprint centre "
                              f"{float(np.hypot(*T[:2, 3])):.2f} m in front of the base, turned {yaw:.0f} deg so the arm "
-                             f"reaches its target (object pose {_fmt(T[:3, 3])} m)")
+                             f"reaches its target (object pose {fmt_xyz(T[:3, 3])} m)")
         self.drop_unreachable()
 
     @property
