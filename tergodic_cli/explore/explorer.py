@@ -424,7 +424,8 @@ class Explorer:
             gradient step, e.g. the measured tool tip (eq. 22).
         """
         t0 = time.perf_counter()
-        self._set_alpha()
+        if self._alpha is None or len(self._schedule) > 1:  # a constant α is set once, not every step
+            self._set_alpha()
         if deposit_at is None:
             deposits, n_dep = self._no_deposits, -1
         else:
