@@ -447,7 +447,7 @@ class Explorer:
             K.step_kernel(*args, 1)
             self._diffuse_full()
             K.step_kernel(*args, 2)
-        for i in np.flatnonzero(status == -2):
+        for i in np.flatnonzero(status == -2) if agent_at is not None else ():  # no search on a plain step
             self.on_event(f"warning: step {self.step_index}: agent {i} reset point is "
                           f"{self._resets[i, 0] * 1e3:.1f} mm off the cloud; ignored")
         self.step_index += 1

@@ -26,7 +26,8 @@ from tergodic_cli.robot.controller import JointImpedance, LineForceController, m
 from tergodic_cli.robot.interfaces import ArmState, ContactWrench, LineTarget, Observation
 from tergodic_cli.robot.kinematics import FrankaModel, tool_offset
 from tergodic_cli.robot.reach import ik, plan_reach, posture
-from tergodic_cli.robot.run import SETTLE_S, ContactRun, fmt_xyz, object_pose
+from tergodic_cli.robot.run import SETTLE_S, ContactRun, object_pose
+from tergodic_cli.robot.safety import fmt_xyz
 from tergodic_cli.robot.surface import (SurfaceMesh, check_reachable, curved_edge, near_border, oriented_normals,
                                          reconstruct_mesh, resolve_side, sim_object_mesh, transform_points)
 
