@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from tests.conftest import REPO
+from conftest import REPO
 from tergodic_cli.capture.filters import mean_spacing
 from tergodic_cli.capture.mesh import TriangleMesh, closest_on_mesh, mesh_distance, read_mesh, sample_mesh
 

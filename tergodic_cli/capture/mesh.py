@@ -274,7 +274,8 @@ def _read_open3d(path: Path) -> TriangleMesh:
     textures = [np.asarray(im, dtype=np.float64) for im in m.textures if not im.is_empty()]
     if textures and m.has_triangle_uvs() and len(m.triangle_uvs) == 3 * len(triangles):
         mesh.textures = [_as_rgb(im) for im in textures]
-        # open3d stores image-row UVs (v = 0 at the top); keep the OBJ convention (v = 0 at the bottom)
+        # open3d gives OBJ-convention UVs (also for glTF, whose v runs down) but stores the image
+        # bottom row first; flipping v makes surface_colors' lookup (row = (1 - v) h) read it right
         uv = np.asarray(m.triangle_uvs, dtype=np.float64).reshape(-1, 3, 2)
         mesh.corner_uvs = np.stack([uv[..., 0], 1.0 - uv[..., 1]], axis=-1)
         if m.has_triangle_material_ids():
