@@ -27,9 +27,9 @@ Built cases are cached (deterministically: same recipe, same files) under
     python benchmarks/corpus.py                     # build and list every case
     python benchmarks/corpus.py --split check --densities 6mm
 
-From another benchmark (after ``import _env``)::
+From another benchmark (``import _env`` first, as every benchmark does)::
 
-    import corpus
+    corpus = _env.load("corpus")
     for case in corpus.cases("tune", densities=("6mm",)):
         case.capture, case.vertices, case.triangles, case.object_pose("table")
 """
@@ -120,9 +120,13 @@ class Case:
     spacing : the sampling spacing, metres.
     cloud_path : the coloured PLY a user would have (before capture).
     capture : the project's Capture of it (3 mm voxel).
+    capture_dir : its capture folder (``tergodic explore CAPTURE_DIR ...``).
     vertices : (n, 3) float64, metres, the capture's frame.
     triangles : (k, 3) int64.
-    poses : placement -> ``--object-pose`` string ("x,y,z", metres), for "stand" and "table".
+    poses : placement -> ``--object-pose`` string ("x,y,z", metres): "stand" is the documented default
+        (footprint centre DEFAULT_REACH in front of the base, lowest point DEFAULT_HEIGHT up), "table" the
+        same spot with the mesh's lowest point on the base plane. A run given no ``--object-pose`` uses
+        whatever pose the robot stage picks (its summary's ``object_pose`` says which).
     """
 
     name: str
@@ -133,6 +137,7 @@ class Case:
     spacing: float
     cloud_path: Path
     capture: object
+    capture_dir: Path
     vertices: np.ndarray
     triangles: np.ndarray
     poses: dict = field(default_factory=dict)
@@ -299,8 +304,8 @@ def get_case(name: str, density: str = "6mm", marking: str = "patch") -> Case:
         vertices, triangles = data["vertices"], data["triangles"]
     spec = MESHES[name]
     spacing = spec.coarse if density == "6mm" else DENSITIES[density]
-    return Case(label, name, density, marking, spec.split, spacing, folder / "cloud.ply", cap, vertices, triangles,
-                _poses(cap.points, vertices))
+    return Case(label, name, density, marking, spec.split, spacing, folder / "cloud.ply", cap, folder / "capture",
+                vertices, triangles, _poses(cap.points, vertices))
 
 
 def cases(split: str = "all", densities=("3mm", "6mm"), markings=MARKINGS, objects=None) -> list[Case]:

@@ -4,6 +4,8 @@ Usage (a few minutes with the defaults; the full run of docs/robot.md uses --ste
     OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/robot.py [--steps 300]
         [--objects bowl,plate,mug,box,torus,partial,thin-mug] [--force 5] [--seed 0] [--seeds 3]
         [--gains tuned|paper] [--json out.json]
+    .venv/bin/python benchmarks/robot.py --corpus [tune|check|all] [--objects duck,teddy] [--placements stand,table]
+        [--densities 3mm] [--markings patch,band] [--seeds 3] [--steps 1000] [--runs DIR]
 
 For each built-in synthetic object (the box is the shape with sharp edges and vertical walls) it
 runs the robot (PyBullet, DIRECT, 1 kHz torque control) for ``--steps`` explorer steps at
@@ -25,6 +27,17 @@ Figures per object (goals checked on the worst seed, the ε ratio on the median 
   per CPU second of the run × 36 000 / the bare PyBullet torque-stepping rate measured in this
   process just before (which removes most of the load other processes put on shared cores). The
   measured wall-clock figure is printed beside it.
+
+``--corpus`` runs the household meshes of ``benchmarks/corpus.py`` (objects nobody tuned for) the
+way a user would, through ``tergodic explore CAPTURE --robot pybullet`` (exit code and one-line
+reason kept), at the default pose ("stand": no ``--object-pose``) and on the table (the mesh's
+lowest point on the base plane), and reports per case and in total: the share of runs that
+complete, fault stops by reason, the run's own ``arm_contacts`` when its summary has them, an
+independent replay of the logged joint states on the stock Panda against the object mesh and the
+plane z = 0 (:func:`replay_contacts`: samples with a link more than 1 mm in, the deepest), and ε of
+the sponge's logged contact points against the kinematic explorer's from the same start (whole
+target). The replay sees what the log holds: today the explorer steps only (set-up moves, approach
+and retreat are not logged).
 """
 
 from __future__ import annotations
@@ -208,6 +221,225 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+# ----------------------------------------------------------------------------------- the corpus (issue 24)
+
+#: Links of the stock Panda not checked in the replay: the fingers (the sponge tool replaces the gripper;
+#: the simulation keeps them as visuals only). The hand's stock hull is checked: it is arm, not sponge.
+REPLAY_SKIP_LINKS = ("panda_leftfinger", "panda_rightfinger", "panda_grasptarget")
+#: Contact closer than this (m) counts as a penetration (PyBullet's closest-point margin).
+PENETRATION_TOL = 1e-3
+
+
+def replay_contacts(mcap: str, vertices: np.ndarray, triangles: np.ndarray) -> dict:
+    """Replay a run's logged joint states on the stock Panda against the object mesh and the table plane.
+
+    Independent of the run: a separate PyBullet DIRECT client loads pybullet_data's
+    ``franka_panda/panda.urdf`` (no sponge), the object as a static concave triangle mesh placed at
+    the logged object pose, and a plane at z = 0 (the robot base plane). For every logged sample it
+    sets the joints and asks ``getClosestPoints`` for every link except the fingers (link 0 only
+    against the object: it stands on the plane).
+
+    Parameters
+    ----------
+    mcap : path of the run's ``run.mcap``.
+    vertices : (n, 3) the object mesh in the capture frame, metres.
+    triangles : (k, 3) int.
+
+    Returns
+    -------
+    dict
+        samples, samples_penetrating (any link deeper than PENETRATION_TOL), deepest_mm,
+        by_link {link: samples}, deepest_link, table_samples (into the plane), object_samples.
+    """
+    from tergodic_cli.runlog.reader import read_run_log
+
+    return replay_states([s for s in read_run_log(mcap, clouds=False).robot if s.get("q") is not None], vertices, triangles)
+
+
+def replay_states(rows: list[dict], vertices: np.ndarray, triangles: np.ndarray) -> dict:
+    """:func:`replay_contacts` on samples already read: dicts with ``q`` (7,) rad, ``joint_names`` and
+    ``object_pose`` (x, y, z, qx, qy, qz, qw) of the capture frame in the robot base frame."""
+    import pybullet as p
+    import pybullet_data
+
+    from tergodic_cli.rotations import quat_to_matrix
+
+    out = {"samples": len(rows), "samples_penetrating": 0, "deepest_mm": 0.0, "by_link": {}, "deepest_link": None,
+           "table_samples": 0, "object_samples": 0}
+    if not rows:
+        return out
+    cid = p.connect(p.DIRECT)
+    try:
+        arm = p.loadURDF(os.path.join(pybullet_data.getDataPath(), "franka_panda/panda.urdf"), useFixedBase=True,
+                         physicsClientId=cid)
+        info = [p.getJointInfo(arm, j, physicsClientId=cid) for j in range(p.getNumJoints(arm, physicsClientId=cid))]
+        by_name = {i[1].decode(): i[0] for i in info}
+        links = {i[12].decode(): i[0] for i in info if i[12].decode() not in REPLAY_SKIP_LINKS}
+        links["panda_link0"] = -1  # the base
+        pose = np.asarray(rows[0]["object_pose"], dtype=float)
+        world = np.asarray(vertices, dtype=float) @ quat_to_matrix(pose[3:]).T + pose[:3]
+        shape = p.createCollisionShape(p.GEOM_MESH, vertices=world.tolist(), indices=np.asarray(triangles).ravel().tolist(),
+                                       flags=p.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=cid)
+        obj = p.createMultiBody(0, shape, physicsClientId=cid)
+        plane = p.createMultiBody(0, p.createCollisionShape(p.GEOM_PLANE, physicsClientId=cid), physicsClientId=cid)
+        names = rows[0].get("joint_names") or [f"panda_joint{i + 1}" for i in range(7)]
+        for s in rows:
+            for name, q in zip(names, np.asarray(s["q"], dtype=float)):
+                p.resetJointState(arm, by_name[name], float(q), physicsClientId=cid)
+            hit, hit_obj, hit_table = False, False, False
+            for link, index in links.items():
+                for body, is_table in ((obj, False), (plane, True)):
+                    if is_table and index == -1:
+                        continue
+                    pts = p.getClosestPoints(arm, body, PENETRATION_TOL, linkIndexA=index, physicsClientId=cid)
+                    depth = max((-c[8] for c in pts), default=-np.inf)  # contactDistance < 0: penetration
+                    if depth > PENETRATION_TOL:
+                        hit = True
+                        hit_table |= is_table
+                        hit_obj |= not is_table
+                        out["by_link"][link] = out["by_link"].get(link, 0) + 1
+                        if depth * 1e3 > out["deepest_mm"]:
+                            out["deepest_mm"], out["deepest_link"] = depth * 1e3, f"{link} into {'table' if is_table else 'object'}"
+            out["samples_penetrating"] += hit
+            out["table_samples"] += hit_table
+            out["object_samples"] += hit_obj
+    finally:
+        p.disconnect(cid)
+    return out
+
+
+def _reason_key(text: str | None) -> str:
+    """A fault reason without its numbers, to count reasons across runs."""
+    import re
+
+    if not text:
+        return "none"
+    return re.sub(r"\s+", " ", re.sub(r"[-+]?\d[\d.,]*(e[-+]?\d+)?", "#", str(text))).strip()[:90]
+
+
+def corpus_run(case, placement: str, seed: int, steps: int, force: float, out_root: str) -> dict:
+    """One corpus case through the CLI as a user runs it, then measured from its files.
+
+    ``tergodic explore CAPTURE --robot pybullet --steps N --seed S --force F [--object-pose TABLE]``;
+    the stand placement gives no ``--object-pose`` (the robot stage's default). The row holds the exit
+    code and the one-line reason, the run's own summary figures, the replayed contacts
+    (:func:`replay_contacts`) and ε of the sponge's logged contact points and of the kinematic explorer
+    from the same start with the same config, both scored on the whole target.
+    """
+    import contextlib
+    import io
+
+    from tergodic_cli.capture.filters import mean_spacing
+    from tergodic_cli.cli import main as cli
+    from tergodic_cli.config import from_dict
+    from tergodic_cli.explore import ExploreConfig
+    from tergodic_cli.explore.metrics import coverage_score
+    from tergodic_cli.run import find_basis
+    from tergodic_cli.runlog.reader import read_run_log
+
+    run_dir = os.path.join(out_root, f"{case.name}-{placement}-s{seed}")
+    args = ["explore", str(case.capture_dir), "--robot", "pybullet", "--steps", str(steps), "--seed", str(seed),
+            "--force", f"{force:g}", "--out", run_dir]
+    if placement == "table":
+        args += ["--object-pose", case.object_pose("table")]
+    err = io.StringIO()
+    t0 = time.perf_counter()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        code = cli(args)
+    row = {"case": case.name, "mesh": case.mesh_name, "split": case.split, "placement": placement, "seed": seed,
+           "steps": steps, "force_N": force, "exit": code, "wall_s": time.perf_counter() - t0,
+           "error": next((ln for ln in err.getvalue().splitlines() if ln.startswith("tergodic:")), None)}
+    summary_path = os.path.join(run_dir, "summary.json")
+    if not os.path.exists(summary_path):
+        return {**row, "completed": False, "stop_reason": row["error"] or f"exit {code}, no run folder",
+                "run_folder": False}
+    with open(summary_path) as fh:
+        sm = json.load(fh)
+    row.update(run_folder=True, stop_reason=sm.get("stop_reason"), final_state=sm.get("final_state"),
+               steps_done=sm.get("robot_samples"), move_overs=sm.get("move_overs"), object_pose=sm.get("object_pose"),
+               force_peak_N=sm.get("force_peak_N"), tilt_deg_p95=sm.get("tilt_deg_p95"),
+               arm_contacts_run=sm.get("arm_contacts"), mesh_source=sm.get("mesh_source"))
+    row["completed"] = code == 0 and sm.get("stop_reason") == "completed"
+    mcap = os.path.join(run_dir, "run.mcap")
+    row["replay"] = replay_contacts(mcap, case.vertices, case.triangles) if os.path.exists(mcap) else None
+    # ε: the sponge's logged contact points and the kinematic explorer from the same start, same config
+    cap = case.capture
+    cfg = from_dict(ExploreConfig, sm["config"], "summary config")
+    start = np.asarray(sm["starts"]["xyz"], dtype=float)
+    basis, _ = find_basis(cap.points, cfg.nk, int(sm["basis"]["neighbors"]))
+    sponge = sponge_path(read_run_log(mcap, clouds=False).robot) if os.path.exists(mcap) else np.zeros((0, 3))
+    kin = kinematic_path(basis, cap.target, cfg, start, steps)
+    h = mean_spacing(cap.points)
+
+    def eps(path) -> float:
+        return coverage_score(cap.points, cap.target, path, cfg.agent_radius, h)["ergodicity"] if len(path) else 1.0
+
+    row.update(eps_sponge=eps(sponge), eps_kinematic=eps(kin), sponge_points=len(sponge))
+    row["eps_ratio"] = row["eps_sponge"] / row["eps_kinematic"] if row["eps_kinematic"] > 0 else None
+    return row
+
+
+def corpus_report(rows: list[dict]) -> str:
+    """Per case and in total: completed share, fault stops by reason, contacts (the run's and the replay's), ε."""
+    lines = ["| case | placement | runs | completed | stops (reason: runs) | arm contacts (run) | replay: samples "
+             "penetrating / logged | deepest (mm, link) | ε sponge / ε kinematic |", "|---|---|---|---|---|---|---|---|---|"]
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault((r["case"], r["placement"]), []).append(r)
+    for (name, placement), rs in list(groups.items()) + [(("TOTAL", ""), rows)]:
+        done = sum(r["completed"] for r in rs)
+        stops: dict = {}
+        for r in rs:
+            if not r["completed"]:
+                key = _reason_key(r.get("error") or r.get("stop_reason"))
+                stops[key] = stops.get(key, 0) + 1
+        rep = [r["replay"] for r in rs if r.get("replay")]
+        pen = sum(x["samples_penetrating"] for x in rep)
+        logged = sum(x["samples"] for x in rep)
+        deep = max(rep, key=lambda x: x["deepest_mm"], default=None)
+        arm = [r.get("arm_contacts_run") for r in rs if r.get("arm_contacts_run") is not None]
+        ratios = [r["eps_ratio"] for r in rs if r.get("eps_ratio") is not None]
+        eps = (f"{np.median([r['eps_sponge'] for r in rs if 'eps_sponge' in r]):.3f} / "
+               f"{np.median([r['eps_kinematic'] for r in rs if 'eps_kinematic' in r]):.3f} "
+               f"(ratio median {np.median(ratios):.2f})") if ratios else "n/a"
+        deepest = f"{deep['deepest_mm']:.1f} ({deep['deepest_link']})" if deep and deep["deepest_mm"] > 0 else "0"
+        lines.append(f"| {name} | {placement} | {len(rs)} | {done} ({100 * done / len(rs):.0f}%) | "
+                     f"{'; '.join(f'{k}: {v}' for k, v in stops.items()) or '-'} | "
+                     f"{json.dumps(arm) if arm else 'not reported'} | {pen} / {logged} | "
+                     f"{deepest} | "
+                     f"{eps} |")
+    return "\n".join(lines)
+
+
+def corpus_main(args) -> int:
+    corpus = _env.load("corpus")
+
+    placements = args.placements.split(",")
+    cases = corpus.cases(args.corpus, densities=tuple(args.densities.split(",")), markings=tuple(args.markings.split(",")),
+                         objects=args.objects.split(",") if args.objects else None)
+    if args.max_cases:
+        cases = cases[: args.max_cases]
+    rows = []
+    out_root = args.runs or tempfile.mkdtemp(prefix="tergodic-corpus-runs-")
+    print(f"{len(cases)} cases x {len(placements)} placements x {args.seeds} seeds, {args.steps} steps at {args.force:g} N; "
+          f"runs in {out_root}", file=sys.stderr, flush=True)
+    for case in cases:
+        for placement in placements:
+            for seed in range(args.seed, args.seed + args.seeds):
+                rows.append(corpus_run(case, placement, seed, args.steps, args.force, out_root))
+                r = rows[-1]
+                print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}, default=str),
+                      file=sys.stderr, flush=True)
+    print(f"corpus '{args.corpus}' ({args.densities}, {args.markings}): {args.steps} explorer steps at {args.force:g} N, "
+          f"seeds {args.seed}-{args.seed + args.seeds - 1}; replay: stock Panda (fingers excluded) against the mesh "
+          f"and the plane z = 0, penetration > {PENETRATION_TOL * 1e3:g} mm\n")
+    print(corpus_report(rows))
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(rows, fh, indent=2, default=str)
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=300, help="explorer steps per object (0.2 s each) [default: 300]")
@@ -219,7 +451,19 @@ def main(argv=None) -> int:
     ap.add_argument("--nk", type=int, default=200)
     ap.add_argument("--json", default=None, help="write every row to this JSON file")
     ap.add_argument("--gains", choices=("tuned", "paper"), default="tuned", help="the tuned gains or the paper's (V-A3)")
+    ap.add_argument("--corpus", nargs="?", const="all", choices=("tune", "check", "all"), default=None,
+                    help="run the household corpus (benchmarks/corpus.py) through the CLI instead of the synthetic "
+                         "objects: every case at each placement, seeds --seed.. ; --objects then names corpus meshes")
+    ap.add_argument("--placements", default="stand,table", help="corpus: stand (default pose) and/or table")
+    ap.add_argument("--densities", default="3mm", help="corpus: 3mm and/or 6mm [default: 3mm]")
+    ap.add_argument("--markings", default="patch,band", help="corpus: patch and/or band [default: both]")
+    ap.add_argument("--max-cases", type=int, default=0, help="corpus: only the first N cases (0: all)")
+    ap.add_argument("--runs", default=None, help="corpus: keep the run folders here [default: a temp folder]")
     args = ap.parse_args(argv)
+    if args.corpus:
+        if args.objects == ap.get_default("objects"):
+            args.objects = None
+        return corpus_main(args)
     rows = []
     with tempfile.TemporaryDirectory() as cache:
         for obj in args.objects.split(","):

@@ -164,3 +164,42 @@ def test_corpus_case_frame_marking_and_poses(corpus, name, density, marking):
     # cached: a second call reads the same files
     again = corpus.get_case(name, density, marking)
     assert np.array_equal(again.capture.points, cap.points) and again.cloud_path == case.cloud_path
+
+
+def test_replay_finds_an_arm_link_inside_the_object_and_below_the_table():
+    """benchmarks/robot.py's independent contact replay: the stock Panda at its ready pose against a box."""
+    import pybullet as p
+    import pybullet_data
+
+    spec = importlib.util.spec_from_file_location("robot_bench", REPO / "benchmarks" / "robot.py")
+    bench = importlib.util.module_from_spec(spec)
+    sys.path.insert(0, str(REPO / "benchmarks"))  # its `import _env`
+    try:
+        spec.loader.exec_module(bench)
+    finally:
+        sys.path[:] = [x for x in sys.path if x != str(REPO / "benchmarks")]
+    ready = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+    names = [f"panda_joint{i + 1}" for i in range(7)]
+    # where link 4 is at that pose (forward kinematics of the same URDF)
+    cid = p.connect(p.DIRECT)
+    try:
+        arm = p.loadURDF(f"{pybullet_data.getDataPath()}/franka_panda/panda.urdf", useFixedBase=True, physicsClientId=cid)
+        for j, q in enumerate(ready):
+            p.resetJointState(arm, j, float(q), physicsClientId=cid)
+        elbow = np.array(p.getLinkState(arm, 3, physicsClientId=cid)[4])
+    finally:
+        p.disconnect(cid)
+    cube_v = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float) * 0.05
+    cube_t = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6],
+                       [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    row = lambda q, at: {"q": q, "joint_names": names, "object_pose": [*at, 0, 0, 0, 1]}  # noqa: E731
+    far = bench.replay_states([row(ready, [2.0, 2.0, 0.5])], cube_v, cube_t)
+    assert far["samples"] == 1 and far["samples_penetrating"] == 0 and far["deepest_mm"] == 0
+    # the cube's surface through the elbow: a link 4 (or 3) penetration of centimetres
+    hit = bench.replay_states([row(ready, elbow + [0.05, 0, 0])], cube_v, cube_t)
+    assert hit["object_samples"] == 1 and {"panda_link3", "panda_link4"} & set(hit["by_link"]) and hit["deepest_mm"] > 10
+    # shoulder bent forward and down: the hand goes below the base plane
+    down = ready.copy()
+    down[1] = 1.6
+    low = bench.replay_states([row(down, [2.0, 2.0, 0.5])], cube_v, cube_t)
+    assert low["table_samples"] == 1 and "table" in low["deepest_link"]
