@@ -1,0 +1,137 @@
+"""Never trapped: the explorer's stagnation check and its recovery, a transit along the surface.
+
+The drive (docs/explore.md, "How the agent is driven") is local: the footprint gain sees residual
+within a few footprints, and the heat, truncated to nK modes, can be flat between a cleared region
+and a far one. An agent can then circle a cleared area for ever while target residual remains
+elsewhere (issue 25: the bunny with a band, 4 of 5 starts). Every ``STALL_WINDOW`` steps the
+explorer compares the residual ∫s with the last check's; when it has not fallen by ``STALL_FALL``
+and the footprint gain G where the agent stands is below ``STALL_GAIN`` of the best G on the
+target it can reach, the agent makes a *transit*: it follows the shortest path on the cloud's
+neighbour graph to that best point, under the same v_max / a_max limits (docs/explore.md,
+"Never trapped", gives the argument).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: Steps between stagnation checks (the check costs O(|T|) numpy work; nothing on the other steps).
+STALL_WINDOW = 50
+#: ∫s must fall by at least this share over a window, or the explorer looks for a better place.
+STALL_FALL = 0.02
+#: ... and the agent moves there when the gain where it stands is below this share of the best.
+STALL_GAIN = 0.1
+#: The transit aims this many v_max dt ahead along its path (pure pursuit).
+LOOKAHEAD_STEPS = 2.0
+#: A transit ends within this share of r_a of its goal, or gives up after SLACK x the path's
+#: length in steps (plus SLACK_STEPS): a path the agent cannot follow (a move refused at an edge).
+ARRIVE_RA = 0.5
+SLACK, SLACK_STEPS = 2.0, 20
+
+
+def stalled(s_then: float, s_now: float, gain_here: float, gain_best: float, fall: float = STALL_FALL,
+            ratio: float = STALL_GAIN) -> bool:
+    """The stagnation test: the residual did not fall over the window, and a better place exists.
+
+    Parameters
+    ----------
+    s_then, s_now : ∫s at the last check and now (1/m², any consistent scale).
+    gain_here : footprint gain G at the agent (what a deposit there would remove).
+    gain_best : the largest G on the target the agent can reach.
+    fall : share ∫s must fall by over the window to count as progress.
+    ratio : G here below this share of the best means the agent is where little is left.
+
+    Returns
+    -------
+    bool
+    """
+    if not (gain_best > 0.0 and math.isfinite(s_now)):
+        return False  # nothing left to remove anywhere: done, not stuck
+    return s_now > (1.0 - fall) * s_then and gain_here < ratio * gain_best
+
+
+def surface_graph(points: np.ndarray, reach: float):
+    """The cloud's neighour graph: an edge between points closer than ``reach``, weighted by length.
+
+    Parameters
+    ----------
+    points : (m, 3) metres.
+    reach : metres (the explorer's 2 x SURFACE_REACH h: what an agent on the data can cross).
+
+    Returns
+    -------
+    scipy.sparse.csr_matrix (m, m), symmetric, metres.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.spatial import cKDTree
+
+    m = len(points)
+    pairs = cKDTree(points).query_pairs(reach, output_type="ndarray")
+    w = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
+    i, j = np.concatenate([pairs[:, 0], pairs[:, 1]]), np.concatenate([pairs[:, 1], pairs[:, 0]])
+    return coo_matrix((np.concatenate([w, w]), (i, j)), shape=(m, m)).tocsr()
+
+
+def surface_path(graph, source: int, goal: int) -> np.ndarray:
+    """Shortest path from ``source`` to ``goal`` on :func:`surface_graph` (Dijkstra), as point indices.
+
+    Returns
+    -------
+    (k,) int64 indices from source to goal; empty when the goal cannot be reached.
+    """
+    from scipy.sparse.csgraph import dijkstra
+
+    dist, pred = dijkstra(graph, directed=False, indices=source, return_predecessors=True, min_only=False)
+    if not math.isfinite(dist[goal]):
+        return np.zeros(0, dtype=np.int64)
+    path = [goal]
+    while path[-1] != source:
+        path.append(int(pred[path[-1]]))
+    return np.array(path[::-1], dtype=np.int64)
+
+
+class Transit:
+    """One agent's transit along a path of surface points.
+
+    Parameters
+    ----------
+    points : (k, 3) the path's points, metres (from the agent's nearest point to the goal).
+    step_length : v_max dt, metres.
+    arrive : distance to the goal at which the transit ends, metres.
+    """
+
+    def __init__(self, points: np.ndarray, step_length: float, arrive: float):
+        self.points = points
+        seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+        self.arc = np.concatenate([[0.0], np.cumsum(seg)])
+        self.length = float(self.arc[-1])
+        self.step_length, self.arrive = step_length, arrive
+        self.at = 0  # the path point the agent passed last
+        self.steps = 0
+        self.limit = int(SLACK * self.length / step_length) + SLACK_STEPS
+
+    def velocity(self, x: np.ndarray, normal: np.ndarray, v_max: float) -> np.ndarray | None:
+        """The velocity to track from ``x`` (3,), tangent to ``normal``; None when the transit is over.
+
+        Pure pursuit: the aim is the path point LOOKAHEAD_STEPS v_max dt beyond the path point
+        nearest the agent (searched forward from the last one, so the agent never turns back).
+        """
+        self.steps += 1
+        if np.linalg.norm(self.points[-1] - x) <= self.arrive or self.steps > self.limit:
+            return None
+        ahead = self.points[self.at: self.at + 16]
+        self.at += int(np.argmin(np.linalg.norm(ahead - x, axis=1)))
+        reach = self.arc[self.at] + LOOKAHEAD_STEPS * self.step_length
+        aim = self.points[min(int(np.searchsorted(self.arc, reach)), len(self.points) - 1)]
+        d = aim - x
+        d -= (d @ normal) * normal
+        n = float(np.linalg.norm(d))
+        if n == 0.0:
+            return None
+        return d * (v_max / n)
+
+    @property
+    def arrived(self) -> bool:
+        return self.steps <= self.limit
