@@ -25,7 +25,8 @@ from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_con
 from tergodic_cli.explore.diffusion import ImplicitDiffusion, time_step
 from tergodic_cli.explore.index import cached, cloud_index
 from tergodic_cli.explore.metrics import CoverageScore, source_term
-from tergodic_cli.explore.transit import ARRIVE_RA, STALL_FALL, STALL_WINDOW, Transit, stalled, surface_graph, surface_path
+from tergodic_cli.explore.transit import (ARRIVE_RA, STALL_FALL, STALL_WINDOW, Transit, choose_goal, path_to, paths_from,
+                                          stalled, surface_graph)
 
 #: The explorer keeps coverage, source and heat on the cloud thinned to a voxel grid of this size
 #: (metres) when the cloud is much denser: the paper's capture voxel, where its α and footprint were
@@ -307,7 +308,7 @@ class Explorer:
         else:
             self._score.set_target(p, self._full)
         self._set_metrics(float("nan"))
-        self._gain_of_target = None  # (kernel matrix, reachable parts) over T, built at the first stall check
+        self._gain_of_target = None  # the gain's kernel over T, built at the first stall check
         self._s_then, self._next_check = math.inf, STALL_WINDOW
         # the step kernel's state arguments, bound once per target (the heap arrays change with it)
         self._state = (self._P, *self._tree, self._full.tree, self._tgt, self._phi, self._pf,
@@ -505,34 +506,38 @@ class Explorer:
     def _check_stall(self) -> None:
         """The stagnation check (every STALL_WINDOW steps): when ∫s has not fallen by STALL_FALL since
         the last check and an agent stands where the footprint gain is below STALL_GAIN of the best
-        it can reach, that agent (the lowest such) starts a transit to the best point."""
+        it can reach, that agent (the lowest such) starts a transit (transit.choose_goal)."""
         self._next_check = self.step_index + STALL_WINDOW
         s_now = float(self._fs[K.FS_MASS_S])
         s_then, self._s_then = self._s_then, s_now
         if not s_now > (1.0 - STALL_FALL) * s_then:
             return  # progress (or the first window): no further work
-        kern, parts = self._target_gain()
         T, P = self._T, self._P
         zc = float(self._fs[K.FS_ZC])
         e = np.maximum(self._pf[K.PF_PBAR, T] - (self._cov[T] / zc if zc > 0 else 0.0), 0.0)
         w = self._pf[K.PF_MASS, T] * e
-        gain = kern @ w  # G at every target point: what a deposit there would remove
+        gain = self._target_kernel() @ w  # G at every target point: what a deposit there would remove
         eps2 = self._prm[K.PR_GAIN_EPS2]
+        graph = cached("surface_graph", self._P, lambda: surface_graph(self._P, 2.0 * K.SURFACE_REACH * self._field.h))
         worst = None
         for i in range(len(self.positions)):
-            reach = parts == self._part_of(i)
+            src = int(self._nbrs[i, 0])
+            dist, pred = paths_from(graph, src)
+            reach = np.isfinite(dist[T])
             if not np.any(reach):
                 continue
-            j = int(np.flatnonzero(reach)[np.argmax(gain[reach])])
+            best = float(np.max(gain[reach]))
             here = float(w @ np.exp(-eps2 * np.sum((P[T] - self.positions[i]) ** 2, axis=1)))
-            if stalled(s_then, s_now, here, float(gain[j])) and (worst is None or here / gain[j] < worst[0]):
-                worst = (here / gain[j], i, j)
+            if stalled(s_then, s_now, here, best) and (worst is None or here / best < worst[0]):
+                worst = (here / best, i, src, dist, pred, gain)
         if worst is not None:
-            self._start_transit(worst[1], int(T[worst[2]]), s_then, s_now, worst[0])
+            ratio, i, src, dist, pred, gain = worst
+            j = choose_goal(dist[T], gain)
+            if j >= 0:
+                self._start_transit(i, path_to(pred, src, int(T[j])), s_then, s_now, ratio)
 
-    def _target_gain(self):
-        """(|T|, |T|) sparse footprint-gain kernel M-weighted sums need (G = K (M e)), and each target
-        point's part of the cloud; once per target."""
+    def _target_kernel(self):
+        """(|T|, |T|) sparse footprint-gain kernel over the target's points, G = K (M e); once per target."""
         if self._gain_of_target is None:
             from scipy.sparse import coo_matrix
             from scipy.spatial import cKDTree
@@ -545,15 +550,11 @@ class Explorer:
             m = len(T)
             i = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(m)])
             j = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(m)])
-            kern = coo_matrix((np.concatenate([k, k, np.ones(m)]), (i, j)), shape=(m, m)).tocsr()
-            parts = self._parts()[self._field.sel[self._order[T]]]
-            self._gain_of_target = (kern, parts)
+            self._gain_of_target = coo_matrix((np.concatenate([k, k, np.ones(m)]), (i, j)), shape=(m, m)).tocsr()
         return self._gain_of_target
 
-    def _start_transit(self, i: int, goal: int, s_then: float, s_now: float, ratio: float) -> None:
-        """Agent i follows the shortest path on the field points' neighbour graph to point ``goal``."""
-        graph = cached("surface_graph", self._P, lambda: surface_graph(self._P, 2.0 * K.SURFACE_REACH * self._field.h))
-        path = surface_path(graph, int(self._nbrs[i, 0]), goal)
+    def _start_transit(self, i: int, path: np.ndarray, s_then: float, s_now: float, ratio: float) -> None:
+        """Agent i follows ``path`` (field point indices, from its nearest point to the goal)."""
         if len(path) < 2:
             return
         tr = Transit(self._P[path], self.cfg.v_max * self.cfg.dt, ARRIVE_RA * self.r_a)
@@ -564,7 +565,7 @@ class Explorer:
         self.on_event(f"transit: step {self.step_index}: agent {i} stalled (∫s {s_then:.4g} -> {s_now:.4g} over "
                       f"{STALL_WINDOW} steps, the gain where it stands {100 * ratio:.1f} % of the best it can "
                       f"reach); moving {tr.length * 1e3:.0f} mm along the surface to "
-                      f"{np.array2string(self._P[goal], precision=4)}")
+                      f"{np.array2string(tr.points[-1], precision=4)}")
 
     def _steer(self) -> None:
         """Set each transiting agent's velocity to track (kernels.AG_VD); end the transits that are over."""

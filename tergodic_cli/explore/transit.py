@@ -7,7 +7,7 @@ elsewhere (issue 25: the bunny with a band, 4 of 5 starts). Every ``STALL_WINDOW
 explorer compares the residual ∫s with the last check's; when it has not fallen by ``STALL_FALL``
 and the footprint gain G where the agent stands is below ``STALL_GAIN`` of the best G on the
 target it can reach, the agent makes a *transit*: it follows the shortest path on the cloud's
-neighbour graph to that best point, under the same v_max / a_max limits (docs/explore.md,
+neighbour graph to the nearest point where G is at least ``GOAL_SHARE`` of that best, under the same v_max / a_max limits (docs/explore.md,
 "Never trapped", gives the argument).
 """
 
@@ -23,6 +23,8 @@ STALL_WINDOW = 50
 STALL_FALL = 0.02
 #: ... and the agent moves there when the gain where it stands is below this share of the best.
 STALL_GAIN = 0.1
+#: The goal: the nearest point (along the surface) where G is at least this share of the best reachable.
+GOAL_SHARE = 0.5
 #: The transit aims this many v_max dt ahead along its path (pure pursuit).
 LOOKAHEAD_STEPS = 2.0
 #: A transit ends within this share of r_a of its goal, or gives up after SLACK x the path's
@@ -74,22 +76,42 @@ def surface_graph(points: np.ndarray, reach: float):
     return coo_matrix((np.concatenate([w, w]), (i, j)), shape=(m, m)).tocsr()
 
 
-def surface_path(graph, source: int, goal: int) -> np.ndarray:
-    """Shortest path from ``source`` to ``goal`` on :func:`surface_graph` (Dijkstra), as point indices.
+def paths_from(graph, source: int) -> tuple[np.ndarray, np.ndarray]:
+    """Shortest paths on :func:`surface_graph` from ``source`` to every point (Dijkstra).
 
     Returns
     -------
-    (k,) int64 indices from source to goal; empty when the goal cannot be reached.
+    dist : (m,) metres along the graph (inf where unreachable).
+    pred : (m,) each point's predecessor on its path (-9999 for the source and unreachable points).
     """
     from scipy.sparse.csgraph import dijkstra
 
-    dist, pred = dijkstra(graph, directed=False, indices=source, return_predecessors=True, min_only=False)
-    if not math.isfinite(dist[goal]):
-        return np.zeros(0, dtype=np.int64)
+    return dijkstra(graph, directed=False, indices=source, return_predecessors=True)
+
+
+def path_to(pred: np.ndarray, source: int, goal: int) -> np.ndarray:
+    """(k,) int64 point indices of the path source -> goal from :func:`paths_from`'s ``pred``."""
     path = [goal]
     while path[-1] != source:
         path.append(int(pred[path[-1]]))
     return np.array(path[::-1], dtype=np.int64)
+
+
+def choose_goal(dist: np.ndarray, gain: np.ndarray, share: float = GOAL_SHARE) -> int:
+    """The transit's goal: of the reachable points whose gain is at least ``share`` of the best
+    reachable gain, the nearest along the surface (-1 when none is reachable or no gain is left).
+
+    Parameters
+    ----------
+    dist : (k,) path lengths to k candidate points, metres (inf: unreachable).
+    gain : (k,) their footprint gain G.
+    share : in (0, 1].
+    """
+    ok = np.isfinite(dist)
+    if not np.any(ok) or not np.max(gain[ok]) > 0.0:
+        return -1
+    good = np.flatnonzero(ok & (gain >= share * np.max(gain[ok])))
+    return int(good[np.argmin(dist[good])])
 
 
 class Transit:
