@@ -88,11 +88,16 @@ def authors_run(points: np.ndarray, target: np.ndarray, basis, x0: np.ndarray, r
     d3, _ = cKDTree(points).query(points, k=4)
     dt = alpha * float(np.mean(d3[:, 1:])) ** 2
     phi = np.ascontiguousarray(basis.evecs[:, :nk])
-    phit_m = np.ascontiguousarray((phi * basis.mass[:, None]).T)
     decay = np.exp(-basis.evals[:nk] * dt)
     goal = target / (target.sum() + 1e-12)
+    T = np.flatnonzero(goal > 0)  # s = 0 off the target
+    phit_m_t = np.ascontiguousarray((phi[T] * basis.mass[T, None]).T)
     cov = np.zeros(len(points))
-    u = goal.copy()
+    # Their u <- Φ e^{-λδt} Φᵀ M u + s, kept as u = Φ b + s with b = e^{-λδt} Φᵀ M u_prev (Φᵀ M Φ = I):
+    # b <- e^{-λδt} (b + Φᵀ M s_prev), the same field at O(|T| nK) a step, evaluated at the neighbours only.
+    b = decay * ((phi[T] * basis.mass[T, None]).T @ goal[T])
+    s_prev_coef = np.zeros(nk)
+    first = True
     x = np.array(x0, dtype=float)
     v = np.zeros(3)
     out = np.empty((steps, 3))
@@ -103,9 +108,15 @@ def authors_run(points: np.ndarray, target: np.ndarray, basis, x0: np.ndarray, r
         idx, d2 = np.asarray(idx), np.asarray(d2)
         cov[idx] += np.exp(-(1.0 / radius) * d2)
         nb = idx[:AUTHORS_NEIGHBORS]
-        s = np.maximum(goal - cov / (cov.sum() + 1e-12), 0.0) ** 2
+        s = np.maximum(goal[T] - cov[T] / (cov.sum() + 1e-12), 0.0) ** 2
         s /= s.sum() + 1e-12
-        u = phi @ (decay * (phit_m @ u)) + s
+        if not first:
+            b = decay * (b + s_prev_coef)
+        first = False
+        s_prev_coef = phit_m_t @ s
+        s_full = np.zeros(len(points))
+        s_full[T] = s
+        u_nb = phi[nb] @ b + s_full[nb]
         # the plane z = ax + by + c, its normal and tangents; the agent and neighbours on it
         q = points[nb]
         coef = np.linalg.lstsq(np.column_stack([q[:, 0], q[:, 1], np.ones(len(q))]), q[:, 2], rcond=None)[0]
@@ -120,7 +131,7 @@ def authors_run(points: np.ndarray, target: np.ndarray, basis, x0: np.ndarray, r
         dist = np.linalg.norm(uv, axis=1)
         w = np.exp(-(1.0 / dist.max()) * dist ** 2)
         X = _authors_features(np.column_stack([uv, np.ones(len(uv))]))
-        c = np.linalg.pinv(X.T @ (w[:, None] * X)) @ X.T @ (w * u[nb])
+        c = np.linalg.pinv(X.T @ (w[:, None] * X)) @ X.T @ (w * u_nb)
         a0, a1 = uv[0]  # evaluated at the first neighbour, their terms as published
         gu = (c[1] + 2 * c[4] * a0 + c[5] * a1 + c[6] + 3 * c[10] * a0 ** 2 + 2 * c[11] * a0 * a1 + 2 * c[12] * a0
               + c[13] * a1 ** 2 + c[14] * a1 + c[15])
