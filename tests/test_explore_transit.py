@@ -112,3 +112,26 @@ def test_the_stagnation_check_frees_an_agent_the_plain_drive_leaves_trapped(monk
     assert ref["off_surface_fraction"] == 0.0
     assert ref["step_max_m"] <= cfg.v_max * cfg.dt * (1 + 1e-9)
     assert ref["ergodicity"] < plain["ergodicity"]
+
+
+def test_the_surface_path_never_crosses_a_thin_wall():
+    # a hairpin: two 9 x 3 cm sheets at 3 mm, 7.5 mm apart (closer than the graph's 9 mm reach),
+    # joined along x = 0.09 by a half-cylinder; the point straight across the wall is 7.5 mm away
+    # through the material and 18 cm + the fold along the surface
+    g, gap = 0.003, 0.0075
+    x, y = np.meshgrid(np.arange(0.0, 0.09 + 1e-9, g), np.arange(0.0, 0.03 + 1e-9, g))
+    x, y = x.ravel(), y.ravel()
+    a = np.column_stack([x, y, np.zeros_like(x)])
+    b = a + [0.0, 0.0, gap]
+    t = np.linspace(0.0, np.pi, 8)[1:-1]
+    yy, tt = np.meshgrid(np.arange(0.0, 0.03 + 1e-9, g), t)
+    fold = np.column_stack([0.09 + 0.5 * gap * np.sin(tt.ravel()), yy.ravel(), 0.5 * gap * (1 - np.cos(tt.ravel()))])
+    pts = np.vstack([a, b, fold])
+    graph = surface_graph(pts, 3 * g)
+    src = int(np.argmin(np.linalg.norm(a - [0.0, 0.015, 0.0], axis=1)))
+    goal = len(a) + src  # the point of the other sheet straight above it
+    dist, pred = paths_from(graph, src)
+    assert np.isfinite(dist[goal])
+    assert dist[goal] >= 2 * 0.09, dist[goal]  # along both sheets and round the fold, never 7.5 mm across
+    path = path_to(pred, src, goal)
+    assert np.max(pts[path, 0]) >= 0.09  # it went round the fold

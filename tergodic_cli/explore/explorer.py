@@ -25,7 +25,7 @@ from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_con
 from tergodic_cli.explore.diffusion import ImplicitDiffusion, time_step
 from tergodic_cli.explore.index import cached, cloud_index
 from tergodic_cli.explore.metrics import CoverageScore, source_term
-from tergodic_cli.explore.transit import (ARRIVE_RA, STALL_FALL, STALL_WINDOW, Transit, choose_goal, path_to, paths_from,
+from tergodic_cli.explore.transit import (ARRIVE_RA, BAN_RA, STALL_FALL, STALL_WINDOW, Transit, choose_goal, path_to, paths_from,
                                           stalled, surface_graph)
 
 #: The explorer keeps coverage, source and heat on the cloud thinned to a voxel grid of this size
@@ -309,6 +309,7 @@ class Explorer:
             self._score.set_target(p, self._full)
         self._set_metrics(float("nan"))
         self._gain_of_target = None  # the gain's kernel over T, built at the first stall check
+        self._banned = np.zeros(len(T), dtype=bool)  # target points a transit could not reach
         self._s_then, self._next_check = math.inf, STALL_WINDOW
         # the step kernel's state arguments, bound once per target (the heap arrays change with it)
         self._state = (self._P, *self._tree, self._full.tree, self._tgt, self._phi, self._pf,
@@ -523,7 +524,7 @@ class Explorer:
         for i in range(len(self.positions)):
             src = int(self._nbrs[i, 0])
             dist, pred = paths_from(graph, src)
-            reach = np.isfinite(dist[T])
+            reach = np.isfinite(dist[T]) & ~self._banned
             if not np.any(reach):
                 continue
             best = float(np.max(gain[reach]))
@@ -532,7 +533,7 @@ class Explorer:
                 worst = (here / best, i, src, dist, pred, gain)
         if worst is not None:
             ratio, i, src, dist, pred, gain = worst
-            j = choose_goal(dist[T], gain)
+            j = choose_goal(dist[T], gain, banned=self._banned)
             if j >= 0:
                 self._start_transit(i, path_to(pred, src, int(T[j])), s_then, s_now, ratio)
 
@@ -579,6 +580,8 @@ class Explorer:
                 continue
             self._ag[i, K.AG_TRANSIT] = 0.0
             self._transit[i] = None
+            if not tr.arrived:  # not chosen again: the goal may lie beyond what the agent can follow
+                self._banned |= np.linalg.norm(self._P[self._T] - tr.points[-1], axis=1) <= BAN_RA * self.r_a
             self.on_event(f"transit: step {self.step_index}: agent {i} "
                           + (f"arrived after {tr.steps - 1} steps" if tr.arrived else
                              f"gave up after {tr.steps - 1} steps, {np.linalg.norm(tr.points[-1] - self.positions[i]) * 1e3:.0f} mm short"))

@@ -23,6 +23,13 @@ STALL_WINDOW = 50
 STALL_FALL = 0.02
 #: ... and the agent moves there when the gain where it stands is below this share of the best.
 STALL_GAIN = 0.1
+#: The surface graph's normals come from this many nearest points; an edge whose direction has a
+#: component above EDGE_MAX_NORMAL along either end's normal (more than ~45° out of the tangent
+#: plane) crosses between sheets and is left out.
+NORMAL_NEIGHBORS, EDGE_MAX_NORMAL = 6, 0.7
+#: A goal the agent could not reach (a transit that gave up) is not chosen again within this many
+#: r_a of it (the same target, seen through a wall).
+BAN_RA = 1.0
 #: The goal: the nearest point (along the surface) where G is at least this share of the best reachable.
 GOAL_SHARE = 0.5
 #: The transit aims this many v_max dt ahead along its path (pure pursuit).
@@ -54,8 +61,15 @@ def stalled(s_then: float, s_now: float, gain_here: float, gain_best: float, fal
     return s_now > (1.0 - fall) * s_then and gain_here < ratio * gain_best
 
 
-def surface_graph(points: np.ndarray, reach: float):
-    """The cloud's neighour graph: an edge between points closer than ``reach``, weighted by length.
+def surface_graph(points: np.ndarray, reach: float, normal_neighbors: int = NORMAL_NEIGHBORS,
+                  max_normal: float = EDGE_MAX_NORMAL):
+    """The cloud's neighbour graph along its surface: an edge between points closer than ``reach``
+    that runs along the surface at both ends, weighted by its length.
+
+    An edge runs along the surface when its direction's component along the local normal (PCA of
+    the ``normal_neighbors`` nearest points, open3d) is below ``max_normal`` at both ends: an edge
+    across a thin wall, from one sheet to the other, runs along the normal and is left out, so a
+    path never goes through the material.
 
     Parameters
     ----------
@@ -66,12 +80,21 @@ def surface_graph(points: np.ndarray, reach: float):
     -------
     scipy.sparse.csr_matrix (m, m), symmetric, metres.
     """
+    import open3d as o3d
     from scipy.sparse import coo_matrix
     from scipy.spatial import cKDTree
 
     m = len(points)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(normal_neighbors))
+    normals = np.asarray(pcd.normals)
     pairs = cKDTree(points).query_pairs(reach, output_type="ndarray")
-    w = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
+    d = points[pairs[:, 1]] - points[pairs[:, 0]]
+    w = np.linalg.norm(d, axis=1)
+    d /= np.where(w > 0, w, 1.0)[:, None]
+    along = (np.abs(np.sum(d * normals[pairs[:, 0]], axis=1)) < max_normal) & \
+        (np.abs(np.sum(d * normals[pairs[:, 1]], axis=1)) < max_normal)
+    pairs, w = pairs[along], w[along]
     i, j = np.concatenate([pairs[:, 0], pairs[:, 1]]), np.concatenate([pairs[:, 1], pairs[:, 0]])
     return coo_matrix((np.concatenate([w, w]), (i, j)), shape=(m, m)).tocsr()
 
@@ -97,7 +120,7 @@ def path_to(pred: np.ndarray, source: int, goal: int) -> np.ndarray:
     return np.array(path[::-1], dtype=np.int64)
 
 
-def choose_goal(dist: np.ndarray, gain: np.ndarray, share: float = GOAL_SHARE) -> int:
+def choose_goal(dist: np.ndarray, gain: np.ndarray, share: float = GOAL_SHARE, banned: np.ndarray | None = None) -> int:
     """The transit's goal: of the reachable points whose gain is at least ``share`` of the best
     reachable gain, the nearest along the surface (-1 when none is reachable or no gain is left).
 
@@ -106,8 +129,9 @@ def choose_goal(dist: np.ndarray, gain: np.ndarray, share: float = GOAL_SHARE) -
     dist : (k,) path lengths to k candidate points, metres (inf: unreachable).
     gain : (k,) their footprint gain G.
     share : in (0, 1].
+    banned : (k,) bool, points not to choose (goals a transit could not reach), or None.
     """
-    ok = np.isfinite(dist)
+    ok = np.isfinite(dist) if banned is None else np.isfinite(dist) & ~banned
     if not np.any(ok) or not np.max(gain[ok]) > 0.0:
         return -1
     good = np.flatnonzero(ok & (gain >= share * np.max(gain[ok])))
