@@ -79,6 +79,10 @@ def authors_run(points: np.ndarray, target: np.ndarray, basis, x0: np.ndarray, r
     Returns
     -------
     (steps, 3) the agent's positions after each step, metres.
+
+    Raises
+    ------
+    RuntimeError when their fit fails (non-finite values once the agent has left the surface).
     """
     import open3d as o3d
     from scipy.spatial import cKDTree
@@ -131,7 +135,10 @@ def authors_run(points: np.ndarray, target: np.ndarray, basis, x0: np.ndarray, r
         dist = np.linalg.norm(uv, axis=1)
         w = np.exp(-(1.0 / dist.max()) * dist ** 2)
         X = _authors_features(np.column_stack([uv, np.ones(len(uv))]))
-        c = np.linalg.pinv(X.T @ (w[:, None] * X)) @ X.T @ (w * u_nb)
+        try:
+            c = np.linalg.pinv(X.T @ (w[:, None] * X)) @ X.T @ (w * u_nb)
+        except np.linalg.LinAlgError as exc:  # their code stops here too (the agent left the surface)
+            raise RuntimeError(f"the published algorithm crashed at step {t}: {exc}") from None
         a0, a1 = uv[0]  # evaluated at the first neighbour, their terms as published
         gu = (c[1] + 2 * c[4] * a0 + c[5] * a1 + c[6] + 3 * c[10] * a0 ** 2 + 2 * c[11] * a0 * a1 + 2 * c[12] * a0
               + c[13] * a1 ** 2 + c[14] * a1 + c[15])
