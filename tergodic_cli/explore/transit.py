@@ -102,6 +102,11 @@ def surface_graph(points: np.ndarray, reach: float, normal_neighbors: int = NORM
 def paths_from(graph, source: int) -> tuple[np.ndarray, np.ndarray]:
     """Shortest paths on :func:`surface_graph` from ``source`` to every point (Dijkstra).
 
+    Parameters
+    ----------
+    graph : the (m, m) sparse graph of :func:`surface_graph`.
+    source : the start point's index.
+
     Returns
     -------
     dist : (m,) metres along the graph (inf where unreachable).
@@ -113,7 +118,17 @@ def paths_from(graph, source: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def path_to(pred: np.ndarray, source: int, goal: int) -> np.ndarray:
-    """(k,) int64 point indices of the path source -> goal from :func:`paths_from`'s ``pred``."""
+    """The path source -> goal from :func:`paths_from`'s predecessors.
+
+    Parameters
+    ----------
+    pred : (m,) predecessors from :func:`paths_from` (``source``'s).
+    source, goal : point indices; ``goal`` must be reachable (finite distance).
+
+    Returns
+    -------
+    (k,) int64 point indices from source to goal.
+    """
     path = [goal]
     while path[-1] != source:
         path.append(int(pred[path[-1]]))
@@ -130,6 +145,10 @@ def choose_goal(dist: np.ndarray, gain: np.ndarray, share: float = GOAL_SHARE, b
     gain : (k,) their footprint gain G.
     share : in (0, 1].
     banned : (k,) bool, points not to choose (goals a transit could not reach), or None.
+
+    Returns
+    -------
+    int: the index into the k candidates, or -1.
     """
     ok = np.isfinite(dist) if banned is None else np.isfinite(dist) & ~banned
     if not np.any(ok) or not np.max(gain[ok]) > 0.0:
@@ -163,6 +182,16 @@ class Transit:
 
         Pure pursuit: the aim is the path point LOOKAHEAD_STEPS v_max dt beyond the path point
         nearest the agent (searched forward from the last one, so the agent never turns back).
+
+        Parameters
+        ----------
+        x : (3,) the agent's position, metres.
+        normal : (3,) unit surface normal there.
+        v_max : m/s.
+
+        Returns
+        -------
+        (3,) m/s, tangent, of length v_max; or None when the agent has arrived or given up.
         """
         self.steps += 1
         if np.linalg.norm(self.points[-1] - x) <= self.arrive or self.steps > self.limit:
