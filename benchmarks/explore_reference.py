@@ -38,6 +38,123 @@ PUBLISHED = {"bunny": {"file": "bun270_X", "radius": 0.0075, "eps_ref": 0.134, "
 GOAL_FACTOR = {"bunny": 0.9, "plate": 1.0}
 
 
+#: The published code's settings (reference/README.md): n_N for the tangent fit and gradient, the
+#: footprint's neighbour cap, its acceleration factor (it doubles a_max).
+AUTHORS_NEIGHBORS, AUTHORS_MAX_NEIGHBORS, AUTHORS_ACC_FACTOR = 20, 500, 2.0
+
+
+def _authors_features(uvw: np.ndarray) -> np.ndarray:
+    """The cubic features of the published code: every monomial of degree <= 3 in (u, v, 1), in
+    the order of itertools.combinations_with_replacement (scikit-learn's PolynomialFeatures)."""
+    from itertools import combinations_with_replacement
+
+    cols = [np.ones(len(uvw))]
+    for deg in (1, 2, 3):
+        for combo in combinations_with_replacement(range(3), deg):
+            cols.append(np.prod(uvw[:, list(combo)], axis=1))
+    return np.column_stack(cols)
+
+
+def authors_run(points: np.ndarray, target: np.ndarray, basis, x0: np.ndarray, radius: float, steps: int,
+                alpha: float = 10.0, nk: int = 200, v_max: float = 0.003, a_max: float = 0.003) -> np.ndarray:
+    """The published algorithm (idiap/TactileErgodicExploration at 2bd3f52, notebook ``hedac`` with
+    ``method = "eigen"``), re-written from its description, on any cloud: the agent's positions.
+
+    As their code: open3d's hybrid radius search (squared distances) for the footprint
+    exp(-d²/r_a); c̄ and s normalised by plain sums; u <- Φ e^{-λδt} Φᵀ M u + s (carry-over) with
+    δt = α h², h the mean 3-NN edge; the least-squares plane z = ax + by + c through the n_N = 20
+    nearest points; the weighted cubic in (u, v, 1) fitted by pinv and its gradient evaluated at
+    the first neighbour; the second-order agent x += v + a/2, v += a, a = a_max (doubled) along
+    the unit gradient, |v| <= v_max; the agent put on the plane each step. Their Laplacian and
+    eigensolver are replaced by ``basis`` (the same robust Laplacian; M-orthonormal Φ).
+
+    Parameters
+    ----------
+    points : (n, 3) the captured cloud, metres.
+    target : (n,) p >= 0 (their u0; normalised).
+    basis : the cloud's Basis (``evals``, ``evecs``, ``mass``), at least ``nk`` pairs.
+    x0 : (3,) start, metres.
+    radius : r_a, metres. steps : steps of dt = 1 s.
+
+    Returns
+    -------
+    (steps, 3) the agent's positions after each step, metres.
+
+    Raises
+    ------
+    RuntimeError when their fit fails (non-finite values once the agent has left the surface).
+    """
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    tree = o3d.geometry.KDTreeFlann(pcd)
+    d3, _ = cKDTree(points).query(points, k=4)
+    dt = alpha * float(np.mean(d3[:, 1:])) ** 2
+    phi = np.ascontiguousarray(basis.evecs[:, :nk])
+    decay = np.exp(-basis.evals[:nk] * dt)
+    goal = target / (target.sum() + 1e-12)
+    T = np.flatnonzero(goal > 0)  # s = 0 off the target
+    phit_m_t = np.ascontiguousarray((phi[T] * basis.mass[T, None]).T)
+    cov = np.zeros(len(points))
+    # Their u <- Φ e^{-λδt} Φᵀ M u + s, kept as u = Φ b + s with b = e^{-λδt} Φᵀ M u_prev (Φᵀ M Φ = I):
+    # b <- e^{-λδt} (b + Φᵀ M s_prev), the same field at O(|T| nK) a step, evaluated at the neighbours only.
+    b = decay * ((phi[T] * basis.mass[T, None]).T @ goal[T])
+    s_prev_coef = np.zeros(nk)
+    first = True
+    x = np.array(x0, dtype=float)
+    v = np.zeros(3)
+    out = np.empty((steps, 3))
+    for t in range(steps):
+        k, idx, d2 = tree.search_hybrid_vector_3d(x, radius, AUTHORS_MAX_NEIGHBORS)
+        if k <= AUTHORS_NEIGHBORS:
+            k, idx, d2 = tree.search_knn_vector_3d(x, AUTHORS_NEIGHBORS)
+        idx, d2 = np.asarray(idx), np.asarray(d2)
+        cov[idx] += np.exp(-(1.0 / radius) * d2)
+        nb = idx[:AUTHORS_NEIGHBORS]
+        s = np.maximum(goal[T] - cov[T] / (cov.sum() + 1e-12), 0.0) ** 2
+        s /= s.sum() + 1e-12
+        if not first:
+            b = decay * (b + s_prev_coef)
+        first = False
+        s_prev_coef = phit_m_t @ s
+        s_full = np.zeros(len(points))
+        s_full[T] = s
+        u_nb = phi[nb] @ b + s_full[nb]
+        # the plane z = ax + by + c, its normal and tangents; the agent and neighbours on it
+        q = points[nb]
+        coef = np.linalg.lstsq(np.column_stack([q[:, 0], q[:, 1], np.ones(len(q))]), q[:, 2], rcond=None)[0]
+        n = np.array([coef[0], coef[1], -1.0])
+        t1 = np.array([-coef[1], coef[0], 0.0])
+        t2 = np.cross(n, t1)
+        t1, t2, n = t1 / np.linalg.norm(t1), t2 / np.linalg.norm(t2), n / np.linalg.norm(n)
+        o = np.array([0.0, 0.0, coef[2]])
+        xp = x - ((x - o) @ n) * n
+        qp = q - ((q - o) @ n)[:, None] * n
+        uv = np.column_stack([(qp - xp) @ t1, (qp - xp) @ t2])
+        dist = np.linalg.norm(uv, axis=1)
+        w = np.exp(-(1.0 / dist.max()) * dist ** 2)
+        X = _authors_features(np.column_stack([uv, np.ones(len(uv))]))
+        try:
+            c = np.linalg.pinv(X.T @ (w[:, None] * X)) @ X.T @ (w * u_nb)
+        except np.linalg.LinAlgError as exc:  # their code stops here too (the agent left the surface)
+            raise RuntimeError(f"the published algorithm crashed at step {t}: {exc}") from None
+        a0, a1 = uv[0]  # evaluated at the first neighbour, their terms as published
+        gu = (c[1] + 2 * c[4] * a0 + c[5] * a1 + c[6] + 3 * c[10] * a0 ** 2 + 2 * c[11] * a0 * a1 + 2 * c[12] * a0
+              + c[13] * a1 ** 2 + c[14] * a1 + c[15])
+        gv = c[2] + c[5] * a0 + 2 * c[7] * a1 + c[8] + 2 * c[11] * a0 * a1 + 3 * c[16] * a1 ** 2 + 2 * c[17] * a1 + c[18]
+        g = gu * t1 + gv * t2
+        g /= np.linalg.norm(g)
+        acc = g * min(1.0, AUTHORS_ACC_FACTOR * a_max / np.linalg.norm(g))
+        x = xp + v + 0.5 * acc
+        out[t] = x
+        v = v + acc
+        sp = np.linalg.norm(v)
+        if sp > v_max:
+            v *= v_max / sp
+    return out
+
+
 def capture_reference(name: str):
     from tergodic_cli.capture import CaptureConfig, capture_cloud
 

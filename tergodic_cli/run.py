@@ -565,6 +565,7 @@ def _provenance(run: _Run, robot_extra: dict, logged: bool) -> dict:
                   "nk_used": int(cfg.nk), "neighbors": int(cfg.basis_neighbors), "h_m": float(basis.h)},
         "explorer": {"alpha_schedule": [[s, a] for s, a in parse_alpha(cfg.alpha)],
                      "epsilon_per_m": cfg.footprint_epsilon, "edge_events": int(explorer.edge_events),
+                     "transits": int(explorer.transits),
                      "diffusion": cfg.diffusion, "integrator": cfg.integrator},
         # the neutral score's surface checks (issue 13): positions > 2h off the cloud, longest step
         "off_surface_fraction": score["off_surface_fraction"], "step_max_m": score["step_max_m"],

@@ -25,6 +25,8 @@ from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_con
 from tergodic_cli.explore.diffusion import ImplicitDiffusion, time_step
 from tergodic_cli.explore.index import cached, cloud_index
 from tergodic_cli.explore.metrics import CoverageScore, source_term
+from tergodic_cli.explore.transit import (ARRIVE_RA, BAN_RA, STALL_FALL, STALL_WINDOW, Transit, choose_goal, path_to, paths_from,
+                                          stalled, surface_graph)
 
 #: The explorer keeps coverage, source and heat on the cloud thinned to a voxel grid of this size
 #: (metres) when the cloud is much denser: the paper's capture voxel, where its α and footprint were
@@ -88,6 +90,8 @@ class Explorer:
     edge_events : how many moves were refused because they left the data (edge, hole, gap).
     resync_drift : largest relative correction a periodic full recompute has made to the
         incrementally kept ∫s and Φᵀ M s (round-off; 0 before the second recompute).
+    transits : how many transits along the surface the stagnation check has started (transit.py;
+        each is announced through ``on_event``, "transit: ...").
     """
 
     def __init__(self, basis, target: np.ndarray, cfg: ExploreConfig, starts: np.ndarray,
@@ -177,6 +181,9 @@ class Explorer:
         self._reset_status = np.full(N, -1, dtype=np.int64)
         self._no_deposits = np.zeros((0, 3))
         self._resync = int(cfg.resync_every)
+        self._transit: list[Transit | None] = [None] * N
+        self._moving = False  # some agent is on a transit
+        self.transits = 0
         self.set_target(target)
         hint = np.asarray(cfg.normal_hint, dtype=float)
         hint = hint / np.linalg.norm(hint)
@@ -301,6 +308,9 @@ class Explorer:
         else:
             self._score.set_target(p, self._full)
         self._set_metrics(float("nan"))
+        self._gain_of_target = None  # the gain's kernel over T, built at the first stall check
+        self._banned = np.zeros(len(T), dtype=bool)  # target points a transit could not reach
+        self._s_then, self._next_check = math.inf, STALL_WINDOW
         # the step kernel's state arguments, bound once per target (the heap arrays change with it)
         self._state = (self._P, *self._tree, self._full.tree, self._tgt, self._phi, self._pf,
                        self._pb, self._pi, self._sp, self._heap_keys, self._heap_idx, self._fs,
@@ -439,6 +449,8 @@ class Explorer:
                     "give one position per agent")
             self._resets[:] = at
             status[:] = 0
+        if self._moving:
+            self._steer()
         args = (*self._state, deposits, n_dep, self._resets, status, self._mode, self._resync,
                 self._u_full)
         if self._spectral:
@@ -453,6 +465,8 @@ class Explorer:
         self.step_index += 1
         if self._is[K.IS_PHAT] == 0:
             self._take_reference_heat()
+        if self.step_index >= self._next_check:  # every STALL_WINDOW steps, not on the others
+            self._check_stall()
         self.last_step_ms = 1e3 * (time.perf_counter() - t0)
         # The neutral score (metrics.coverage_score) is instrumentation: outside the step's time.
         self._score.add(self.positions)
@@ -488,3 +502,90 @@ class Explorer:
         untouched = phat[self._cov == 0]
         self._fs[K.FS_REF_UNTOUCHED] = float(untouched @ untouched)
         self._is[K.IS_PHAT] = 1
+
+    # ------------------------------------------------------------------ never trapped (transit.py)
+    def _check_stall(self) -> None:
+        """The stagnation check (every STALL_WINDOW steps): when ∫s has not fallen by STALL_FALL since
+        the last check and an agent stands where the footprint gain is below STALL_GAIN of the best
+        it can reach, that agent (the lowest such) starts a transit (transit.choose_goal)."""
+        self._next_check = self.step_index + STALL_WINDOW
+        s_now = float(self._fs[K.FS_MASS_S])
+        s_then, self._s_then = self._s_then, s_now
+        if not s_now > (1.0 - STALL_FALL) * s_then:
+            return  # progress (or the first window): no further work
+        T, P = self._T, self._P
+        zc = float(self._fs[K.FS_ZC])
+        e = np.maximum(self._pf[K.PF_PBAR, T] - (self._cov[T] / zc if zc > 0 else 0.0), 0.0)
+        w = self._pf[K.PF_MASS, T] * e
+        gain = self._target_kernel() @ w  # G at every target point: what a deposit there would remove
+        eps2 = self._prm[K.PR_GAIN_EPS2]
+        graph = cached("surface_graph", self._P, lambda: surface_graph(self._P, 2.0 * K.SURFACE_REACH * self._field.h))
+        worst = None
+        for i in range(len(self.positions)):
+            src = int(self._nbrs[i, 0])
+            dist, pred = paths_from(graph, src)
+            reach = np.isfinite(dist[T]) & ~self._banned
+            if not np.any(reach):
+                continue
+            best = float(np.max(gain[reach]))
+            here = float(w @ np.exp(-eps2 * np.sum((P[T] - self.positions[i]) ** 2, axis=1)))
+            if stalled(s_then, s_now, here, best) and (worst is None or here / best < worst[0]):
+                worst = (here / best, i, src, dist, pred, gain)
+        if worst is not None:
+            ratio, i, src, dist, pred, gain = worst
+            j = choose_goal(dist[T], gain, banned=self._banned)
+            if j >= 0:
+                self._start_transit(i, path_to(pred, src, int(T[j])), s_then, s_now, ratio)
+
+    def _target_kernel(self):
+        """(|T|, |T|) sparse footprint-gain kernel over the target's points, G = K (M e); once per target."""
+        if self._gain_of_target is None:
+            from scipy.sparse import coo_matrix
+            from scipy.spatial import cKDTree
+
+            T = self._T
+            eps2 = self._prm[K.PR_GAIN_EPS2]
+            pts = self._P[T]
+            pairs = cKDTree(pts).query_pairs(K.GAIN_REACH / math.sqrt(eps2), output_type="ndarray")
+            k = np.exp(-eps2 * np.sum((pts[pairs[:, 0]] - pts[pairs[:, 1]]) ** 2, axis=1))
+            m = len(T)
+            i = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(m)])
+            j = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(m)])
+            self._gain_of_target = coo_matrix((np.concatenate([k, k, np.ones(m)]), (i, j)), shape=(m, m)).tocsr()
+        return self._gain_of_target
+
+    def _start_transit(self, i: int, path: np.ndarray, s_then: float, s_now: float, ratio: float) -> None:
+        """Agent i follows ``path`` (field point indices, from its nearest point to the goal)."""
+        if len(path) < 2:
+            return
+        tr = Transit(self._P[path], self.cfg.v_max * self.cfg.dt, ARRIVE_RA * self.r_a)
+        self._transit[i] = tr
+        self._moving = True
+        self.transits += 1
+        self._next_check = math.inf  # no check while a transit runs; the window restarts on arrival
+        self.on_event(f"transit: step {self.step_index}: agent {i} stalled (∫s {s_then:.4g} -> {s_now:.4g} over "
+                      f"{STALL_WINDOW} steps, the gain where it stands {100 * ratio:.1f} % of the best it can "
+                      f"reach); moving {tr.length * 1e3:.0f} mm along the surface to "
+                      f"{np.array2string(tr.points[-1], precision=4)}")
+
+    def _steer(self) -> None:
+        """Set each transiting agent's velocity to track (kernels.AG_VD); end the transits that are over."""
+        for i, tr in enumerate(self._transit):
+            if tr is None:
+                continue
+            v = tr.velocity(self.positions[i], self.normals[i], self.cfg.v_max)
+            if v is not None:
+                self._ag[i, K.AG_VD:K.AG_VD + 3] = v
+                self._ag[i, K.AG_TRANSIT] = 1.0
+                continue
+            self._ag[i, K.AG_TRANSIT] = 0.0
+            self._transit[i] = None
+            if not tr.arrived:  # not chosen again: the goal may lie beyond what the agent can follow
+                self._banned |= np.linalg.norm(self._P[self._T] - tr.points[-1], axis=1) <= BAN_RA * self.r_a
+            self.on_event(f"transit: step {self.step_index}: agent {i} "
+                          + (f"arrived after {tr.steps - 1} steps" if tr.arrived else
+                             f"gave up after {tr.steps - 1} steps, {np.linalg.norm(tr.points[-1] - self.positions[i]) * 1e3:.0f} mm short"))
+        self._moving = any(tr is not None for tr in self._transit)
+        if not self._moving:
+            self._s_then, self._next_check = float(self._fs[K.FS_MASS_S]), self.step_index + STALL_WINDOW
+

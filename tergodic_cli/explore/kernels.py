@@ -66,7 +66,10 @@ SP_DECAY, SP_A, SP_B, SP_F0, SP_F1, SP_F2, SP_PBARCOEF = 0, 1, 2, 3, 4, 5, 6
 N_SP = 7
 # Columns of the agent array ``ag`` (N rows).
 AG_POS, AG_VEL, AG_ACC, AG_NRM, AG_T1, AG_T2 = 0, 3, 6, 9, 12, 15
-N_AG = 18
+#: A transit (explorer.py, "Never trapped"): AG_TRANSIT > 0 while the agent follows a path, at the
+#: velocity AG_VD (3) the explorer sets each step; the drive is then that velocity's, within a_max.
+AG_TRANSIT, AG_VD = 18, 19
+N_AG = 22
 # Float state ``fs``.
 FS_Z, FS_MASS_S, FS_G0, FS_G1, FS_G2, FS_REF_UNTOUCHED, FS_DRIFT = 0, 1, 2, 3, 4, 5, 6
 # The cloud's Z = ∫_Ω c̃ (the footprint gain's normaliser, whatever the source's is).
@@ -1073,6 +1076,12 @@ def move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, 
     if gn > 0.0 and math.isfinite(gn):
         for d in range(3):
             acc[d] = g[d] * (a_max / gn)
+    if ag[i, AG_TRANSIT] > 0.0:  # a transit: track the path's velocity, the acceleration within a_max
+        for d in range(3):
+            acc[d] = (ag[i, AG_VD + d] - ag[i, AG_VEL + d]) / dt
+        an = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2])
+        if an > a_max:
+            acc *= a_max / an
     x = ag[i, AG_POS:AG_POS + 3].copy()
     nrm = ag[i, AG_NRM:AG_NRM + 3].copy()
     v = ag[i, AG_VEL:AG_VEL + 3] + acc * dt

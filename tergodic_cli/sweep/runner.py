@@ -168,7 +168,7 @@ def run_batch(task: dict) -> list[dict]:
                 ex.step()
                 recorder.record(k + 1)
             series = recorder.series()
-            summary = summarize_run(series, cfg.to_dict(), {"edge_events": ex.edge_events, "warnings": warnings,
+            summary = summarize_run(series, cfg.to_dict(), {"edge_events": ex.edge_events, "transits": ex.transits, "warnings": warnings,
                                                                   "off_surface_fraction": ex.score()["off_surface_fraction"],
                                                                   "step_max_m": ex.score()["step_max_m"]})
             out.append({"run_id": run["run_id"], "summary": summary, "wall_s": time.perf_counter() - t0,
