@@ -50,6 +50,11 @@ PLANE_RADIUS_RATIO = 1e4
 #: A sphere smaller than this many rms patch radii is not a plausible surface through the
 #: patch: the fit has latched onto noise, and the least-squares plane is used instead.
 MIN_RADIUS_RATIO = 1.5
+#: Two sheets (a wall's sides) are split where the neighbours' offsets along a normal line leave a
+#: gap wider than this many mean spacings h (the explorer's sheet separation).
+SHEET_GAP = 0.5
+#: ... and a neighbour whose normal line is turned more than 60° from the nearest point's is on another face.
+SHEET_COS = 0.5
 
 
 @dataclass(frozen=True)
@@ -400,7 +405,8 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
     dict: ``ergodicity`` ε = ‖max(p̄ - c̄, 0)‖₂ / ‖p̄‖₂ with c_i = Σ_t exp(-(2/r_a)² |P_i - X_t|²)
     and p̄ = p/Σp, c̄ = c/Σc (dimensionless, 0 is perfect, 1 untouched); ``touched_fraction``
     (share of target points within r_a of some X_t); ``off_surface_fraction`` (share of positions
-    more than 2h from every point); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
+    more than 2h from every point or more than h/2 from the local surface of the one sheet they are
+    nearest to, :func:`sheet_distance`); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
     """
     from scipy.spatial import cKDTree
 
@@ -423,6 +429,81 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
         hit[idx] = True
     T = p > 0
     eps = float(np.linalg.norm(np.maximum(pbar - cbar, 0.0)) / np.linalg.norm(pbar))
+    normals = sheet_normals(P, h)
+    off = [d > M.OFF_SURFACE_H * h or sheet_distance(P, normals, x, h, tree) > M.OFF_SHEET_H * h
+           for x, d in zip(X, near)]
     return {"ergodicity": eps, "touched_fraction": float(hit[T].mean()),
-            "off_surface_fraction": float((near > M.OFF_SURFACE_H * h).mean()),
+            "off_surface_fraction": float(np.mean(off)),
             "step_max_m": float(steps.max())}
+
+
+# ---------------------------------------------------------------------------------------- sheets
+def split_sheet(points: np.ndarray, normals: np.ndarray, idx: np.ndarray, gap: float) -> np.ndarray:
+    """The points of ``idx`` (nearest first) on the sheet of the first, in their order: those whose
+    normal lines lie within 60° of its line, with offsets along its line in the run holding its
+    own (0) after cutting the sorted offsets at every gap wider than ``gap`` (metres). Fewer than 3
+    in it: all of ``idx``.
+    """
+    j0 = idx[0]
+    par = np.abs(normals[idx] @ normals[j0]) >= SHEET_COS
+    d = (points[idx] - points[j0]) @ normals[j0]
+    srt = np.sort(d[par])
+    cuts = np.flatnonzero(np.diff(srt) > gap)  # a cut between srt[c] and srt[c + 1]
+    i0 = int(np.searchsorted(srt, 0.0))
+    lo = srt[cuts[cuts < i0][-1] + 1] if np.any(cuts < i0) else srt[0]
+    hi = srt[cuts[cuts >= i0][0]] if np.any(cuts >= i0) else srt[-1]
+    keep = par & (d >= lo) & (d <= hi)
+    return idx[keep] if 3 <= keep.sum() < len(idx) else idx
+
+
+def _least_variance(y: np.ndarray) -> np.ndarray:
+    return np.linalg.svd(y - y.mean(axis=0), full_matrices=False)[2][-1]
+
+
+def sheet_normals(points: np.ndarray, h: float, k: int = 20, seed: int = 7) -> np.ndarray:
+    """Each point's normal line (unit, unoriented), fitted to its own sheet: of the planes through
+    the point and two of its ``seed`` - 1 nearest, the one holding the most of its ``k`` nearest
+    within h/4; then twice the least-squares plane of those within h/4 of the plane so far."""
+    from scipy.spatial import cKDTree
+
+    tol = 0.5 * SHEET_GAP * h
+    _, nbs = cKDTree(points).query(points, k=min(k, len(points)))
+    out = np.empty((len(points), 3))
+    for j, nb in enumerate(nbs):
+        nb = np.concatenate([[j], nb[nb != j]])[: len(nb)]
+        rel = points[nb] - points[j]
+        best, normal = -1, None
+        for a in range(1, seed):
+            for b in range(a + 1, seed):
+                c = np.cross(rel[a], rel[b])
+                if not np.linalg.norm(c) > 0.25 * np.linalg.norm(rel[a]) * np.linalg.norm(rel[b]):
+                    continue
+                c /= np.linalg.norm(c)
+                count = int(np.count_nonzero(np.abs(rel @ c) <= tol))
+                if count > best:
+                    best, normal = count, c
+        if normal is None:
+            normal = _least_variance(points[nb[:seed]])
+        for _ in range(2):
+            near = np.abs(rel @ normal) <= tol
+            if near.sum() < 3:
+                break
+            normal = _least_variance(points[nb[near]])
+        out[j] = normal
+    return out
+
+
+def sheet_distance(points: np.ndarray, normals: np.ndarray, x: np.ndarray, h: float, tree, k: int = 20) -> float:
+    """Distance (metres) from ``x`` (3,) to the CGA surface (:func:`fit_primitive`; a plane when
+    fewer than 6 points) fitted to its ``k`` nearest points that lie on the nearest one's sheet
+    (:func:`split_sheet`, gap h/2)."""
+    _, nb = tree.query(x, k=min(k, len(points)))
+    kept = split_sheet(points, normals, nb, SHEET_GAP * h)
+    pts = points[kept]
+    if len(kept) < 6:
+        centroid = pts.mean(axis=0)
+        prim = _pca_plane(pts - centroid, centroid, 1.0)
+    else:
+        prim = fit_primitive(pts)
+    xp, _ = project_onto(prim, x)
+    return float(np.linalg.norm(x - xp))

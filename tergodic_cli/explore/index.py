@@ -72,3 +72,25 @@ def cloud_index(points: np.ndarray) -> CloudIndex:
     CloudIndex
     """
     return cached("tree", points, lambda: CloudIndex(points))
+
+
+def sheet_normals(index: CloudIndex, h: float) -> np.ndarray:
+    """(n, 3) each point's unoriented normal line, in the index's internal order, fitted to the
+    points of its own sheet (:func:`kernels.sheet_normals`; a wall's two sides are split at gaps
+    wider than ``kernels.SHEET_GAP`` h): once per cloud and spacing.
+
+    Parameters
+    ----------
+    index : CloudIndex
+        The cloud's index.
+    h : float
+        Its mean point spacing, metres.
+
+    Returns
+    -------
+    (n, 3) float
+        Unit vectors.
+    """
+    gap = K.SHEET_GAP * h
+    return cached(f"normals {gap!r}", index.points,
+                  lambda: K.sheet_normals(index.points, *index.tree, K.NORMAL_NEIGHBOURS, gap))
