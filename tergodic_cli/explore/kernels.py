@@ -1334,7 +1334,8 @@ def step_kernel(P, Nrm, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp
     """One explorer step (see explorer.py), or part of it.
 
     ``P`` and the tree (perm, nodes, boxes, tpts) are the field's points (the cloud, or its
-    thinned field set), ``Nrm`` their normal lines (:func:`sheet_normals`); ``full`` is the whole cloud's tree, which decides what lies on the data;
+    thinned field set), ``Nrm`` their normal lines (:func:`sheet_normals`); ``full`` is the whole
+    cloud's tree, which decides what lies on the data;
     ``tgt`` the tree over the target's field points (perm, nodes, boxes, tpts, their indices).
     ``n_deposits`` < 0: deposit at the agents (kinematic); otherwise at the first ``n_deposits``
     rows of ``deposits`` (contact points; each projected onto the surface, skipped when farther
@@ -1376,8 +1377,8 @@ def step_kernel(P, Nrm, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp
                 reset_status[i] = -2
                 resets[i, 0] = d0
             else:
-                place_agent(P, Nrm, perm, nodes, boxes, tpts, full, ag, nbrs, i, resets[i], ag[i, AG_NRM:AG_NRM + 3].copy(),
-                            k, prm[PR_REACH], prm[PR_SHEET_GAP])
+                place_agent(P, Nrm, perm, nodes, boxes, tpts, full, ag, nbrs, i, resets[i],
+                            ag[i, AG_NRM:AG_NRM + 3].copy(), k, prm[PR_REACH], prm[PR_SHEET_GAP])
     for i in range(N):
         move_agent(P, Nrm, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, is_, ag, nbrs, i, k, prm, mode,
                    u_full)
