@@ -55,6 +55,8 @@ MIN_RADIUS_RATIO = 1.5
 SHEET_GAP = 0.5
 #: ... and a neighbour whose normal line is turned more than 60° from the nearest point's is on another face.
 SHEET_COS = 0.5
+#: ... or than this many times the cloud's noise, if wider.
+SHEET_NOISE = 3.0
 
 
 @dataclass(frozen=True)
@@ -406,7 +408,7 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
     and p̄ = p/Σp, c̄ = c/Σc (dimensionless, 0 is perfect, 1 untouched); ``touched_fraction``
     (share of target points within r_a of some X_t); ``off_surface_fraction`` (share of positions
     more than 2h from every point or more than h/2 from the local surface of the one sheet they are
-    nearest to, :func:`sheet_distance`); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
+    nearest to (or the sheet gap, if wider), :func:`sheet_distance`); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
     """
     from scipy.spatial import cKDTree
 
@@ -429,8 +431,8 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
         hit[idx] = True
     T = p > 0
     eps = float(np.linalg.norm(np.maximum(pbar - cbar, 0.0)) / np.linalg.norm(pbar))
-    normals = sheet_normals(P, h)
-    off = [d > M.OFF_SURFACE_H * h or sheet_distance(P, normals, x, h, tree) > M.OFF_SHEET_H * h
+    normals, gap = sheet_gap(P, h)
+    off = [d > M.OFF_SURFACE_H * h or sheet_distance(P, normals, x, gap, tree) > max(M.OFF_SHEET_H * h, gap)
            for x, d in zip(X, near)]
     return {"ergodicity": eps, "touched_fraction": float(hit[T].mean()),
             "off_surface_fraction": float(np.mean(off)),
@@ -460,13 +462,27 @@ def _least_variance(y: np.ndarray) -> np.ndarray:
     return np.linalg.svd(y - y.mean(axis=0), full_matrices=False)[2][-1]
 
 
-def sheet_normals(points: np.ndarray, h: float, k: int = 20, seed: int = 7) -> np.ndarray:
+def sheet_gap(points: np.ndarray, h: float, k: int = 20, seed: int = 7) -> tuple[np.ndarray, float]:
+    """The normal lines (:func:`sheet_normals`) and the sheet gap: h/2, or 3 times the cloud's noise
+    when wider (the median over the points of the rms offset of their ``seed`` - 1 nearest from
+    their plane), with the lines fitted again for that gap."""
+    gap = SHEET_GAP * h
+    normals, rms = sheet_normals(points, gap, k, seed)
+    if SHEET_NOISE * np.median(rms) > gap:
+        gap = SHEET_NOISE * float(np.median(rms))
+        normals, _ = sheet_normals(points, gap, k, seed)
+    return normals, gap
+
+
+def sheet_normals(points: np.ndarray, gap: float, k: int = 20, seed: int = 7) -> tuple[np.ndarray, np.ndarray]:
     """Each point's normal line (unit, unoriented), fitted to its own sheet: of the planes through
     the point and two of its ``seed`` - 1 nearest, the one holding the most of its ``k`` nearest
-    within h/4; then twice the least-squares plane of those within h/4 of the plane so far."""
+    within gap/2; then twice the least-squares plane of those within gap/2 of the plane so far.
+    And the rms offset of its ``seed`` - 1 nearest from its plane (metres)."""
     from scipy.spatial import cKDTree
 
-    tol = 0.5 * SHEET_GAP * h
+    tol = 0.5 * gap
+    rms = np.empty(len(points))
     _, nbs = cKDTree(points).query(points, k=min(k, len(points)))
     out = np.empty((len(points), 3))
     for j, nb in enumerate(nbs):
@@ -490,15 +506,16 @@ def sheet_normals(points: np.ndarray, h: float, k: int = 20, seed: int = 7) -> n
                 break
             normal = _least_variance(points[nb[near]])
         out[j] = normal
-    return out
+        rms[j] = np.sqrt(np.mean((rel[1:seed] @ normal) ** 2))
+    return out, rms
 
 
-def sheet_distance(points: np.ndarray, normals: np.ndarray, x: np.ndarray, h: float, tree, k: int = 20) -> float:
+def sheet_distance(points: np.ndarray, normals: np.ndarray, x: np.ndarray, gap: float, tree, k: int = 20) -> float:
     """Distance (metres) from ``x`` (3,) to the CGA surface (:func:`fit_primitive`; a plane when
     fewer than 6 points) fitted to its ``k`` nearest points that lie on the nearest one's sheet
-    (:func:`split_sheet`, gap h/2)."""
+    (:func:`split_sheet`, ``gap`` metres)."""
     _, nb = tree.query(x, k=min(k, len(points)))
-    kept = split_sheet(points, normals, nb, SHEET_GAP * h)
+    kept = split_sheet(points, normals, nb, gap)
     pts = points[kept]
     if len(kept) < 6:
         centroid = pts.mean(axis=0)

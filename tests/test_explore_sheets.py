@@ -84,11 +84,13 @@ def _run(basis, start, steps, sheets=True, target=None):
 
 def test_normal_lines_are_each_sheets_own_even_at_its_border(planes, hollow_box):
     pts, basis = planes
-    n = sheet_normals(cloud_index(basis.points), basis.h)[cloud_index(basis.points).rank]
+    n, gap = sheet_normals(cloud_index(basis.points), basis.h)
+    n = n[cloud_index(basis.points).rank]
+    assert gap == pytest.approx(basis.h / 2)  # clean samples: the gap is half the spacing
     assert np.abs(n[:, 2]).min() > 0.999  # ±z on both planes, corners included
-    np.testing.assert_allclose(np.abs(reference_normals(pts, basis.h)[:, 2]), 1.0, atol=1e-3)
+    np.testing.assert_allclose(np.abs(reference_normals(pts, basis.h / 2)[0][:, 2]), 1.0, atol=1e-3)
     pts, basis = hollow_box
-    n = sheet_normals(cloud_index(basis.points), basis.h)[cloud_index(basis.points).rank]
+    n = sheet_normals(cloud_index(basis.points), basis.h)[0][cloud_index(basis.points).rank]
     axis = np.argmax(np.abs(pts), axis=1)  # each point's face (the cube's coordinate at ±half)
     inner = np.abs(pts).max(axis=1) < OUTER - WALL / 2
     half = np.where(inner, OUTER - WALL, OUTER)

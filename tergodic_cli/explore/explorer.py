@@ -118,7 +118,7 @@ class Explorer:
         index = cloud_index(fset.points)
         self._order, self._rank, self._P, self._tree = index.order, index.rank, index.points, index.tree
         # each field point's normal line, fitted to its own sheet: once per cloud (docs/explore.md)
-        self._nrm = sheet_normals(index, fset.h)
+        self._nrm, gap = sheet_normals(index, fset.h)
         phis = cached("phi", basis.evecs, dict)  # Φ[:, :nK], rows in internal order: once per nK and point set
         key = (cfg.nk, len(fset.sel))  # the whole cloud, or its field set (one per cloud)
         if key not in phis:
@@ -153,7 +153,7 @@ class Explorer:
         self._prm[K.PR_MAXSTART] = cfg.max_start_distance
         self._prm[K.PR_REACH] = K.SURFACE_REACH * self.h
         self._prm[K.PR_HEAT] = cfg.heat_weight
-        self._prm[K.PR_SHEET_GAP] = K.SHEET_GAP * fset.h
+        self._prm[K.PR_SHEET_GAP] = gap
         # The gain is a footprint integral (∫φ = π/ε²): per unit area it weighs like the heat.
         geps = self.eps / cfg.gain_width
         self._prm[K.PR_GAIN_EPS2] = geps * geps

@@ -74,10 +74,14 @@ def cloud_index(points: np.ndarray) -> CloudIndex:
     return cached("tree", points, lambda: CloudIndex(points))
 
 
-def sheet_normals(index: CloudIndex, h: float) -> np.ndarray:
-    """(n, 3) each point's unoriented normal line, in the index's internal order, fitted to the
-    points of its own sheet (:func:`kernels.sheet_normals`; a wall's two sides are split at gaps
-    wider than ``kernels.SHEET_GAP`` h): once per cloud and spacing.
+def sheet_normals(index: CloudIndex, h: float) -> tuple[np.ndarray, float]:
+    """Each point's unoriented normal line, fitted to its own sheet, and the sheet gap: once per
+    cloud and spacing (:func:`kernels.sheet_normals`).
+
+    The gap (metres) is the wider of ``kernels.SHEET_GAP`` h and ``kernels.SHEET_NOISE`` times
+    the cloud's noise (the median over its points of the rms offset of their nearest from their
+    plane): offsets along a normal line that leave a wider gap lie on another sheet (a wall's
+    other side), and noise alone never leaves one.
 
     Parameters
     ----------
@@ -88,9 +92,19 @@ def sheet_normals(index: CloudIndex, h: float) -> np.ndarray:
 
     Returns
     -------
-    (n, 3) float
-        Unit vectors.
+    normals : (n, 3) float
+        Unit vectors, in the index's internal order.
+    gap : float
+        Metres.
     """
-    gap = K.SHEET_GAP * h
-    return cached(f"normals {gap!r}", index.points,
-                  lambda: K.sheet_normals(index.points, *index.tree, K.NORMAL_NEIGHBOURS, gap))
+
+    def build():
+        gap = K.SHEET_GAP * h
+        normals, rms = K.sheet_normals(index.points, *index.tree, K.NORMAL_NEIGHBOURS, gap)
+        noisy = K.SHEET_NOISE * float(np.median(rms))
+        if noisy > gap:  # a noisy cloud: its sheets' normals again, with the gap noise allows
+            gap = noisy
+            normals, _ = K.sheet_normals(index.points, *index.tree, K.NORMAL_NEIGHBOURS, gap)
+        return normals, gap
+
+    return cached(f"normals {h!r}", index.points, build)

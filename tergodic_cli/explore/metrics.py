@@ -94,8 +94,9 @@ def touched_fraction(p: np.ndarray, coverage: np.ndarray) -> float:
 SCORE_CUT = 2.5
 #: A position farther than this many mean spacings h from every cloud point is off the surface ...
 OFF_SURFACE_H = 2.0
-#: ... and so is one farther than this many h from the surface fitted to its nearest points on one
-#: sheet (kernels.sheet_distance): between a wall's two sides (docs/explore.md, sheet separation).
+#: ... and so is one farther than this many h (or than the cloud's sheet gap, if wider: a noisy cloud)
+#: from the surface fitted to its nearest points on one sheet (kernels.sheet_distance): between a
+#: wall's two sides (docs/explore.md, sheet separation).
 OFF_SHEET_H = 0.5
 
 
@@ -116,8 +117,8 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
     dict: ``ergodicity`` ε = ‖max(p̄ - c̄, 0)‖₂ / ‖p̄‖₂ with c_i = Σ_t exp(-(2/r_a)² |P_i - X_t|²) and
     p̄ = p/Σp, c̄ = c/Σc (dimensionless, 0 is perfect, 1 untouched); ``touched_fraction`` (share of
     target points within r_a of some X_t); ``off_surface_fraction`` (share of positions more than
-    2h from every point, or more than h/2 from the local surface of the sheet they are nearest to,
-    fitted to its points among their n_N nearest); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
+    2h from every point, or more than h/2 (or the sheet gap, if wider) from the local surface of the
+    sheet they are nearest to, fitted to its points among their n_N nearest); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
     """
     X = np.asarray(positions, dtype=np.float64).reshape(len(positions), -1, 3)
     index = cloud_index(np.ascontiguousarray(points, dtype=np.float64))
@@ -142,7 +143,7 @@ class CoverageScore:
     def __init__(self, index, target: np.ndarray, agent_radius: float, h: float, n_agents: int = 1):
         self._tree = index.tree
         n = len(index.order)
-        self._nrm = sheet_normals(index, h)
+        self._nrm, gap = sheet_normals(index, h)
         self._cov = np.zeros(n)
         self._touched = np.zeros(n, dtype=np.int8)
         self._ball = np.zeros(n, dtype=np.int64)
@@ -152,8 +153,8 @@ class CoverageScore:
         self._prm = np.zeros(K.N_SC)
         self._prm[[K.SC_EPS2, K.SC_CUT, K.SC_RA, K.SC_OFFDIST]] = ((2.0 / agent_radius) ** 2, SCORE_CUT * agent_radius,
                                                                  agent_radius, OFF_SURFACE_H * h)
-        self._prm[K.SC_GAP] = K.SHEET_GAP * h
-        self._prm[K.SC_OFFSHEET] = OFF_SHEET_H * h
+        self._prm[K.SC_GAP] = gap
+        self._prm[K.SC_OFFSHEET] = max(OFF_SHEET_H * h, gap)
         self._prev = np.zeros((n_agents, 3))
         self.set_target(target, index)
 
