@@ -464,12 +464,12 @@ def _least_variance(y: np.ndarray) -> np.ndarray:
 
 def sheet_gap(points: np.ndarray, h: float, k: int = 20, seed: int = 7) -> tuple[np.ndarray, float]:
     """The normal lines (:func:`sheet_normals`) and the sheet gap: h/2, or 3 times the cloud's noise
-    when wider (the median over the points of the rms offset of their ``seed`` - 1 nearest from
-    their plane), with the lines fitted again for that gap."""
+    when wider (a robust σ: the median over the points of the median absolute offset of their
+    ``seed`` - 1 nearest from their plane, / 0.6745), with the lines fitted again for that gap."""
     gap = SHEET_GAP * h
-    normals, rms = sheet_normals(points, gap, k, seed)
-    if SHEET_NOISE * np.median(rms) > gap:
-        gap = SHEET_NOISE * float(np.median(rms))
+    normals, mad = sheet_normals(points, gap, k, seed)
+    if SHEET_NOISE * np.median(mad) / 0.6745 > gap:
+        gap = SHEET_NOISE * float(np.median(mad)) / 0.6745
         normals, _ = sheet_normals(points, gap, k, seed)
     return normals, gap
 
@@ -478,11 +478,11 @@ def sheet_normals(points: np.ndarray, gap: float, k: int = 20, seed: int = 7) ->
     """Each point's normal line (unit, unoriented), fitted to its own sheet: of the planes through
     the point and two of its ``seed`` - 1 nearest, the one holding the most of its ``k`` nearest
     within gap/2; then twice the least-squares plane of those within gap/2 of the plane so far.
-    And the rms offset of its ``seed`` - 1 nearest from its plane (metres)."""
+    And the median absolute offset of its ``seed`` - 1 nearest from its plane (metres)."""
     from scipy.spatial import cKDTree
 
     tol = 0.5 * gap
-    rms = np.empty(len(points))
+    mad = np.empty(len(points))
     _, nbs = cKDTree(points).query(points, k=min(k, len(points)))
     out = np.empty((len(points), 3))
     for j, nb in enumerate(nbs):
@@ -506,8 +506,8 @@ def sheet_normals(points: np.ndarray, gap: float, k: int = 20, seed: int = 7) ->
                 break
             normal = _least_variance(points[nb[near]])
         out[j] = normal
-        rms[j] = np.sqrt(np.mean((rel[1:seed] @ normal) ** 2))
-    return out, rms
+        mad[j] = np.median(np.abs(rel[1:seed] @ normal))
+    return out, mad
 
 
 def sheet_distance(points: np.ndarray, normals: np.ndarray, x: np.ndarray, gap: float, tree, k: int = 20) -> float:

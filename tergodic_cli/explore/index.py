@@ -79,9 +79,9 @@ def sheet_normals(index: CloudIndex, h: float) -> tuple[np.ndarray, float]:
     cloud and spacing (:func:`kernels.sheet_normals`).
 
     The gap (metres) is the wider of ``kernels.SHEET_GAP`` h and ``kernels.SHEET_NOISE`` times
-    the cloud's noise (the median over its points of the rms offset of their nearest from their
-    plane): offsets along a normal line that leave a wider gap lie on another sheet (a wall's
-    other side), and noise alone never leaves one.
+    the cloud's noise (a robust σ: the median over its points of the median absolute offset of
+    their nearest from their plane, / 0.6745): offsets along a normal line that leave a wider gap
+    lie on another sheet (a wall's other side), and noise alone never leaves one.
 
     Parameters
     ----------
@@ -100,8 +100,8 @@ def sheet_normals(index: CloudIndex, h: float) -> tuple[np.ndarray, float]:
 
     def build():
         gap = K.SHEET_GAP * h
-        normals, rms = K.sheet_normals(index.points, *index.tree, K.NORMAL_NEIGHBOURS, gap)
-        noisy = K.SHEET_NOISE * float(np.median(rms))
+        normals, mad = K.sheet_normals(index.points, *index.tree, K.NORMAL_NEIGHBOURS, gap)
+        noisy = K.SHEET_NOISE * float(np.median(mad)) / 0.6745
         if noisy > gap:  # a noisy cloud: its sheets' normals again, with the gap noise allows
             gap = noisy
             normals, _ = K.sheet_normals(index.points, *index.tree, K.NORMAL_NEIGHBOURS, gap)

@@ -123,7 +123,7 @@ START_ITERATIONS = 8
 #: Sheet separation (docs/explore.md): a gap wider than SHEET_GAP h between the offsets of the
 #: neighbours along the nearest point's normal line separates two sheets (a wall's two sides) ...
 SHEET_GAP = 0.5
-#: ... or than SHEET_NOISE times the cloud's noise (the median rms offset of each point's nearest
+#: ... or than SHEET_NOISE times the cloud's noise (a robust σ of the offsets of each point's nearest
 #: from its plane), so that noise never splits one side ...
 SHEET_NOISE = 3.0
 #: ... and a neighbour whose normal line is turned by more than 60 degrees (cos 0.5) from the
@@ -551,13 +551,15 @@ def sheet_normals(P, perm, nodes, boxes, tpts, k, gap):
     least-squares plane of the points within gap/2 of the plane so far. Computed once per cloud
     (``index.sheet_normals``); ``gap`` in metres.
 
-    Also returns (n,) the rms offset (metres) of each point's NORMAL_SEED - 1 nearest from the
-    plane through it along its line: the sampling's noise (and curvature) at that point.
+    Also returns (n,) the median absolute offset (metres) of each point's NORMAL_SEED - 1 nearest
+    from the plane through it along its line: the sampling's noise at that point (a median, so
+    that a wall's other side among them, when thinner than the sampling, does not count).
     """
     n = P.shape[0]
     k = min(k, n)
     out = np.zeros((n, 3))
-    rms = np.zeros(n)
+    mad = np.zeros(n)
+    offs = np.empty(max(min(NORMAL_SEED, min(k, n)), 1))
     nb = np.empty(k, np.int64)
     keep = np.empty(k, np.int64)
     d2 = np.empty(k)
@@ -595,13 +597,11 @@ def sheet_normals(P, perm, nodes, boxes, tpts, k, gap):
                 break
             nrm[:] = _plane_normal(P, keep, m, G, V, W)
         out[j] = nrm
-        ss = 0.0
         for t in range(1, top):
             q = nb[t]
-            v = (P[q, 0] - x[0]) * nrm[0] + (P[q, 1] - x[1]) * nrm[1] + (P[q, 2] - x[2]) * nrm[2]
-            ss += v * v
-        rms[j] = math.sqrt(ss / max(top - 1, 1))
-    return out, rms
+            offs[t - 1] = abs((P[q, 0] - x[0]) * nrm[0] + (P[q, 1] - x[1]) * nrm[1] + (P[q, 2] - x[2]) * nrm[2])
+        mad[j] = np.median(offs[: top - 1]) if top > 1 else 0.0
+    return out, mad
 
 
 @njit
