@@ -407,7 +407,7 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
     dict: ``ergodicity`` ε = ‖max(p̄ - c̄, 0)‖₂ / ‖p̄‖₂ with c_i = Σ_t exp(-(2/r_a)² |P_i - X_t|²)
     and p̄ = p/Σp, c̄ = c/Σc (dimensionless, 0 is perfect, 1 untouched); ``touched_fraction``
     (share of target points within r_a of some X_t); ``off_surface_fraction`` (share of positions
-    more than 2h from every point or more than h/2 from the local surface of the one sheet they are
+    more than 2h from every point or more than 0.6 h from the local surface of the one sheet they are
     nearest to (or the sheet gap, if wider), :func:`sheet_distance`); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
     """
     from scipy.spatial import cKDTree
