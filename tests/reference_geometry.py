@@ -407,7 +407,8 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
     dict: ``ergodicity`` ε = ‖max(p̄ - c̄, 0)‖₂ / ‖p̄‖₂ with c_i = Σ_t exp(-(2/r_a)² |P_i - X_t|²)
     and p̄ = p/Σp, c̄ = c/Σc (dimensionless, 0 is perfect, 1 untouched); ``touched_fraction``
     (share of target points within r_a of some X_t); ``off_surface_fraction`` (share of positions
-    more than 2h from every point or more than 0.6 h from the local surface of the one sheet they are
+    more than 2h from every point or, when their neighbours hold more than one sheet, more than h/2
+    from the local surface of the one sheet they are
     nearest to (or the sheet gap, if wider), :func:`sheet_distance`); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
     """
     from scipy.spatial import cKDTree
@@ -516,6 +517,8 @@ def sheet_distance(points: np.ndarray, normals: np.ndarray, x: np.ndarray, gap: 
     (:func:`split_sheet`, ``gap`` metres)."""
     _, nb = tree.query(x, k=min(k, len(points)))
     kept = split_sheet(points, normals, nb, gap)
+    if len(kept) == len(nb):  # one sheet only: how far x is from the data is the 2h test's
+        return 0.0
     pts = points[kept]
     if len(kept) < 6:
         centroid = pts.mean(axis=0)

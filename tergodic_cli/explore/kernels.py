@@ -1417,10 +1417,13 @@ def sheet_distance(tpts, Nrm, x, perm, nodes, boxes, gap, nb, d2):
     """Distance (metres) from ``x`` (3,) to the surface (:func:`fit_project`) fitted to its
     ``len(nb)`` nearest points that lie on the nearest one's sheet (:func:`sheet_select`):
     how far x is off the one sheet it is nearest to; between a wall's two sides, about half
-    the wall. ``nb``, ``d2`` are scratch."""
+    the wall. 0 when all of them are on that sheet (nothing else is near: how far x is from the
+    data is the 2h test's). ``nb``, ``d2`` are scratch."""
     k = nb.shape[0]
     tree_knn(perm, nodes, boxes, tpts, x, k, nb, d2)
     m = sheet_select(tpts, Nrm, nb, k, gap, d2)
+    if m == k:
+        return 0.0
     xp = np.empty(3)
     nn = np.empty(3)
     fit_project(tpts, nb, m, x, Nrm[nb[0]], xp, nn)

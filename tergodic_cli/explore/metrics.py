@@ -95,9 +95,9 @@ SCORE_CUT = 2.5
 #: A position farther than this many mean spacings h from every cloud point is off the surface ...
 OFF_SURFACE_H = 2.0
 #: ... and so is one farther than this many h (or than the cloud's sheet gap, if wider: a noisy cloud)
-#: from the surface fitted to its nearest points on one sheet (kernels.sheet_distance): between a
-#: wall's two sides (docs/explore.md, sheet separation).
-OFF_SHEET_H = 0.6
+#: from the surface fitted to its nearest points on one sheet, when they hold more than one
+#: (kernels.sheet_distance): between a wall's two sides (docs/explore.md, sheet separation).
+OFF_SHEET_H = 0.5
 
 
 def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray, agent_radius: float,
@@ -117,7 +117,8 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
     dict: ``ergodicity`` ε = ‖max(p̄ - c̄, 0)‖₂ / ‖p̄‖₂ with c_i = Σ_t exp(-(2/r_a)² |P_i - X_t|²) and
     p̄ = p/Σp, c̄ = c/Σc (dimensionless, 0 is perfect, 1 untouched); ``touched_fraction`` (share of
     target points within r_a of some X_t); ``off_surface_fraction`` (share of positions more than
-    2h from every point, or more than 0.6 h (or the sheet gap, if wider) from the local surface of the
+    2h from every point, or, among points of more than one sheet, more than h/2 (or the sheet gap, if
+    wider) from the local surface of the
     sheet they are nearest to, fitted to its points among their n_N nearest); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
     """
     X = np.asarray(positions, dtype=np.float64).reshape(len(positions), -1, 3)
