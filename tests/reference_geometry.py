@@ -50,6 +50,13 @@ PLANE_RADIUS_RATIO = 1e4
 #: A sphere smaller than this many rms patch radii is not a plausible surface through the
 #: patch: the fit has latched onto noise, and the least-squares plane is used instead.
 MIN_RADIUS_RATIO = 1.5
+#: Two sheets (a wall's sides) are split where the neighbours' offsets along a normal line leave a
+#: gap wider than this many mean spacings h (the explorer's sheet separation).
+SHEET_GAP = 0.5
+#: ... and a neighbour whose normal line is turned more than 60° from the nearest point's is on another face.
+SHEET_COS = 0.5
+#: ... or than this many times the cloud's noise, if wider.
+SHEET_NOISE = 3.0
 
 
 @dataclass(frozen=True)
@@ -400,7 +407,9 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
     dict: ``ergodicity`` ε = ‖max(p̄ - c̄, 0)‖₂ / ‖p̄‖₂ with c_i = Σ_t exp(-(2/r_a)² |P_i - X_t|²)
     and p̄ = p/Σp, c̄ = c/Σc (dimensionless, 0 is perfect, 1 untouched); ``touched_fraction``
     (share of target points within r_a of some X_t); ``off_surface_fraction`` (share of positions
-    more than 2h from every point); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
+    more than 2h from every point or, when their neighbours hold more than one sheet, more than h/2
+    from the local surface of the one sheet they are
+    nearest to (or the sheet gap, if wider), :func:`sheet_distance`); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
     """
     from scipy.spatial import cKDTree
 
@@ -423,6 +432,98 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
         hit[idx] = True
     T = p > 0
     eps = float(np.linalg.norm(np.maximum(pbar - cbar, 0.0)) / np.linalg.norm(pbar))
+    normals, gap = sheet_gap(P, h)
+    off = [d > M.OFF_SURFACE_H * h or sheet_distance(P, normals, x, gap, tree) > max(M.OFF_SHEET_H * h, gap)
+           for x, d in zip(X, near)]
     return {"ergodicity": eps, "touched_fraction": float(hit[T].mean()),
-            "off_surface_fraction": float((near > M.OFF_SURFACE_H * h).mean()),
+            "off_surface_fraction": float(np.mean(off)),
             "step_max_m": float(steps.max())}
+
+
+# ---------------------------------------------------------------------------------------- sheets
+def split_sheet(points: np.ndarray, normals: np.ndarray, idx: np.ndarray, gap: float) -> np.ndarray:
+    """The points of ``idx`` (nearest first) on the sheet of the first, in their order: those whose
+    normal lines lie within 60° of its line, with offsets along its line in the run holding its
+    own (0) after cutting the sorted offsets at every gap wider than ``gap`` (metres). Fewer than 3
+    in it: all of ``idx``.
+    """
+    j0 = idx[0]
+    par = np.abs(normals[idx] @ normals[j0]) >= SHEET_COS
+    d = (points[idx] - points[j0]) @ normals[j0]
+    srt = np.sort(d[par])
+    cuts = np.flatnonzero(np.diff(srt) > gap)  # a cut between srt[c] and srt[c + 1]
+    i0 = int(np.searchsorted(srt, 0.0))
+    lo = srt[cuts[cuts < i0][-1] + 1] if np.any(cuts < i0) else srt[0]
+    hi = srt[cuts[cuts >= i0][0]] if np.any(cuts >= i0) else srt[-1]
+    keep = par & (d >= lo) & (d <= hi)
+    return idx[keep] if 3 <= keep.sum() < len(idx) else idx
+
+
+def _least_variance(y: np.ndarray) -> np.ndarray:
+    return np.linalg.svd(y - y.mean(axis=0), full_matrices=False)[2][-1]
+
+
+def sheet_gap(points: np.ndarray, h: float, k: int = 20, seed: int = 7) -> tuple[np.ndarray, float]:
+    """The normal lines (:func:`sheet_normals`) and the sheet gap: h/2, or 3 times the cloud's noise
+    when wider (a robust σ: the median over the points of the median absolute offset of their
+    ``seed`` - 1 nearest from their plane, / 0.6745), with the lines fitted again for that gap."""
+    gap = SHEET_GAP * h
+    normals, mad = sheet_normals(points, gap, k, seed)
+    if SHEET_NOISE * np.median(mad) / 0.6745 > gap:
+        gap = SHEET_NOISE * float(np.median(mad)) / 0.6745
+        normals, _ = sheet_normals(points, gap, k, seed)
+    return normals, gap
+
+
+def sheet_normals(points: np.ndarray, gap: float, k: int = 20, seed: int = 7) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's normal line (unit, unoriented), fitted to its own sheet: of the planes through
+    the point and two of its ``seed`` - 1 nearest, the one holding the most of its ``k`` nearest
+    within gap/2; then twice the least-squares plane of those within gap/2 of the plane so far.
+    And the median absolute offset of its ``seed`` - 1 nearest from its plane (metres)."""
+    from scipy.spatial import cKDTree
+
+    tol = 0.5 * gap
+    mad = np.empty(len(points))
+    _, nbs = cKDTree(points).query(points, k=min(k, len(points)))
+    out = np.empty((len(points), 3))
+    for j, nb in enumerate(nbs):
+        nb = np.concatenate([[j], nb[nb != j]])[: len(nb)]
+        rel = points[nb] - points[j]
+        best, normal = -1, None
+        for a in range(1, seed):
+            for b in range(a + 1, seed):
+                c = np.cross(rel[a], rel[b])
+                if not np.linalg.norm(c) > 0.25 * np.linalg.norm(rel[a]) * np.linalg.norm(rel[b]):
+                    continue
+                c /= np.linalg.norm(c)
+                count = int(np.count_nonzero(np.abs(rel @ c) <= tol))
+                if count > best:
+                    best, normal = count, c
+        if normal is None:
+            normal = _least_variance(points[nb[:seed]])
+        for _ in range(2):
+            near = np.abs(rel @ normal) <= tol
+            if near.sum() < 3:
+                break
+            normal = _least_variance(points[nb[near]])
+        out[j] = normal
+        mad[j] = np.median(np.abs(rel[1:seed] @ normal))
+    return out, mad
+
+
+def sheet_distance(points: np.ndarray, normals: np.ndarray, x: np.ndarray, gap: float, tree, k: int = 20) -> float:
+    """Distance (metres) from ``x`` (3,) to the CGA surface (:func:`fit_primitive`; a plane when
+    fewer than 6 points) fitted to its ``k`` nearest points that lie on the nearest one's sheet
+    (:func:`split_sheet`, ``gap`` metres)."""
+    _, nb = tree.query(x, k=min(k, len(points)))
+    kept = split_sheet(points, normals, nb, gap)
+    if len(kept) == len(nb):  # one sheet only: how far x is from the data is the 2h test's
+        return 0.0
+    pts = points[kept]
+    if len(kept) < 6:
+        centroid = pts.mean(axis=0)
+        prim = _pca_plane(pts - centroid, centroid, 1.0)
+    else:
+        prim = fit_primitive(pts)
+    xp, _ = project_onto(prim, x)
+    return float(np.linalg.norm(x - xp))

@@ -23,7 +23,7 @@ from tergodic_cli.errors import require
 from tergodic_cli.explore import kernels as K
 from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_config
 from tergodic_cli.explore.diffusion import ImplicitDiffusion, time_step
-from tergodic_cli.explore.index import cached, cloud_index
+from tergodic_cli.explore.index import cached, cloud_index, sheet_normals
 from tergodic_cli.explore.metrics import CoverageScore, source_term
 from tergodic_cli.explore.transit import (ARRIVE_RA, BAN_RA, STALL_FALL, STALL_WINDOW, Transit, choose_goal, path_to, paths_from,
                                           stalled, surface_graph)
@@ -121,6 +121,8 @@ class Explorer:
         self._field = fset
         index = cloud_index(fset.points)
         self._order, self._rank, self._P, self._tree = index.order, index.rank, index.points, index.tree
+        # each field point's normal line, fitted to its own sheet: once per cloud (docs/explore.md)
+        self._nrm, gap = sheet_normals(index, fset.h)
         phis = cached("phi", basis.evecs, dict)  # Φ[:, :nK], rows in internal order: once per nK and point set
         key = (cfg.nk, len(fset.sel))  # the whole cloud, or its field set (one per cloud)
         if key not in phis:
@@ -155,6 +157,7 @@ class Explorer:
         self._prm[K.PR_MAXSTART] = cfg.max_start_distance
         self._prm[K.PR_REACH] = K.SURFACE_REACH * self.h
         self._prm[K.PR_HEAT] = cfg.heat_weight
+        self._prm[K.PR_SHEET_GAP] = gap
         # The gain is a footprint integral (∫φ = π/ε²): per unit area it weighs like the heat.
         geps = self.eps / cfg.gain_width
         self._prm[K.PR_GAIN_EPS2] = geps * geps
@@ -193,8 +196,8 @@ class Explorer:
                     f"start {np.array2string(x0, precision=4)} is {d0 * 1e3:.1f} mm from the cloud "
                     f"(limit {cfg.max_start_distance * 1e3:.0f} mm)",
                     "give a start on the object (x,y,z in metres, a point index, or 'random')")
-            K.place_agent(self._P, *self._tree, self._full.tree, self._ag, self._nbrs, i, x0, hint, self._k,
-                          self._prm[K.PR_REACH])
+            K.place_agent(self._P, self._nrm, *self._tree, self._full.tree, self._ag, self._nbrs, i, x0, hint, self._k,
+                          self._prm[K.PR_REACH], self._prm[K.PR_SHEET_GAP])
             if d0 > self.h:
                 self.on_event(f"warning: start {np.array2string(x0, precision=4)} is {d0 * 1e3:.1f} mm off the cloud; "
                           f"projected onto the surface at {np.array2string(self.positions[i], precision=4)}")
@@ -220,8 +223,8 @@ class Explorer:
         reachable = np.flatnonzero(np.isin(parts, np.unique(parts[self.p > 0])))
         x = self.positions[i].copy()
         j = reachable[np.argmin(np.linalg.norm(self.points[reachable] - x, axis=1))]
-        K.place_agent(self._P, *self._tree, self._full.tree, self._ag, self._nbrs, i, self.points[j].copy(), hint,
-                      self._k, self._prm[K.PR_REACH])
+        K.place_agent(self._P, self._nrm, *self._tree, self._full.tree, self._ag, self._nbrs, i, self.points[j].copy(),
+                      hint, self._k, self._prm[K.PR_REACH], self._prm[K.PR_SHEET_GAP])
         self.on_event(f"warning: start {np.array2string(x, precision=4)} is on a part of the cloud the target is not on "
                   f"(a gap wider than {2 * K.SURFACE_REACH * self.h * 1e3:.1f} mm); starting at the nearest point "
                   f"of the target's part, {np.linalg.norm(self.points[j] - x) * 1e3:.1f} mm away")
@@ -312,7 +315,7 @@ class Explorer:
         self._banned = np.zeros(len(T), dtype=bool)  # target points a transit could not reach
         self._s_then, self._next_check = math.inf, STALL_WINDOW
         # the step kernel's state arguments, bound once per target (the heap arrays change with it)
-        self._state = (self._P, *self._tree, self._full.tree, self._tgt, self._phi, self._pf,
+        self._state = (self._P, self._nrm, *self._tree, self._full.tree, self._tgt, self._phi, self._pf,
                        self._pb, self._pi, self._sp, self._heap_keys, self._heap_idx, self._fs,
                        self._is, self._prm, self._ag, self._nbrs, self._k)
 
@@ -348,8 +351,14 @@ class Explorer:
 
     @property
     def neighbours(self) -> np.ndarray:
-        """(N, n_N) each agent's fit patch: cloud point indices, nearest first (a copy)."""
+        """(N, n_N) each agent's n_N nearest cloud points (a copy): those on its sheet, its fit
+        patch, first (:attr:`sheet_neighbours` of them), each group nearest first."""
         return self._field.sel[self._order[self._nbrs]]
+
+    @property
+    def sheet_neighbours(self) -> np.ndarray:
+        """(N,) how many of each agent's :attr:`neighbours` lie on its sheet (its fit patch)."""
+        return self._ag[:, K.AG_NKEEP].astype(np.int64)
 
     @property
     def source(self) -> np.ndarray:

@@ -72,3 +72,39 @@ def cloud_index(points: np.ndarray) -> CloudIndex:
     CloudIndex
     """
     return cached("tree", points, lambda: CloudIndex(points))
+
+
+def sheet_normals(index: CloudIndex, h: float) -> tuple[np.ndarray, float]:
+    """Each point's unoriented normal line, fitted to its own sheet, and the sheet gap: once per
+    cloud and spacing (:func:`kernels.sheet_normals`).
+
+    The gap (metres) is the wider of ``kernels.SHEET_GAP`` h and ``kernels.SHEET_NOISE`` times
+    the cloud's noise (a robust σ: the median over its points of the median absolute offset of
+    their nearest from their plane, / 0.6745): offsets along a normal line that leave a wider gap
+    lie on another sheet (a wall's other side), and noise alone never leaves one.
+
+    Parameters
+    ----------
+    index : CloudIndex
+        The cloud's index.
+    h : float
+        Its mean point spacing, metres.
+
+    Returns
+    -------
+    normals : (n, 3) float
+        Unit vectors, in the index's internal order.
+    gap : float
+        Metres.
+    """
+
+    def build():
+        gap = K.SHEET_GAP * h
+        normals, mad = K.sheet_normals(index.points, *index.tree, K.NORMAL_NEIGHBOURS, gap)
+        noisy = K.SHEET_NOISE * float(np.median(mad)) / 0.6745
+        if noisy > gap:  # a noisy cloud: its sheets' normals again, with the gap noise allows
+            gap = noisy
+            normals, _ = K.sheet_normals(index.points, *index.tree, K.NORMAL_NEIGHBOURS, gap)
+        return normals, gap
+
+    return cached(f"normals {h!r}", index.points, build)

@@ -69,7 +69,9 @@ AG_POS, AG_VEL, AG_ACC, AG_NRM, AG_T1, AG_T2 = 0, 3, 6, 9, 12, 15
 #: A transit (explorer.py, "Never trapped"): AG_TRANSIT > 0 while the agent follows a path, at the
 #: velocity AG_VD (3) the explorer sets each step; the drive is then that velocity's, within a_max.
 AG_TRANSIT, AG_VD = 18, 19
-N_AG = 22
+#: How many of the agent's n_N neighbours (the first ones of its row of ``nbrs``) lie on its sheet.
+AG_NKEEP = 22
+N_AG = 23
 # Float state ``fs``.
 FS_Z, FS_MASS_S, FS_G0, FS_G1, FS_G2, FS_REF_UNTOUCHED, FS_DRIFT = 0, 1, 2, 3, 4, 5, 6
 # The cloud's Z = ∫_Ω c̃ (the footprint gain's normaliser, whatever the source's is).
@@ -93,7 +95,10 @@ PR_GAIN_EPS2 = 11
 #: 1.0: the source's coverage is normalised over the target (Z = ∫_T c̃); 0.0: over the cloud
 #: (Z = ∫_Ω c̃, eq. 2; also when the target covers the cloud).
 PR_ZTARGET = 7
-N_PR = 12
+#: The sheet gap (metres): neighbours beyond a gap this wide along the nearest point's normal line
+#: lie on another sheet (:func:`sheet_select`); inf keeps every neighbour.
+PR_SHEET_GAP = 12
+N_PR = 13
 # Heat modes of :func:`step_kernel`: spectral carry-over, spectral current source, a full field.
 HEAT_CARRY, HEAT_SOURCE, HEAT_FULL = 0, 1, 2
 
@@ -118,6 +123,23 @@ BROAD_REACH = 2.0
 SLIDE_DIRECTIONS = 6
 #: Fit-project-requery iterations that bring a start onto the surface (as the explorer).
 START_ITERATIONS = 8
+#: Sheet separation (docs/explore.md): a gap wider than SHEET_GAP h between the offsets of the
+#: neighbours along the nearest point's normal line separates two sheets (a wall's two sides) ...
+SHEET_GAP = 0.5
+#: ... or than SHEET_NOISE times the cloud's noise (a robust σ of the offsets of each point's nearest
+#: from its plane), so that noise never splits one side ...
+SHEET_NOISE = 3.0
+#: ... and a neighbour whose normal line is turned by more than 60 degrees (cos 0.5) from the
+#: nearest point's is on another face (across an edge, a hole's wall).
+SHEET_COS = 0.5
+#: The per-point normal lines are fitted to this many nearest points (the paper's M), seeded by
+#: planes through the point and two of its NORMAL_SEED - 1 nearest.
+NORMAL_NEIGHBOURS = 20
+NORMAL_SEED = 7
+#: Fewer points of a sheet than this: the least-squares plane, not the CGA sphere (5 unknowns).
+MIN_SPHERE_FIT = 6
+#: Fewer points of a sheet than this: the gradient fits a plane, not the cubic (10 unknowns).
+MIN_CUBIC_FIT = 12
 
 
 # ---------------------------------------------------------------------------------- KD-tree
@@ -352,41 +374,44 @@ def fit_project(P, nb, k, x, ref, out_xp, out_n):
     if scale <= 1e-12 * (abs(c0) + abs(c1) + abs(c2)) or scale == 0.0:
         status = 1
     else:
-        inv = 1.0 / scale
-        B = np.zeros((5, 5))
-        w = np.empty(5)
-        for t in range(k):
-            y[t, 0], y[t, 1], y[t, 2] = y[t, 0] * inv, y[t, 1] * inv, y[t, 2] * inv
-            w[0], w[1], w[2] = y[t, 0], y[t, 1], y[t, 2]
-            w[3] = -1.0
-            w[4] = -0.5 * (y[t, 0] * y[t, 0] + y[t, 1] * y[t, 1] + y[t, 2] * y[t, 2])
-            for a in range(5):
-                wa = w[a]
-                for b in range(a, 5):
-                    B[a, b] += wa * w[b]
-        for a in range(5):
-            for b in range(a):
-                B[a, b] = B[b, a]
         V = np.empty((5, 5))
         Wk = np.empty((5, 5))
-        col = sym_eig_min(B, 5, V, Wk)
-        r0, r1, r2 = V[0, col], V[1, col], V[2, col]
-        v_inf, v0 = V[3, col], V[4, col]
-        n_norm = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
-        if abs(v0) * PLANE_RADIUS_RATIO > n_norm:
-            s0, s1, s2 = r0 / v0, r1 / v0, r2 / v0
-            rr = s0 * s0 + s1 * s1 + s2 * s2 - 2.0 * v_inf / v0
-            if rr > MIN_RADIUS_RATIO * MIN_RADIUS_RATIO:
-                kind = 1
-                cx, cy, cz = c0 + scale * s0, c1 + scale * s1, c2 + scale * s2
-                radius = scale * math.sqrt(rr)
-            else:
-                kind = 2
-        elif n_norm == 0.0:
+        if k < MIN_SPHERE_FIT:  # too few for a sphere (a sheet's remnant): its least-squares plane
             kind = 2
         else:
-            n0, n1, n2 = r0 / n_norm, r1 / n_norm, r2 / n_norm
-            offset = n0 * c0 + n1 * c1 + n2 * c2 + scale * v_inf / n_norm
+            inv = 1.0 / scale
+            B = np.zeros((5, 5))
+            w = np.empty(5)
+            for t in range(k):
+                y[t, 0], y[t, 1], y[t, 2] = y[t, 0] * inv, y[t, 1] * inv, y[t, 2] * inv
+                w[0], w[1], w[2] = y[t, 0], y[t, 1], y[t, 2]
+                w[3] = -1.0
+                w[4] = -0.5 * (y[t, 0] * y[t, 0] + y[t, 1] * y[t, 1] + y[t, 2] * y[t, 2])
+                for a in range(5):
+                    wa = w[a]
+                    for b in range(a, 5):
+                        B[a, b] += wa * w[b]
+            for a in range(5):
+                for b in range(a):
+                    B[a, b] = B[b, a]
+            col = sym_eig_min(B, 5, V, Wk)
+            r0, r1, r2 = V[0, col], V[1, col], V[2, col]
+            v_inf, v0 = V[3, col], V[4, col]
+            n_norm = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+            if abs(v0) * PLANE_RADIUS_RATIO > n_norm:
+                s0, s1, s2 = r0 / v0, r1 / v0, r2 / v0
+                rr = s0 * s0 + s1 * s1 + s2 * s2 - 2.0 * v_inf / v0
+                if rr > MIN_RADIUS_RATIO * MIN_RADIUS_RATIO:
+                    kind = 1
+                    cx, cy, cz = c0 + scale * s0, c1 + scale * s1, c2 + scale * s2
+                    radius = scale * math.sqrt(rr)
+                else:
+                    kind = 2
+            elif n_norm == 0.0:
+                kind = 2
+            else:
+                n0, n1, n2 = r0 / n_norm, r1 / n_norm, r2 / n_norm
+                offset = n0 * c0 + n1 * c1 + n2 * c2 + scale * v_inf / n_norm
         if kind == 2:  # the direction of least variance of the (scaled) patch
             G = np.zeros((5, 5))
             for t in range(k):
@@ -419,6 +444,167 @@ def fit_project(P, nb, k, x, ref, out_xp, out_n):
         n0, n1, n2 = -n0, -n1, -n2
     out_n[0], out_n[1], out_n[2] = n0, n1, n2
     return status
+
+
+@njit
+def sheet_select(P, Nrm, nb, k, gap, d):
+    """Reorder the neighbours ``nb[:k]`` (nearest first) so that those on the nearest point's
+    sheet come first (each group in its order) and return their count.
+
+    The sheet of j0 = nb[0]: of the neighbours whose normal lines (``Nrm``, unoriented) lie within
+    SHEET_ANGLE of j0's, their offsets along j0's line, sorted, are cut wherever two consecutive
+    ones are more than ``gap`` (metres) apart; the sheet is the run holding j0's (0). A wall's
+    other side lies beyond such a gap; a face across an edge, or a hole's wall, turns its normal
+    away. Fewer than 3 on the sheet: all are kept (as with ``gap`` inf). ``d`` (k,) is scratch.
+    """
+    if not gap < np.inf:
+        return k
+    j0 = nb[0]
+    n0, n1, n2 = Nrm[j0, 0], Nrm[j0, 1], Nrm[j0, 2]
+    px, py, pz = P[j0, 0], P[j0, 1], P[j0, 2]
+    srt = np.empty(k)
+    npar = 0
+    for t in range(k):
+        j = nb[t]
+        if abs(Nrm[j, 0] * n0 + Nrm[j, 1] * n1 + Nrm[j, 2] * n2) < SHEET_COS:
+            d[t] = np.inf  # not on j0's sheet, whatever its offset
+            continue
+        v = (P[j, 0] - px) * n0 + (P[j, 1] - py) * n1 + (P[j, 2] - pz) * n2
+        d[t] = v
+        u = npar  # insertion sort: k is n_N (20)
+        while u > 0 and srt[u - 1] > v:
+            srt[u] = srt[u - 1]
+            u -= 1
+        srt[u] = v
+        npar += 1
+    lo = 0
+    while srt[lo] < 0.0:  # j0's own offset is exactly 0
+        lo += 1
+    hi = lo
+    while lo > 0 and srt[lo] - srt[lo - 1] <= gap:
+        lo -= 1
+    while hi < npar - 1 and srt[hi + 1] - srt[hi] <= gap:
+        hi += 1
+    m = hi - lo + 1
+    if m == k or m < 3:
+        return k
+    dlo, dhi = srt[lo], srt[hi]
+    rest = np.empty(k - m, np.int64)
+    a = b = 0
+    for t in range(k):
+        if dlo <= d[t] <= dhi:
+            nb[a] = nb[t]
+            a += 1
+        else:
+            rest[b] = nb[t]
+            b += 1
+    for t in range(b):
+        nb[a + t] = rest[t]
+    return m
+
+
+@njit
+def _plane_normal(P, nb, m, G, V, W):
+    """Unit normal (3,) of the least-squares plane through ``P[nb[:m]]`` (least variance)."""
+    c0 = c1 = c2 = 0.0
+    for t in range(m):
+        j = nb[t]
+        c0 += P[j, 0]
+        c1 += P[j, 1]
+        c2 += P[j, 2]
+    c0, c1, c2 = c0 / m, c1 / m, c2 / m
+    G[:3, :3] = 0.0
+    for t in range(m):
+        j = nb[t]
+        y0, y1, y2 = P[j, 0] - c0, P[j, 1] - c1, P[j, 2] - c2
+        G[0, 0] += y0 * y0
+        G[0, 1] += y0 * y1
+        G[0, 2] += y0 * y2
+        G[1, 1] += y1 * y1
+        G[1, 2] += y1 * y2
+        G[2, 2] += y2 * y2
+    G[1, 0], G[2, 0], G[2, 1] = G[0, 1], G[0, 2], G[1, 2]
+    col = sym_eig_min(G, 3, V, W)
+    out = np.empty(3)
+    nn = math.sqrt(V[0, col] ** 2 + V[1, col] ** 2 + V[2, col] ** 2)
+    for a in range(3):
+        out[a] = V[a, col] / nn
+    return out
+
+
+@njit
+def _inliers(P, nb, k, j, nrm, tol, out):
+    """The points of ``nb[:k]`` within ``tol`` (metres) of the plane through P[j] with normal
+    ``nrm`` into ``out``; returns their count."""
+    m = 0
+    for t in range(k):
+        q = nb[t]
+        if abs((P[q, 0] - P[j, 0]) * nrm[0] + (P[q, 1] - P[j, 1]) * nrm[1] + (P[q, 2] - P[j, 2]) * nrm[2]) <= tol:
+            out[m] = q
+            m += 1
+    return m
+
+
+@njit
+def sheet_normals(P, perm, nodes, boxes, tpts, k, gap):
+    """(n, 3) the normal line of each point of ``P`` (the tree's points, in its order), unoriented,
+    fitted to its own sheet: of the planes through the point and two of its NORMAL_SEED - 1 nearest
+    neighbours, the one that holds the most of its ``k`` nearest within gap/2 (the own side's: a
+    plane through a point of a wall's other side, or across an edge, holds few), then twice the
+    least-squares plane of the points within gap/2 of the plane so far. Computed once per cloud
+    (``index.sheet_normals``); ``gap`` in metres.
+
+    Also returns (n,) the median absolute offset (metres) of each point's NORMAL_SEED - 1 nearest
+    from the plane through it along its line: the sampling's noise at that point (a median, so
+    that a wall's other side among them, when thinner than the sampling, does not count).
+    """
+    n = P.shape[0]
+    k = min(k, n)
+    out = np.zeros((n, 3))
+    mad = np.zeros(n)
+    offs = np.empty(max(min(NORMAL_SEED, min(k, n)), 1))
+    nb = np.empty(k, np.int64)
+    keep = np.empty(k, np.int64)
+    d2 = np.empty(k)
+    G = np.zeros((3, 3))
+    V = np.empty((3, 3))
+    W = np.empty((3, 3))
+    x = np.empty(3)
+    nrm = np.empty(3)
+    tol = 0.5 * gap
+    top = min(NORMAL_SEED, k)
+    for j in range(n):
+        x[0], x[1], x[2] = P[j, 0], P[j, 1], P[j, 2]
+        tree_knn(perm, nodes, boxes, tpts, x, k, nb, d2)
+        best = -1
+        for a in range(1, top):
+            ax, ay, az = P[nb[a], 0] - x[0], P[nb[a], 1] - x[1], P[nb[a], 2] - x[2]
+            la = math.sqrt(ax * ax + ay * ay + az * az)
+            for b in range(a + 1, top):
+                bx, by, bz = P[nb[b], 0] - x[0], P[nb[b], 1] - x[1], P[nb[b], 2] - x[2]
+                lb = math.sqrt(bx * bx + by * by + bz * bz)
+                c0, c1, c2 = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+                lc = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+                if not lc > 0.25 * la * lb:  # within ~15 degrees of collinear: no plane
+                    continue
+                d2[0], d2[1], d2[2] = c0 / lc, c1 / lc, c2 / lc
+                cnt = _inliers(P, nb, k, j, d2, tol, keep)
+                if cnt > best:
+                    best = cnt
+                    nrm[0], nrm[1], nrm[2] = d2[0], d2[1], d2[2]
+        if best < 0:  # every pair nearly collinear with the point
+            nrm[:] = _plane_normal(P, nb, top, G, V, W)
+        for _ in range(2):
+            m = _inliers(P, nb, k, j, nrm, tol, keep)
+            if m < 3:
+                break
+            nrm[:] = _plane_normal(P, keep, m, G, V, W)
+        out[j] = nrm
+        for t in range(1, top):
+            q = nb[t]
+            offs[t - 1] = abs((P[q, 0] - x[0]) * nrm[0] + (P[q, 1] - x[1]) * nrm[1] + (P[q, 2] - x[2]) * nrm[2])
+        mad[j] = np.median(offs[: top - 1]) if top > 1 else 0.0
+    return out, mad
 
 
 @njit
@@ -930,15 +1116,33 @@ def deposit(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, x, n):
 
 # ---------------------------------------------------------------------------------- agents
 @njit
-def locate(P, perm, nodes, boxes, tpts, x, ref, k, out_xp, out_n, out_nb, d2buf):
-    """Project ``x`` onto the surface fitted to its ``k`` nearest points; writes the point,
-    its normal (oriented like ``ref``) and the neighbours (by distance to ``x``)."""
+def locate(P, Nrm, perm, nodes, boxes, tpts, x, ref, k, gap, out_xp, out_n, out_nb, d2buf):
+    """Project ``x`` onto the surface fitted to those of its ``k`` nearest points that lie on the
+    nearest one's sheet (:func:`sheet_select`, ``Nrm`` the points' normal lines, ``gap`` metres);
+    writes the point, its normal (oriented like ``ref``) and the neighbours (those on the sheet
+    first, each group by distance to ``x``); returns how many are on the sheet. When the point
+    lands nearest a neighbour off the sheet, the fit is made once more from there."""
     tree_knn(perm, nodes, boxes, tpts, x, k, out_nb, d2buf)
-    return fit_project(P, out_nb, k, x, ref, out_xp, out_n)
+    m = sheet_select(P, Nrm, out_nb, k, gap, d2buf)
+    fit_project(P, out_nb, m, x, ref, out_xp, out_n)
+    if m < k:
+        # The projection may land nearer another sheet's point (past a convex edge, where the fit
+        # of one face extends beyond it): then the surface there is that sheet's; fit it from there.
+        best, near = np.inf, 0
+        for t in range(k):
+            dd = _dist2(P[out_nb[t]], out_xp)
+            if dd < best:
+                best, near = dd, t
+        if near >= m:
+            xq = out_xp.copy()
+            tree_knn(perm, nodes, boxes, tpts, xq, k, out_nb, d2buf)
+            m = sheet_select(P, Nrm, out_nb, k, gap, d2buf)
+            fit_project(P, out_nb, m, xq, ref, out_xp, out_n)
+    return m
 
 
 @njit
-def place_agent(P, perm, nodes, boxes, tpts, full, ag, nbrs, i, x0, ref, k, prm_reach):
+def place_agent(P, Nrm, perm, nodes, boxes, tpts, full, ag, nbrs, i, x0, ref, k, prm_reach, gap):
     """Project a start or reset position onto the surface (fit, project, re-query up to
     START_ITERATIONS times) and set agent ``i``'s position, normal, frame, tangent velocity."""
     x = x0.copy()
@@ -947,8 +1151,9 @@ def place_agent(P, perm, nodes, boxes, tpts, full, ag, nbrs, i, x0, ref, k, prm_
     nn = np.empty(3)
     nb = np.empty(k, np.int64)
     d2 = np.empty(k)
+    m = k
     for _ in range(START_ITERATIONS):
-        locate(P, perm, nodes, boxes, tpts, x, r, k, xp, nn, nb, d2)
+        m = locate(P, Nrm, perm, nodes, boxes, tpts, x, r, k, gap, xp, nn, nb, d2)
         moved = math.sqrt(_dist2(xp, x))
         x[:] = xp
         r[:] = nn
@@ -960,13 +1165,16 @@ def place_agent(P, perm, nodes, boxes, tpts, full, ag, nbrs, i, x0, ref, k, prm_
     ag[i, AG_POS:AG_POS + 3] = x
     ag[i, AG_NRM:AG_NRM + 3] = r
     nbrs[i, :] = nb
+    ag[i, AG_NKEEP] = m
     tangent_frame(r, ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3])
     tangential(ag[i, AG_VEL:AG_VEL + 3], r)
 
 
 @njit
 def agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full):
-    """∇u (3,) at agent i's projected position in its tangent plane (eqs. 32-33)."""
+    """∇u (3,) at agent i's projected position in its tangent plane (eqs. 32-33), fitted to its
+    neighbours on its sheet (the first ag[i, AG_NKEEP] of its row of ``nbrs``)."""
+    k = int(ag[i, AG_NKEEP])
     uv = np.empty((k, 2))
     vals = np.empty(k)
     w = np.empty(k)
@@ -984,7 +1192,8 @@ def agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full):
         w[t] = math.exp(-eps2 * r2)
         vals[t] = heat_at(Phi, pf, sp, fs, j, mode, u_full)
     # Off the sampled surface the neighbours lie on one side: a plane, not an extrapolated cubic.
-    degree = 3 if r2min <= prm[PR_H2] else 1
+    # (too few on the sheet for the cubic's 10 unknowns: a plane too)
+    degree = 3 if r2min <= prm[PR_H2] and k >= MIN_CUBIC_FIT else 1
     gu, gv = cubic_slope(uv, vals, w, k, degree)
     return ag[i, AG_T1:AG_T1 + 3] * gu + ag[i, AG_T2:AG_T2 + 3] * gv
 
@@ -1026,19 +1235,21 @@ def _dist2(a, b):
 
 
 @njit
-def try_move(P, perm, nodes, boxes, tpts, full, x, disp, ref, k, prm, out_xp, out_n, out_nb, d2buf):
+def try_move(P, Nrm, perm, nodes, boxes, tpts, full, x, disp, ref, k, prm, out_xp, out_n, out_nb, d2buf):
     """Move from ``x`` by ``disp`` (3,) and project onto the surface fitted there (eqs. 23-27),
     shrinking the step until the projected displacement is at most v_max dt (the projection can
     lengthen it). Returns True when the result lies on the data: its nearest point of the whole
     cloud (``full``: its tree) is within PR_REACH (the fit, a plane past a sheet's edge or across
-    a hole, extends beyond the points, so a projection there is refused)."""
+    a hole, extends beyond the points, so a projection there is refused), and how many of the
+    neighbours ``out_nb`` lie on the sheet the move lands on."""
     limit = prm[PR_VMAX] * prm[PR_DT]
     xt = np.empty(3)
     scale = 1.0
+    m = k
     for _ in range(STEP_ITERATIONS):
         for d in range(3):
             xt[d] = x[d] + scale * disp[d]
-        locate(P, perm, nodes, boxes, tpts, xt, ref, k, out_xp, out_n, out_nb, d2buf)
+        m = locate(P, Nrm, perm, nodes, boxes, tpts, xt, ref, k, prm[PR_SHEET_GAP], out_xp, out_n, out_nb, d2buf)
         moved = math.sqrt(_dist2(out_xp, x))
         if moved <= limit:
             break
@@ -1048,11 +1259,12 @@ def try_move(P, perm, nodes, boxes, tpts, full, x, disp, ref, k, prm, out_xp, ou
         f = limit / moved
         for d in range(3):
             out_xp[d] = x[d] + (out_xp[d] - x[d]) * f
-    return nearest_distance(full[0], full[1], full[2], full[3], out_xp) <= prm[PR_REACH]
+    return nearest_distance(full[0], full[1], full[2], full[3], out_xp) <= prm[PR_REACH], m
 
 
 @njit
-def move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, is_, ag, nbrs, i, k, prm, mode, u_full):
+def move_agent(P, Nrm, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, is_, ag, nbrs, i, k, prm, mode,
+               u_full):
     """Gradient step of agent i (eq. 6, saturated), semi-implicit Euler within v_max, then the
     move onto the surface (:func:`try_move`). A move that would leave the data (an edge, a hole,
     a gap) is not made: the velocity is reflected off the boundary (its outward normal estimated
@@ -1094,7 +1306,7 @@ def move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, 
     nb = np.empty(k, np.int64)
     d2 = np.empty(k)
     disp = v * dt
-    ok = try_move(P, perm, nodes, boxes, tpts, full, x, disp, nrm, k, prm, xp, nn, nb, d2)
+    ok, m = try_move(P, Nrm, perm, nodes, boxes, tpts, full, x, disp, nrm, k, prm, xp, nn, nb, d2)
     if not ok:
         # The move leaves the data (an edge, a hole, a gap). Slide instead: of the tangent
         # directions turned by ±30°, ±60°, ... from the intended one, take the nearest that stays
@@ -1117,7 +1329,7 @@ def move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, 
                 for d in range(3):
                     v[d] = vs * (ca * t1[d] + sa * t2[d])
                     disp[d] = length * v[d] * dt
-                ok = try_move(P, perm, nodes, boxes, tpts, full, x, disp, nrm, k, prm, xp, nn, nb, d2)
+                ok, m = try_move(P, Nrm, perm, nodes, boxes, tpts, full, x, disp, nrm, k, prm, xp, nn, nb, d2)
                 if ok:
                     break
             if ok:
@@ -1127,10 +1339,12 @@ def move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, 
             xp[:] = x
             nn[:] = nrm
             nb[:] = nbrs[i]
+            m = int(ag[i, AG_NKEEP])
     ag[i, AG_ACC:AG_ACC + 3] = acc
     ag[i, AG_POS:AG_POS + 3] = xp
     ag[i, AG_NRM:AG_NRM + 3] = nn
     nbrs[i, :] = nb
+    ag[i, AG_NKEEP] = m
     tangential(v, nn)
     ag[i, AG_VEL:AG_VEL + 3] = v
     tangent_frame(nn, ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3])
@@ -1138,12 +1352,13 @@ def move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, 
 
 # ---------------------------------------------------------------------------------- the step
 @njit
-def step_kernel(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, hk, hi, fs, is_, prm, ag, nbrs, k,
+def step_kernel(P, Nrm, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, hk, hi, fs, is_, prm, ag, nbrs, k,
                 deposits, n_deposits, resets, reset_status, mode, resync_every, u_full, phase):
     """One explorer step (see explorer.py), or part of it.
 
     ``P`` and the tree (perm, nodes, boxes, tpts) are the field's points (the cloud, or its
-    thinned field set); ``full`` is the whole cloud's tree, which decides what lies on the data;
+    thinned field set), ``Nrm`` their normal lines (:func:`sheet_normals`); ``full`` is the whole
+    cloud's tree, which decides what lies on the data;
     ``tgt`` the tree over the target's field points (perm, nodes, boxes, tpts, their indices).
     ``n_deposits`` < 0: deposit at the agents (kinematic); otherwise at the first ``n_deposits``
     rows of ``deposits`` (contact points; each projected onto the surface, skipped when farther
@@ -1169,7 +1384,7 @@ def step_kernel(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, hk,
                 q = deposits[t]
                 if nearest_distance(perm, nodes, boxes, tpts, q) > prm[PR_RA]:
                     continue  # a contact off the cloud covers no cloud point
-                locate(P, perm, nodes, boxes, tpts, q, ref, k, xp, nn, nb, d2)
+                locate(P, Nrm, perm, nodes, boxes, tpts, q, ref, k, prm[PR_SHEET_GAP], xp, nn, nb, d2)
                 deposit(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, xp, nn)
         update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_)
         is_[IS_SINCE_RESYNC] += 1
@@ -1185,25 +1400,51 @@ def step_kernel(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, hk,
                 reset_status[i] = -2
                 resets[i, 0] = d0
             else:
-                place_agent(P, perm, nodes, boxes, tpts, full, ag, nbrs, i, resets[i], ag[i, AG_NRM:AG_NRM + 3].copy(), k,
-                            prm[PR_REACH])
+                place_agent(P, Nrm, perm, nodes, boxes, tpts, full, ag, nbrs, i, resets[i],
+                            ag[i, AG_NRM:AG_NRM + 3].copy(), k, prm[PR_REACH], prm[PR_SHEET_GAP])
     for i in range(N):
-        move_agent(P, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, is_, ag, nbrs, i, k, prm, mode, u_full)
+        move_agent(P, Nrm, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, is_, ag, nbrs, i, k, prm, mode,
+                   u_full)
 
 
 # ---------------------------------------------------------------------------------- coverage score
 # The neutral score of a trajectory (metrics.CoverageScore): c_i = Σ_t exp(-ε² |P_i - X_t|²) with
 # 3-D distance, and ε = ‖max(p̄ - c̄, 0)‖₂ / ‖p̄‖₂ with p̄, c̄ unit mass in plain sums over the cloud.
 # State ``ss``: SS_C = Σ c, SS_TOUCHED target points within r_a of some X_t, SS_OFF positions more
-# than SS_OFFDIST from every point, SS_STEPMAX, SS_N positions scored. Parameters ``sp_``:
+# than SC_OFFDIST from every point or than SC_OFFSHEET from the local surface of one sheet,
+# SS_STEPMAX, SS_N positions scored. Parameters ``sp_``:
 SS_C, SS_TOUCHED, SS_OFF, SS_STEPMAX, SS_N = 0, 1, 2, 3, 4
 SC_EPS2, SC_CUT, SC_RA, SC_OFFDIST = 0, 1, 2, 3
+#: The sheet gap (metres, :func:`sheet_select`) and the largest distance (metres) of a position
+#: from the surface fitted to its nearest points on one sheet.
+SC_GAP, SC_OFFSHEET = 4, 5
+N_SC = 6
 
 
 @njit
-def score_position(perm, nodes, boxes, tpts, x, prev, has_prev, cov, touched, target, ss, sp_, ball):
+def sheet_distance(tpts, Nrm, x, perm, nodes, boxes, gap, nb, d2):
+    """Distance (metres) from ``x`` (3,) to the surface (:func:`fit_project`) fitted to its
+    ``len(nb)`` nearest points that lie on the nearest one's sheet (:func:`sheet_select`):
+    how far x is off the one sheet it is nearest to; between a wall's two sides, about half
+    the wall. 0 when all of them are on that sheet (nothing else is near: how far x is from the
+    data is the 2h test's). ``nb``, ``d2`` are scratch."""
+    k = nb.shape[0]
+    tree_knn(perm, nodes, boxes, tpts, x, k, nb, d2)
+    m = sheet_select(tpts, Nrm, nb, k, gap, d2)
+    if m == k:
+        return 0.0
+    xp = np.empty(3)
+    nn = np.empty(3)
+    fit_project(tpts, nb, m, x, Nrm[nb[0]], xp, nn)
+    return math.sqrt(_dist2(x, xp))
+
+
+@njit
+def score_position(perm, nodes, boxes, tpts, Nrm, x, prev, has_prev, cov, touched, target, ss, sp_, ball, nb, nd2):
     """Add position ``x`` (3,) to the score: its footprint on every point within SC_CUT, the
-    target points it touches (within r_a), whether it is off the cloud, its step from ``prev``."""
+    target points it touches (within r_a), whether it is off the surface (farther than SC_OFFDIST
+    from every point, or than SC_OFFSHEET from its nearest sheet's local surface,
+    :func:`sheet_distance`; ``Nrm`` the points' normal lines), its step from ``prev``."""
     cnt = tree_ball(perm, nodes, boxes, tpts, x, sp_[SC_CUT], ball)
     eps2, ra2 = sp_[SC_EPS2], sp_[SC_RA] * sp_[SC_RA]
     near, add = np.inf, 0.0
@@ -1219,9 +1460,13 @@ def score_position(perm, nodes, boxes, tpts, x, prev, has_prev, cov, touched, ta
             touched[j] = 1
             ss[SS_TOUCHED] += 1.0
     ss[SS_C] += add
+    off = False
     if near > sp_[SC_OFFDIST] * sp_[SC_OFFDIST]:  # (the ball reaches past SC_OFFDIST: else ask the tree)
-        if nearest_distance(perm, nodes, boxes, tpts, x) > sp_[SC_OFFDIST]:
-            ss[SS_OFF] += 1.0
+        off = nearest_distance(perm, nodes, boxes, tpts, x) > sp_[SC_OFFDIST]
+    if not off:
+        off = sheet_distance(tpts, Nrm, x, perm, nodes, boxes, sp_[SC_GAP], nb, nd2) > sp_[SC_OFFSHEET]
+    if off:
+        ss[SS_OFF] += 1.0
     if has_prev:
         ss[SS_STEPMAX] = max(ss[SS_STEPMAX], math.sqrt(_dist2(x, prev)))
     ss[SS_N] += 1.0

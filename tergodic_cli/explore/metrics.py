@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from tergodic_cli.explore import kernels as K
-from tergodic_cli.explore.index import cloud_index
+from tergodic_cli.explore.index import cloud_index, sheet_normals
 
 
 def source_term(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray, norm: str = "cloud") -> np.ndarray:
@@ -92,8 +92,12 @@ def touched_fraction(p: np.ndarray, coverage: np.ndarray) -> float:
 
 #: The score's footprint is summed over the points within this many r_a (exp(-4 · 2.5²) = 1e-11).
 SCORE_CUT = 2.5
-#: A position farther than this many mean spacings h from every cloud point is off the surface.
+#: A position farther than this many mean spacings h from every cloud point is off the surface ...
 OFF_SURFACE_H = 2.0
+#: ... and so is one farther than this many h (or than the cloud's sheet gap, if wider: a noisy cloud)
+#: from the surface fitted to its nearest points on one sheet, when they hold more than one
+#: (kernels.sheet_distance): between a wall's two sides (docs/explore.md, sheet separation).
+OFF_SHEET_H = 0.5
 
 
 def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray, agent_radius: float,
@@ -113,7 +117,9 @@ def coverage_score(points: np.ndarray, target: np.ndarray, positions: np.ndarray
     dict: ``ergodicity`` ε = ‖max(p̄ - c̄, 0)‖₂ / ‖p̄‖₂ with c_i = Σ_t exp(-(2/r_a)² |P_i - X_t|²) and
     p̄ = p/Σp, c̄ = c/Σc (dimensionless, 0 is perfect, 1 untouched); ``touched_fraction`` (share of
     target points within r_a of some X_t); ``off_surface_fraction`` (share of positions more than
-    2h from every point); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
+    2h from every point, or, among points of more than one sheet, more than h/2 (or the sheet gap, if
+    wider) from the local surface of the
+    sheet they are nearest to, fitted to its points among their n_N nearest); ``step_max_m`` (largest |X_{t+1} - X_t| of one agent).
     """
     X = np.asarray(positions, dtype=np.float64).reshape(len(positions), -1, 3)
     index = cloud_index(np.ascontiguousarray(points, dtype=np.float64))
@@ -138,11 +144,18 @@ class CoverageScore:
     def __init__(self, index, target: np.ndarray, agent_radius: float, h: float, n_agents: int = 1):
         self._tree = index.tree
         n = len(index.order)
+        self._nrm, gap = sheet_normals(index, h)
         self._cov = np.zeros(n)
         self._touched = np.zeros(n, dtype=np.int8)
         self._ball = np.zeros(n, dtype=np.int64)
+        self._nb = np.zeros(min(K.NORMAL_NEIGHBOURS, n), dtype=np.int64)
+        self._d2 = np.zeros(len(self._nb))
         self._ss = np.zeros(5)
-        self._prm = np.array([(2.0 / agent_radius) ** 2, SCORE_CUT * agent_radius, agent_radius, OFF_SURFACE_H * h])
+        self._prm = np.zeros(K.N_SC)
+        self._prm[[K.SC_EPS2, K.SC_CUT, K.SC_RA, K.SC_OFFDIST]] = ((2.0 / agent_radius) ** 2, SCORE_CUT * agent_radius,
+                                                                 agent_radius, OFF_SURFACE_H * h)
+        self._prm[K.SC_GAP] = gap
+        self._prm[K.SC_OFFSHEET] = max(OFF_SHEET_H * h, gap)
         self._prev = np.zeros((n_agents, 3))
         self.set_target(target, index)
 
@@ -173,8 +186,8 @@ class CoverageScore:
         ss = self._ss
         has_prev = ss[K.SS_N] > 0
         for i, x in enumerate(positions):
-            K.score_position(*self._tree, x, self._prev[i], has_prev, self._cov, self._touched, self._target, ss,
-                             self._prm, self._ball)
+            K.score_position(*self._tree, self._nrm, x, self._prev[i], has_prev, self._cov, self._touched,
+                             self._target, ss, self._prm, self._ball, self._nb, self._d2)
             self._prev[i] = x
 
     def metrics(self) -> dict:

@@ -107,7 +107,8 @@ def format_table(summary: dict[str, Any], data: RunLogData, comparison: tuple[st
     tf = summary.get("touched_fraction")
     rows.append(("target touched", "n/a" if tf is None else f"{100 * tf:.2f} %"))
     if summary.get("off_surface_fraction") is not None:
-        rows.append(("off the surface (> 2h)", f"{100 * summary['off_surface_fraction']:.2f} % of steps"))
+        rows.append(("off the surface (> 2h, or > h/2 off its sheet)",
+                     f"{100 * summary['off_surface_fraction']:.2f} % of steps"))
     if summary.get("step_max_m") is not None:
         rows.append(("largest step", f"{1e3 * summary['step_max_m']:.3f} mm"))
     if summary.get("step_ms_median") is not None:

@@ -1,0 +1,147 @@
+"""Sheet separation (docs/explore.md): a wall's two sides, closer together than the fit's
+neighbourhood reaches, never enter one fit, the agent stays on the side it is on, and the run's
+off-surface figure catches a path between them. Analytic surfaces: two parallel planes 10 mm apart
+and a closed box with 10 mm walls, both sampled at 6.7 mm (the spacing of issue 25's shape sorter)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from reference_geometry import coverage_score as reference_score
+from reference_geometry import sheet_normals as reference_normals
+
+from tergodic_cli.basis import compute_basis
+from tergodic_cli.capture.filters import mean_spacing
+from tergodic_cli.explore import ExploreConfig, Explorer
+from tergodic_cli.explore import kernels as K
+from tergodic_cli.explore.index import cloud_index, sheet_normals
+from tergodic_cli.explore.metrics import coverage_score
+
+SPACING, WALL = 0.0067, 0.010
+#: The distance from the true surface a tool can follow (issue 25).
+TOLERANCE = 0.0015
+
+
+def _hex(width: float, spacing: float) -> np.ndarray:
+    """(m, 2) a hexagonal grid of the given spacing over [0, width]²."""
+    rows = np.arange(0.0, width, spacing * np.sqrt(3) / 2)
+    return np.array([(x + (j % 2) * spacing / 2, y) for j, y in enumerate(rows)
+                     for x in np.arange(0.0, width - spacing / 2, spacing)])
+
+
+@pytest.fixture(scope="module")
+def planes():
+    # z = 0 and z = 10 mm, 20 x 20 cm, the upper grid shifted so no point lies above another
+    g = _hex(0.2, SPACING)
+    pts = np.vstack([np.c_[g, np.zeros(len(g))], np.c_[g + [0.0021, 0.0013], np.full(len(g), WALL)]])
+    return pts, compute_basis(pts, 60, 30)
+
+
+def _box_faces(half: float, spacing: float) -> np.ndarray:
+    """Points on the six faces of the cube [-half, half]³: a cell-centred square grid on each."""
+    m = max(int(round(2 * half / spacing)), 1)
+    g = (np.arange(m) + 0.5) / m * 2 * half - half
+    u, v = (a.ravel() for a in np.meshgrid(g, g))
+    faces = []
+    for axis in range(3):
+        for side in (-half, half):
+            f = np.empty((len(u), 3))
+            f[:, axis] = side
+            f[:, (axis + 1) % 3], f[:, (axis + 2) % 3] = u, v
+            faces.append(f)
+    return np.vstack(faces)
+
+
+def _box_surface_distance(x: np.ndarray, half: float) -> np.ndarray:
+    """Unsigned distance (m,) from points x (m, 3) to the surface of the cube [-half, half]³."""
+    q = np.abs(x) - half
+    outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
+    inside = -np.minimum(q.max(axis=1), 0.0)
+    return np.where(q.max(axis=1) > 0, outside, inside)
+
+
+OUTER = 0.06
+
+
+@pytest.fixture(scope="module")
+def hollow_box():
+    # a closed 12 cm box with 10 mm walls: the outer and the inner cube's surfaces
+    pts = np.vstack([_box_faces(OUTER, SPACING), _box_faces(OUTER - WALL, SPACING)])
+    return pts, compute_basis(pts, 60, 30)
+
+
+def _run(basis, start, steps, sheets=True, target=None):
+    target = np.ones(len(basis.points)) if target is None else target
+    ex = Explorer(basis, target, ExploreConfig(nk=60, agent_radius=0.0075), start[None], on_event=lambda m: None)
+    if not sheets:  # every neighbour in the fit, as before sheet separation
+        ex._prm[K.PR_SHEET_GAP] = np.inf
+    xs = np.empty((steps, 3))
+    for k in range(steps):
+        ex.step()
+        xs[k] = ex.positions[0]
+    return ex, xs
+
+
+def test_normal_lines_are_each_sheets_own_even_at_its_border(planes, hollow_box):
+    pts, basis = planes
+    n, gap = sheet_normals(cloud_index(basis.points), basis.h)
+    n = n[cloud_index(basis.points).rank]
+    assert gap == pytest.approx(basis.h / 2)  # clean samples: the gap is half the spacing
+    assert np.abs(n[:, 2]).min() > 0.999  # ±z on both planes, corners included
+    np.testing.assert_allclose(np.abs(reference_normals(pts, basis.h / 2)[0][:, 2]), 1.0, atol=1e-3)
+    pts, basis = hollow_box
+    n = sheet_normals(cloud_index(basis.points), basis.h)[0][cloud_index(basis.points).rank]
+    axis = np.argmax(np.abs(pts), axis=1)  # each point's face (the cube's coordinate at ±half)
+    inner = np.abs(pts).max(axis=1) < OUTER - WALL / 2
+    half = np.where(inner, OUTER - WALL, OUTER)
+    away = np.sort(np.abs(pts), axis=1)[:, 1] < half - 1.5 * SPACING  # a face's interior
+    assert np.abs(n[away, axis[away]]).min() > 0.99
+
+
+@pytest.mark.parametrize("z0", [0.0, WALL], ids=["lower", "upper"])
+def test_agent_on_one_of_two_planes_10mm_apart_stays_on_it(planes, z0):
+    pts, basis = planes
+    start = np.array([0.1, 0.1, z0 + 0.002])  # 2 mm above (or below) the plane it starts on
+    ex, xs = _run(basis, start, 500)
+    # analytic: the distance to its own plane is 0 at every step (exact planes, exact fits)
+    assert np.abs(xs[:, 2] - z0).max() <= TOLERANCE, np.abs(xs[:, 2] - z0).max()
+    assert np.ptp(xs[:, :2], axis=0).min() > 0.03  # it did move about
+    assert ex.score()["off_surface_fraction"] == 0.0
+    # the same run with every neighbour in the fit runs between the planes: the test can fail
+    _, mixed = _run(basis, start, 100, sheets=False)
+    gap = np.minimum(np.abs(mixed[:, 2]), np.abs(mixed[:, 2] - WALL))
+    assert np.mean(gap > TOLERANCE) > 0.5
+
+
+def test_agent_on_a_closed_box_with_10mm_walls_stays_on_its_outside(hollow_box):
+    pts, basis = hollow_box
+    start = np.array([0.01, -0.02, OUTER + 0.001])  # on the top, outside
+    ex, xs = _run(basis, start, 1000)
+    d = np.minimum(_box_surface_distance(xs, OUTER), _box_surface_distance(xs, OUTER - WALL))
+    # On a face the fit is the face's plane (0); at an edge the samples cannot tell the box from
+    # its chamfer: the plane through the two rows beside the edge (each half a spacing from it)
+    # passes SPACING / (2√2) = 2.4 mm inside the edge, the farthest a fit through them can be.
+    assert d.max() <= SPACING / (2 * np.sqrt(2)), np.percentile(d, [50, 99, 100])
+    assert np.mean(d <= TOLERANCE) >= 0.85, np.percentile(d, [50, 99, 100])
+    # never mid-wall: every step nearer the outer surface than the inner, and well away from the middle
+    assert np.all(_box_surface_distance(xs, OUTER) < _box_surface_distance(xs, OUTER - WALL))
+    assert d.max() < WALL / 2 - TOLERANCE
+    assert ex.score()["off_surface_fraction"] == 0.0
+    _, mixed = _run(basis, start, 200, sheets=False)
+    dm = np.minimum(_box_surface_distance(mixed, OUTER), _box_surface_distance(mixed, OUTER - WALL))
+    assert np.mean(dm > TOLERANCE) > 0.5  # before sheet separation: inside the wall
+
+
+def test_off_surface_figure_catches_a_path_between_two_sheets(planes):
+    pts, basis = planes
+    rng = np.random.default_rng(3)
+    on = np.c_[rng.uniform(0.03, 0.17, (200, 2)), np.zeros(200)]
+    mid = on + [0.0, 0.0, WALL / 2]  # halfway between the planes: 5 mm from each, 2h from no point
+    target = np.ones(len(pts))
+    h = mean_spacing(pts)
+    for path, want in ((on, 0.0), (mid, 1.0), (np.vstack([on, mid]), 0.5)):
+        got = coverage_score(pts, target, path, 0.0075, h)["off_surface_fraction"]
+        assert got == want
+        assert reference_score(pts, target, path, 0.0075, h)["off_surface_fraction"] == want
+    # the old figure (nearest point within 2h) saw nothing wrong with the path between them
+    assert np.linalg.norm(pts[:, None] - mid[None], axis=2).min(axis=0).max() < 2 * h
