@@ -127,12 +127,28 @@ class RunLogData:
 def resolve_log_path(path: str | os.PathLike) -> Path:
     """``RUN_DIR`` -> ``RUN_DIR/run.mcap``; a file path is returned as it is."""
     p = Path(path)
-    require(p.exists(), f"{p} does not exist", _RUN_FIX)
+    if not p.exists():
+        left = _unfinished_siblings(p)
+        if left:  # a run killed by SIGKILL (or still running) stays in its temporary sibling
+            more = f" (and {len(left) - 1} more)" if len(left) > 1 else ""
+            raise TergodicError(f"{p} does not exist, but {left[0]}{more} beside it holds a run that did not finish "
+                                f"(killed, or still running)",
+                                f"read it with 'tergodic replay {left[0]}', or keep it as the run with "
+                                f"'mv {left[0]} {p}'")
+        raise TergodicError(f"{p} does not exist", _RUN_FIX)
     if p.is_dir():
         f = p / "run.mcap"
         require(f.exists(), f"{p} has no run.mcap", _RUN_FIX)
         return f
     return p
+
+
+def _unfinished_siblings(p: Path) -> list[Path]:
+    """The temporary folders (``.NAME.tmp-*``) of runs into ``p`` that never finished, newest first."""
+    with suppress(OSError):
+        found = [q for q in p.parent.glob(f".{p.name}.tmp-*") if q.is_dir()]
+        return sorted(found, key=lambda q: q.stat().st_mtime, reverse=True)
+    return []
 
 
 def _check_head(path: Path) -> None:
