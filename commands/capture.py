@@ -69,6 +69,7 @@ def capture(
     from tergodic_cli.capture.artefact import CAPTURE_CONFIG_KIND, check_out_folder
     from tergodic_cli.capture.textured import BUILTIN_OBJECTS, SimObjectConfig
     from tergodic_cli.config import from_dict, override, read_config
+    from tergodic_cli.errors import check_seed
     from tergodic_cli.progress import Spinner
 
     given = given_options(ctx)
@@ -92,6 +93,7 @@ def capture(
     if saved is not None:  # the saved capture, with the options given on this command line on top
         cfg = override(saved, cfg, given, {"from_file": ("path",), "sim_object": ("path", "synthetic"),
                                            "keep_isolated": ("drop_isolated",)})
+    check_seed(cfg.seed)  # also the simulated camera's, which runs before the pipeline's checks
     check_out_folder(out, overwrite)  # before any work: a refused --out costs nothing
     frame, configs = None, {"capture": cfg}  # a realsense camera's settings are in capture.json only
     if kind == "sim":

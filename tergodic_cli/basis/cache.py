@@ -20,6 +20,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -181,13 +182,34 @@ def array_checksum(a: np.ndarray) -> str:
 
 def _read_checked(path: Path, expected: str | None) -> np.ndarray:
     """A ``.npy`` of an entry, never unpickled; CacheMiss when unreadable or its checksum differs."""
+    _check_npy_size(path)
     try:
         a = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError, TypeError) as exc:
+    except (OSError, ValueError, EOFError, TypeError, MemoryError) as exc:
         raise CacheMiss(f"unreadable ({type(exc).__name__})") from None
     if array_checksum(a) != expected:
         raise CacheMiss("checksum mismatch (corrupt or modified)")
     return a
+
+
+def _check_npy_size(path: Path) -> None:
+    """CacheMiss, before anything is allocated, when the ``.npy`` header's shape and dtype do not
+    account for exactly the bytes after it (a damaged header can claim terabytes)."""
+    from numpy.lib import format as npy
+
+    try:
+        with open(path, "rb") as fh:
+            version = npy.read_magic(fh)
+            read_header = npy.read_array_header_1_0 if version == (1, 0) else npy.read_array_header_2_0
+            shape, _, dtype = read_header(fh, max_header_size=10_000)
+            body = os.fstat(fh.fileno()).st_size - fh.tell()
+    except (OSError, ValueError, EOFError, TypeError) as exc:
+        raise CacheMiss(f"unreadable header ({type(exc).__name__})") from None
+    if dtype.hasobject:
+        raise CacheMiss("holds Python objects (never unpickled)")
+    need = math.prod(shape) * dtype.itemsize
+    if need != body:
+        raise CacheMiss(f"its header claims {need} bytes of data ({dtype}, shape {shape}); the file holds {body}")
 
 
 _ARRAY_NAMES = ("points_order", "canonical_points", "evals", "evecs", "mass", "L_data", "L_indices", "L_indptr", "h")
