@@ -76,7 +76,8 @@ def capture(
     saved, sections = None, {}  # sections: the saved object and camera of a simulated capture
     if config is not None:
         sections = read_config(config, CAPTURE_CONFIG_KIND,
-                               "give the config.json that 'tergodic capture' wrote beside a capture")
+                               "give the config.json that 'tergodic capture' wrote beside a capture",
+                               sections=("capture", "object", "camera"))
         saved = CaptureConfig.from_dict(sections.get("capture"), f"--config {config}: capture")
     sourced = saved is not None and not given & {"source", "from_file", "synthetic", "sim_object"}
     kind = saved.source if sourced else _resolve_source(source, from_file, synthetic, sim_object)

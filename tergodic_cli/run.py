@@ -36,6 +36,8 @@ class StartSpec:
 
 #: ``config.json``: what repeats a run (``tergodic explore CAPTURE --config RUN/config.json``).
 RUN_CONFIG_KIND = "tergodic.run_config"
+#: Its sections (:func:`_run_config`).
+RUN_CONFIG_SECTIONS = ("capture", "explore", "starts", "robot", "robot_options", "log_cloud_every")
 
 
 def _run_config(run: _Run, log_cloud_every: int) -> dict:
@@ -78,7 +80,8 @@ def apply_saved(path, fields: dict, given: set, starts: StartSpec, robot: str, r
     """
     from tergodic_cli.config import from_dict, override, read_config
 
-    d = read_config(path, RUN_CONFIG_KIND, "give the config.json that 'tergodic explore' wrote beside a run")
+    d = read_config(path, RUN_CONFIG_KIND, "give the config.json that 'tergodic explore' wrote beside a run",
+                    sections=RUN_CONFIG_SECTIONS)
     where, fix = f"--config {path}", "use a config.json written by 'tergodic explore'"
     require(isinstance(d.get("robot_options") or {}, dict), f"{where}: robot_options is not a JSON object", fix)
     require(isinstance(d.get("log_cloud_every", 50), int), f"{where}: log_cloud_every is not an int", fix)
@@ -148,7 +151,7 @@ def find_basis(points: np.ndarray, nk: int, neighbors: int, cache_dir=None,
     """The cached basis of ``points`` with at least ``nk`` eigenpairs (truncated to ``nk``), or a
     freshly computed (and cached) one with ``nk``. Returns (basis, cache_hit)."""
     from tergodic_cli.basis import BasisConfig, get_basis
-    from tergodic_cli.basis.cache import default_cache_dir, geometry_key
+    from tergodic_cli.basis.cache import SOLVERS, default_cache_dir, geometry_key
 
     root = Path(cache_dir or default_cache_dir()) / "basis"
     candidates: set[tuple[int, str, str]] = set()
@@ -157,7 +160,7 @@ def find_basis(points: np.ndarray, nk: int, neighbors: int, cache_dir=None,
             meta = json.loads(meta_path.read_text())
             bcfg = meta["config"]
             if (int(meta["n_points"]) == len(points) and int(bcfg["neighbors"]) == neighbors
-                    and int(bcfg["nk"]) >= nk):
+                    and int(bcfg["nk"]) >= nk and bcfg.get("solver", BasisConfig.solver) in SOLVERS):
                 candidates.add((int(bcfg["nk"]), str(bcfg.get("solver", BasisConfig.solver)),
                                 meta_path.parent.name))
     for cand_nk, solver, key in sorted(candidates):
@@ -221,6 +224,7 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     run = _Run(capture_dir, cfg, backend or Kinematic(), starts, log, on_event or (lambda msg: None))
     require(log is None or log.cloud_every >= 1, f"--log-cloud-every must be >= 1, got {log and log.cloud_every}", "e.g. 50")
     folder = AtomicFolder(Path(out_dir), overwrite=overwrite, what="run", keep_partial=True, owned=RUN_FILES.__contains__)
+    check_backend_options(cfg, run.backend)
     folder.check()  # before any work: a refused --out costs nothing and touches nothing; locks --out
     try:
         for left in folder.leftovers():
@@ -279,9 +283,17 @@ def _faulted(summary: dict) -> bool:
 def dry_run_report(capture_dir: str | Path, cfg: ExploreConfig, backend, starts: StartSpec | None = None) -> str:
     """What a run on the hardware ``backend`` (:class:`Franka`) would do: the devices are connected
     and read, nothing moves and nothing is written. Returns the report (several lines)."""
+    check_backend_options(cfg, backend)
     capture, start_xyz = load_for_run(capture_dir, cfg, starts)
     backend.check(capture, start_xyz)
     return backend.dry_run(capture, start_xyz[0])
+
+
+def check_backend_options(cfg: ExploreConfig, backend) -> None:
+    """Refuse explore options the backend cannot honour: one arm follows one agent."""
+    require(backend.robot_cfg is None or cfg.n_agents == 1,
+            f"--agents {cfg.n_agents} with --robot {backend.name}: the arm follows one agent",
+            "drop --agents (or --agents 1), or use --robot kinematic for several agents")
 
 
 def load_for_run(capture_dir, cfg: ExploreConfig, starts: StartSpec | None):

@@ -95,6 +95,8 @@ REJECTED = [
     (("--log-cloud-every", "0"), "--log-cloud-every"),
     (("--start", "a,b,c"), "--start"),
     (("--nk", "100000"), "--nk"),
+    (("--robot", "pybullet", "--agents", "3"), "--agents 3 with --robot pybullet"),  # issue 27: drove into contact first
+    (("--seed", "-1"), "--seed must be a whole number >= 0"),
 ]
 
 

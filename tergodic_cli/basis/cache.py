@@ -37,7 +37,7 @@ from tergodic_cli.atomic import check_parent_writable
 from tergodic_cli.basis.core import Basis, compute_basis
 from tergodic_cli.capture.artefact import SIDECAR_SHA, sidecar_checksum
 from tergodic_cli.config import CONFIG_FILE, Config, write_config
-from tergodic_cli.errors import os_error
+from tergodic_cli.errors import os_error, require
 from tergodic_cli.progress import Spinner
 
 __all__ = ["BasisConfig", "CacheMiss", "array_checksum", "default_cache_dir", "geometry_key",
@@ -65,6 +65,18 @@ class BasisConfig(Config):
     nk: int = 200
     neighbors: int = 30
     solver: str = "lanczos-interior-shift"
+
+
+#: The eigensolvers a basis can name (the one :func:`~tergodic_cli.basis.eigensolvers.smallest_eigenpairs` runs).
+SOLVERS = ("lanczos-interior-shift",)
+
+
+def validate_basis_config(cfg: BasisConfig) -> None:
+    """Refuse, in one line, a basis config no solver can honour (a name that would only change the key)."""
+    require(cfg.solver in SOLVERS, f"unknown basis solver '{cfg.solver}'", f"use {' or '.join(SOLVERS)}")
+    require(isinstance(cfg.nk, int) and cfg.nk >= 1, f"--nk {cfg.nk} must be positive", "e.g. --nk 200")
+    require(isinstance(cfg.neighbors, int) and cfg.neighbors >= 3, f"--neighbors {cfg.neighbors} is too small",
+            "use at least 3 (default 30)")
 
 
 def default_cache_dir() -> Path:
@@ -282,6 +294,7 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
     -------
     (basis, hit) where ``hit`` is True when nothing was recomputed.
     """
+    validate_basis_config(cfg)
     say = on_event or (lambda msg: warnings.warn(msg, stacklevel=2))
     t0 = time.perf_counter()
     key, order, invariant, canon = geometry_key(points, cfg)
