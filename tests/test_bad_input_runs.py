@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import assert_one_line_error, run_cli
+from conftest import assert_one_line_error, default_signals, run_cli
 
 STEPS = "60"
 
@@ -230,7 +230,7 @@ def _interrupt(cap: Path, run: Path, sig: int) -> subprocess.CompletedProcess:
     exe = str(Path(sys.executable).with_name("tergodic"))
     proc = subprocess.Popen([exe, "explore", str(cap), "--steps", "2000000", "--nk", "30", "--log-cloud-every", "100000",
                              "--out", str(run)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "TERGODIC_NO_PROGRESS": "1"})
+                            env={**os.environ, "TERGODIC_NO_PROGRESS": "1"}, preexec_fn=default_signals)
     try:
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline and proc.poll() is None:  # until the log has steps in it

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import run_cli
+from conftest import default_signals, run_cli
 
 VERBS = ("capture", "precompute", "explore", "replay", "sweep")
 
@@ -130,7 +130,8 @@ def _start(args, wait_for: str | None, delay: float):
     """Start ``tergodic ARGS`` in its own process group (as a terminal does), once ready."""
     exe = Path(sys.executable).with_name("tergodic")
     proc = subprocess.Popen([str(exe), *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True, env={**os.environ, "TERGODIC_NO_PROGRESS": "1"})
+                            start_new_session=True, env={**os.environ, "TERGODIC_NO_PROGRESS": "1"},
+                            preexec_fn=default_signals)  # whatever the shell that started the suite ignores
     head = []
     if wait_for is not None:
         for line in proc.stderr:
