@@ -116,6 +116,32 @@ def test_gui_without_a_display_is_refused_before_pybullet(cap, good, monkeypatch
     good.check()
 
 
+def test_gui_with_a_display_that_names_no_x_server_is_refused(cap, good, monkeypatch):
+    """Issue 27: PyBullet ended the whole process when DISPLAY named no reachable X server."""
+    monkeypatch.setenv("DISPLAY", ":987")
+    res = explore(cap, good.path, "--overwrite", "--robot", "pybullet", "--gui")
+    assert_one_line_error(res, "DISPLAY=:987 names no X server that answers")
+    good.check()
+
+
+def test_a_listening_x_socket_counts_as_a_display(tmp_path):
+    import socket
+
+    from tergodic_cli.runlog.viewers import x_server_answers
+
+    sock_path = tmp_path / "X0"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as srv:
+        srv.bind(str(sock_path))
+        srv.listen(1)
+        assert x_server_answers(f"{sock_path}:0")
+    assert not x_server_answers(f"{sock_path}:0")  # closed: nothing answers
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as srv:  # Linux's abstract X socket
+        srv.bind("\0/tmp/.X11-unix/X4321")
+        srv.listen(1)
+        assert x_server_answers(":4321.0")
+    assert not x_server_answers("not a display")
+
+
 def test_existing_run_needs_overwrite(cap, good):
     assert_one_line_error(explore(cap, good.path), "already holds a run", "--overwrite")
     good.check()
