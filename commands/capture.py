@@ -69,7 +69,9 @@ def capture(
     from tergodic_cli.capture.artefact import CAPTURE_CONFIG_KIND, check_out_folder
     from tergodic_cli.capture.textured import BUILTIN_OBJECTS, SimObjectConfig
     from tergodic_cli.config import from_dict, override, read_config
-    from tergodic_cli.errors import check_seed
+    import os
+
+    from tergodic_cli.errors import check_seed, require
     from tergodic_cli.progress import Spinner
 
     given = given_options(ctx)
@@ -96,6 +98,9 @@ def capture(
                                            "keep_isolated": ("drop_isolated",)})
     check_seed(cfg.seed)  # also the simulated camera's, which runs before the pipeline's checks
     check_out_folder(out, overwrite)  # before any work: a refused --out costs nothing
+    if cfg.path is not None and kind == "file":  # an input inside the folder --overwrite replaces would go with it
+        require(not Path(os.path.abspath(cfg.path)).is_relative_to(os.path.abspath(out)),
+                f"--from {cfg.path} is inside --out {out}, which the capture replaces", "choose another --out")
     frame, configs = None, {"capture": cfg}  # a realsense camera's settings are in capture.json only
     if kind == "sim":
         from tergodic_cli.backends.pybullet.camera import SimCameraConfig, SimCaptureConfig, capture_sim

@@ -660,3 +660,8 @@ def test_npz_member_that_is_not_npy(tmp_path, good, cloud, member):
 
 def test_negative_seed(good):
     bad_capture(good, "--synthetic", "bowl", "--seed", "-1", needles=("--seed", ">= 0", "-1"))
+
+
+def test_an_input_inside_the_out_it_replaces_is_refused(tmp_path, good):
+    """--from GOOD/cloud.ply --out GOOD --overwrite would replace the folder its own input is in."""
+    bad_capture(good, "--from", good / "cloud.ply", needles=("cloud.ply", "is inside --out"))
