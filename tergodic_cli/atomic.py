@@ -51,7 +51,19 @@ def _file_error(exc: OSError, target: Path):
 def check_output_file(path: str | os.PathLike, overwrite: bool, option: str, inputs=()) -> None:
     """Refuse, before any work, an output file that is a folder, not a regular file (a FIFO, a
     device), one of the command's ``inputs``, lies under a file, sits in a folder we cannot write,
-    or exists without ``overwrite`` (it is then written atomically)."""
+    or exists without ``overwrite`` (it is then written atomically).
+
+    Parameters
+    ----------
+    path : path-like
+        The output file.
+    overwrite : bool
+        An existing regular file may be replaced.
+    option : str
+        The option that names it, for the one-line error.
+    inputs : iterable of path-like
+        The command's input files; the output may be none of them.
+    """
     shown = Path(path)
     target = Path(os.path.abspath(path))
     require(not target.is_dir(), f"{option} {shown} is a folder, not a file", f"choose another {option}")
@@ -66,8 +78,17 @@ def check_output_file(path: str | os.PathLike, overwrite: bool, option: str, inp
 
 
 def special_kind(path: Path) -> str | None:
-    """What an existing ``path`` is when it is neither a regular file nor a folder (a link is
-    followed): "FIFO", "socket", "device node"; None otherwise (also when it does not exist)."""
+    """What an existing ``path`` is when it is neither a regular file nor a folder (a link is followed).
+
+    Parameters
+    ----------
+    path : Path
+
+    Returns
+    -------
+    str or None
+        "FIFO", "socket" or "device node"; None otherwise (also when it does not exist).
+    """
     import stat
 
     try:
@@ -84,7 +105,17 @@ def special_kind(path: Path) -> str | None:
 
 
 def same_file(a, b) -> bool:
-    """``a`` and ``b`` name the same file (the same path, or the same inode through a link)."""
+    """Whether ``a`` and ``b`` name the same file.
+
+    Parameters
+    ----------
+    a, b : path-like
+
+    Returns
+    -------
+    bool
+        The same absolute path, or the same inode (through a link); False when one is missing.
+    """
     if os.path.abspath(a) == os.path.abspath(b):
         return True
     try:

@@ -260,15 +260,42 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
 
 
 def placed_line(placed: Path | None, out_dir: Path, what: str = "run") -> str:
-    """Where a run went: "the partial run is in RUN/", or, when it was put beside an earlier
-    complete run it must not replace, "RUN/ still holds the earlier run; this partial run is in RUN.partial-TIME/"."""
+    """Where a run went, as words for its message.
+
+    Parameters
+    ----------
+    placed : Path or None
+        The folder the run went to (``run_explore``'s ``placed["dir"]``).
+    out_dir : Path
+        The ``--out`` given.
+    what : str
+        What the run is called ("run", "partial run").
+
+    Returns
+    -------
+    str
+        "the partial run is in RUN/", or, when it was put beside an earlier complete run it
+        must not replace, "RUN/ still holds the earlier run; this partial run is in RUN.partial-TIME/".
+    """
     if not went_beside(placed, out_dir):
         return f"the {what} is in {out_dir}/"
     return f"{out_dir}/ still holds the earlier run; this {what} is in {Path(out_dir).parent / Path(placed).name}/"
 
 
 def went_beside(placed: Path | None, out_dir) -> bool:
-    """The run was put beside ``out_dir`` (an earlier complete run there was kept)."""
+    """Whether the run was put beside ``out_dir`` (an earlier complete run there was kept).
+
+    Parameters
+    ----------
+    placed : Path or None
+        Where the run went.
+    out_dir : path-like
+        The ``--out`` given.
+
+    Returns
+    -------
+    bool
+    """
     import os
 
     return placed is not None and Path(placed) != Path(os.path.abspath(out_dir))
@@ -290,7 +317,13 @@ def dry_run_report(capture_dir: str | Path, cfg: ExploreConfig, backend, starts:
 
 
 def check_backend_options(cfg: ExploreConfig, backend) -> None:
-    """Refuse explore options the backend cannot honour: one arm follows one agent."""
+    """Refuse explore options the backend cannot honour: one arm follows one agent.
+
+    Parameters
+    ----------
+    cfg : ExploreConfig
+    backend : Kinematic, PyBullet or Franka
+    """
     require(backend.robot_cfg is None or cfg.n_agents == 1,
             f"--agents {cfg.n_agents} with --robot {backend.name}: the arm follows one agent",
             "drop --agents (or --agents 1), or use --robot kinematic for several agents")

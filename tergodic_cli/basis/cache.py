@@ -72,7 +72,13 @@ SOLVERS = ("lanczos-interior-shift",)
 
 
 def validate_basis_config(cfg: BasisConfig) -> None:
-    """Refuse, in one line, a basis config no solver can honour (a name that would only change the key)."""
+    """Refuse, in one line, a basis config no solver can honour (a name that would only change the key).
+
+    Parameters
+    ----------
+    cfg : BasisConfig
+        nK >= 1, at least 3 neighbours, a solver in :data:`SOLVERS`; else :class:`TergodicError` (exit 2).
+    """
     require(cfg.solver in SOLVERS, f"unknown basis solver '{cfg.solver}'", f"use {' or '.join(SOLVERS)}")
     require(isinstance(cfg.nk, int) and cfg.nk >= 1, f"--nk {cfg.nk} must be positive", "e.g. --nk 200")
     require(isinstance(cfg.neighbors, int) and cfg.neighbors >= 3, f"--neighbors {cfg.neighbors} is too small",

@@ -31,8 +31,21 @@ def require_display() -> None:
 
 
 def x_server_answers(display: str, timeout: float = 1.0) -> bool:
-    """Whether the X server ``display`` names (":N", "host:N.S", "unix:N") accepts a connection:
-    its socket in /tmp/.X11-unix (or the abstract one) locally, TCP port 6000 + N on a host."""
+    """Whether the X server a ``DISPLAY`` names accepts a connection.
+
+    Parameters
+    ----------
+    display : str
+        ":N", "host:N.S", "unix:N" or "/path/to/socket:N".
+    timeout : float
+        Seconds to wait for a TCP connection.
+
+    Returns
+    -------
+    bool
+        Its socket in /tmp/.X11-unix (or Linux's abstract one) answers locally, or TCP port
+        6000 + N on a host.
+    """
     import re
     import socket
 

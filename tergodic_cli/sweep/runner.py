@@ -241,7 +241,17 @@ def _owned(name: str) -> bool:
 
 
 def grid_fingerprint(grid: Grid) -> str:
-    """sha256 of what a grid runs (objects, options, starts, steps, seed; not its file's path or comments)."""
+    """What a grid runs, as a fingerprint.
+
+    Parameters
+    ----------
+    grid : Grid
+
+    Returns
+    -------
+    str
+        sha256 of its objects, options, starts, steps and seed (not its file's path or comments).
+    """
     from dataclasses import asdict
 
     body = {k: v for k, v in asdict(grid).items() if k != "path"}
@@ -249,7 +259,20 @@ def grid_fingerprint(grid: Grid) -> str:
 
 
 def cap_jobs(jobs: int, on_event) -> int:
-    """``--jobs`` for local processes, at most the CPUs (more only queue and take memory), with a note."""
+    """``--jobs`` for local processes: at most the CPUs (more only queue and take memory).
+
+    Parameters
+    ----------
+    jobs : int
+        The workers asked for (>= 1).
+    on_event : callable
+        ``on_event(text)`` gets the note when they are capped.
+
+    Returns
+    -------
+    int
+        The workers to start.
+    """
     cpus = os.cpu_count() or 1
     if jobs > cpus:
         on_event(f"note: --jobs {jobs} is more than the {cpus} CPUs; using {cpus}")
