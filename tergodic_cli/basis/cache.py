@@ -224,10 +224,10 @@ def _check_npy_size(path: Path) -> None:
     except (OSError, ValueError, EOFError, TypeError) as exc:
         raise CacheMiss(f"unreadable header ({type(exc).__name__})") from None
     if dtype.hasobject:
-        raise CacheMiss("holds Python objects (never unpickled)")
+        raise CacheMiss("unreadable (it holds Python objects, never unpickled)")
     need = math.prod(shape) * dtype.itemsize
     if need != body:
-        raise CacheMiss(f"its header claims {need} bytes of data ({dtype}, shape {shape}); the file holds {body}")
+        raise CacheMiss(f"unreadable (its header claims {need} bytes of data, {dtype} of shape {shape}; the file holds {body})")
 
 
 _ARRAY_NAMES = ("points_order", "canonical_points", "evals", "evecs", "mass", "L_data", "L_indices", "L_indptr", "h")
