@@ -73,13 +73,17 @@ def capture(
     from tergodic_cli.capture.artefact import CAPTURE_CONFIG_KIND, check_out_folder
     from tergodic_cli.capture.textured import BUILTIN_OBJECTS, SimObjectConfig
     from tergodic_cli.config import from_dict, override, read_config
+    import os
+
+    from tergodic_cli.errors import check_seed, require
     from tergodic_cli.progress import Spinner
 
     given = given_options(ctx)
     saved, sections = None, {}  # sections: the saved object and camera of a simulated capture
     if config is not None:
         sections = read_config(config, CAPTURE_CONFIG_KIND,
-                               "give the config.json that 'tergodic capture' wrote beside a capture")
+                               "give the config.json that 'tergodic capture' wrote beside a capture",
+                               sections=("capture", "object", "camera"))
         saved = CaptureConfig.from_dict(sections.get("capture"), f"--config {config}: capture")
     sourced = saved is not None and not given & {"source", "from_file", "synthetic", "sim_object"}
     kind = saved.source if sourced else _resolve_source(source, from_file, synthetic, sim_object)
@@ -96,7 +100,11 @@ def capture(
     if saved is not None:  # the saved capture, with the options given on this command line on top
         cfg = override(saved, cfg, given, {"from_file": ("path",), "sim_object": ("path", "synthetic"),
                                            "keep_isolated": ("drop_isolated",)})
+    check_seed(cfg.seed)  # also the simulated camera's, which runs before the pipeline's checks
     check_out_folder(out, overwrite)  # before any work: a refused --out costs nothing
+    if cfg.path is not None and kind == "file":  # an input inside the folder --overwrite replaces would go with it
+        require(not Path(os.path.abspath(cfg.path)).is_relative_to(os.path.abspath(out)),
+                f"--from {cfg.path} is inside --out {out}, which the capture replaces", "choose another --out")
     frame, configs = None, {"capture": cfg}  # a realsense camera's settings are in capture.json only
     if kind == "sim":
         from tergodic_cli.backends.pybullet.camera import SimCameraConfig, SimCaptureConfig, capture_sim

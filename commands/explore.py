@@ -40,7 +40,7 @@ def explore(
     max_start_distance: float = typer.Option(0.02, "--max-start-distance", help="Refuse a start farther than this (metres) from the cloud; closer ones are projected."),
     config: Optional[Path] = typer.Option(None, "--config", help="Repeat a run: its RUN/config.json (explore config, start, seed, robot); options given beside it override it."),
     json_out: bool = typer.Option(False, "--json", help="Print summary.json to stdout."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing run folder at --out (whole, once the new run is complete)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing run folder at --out (whole, once the new run is complete; a run stopped by Ctrl-C, SIGTERM or a robot fault goes beside it, as RUN.interrupted-TIME or RUN.partial-TIME)."),
     force: Optional[float] = typer.Option(None, "--force", help="[robot] Desired contact force along the tool axis, N [default: 5]."),
     force_limit: Optional[float] = typer.Option(None, "--force-limit", help="[robot] Contact force that makes the robot retreat and stop, N [default: 3 x --force, at least 5]."),
     contact_force: Optional[float] = typer.Option(None, "--contact-force", help="[robot] Force that counts as touching (coverage is deposited above it), N [default: 20% of --force]."),
@@ -82,7 +82,8 @@ def explore(
     """
     live_at = _check_live(live, no_log or dry_run) if live is not None else None  # exit 2 before anything is written
     from tergodic_cli.explore import ExploreConfig
-    from tergodic_cli.run import RENAMED, LogSpec, StartSpec, apply_saved, dry_run_report, make_backend, run_explore
+    from tergodic_cli.run import (RENAMED, LogSpec, StartSpec, apply_saved, dry_run_report, make_backend, placed_line,
+                                  run_explore, went_beside)
     from tergodic_cli.commands._common import given_options, parse_floats
     from tergodic_cli.progress import echo as echo_err
 
@@ -108,12 +109,14 @@ def explore(
     if dry_run:
         typer.echo(dry_run_report(capture, cfg, backend, spec))
         return
+    placed: dict = {}
     summary = run_explore(capture, cfg, out, backend, spec, None if no_log else LogSpec(log_cloud_every, live_at),
-                          cache_dir, on_event=echo_err, overwrite=overwrite)
+                          cache_dir, on_event=echo_err, overwrite=overwrite, placed=placed)
+    where = placed_line(placed.get("dir"), out, "partial run")
     if summary.get("interrupted"):
         from tergodic_cli.errors import Terminated
 
-        echo_err(f"interrupted: the robot was made safe; partial run written to {out}/")
+        echo_err(f"interrupted: the robot was made safe; {where}")
         raise typer.Exit(143 if Terminated.received else 130)
     from tergodic_cli.robot.safety import fault_exit_code
 
@@ -121,7 +124,8 @@ def explore(
     if json_out:
         typer.echo(json.dumps(summary, indent=2))
     if code:
-        echo_err(f"robot stopped: {summary.get('stop_reason')}")
+        echo_err(f"robot stopped: {summary.get('stop_reason')}"
+                 + (f"; {where}" if went_beside(placed.get("dir"), out) else ""))
         raise typer.Exit(code)
     if json_out:
         return

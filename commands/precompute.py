@@ -32,7 +32,7 @@ def precompute(
       tergodic precompute cap2/ --config ~/.cache/tergodic/basis/KEY/config.json
     """
     from tergodic_cli.basis import BasisConfig, get_basis
-    from tergodic_cli.basis.cache import BASIS_CONFIG_KIND
+    from tergodic_cli.basis.cache import BASIS_CONFIG_KIND, validate_basis_config
     from tergodic_cli.capture import load_capture
     from tergodic_cli.capture.pipeline import check_size
     from tergodic_cli.commands._common import given_options
@@ -42,9 +42,10 @@ def precompute(
     bcfg = BasisConfig(nk=nk, neighbors=neighbors)
     if config is not None:  # the saved config, with --nk / --neighbors given on this command line on top
         d = read_config(config, BASIS_CONFIG_KIND,
-                        "give the config.json of a basis cache entry (see 'tergodic precompute --json')")
+                        "give the config.json of a basis cache entry (see 'tergodic precompute --json')", sections=("basis",))
         saved = BasisConfig.from_dict(d.get("basis"), f"--config {config}: basis")
         bcfg = override(saved, bcfg, given_options(ctx) & {"nk", "neighbors"})
+    validate_basis_config(bcfg)  # before the capture is read
     cap = load_capture(capture)
     check_size(capture, cap.n_points, max_points)
     basis, hit = get_basis(cap.points, bcfg, cache_dir, force=force, on_event=echo_err)

@@ -43,38 +43,50 @@ def replay(
       tergodic replay run/ --html run/report.html
     """
     from tergodic_cli.errors import TergodicError, require
-    from tergodic_cli.progress import Spinner, echo as echo_err
-    from tergodic_cli.runlog import read_run_log, resolve_log_path
-    from tergodic_cli.runlog.summary import (compare_with_file, format_state, format_table, recompute_summary,
-                                             state_at, to_json)
+    from tergodic_cli.runlog import resolve_log_path
 
     require(export in (None, "npz", "csv"), f"--export '{export}' is not a format", "use --export npz or --export csv")
     require(rerun is None or rerun.suffix == ".rrd", f"--rerun {rerun} does not end in .rrd", "e.g. --rerun run.rrd")
     if speed <= 0:
         raise TergodicError(f"--speed must be > 0, got {speed}", "e.g. --speed 2")
     from tergodic_cli.atomic import AtomicFolder, check_output_file
-    from tergodic_cli.runlog.export import export_series
-    from tergodic_cli.runlog.plots import plot_run
-    from tergodic_cli.runlog.report import write_html_report
-    from tergodic_cli.runlog.viewers import replay_gui, require_display, require_rerun, write_rerun
+    from tergodic_cli.runlog.viewers import require_display, require_rerun
 
-    # every output is checked before the (long) read, and built aside then renamed in
+    # every output is checked before the (long) read, and built aside then renamed in; none may be the log itself
+    path = resolve_log_path(run)
     if rerun is not None:
         require_rerun()
-        check_output_file(rerun, overwrite, "--rerun")
+        check_output_file(rerun, overwrite, "--rerun", inputs=(path,))
     if gui:
         require_display()
     if html is not None:
-        check_output_file(html, overwrite, "--html")
-    path = resolve_log_path(run)
+        check_output_file(html, overwrite, "--html", inputs=(path,))
     dest = None
     if export is not None:
         dest = export_out or path.parent / f"series.{export}"
-        check_output_file(dest, overwrite, "--export-out")
+        check_output_file(dest, overwrite, "--export-out", inputs=(path,))
     plots = AtomicFolder(plot, overwrite=overwrite, option="--plot", what="set of plots",
                          owned=lambda name: name.endswith(".png")) if plot is not None else None
-    if plots is not None:
-        plots.check()
+    try:
+        if plots is not None:
+            plots.check()
+        _replay(path, plots, plot, dest, export, rerun, html, step, gui, speed, json_out)
+    finally:
+        if plots is not None:
+            plots.release()
+
+
+def _replay(path, plots, plot, dest, export, rerun, html, step, gui, speed, json_out) -> None:
+    """The read and every output, once the outputs are checked (``plots`` locked)."""
+    from tergodic_cli.progress import Spinner, echo as echo_err
+    from tergodic_cli.runlog import read_run_log
+    from tergodic_cli.runlog.export import export_series
+    from tergodic_cli.runlog.plots import plot_run
+    from tergodic_cli.runlog.report import write_html_report
+    from tergodic_cli.runlog.summary import (compare_with_file, format_state, format_table, recompute_summary,
+                                             state_at, to_json)
+    from tergodic_cli.runlog.viewers import replay_gui, write_rerun
+
     need_clouds = plot is not None or rerun is not None or step is not None or gui or html is not None
     with Spinner(f"reading {path.name}"):
         data = read_run_log(path, clouds=need_clouds)

@@ -20,13 +20,16 @@ def sweep(
     no_plots: bool = typer.Option(False, "--no-plots", help="Skip the figures."),
     parquet: bool = typer.Option(False, "--parquet", help="Also write results.parquet (needs pyarrow)."),
     json_out: bool = typer.Option(False, "--json", help="Print the sweep summary (counts, files) as JSON."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace a folder holding another grid's sweep or files this sweep did not write (whole, once the new sweep is complete)."),
 ) -> None:
     """Run every combination of a grid, like the paper's parameter studies (Figs. 6-11).
 
     Each (object, nK) basis is computed once (the largest nK, then truncated). Finished runs
     are kept in OUT/runs/ and skipped when the command is run again, so an interrupted sweep
     resumes where it stopped; a finished run whose record does not verify (damaged, edited)
-    is run again, and said so. Results do not depend on the engine or the number of jobs.
+    is run again, and said so. A folder holding another grid's sweep, or files the sweep did not
+    write, is refused unless --overwrite; a second sweep into one folder is refused while the
+    first runs. --jobs is capped at the CPUs. Results do not depend on the engine or the number of jobs.
 
     GRID.toml:
 
@@ -59,7 +62,7 @@ def sweep(
 
     try:
         res = run_sweep(grid, out, jobs=jobs, engine=engine, address=address, cache_dir=cache_dir, plots=not no_plots,
-                        parquet=parquet, on_event=echo_err)
+                        parquet=parquet, on_event=echo_err, overwrite=overwrite)
     except KeyboardInterrupt as exc:
         from tergodic_cli.errors import Interrupted
 

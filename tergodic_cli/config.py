@@ -17,6 +17,8 @@ from pathlib import Path
 from tergodic_cli.errors import TergodicError, require
 
 CONFIG_FILE = "config.json"
+#: The layout version :func:`write_config` writes and :func:`read_config` reads.
+CONFIG_VERSION = 1
 
 
 def to_dict(config) -> dict:
@@ -140,10 +142,10 @@ def write_config(path: str | Path, kind: str, **sections) -> None:
     from tergodic_cli.atomic import write_json
 
     sections = {k: to_dict(v) for k, v in sections.items()}
-    write_json(Path(path), {"kind": kind, "version": 1, **sections})
+    write_json(Path(path), {"kind": kind, "version": CONFIG_VERSION, **sections})
 
 
-def read_config(path: str | Path, kind: str, fix: str) -> dict:
+def read_config(path: str | Path, kind: str, fix: str, sections: tuple[str, ...] | None = None) -> dict:
     """Read a ``config.json`` that :func:`write_config` wrote with ``kind``.
 
     Parameters
@@ -154,6 +156,8 @@ def read_config(path: str | Path, kind: str, fix: str) -> dict:
         The kind it must have.
     fix : str
         What to do instead, for the one-line error.
+    sections : tuple of str, optional
+        The top-level keys the kind has besides ``kind`` and ``version``; another one is refused.
 
     Returns
     -------
@@ -168,4 +172,11 @@ def read_config(path: str | Path, kind: str, fix: str) -> dict:
         raise TergodicError(f"--config {path} is not readable JSON ({type(exc).__name__})", fix) from None
     require(isinstance(d, dict) and d.get("kind") == kind, f"--config {path} is not a {kind.split('.')[-1].replace('_', ' ')}",
             fix)
+    version = d.get("version", CONFIG_VERSION)  # hand-written ones may leave it out
+    require(version == CONFIG_VERSION and not isinstance(version, bool), f"--config {path} has version {version!r}; this tergodic reads version {CONFIG_VERSION}",
+            "write it again with this tergodic (or use the tergodic that wrote it)")
+    if sections is not None:
+        unknown = sorted(set(d) - {"kind", "version", *sections})
+        if unknown:
+            raise TergodicError(f"--config {path} has an unknown key '{unknown[0]}'", f"it takes {', '.join(sections)}; {fix}")
     return d

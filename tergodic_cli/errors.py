@@ -31,6 +31,27 @@ def require(condition: bool, problem: str, fix: str | None = None) -> None:
         raise TergodicError(problem, fix)
 
 
+def check_seed(seed, option: str = "--seed") -> int:
+    """A seed as the random generators take it: a whole number >= 0 (numpy refuses a negative one
+    with a traceback).
+
+    Parameters
+    ----------
+    seed : int
+        The seed; anything else (negative, a float, a bool) raises :class:`TergodicError`.
+    option : str
+        How the seed is named in the one-line error.
+
+    Returns
+    -------
+    int
+        The seed.
+    """
+    ok = isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed < 2**63
+    require(ok, f"{option} must be a whole number >= 0, got {seed!r}", f"e.g. {option} 0")
+    return int(seed)
+
+
 class Terminated(KeyboardInterrupt):
     """SIGTERM, raised by the CLI's handler where the program is, so verbs clean up as on Ctrl-C."""
 

@@ -36,6 +36,8 @@ class StartSpec:
 
 #: ``config.json``: what repeats a run (``tergodic explore CAPTURE --config RUN/config.json``).
 RUN_CONFIG_KIND = "tergodic.run_config"
+#: Its sections (:func:`_run_config`).
+RUN_CONFIG_SECTIONS = ("capture", "explore", "starts", "robot", "robot_options", "log_cloud_every")
 
 
 def _run_config(run: _Run, log_cloud_every: int) -> dict:
@@ -78,7 +80,8 @@ def apply_saved(path, fields: dict, given: set, starts: StartSpec, robot: str, r
     """
     from tergodic_cli.config import from_dict, override, read_config
 
-    d = read_config(path, RUN_CONFIG_KIND, "give the config.json that 'tergodic explore' wrote beside a run")
+    d = read_config(path, RUN_CONFIG_KIND, "give the config.json that 'tergodic explore' wrote beside a run",
+                    sections=RUN_CONFIG_SECTIONS)
     where, fix = f"--config {path}", "use a config.json written by 'tergodic explore'"
     require(isinstance(d.get("robot_options") or {}, dict), f"{where}: robot_options is not a JSON object", fix)
     require(isinstance(d.get("log_cloud_every", 50), int), f"{where}: log_cloud_every is not an int", fix)
@@ -148,7 +151,7 @@ def find_basis(points: np.ndarray, nk: int, neighbors: int, cache_dir=None,
     """The cached basis of ``points`` with at least ``nk`` eigenpairs (truncated to ``nk``), or a
     freshly computed (and cached) one with ``nk``. Returns (basis, cache_hit)."""
     from tergodic_cli.basis import BasisConfig, get_basis
-    from tergodic_cli.basis.cache import default_cache_dir, geometry_key
+    from tergodic_cli.basis.cache import SOLVERS, default_cache_dir, geometry_key
 
     root = Path(cache_dir or default_cache_dir()) / "basis"
     candidates: set[tuple[int, str, str]] = set()
@@ -157,7 +160,7 @@ def find_basis(points: np.ndarray, nk: int, neighbors: int, cache_dir=None,
             meta = json.loads(meta_path.read_text())
             bcfg = meta["config"]
             if (int(meta["n_points"]) == len(points) and int(bcfg["neighbors"]) == neighbors
-                    and int(bcfg["nk"]) >= nk):
+                    and int(bcfg["nk"]) >= nk and bcfg.get("solver", BasisConfig.solver) in SOLVERS):
                 candidates.add((int(bcfg["nk"]), str(bcfg.get("solver", BasisConfig.solver)),
                                 meta_path.parent.name))
     for cand_nk, solver, key in sorted(candidates):
@@ -179,7 +182,8 @@ class LogSpec:
 
 def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path, backend=None,
                 starts: StartSpec | None = None, log: LogSpec | None = LogSpec(), cache_dir=None,
-                on_event: Callable[[str], None] | None = None, overwrite: bool = False) -> dict:
+                on_event: Callable[[str], None] | None = None, overwrite: bool = False,
+                placed: dict | None = None) -> dict:
     """Run one exploration through ``backend`` and write its artefacts.
 
     Parameters
@@ -202,13 +206,16 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     on_event : callable, optional
         ``on_event(text)`` for each event line.
     overwrite : bool
-        Replace an existing run folder.
+        Replace an existing run folder (only with a complete run: a run stopped by a robot fault
+        or an interrupt goes beside it, ``RUN.partial-TIME`` or ``RUN.interrupted-TIME``).
+    placed : dict, optional
+        Filled with ``placed["dir"]``: the folder the run went to.
 
     Returns
     -------
     dict
         The summary (``summary.json``). On Ctrl-C/SIGTERM the partial run (log marked interrupted)
-        is renamed into place and :class:`~tergodic_cli.errors.Interrupted` is raised.
+        is renamed into place (beside an earlier run) and :class:`~tergodic_cli.errors.Interrupted` is raised.
     """
     from tergodic_cli.atomic import AtomicFolder
     from tergodic_cli.explore.warm import compile_explorer
@@ -217,35 +224,109 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     run = _Run(capture_dir, cfg, backend or Kinematic(), starts, log, on_event or (lambda msg: None))
     require(log is None or log.cloud_every >= 1, f"--log-cloud-every must be >= 1, got {log and log.cloud_every}", "e.g. 50")
     folder = AtomicFolder(Path(out_dir), overwrite=overwrite, what="run", keep_partial=True, owned=RUN_FILES.__contains__)
-    folder.check()  # before any work: a refused --out costs nothing and touches nothing
-    run.capture, run.start_xyz = load_for_run(capture_dir, cfg, starts)
-    run.backend.check(run.capture, run.start_xyz)
-    run.cfg = run.backend.explore_config(cfg)
-    run.basis, run.hit = find_basis(run.capture.points, cfg.nk, cfg.basis_neighbors, cache_dir, on_event=run.event)
-    require(np.array_equal(run.basis.points, run.capture.points),
-            "the basis does not match the capture's points", "recompute it: tergodic precompute CAPTURE --force")
-    compile_explorer(run.say)  # numba compiles on first call: here, so no compile lands in a timed step
-    if run.backend.robot_cfg is not None and (line := robot_kernels_line()):
-        run.say(line)
-    run.explorer = Explorer(run.basis, run.capture.target, run.cfg, run.start_xyz, on_event=run.event)
+    check_backend_options(cfg, run.backend)
+    folder.check()  # before any work: a refused --out costs nothing and touches nothing; locks --out
     try:
+        for left in folder.leftovers():
+            run.say(f"note: {left} is left from a run that was killed; 'tergodic replay {left}' reads it, "
+                    f"'mv {left} NEWNAME' keeps it, or delete it")
+        run.capture, run.start_xyz = load_for_run(capture_dir, cfg, starts)
+        run.backend.check(run.capture, run.start_xyz)
+        run.cfg = run.backend.explore_config(cfg)
+        run.basis, run.hit = find_basis(run.capture.points, cfg.nk, cfg.basis_neighbors, cache_dir, on_event=run.event)
+        require(np.array_equal(run.basis.points, run.capture.points),
+                "the basis does not match the capture's points", "recompute it: tergodic precompute CAPTURE --force")
+        compile_explorer(run.say)  # numba compiles on first call: here, so no compile lands in a timed step
+        if run.backend.robot_cfg is not None and (line := robot_kernels_line()):
+            run.say(line)
+        run.explorer = Explorer(run.basis, run.capture.target, run.cfg, run.start_xyz, on_event=run.event)
         with folder as tmp:
-            return _write_run(tmp, run)
+            summary = _write_run(tmp, run)
+            # a run the robot stopped (fault, or an interrupt it absorbed) never replaces a complete one
+            folder.partial = "interrupted" if summary.get("interrupted") else "partial" if _faulted(summary) else None
     except KeyboardInterrupt as exc:
         if folder.kept:
             from tergodic_cli.errors import Interrupted
 
             word = "terminated" if getattr(exc, "exit_code", 130) == 143 else "interrupted"
-            raise Interrupted(f"{word}; the partial run is in {out_dir}/ (its log is marked interrupted)", exc) from None
+            raise Interrupted(f"{word}; {placed_line(folder.placed, Path(out_dir), 'partial run')} "
+                              f"(its log is marked interrupted)", exc) from None
         raise
+    finally:
+        folder.release()
+    if placed is not None:
+        placed["dir"] = folder.placed
+    return summary
+
+
+def placed_line(placed: Path | None, out_dir: Path, what: str = "run") -> str:
+    """Where a run went, as words for its message.
+
+    Parameters
+    ----------
+    placed : Path or None
+        The folder the run went to (``run_explore``'s ``placed["dir"]``).
+    out_dir : Path
+        The ``--out`` given.
+    what : str
+        What the run is called ("run", "partial run").
+
+    Returns
+    -------
+    str
+        "the partial run is in RUN/", or, when it was put beside an earlier complete run it
+        must not replace, "RUN/ still holds the earlier run; this partial run is in RUN.partial-TIME/".
+    """
+    if not went_beside(placed, out_dir):
+        return f"the {what} is in {out_dir}/"
+    return f"{out_dir}/ still holds the earlier run; this {what} is in {Path(out_dir).parent / Path(placed).name}/"
+
+
+def went_beside(placed: Path | None, out_dir) -> bool:
+    """Whether the run was put beside ``out_dir`` (an earlier complete run there was kept).
+
+    Parameters
+    ----------
+    placed : Path or None
+        Where the run went.
+    out_dir : path-like
+        The ``--out`` given.
+
+    Returns
+    -------
+    bool
+    """
+    import os
+
+    return placed is not None and Path(placed) != Path(os.path.abspath(out_dir))
+
+
+def _faulted(summary: dict) -> bool:
+    from tergodic_cli.robot.safety import fault_exit_code
+
+    return bool(fault_exit_code(summary))
 
 
 def dry_run_report(capture_dir: str | Path, cfg: ExploreConfig, backend, starts: StartSpec | None = None) -> str:
     """What a run on the hardware ``backend`` (:class:`Franka`) would do: the devices are connected
     and read, nothing moves and nothing is written. Returns the report (several lines)."""
+    check_backend_options(cfg, backend)
     capture, start_xyz = load_for_run(capture_dir, cfg, starts)
     backend.check(capture, start_xyz)
     return backend.dry_run(capture, start_xyz[0])
+
+
+def check_backend_options(cfg: ExploreConfig, backend) -> None:
+    """Refuse explore options the backend cannot honour: one arm follows one agent.
+
+    Parameters
+    ----------
+    cfg : ExploreConfig
+    backend : Kinematic, PyBullet or Franka
+    """
+    require(backend.robot_cfg is None or cfg.n_agents == 1,
+            f"--agents {cfg.n_agents} with --robot {backend.name}: the arm follows one agent",
+            "drop --agents (or --agents 1), or use --robot kinematic for several agents")
 
 
 def load_for_run(capture_dir, cfg: ExploreConfig, starts: StartSpec | None):

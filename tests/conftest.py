@@ -86,3 +86,13 @@ def jittered_square(m: int, side: float = 1.0, seed: int = 0) -> np.ndarray:
     pts = np.column_stack([x.ravel(), y.ravel(), np.zeros(m * m)])
     pts[:, :2] += np.random.default_rng(seed).uniform(-0.1, 0.1, (m * m, 2)) * side / m
     return pts
+
+
+def default_signals() -> None:
+    """``preexec_fn`` of a child whose test sends it SIGINT/SIGTERM: both at their default
+    disposition, whatever the shell that started the suite ignores (Python then installs its
+    Ctrl-C handler in the child)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)

@@ -641,3 +641,27 @@ def test_size_guard_default_limit_on_a_large_cloud(tmp_path):
     code, _, err = run("capture", "--from", tmp_path / "big.npz", "--voxel", "0", "--target", "all",
                        "--max-points", "600000", "--out", tmp_path / "big2")
     assert code == 0 and "warning" not in err
+
+
+@pytest.mark.parametrize("member", ["colors", "points.txt"])
+def test_npz_member_that_is_not_npy(tmp_path, good, cloud, member):
+    """np.load hands such a member back as raw bytes (a traceback further on, today)."""
+    import io
+    import zipfile
+
+    path = tmp_path / "odd.npz"
+    buf = io.BytesIO()
+    np.save(buf, cloud[0])
+    with zipfile.ZipFile(path, "w") as z:
+        z.writestr("points.npy", buf.getvalue())
+        z.writestr(member, b"1 2 3\n")
+    bad_capture(good, "--from", path, needles=("odd.npz", f"member '{member}'", "not a .npy array"))
+
+
+def test_negative_seed(good):
+    bad_capture(good, "--synthetic", "bowl", "--seed", "-1", needles=("--seed", ">= 0", "-1"))
+
+
+def test_an_input_inside_the_out_it_replaces_is_refused(tmp_path, good):
+    """--from GOOD/cloud.ply --out GOOD --overwrite would replace the folder its own input is in."""
+    bad_capture(good, "--from", good / "cloud.ply", needles=("cloud.ply", "is inside --out"))

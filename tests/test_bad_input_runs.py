@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import assert_one_line_error, run_cli
+from conftest import assert_one_line_error, default_signals, run_cli
 
 STEPS = "60"
 
@@ -95,6 +95,8 @@ REJECTED = [
     (("--log-cloud-every", "0"), "--log-cloud-every"),
     (("--start", "a,b,c"), "--start"),
     (("--nk", "100000"), "--nk"),
+    (("--robot", "pybullet", "--agents", "3"), "--agents 3 with --robot pybullet"),  # issue 27: drove into contact first
+    (("--seed", "-1"), "--seed must be a whole number >= 0"),
 ]
 
 
@@ -112,6 +114,32 @@ def test_gui_without_a_display_is_refused_before_pybullet(cap, good, monkeypatch
     assert_one_line_error(res, "no display", "--gui")
     assert "pybullet build time" not in res.out + res.err
     good.check()
+
+
+def test_gui_with_a_display_that_names_no_x_server_is_refused(cap, good, monkeypatch):
+    """Issue 27: PyBullet ended the whole process when DISPLAY named no reachable X server."""
+    monkeypatch.setenv("DISPLAY", ":987")
+    res = explore(cap, good.path, "--overwrite", "--robot", "pybullet", "--gui")
+    assert_one_line_error(res, "DISPLAY=:987 names no X server that answers")
+    good.check()
+
+
+def test_a_listening_x_socket_counts_as_a_display(tmp_path):
+    import socket
+
+    from tergodic_cli.runlog.viewers import x_server_answers
+
+    sock_path = tmp_path / "X0"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as srv:
+        srv.bind(str(sock_path))
+        srv.listen(1)
+        assert x_server_answers(f"{sock_path}:0")
+    assert not x_server_answers(f"{sock_path}:0")  # closed: nothing answers
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as srv:  # Linux's abstract X socket
+        srv.bind("\0/tmp/.X11-unix/X4321")
+        srv.listen(1)
+        assert x_server_answers(":4321.0")
+    assert not x_server_answers("not a display")
 
 
 def test_existing_run_needs_overwrite(cap, good):
@@ -228,7 +256,7 @@ def _interrupt(cap: Path, run: Path, sig: int) -> subprocess.CompletedProcess:
     exe = str(Path(sys.executable).with_name("tergodic"))
     proc = subprocess.Popen([exe, "explore", str(cap), "--steps", "2000000", "--nk", "30", "--log-cloud-every", "100000",
                              "--out", str(run)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "TERGODIC_NO_PROGRESS": "1"})
+                            env={**os.environ, "TERGODIC_NO_PROGRESS": "1"}, preexec_fn=default_signals)
     try:
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline and proc.poll() is None:  # until the log has steps in it

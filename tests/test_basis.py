@@ -298,3 +298,28 @@ def test_an_entry_another_process_wrote_meanwhile_stands(tmp_path, monkeypatch):
     cache_mod._write_entry(entry, {"h": np.zeros(())}, {"kind": "tergodic.basis"}, BasisConfig())
     assert (entry / "basis.json").read_text() == "{}"  # theirs stands
     assert [p.name for p in entry.parent.iterdir()] == ["k"]  # ours is gone
+
+
+@pytest.mark.parametrize("shape", [(10**12,), (3, 10**11), (7,)])
+def test_a_cache_header_claiming_another_size_is_refused_before_allocating(isolated_cache, shape):
+    """A .npy header edited to claim terabytes made every precompute fail (MemoryError) until --force;
+    it is checked against the file's size before anything is allocated, reported and recomputed."""
+    from numpy.lib import format as npy
+
+    pts = generate_synthetic("plate", "X", seed=0, spacing=0.004).points
+    cfg = BasisConfig(nk=12, neighbors=20)
+    basis, _ = get_basis(pts, cfg)
+    path = isolated_cache / "basis" / basis.meta["key"] / "evals.npy"
+    raw = path.read_bytes()
+    start = _npy_data_offset(path)
+    import io
+
+    head = io.BytesIO()
+    npy.write_array_header_1_0(head, {"descr": "<f8", "fortran_order": False, "shape": shape})
+    assert len(head.getvalue()) == start  # the same padded header length: only the shape differs
+    path.write_bytes(head.getvalue() + raw[start:])
+    messages = []
+    again, hit = get_basis(pts, cfg, on_event=messages.append)
+    assert not hit and any("header claims" in m for m in messages), messages
+    np.testing.assert_allclose(again.evals, basis.evals)
+    assert get_basis(pts, cfg)[1]  # the entry was rewritten whole

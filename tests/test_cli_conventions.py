@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import run_cli
+from conftest import default_signals, run_cli
 
 VERBS = ("capture", "precompute", "explore", "replay", "sweep")
 
@@ -130,7 +130,8 @@ def _start(args, wait_for: str | None, delay: float):
     """Start ``tergodic ARGS`` in its own process group (as a terminal does), once ready."""
     exe = Path(sys.executable).with_name("tergodic")
     proc = subprocess.Popen([str(exe), *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True, env={**os.environ, "TERGODIC_NO_PROGRESS": "1"})
+                            start_new_session=True, env={**os.environ, "TERGODIC_NO_PROGRESS": "1"},
+                            preexec_fn=default_signals)  # whatever the shell that started the suite ignores
     head = []
     if wait_for is not None:
         for line in proc.stderr:
@@ -162,9 +163,15 @@ def test_ctrl_c_on_a_sweep_is_one_line_with_how_to_resume_and_exit_130(tmp_path)
 @pytest.mark.parametrize("sig, code, word", [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated")])
 def test_interrupting_explore_is_one_line(tmp_path, sig, code, word):
     cap = Path(__file__).resolve().parents[1] / "data" / "bowl"
-    # three agents: a step costs ~3x, so the run is surely mid-loop at 4 s even on a fast, idle machine
+    # three agents: a step costs ~3x, so the run is still mid-loop once its log holds steps, on any machine
     proc, _ = _start(["explore", cap, "--steps", "400000", "--agents", "3", "--out", tmp_path / "run",
-                      "--cache-dir", tmp_path / "cache"], None, 4.0)
+                      "--cache-dir", tmp_path / "cache"], None, 0.0)
+    deadline = time.monotonic() + 300  # a loaded machine takes long to compute the basis: wait for the loop itself
+    while time.monotonic() < deadline and proc.poll() is None:
+        logs = list(tmp_path.glob(".run.tmp-*/run.mcap"))
+        if logs and logs[0].stat().st_size > 50_000:
+            break
+        time.sleep(0.05)
     got, out, err = _stop(proc, sig, group=sig == signal.SIGINT)
     assert got == code, (got, err)
     lines = [ln for ln in err.splitlines() if not ln.startswith("computing basis") and "cache" not in ln]

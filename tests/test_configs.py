@@ -129,6 +129,15 @@ def test_a_pybullet_run_repeats_with_its_robot_options_and_an_override_changes_i
     ("explore", '{"kind": "tergodic.run_config", "explore": {}, "robot": "pybullet", "robot_options": {"forse": 5}}',
      "unknown key 'forse'"),
     ("explore", '{"kind": "tergodic.run_config", "explore": {"steps": 2.5}}', "steps is not an int"),
+    # issue 27: accepted before
+    ("precompute", '{"kind": "tergodic.basis_config", "version": 1, "basis": {"solver": "magic"}}',
+     "unknown basis solver 'magic'"),
+    ("precompute", '{"kind": "tergodic.basis_config", "version": 99, "basis": {}}', "version 99"),
+    ("explore", '{"kind": "tergodic.run_config", "version": 99, "explore": {}}', "version 99"),
+    ("capture", '{"kind": "tergodic.capture_config", "version": 1, "capture": {}, "format_version": 99}',
+     "unknown key 'format_version'"),
+    ("explore", '{"kind": "tergodic.run_config", "version": 1, "explore": {}, "explorer": {}}', "unknown key 'explorer'"),
+    ("explore", '{"kind": "tergodic.run_config", "version": 1, "explore": {"seed": -4}}', "--seed must be"),
 ])
 def test_a_bad_config_is_one_line_and_writes_nothing(tmp_path, verb, content, needle):
     path = tmp_path / "config.json"

@@ -20,6 +20,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -36,7 +37,7 @@ from tergodic_cli.atomic import check_parent_writable
 from tergodic_cli.basis.core import Basis, compute_basis
 from tergodic_cli.capture.artefact import SIDECAR_SHA, sidecar_checksum
 from tergodic_cli.config import CONFIG_FILE, Config, write_config
-from tergodic_cli.errors import os_error
+from tergodic_cli.errors import os_error, require
 from tergodic_cli.progress import Spinner
 
 __all__ = ["BasisConfig", "CacheMiss", "array_checksum", "default_cache_dir", "geometry_key",
@@ -64,6 +65,24 @@ class BasisConfig(Config):
     nk: int = 200
     neighbors: int = 30
     solver: str = "lanczos-interior-shift"
+
+
+#: The eigensolvers a basis can name (the one :func:`~tergodic_cli.basis.eigensolvers.smallest_eigenpairs` runs).
+SOLVERS = ("lanczos-interior-shift",)
+
+
+def validate_basis_config(cfg: BasisConfig) -> None:
+    """Refuse, in one line, a basis config no solver can honour (a name that would only change the key).
+
+    Parameters
+    ----------
+    cfg : BasisConfig
+        nK >= 1, at least 3 neighbours, a solver in :data:`SOLVERS`; else :class:`TergodicError` (exit 2).
+    """
+    require(cfg.solver in SOLVERS, f"unknown basis solver '{cfg.solver}'", f"use {' or '.join(SOLVERS)}")
+    require(isinstance(cfg.nk, int) and cfg.nk >= 1, f"--nk {cfg.nk} must be positive", "e.g. --nk 200")
+    require(isinstance(cfg.neighbors, int) and cfg.neighbors >= 3, f"--neighbors {cfg.neighbors} is too small",
+            "use at least 3 (default 30)")
 
 
 def default_cache_dir() -> Path:
@@ -181,13 +200,34 @@ def array_checksum(a: np.ndarray) -> str:
 
 def _read_checked(path: Path, expected: str | None) -> np.ndarray:
     """A ``.npy`` of an entry, never unpickled; CacheMiss when unreadable or its checksum differs."""
+    _check_npy_size(path)
     try:
         a = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError, TypeError) as exc:
+    except (OSError, ValueError, EOFError, TypeError, MemoryError) as exc:
         raise CacheMiss(f"unreadable ({type(exc).__name__})") from None
     if array_checksum(a) != expected:
         raise CacheMiss("checksum mismatch (corrupt or modified)")
     return a
+
+
+def _check_npy_size(path: Path) -> None:
+    """CacheMiss, before anything is allocated, when the ``.npy`` header's shape and dtype do not
+    account for exactly the bytes after it (a damaged header can claim terabytes)."""
+    from numpy.lib import format as npy
+
+    try:
+        with open(path, "rb") as fh:
+            version = npy.read_magic(fh)
+            read_header = npy.read_array_header_1_0 if version == (1, 0) else npy.read_array_header_2_0
+            shape, _, dtype = read_header(fh, max_header_size=10_000)
+            body = os.fstat(fh.fileno()).st_size - fh.tell()
+    except (OSError, ValueError, EOFError, TypeError) as exc:
+        raise CacheMiss(f"unreadable header ({type(exc).__name__})") from None
+    if dtype.hasobject:
+        raise CacheMiss("unreadable (it holds Python objects, never unpickled)")
+    need = math.prod(shape) * dtype.itemsize
+    if need != body:
+        raise CacheMiss(f"unreadable (its header claims {need} bytes of data, {dtype} of shape {shape}; the file holds {body})")
 
 
 _ARRAY_NAMES = ("points_order", "canonical_points", "evals", "evecs", "mass", "L_data", "L_indices", "L_indptr", "h")
@@ -260,6 +300,7 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
     -------
     (basis, hit) where ``hit`` is True when nothing was recomputed.
     """
+    validate_basis_config(cfg)
     say = on_event or (lambda msg: warnings.warn(msg, stacklevel=2))
     t0 = time.perf_counter()
     key, order, invariant, canon = geometry_key(points, cfg)

@@ -77,7 +77,9 @@ def check_out_folder(out: str | Path, overwrite: bool) -> None:
     overwrite : bool
         An existing capture there may be replaced.
     """
-    _folder(out, overwrite).check()
+    folder = _folder(out, overwrite)
+    folder.check()
+    folder.release()  # save_capture takes the lock again for the write
 
 
 def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, extra=None,

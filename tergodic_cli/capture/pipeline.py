@@ -19,7 +19,7 @@ from tergodic_cli.capture.readers import read_cloud
 from tergodic_cli.capture.segment import parse_target, target_weight
 from tergodic_cli.capture.synthetic import check_noise, generate_synthetic
 from tergodic_cli.config import Config
-from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.errors import TergodicError, check_seed, require
 from tergodic_cli.progress import echo
 
 MIN_POINTS = 10
@@ -239,6 +239,7 @@ def _sample_mesh_file(cfg: CaptureConfig):
 
 
 def _validate_config(cfg: CaptureConfig) -> None:
+    check_seed(cfg.seed)
     noise = check_noise(cfg.noise)
     require(noise == 0 or cfg.source == "synthetic", f"--noise is for --synthetic objects, not a {cfg.source} cloud",
             "drop --noise (a camera's or a file's cloud has its own noise)")

@@ -274,6 +274,9 @@ class _Reader:
 
         try:
             with np.load(io.BytesIO(self.blob), allow_pickle=False) as data:
+                other = [n for n in data.zip.namelist() if not n.endswith(".npy")]  # np.load gives their raw bytes
+                if other:
+                    self.fail(f"member '{other[0]}'", "is not a .npy array", "save the cloud with np.savez(points=..., colors=...)")
                 if "points" not in data.files:
                     self.fail("", "no 'points' array", "save the cloud with np.savez(points=..., colors=...)")
                 points = data["points"]

@@ -6,7 +6,7 @@ import math
 from dataclasses import dataclass, field
 
 from tergodic_cli.config import Config
-from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.errors import TergodicError, check_seed, require
 
 DIFFUSIONS = ("carry", "source")
 INTEGRATORS = ("resolvent", "spectral", "implicit")
@@ -133,6 +133,7 @@ def validate_config(cfg: ExploreConfig) -> None:
     for opt, v, eg in (("--steps", cfg.steps, 1000), ("--nk", cfg.nk, 200), ("--agents", cfg.n_agents, 1)):
         require(int(v) >= 1, f"{opt} must be >= 1, got {v}", f"e.g. {opt} {eg}")
     parse_alpha(cfg.alpha)
+    check_seed(cfg.seed)
     for opt, v, unit, eg in (("--agent-radius", cfg.agent_radius, "metres", "0.0075 (7.5 mm)"),
                              ("--v-max", cfg.v_max, "m/s", "0.003"),
                              ("--a-max", cfg.a_max, "m/s²", "0.003"), ("--dt", cfg.dt, "s", "1")):

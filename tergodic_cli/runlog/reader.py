@@ -127,12 +127,28 @@ class RunLogData:
 def resolve_log_path(path: str | os.PathLike) -> Path:
     """``RUN_DIR`` -> ``RUN_DIR/run.mcap``; a file path is returned as it is."""
     p = Path(path)
-    require(p.exists(), f"{p} does not exist", _RUN_FIX)
+    if not p.exists():
+        left = _unfinished_siblings(p)
+        if left:  # a run killed by SIGKILL (or still running) stays in its temporary sibling
+            more = f" (and {len(left) - 1} more)" if len(left) > 1 else ""
+            raise TergodicError(f"{p} does not exist, but {left[0]}{more} beside it holds a run that did not finish "
+                                f"(killed, or still running)",
+                                f"read it with 'tergodic replay {left[0]}', or keep it as the run with "
+                                f"'mv {left[0]} {p}'")
+        raise TergodicError(f"{p} does not exist", _RUN_FIX)
     if p.is_dir():
         f = p / "run.mcap"
         require(f.exists(), f"{p} has no run.mcap", _RUN_FIX)
         return f
     return p
+
+
+def _unfinished_siblings(p: Path) -> list[Path]:
+    """The temporary folders (``.NAME.tmp-*``) of runs into ``p`` that never finished, newest first."""
+    with suppress(OSError):
+        found = [q for q in p.parent.glob(f".{p.name}.tmp-*") if q.is_dir()]
+        return sorted(found, key=lambda q: q.stat().st_mtime, reverse=True)
+    return []
 
 
 def _check_head(path: Path) -> None:
@@ -198,7 +214,7 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
                 if complete and _cut_magic(path, at):
                     truncated, note = True, "cut inside the closing magic"
                     break
-                if finished or complete or not _runs_past_end(path, at, size):
+                if finished or complete or not (_runs_past_end(path, at, size) or _unfinished_chunk(path, at, size)):
                     raise _corrupt(path, at, exc) from None
                 if not have_header:
                     raise TergodicError(f"{path} has a truncated header ({type(exc).__name__})",
@@ -314,6 +330,28 @@ def _runs_past_end(path: Path, at: int, size: int) -> bool:
         return True
     opcode, length = head[0], struct.unpack_from("<Q", head, 1)[0]
     return 0x01 <= opcode <= 0x0F and at + 9 + length > size
+
+
+_PLACEHOLDER_TOP = 0xFF  # the top byte of the writer's 2^64 - 1 placeholder sizes
+
+
+def _unfinished_chunk(path: Path, at: int, size: int) -> bool:
+    """The record at byte ``at`` is a chunk, the last record of the file, whose header the writer
+    had not finished: it writes a chunk's header with placeholder sizes (2^64 - 1), streams the
+    compressed records, then goes back to fill in the header and only then appends the message
+    indexes. A SIGKILL inside that short write (split at a page boundary) leaves the length filled
+    in but the compressed size still the placeholder (its top byte 0xFF, as no real size has):
+    a cut, not damage."""
+    fixed = 9 + 8 + 8 + 8 + 4 + 4  # opcode, length, start and end time, uncompressed size and crc, name length
+    head = _read_at(path, at, fixed)
+    if len(head) < fixed or head[0] != 0x06:
+        return False
+    length = struct.unpack_from("<Q", head, 1)[0]
+    name_len = struct.unpack_from("<I", head, fixed - 4)[0]
+    if at + 9 + length != size or name_len > 16:
+        return False
+    compressed = _read_at(path, at + fixed + name_len, 8)
+    return len(compressed) == 8 and compressed[7] == _PLACEHOLDER_TOP
 
 
 def _corrupt(path: Path, at: int, exc: BaseException | None, why: str = "") -> TergodicError:

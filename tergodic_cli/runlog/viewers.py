@@ -21,9 +21,54 @@ from tergodic_cli.runlog.reader import RunLogData
 def require_display() -> None:
     """One line (exit 2) unless a GUI window can open (an X or Wayland display on Linux)."""
     screen = os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+    fix = "run it on a desktop, or use --plot OUT_DIR / open run.mcap in Foxglove"
     if sys.platform.startswith("linux") and not screen:
-        raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)", "run it on a "
-                            "desktop, or use --plot OUT_DIR / open run.mcap in Foxglove")
+        raise TergodicError("no display: --gui needs a screen (DISPLAY is not set)", fix)
+    display = os.environ.get("DISPLAY")
+    if sys.platform.startswith("linux") and display and not x_server_answers(display):
+        # PyBullet ends the whole process when its window cannot open: asked here instead
+        raise TergodicError(f"no display: DISPLAY={display} names no X server that answers", fix)
+
+
+def x_server_answers(display: str, timeout: float = 1.0) -> bool:
+    """Whether the X server a ``DISPLAY`` names accepts a connection.
+
+    Parameters
+    ----------
+    display : str
+        ":N", "host:N.S", "unix:N" or "/path/to/socket:N".
+    timeout : float
+        Seconds to wait for a TCP connection.
+
+    Returns
+    -------
+    bool
+        Its socket in /tmp/.X11-unix (or Linux's abstract one) answers locally, or TCP port
+        6000 + N on a host.
+    """
+    import re
+    import socket
+
+    m = re.fullmatch(r"(.*):(\d+)(?:\.\d+)?", display.strip())
+    if m is None:
+        return False
+    host, n = m.group(1), int(m.group(2))
+    if host in ("", "unix") or host.startswith("/"):
+        paths = [host if host.startswith("/") else f"/tmp/.X11-unix/X{n}"]
+        for addr in (paths[0], "\0" + paths[0]):  # the file socket, then Linux's abstract one
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+                sock.settimeout(timeout)
+                try:
+                    sock.connect(addr)
+                    return True
+                except OSError:
+                    continue
+        return False
+    try:
+        with socket.create_connection((host, 6000 + n), timeout=timeout):
+            return True
+    except OSError:
+        return False
 
 
 def require_rerun() -> None:

@@ -12,7 +12,7 @@ import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
-from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.errors import TergodicError, check_seed, require
 from tergodic_cli.explore.config import ExploreConfig, validate_config
 
 #: Keys of an object table that say where its cloud comes from.
@@ -80,7 +80,7 @@ def load_grid(path: str | Path) -> Grid:
     require(isinstance(steps, int) and steps >= 1, f"{path.name}: steps must be an integer >= 1, got {steps!r}",
             "e.g. steps = 1000")
     seed = data.get("seed", 0)
-    require(isinstance(seed, int), f"{path.name}: seed must be an integer, got {seed!r}", "e.g. seed = 0")
+    check_seed(seed, f"{path.name}: seed")
     objs = data.get("objects")
     require(isinstance(objs, dict) and objs, f"{path.name}: no [objects.NAME] table",
             "add one, e.g. [objects.bunny] with file = \"bunny.ply\"")

@@ -229,31 +229,137 @@ def _execute(batches: list[dict], engine: str, jobs: int, address: str | None, o
 
 
 # ---------------------------------------------------------------------------------- the sweep
+#: The sweep's mark in its folder: the grid it runs (a folder of another grid, or of files it did
+#: not write, is refused unless --overwrite).
+MARKER = ".tergodic-sweep.json"
+#: What a sweep folder may hold; --overwrite replaces only a folder of these.
+SWEEP_NAMES = frozenset({MARKER, "results.csv", "results.parquet", "series.npz", "sweep.json", "runs", "objects"})
+
+
+def _owned(name: str) -> bool:
+    return name in SWEEP_NAMES or name.endswith(".png") or name.startswith(".results.tmp-")
+
+
+def grid_fingerprint(grid: Grid) -> str:
+    """What a grid runs, as a fingerprint.
+
+    Parameters
+    ----------
+    grid : Grid
+
+    Returns
+    -------
+    str
+        sha256 of its objects, options, starts, steps and seed (not its file's path or comments).
+    """
+    from dataclasses import asdict
+
+    body = {k: v for k, v in asdict(grid).items() if k != "path"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def cap_jobs(jobs: int, on_event) -> int:
+    """``--jobs`` for local processes: at most the CPUs (more only queue and take memory).
+
+    Parameters
+    ----------
+    jobs : int
+        The workers asked for (>= 1).
+    on_event : callable
+        ``on_event(text)`` gets the note when they are capped.
+
+    Returns
+    -------
+    int
+        The workers to start.
+    """
+    cpus = os.cpu_count() or 1
+    if jobs > cpus:
+        on_event(f"note: --jobs {jobs} is more than the {cpus} CPUs; using {cpus}")
+        return cpus
+    return jobs
+
+
+def _claim(out: Path, fingerprint: str, grid: Grid, overwrite: bool) -> bool:
+    """Whether the sweep runs in ``out`` itself (new, empty, or this grid's sweep: resumed) or, with
+    ``overwrite``, is built aside and swapped in (another grid's sweep, or files it did not write)."""
+    try:
+        names = sorted(p.name for p in out.iterdir()) if out.is_dir() else []
+    except OSError as exc:
+        raise TergodicError(f"cannot read --out {out}: {os_cause(exc)}", "choose another --out") from None
+    if not names:
+        return False
+    mark = None
+    with suppress(OSError, ValueError):
+        mark = json.loads((out / MARKER).read_text())
+    if isinstance(mark, dict) and mark.get("grid_sha256") == fingerprint:
+        return False  # the same grid: resumed
+    if overwrite:
+        return True
+    if isinstance(mark, dict):
+        raise TergodicError(f"--out {out} holds the sweep of another grid ({mark.get('grid', '?')}); a sweep never "
+                            "mixes two grids", "choose another --out, or pass --overwrite to replace it")
+    raise TergodicError(f"--out {out} holds files this sweep did not write ({names[0]}{', ...' if len(names) > 1 else ''})",
+                        "choose another --out (a new or empty folder), or pass --overwrite to replace them")
+
+
 def run_sweep(grid_path: str | Path, out: str | Path, jobs: int | None = None, engine: str = "joblib",
               address: str | None = None, cache_dir=None, plots: bool = True, parquet: bool = False,
-              on_event: Callable[[str], None] | None = None) -> SweepResult:
-    """Run (or resume) the sweep of ``grid_path`` into ``out``; see the module docstring."""
-    from tergodic_cli.atomic import AtomicFolder, write_json, write_npz
-    from tergodic_cli.progress import track
-    from tergodic_cli.provenance import library_versions
-    from tergodic_cli.run import find_basis
+              on_event: Callable[[str], None] | None = None, overwrite: bool = False) -> SweepResult:
+    """Run (or resume) the sweep of ``grid_path`` into ``out``; see the module docstring.
+
+    ``out`` is locked for the sweep (a second sweep into it is refused). A folder holding another
+    grid's sweep, or files the sweep did not write, is refused unless ``overwrite``: the new sweep
+    is then built in a temporary sibling and replaces it whole once complete.
+    """
+    from tergodic_cli.atomic import AtomicFolder
 
     say = on_event or (lambda msg: None)
-    t_start = time.perf_counter()
     require(engine in ENGINES, f"--engine '{engine}' is unknown", f"use one of {', '.join(ENGINES)}")
     if jobs is None:
         jobs = -1 if engine == "ray" else (os.cpu_count() or 1)
     require(jobs == -1 or jobs >= 1, f"--jobs must be >= 1 (or -1: all CPUs), got {jobs}", "e.g. --jobs 2")
+    if engine == "joblib":
+        jobs = cap_jobs(jobs, say)
     grid = load_grid(grid_path)
     out = Path(out)
-    # before any work: a file, a path under a file, a folder we cannot write (it is resumed in place)
-    AtomicFolder(out, overwrite=True, what="sweep").check(renamed=False)
-    if engine == "ray":  # refuse early, before any work, when Ray is missing
-        try:
-            import ray  # noqa: F401
-        except ImportError:
-            raise TergodicError("--engine ray needs Ray, which is not installed",
-                                "pip install 'ray>=2.9' (or use --engine joblib)") from None
+    # before any work: a file, a path under a file, a folder we cannot write; the lock is held to the end
+    folder = AtomicFolder(out, overwrite=True, what="sweep", owned=_owned)
+    folder.check(renamed=False)
+    try:
+        fingerprint = grid_fingerprint(grid)
+        replace = _claim(out, fingerprint, grid, overwrite)
+        if engine == "ray":  # refuse early, before any work, when Ray is missing
+            try:
+                import ray  # noqa: F401
+            except ImportError:
+                raise TergodicError("--engine ray needs Ray, which is not installed",
+                                    "pip install 'ray>=2.9' (or use --engine joblib)") from None
+        args = (grid, fingerprint, jobs, engine, address, cache_dir, plots, parquet, say)
+        if not replace:
+            return _sweep_into(out, *args)
+        folder.check()  # only a sweep's files are replaced (never, say, a home folder given as --out)
+        say(f"sweep: building the new sweep beside {out} and replacing it once complete")
+        with folder as stage:
+            result = _sweep_into(stage, *args)
+        result.out = out
+        return result
+    finally:
+        folder.release()
+
+
+def _sweep_into(out: Path, grid: Grid, fingerprint: str, jobs: int, engine: str, address, cache_dir, plots: bool,
+                parquet: bool, say) -> SweepResult:
+    """The sweep, in ``out`` (claimed: new, or this grid's)."""
+    from tergodic_cli.atomic import write_json, write_npz
+    from tergodic_cli.progress import track
+    from tergodic_cli.provenance import library_versions
+    from tergodic_cli.run import find_basis
+
+    t_start = time.perf_counter()
+    if not (out / MARKER).exists():
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(out / MARKER, {"grid": str(grid.path), "grid_sha256": fingerprint})
 
     objects = []
     for spec in grid.objects:
