@@ -11,11 +11,11 @@ paced:
 - *culled*: a part is queried against a body only when its bounding ball comes within ``QUERY_M``
   of it (the table's plane, the stand's box, the object's vertices less its longest triangle edge);
 - *paced by the fastest part* (conservative advancement): after a check, the next one comes when the
-  fastest part could have closed its gap to the nearest obstacle plus ``DEPTH_M``:
-  ``(gap + DEPTH_M) / v`` with ``v`` = |v| + |ω| · (reach of the part from its link's centre of mass),
-  at least every ``MAX_TICKS`` physics steps (20 ms: 2 m/s² of unseen acceleration moves a point
-  0.4 mm) and at most every tick. A contact is therefore found before it is deeper than ``DEPTH_M`` +
-  the 1 mm hull margin.
+  fastest part could have closed its gap to the nearest obstacle plus ``DEPTH_M``, moving at its
+  present speed ``v`` = |v| + |ω| · (reach of the part from its link's centre of mass) and
+  accelerating at ``A_MAX``: ``v t + A_MAX t² / 2 = gap + DEPTH_M``; at least every ``MAX_TICKS``
+  physics steps and at most every tick. A contact is therefore found before it is deeper than
+  ``DEPTH_M`` + the 1 mm hull margin.
 
 The sponge's ball against the object is the tool's contact, never an arm contact; the ball against the
 table or the stand is one once it sinks deeper than the foam does at the force limit (a captured
@@ -33,10 +33,13 @@ from scipy.spatial import cKDTree
 
 #: Metres a contact may deepen between two checks (with the hulls' 1 mm margin: found within ~3 mm).
 DEPTH_M = 0.002
-#: Metres within which a part's bounding ball must come of a body to be queried exactly.
-QUERY_M = 0.02
-#: Physics steps between checks at most (20 ms) and m/s below which a part counts as that slow.
-MAX_TICKS, V_FLOOR = 20, 0.02
+#: Metres within which a part's bounding ball must come of a body to be queried exactly (the query's
+#: cost grows with it: the trimesh's triangles within it are tested).
+QUERY_M = 0.01
+#: Physics steps between checks at most (0.1 s), m/s below which a part counts as that slow, and the
+#: acceleration (m/s²) a part's point is assumed to reach at most between checks (a set-up move's
+#: min-jerk peak, at the TCP speed it is planned for, is 0.1 m²/s² / its length: 2 m/s² for 5 cm).
+MAX_TICKS, V_FLOOR, A_MAX = 100, 0.02, 5.0
 #: Metres kept free around the robot's base in the table (the base stands in a hole).
 BASE_MARGIN = 0.01
 #: The table: a slab, top face at z = 0, this half-size (m) about the base and thick.
@@ -252,7 +255,7 @@ class ArmCollision:
         speed = np.linalg.norm(V[rows], axis=1) + np.linalg.norm(W[rows], axis=1) * (
             np.linalg.norm(C - com, axis=1) + self._radius)
         bounds = self._lower_bounds(C, self._radius)
-        gap = np.full(len(self.parts), np.inf)
+        gap = np.full(len(self.parts), np.inf)  # per part, a lower bound of its distance to every body
         found = []
         for name, lb in bounds.items():
             body = self.bodies[name]
@@ -260,7 +263,8 @@ class ArmCollision:
             if name == "object":
                 near &= ~self._sponge
                 lb = np.where(self._sponge, np.inf, lb)  # the ball on the object: the tool's own contact
-            gap = np.minimum(gap, lb)
+            gap_q = gap.copy()  # the queried parts' gap to this body comes from the query, not the bound
+            gap = np.minimum(gap, np.where(near, np.inf, lb))
             for i in np.flatnonzero(near):
                 pt = self.parts[i]
                 pos, orn = p.multiplyTransforms(X[rows[i]].tolist(), quats[rows[i]], pt.pos.tolist(), pt.orn,
@@ -268,15 +272,18 @@ class ArmCollision:
                 self.stats.pairs += 1
                 res = p.getClosestPoints(-1, body, QUERY_M, collisionShapeA=pt.shape, collisionShapePositionA=pos,
                                          collisionShapeOrientationA=orn, physicsClientId=cid)
-                d = min((r[8] for r in res), default=QUERY_M)
-                gap[i] = min(gap[i], d) if d < QUERY_M else gap[i]
+                d = min((r[8] for r in res), default=QUERY_M)  # nothing within QUERY_M: at least that far
+                gap[i] = min(gap_q[i], d + (self.sponge_sink if pt.sponge else 0.0))  # the gap to a fault
+                gap_q[i] = gap[i]
                 if d < (-self.sponge_sink if pt.sponge else 0.0):
                     hit = min(res, key=lambda r: r[8])
                     found.append((pt.name, name, -float(d), np.array(hit[6])))
-        # Conservative advancement: no part can close its gap (+ DEPTH_M) before the next check.
+        # Conservative advancement: no part can close its gap (+ DEPTH_M) before the next check, moving at
+        # its speed now and accelerating at A_MAX: v t + A_MAX t² / 2 = gap + DEPTH_M.
         v = np.maximum(speed, V_FLOOR)
-        ticks = float(np.min(np.floor((np.maximum(gap, 0.0) + DEPTH_M) / (v * sc.dt))))
-        self.countdown = int(max(1, min(MAX_TICKS, ticks)))
+        reach = np.maximum(gap, 0.0) + DEPTH_M
+        t = (np.sqrt(v * v + 2.0 * A_MAX * reach) - v) / A_MAX
+        self.countdown = int(max(1, min(MAX_TICKS, float(np.min(np.floor(t / sc.dt))))))
         st = self.stats
         st.checks += 1
         for part, body, depth, _ in found:
@@ -328,9 +335,9 @@ def _matrix_quat(R: np.ndarray) -> list[float]:
 def _quats_matrices(q: np.ndarray) -> np.ndarray:
     """(n, 3, 3) rotation matrices of quaternions (n, 4) xyzw."""
     x, y, z, w = q.T
-    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-                     np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-                     np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], 1)
+    return np.column_stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+                            2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+                            2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]).reshape(-1, 3, 3)
 
 
 def stand_box(vertices_base: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
