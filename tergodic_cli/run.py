@@ -391,11 +391,13 @@ def _write_run(out: Path, run: _Run) -> dict:
                     _log_cloud(runlog, explorer, step)
 
         robot_extra = run.backend.drive(run.capture, explorer, cfg.steps, after_step, event_hook, runlog) or {}
-        if recorder.count == 0:  # a robot fault before the first step: exit 3 (RobotStopped), as after one
+        if recorder.count == 0 and robot_extra.get("final_state") != "stopped":
             from tergodic_cli.errors import RobotStopped
 
             raise RobotStopped(f"the run made no explorer step (robot stopped: {robot_extra.get('stop_reason') or 'unknown reason'})",
                                "see the robot's events above; adjust --force, --object-pose or --workspace")
+        # A robot fault before the first step is written like one after it (its events, summary and
+        # log; the command exits 3 with the reason): the run folder says what happened and replays.
         if runlog is not None and recorder.count % spec.cloud_every and recorder.count != cfg.steps:
             _log_cloud(runlog, explorer, recorder.count)  # a robot run that stopped early
 
@@ -615,8 +617,12 @@ class RunRecorder:
                           m["touched_fraction"], ex.last_step_ms))
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """The per-step arrays by name (after at least one step)."""
-        vecs, rows = np.array(self.vecs, dtype=np.float64), np.array(self.rows, dtype=np.float64)
+        """The per-step arrays by name (empty, of the same shapes, before the first step)."""
+        if not self.rows:  # a robot stopped before the first step: empty series of the right shapes
+            shape = (0, len(VEC_FIELDS), *np.shape(self.ex.positions))
+            vecs, rows = np.zeros(shape), np.zeros((0, len(SCALAR_FIELDS)))
+        else:
+            vecs, rows = np.array(self.vecs, dtype=np.float64), np.array(self.rows, dtype=np.float64)
         return {**{k: vecs[:, i] for i, k in enumerate(VEC_FIELDS)},
                 **{k: rows[:, i] for i, k in enumerate(SCALAR_FIELDS)}}
 

@@ -122,10 +122,11 @@ def test_stop_policy_never_holds_in_contact():
 
 
 def test_cli_exits_3_on_a_workspace_fault(tmp_path):
-    """Through the real CLI: a workspace box that cuts the bowl in half; the agent's target leaves it."""
+    """Through the real CLI: a workspace box that cuts the bowl's reachable bottom in half (its steep wall,
+    where the hand would hit the rim, is dropped); the agent's target leaves it."""
     bowl = REPO / "data" / "bowl"
-    res = run_cli("explore", bowl, "--robot", "pybullet", "--steps", "120", "--nk", "60", "--start=-0.01,0,0",
-                  "--workspace", "0.15,-0.6,-0.01,0.53,0.6,0.9", "--no-log", "--json", "--out", tmp_path / "run")
+    res = run_cli("explore", bowl, "--robot", "pybullet", "--steps", "120", "--nk", "60", "--start=-0.02,0,0",
+                  "--workspace", "0.15,-0.6,-0.01,0.50,0.6,0.9", "--no-log", "--json", "--out", tmp_path / "run")
     assert res.code == 3, res.err[-2000:]
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["final_state"] == "stopped" and "workspace" in summary["stop_reason"]

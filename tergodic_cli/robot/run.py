@@ -35,7 +35,7 @@ from tergodic_cli.robot.controller import guarded_approach_speed
 from tergodic_cli.robot.ga import matrix_to_quat, point_line_distance, pose_matrix
 from tergodic_cli.robot.reach import tool_rotation
 from tergodic_cli.robot.interfaces import LineTarget
-from tergodic_cli.robot.safety import Fault, SafetyGuard, fmt_xyz, resolve_stop
+from tergodic_cli.robot.safety import CONTACT_STATES, Fault, SafetyGuard, fmt_xyz, resolve_stop
 from tergodic_cli.robot.summary import SETTLE_S as STEADY_S, summarize_robot
 from tergodic_cli.robot.surface import oriented_normals, resolve_side, transform_points
 
@@ -47,6 +47,8 @@ PRESS_RAMP_S = 0.5
 #: Seconds the force must stay within 10 % of F_d before the approach hands over to exploring.
 SETTLED_S = 0.05
 RETREAT_TIMEOUT_S = 3.0
+#: Retreats after a fault at most, while anything still touches (an arm part the first lift did not free).
+LIFTS = 3
 #: Degrees between the tool axis and the surface normal in contact above which the run lifts the tool
 #: and stops (issue 15: never press at a large angle; following the normal, the median is ~1 deg).
 CONTACT_TILT_MAX_DEG = 15.0
@@ -300,6 +302,8 @@ class ContactRun:
     def check(self, obs) -> Fault | None:
         """The guard's checks on one observation (the backend's own fault first)."""
         reason = self.arm.fault()
+        if isinstance(reason, Fault):  # e.g. the simulation's whole-arm contact: the backend's own fault
+            return reason
         if reason is not None:
             return Fault("robot", "stop", reason, obs.state.t)
         st, g = obs.state, self.guard
@@ -337,17 +341,22 @@ class ContactRun:
     def _stop(self, fault: Fault, step: int) -> None:
         """Make the robot safe after ``fault`` and end the run (raises :class:`_Stop`).
 
-        In contact (approach, explore) every fault lifts the tool along its axis without reading
-        the sensor (:func:`~tergodic_cli.robot.safety.stop_action`), then holds, lifted."""
-        fault = resolve_stop(fault, self.sm.state)
+        In contact (approach, explore, a retreat) or touching anything (a set-up move that ran into
+        something) every fault lifts the tool along its axis without reading the sensor or checking
+        (:func:`~tergodic_cli.robot.safety.stop_action`; a fault during a retreat finishes it, from
+        where the tool is, along its own axis), until nothing touches, then holds, lifted. In free
+        space a fault holds position."""
+        fault = resolve_stop(fault, self.sm.state, self._touching())
         self.ts[Kn.TS_COUNT] = 0.0
         self.fault = fault
         self.stop_reason = fault.reason
         try:
-            if fault.action == "retreat" and self.sm.state != S.RETREAT:
-                self.sm.go(S.RETREAT, self.t, step, fault.reason)
-                T = self.arm.get_observation(sensor=False).state.ee_pose
-                self._retreat(T[:3, 3].copy(), T[:3, 2].copy(), step, checks=False, sensor=False)
+            if fault.action == "retreat":
+                if self.sm.state != S.RETREAT:
+                    self.sm.go(S.RETREAT, self.t, step, fault.reason)
+                else:
+                    self.on_event(step, f"robot: a fault during the retreat ({fault.reason}); finishing the lift")
+                self._lift(step)
                 self.arm.hold(HOLD_S)
                 self.sm.go(S.STOPPED, self.t, step, "retreated after a fault; holding still")
             elif fault.action == "stop":  # the robot's own controller stopped it
@@ -360,6 +369,23 @@ class ContactRun:
         finally:
             self.arm.stop()
         raise _Stop(fault.reason)
+
+    def _touching(self) -> bool:
+        """Whether the backend sees anything touching (the simulation: sponge or any arm part); False
+        where it cannot tell."""
+        touching = getattr(self.arm, "touching", None)
+        return bool(touching()) if touching is not None else False
+
+    def _lift(self, step: int) -> None:
+        """After a fault: back off along the tool's own axis from where it is, unchecked and without the
+        sensor, and again (LIFTS times at most) while anything still touches."""
+        for _ in range(LIFTS):
+            T = self.arm.get_observation(sensor=False).state.ee_pose
+            self._retreat(T[:3, 3].copy(), T[:3, 2].copy(), step, checks=False, sensor=False)
+            if not self._touching():
+                return
+        self.on_event(step, "robot: still touching after lifting the tool "
+                            f"{LIFTS * max(self.cfg.retreat_distance, self.cfg.hover_height) * 1e3:.0f} mm")
 
     def _retreat(self, a: np.ndarray, d: np.ndarray, step: int, checks: bool = True, sensor: bool = True) -> None:
         """Back the tool off along the line (a, d) by ``retreat_distance`` (at least the hover height,
@@ -626,7 +652,7 @@ class ContactRun:
 
     def _fault_sample(self, fault: Fault, step: int, obs, a, d, on_step, record: bool) -> None:
         """Record and emit the sample of the step a fault interrupted, then make the robot safe."""
-        fault = resolve_stop(fault, self.sm.state)  # the sample names what is done about it
+        fault = resolve_stop(fault, self.sm.state, self._touching())  # the sample names what is done about it
         self.emit_deferred()
         if record:
             self.samples.append(self._sample(step, obs, a, d, stop_reason=fault.reason))
@@ -791,7 +817,7 @@ class ContactRun:
         if self.sm.finished or state == S.HOLD:  # already stopping or stopped
             self.stop_reason = self.stop_reason or reason
             return
-        contact = state in (S.APPROACH, S.EXPLORE)
+        contact = state in CONTACT_STATES or self._touching()
         fault = Fault("interrupt", "retreat" if contact else "hold",
                       f"{reason}; {'retreating' if contact else 'holding position'}", self.t)
         try:

@@ -8,7 +8,8 @@ one-line reason and the action that makes the robot safe:
 - "hold": hold the present joint position, then stop (limits, workspace, a stalled
   explorer, a silent sensor: moving anywhere would act on bad information).
 
-:func:`stop_action` overrides "hold" while the tool may touch the object (approach, explore):
+:func:`stop_action` overrides "hold" while the tool may touch the object (approach, explore, a
+retreat not finished) or anything touches (a set-up move that ran into something):
 the tool first lifts along its axis under position control, which needs no force reading, since
 a hold while pressed leaves a force nobody watches any more (issue 15).
 """
@@ -62,26 +63,28 @@ class Fault:
     data: dict = field(default_factory=dict)
 
 
-#: States in which the tool may be pressed on the object.
-CONTACT_STATES = ("approach", "explore")
+#: States in which the tool may be pressed on the object (a retreat is still lifting it off).
+CONTACT_STATES = ("approach", "explore", "retreat")
 #: Exit code of a run that ended on a fault, made safe.
 FAULT_EXIT_CODE = 3
 
 
-def stop_action(fault: Fault, state: str) -> str:
+def stop_action(fault: Fault, state: str, touching: bool = False) -> str:
     """How to make the robot safe after ``fault`` in state ``state``: "retreat", "hold" or "stop"
-    (the robot's own controller already stopped it). Never "hold" while the tool may be pressed."""
+    (the robot's own controller already stopped it). Never "hold" while the tool may be pressed
+    (approach, explore, a retreat not finished) or while anything touches (``touching``: a set-up
+    move that ran into something)."""
     if fault.action == "stop":
         return "stop"
-    if state in CONTACT_STATES:
+    if state in CONTACT_STATES or touching:
         return "retreat"
     return fault.action
 
 
-def resolve_stop(fault: Fault, state: str) -> Fault:
+def resolve_stop(fault: Fault, state: str, touching: bool = False) -> Fault:
     """``fault`` with the action of :func:`stop_action` and, when that lifts instead of holding,
     the reason saying so."""
-    action = stop_action(fault, state)
+    action = stop_action(fault, state, touching)
     if action == fault.action:
         return fault
     reason = fault.reason.replace("; holding position", "") + "; lifting the tool off the surface"

@@ -268,7 +268,11 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
         if truncated:
             raise TergodicError(f"{path} is cut off before its metadata (the run died at start)", "re-run it")
         raise TergodicError(f"{path} is not a tergodic run log (no '{S.META_TERGODIC}' metadata)", _RUN_FIX)
-    if not rows:
+    stored = metadata.get(S.META_SUMMARY, {}).get("json")
+    # A robot that stopped on a fault before its first explorer step: a complete log with its events and
+    # summary and no step; it replays (its series are empty).
+    no_step_fault = complete and not rows and stored is not None and json.loads(stored).get("final_state") == "stopped"
+    if not rows and not no_step_fault:
         if events:
             raise TergodicError(f"{path} is an empty log: no step recorded; its last event says: {events[-1][2]}",
                                 "fix that and re-run 'tergodic explore'")
@@ -287,6 +291,10 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
 
     seed_txt = metadata.get(S.META_SEED, {}).get("seed", "")
     series = _stack_rows(rows)
+    if no_step_fault:
+        from tergodic_cli.explore.summary import SERIES
+
+        series.update({k: np.zeros(0) for k in SERIES if k not in series})
     _assign_cloud_steps(cloud_frames, series)
     sidecar = attachments.get(S.ATTACHMENT_SIDECAR)
     return RunLogData(

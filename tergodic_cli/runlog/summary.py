@@ -97,9 +97,12 @@ def format_table(summary: dict[str, Any], data: RunLogData, comparison: tuple[st
     s = data.series
     lines = [f"{data.path}  (log schema {data.version}, {data.status if data.status == 'complete' else data.status.upper()})"]
     rows = [("steps", _fmt(summary.get("steps", data.steps), "d"))]
-    t0, t1 = float(s["t"][0]), float(s["t"][-1])
-    wall = float(s["step_ms"].sum()) / 1e3
-    rows.append(("duration", f"{t1:.6g} s simulated (t = {t0:.6g} .. {t1:.6g}), {wall:.3g} s of explorer steps"))
+    if len(s["t"]):  # (a robot stopped before its first step logged none)
+        t0, t1 = float(s["t"][0]), float(s["t"][-1])
+        wall = float(s["step_ms"].sum()) / 1e3
+        rows.append(("duration", f"{t1:.6g} s simulated (t = {t0:.6g} .. {t1:.6g}), {wall:.3g} s of explorer steps"))
+    if summary.get("stop_reason") and not data.robot:
+        rows.append(("stop reason", str(summary["stop_reason"])))
     rows += [(f"ε at step {k}", _fmt(v)) for k, v in (summary.get("ergodicity_at") or {}).items()
              if v is not None]
     rows.append(("ε at end (unit-mass, 0 best)", _fmt(summary.get("ergodicity"))))

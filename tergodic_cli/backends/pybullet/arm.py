@@ -25,9 +25,9 @@ from tergodic_cli.robot.config import RobotConfig, validate_robot_config
 from tergodic_cli.robot.controller import JointImpedance, LineForceController, min_jerk
 from tergodic_cli.robot.interfaces import ArmState, ContactWrench, LineTarget, Observation
 from tergodic_cli.robot.kinematics import FrankaModel, tool_offset
-from tergodic_cli.robot.reach import ik, plan_reach, posture
+from tergodic_cli.robot.reach import ik, plan_reach, posture, tool_rotation
 from tergodic_cli.robot.run import SETTLE_S, ContactRun, object_pose
-from tergodic_cli.robot.safety import fmt_xyz
+from tergodic_cli.robot.safety import Fault, fmt_xyz
 from tergodic_cli.robot.surface import (SurfaceMesh, check_reachable, curved_edge, near_border, oriented_normals,
                                          reconstruct_mesh, resolve_side, sim_object_mesh, transform_points)
 
@@ -37,6 +37,9 @@ from tergodic_cli.robot.surface import (SurfaceMesh, check_reachable, curved_edg
 APPROACH_K = 2000.0
 #: N s/m added to the approach's axial damping (the controller's D_z, 50) on the speed error.
 APPROACH_D = 100.0
+#: Metres the hand, its fingers and the sponge keep from the object, table and stand, with the tool on the
+#: normal, for a point to count as reachable (the tilt's 95th percentile, ~3 deg, moves the hand ~7 mm).
+HAND_CLEAR = 0.01
 #: Metres above the object's highest point the tool passes on its way to and from the picture pose.
 CLEARANCE = 0.04
 
@@ -96,6 +99,12 @@ class SimArm:
         self._speed = 0.0
         self._ik: dict = {}
         self.guard = self.ts = None
+        #: The first arm contact not yet handed over (:meth:`fault`); ``collision_faults`` False only counts them.
+        self.hit: Fault | None = None
+        self.collision_faults = True
+        self._inject: tuple | None = None
+        #: () -> the explorer steps done (the run sets it), for the first contact's record.
+        self.step_of: Callable[[], int] = lambda: -1
         self.F_d, self.threshold = float(cfg.force), float(cfg.contact_threshold)
 
     # ------------------------------------------------------------------ the Arm interface
@@ -121,6 +130,7 @@ class SimArm:
 
     def bind(self, guard, tick_stats, force_desired: float, threshold: float) -> None:
         self.guard, self.ts, self.F_d, self.threshold = guard, tick_stats, float(force_desired), float(threshold)
+        self.scene.collision.sponge_sink = guard.force_limit / self.cfg.sponge.stiffness
 
     def get_observation(self, sensor: bool = True) -> Observation:
         st = self.dev.read_state()
@@ -164,12 +174,37 @@ class SimArm:
 
     def _physics(self) -> None:
         self.scene.step()
+        if self._inject is not None and self.scene.t >= self._inject[0]:
+            self.hit, self._inject = self._inject[1], None
+        col = self.scene.collision
+        col.countdown -= 1
+        if col.countdown <= 0:  # paced by the fastest part (collision.py): a contact is found within a few mm
+            self._collide()
         if self.contact_hook is not None:
             self._run_hook()
         if self.cfg.realtime:
             lag = self.scene.t - (time.perf_counter() - self.wall0)
             if lag > 0:
                 time.sleep(lag)
+
+    def _collide(self) -> None:
+        """Check every arm part against the object, table and stand; the first contact becomes :attr:`hit`."""
+        found = self.scene.collision.check(self.step_of())
+        if found and self.hit is None and self.collision_faults:
+            part, body, depth, x = max(found, key=lambda c: c[2])
+            what = "sponge" if part == "sponge" else part.replace("panda_", "arm's ").replace("link", "link ")
+            self.hit = Fault("collision", "retreat", f"the {what} touches the {body} ({1e3 * depth:.0f} mm deep at "
+                             f"{fmt_xyz(x)} m); retreating", self.scene.t, {"part": part, "body": body})
+
+    def inject(self, fault, after: float = 0.0) -> None:
+        """Fault injection (tests, checks): ``fault`` (a :class:`~tergodic_cli.robot.safety.Fault`) is
+        reported by the first control period ``after`` simulated seconds from now, whatever the state:
+        a set-up move, an approach, exploring, a retreat or a move-over."""
+        self._inject = (self.scene.t + float(after), fault)
+
+    def touching(self) -> bool:
+        """Whether anything touches now: the sponge on the object, or any arm part (a check at once)."""
+        return bool(self.scene.sponge_contacts()) or bool(self.scene.collision.check(self.step_of()))
 
     def _run_hook(self) -> None:
         """Every ``hook_every`` physics steps: hand the sponge's contacts to ``contact_hook``."""
@@ -276,14 +311,16 @@ class SimArm:
     def link_poses(self) -> dict:
         return self.scene.link_poses()
 
-    def fault(self) -> str | None:
-        return None
+    def fault(self) -> Fault | None:
+        """The pending whole-arm contact (:meth:`_collide`), handed over once."""
+        hit, self.hit = self.hit, None
+        return hit
 
     def stop(self) -> None:
         pass
 
     def summary(self) -> dict:
-        return {"mesh_triangles": int(len(self.mesh.triangles))}
+        return {"mesh_triangles": int(len(self.mesh.triangles)), "arm_contacts": self.scene.collision.stats.to_dict()}
 
     def disconnect(self) -> None:
         try:
@@ -355,6 +392,9 @@ class SimArm:
             arm.last_tau = tot
             send(rob, joints, mode_torque, forces=tot, physicsClientId=cid)
             physics()
+            if self.hit is not None:  # an arm part touches something (checked in physics())
+                fault = self.fault()
+                break
         arm._q9 = arm._dq9 = None  # stale: the next command() reads the state first
         return i, t, io, rd, fault
 
@@ -414,6 +454,7 @@ class RobotRun(ContactRun):
         arm = SimArm(cfg, mesh, self.T_mesh)
         try:
             super().__init__(capture, explorer, cfg, arm, T_obj, on_event=on_event)
+            arm.step_of = self._step
             self.max_tilt_deg = None  # the tool follows the normal; what the arm cannot reach is dropped
             self.closest = closest_point_fn(mesh, self._T_mesh_obj)
             self._plan_reach(capture, pose_given)
@@ -446,6 +487,19 @@ class RobotRun(ContactRun):
             self.on_event(0, "robot: no --object-pose given; the object stands on a 0.2 m stand, its footprint centre "
                              f"{float(np.hypot(*T[:2, 3])):.2f} m in front of the base, turned {yaw:.0f} deg so the arm "
                              f"reaches its target (object pose {fmt_xyz(T[:3, 3])} m)")
+        # The hand is 0.2 m wide: tilted along a steep wall with the spin reach.tool_rotation gives, it cuts
+        # through a bowl's rim (82 % of the bowl's wall). Where the hand, its fingers or the sponge would come
+        # within HAND_CLEAR of the object, the table or the stand with the tool on the normal, the tool
+        # cannot press: dropped like any unreachable part (the run's checks fault whatever still touches).
+        R = np.array([tool_rotation(-n, self._x_down) for n in self.normals @ self.T_obj[:3, :3].T])
+        T_tcp = np.zeros((len(R), 4, 4))
+        T_tcp[:, :3, :3], T_tcp[:, :3, 3], T_tcp[:, 3, 3] = R, self.points_base, 1.0
+        clear = self.scene.collision.tool_clearance(T_tcp, HAND_CLEAR)
+        if float(target @ (~clear & self.reachable)) > 1e-3 * float(target.sum()):
+            self.on_event(0, f"robot: {100 * float(target @ (~clear & self.reachable)) / float(target.sum()):.0f} % of the "
+                             f"target is where the hand would come within {HAND_CLEAR * 1e3:.0f} mm of the object, table "
+                             "or stand with the tool on the normal; dropped")
+        self.reachable &= clear
         self.drop_unreachable()
 
     @property

@@ -111,8 +111,12 @@ class PyBulletScene:
     Parameters
     ----------
     sponge : :class:`SpongeSpec`.
-    gui : open the PyBullet GUI instead of DIRECT, with a table: a ground plane at z = 0 (the object
-        is static, so it only matters for looks and for links that sink below it).
+    gui : open the PyBullet GUI instead of DIRECT.
+
+    The table (top at z = 0, a hole for the base) and, under a lifted object, a stand are bodies of
+    every scene; they and the object are checked against every arm part (:attr:`collision`,
+    :mod:`~tergodic_cli.backends.pybullet.collision`), while the physics step simulates only the
+    sponge on the object.
     dt : physics step, s (1 kHz by default).
     solver_iterations : constraint solver iterations per step.
     """
@@ -144,9 +148,13 @@ class PyBulletScene:
         p.setTimeStep(self.dt, physicsClientId=cid)
         p.setPhysicsEngineParameter(numSolverIterations=int(solver_iterations), physicsClientId=cid)
         data = pybullet_data.getDataPath()
-        self.table = p.loadURDF(os.path.join(data, "plane.urdf"), physicsClientId=cid) if gui else None
         self.robot = self._load_robot(data)
         p.setPhysicsEngineParameter(contactBreakingThreshold=self._breaking_factor(), physicsClientId=cid)
+        from tergodic_cli.backends.pybullet.collision import ArmCollision
+
+        #: The arm's parts against the table, the stand and the object (checked, not simulated: collision.py).
+        self.collision = ArmCollision(self, data)
+        self.table = self.collision.add_table()
         self.object: int | None = None
         self.t = 0.0
         self.steps = 0
@@ -158,7 +166,7 @@ class PyBulletScene:
         fd, path = tempfile.mkstemp(suffix=".urdf", prefix="tergodic_panda_")
         try:
             with os.fdopen(fd, "w") as fh:
-                fh.write(panda_sponge_urdf(data, self.sponge, arm_collision=self.table is not None))
+                fh.write(panda_sponge_urdf(data, self.sponge, arm_collision=False))
             robot = p.loadURDF(path, useFixedBase=True, flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=cid)
         finally:
             os.unlink(path)
@@ -284,6 +292,9 @@ class PyBulletScene:
             p.setCollisionFilterGroupMask(self.robot, link, bits, bits, physicsClientId=cid)
         self.object = body
         self.object_pose = np.array(pose, dtype=float)
+        self._object_mesh = (np.asarray(vertices, float), np.asarray(triangles))
+        self.collision.set_object(body, self._object_mesh[0] @ self.object_pose[:3, :3].T + self.object_pose[:3, 3],
+                                  self._object_mesh[1])
         return body
 
     def move_object(self, pose: np.ndarray) -> None:
@@ -291,6 +302,8 @@ class PyBulletScene:
         self.p.resetBasePositionAndOrientation(self.object, pose[:3, 3].tolist(), matrix_to_quat(pose[:3, :3]).tolist(),
                                                physicsClientId=self.cid)
         self.object_pose = np.array(pose, dtype=float)
+        V, F = self._object_mesh
+        self.collision.set_object(self.object, V @ self.object_pose[:3, :3].T + self.object_pose[:3, 3], F)
 
     def sponge_contacts(self) -> list[tuple[np.ndarray, np.ndarray, float]]:
         """Contacts between the sponge and the object: [(point on object (3,), normal on the sponge (3,), normal force N)]."""
