@@ -222,7 +222,7 @@ class StreamedArm(_PlanArm):
 
 
 def explore_with_hardware(capture, explorer, robot_cfg, steps: int, arm, sensor, on_step=None, on_event=None,
-                          hw: HardwareRunConfig | None = None, pace=None) -> dict:
+                          hw: HardwareRunConfig | None = None, pace=None, on_log=None) -> dict:
     """Run ``steps`` explorer steps on real (or fake-SDK) hardware; same contract as ``explore_with_robot``.
 
     arm : an ImpedanceArm (e.g. :class:`~tergodic_cli.backends.franka.FrankyArm`), sensor : a
@@ -236,7 +236,7 @@ def explore_with_hardware(capture, explorer, robot_cfg, steps: int, arm, sensor,
     driver = None
     try:
         driver = StreamedArm(arm, sensor, robot_cfg, hw, pace)
-        with ContactRun(capture, explorer, robot_cfg, driver, T_obj, on_event=on_event) as run:
+        with ContactRun(capture, explorer, robot_cfg, driver, T_obj, on_event=on_event, on_log=on_log) as run:
             _keep_within_tilt(run)
             return run.run(steps, on_step)
     finally:
