@@ -14,7 +14,10 @@ whether the run completed its steps or why it stopped, and per object and force:
 - how long the excursions above 1.5 F_d last (ticks in a row: single-tick spikes or sustained);
 - the jitter's spectrum (Welch, detrended |f| in steady contact): the share of its power above
   5, 10, 20 and 50 Hz;
-- the peak of |f| low-passed (first order, the guard's filter) at 5, 10, 20 and 30 Hz, over F_d.
+- the peak of |f| low-passed (first order, the guard's filter) at 5, 10, 20 and 30 Hz, over F_d;
+- where the limit this replaced (raw ticks over 3 F_d, at least 5 N) would have stopped the run: the
+  first explore tick over it (its explorer step). The guard does not act on the control until it
+  faults, so up to that tick the run is the one the old limit ran.
 
 docs/robot.md ("Force limits") gives the figures this measured and the cutoff chosen from them.
 ``--traces DIR`` keeps each run's explore-phase force trace as ``OBJ_F_SEED.npz`` (f, N; dt, s).
@@ -34,6 +37,11 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 CUTOFFS_HZ = (5.0, 10.0, 20.0, 30.0)
+
+
+def old_limit(force: float) -> float:
+    """The force limit before the low-pass: raw ticks over 3 F_d, at least 5 N."""
+    return max(3.0 * force, 5.0)
 BANDS_HZ = (5.0, 10.0, 20.0, 50.0)
 
 
@@ -94,10 +102,14 @@ def run_one(obj: str, force: float, seed: int, steps: int, cache: str, nk: int =
         out = {"stop_reason": f"refused: {exc}"}
     finally:
         Kn.pybullet_tick, R.ContactRun.__init__ = tick, orig_init
+    trace = np.asarray(trace)
+    over = np.flatnonzero(trace > old_limit(force))
     return {"object": obj, "force_N": force, "seed": seed, "steps": steps, "steps_done": n[0],
+            # explore ticks come 200 to an explorer step (explore_dt / physics_dt)
+            "old_limit_stop_step": int(over[0] // round(rcfg.explore_dt / rcfg.physics_dt)) + 1 if len(over) else None,
             "completed": out.get("stop_reason") == "completed", "stop_reason": out.get("stop_reason"),
             "force_peak_N": out.get("force_peak_N"), "wall_s": time.perf_counter() - t0,
-            "trace": np.asarray(trace), "dt": rcfg.physics_dt}
+            "trace": trace, "dt": rcfg.physics_dt}
 
 
 def jitter(rows: list[dict]) -> dict:
@@ -159,9 +171,13 @@ def main(argv=None) -> int:
                 rows += [{**{k: v for k, v in r.items() if k != "trace"}, "jitter": j} for r in group]
     done = sum(r["completed"] for r in rows)
     print(f"completed {done} of {len(rows)} runs ({100.0 * done / max(len(rows), 1):.0f} %) at {args.steps} steps")
+    old = sum(r["completed"] and r["old_limit_stop_step"] is None for r in rows)
+    print(f"with the raw 3 F_d limit (before): {old} of {len(rows)} ({100.0 * old / max(len(rows), 1):.0f} %)")
     for r in rows:
         if not r["completed"]:
             print(f"  {r['object']} {r['force_N']:g} N seed {r['seed']}: step {r['steps_done']}: {r['stop_reason']}")
+        elif r["old_limit_stop_step"] is not None:
+            print(f"  {r['object']} {r['force_N']:g} N seed {r['seed']}: before: stopped at step {r['old_limit_stop_step']}")
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(rows, fh, indent=2, default=str)

@@ -181,7 +181,7 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
     metadata: dict[str, dict[str, str]] = {}
     attachments: dict[str, bytes] = {}
     rows, robot, cloud_frames, events = [], [], [], []
-    records: dict[str, list] = {S.TOPIC_ROBOT_PHASE: [], S.TOPIC_ROBOT_FORCE: []}
+    robot_records: dict[str, list] = {S.TOPIC_ROBOT_PHASE: [], S.TOPIC_ROBOT_FORCE: []}
     record_decoders: dict[int, Any] = {}
     truncated, note, have_header, complete = False, "", False, False
     step_decoder, t0 = None, 0
@@ -220,10 +220,10 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
                     rows.append(step_decoder(rec.data))
                 elif topic == S.TOPIC_ROBOT_SAMPLE:
                     robot.append(json.loads(rec.data))
-                elif topic in records:
+                elif topic in robot_records:
                     if ch.schema_id not in record_decoders:
                         record_decoders[ch.schema_id] = _record_decoder(schemas[ch.schema_id])
-                    records[topic].append(record_decoders[ch.schema_id](rec.data))
+                    robot_records[topic].append(record_decoders[ch.schema_id](rec.data))
                 elif topic == S.TOPIC_CLOUD and clouds:
                     cloud_frames.append(_decode_cloud(PointCloud.FromString(rec.data), rec, t0))
                 elif topic == S.TOPIC_EVENTS:
@@ -290,7 +290,7 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
         stored_summary=_meta_json(S.META_SUMMARY), end=metadata.get(S.META_END),
         series=series, robot=[_arrays(s) for s in robot] or None, clouds=cloud_frames, events=events,
         topics=topics, truncated=truncated, truncation_note=note, metadata=metadata,
-        phases=records[S.TOPIC_ROBOT_PHASE], force_windows=records[S.TOPIC_ROBOT_FORCE])
+        phases=robot_records[S.TOPIC_ROBOT_PHASE], force_windows=robot_records[S.TOPIC_ROBOT_FORCE])
 
 
 _FOOTER_LEN = 1 + 8 + 20  # opcode, length, summary_start, summary_offset_start, summary_crc
