@@ -50,8 +50,9 @@ def test_force_limit_defaults_to_three_times_desired_and_retreats():
     assert SafetyGuard(SafetyConfig(), np.full(7, -3.0), np.full(7, 3.0), np.full(7, 2.0), 10.0).force_limit == 30.0
     assert SafetyGuard(SafetyConfig(), np.full(7, -3.0), np.full(7, 3.0), np.full(7, 2.0), 10.0).force_impact_limit == 50.0
     assert SafetyGuard(SafetyConfig(force_limit=2.5), np.full(7, -3.0), np.full(7, 3.0), np.full(7, 2.0), 1.0).force_limit == 2.5
+    assert _guard(force_limit=40.0).force_impact_limit == 40.0  # a raised limit raises the impact default with it
     with pytest.raises(TergodicError, match="impact limit"):
-        _guard(force_limit=40.0)
+        _guard(force_limit=40.0, force_impact_limit=35.0)
 
 
 def test_a_single_tick_spike_under_the_impact_limit_does_not_stop():

@@ -36,7 +36,7 @@ class SafetyConfig(Config):
     force_limit_margin : N: the low-passed limit's floor above F_d (a light press jitters as many
         newtons as a firm one: 3 × 2 N = 6 N stopped 2 N runs).
     force_impact_limit : N: one tick's |F| over this is an impact (retreat at once, no filter);
-        None = force_impact_factor × F_d, at least force_impact_min.
+        None = force_impact_factor × F_d, at least force_impact_min and the force limit.
     joint_margin : rad kept inside the joint position limits.
     velocity_factor : share of the joint velocity limits allowed.
     tcp_speed_max : m/s allowed at the TCP.
@@ -127,7 +127,7 @@ class SafetyGuard:
                 f"the force limit {self.force_limit:g} N is not above the desired force {force_desired:g} N",
                 "raise --force-limit or lower --force")
         self.force_impact_limit = (float(cfg.force_impact_limit) if cfg.force_impact_limit is not None
-                                   else max(cfg.force_impact_factor * force_desired, cfg.force_impact_min))
+                                   else max(cfg.force_impact_factor * force_desired, cfg.force_impact_min, self.force_limit))
         require(self.force_impact_limit >= self.force_limit,
                 f"the impact limit {self.force_impact_limit:g} N is below the force limit {self.force_limit:g} N",
                 "raise the impact limit (robot_options safety.force_impact_limit) or lower the force limit")
