@@ -339,7 +339,7 @@ def test_dry_run_reads_everything_and_moves_nothing(plate, monkeypatch, franky, 
     assert not rs._DEVICES[0].streaming
     assert world.robot.moves == [] and world.t == t0 and np.array_equal(world.q, q0)
     assert "nothing was moved" in text
-    assert "force 15 N (retreat)" in text and "start inside" in text
+    assert "force 15 N low-passed at 10 Hz, 30 N in one tick (retreat)" in text and "start inside" in text
     assert "press 5 N" in text and "16.7 mm past the surface" in text  # 5 N / 300 N/m
     assert "20 references per explorer step" in text
     assert f"{-world.tool_mass * 9.81 + world.bias[2]:.3f}" in text  # the untared weight the sensor reads
