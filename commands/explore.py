@@ -42,7 +42,7 @@ def explore(
     json_out: bool = typer.Option(False, "--json", help="Print summary.json to stdout."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing run folder at --out (whole, once the new run is complete; a run stopped by Ctrl-C, SIGTERM or a robot fault goes beside it, as RUN.interrupted-TIME or RUN.partial-TIME)."),
     force: Optional[float] = typer.Option(None, "--force", help="[robot] Desired contact force along the tool axis, N [default: 5]."),
-    force_limit: Optional[float] = typer.Option(None, "--force-limit", help="[robot] Contact force that makes the robot retreat and stop, N [default: 3 x --force, at least 5]."),
+    force_limit: Optional[float] = typer.Option(None, "--force-limit", help="[robot] Contact force, low-passed at 10 Hz, that makes the robot retreat and stop, N [default: 3 x --force, at least --force + 5]; one tick over 5 x --force (at least 30 N) is an impact and stops at once."),
     contact_force: Optional[float] = typer.Option(None, "--contact-force", help="[robot] Force that counts as touching (coverage is deposited above it), N [default: 20% of --force]."),
     object_pose: Optional[str] = typer.Option(None, "--object-pose", help="[robot] Capture frame in the robot base frame: x,y,z[,roll,pitch,yaw] (m, deg) or x,y,z,qx,qy,qz,qw [default: 0.5 m in front of the base on a 0.2 m stand; identity for sim captures]."),
     workspace: Optional[str] = typer.Option(None, "--workspace", help="[robot] Workspace box xmin,ymin,zmin,xmax,ymax,zmax in the base frame, m."),

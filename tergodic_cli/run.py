@@ -458,6 +458,15 @@ class Kinematic:
         return {}
 
 
+def _robot_log(runlog, explorer):
+    """The robot run's ``on_log`` (its state transitions and 1 kHz force windows) into ``runlog``, at
+    the explorer's time base like the events; None without a log."""
+    if runlog is None:
+        return None
+    dt = float(explorer.cfg.dt)
+    return lambda kind, step, record: runlog.log_robot_record(kind, step, step * dt, record)
+
+
 class PyBullet(Kinematic):
     """The simulated Panda (``--robot pybullet``) with ``robot_cfg`` (a RobotConfig); with
     ``recapture_every`` the closed loop (a ``--source sim`` capture): re-capture every K steps and stop
@@ -492,13 +501,14 @@ class PyBullet(Kinematic):
         if self.recapture_every is None:
             from tergodic_cli.backends.pybullet import explore_with_robot
 
-            return explore_with_robot(capture, explorer, self.robot_cfg, steps, on_step=on_step, on_event=on_event)
+            return explore_with_robot(capture, explorer, self.robot_cfg, steps, on_step=on_step, on_event=on_event,
+                                      on_log=_robot_log(runlog, explorer))
         from tergodic_cli.backends.pybullet.closed_loop import clean_with_robot, log_recapture
 
         dt = explorer.cfg.dt
         on_recapture = (lambda step, rec: log_recapture(runlog, explorer, step, step * dt, rec)) if runlog else None
         return clean_with_robot(capture, explorer, self.robot_cfg, loop_cfg=self._loop(steps), on_step=on_step,
-                                on_event=on_event, on_recapture=on_recapture)
+                                on_event=on_event, on_recapture=on_recapture, on_log=_robot_log(runlog, explorer))
 
     def _loop(self, steps: int):
         from tergodic_cli.backends.pybullet.closed_loop import CleaningLoopConfig
@@ -526,7 +536,7 @@ class Franka(PyBullet):
         from tergodic_cli.backends.streamed import explore_with_hardware
 
         return explore_with_hardware(capture, explorer, self.robot_cfg, steps, self.arm, self.sensor,
-                                     on_step=on_step, on_event=on_event)
+                                     on_step=on_step, on_event=on_event, on_log=_robot_log(runlog, explorer))
 
     def dry_run(self, capture, start_xyz) -> str:
         """Connect, read the devices and say what a run from ``start_xyz`` (3,) m would do; nothing moves."""

@@ -249,13 +249,16 @@ def test_without_the_force_trim_friction_shows(plate, monkeypatch, franky):
 
 
 # ------------------------------------------------------------------------------------------- safety trips end safe
-def test_force_spike_retreats_and_stops(plate, monkeypatch, franky, bota):
+@pytest.mark.parametrize("bias,reason", [(30.0, "over the 30.0 N impact limit; retreating"),
+                                         (15.0, "(low-passed at 10 Hz) over the 15.0 N limit; retreating")])
+def test_force_spike_retreats_and_stops(plate, monkeypatch, franky, bota, bias, reason):
+    # +30 N at 5 N: over the one-tick impact limit; +15 N: a sustained overload, caught by the low-passed limit
     def spike(world, arm, dt):
         if world.robot is not None and world.f_n > 0 and world.t > 9.0:  # exploring (the guarded touch ends ~7.5 s)
-            world.normal_force_bias = 30.0  # something pushes back hard
+            world.normal_force_bias = bias  # something pushes back hard
     out, world, events, samples, arm, _ = _run(plate, monkeypatch, ft="bota", inject=spike, steps=30)
     assert out["final_state"] == "stopped"
-    assert "over the 15.0 N limit; retreating" in out["stop_reason"]
+    assert reason in out["stop_reason"]
     assert any("explore -> retreat" in e for e in events) and any("retreat -> stopped" in e for e in events)
     assert world.f_n == 0.0 and world.robot._active is None  # off the surface, controller ended
     assert samples[-1]["stop_reason"] == out["stop_reason"]
@@ -336,7 +339,7 @@ def test_dry_run_reads_everything_and_moves_nothing(plate, monkeypatch, franky, 
     assert not rs._DEVICES[0].streaming
     assert world.robot.moves == [] and world.t == t0 and np.array_equal(world.q, q0)
     assert "nothing was moved" in text
-    assert "force 15 N (retreat)" in text and "start inside" in text
+    assert "force 15 N low-passed at 10 Hz, 30 N in one tick (retreat)" in text and "start inside" in text
     assert "press 5 N" in text and "16.7 mm past the surface" in text  # 5 N / 300 N/m
     assert "20 references per explorer step" in text
     assert f"{-world.tool_mass * 9.81 + world.bias[2]:.3f}" in text  # the untared weight the sensor reads

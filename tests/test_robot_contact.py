@@ -62,14 +62,14 @@ def test_no_reading_before_the_first_physics_step_counts(plate):
     finally:
         sc.close()
     cap, basis = plate
-    # 1 N (default limit 5 N) and a --force-limit of 2.5 N: both under the old false 8.24 N.
+    # 1 N (default limit F_d + 5 N = 6 N, low-passed) and a --force-limit of 2.5 N: both under the old false 8.24 N.
     for force, limit in ((1.0, None), (1.0, 2.5)):
         cfg = RobotConfig(force=force, **FAST)
         cfg.safety.force_limit = limit
         with RobotRun(cap, _explorer(cap, basis, cfg), cfg) as run:
             assert run.arm.sensor.read().valid  # the run stepped once, holding still, before any check
             out = run.run(3)
-            assert out["force_peak_N"] < run.guard.force_limit == (limit or 5.0)
+            assert out["force_peak_N"] < run.guard.force_limit == (limit or 6.0)
         assert out["stop_reason"] == "completed", out["stop_reason"]
 
 

@@ -93,15 +93,32 @@ def test_compiled_limits_agree_with_plain_checks():
                 assert f"joint {want[1] + 1} " in fault.reason
         seen.add(want[0])
     assert seen == {Kn.OK, Kn.F_JOINT_POS, Kn.F_JOINT_VEL, Kn.F_TCP_SPEED, Kn.F_WORKSPACE}
-    for f, expect in ((np.array([3.0, 4.0, 0.0, 9, 9, 9]), None), (np.array([12.0, 16.0, 0.0, 0, 0, 0]), 20.0), (np.array([9.0, 12.0, 0.0, 0, 0, 0]), None),
-                      (np.array([np.nan, 0, 0, 0, 0, 0.0]), "nan")):
-        fault = g.check_force(0.0, f)
-        if expect is None:
-            assert fault is None  # |f| = 5 N, moments do not count
+    # The force check: 3000 random ticks (|f| of the force part; moments do not count) through the
+    # compiled filter and limits against a plain first-order low-pass and the two comparisons.
+    a = 1.0 - math.exp(-2.0 * math.pi * g.cfg.force_filter_hz * 0.001)
+    filt, codes = 0.0, set()
+    for n in range(3000):
+        level = (5.0, 5.0, 20.0)[(n // 40) % 3] if rng.random() > 0.01 else 40.0  # pressing, overload, impacts
+        w = np.concatenate([rng.normal(0, 1.0, 3) + [0, 0, level], rng.normal(0, 9, 3)])
+        if n % 500 == 7:
+            w[0] = np.nan
+        f = math.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
+        if not f <= g.force_impact_limit:
+            want = Kn.F_IMPACT
         else:
-            assert fault is not None and fault.kind == "force" and fault.action == "retreat"
-            if expect != "nan":
-                assert fault.data["force"] == pytest.approx(expect)
+            filt += a * (f - filt)
+            want = Kn.OK if filt <= g.force_limit else Kn.F_FORCE
+        fault = g.check_force(0.0, w)
+        codes.add(want)
+        assert (fault is None) == (want == Kn.OK), n
+        if fault is not None:
+            assert fault.kind == "force" and fault.action == "retreat" and "\n" not in fault.reason
+            assert ("impact" in fault.reason) == (want == Kn.F_IMPACT)
+            if want == Kn.F_FORCE:
+                assert fault.data["force"] == pytest.approx(filt, rel=1e-12)
+        if want != Kn.F_IMPACT:
+            assert g.force_filtered == pytest.approx(filt, rel=1e-12)
+    assert codes == {Kn.OK, Kn.F_FORCE, Kn.F_IMPACT}
 
 
 @pytest.fixture(scope="module")

@@ -27,16 +27,55 @@ def test_guard_passes_a_normal_state():
     assert g.check_target(0.0, np.array([0.5, 0.0, 0.2])) is None
 
 
+def _feed(g: SafetyGuard, forces, t0: float = 0.0, dt: float = 0.001):
+    """Each |f| (along the tool axis) as one control tick; the tick and fault of the first fault, else (None, None)."""
+    for i, f in enumerate(forces):
+        fault = g.check_force(t0 + i * dt, np.array([0.0, 0.0, float(f), 0.3, 0.0, 0.0]))
+        if fault is not None:
+            return i, fault
+    return None, None
+
+
 def test_force_limit_defaults_to_three_times_desired_and_retreats():
     g = _guard()
-    assert g.force_limit == pytest.approx(15.0)
-    f = g.check_force(1.0, np.array([0.0, 0.0, 15.06, 0, 0, 0]))
-    assert f.kind == "force" and f.action == "retreat" and "15.1 N" in f.reason and "\n" not in f.reason
-    assert g.check_force(1.0, np.array([np.nan, 0, 0, 0, 0, 0])).kind == "force"
-    assert _guard(force_limit=30.0).check_force(0.0, np.array([0, 0, 20.0, 0, 0, 0])) is None
-    # at low desired forces the default keeps a floor above the contact's 1 kHz jitter
-    assert SafetyGuard(SafetyConfig(), np.full(7, -3.0), np.full(7, 3.0), np.full(7, 2.0), 1.0).force_limit == 5.0
+    assert g.force_limit == pytest.approx(15.0) and g.force_impact_limit == pytest.approx(30.0)
+    i, f = _feed(g, [5.0] * 300 + [40.0])  # one tick over the impact limit
+    assert i == 300 and f.kind == "force" and f.action == "retreat" and "40.0 N" in f.reason and "impact" in f.reason
+    assert "\n" not in f.reason
+    assert _guard().check_force(1.0, np.array([np.nan, 0, 0, 0, 0, 0])).kind == "force"
+    assert _feed(_guard(force_limit=30.0, force_impact_limit=50.0), [20.0] * 2000) == (None, None)
+    # at low desired forces the default keeps a floor above the contact's jitter: F_d + 5 N
+    assert SafetyGuard(SafetyConfig(), np.full(7, -3.0), np.full(7, 3.0), np.full(7, 2.0), 1.0).force_limit == 6.0
+    assert SafetyGuard(SafetyConfig(), np.full(7, -3.0), np.full(7, 3.0), np.full(7, 2.0), 2.0).force_limit == 7.0
+    assert SafetyGuard(SafetyConfig(), np.full(7, -3.0), np.full(7, 3.0), np.full(7, 2.0), 10.0).force_limit == 30.0
+    assert SafetyGuard(SafetyConfig(), np.full(7, -3.0), np.full(7, 3.0), np.full(7, 2.0), 10.0).force_impact_limit == 50.0
     assert SafetyGuard(SafetyConfig(force_limit=2.5), np.full(7, -3.0), np.full(7, 3.0), np.full(7, 2.0), 1.0).force_limit == 2.5
+    assert _guard(force_limit=40.0).force_impact_limit == 40.0  # a raised limit raises the impact default with it
+    with pytest.raises(TergodicError, match="impact limit"):
+        _guard(force_limit=40.0, force_impact_limit=35.0)
+
+
+def test_a_single_tick_spike_under_the_impact_limit_does_not_stop():
+    """The contact's 1 kHz spikes (1-5 ticks, up to 3.3 F_d measured) pass the low-passed limit: a 25 N tick at
+    F_d = 5 N (over the 15 N limit, under the 30 N impact limit), and five 14 N ticks in a row."""
+    assert _feed(_guard(), [5.0] * 200 + [25.0] + [5.0] * 200) == (None, None)
+    assert _feed(_guard(), [5.0] * 200 + [14.0] * 5 + [5.0] * 200 + [29.9] + [5.0] * 50) == (None, None)
+
+
+@pytest.mark.parametrize("over", [16.0, 20.0, 29.0])
+def test_a_sustained_overload_stops_within_the_filter_delay(over):
+    """A step from F_d = 5 N to ``over`` stops at the tick the first-order low-pass (10 Hz) reaches the limit:
+    n = ceil(ln((over - 15) / (over - 5)) / ln(1 - α)), α = 1 - exp(-2π 10 Hz 1 ms) (< 18 ms for a step to 20 N)."""
+    g = _guard()
+    alpha = 1.0 - math.exp(-2.0 * math.pi * 10.0 * 0.001)
+    i, f = _feed(g, [5.0] * 1000 + [over] * 500)
+    assert f is not None and "low-passed at 10 Hz" in f.reason and "over the 15.0 N limit" in f.reason
+    # the filter has settled at 5 N within 1e-27 by tick 1000
+    n = math.ceil(math.log((over - 15.0) / (over - 5.0)) / math.log(1.0 - alpha))
+    assert i - 1000 + 1 == n, (i, n)
+    assert f.data["force"] > 15.0 and f.data["force_tick"] == over
+    if over == 20.0:
+        assert n <= 18
 
 
 def test_joint_limits_and_speeds_hold():

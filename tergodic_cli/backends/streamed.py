@@ -222,7 +222,7 @@ class StreamedArm(_PlanArm):
 
 
 def explore_with_hardware(capture, explorer, robot_cfg, steps: int, arm, sensor, on_step=None, on_event=None,
-                          hw: HardwareRunConfig | None = None, pace=None) -> dict:
+                          hw: HardwareRunConfig | None = None, pace=None, on_log=None) -> dict:
     """Run ``steps`` explorer steps on real (or fake-SDK) hardware; same contract as ``explore_with_robot``.
 
     arm : an ImpedanceArm (e.g. :class:`~tergodic_cli.backends.franka.FrankyArm`), sensor : a
@@ -236,7 +236,7 @@ def explore_with_hardware(capture, explorer, robot_cfg, steps: int, arm, sensor,
     driver = None
     try:
         driver = StreamedArm(arm, sensor, robot_cfg, hw, pace)
-        with ContactRun(capture, explorer, robot_cfg, driver, T_obj, on_event=on_event) as run:
+        with ContactRun(capture, explorer, robot_cfg, driver, T_obj, on_event=on_event, on_log=on_log) as run:
             _keep_within_tilt(run)
             return run.run(steps, on_step)
     finally:
@@ -326,7 +326,8 @@ def dry_run(arm, sensor, camera, plan) -> str:
             lines.append(f"  4. {run.n_sub} references per explorer step of {plan.robot_cfg.explore_dt:g} s "
                          f"({arm.stream_hz:g} Hz to the SDK's 1 kHz impedance loop)")
             inside = all(run.guard.inside(x) for x in (a, T_hover[:3, 3]))
-            lines.append(f"limits: force {run.guard.force_limit:g} N (retreat), workspace "
+            lines.append(f"limits: force {run.guard.force_limit:g} N low-passed at {sc.force_filter_hz:g} Hz, "
+                         f"{run.guard.force_impact_limit:g} N in one tick (retreat), workspace "
                          f"{fmt_xyz(sc.workspace_min)}..{fmt_xyz(sc.workspace_max)} m "
                          f"({'start inside' if inside else 'START OUTSIDE'}), TCP speed {sc.tcp_speed_max:g} m/s, "
                          f"joint velocity {sc.velocity_factor:g} x limits, sensor watchdog {sc.sensor_timeout * 1e3:.0f} ms, "

@@ -18,7 +18,6 @@ about the tool axis free), a null-space posture spring and a low-pass filter on 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -118,7 +117,7 @@ class LineForceController:
         self.D = tuple(float(k) for k in gains.d_trans + gains.d_rot)
 
         def lowpass(hz: float) -> float:  # the first-order filter's gain per step
-            return 1.0 - math.exp(-2.0 * math.pi * hz * self.dt) if hz > 0 else 1.0
+            return Kn.lowpass_gain(hz, self.dt)
 
         g = gains
         prm = np.array([g.kp, g.ki, g.kd, lowpass(g.force_filter_hz), g.integral_max,  # CP_* order

@@ -52,7 +52,7 @@ MUT_STATE, MUT_SPRING, MUT_DAMP = 0, N_CS, N_CS + 7
 N_MUT = N_CS + 56
 
 # Safety fault codes of :func:`state_fault`, :func:`force_fault`, :func:`pybullet_tick`.
-OK, F_JOINT_POS, F_JOINT_VEL, F_TCP_SPEED, F_WORKSPACE, F_FORCE, F_SENSOR = 0, 1, 2, 3, 4, 5, 6
+OK, F_JOINT_POS, F_JOINT_VEL, F_TCP_SPEED, F_WORKSPACE, F_FORCE, F_SENSOR, F_IMPACT = 0, 1, 2, 3, 4, 5, 6, 7
 
 
 # ----------------------------------------------------------------------------- kinematics
@@ -405,11 +405,34 @@ def state_fault(q, dq, pos, tcp_speed, q_lo, q_hi, dq_hi, tcp_max, ws_lo, ws_hi)
     return OK, -1
 
 
+def lowpass_gain(hz: float, dt: float) -> float:
+    """The gain per step of a first-order low-pass at ``hz`` (Hz) sampled every ``dt`` s (1: no filter)."""
+    return 1.0 - math.exp(-2.0 * math.pi * hz * dt) if hz > 0 else 1.0
+
+
+# The force guard (SafetyGuard.force_state), one float64 array: the low-pass coefficient per tick, the
+# limit on the low-passed force, the hard limit on a single tick (N), then the state: the low-passed
+# |f| and the last tick's |f| (N).
+FG_ALPHA, FG_LIMIT, FG_RAW, FG_FILT, FG_F = 0, 1, 2, 3, 4
+N_FG = 5
+
+
 @njit
-def force_fault(w, limit):
-    """(code, |f|): F_FORCE when the force magnitude of the wrench w (6,) is over ``limit`` (or NaN)."""
+def force_fault(w, fg):
+    """(code, |f|): the force magnitude of the wrench w (6,) against the guard ``fg`` (updated).
+
+    F_IMPACT when this tick's |f| is over the hard limit fg[FG_RAW] (or NaN); F_FORCE when |f|
+    low-passed (first order, fg[FG_ALPHA] per tick, from 0) is over fg[FG_LIMIT]; the |f| returned
+    is the one that broke its limit (the tick's, or the low-passed). A NaN never enters the filter.
+    """
     f = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
-    return (OK if f <= limit else F_FORCE), f
+    fg[FG_F] = f
+    if not f <= fg[FG_RAW]:
+        return F_IMPACT, f
+    fg[FG_FILT] += fg[FG_ALPHA] * (f - fg[FG_FILT])
+    if not fg[FG_FILT] <= fg[FG_LIMIT]:
+        return F_FORCE, fg[FG_FILT]
+    return OK, f
 
 
 # ----------------------------------------------------------------------------- every tick counts
@@ -422,16 +445,23 @@ TS_PEAK, TS_PEAK_PHASE, TS_RUN, TS_NSTEADY, TS_SQERR, TS_TILT_SUM, TS_NTICKS = 7
 TS_HIST = 14
 TILT_BIN_DEG = 0.05
 TILT_BINS = 1800  # 0..90 deg; the last bin also takes anything steeper
-N_TS = TS_HIST + TILT_BINS
+# The window since the run last logged one (ContactRun._log_window): max and sum of |f|, ticks.
+TS_WIN_MAX = TS_HIST + TILT_BINS
+TS_WIN_SUM, TS_WIN_N = TS_WIN_MAX + 1, TS_WIN_MAX + 2
+N_TS = TS_WIN_MAX + 3
 
 
 @njit
 def tick_stats(T, w, ts):
-    """Fold one tick into ``ts``: the contact force |f| of ``w`` (6,) into the peaks; in steady contact
+    """Fold one tick into ``ts``: the contact force |f| of ``w`` (6,) into the peaks and the window; in steady contact
     (F/T force along the normal over the threshold for more than TS_SETTLE ticks, counted ticks only)
     the force error (F_n - F_d)/F_d and the tilt of the tool axis (T's z) from the normal. NaN is skipped."""
     f = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
     ts[TS_NTICKS] += 1.0
+    ts[TS_WIN_N] += 1.0
+    ts[TS_WIN_SUM] += f
+    if f > ts[TS_WIN_MAX]:
+        ts[TS_WIN_MAX] = f
     if f > ts[TS_PEAK]:
         ts[TS_PEAK] = f
     if f > ts[TS_PEAK_PHASE]:
@@ -494,7 +524,7 @@ def new_tick_stats(force_desired: float, threshold: float, settle_ticks: int) ->
 # cst (built by :func:`pack_constants` once per explorer interval): header [m, F_d, use_vref],
 # v_ref (3), the chain (F (m, 4, 4), axis (m, 3), qidx (m,)), tcp offset (3), R_se (3, 3), p_se (3),
 # m g, com (3), tare load (6), guard q_lo (7), q_hi (7), dq_hi (7), tcp speed max, workspace lo (3),
-# hi (3), force limit, tau_max (7), inertial compensation on (1/0), tool mass, principal inertia (3).
+# hi (3), tau_max (7), inertial compensation on (1/0), tool mass, principal inertia (3).
 # io (read back by SimArm.follow): q (7), q̇ (7), w (6), tau (7, the total torque to send),
 # diag (N_CD), T (16), J (42).
 IO_Q, IO_DQ, IO_W, IO_TAU, IO_DIAG = 0, 7, 14, 20, 27
@@ -510,7 +540,7 @@ def pack_constants(chain, contact, guard, tau_max, force_desired: float, v_ref) 
     parts = [[len(qidx), float(force_desired), 1.0 if use else 0.0], v_ref if use else np.zeros(3),
              F.ravel(), axis.ravel(), qidx.astype(float), off, contact.R_se_m.ravel(), contact.p_se_v, [contact.mg],
              contact.com, contact.tare_load, guard.q_lo, guard.q_hi, guard.dq_hi, [guard.cfg.tcp_speed_max],
-             guard.ws_lo, guard.ws_hi, [guard.force_limit], tau_max,
+             guard.ws_lo, guard.ws_hi, tau_max,
              [1.0 if contact.inertial else 0.0, contact.load.mass], contact.inertia]
     return np.ascontiguousarray(np.concatenate([np.asarray(x, dtype=float).ravel() for x in parts]))
 
@@ -538,17 +568,16 @@ def _unpack_constants(cst):
     tcp_max = cst[o + 46]
     ws_lo = cst[o + 47:o + 50]
     ws_hi = cst[o + 50:o + 53]
-    force_limit = cst[o + 53]
-    tau_max = cst[o + 54:o + 61]
-    inertial = cst[o + 61] != 0.0
-    mass = cst[o + 62]
-    inertia = cst[o + 63:o + 66]
+    tau_max = cst[o + 53:o + 60]
+    inertial = cst[o + 60] != 0.0
+    mass = cst[o + 61]
+    inertia = cst[o + 62:o + 65]
     return (force_desired, use_vref, v_ref, F, axis, qidx, tcp_off, R_se, p_se, mg, com, tare, q_lo, q_hi, dq_hi,
-            tcp_max, ws_lo, ws_hi, force_limit, tau_max, inertial, mass, inertia)
+            tcp_max, ws_lo, ws_hi, tau_max, inertial, mass, inertia)
 
 
 @njit
-def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, kd, io, ts, t, dyn):
+def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, kd, io, ts, t, dyn, fg):
     """One 1 kHz tick after the joint read: FK + Jacobian, contact wrench, force check, the control
     law, state checks, and the torque to send (the law's + ``bias``, clamped to tau_max).
 
@@ -559,7 +588,8 @@ def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, kd, io, ts, t,
     qs, dqs : joint positions (rad) and velocities (rad/s), flat tuples whose first 7 entries are
     the arm's (``zip(*getJointStates(...))``). reading : the sensor's 6 numbers (tare removed);
     bias : gravity + Coriolis (7 numbers). ts : :func:`tick_stats` (updated). t : the sample time,
-    s; dyn : the inertial compensation's state (:func:`inertial_wrench`, updated).
+    s; dyn : the inertial compensation's state (:func:`inertial_wrench`, updated); fg : the force
+    guard's limits and filter (:func:`force_fault`, updated).
     Returns an F_* code (OK: send io[IO_TAU:IO_TAU + 7]). The separate kernels, chained.
     """
     q = io[IO_Q:IO_Q + 7]
@@ -568,7 +598,7 @@ def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, kd, io, ts, t,
         q[j] = qs[j]
         dq[j] = dqs[j]
     (force_desired, use_vref, v_ref, F, axis, qidx, tcp_off, R_se, p_se, mg, com, tare, q_lo, q_hi, dq_hi, tcp_max,
-     ws_lo, ws_hi, force_limit, tau_max, inertial, mass, inertia) = _unpack_constants(cst)
+     ws_lo, ws_hi, tau_max, inertial, mass, inertia) = _unpack_constants(cst)
     T = io[IO_T:IO_T + 16].reshape((4, 4))
     J = io[IO_J:IO_J + 42].reshape((6, 7))
     w = io[IO_W:IO_W + 6]
@@ -582,7 +612,7 @@ def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, kd, io, ts, t,
     else:
         contact_wrench(r, T, R_se, p_se, mg, com, tare, w)
     tick_stats(T, w, ts)
-    code, _f = force_fault(w, force_limit)
+    code, _f = force_fault(w, fg)
     if code != OK:
         return code
     joint = kd.shape[0] > 0

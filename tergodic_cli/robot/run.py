@@ -129,13 +129,20 @@ class ContactRun:
     arm : a connected :class:`~tergodic_cli.robot.interfaces.Arm`.
     T_obj : (4, 4) the capture frame in the robot base frame.
     on_event : called as on_event(step, text) at every state transition and warning.
+    on_log : called as on_log(kind, step, record) for the run log: kind "phase" at every state
+        transition (record: t, s since the run's start; source, target, reason), kind "force" for
+        every window of 1 kHz ticks (record: state, t_start, t_end, ticks, force_max and force_mean
+        of |f| over the window's ticks, N, and the run's cumulative tick figures); a window closes at
+        each robot sample, each transition and the end, so the windows hold every tick once.
 
     Tests and benchmarks reach in for fault injection (``run.arm``, ``run.guard``); the CLI goes
     through the backends' ``explore_with_*``.
     """
 
-    def __init__(self, capture, explorer, cfg, arm, T_obj: np.ndarray, on_event: Callable[[int, str], None] | None = None):
+    def __init__(self, capture, explorer, cfg, arm, T_obj: np.ndarray, on_event: Callable[[int, str], None] | None = None,
+                 on_log: Callable[[str, int, dict], None] | None = None):
         self.cfg = cfg
+        self.on_log = on_log
         self.capture = capture
         self.explorer = explorer
         self.arm = arm
@@ -158,12 +165,13 @@ class ContactRun:
         self.normals = oriented_normals(self.points, resolve_side(cfg.normal_side, getattr(capture, "meta", {}) or {}))
         self.kdtree = cKDTree(self.points)
         self.safety = loop_safety(cfg, self.dt)
-        self.guard = SafetyGuard(self.safety, arm.q_min, arm.q_max, arm.dq_max, self.F_d)
+        self.guard = SafetyGuard(self.safety, arm.q_min, arm.q_max, arm.dq_max, self.F_d, dt=self.dt)
         #: Every tick's force peak, steady-contact force error and tilt (kernels.tick_stats).
         self.ts = Kn.new_tick_stats(self.F_d, self.threshold, int(round(STEADY_S / self.dt)))
         arm.bind(self.guard, self.ts, self.F_d, self.threshold)
         self.approach_peak: float | None = None
-        self.sm = S.StateMachine(on_event=self.on_event)
+        self.sm = S.StateMachine(on_event=self.on_event, before=self._transition)
+        self._win_t0 = 0.0
         self.samples: list[dict] = []
         self.stop_reason: str | None = None
         self.fault: Fault | None = None
@@ -665,6 +673,29 @@ class ContactRun:
             on_step(step, self.samples[-1])
             self._cb_s += time.perf_counter() - t
 
+    # ------------------------------------------------------------------ the run log
+    def _transition(self, tr) -> None:
+        """Before each state transition: the window of the state being left, then the transition."""
+        self._log_window(tr.step)
+        if self.on_log is not None:
+            self.on_log("phase", tr.step, {"t": tr.t - self._t_arm0, "source": tr.source, "target": tr.target,
+                                           "reason": tr.reason})
+
+    def _log_window(self, step: int) -> None:
+        """Hand the ticks since the last window (their |f| max and mean, the state they ran in) to
+        ``on_log`` and start a new window."""
+        ts = self.ts
+        n = int(ts[Kn.TS_WIN_N])
+        if n == 0:
+            return
+        t = self.t - self._t_arm0
+        if self.on_log is not None:
+            self.on_log("force", step, {"state": self.sm.state, "t_start": self._win_t0, "t_end": t, "ticks": n,
+                                        "force_max": float(ts[Kn.TS_WIN_MAX]), "force_mean": float(ts[Kn.TS_WIN_SUM]) / n,
+                                        **Kn.tick_figures(ts)})
+        ts[Kn.TS_WIN_MAX] = ts[Kn.TS_WIN_SUM] = ts[Kn.TS_WIN_N] = 0.0
+        self._win_t0 = t
+
     # ------------------------------------------------------------------ samples
     def _measure(self, obs) -> dict:
         """The backend's contact point, force and press angle, and the surface normal there."""
@@ -679,6 +710,7 @@ class ContactRun:
 
     def _sample(self, step: int, obs, a: np.ndarray, d: np.ndarray, stop_reason: str | None = None) -> dict:
         """The robot_sample_dict of CONTRACTS.md (plus extras) at the end of an explorer interval."""
+        self._log_window(step)
         st, w = obs.state, np.nan_to_num(np.asarray(obs.wrench, dtype=float))
         meas = self._measure(obs)
         T = st.ee_pose
@@ -743,11 +775,13 @@ class ContactRun:
         self._t0 = time.perf_counter()
         self._cpu0 = time.process_time()
         self._t_arm0 = self.arm.t_origin
+        self._win_t0 = self.t - self._t_arm0
         self._cb_s = 0.0
         self.paused_s = 0.0  # wall seconds the robot waited for others (the closed loop's re-captures)
         self.on_event(0, f"robot {S.PICTURE}: {self.arm.name} at the picture pose, {1 / self.dt:g} Hz control "
                          f"({self.n_sub} periods per explorer step); cloud of {len(self.points)} points, "
-                         f"force limit {self.guard.force_limit:g} N")
+                         f"force limit {self.guard.force_limit:g} N (low-passed at {self.safety.force_filter_hz:g} Hz), "
+                         f"impact limit {self.guard.force_impact_limit:g} N (one tick)")
 
     @contextlib.contextmanager
     def guarded(self):
@@ -828,6 +862,7 @@ class ContactRun:
     def result(self) -> dict:
         """The summary extras of the run so far (call once, at the end)."""
         self.emit_deferred()
+        self._log_window(self._step())  # the ticks after the last sample (a retreat, a fault's)
         wall = time.perf_counter() - self._t0 - self._cb_s - self.paused_s
         # (the callback's and the pauses' wall time: a fair proxy for their CPU)
         cpu = time.process_time() - self._cpu0 - self._cb_s - self.paused_s

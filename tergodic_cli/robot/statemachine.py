@@ -42,16 +42,21 @@ class Transition:
 
 @dataclass
 class StateMachine:
-    """Current state plus the list of transitions; every transition is reported to ``on_event``."""
+    """Current state plus the list of transitions; every transition is reported to ``on_event``, and
+    to ``before`` (with the :class:`Transition`) while the old state still holds."""
 
     state: str = PICTURE
     on_event: Callable[[int, str], None] | None = None
     history: list[Transition] = field(default_factory=list)
+    before: Callable[[Transition], None] | None = None
 
     def go(self, target: str, t: float, step: int, reason: str) -> None:
         if target not in ALLOWED[self.state]:
             raise RuntimeError(f"illegal robot state transition {self.state} -> {target}")
-        self.history.append(Transition(t, step, self.state, target, reason))
+        tr = Transition(t, step, self.state, target, reason)
+        if self.before is not None:
+            self.before(tr)
+        self.history.append(tr)
         if self.on_event is not None:
             self.on_event(step, f"robot {self.state} -> {target} at t={t:.3f} s: {reason}")
         self.state = target

@@ -83,6 +83,10 @@ class RunLogData:
     truncated: bool
     truncation_note: str = ""
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    #: Robot runs: the state transitions (/robot/phase) and the 1 kHz force windows (/robot/force), as
+    #: dicts of their fields (absent fields left out), in log order.
+    phases: list[dict[str, Any]] = field(default_factory=list)
+    force_windows: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def status(self) -> str:
@@ -193,6 +197,8 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
     metadata: dict[str, dict[str, str]] = {}
     attachments: dict[str, bytes] = {}
     rows, robot, cloud_frames, events = [], [], [], []
+    robot_records: dict[str, list] = {S.TOPIC_ROBOT_PHASE: [], S.TOPIC_ROBOT_FORCE: []}
+    record_decoders: dict[int, Any] = {}
     truncated, note, have_header, complete = False, "", False, False
     step_decoder, t0 = None, 0
 
@@ -230,6 +236,10 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
                     rows.append(step_decoder(rec.data))
                 elif topic == S.TOPIC_ROBOT_SAMPLE:
                     robot.append(json.loads(rec.data))
+                elif topic in robot_records:
+                    if ch.schema_id not in record_decoders:
+                        record_decoders[ch.schema_id] = _record_decoder(schemas[ch.schema_id])
+                    robot_records[topic].append(record_decoders[ch.schema_id](rec.data))
                 elif topic == S.TOPIC_CLOUD and clouds:
                     cloud_frames.append(_decode_cloud(PointCloud.FromString(rec.data), rec, t0))
                 elif topic == S.TOPIC_EVENTS:
@@ -303,7 +313,8 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
         versions=metadata.get(S.META_VERSIONS, {}), capture_sidecar=json.loads(sidecar) if sidecar else None,
         stored_summary=_meta_json(S.META_SUMMARY), end=metadata.get(S.META_END),
         series=series, robot=[_arrays(s) for s in robot] or None, clouds=cloud_frames, events=events,
-        topics=topics, truncated=truncated, truncation_note=note, metadata=metadata)
+        topics=topics, truncated=truncated, truncation_note=note, metadata=metadata,
+        phases=robot_records[S.TOPIC_ROBOT_PHASE], force_windows=robot_records[S.TOPIC_ROBOT_FORCE])
 
 
 _FOOTER_LEN = 1 + 8 + 20  # opcode, length, summary_start, summary_offset_start, summary_crc
@@ -405,6 +416,26 @@ def _step_decoder(schema: Any):
                 "step_ms": m.step_ms, **dict(zip(m.extra_names, m.extra_values)), **vec}
 
     return row
+
+
+def _record_decoder(schema: Any):
+    """bytes -> dict of the fields present, for a robot record (proto.ROBOT_RECORDS), decoded with the
+    schema stored in the file."""
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from tergodic_cli.runlog.proto import ROBOT_RECORDS
+
+    if schema.encoding != "protobuf" or schema.name not in ROBOT_RECORDS:
+        raise TergodicError(f"robot records have schema {schema.name!r} ({schema.encoding})",
+                            "this log was not written by a tergodic that this version reads")
+    decode = DecoderFactory().decoder_for("protobuf", schema)
+    names = [f for f, _ in ROBOT_RECORDS[schema.name]]
+
+    def record(data: bytes) -> dict:
+        m = decode(data)
+        return {f: getattr(m, f) for f in names if m.HasField(f)}
+
+    return record
 
 
 def _stack_rows(rows: list[dict]) -> dict[str, np.ndarray]:

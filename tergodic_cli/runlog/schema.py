@@ -36,6 +36,10 @@ TOPIC_TF = "/tf"                             # foxglove.FrameTransform, one mess
 TOPIC_JOINTS = "/robot/joint_states"         # foxglove.JointStates: q, dq, tau
 TOPIC_WRENCH = "/robot/wrench"               # JSON: measured and desired wrench with named components
 TOPIC_WRENCH_SCENE = "/robot/wrench_scene"   # foxglove.SceneUpdate: measured and desired force arrows at the tool
+# Robot runs, whenever the robot's state changes / every window of 1 kHz ticks (protobuf, proto.py).
+TOPIC_ROBOT_PHASE = "/robot/phase"           # tergodic.RobotPhase: step, t, source, target, reason
+TOPIC_ROBOT_FORCE = "/robot/force"           # tergodic.ForceWindow: state, t_start, t_end, ticks, force_max,
+                                             #   force_mean (|f| over the window's ticks) + the cumulative tick figures
 # Every K steps and at the end.
 TOPIC_CLOUD = "/cloud"                       # foxglove.PointCloud: x y z + target coverage heat source (float32)
 # Whenever something happens.

@@ -32,10 +32,39 @@ def recompute_summary(data: RunLogData) -> dict[str, Any]:
 
         # a fault outside the explore phase leaves no sample: its stop reason is in the summary
         stop = (data.stored_summary or {}).get("stop_reason")
-        robot = dict(summarize_robot(data.robot, **({"stop_reason": stop} if stop else {})))
+        robot = dict(summarize_robot(data.robot, **({"stop_reason": stop} if stop else {}), ticks=window_ticks(data)))
     own = set(summarize_run(series, data.config, None))
     static = {k: v for k, v in (data.stored_summary or {}).items() if k not in own and k not in robot}
     return summarize_run(series, data.config, {**static, **robot})
+
+
+def window_ticks(data: RunLogData) -> dict[str, Any] | None:
+    """The run's final 1 kHz figures from its force windows (/robot/force): the peak is the largest
+    window max (every tick is in one window, the ticks after the last sample included), the rest the
+    last window's cumulative figures. None for a log without windows (the last sample's are used)."""
+    if not data.force_windows:
+        return None
+    last = data.force_windows[-1]
+    ticks = {k: last.get(k) for k in ("tick_steady", "tick_force_rms_rel", "tick_tilt_median_deg", "tick_tilt_p95_deg")}
+    ticks["tick_force_peak_N"] = max(w.get("force_max", 0.0) for w in data.force_windows)
+    return ticks
+
+
+def _robot_log_rows(data: RunLogData) -> list[tuple[str, str]]:
+    """Rows for the robot's own records: its state transitions and the 1 kHz force windows."""
+    rows = []
+    if data.phases:
+        seq = [data.phases[0].get("source", "?")] + [f"{p.get('target', '?')} {p.get('t', 0.0):.2f} s" for p in data.phases]
+        if len(seq) > 13:  # a run with many move-overs: the start and the end
+            seq = seq[:12] + [f"... {len(seq) - 13} more"] + seq[-1:]
+        rows.append(("robot phases", f"{len(data.phases)} transitions: " + " -> ".join(seq)))
+    if data.force_windows:
+        w = max(data.force_windows, key=lambda r: r.get("force_max", 0.0))
+        ticks = sum(int(r.get("ticks", 0)) for r in data.force_windows)
+        rows.append(("force, 1 kHz windows", f"max {w.get('force_max', 0.0):.4g} N in {w.get('state', '?')} "
+                     f"(t {w.get('t_start', 0.0):.3f}-{w.get('t_end', 0.0):.3f} s, step {w.get('step', 0)}); "
+                     f"{len(data.force_windows)} windows, {ticks} ticks"))
+    return rows
 
 
 def canonical(obj: Any) -> str:
@@ -118,6 +147,7 @@ def format_table(summary: dict[str, Any], data: RunLogData, comparison: tuple[st
         rows.append(("step time median", f"{summary['step_ms_median']:.3g} ms"))
     if data.robot:
         rows += _robot_rows(summary)
+        rows += _robot_log_rows(data)
         rs = data.robot_series()
         if "force_normal" in rs:
             f, contact = rs["force_normal"], rs.get("in_contact")

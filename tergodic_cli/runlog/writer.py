@@ -163,6 +163,8 @@ class RunLog:
             schema = foxglove.Schema(name=name, encoding=encoding, data=data)
             return foxglove.Channel(topic, schema=schema, message_encoding=message_encoding, context=ctx)
 
+        self._raw = raw
+
         def js(topic: str, title: str) -> Any:
             return raw(topic, title, "jsonschema", json.dumps(S.JSON_SCHEMAS[title]).encode(), "json")
 
@@ -354,6 +356,20 @@ class RunLog:
         rec.update({key: robot[key] for key in ("force_normal", "in_contact") if key in robot})
         ch[S.TOPIC_WRENCH].log(_dumps(rec).encode(), log_time=t_ns)
         ch[S.TOPIC_WRENCH_SCENE].log(M.SceneUpdate(entities=entities), log_time=t_ns)
+
+    def log_robot_record(self, kind: str, step: int, t: float, record: Mapping[str, Any]) -> None:
+        """Log one of the robot's own records (``ContactRun``'s ``on_log``): kind "phase" (a state
+        transition, ``tergodic.RobotPhase`` on /robot/phase) or "force" (a window of 1 kHz ticks,
+        ``tergodic.ForceWindow`` on /robot/force), at explorer step ``step`` and simulated time ``t``
+        (s, the explorer's time base, like the events)."""
+        from tergodic_cli.runlog.proto import FORCE_WINDOW, ROBOT_PHASE, encode_record, record_schema
+
+        self._require_open()
+        topic, name = {"phase": (S.TOPIC_ROBOT_PHASE, ROBOT_PHASE), "force": (S.TOPIC_ROBOT_FORCE, FORCE_WINDOW)}[kind]
+        with self._writing():
+            if topic not in self._ch:  # made at the first record: a kinematic log has none
+                self._ch[topic] = self._raw(topic, name, "protobuf", record_schema(name), "protobuf")
+            self._ch[topic].log(encode_record(name, {**record, "step": int(step)}), log_time=self._t_ns(t))
 
     # -- every K steps -------------------------------------------------------------------------
     def log_cloud(self, step: int, *, coverage: np.ndarray, heat: np.ndarray, source: np.ndarray,

@@ -366,7 +366,8 @@ class SimArm:
         joints, mode_torque, sread = sc.arm_joints, p.TORQUE_CONTROL, self.sensor.read
         check_sensor, timeout = g.check_sensor, g.cfg.explorer_timeout
         io = np.zeros(Kn.N_IO)
-        OK, F_FORCE, tau_sl = Kn.OK, Kn.F_FORCE, slice(Kn.IO_TAU, Kn.IO_TAU + 7)
+        OK, F_FORCE, F_IMPACT, tau_sl = Kn.OK, Kn.F_FORCE, Kn.F_IMPACT, slice(Kn.IO_TAU, Kn.IO_TAU + 7)
+        fg = g.force_state
         i, t, rd, fault = -1, sc.t, None, None
         for i in range(len(A)):
             # Flat tuples: q, q̇ and reactions of the movable joints, then the sensor joint's (last).
@@ -377,9 +378,9 @@ class SimArm:
             bias = gravity(qs[:-1], dqs[:-1])
             fault = check_sensor(t, rd.t, rd.wrench)
             if fault is None:
-                code = tick(i, A, D, qs, dqs, rd.wrench, bias, cst, kpk, mut, kd, io, ts, t, dyn)
-                if code == F_FORCE:
-                    fault = g.check_force(t, io[Kn.IO_W:Kn.IO_W + 6])
+                code = tick(i, A, D, qs, dqs, rd.wrench, bias, cst, kpk, mut, kd, io, ts, t, dyn, fg)
+                if code == F_FORCE or code == F_IMPACT:
+                    fault = g.force_fault(t, code)
                 elif code != OK:
                     v = io[Kn.IO_DIAG + Kn.CD_VEE:Kn.IO_DIAG + Kn.CD_VEE + 3]
                     fault = g.check_state(t, io[Kn.IO_Q:Kn.IO_Q + 7].copy(), io[Kn.IO_DQ:Kn.IO_DQ + 7].copy(),
@@ -424,7 +425,7 @@ class RobotRun(ContactRun):
     """
 
     def __init__(self, capture, explorer, cfg: RobotConfig, on_event: Callable[[int, str], None] | None = None,
-                 scene_mesh=None):
+                 scene_mesh=None, on_log: Callable[[str, int, dict], None] | None = None):
         from tergodic_cli.capture.filters import mean_spacing
 
         validate_robot_config(cfg)
@@ -453,7 +454,7 @@ class RobotRun(ContactRun):
         self.T_mesh = T_obj @ self._T_mesh_obj  # mesh frame -> base frame
         arm = SimArm(cfg, mesh, self.T_mesh)
         try:
-            super().__init__(capture, explorer, cfg, arm, T_obj, on_event=on_event)
+            super().__init__(capture, explorer, cfg, arm, T_obj, on_event=on_event, on_log=on_log)
             arm.step_of = self._step
             self.max_tilt_deg = None  # the tool follows the normal; what the arm cannot reach is dropped
             self.closest = closest_point_fn(mesh, self._T_mesh_obj)
@@ -517,7 +518,8 @@ class RobotRun(ContactRun):
 
 def explore_with_robot(capture, explorer, robot_cfg: RobotConfig, steps: int,
                        on_step: Callable[[int, dict], None] | None = None,
-                       on_event: Callable[[int, str], None] | None = None) -> dict:
+                       on_event: Callable[[int, str], None] | None = None,
+                       on_log: Callable[[str, int, dict], None] | None = None) -> dict:
     """Run ``steps`` explorer steps on the simulated robot (see :mod:`tergodic_cli.robot.run`).
 
     Parameters
@@ -528,13 +530,15 @@ def explore_with_robot(capture, explorer, robot_cfg: RobotConfig, steps: int,
     steps : explorer steps in contact.
     on_step : called as on_step(step, robot_sample_dict) after each explorer step.
     on_event : called as on_event(step, text) at every state transition and warning.
+    on_log : called as on_log(kind, step, record): the state transitions and the 1 kHz force windows
+        (:class:`~tergodic_cli.robot.run.ContactRun`).
 
     Returns
     -------
     dict : the robot summary extras (:func:`~tergodic_cli.robot.summary.summarize_robot`) plus
         final_state, stop_reason, transitions, timings and the robot config.
     """
-    with RobotRun(capture, explorer, robot_cfg, on_event=on_event) as run:
+    with RobotRun(capture, explorer, robot_cfg, on_event=on_event, on_log=on_log) as run:
         return run.run(steps, on_step)
 
 

@@ -121,7 +121,8 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, camera=None,
                      on_step: Callable[[int, dict], None] | None = None,
                      on_event: Callable[[int, str], None] | None = None,
                      on_recapture: Callable[[int, dict], None] | None = None,
-                     loop_cfg: CleaningLoopConfig | None = None) -> dict:
+                     loop_cfg: CleaningLoopConfig | None = None,
+                     on_log: Callable[[str, int, dict], None] | None = None) -> dict:
     """Clean the simulated object with the robot until the camera sees at most ``until_clean`` of the marking.
 
     Parameters
@@ -143,6 +144,7 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, camera=None,
         which ended the loop). See :func:`log_recapture`.
     loop_cfg : :class:`CleaningLoopConfig` (K, the remaining-marking threshold, the step budget);
         None = its defaults.
+    on_log : the run's state transitions and 1 kHz force windows (:class:`~tergodic_cli.robot.run.ContactRun`).
 
     Returns
     -------
@@ -188,7 +190,7 @@ def clean_with_robot(capture, explorer, robot_cfg: RobotConfig, camera=None,
     try:
         sim_cfg = SimCaptureConfig(object=obj.cfg, camera=camera.cfg, pipeline=pipe)
         scene_mesh = sim_object_mesh({"object": obj.cfg.to_dict(), "object_pose": obj.pose.tolist()}, robot_cfg.mesh_edge)
-        run = RobotRun(capture, explorer, robot_cfg, on_event=say, scene_mesh=scene_mesh)
+        run = RobotRun(capture, explorer, robot_cfg, on_event=say, scene_mesh=scene_mesh, on_log=on_log)
         cleaner = _Cleaner(obj)
         run.arm.contact_hook = cleaner
         run.arm.hook_every = max(1, int(round(lc.clean_every / robot_cfg.physics_dt)))
