@@ -19,8 +19,9 @@ from typing import Callable
 import numpy as np
 
 from tergodic_cli.backends.pybullet.devices import PyBulletArm, PyBulletWrenchSensor
-from tergodic_cli.backends.pybullet.plan import CollisionWorld, Plan, plan_path
+from tergodic_cli.backends.pybullet.plan import END_FLOOR, PLAN_SLACK, SPONGE_MARGIN, CollisionWorld, Plan, plan_path
 from tergodic_cli.backends.pybullet.scene import PyBulletScene
+from tergodic_cli.errors import TergodicError
 from tergodic_cli.robot import kernels as Kn
 from tergodic_cli.robot.config import RobotConfig, validate_robot_config
 from tergodic_cli.robot.controller import JointImpedance, LineForceController, min_jerk
@@ -190,6 +191,16 @@ class SimArm:
             d, link = self.world.clearance(q_h)
             return f"at the hover pose its {link} is {d * 1e3:.0f} mm from an obstacle"
         return None
+
+    def posture_blocked(self) -> str | None:
+        """Why no set-up move can start from the present posture (a link closer to a body than
+        plan.END_FLOOR allows: plan.plan_path would refuse every move), or None."""
+        self.world.sync()
+        q = self.dev.read_state().q
+        if self.world.slack(q, PLAN_SLACK) >= END_FLOOR - SPONGE_MARGIN:
+            return None
+        d, link = self.world.clearance(q)
+        return f"its {link} is {d * 1e3:.0f} mm from it" if d >= 0 else f"its {link} is {-d * 1e3:.0f} mm inside it"
 
     def _clear(self, q: np.ndarray) -> bool:
         """The posture ``q`` (7,) keeps the set-up moves' margins (plan.py) from every non-arm body."""
@@ -482,6 +493,11 @@ class RobotRun(ContactRun):
             self.on_event(0, f"robot: {100 * float(target @ (border & self.reachable)) / float(target.sum()):.0f} % of "
                              f"the target lies within the sponge's radius of the sheet's open border; dropped")
         self.reachable = self.reachable & ~border
+        blocked = arm.posture_blocked()
+        if blocked is not None:  # before any motion: no set-up move could start clear of the object
+            raise TergodicError(f"the object at {fmt_xyz(self.T_obj[:3, 3])} m touches the arm at its picture pose "
+                                f"({blocked})", "place the object lower or farther out, e.g. --object-pose 0.5,0,0.2 "
+                                "(without one it stands 0.5 m in front of the base on a 0.2 m stand)")
         if not pose_given:
             self.T_obj = T
             self.points_base = transform_points(T, self.points)
