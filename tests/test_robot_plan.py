@@ -197,3 +197,35 @@ def test_the_cli_refuses_it_with_one_line_and_leaves_an_earlier_run(tmp_path):
     assert res.code == 2 and len(errors) == 1 and res.err.strip().splitlines()[-1] == errors[0], res.err
     assert "Traceback" not in res.err and "touches the arm" in errors[0] and "--object-pose" in errors[0]
     assert {f.name: f.read_bytes() for f in out.iterdir()} == before
+
+
+def test_a_retreat_into_a_box_is_cut_short_and_holds_the_line():
+    from tergodic_cli.backends.pybullet.devices import kinematic_chain
+    from tergodic_cli.backends.pybullet.plan import RETREAT_LEAST, retreat_clear, retreat_postures
+
+    sc = PyBulletScene()
+    try:
+        chain = kinematic_chain(sc)
+        sc.set_arm(Q_MID)
+        T0 = sc.tcp_pose()
+        d = T0[:3, 2]  # the tool axis (into the surface); the retreat backs off along -d
+        Q = retreat_postures(chain, Q_MID, d, 0.05)
+        for k, q in enumerate(Q):  # on the line, orientation held: PyBullet's own forward kinematics
+            sc.set_arm(q)
+            T = sc.tcp_pose()
+            assert np.linalg.norm(T[:3, 3] - (T0[:3, 3] - d * 0.05 * k / (len(Q) - 1))) < 5e-4
+            assert np.allclose(T[:3, :3], T0[:3, :3], atol=1e-3)
+    finally:
+        sc.close()
+    w = CollisionWorld()
+    try:
+        assert retreat_clear(w, chain, Q_MID, d, 0.05)[0] == pytest.approx(0.05)  # nothing behind the hand
+        # A slab 40 mm behind the hand's top (the flange, 0.142 + 0.107 m back from the TCP), across the axis.
+        T = np.eye(4)
+        T[:3, :3] = T0[:3, :3]
+        T[:3, 3] = T0[:3, 3] - d * (0.142 + 0.107 + 0.04 + 0.005)
+        w.add_box([0.2, 0.2, 0.005], T)
+        ok, _ = retreat_clear(w, chain, Q_MID, d, 0.05)
+        assert RETREAT_LEAST <= ok < 0.05
+    finally:
+        w.close()

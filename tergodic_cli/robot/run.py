@@ -368,11 +368,18 @@ class ContactRun:
         cfg = self.cfg
         start = self.arm.get_observation(sensor=False).state.ee_pose[:3, 3].copy()
         target = LineTarget(a, d, "move", speed=-cfg.retreat_speed)
+        want = max(cfg.retreat_distance, cfg.hover_height)
+        if hasattr(self.arm, "retreat_limit"):  # a backend that checks its moves against the object (plan.py)
+            ok = self.arm.retreat_limit(d, want)
+            if ok < want - 1e-9:
+                self.on_event(step, f"robot: the retreat stops after {ok * 1e3:.0f} of {want * 1e3:.0f} mm (further back "
+                                    "an arm link would come closer to the object); the next move starts from there")
+                want = ok
         for _ in range(int(round(RETREAT_TIMEOUT_S / self.dt))):
             obs, fault = self._tick(target, checks=checks, sensor=sensor)
             if fault is not None:
                 self._stop(fault, step)
-            if float((start - obs.state.ee_pose[:3, 3]) @ d) >= max(cfg.retreat_distance, cfg.hover_height):
+            if float((start - obs.state.ee_pose[:3, 3]) @ d) >= want:
                 break
 
     def _unreachable(self, problem: str, fix: str) -> None:

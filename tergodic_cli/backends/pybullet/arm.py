@@ -19,7 +19,8 @@ from typing import Callable
 import numpy as np
 
 from tergodic_cli.backends.pybullet.devices import PyBulletArm, PyBulletWrenchSensor
-from tergodic_cli.backends.pybullet.plan import END_FLOOR, PLAN_SLACK, SPONGE_MARGIN, CollisionWorld, Plan, plan_path
+from tergodic_cli.backends.pybullet.plan import (END_FLOOR, PLAN_SLACK, SPONGE_MARGIN, CollisionWorld, Plan, plan_path,
+                                                 retreat_clear)
 from tergodic_cli.backends.pybullet.scene import PyBulletScene
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.robot import kernels as Kn
@@ -81,6 +82,8 @@ class SimArm:
         #: The set-up moves planned so far: [(what, Plan)] (planner, clearance, seconds; the summary's figures).
         self.plans: list[tuple[str, Plan]] = []
         self.start_blocked = False
+        #: The retreats checked so far: [(m allowed, m wanted, smallest link slack m on the way)].
+        self.retreats: list[tuple[float, float, float]] = []
         self._planned: tuple[bytes, Plan] | None = None
         self.joint_names = list(self.dev.joint_names)
         self.dt = float(cfg.physics_dt)
@@ -265,6 +268,14 @@ class SimArm:
         self.plans.append(("picture", plan))
         return self._move_path(plan.path, check)
 
+    def retreat_limit(self, d: np.ndarray, distance: float) -> float:
+        """How far (m, up to ``distance``) the tool may back off along the line direction ``d`` (3,) from here,
+        checked before it starts (plan.retreat_clear: no arm link comes closer to a body than it is now)."""
+        self.world.sync()
+        ok, worst = retreat_clear(self.world, self.dev._chain, self.dev.read_state().q, np.asarray(d, float), distance)
+        self.retreats.append((ok, distance, worst))
+        return ok
+
     def _move_path(self, path: np.ndarray, check):
         """Joint-impedance min-jerk moves along the planned path's straight joint-space segments (m, 7),
         each at rest at its ends (the reference never leaves the checked segments), then settle."""
@@ -338,7 +349,9 @@ class SimArm:
         return {"mesh_triangles": int(len(self.mesh.triangles)),
                 "setup_moves": {"count": len(moves), "planned": sum(pl.planner != "straight" for pl in moves),
                                 "slack_min_mm": 1e3 * min(pl.clearance for pl in moves) if moves else None,
-                                "planning_seconds": sum(pl.seconds for pl in moves)}}
+                                "planning_seconds": sum(pl.seconds for pl in moves)},
+                "retreats": {"count": len(self.retreats),
+                             "shortened": sum(ok < want - 1e-9 for ok, want, _ in self.retreats)}}
 
     def disconnect(self) -> None:
         try:

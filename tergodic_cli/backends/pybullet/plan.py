@@ -60,6 +60,10 @@ REACH_BOUND = np.array([1.2, 1.2, 0.9, 0.9, 0.5, 0.5, 0.2])
 PLAN_TIME_S = 1.5
 #: Seconds OMPL's simplifier may shorten and smooth a found path.
 SIMPLIFY_TIME_S = 0.3
+#: Metres between the checked postures of a retreat (the tool backs off along its axis).
+RETREAT_STEP = 0.005
+#: Metres a retreat always goes, whatever the check says: the sponge leaves the surface.
+RETREAT_LEAST = 0.02
 #: Metres: the fewest clearance a move may start or end with when its end itself is closer than the
 #: margins (a retreat that ended near a rim): the move must not come closer than that end.
 END_FLOOR = 0.003
@@ -257,19 +261,21 @@ class CollisionWorld:
     def set_q(self, q: np.ndarray) -> None:
         self.p.resetJointStatesMultiDof(self.robot, self.joints, [[float(x)] for x in q], physicsClientId=self.cid)
 
-    def slack(self, q: np.ndarray, reach: float = 0.0) -> float:
+    def slack(self, q: np.ndarray, reach: float = 0.0, ball: bool = True) -> float:
         """Metres: the smallest (distance - margin) over every arm link against every obstacle, and the
         self-collision pairs against :data:`SELF_MARGIN`, at the posture ``q`` (7,). Only distances up to
-        the margins + ``reach`` are looked at; beyond that it returns ``reach`` (clear by at least that)."""
+        the margins + ``reach`` are looked at; beyond that it returns ``reach`` (clear by at least that).
+        ``ball`` False: the sponge ball against the obstacles is left out."""
         p, cid, rob = self.p, self.cid, self.robot
         self.checks += 1
         self.set_q(q)
         best = reach
         far = float(LINK_MARGIN + reach)
+        skip = -1 if ball else self.ball  # without the ball: a retreat starts with it touching
         for b in self.bodies():
             for c in p.getClosestPoints(rob, b, far, physicsClientId=cid):
                 la = c[3]
-                if la >= 0:
+                if la >= 0 and la != skip:
                     best = min(best, c[8] - self.margin[la + 1])
         for a, b in self.self_pairs:
             for c in p.getClosestPoints(rob, rob, SELF_MARGIN + reach, a, b, physicsClientId=cid):
@@ -396,3 +402,46 @@ def _rrt_connect(world, q0, q1, lo, hi, valid, seed: int, time_s: float):
         return np.array([[sol.getState(k)[i] for i in range(7)] for k in range(sol.getStateCount())])
     finally:
         del ss, si, space, bounds, start, goal  # nanobind: release OMPL's objects before interpreter exit
+
+
+def retreat_postures(chain, q0: np.ndarray, d: np.ndarray, distance: float, step: float = RETREAT_STEP) -> np.ndarray:
+    """(k + 1, 7) postures backing the TCP off along ``-d`` (unit (3,), the tool axis) by up to ``distance``
+    m from ``q0`` (7,), orientation held, every ``step`` m: resolved-rate steps on the compiled chain
+    (:func:`~tergodic_cli.robot.kernels.fk_jacobian`; a few µs each), one posture per step."""
+    from tergodic_cli.robot.kernels import fk_jacobian
+
+    F, axis, qidx, off = chain
+    T, J = np.empty((4, 4)), np.empty((6, 7))
+    q = np.asarray(q0, dtype=float).copy()
+    fk_jacobian(q, F, axis, qidx, off, T, J)
+    p0, R0 = T[:3, 3].copy(), T[:3, :3].copy()
+    out = [q.copy()]
+    n = max(1, int(math.ceil(distance / step)))
+    for k in range(1, n + 1):
+        goal = p0 - d * (distance * k / n)
+        for _ in range(3):  # a few Newton steps per posture: the line is held to well under a mm
+            fk_jacobian(q, F, axis, qidx, off, T, J)
+            Re = R0 @ T[:3, :3].T
+            w = 0.5 * np.array([Re[2, 1] - Re[1, 2], Re[0, 2] - Re[2, 0], Re[1, 0] - Re[0, 1]])
+            e = np.concatenate([goal - T[:3, 3], w])
+            q = q + J.T @ np.linalg.solve(J @ J.T + 1e-6 * np.eye(6), e)
+        out.append(q.copy())
+    return np.array(out)
+
+
+def retreat_clear(world: CollisionWorld, chain, q0: np.ndarray, d: np.ndarray, distance: float,
+                  least: float = RETREAT_LEAST) -> tuple[float, float]:
+    """How far (m, at most ``distance``) the tool can back off along its axis ``d`` from ``q0`` without an arm
+    link coming closer to a body than it started (or than the margins, when it started beyond them); the
+    ball is left out (it leaves the surface along the line). Never less than ``least``: the tool leaves
+    the surface whatever. Returns (that distance, the smallest link slack (m) met on it)."""
+    Q = retreat_postures(chain, q0, d, distance)
+    start = world.slack(Q[0], PROBE, ball=False)
+    floor = min(0.0, start) - 1e-3
+    ok, worst = 0.0, start
+    for k, q in enumerate(Q[1:], 1):
+        s = world.slack(q, PROBE, ball=False)
+        if s < floor and distance * k / (len(Q) - 1) > least:
+            break
+        ok, worst = distance * k / (len(Q) - 1), min(worst, s)
+    return ok, worst
