@@ -13,7 +13,7 @@ from tergodic_cli.commands._common import given_options, parse_floats
 
 def capture(
     ctx: typer.Context,
-    from_file: Optional[Path] = typer.Option(None, "--from", help="Point-cloud file: .ply, .pcd, .xyz/.xyzrgb/.txt (x y z [r g b]) or .npz (points, colors)."),
+    from_file: Optional[Path] = typer.Option(None, "--from", help="Point-cloud file: .ply, .pcd, .xyz/.xyzrgb/.txt (x y z [r g b]) or .npz (points, colors); or a triangle mesh: .obj (its .mtl texture), .stl, .glb/.gltf, .off, or a .ply with faces, sampled by Poisson disk at the --voxel spacing (seeded by --seed), coloured from its texture or vertex colours, and kept in the capture (mesh.npz)."),
     synthetic: Optional[str] = typer.Option(None, "--synthetic", help="Generate an object instead: bowl, plate, mug, sphere, holed-plate (3 cm hole), thin-mug (walls 4 mm apart), torus, box (sharp edges) or partial (one side missing)."),
     source: Optional[str] = typer.Option(None, "--source", help="file, synthetic, sim or realsense; inferred from --from / --synthetic / --object when omitted."),
     sim_object: Optional[str] = typer.Option(None, "--object", help="Simulated camera (--source sim): bowl, plate, mug, or FILE.obj (metres; --units mm for millimetres)."),
@@ -25,7 +25,7 @@ def capture(
     height: int = typer.Option(480, "--height", help="Sim/RealSense: image height, pixels."),
     fov: float = typer.Option(42.0, "--fov", help="Sim: vertical field of view, degrees."),
     renderer: str = typer.Option("auto", "--renderer", help="Sim: auto (EGL when it loads, else TinyRenderer), egl or tiny."),
-    seed: int = typer.Option(0, "--seed", help="Seed for synthetic sampling, colour noise, surface noise and the dots marking."),
+    seed: int = typer.Option(0, "--seed", help="Seed for synthetic sampling, colour noise, surface noise, the dots marking and the sampling of a mesh."),
     noise: float = typer.Option(0.0, "--noise", help="Synthetic: Gaussian noise along the surface normal, σ in METRES (e.g. 0.0015 = 1.5 mm; 0 = none)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder for the capture (cloud.npz, cloud.ply, capture.json)."),
     voxel: float = typer.Option(0.003, "--voxel", help="Voxel edge in METRES (0 disables). The paper uses 0.003."),
@@ -34,7 +34,7 @@ def capture(
     outliers: Optional[str] = typer.Option(None, "--outliers", help="Statistical outlier removal NB,STD, e.g. 20,2.0."),
     keep_isolated: bool = typer.Option(False, "--keep-isolated", help="Keep stray points (by default a point with fewer than 2 others within 8 median spacings, a flying pixel, is dropped after the voxel grid)."),
     target: str = typer.Option("red", "--target", help="Target colour: red, green, blue, yellow, orange, magenta, cyan, black, white; hsv:H1-H2,SMIN,VMIN; or 'all' for uniform coverage."),
-    units: str = typer.Option("m", "--units", help="Units of the input coordinates (the cloud file, or the sim .obj): m or mm."),
+    units: str = typer.Option("m", "--units", help="Units of the input coordinates (the cloud or mesh file, or the sim .obj): m or mm."),
     drop_invalid: bool = typer.Option(False, "--drop-invalid", help="Drop NaN/inf points instead of refusing the cloud."),
     colour_depth: Optional[int] = typer.Option(None, "--colour-depth", help="Bits per colour channel, 8 or 16, when the file does not say (XYZRGB text, NPZ); default: 0..1 floats or 0..255, and more is refused."),
     max_points: int = typer.Option(500_000, "--max-points", help="Warn when more points than this remain after filtering (precompute refuses them)."),
@@ -61,6 +61,10 @@ def capture(
       tergodic capture --from scan.ply --voxel 0.003 --target red --out cap/
 
       tergodic capture --from scan.pcd --units mm --crop -0.2,-0.2,0,0.2,0.2,0.3 --outliers 20,2 --out cap/
+
+      tergodic capture --from scan.obj --target red --seed 0 --out cap/   (a textured mesh, sampled every 3 mm, kept as mesh.npz)
+
+      tergodic capture --from part.stl --units mm --target all --out cap/   (a mesh without colour: cover all of it)
 
       tergodic capture --config cap/config.json --seed 3 --out cap2/
     """
@@ -137,7 +141,13 @@ def capture(
         t = s["timing_ms"]
         typer.echo(f"sim camera ({s['camera']['renderer']}): render {t['render_ms']:.0f} ms, back-projection {t['back_project_ms']:.0f} ms, "
                    f"filters+segmentation {t['pipeline_ms']:.0f} ms; marking remaining {100 * s['marking_remaining']:.0f}%")
-    typer.echo(f"wrote {sidecar.parent}/ (cloud.npz, cloud.ply, capture.json, config.json{', camera_rgb.png' if frame is not None else ''})")
+    mesh = cap.meta.get("provenance", {}).get("mesh")
+    if mesh is not None:
+        typer.echo(f"mesh: {mesh['vertices']} vertices, {mesh['triangles']} triangles, {mesh['area_m2'] * 1e4:.1f} cm², "
+                   f"sampled every {mesh['sample_spacing_m'] * 1e3:g} mm into {mesh['samples']} points "
+                   f"(colour: {mesh['colour']}; seed {mesh['seed']}); kept as mesh.npz")
+    typer.echo(f"wrote {sidecar.parent}/ (cloud.npz, cloud.ply, {'mesh.npz, ' if mesh is not None else ''}capture.json, "
+               f"config.json{', camera_rgb.png' if frame is not None else ''})")
 
 
 _SOURCES = ("file", "synthetic", "sim", "realsense")

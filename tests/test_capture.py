@@ -194,8 +194,8 @@ def test_missing_file(tmp_path):
 
 
 def test_unknown_extension(tmp_path):
-    (tmp_path / "c.obj").write_text("v 0 0 0\n")
-    _bad(tmp_path, "--from", tmp_path / "c.obj", needles=("extension", ".ply"))
+    (tmp_path / "c.dae").write_text("v 0 0 0\n")  # (.obj is a mesh now: tests/test_capture_mesh.py)
+    _bad(tmp_path, "--from", tmp_path / "c.dae", needles=("extension", ".ply", ".obj"))
 
 
 def test_corrupt_ply(tmp_path, bowl):

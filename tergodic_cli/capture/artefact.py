@@ -5,6 +5,8 @@ A capture folder holds:
 - ``cloud.npz``: ``points`` (n, 3) float64 metres, ``colors`` (n, 3) float32 in [0, 1]
   (absent for colourless clouds), ``target`` (n,) float64, the per-point target weight p in [0, 1];
 - ``cloud.ply``: the same points and colours, for any point-cloud viewer;
+- ``mesh.npz`` (a capture sampled from a triangle mesh only): ``vertices`` (n, 3) float64 metres in
+  the frame of ``points`` and ``triangles`` (k, 3) int64, checksummed in the sidecar like ``cloud.npz``;
 - ``capture.json``: the sidecar: provenance, units, filters with counts, target rule,
   target share, spacing h, extent, seed, library versions, and the sha256 of ``cloud.npz``;
 - ``config.json``: the configs that made it (``tergodic capture --config CAP/config.json`` repeats it).
@@ -30,18 +32,24 @@ from tergodic_cli.errors import TergodicError, os_error, require
 
 SIDECAR = "capture.json"
 ARRAYS = "cloud.npz"
+MESH = "mesh.npz"
 #: The sidecar's own checksum: a stub or an edited capture.json is refused on load.
 SIDECAR_SHA = "sidecar_sha256"
 
 
 @dataclass
 class Capture:
-    """A captured cloud: points (n, 3) metres, colours (n, 3) or None, target weight p (n,)."""
+    """A captured cloud: points (n, 3) metres, colours (n, 3) or None, target weight p (n,).
+
+    ``mesh``: the triangle mesh the cloud was sampled from, (vertices (m, 3) float64 metres in the
+    frame of ``points``, triangles (k, 3) int64), or None for a cloud read or seen by a camera.
+    """
 
     points: np.ndarray
     colors: np.ndarray | None
     target: np.ndarray
     meta: dict = field(default_factory=dict)
+    mesh: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def n_points(self) -> int:
@@ -49,7 +57,7 @@ class Capture:
 
 
 #: The files a capture folder may hold; --overwrite replaces only a folder of these.
-CAPTURE_FILES = frozenset({ARRAYS, "cloud.ply", SIDECAR, "camera_rgb.png", "config.json"})
+CAPTURE_FILES = frozenset({ARRAYS, MESH, "cloud.ply", SIDECAR, "camera_rgb.png", "config.json"})
 #: The kind of a capture's ``config.json``.
 CAPTURE_CONFIG_KIND = "tergodic.capture_config"
 
@@ -111,7 +119,12 @@ def save_capture(capture: Capture, out_dir: str | Path, overwrite: bool = True, 
             write_config(tmp / CONFIG_FILE, CAPTURE_CONFIG_KIND, **config)
         meta = dict(capture.meta)
         meta.pop(SIDECAR_SHA, None)
+        meta.pop("mesh", None)
         meta["arrays"] = {"file": ARRAYS, "sha256": file_sha256(tmp / ARRAYS)}
+        if capture.mesh is not None:
+            vertices, triangles = capture.mesh
+            np.savez(tmp / MESH, vertices=np.asarray(vertices, dtype=np.float64), triangles=np.asarray(triangles, dtype=np.int64))
+            meta["mesh"] = {"file": MESH, "sha256": file_sha256(tmp / MESH), "vertices": len(vertices), "triangles": len(triangles)}
         meta = json.loads(json.dumps(meta, default=_json_default))  # what a reader will see
         meta[SIDECAR_SHA] = sidecar_checksum(meta)
         (tmp / SIDECAR).write_text(json.dumps(meta, indent=2) + "\n")
@@ -162,7 +175,34 @@ def load_capture(path: str | Path) -> Capture:
         raise TergodicError(f"{arrays} is unreadable ({type(exc).__name__})", rerun) from None
     require(points.ndim == 2 and points.shape[1] == 3 and target.shape == (len(points),),
             f"{arrays} has inconsistent shapes", rerun)
-    return Capture(points, colors, target, meta)
+    mesh = _load_mesh(folder, meta, rerun) if "mesh" in meta else None
+    return Capture(points, colors, target, meta, mesh=mesh)
+
+
+def _load_mesh(folder: Path, meta: dict, rerun: str) -> tuple[np.ndarray, np.ndarray]:
+    """The capture's ``mesh.npz``, checked against the sidecar: (vertices (n, 3) m, triangles (k, 3) int64)."""
+    entry = meta["mesh"]
+    path = folder / MESH
+    require(isinstance(entry, dict), f"{folder / SIDECAR} has a malformed 'mesh' entry", rerun)
+    require(path.exists(), f"{folder} has no {MESH} (its {SIDECAR} lists one)", rerun)
+    try:
+        actual = file_sha256(path)
+    except OSError as exc:
+        raise os_error(exc, path, "read", "check the capture folder's permissions") from None
+    require(entry.get("sha256") == actual, f"{path} does not match the checksum in {SIDECAR} (modified?)", rerun)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            vertices, triangles = data["vertices"], data["triangles"]
+    except Exception as exc:
+        raise TergodicError(f"{path} is unreadable ({type(exc).__name__})", rerun) from None
+    require(vertices.ndim == 2 and vertices.shape[1] == 3 and vertices.dtype.kind == "f"
+            and triangles.ndim == 2 and triangles.shape[1] == 3 and triangles.dtype.kind in "iu" and len(triangles) > 0
+            and (len(vertices), len(triangles)) == (entry.get("vertices"), entry.get("triangles")),
+            f"{path} has inconsistent shapes or types", rerun)
+    vertices, triangles = vertices.astype(np.float64), triangles.astype(np.int64)
+    require(bool(np.all(np.isfinite(vertices))) and triangles.min() >= 0 and triangles.max() < len(vertices),
+            f"{path} has non-finite vertices or face indices outside its vertex list", rerun)
+    return vertices, triangles
 
 
 def sidecar_checksum(meta: dict) -> str:

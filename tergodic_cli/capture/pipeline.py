@@ -43,10 +43,10 @@ class CaptureConfig(Config):
     """Everything that determines a capture; saved in ``capture.json`` and ``config.json``."""
 
     source: str = "synthetic"  # "file" | "synthetic" | "sim" | "realsense" (the last two pass raw arrays)
-    path: str | None = None
+    path: str | None = None  # a cloud, or a triangle mesh (.obj, .stl, .glb, .off, a .ply with faces) to sample
     synthetic: str = "bowl"
     marking: str = "X"
-    seed: int = 0
+    seed: int = 0  # synthetic clouds, and the Poisson-disk sampling of a mesh
     noise: float = 0.0  # synthetic only: σ (m) of Gaussian noise along the surface normal
     units: str = "m"  # units of the input coordinates: "m" or "mm"
     voxel: float = 0.003  # metres; 0 disables the voxel grid
@@ -68,6 +68,9 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     Parameters
     ----------
     cfg : CaptureConfig
+        A ``source="file"`` whose path is a triangle mesh is sampled by Poisson disk at the voxel
+        edge (3 mm when ``voxel`` is 0), seeded by ``cfg.seed``, coloured from the mesh's texture or
+        vertex colours; the mesh is kept in the capture (same frame, metres).
     raw : tuple, optional
         (points (n, 3) m, colours (n, 3) in [0, 1] or None), bypassing the source: for sources that
         produce arrays themselves (simulated or real cameras).
@@ -77,7 +80,8 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     Returns
     -------
     Capture
-        The filtered cloud, its target weight p (n,) in [0, 1] and the sidecar ``meta``.
+        The filtered cloud, its target weight p (n,) in [0, 1], the sidecar ``meta`` and, for a
+        mesh input, the mesh.
     """
     _validate_config(cfg)
     on_event = on_event or echo
@@ -85,8 +89,14 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     target_range = parse_target(cfg.target)
     stages: list[tuple[str, int]] = []  # points left after each stage, for the printed summary
     provenance: dict = {"source": cfg.source}
+    mesh = None  # (vertices (n, 3) m, triangles (k, 3)) of a mesh input
+    units = cfg.units  # of `points` below: a sampled mesh is already in metres
     if raw is not None:
         points, colors = raw
+    elif cfg.source == "file" and is_mesh_file(cfg.path):
+        points, colors, mesh, provenance["mesh"] = _sample_mesh_file(cfg)
+        provenance["path"] = str(cfg.path)
+        units = "m"
     elif cfg.source == "file":
         points, colors = read_cloud(cfg.path, drop_invalid=cfg.drop_invalid, colour_depth=cfg.colour_depth)
         provenance["path"] = str(cfg.path)
@@ -101,7 +111,7 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     stages.append(("input", len(points)))
     require(len(points) > 0, "the cloud is empty", "check the input file or the crop box")
 
-    if cfg.units == "mm":
+    if units == "mm":
         points = points * 1e-3
     finite = np.all(np.isfinite(points), axis=1)
     if colors is not None:
@@ -174,7 +184,58 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
         "spacing_h_m": h, "extent_m": (hi - lo).tolist(), "bbox_m": [lo.tolist(), hi.tolist()],
         "seed": cfg.seed, "seconds": time.perf_counter() - t0, "versions": library_versions(),
     }
-    return Capture(points, colors, p, meta)
+    return Capture(points, colors, p, meta, mesh=mesh)
+
+
+#: Meshes, whatever their content; a .ply is a mesh when its header declares faces.
+MESH_ONLY_SUFFIXES = (".obj", ".stl", ".glb", ".gltf", ".off")
+#: Spacing of the samples on a mesh when the voxel grid is off, metres.
+MESH_SPACING = 0.003
+
+
+def is_mesh_file(path) -> bool:
+    """Whether ``capture --from path`` reads a triangle mesh (and samples it) rather than a cloud.
+
+    Parameters
+    ----------
+    path : str or Path or None
+
+    Returns
+    -------
+    bool
+        True for .obj, .stl, .glb/.gltf, .off, and a .ply whose header declares faces.
+    """
+    from tergodic_cli.capture.mesh import ply_has_faces
+
+    if path is None:
+        return False
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix in MESH_ONLY_SUFFIXES:
+        return True
+    if suffix != ".ply" or not path.is_file():
+        return False
+    try:
+        return ply_has_faces(path)
+    except OSError:
+        return False  # the cloud reader says why it cannot read it
+
+
+def _sample_mesh_file(cfg: CaptureConfig):
+    """A mesh file sampled into a cloud: points (n, 3) m, colours or None, (vertices m, triangles), provenance."""
+    from tergodic_cli.capture.mesh import read_mesh, sample_mesh
+
+    mesh = read_mesh(cfg.path, "--from")
+    if cfg.units == "mm":
+        mesh = mesh.transformed(1e-3)
+    # the units are judged before sampling: a millimetre mesh read as metres would need millions of samples
+    _check_extent(mesh.vertices, cfg.units, f"{Path(cfg.path).name}: ")
+    spacing = float(cfg.voxel) if cfg.voxel > 0 else MESH_SPACING
+    sample = sample_mesh(mesh, spacing, seed=cfg.seed)
+    colour = "texture" if mesh.textures and mesh.corner_uvs is not None else ("vertex" if mesh.vertex_colors is not None else "none")
+    info = {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles), "area_m2": mesh.area,
+            "sample_spacing_m": spacing, "samples": len(sample.points), "colour": colour, "seed": cfg.seed}
+    return sample.points, sample.colors, (mesh.vertices, mesh.triangles.astype(np.int64)), info
 
 
 def _validate_config(cfg: CaptureConfig) -> None:

@@ -55,7 +55,7 @@ def read_cloud(path: str | Path, drop_invalid: bool = False,
     require(path.is_file(), f"not a file: {path}", "give a PLY, PCD, XYZRGB or NPZ file to --from")
     suffix = path.suffix.lower()
     require(suffix in SUPPORTED, f"unknown point-cloud extension '{suffix}' for {path.name}",
-            f"use one of {', '.join(SUPPORTED)}")
+            f"use a cloud ({', '.join(SUPPORTED)}) or a triangle mesh (.obj, .stl, .ply with faces, .glb, .gltf, .off)")
     try:
         blob = path.read_bytes()
     except OSError as exc:
