@@ -18,7 +18,11 @@ from __future__ import annotations
 
 import _env  # noqa: F401  (first: BLAS threads, sys.path)
 
+import os
 import sys
+
+# Off the path again: numba imports ``coverage`` when it is there, and benchmarks/coverage.py is not it.
+sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != os.path.dirname(os.path.abspath(__file__))]
 
 import numpy as np
 

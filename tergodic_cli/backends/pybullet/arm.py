@@ -82,6 +82,7 @@ class SimArm:
         #: The set-up moves planned so far: [(what, Plan)] (planner, clearance, seconds; the summary's figures).
         self.plans: list[tuple[str, Plan]] = []
         self.start_blocked = False
+        self.plan_seconds = 0.0  # wall seconds spent planning, failed plans included
         #: The retreats checked so far: [(m allowed, m wanted, smallest link slack m on the way)].
         self.retreats: list[tuple[float, float, float]] = []
         self._planned: tuple[bytes, Plan] | None = None
@@ -239,10 +240,13 @@ class SimArm:
         return None
 
     def _plan_to(self, q_goal: np.ndarray) -> tuple[Plan | None, str | None]:
+        t0 = time.perf_counter()
         self.world.sync()
         q0 = self.dev.read_state().q.copy()
         g = self.guard
-        return plan_path(self.world, q0, q_goal, g.q_lo, g.q_hi)
+        out = plan_path(self.world, q0, q_goal, g.q_lo, g.q_hi)
+        self.plan_seconds += time.perf_counter() - t0
+        return out
 
     def move_to(self, T: np.ndarray, check):
         """The planned move (:meth:`plan`) to the hover posture of ``T``; the posture spring rests there."""
@@ -349,7 +353,7 @@ class SimArm:
         return {"mesh_triangles": int(len(self.mesh.triangles)),
                 "setup_moves": {"count": len(moves), "planned": sum(pl.planner != "straight" for pl in moves),
                                 "slack_min_mm": 1e3 * min(pl.clearance for pl in moves) if moves else None,
-                                "planning_seconds": sum(pl.seconds for pl in moves)},
+                                "planning_seconds": self.plan_seconds},
                 "retreats": {"count": len(self.retreats),
                              "shortened": sum(ok < want - 1e-9 for ok, want, _ in self.retreats)}}
 
@@ -506,11 +510,6 @@ class RobotRun(ContactRun):
             self.on_event(0, f"robot: {100 * float(target @ (border & self.reachable)) / float(target.sum()):.0f} % of "
                              f"the target lies within the sponge's radius of the sheet's open border; dropped")
         self.reachable = self.reachable & ~border
-        blocked = arm.posture_blocked()
-        if blocked is not None:  # before any motion: no set-up move could start clear of the object
-            raise TergodicError(f"the object at {fmt_xyz(self.T_obj[:3, 3])} m touches the arm at its picture pose "
-                                f"({blocked})", "place the object lower or farther out, e.g. --object-pose 0.5,0,0.2 "
-                                "(without one it stands 0.5 m in front of the base on a 0.2 m stand)")
         if not pose_given:
             self.T_obj = T
             self.points_base = transform_points(T, self.points)
@@ -520,6 +519,11 @@ class RobotRun(ContactRun):
             self.on_event(0, "robot: no --object-pose given; the object stands on a 0.2 m stand, its footprint centre "
                              f"{float(np.hypot(*T[:2, 3])):.2f} m in front of the base, turned {yaw:.0f} deg so the arm "
                              f"reaches its target (object pose {fmt_xyz(T[:3, 3])} m)")
+        blocked = arm.posture_blocked()
+        if blocked is not None:  # before any motion: no set-up move could start clear of the object
+            raise TergodicError(f"the object at {fmt_xyz(self.T_obj[:3, 3])} m touches the arm at its picture pose "
+                                f"({blocked})", "place the object lower or farther out, e.g. --object-pose 0.5,0,0.2 "
+                                "(without one it stands 0.5 m in front of the base on a 0.2 m stand)")
         self.drop_unreachable()
 
     @property
