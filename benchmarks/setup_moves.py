@@ -100,7 +100,9 @@ def clearance(path: str) -> None:
             continue
         res = [w.clearance(d["q"][i]) for i in idx]
         j = int(np.argmin([r[0] for r in res]))
-        print(f"{s}: {len(idx)} postures (every 10th tick); smallest distance {1e3 * res[j][0]:.1f} mm ({res[j][1]})")
+        far = "" if res[j][1] else ">= "  # nothing within clearance()'s reach
+        print(f"{s}: {len(idx)} postures (every 10th tick); smallest distance {far}{1e3 * res[j][0]:.1f} mm "
+              f"({res[j][1] or 'no link nearer'})")
     w.close()
     sc.close()
 

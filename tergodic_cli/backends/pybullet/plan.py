@@ -287,8 +287,9 @@ class CollisionWorld:
                 best = min(best, c[8] - SELF_MARGIN)
         return best
 
-    def clearance(self, q: np.ndarray, upto: float = 0.3) -> tuple[float, str]:
-        """(m, which link): the smallest distance of any arm link to any obstacle at ``q`` (7,), up to ``upto``."""
+    def clearance(self, q: np.ndarray, upto: float = 0.06) -> tuple[float, str]:
+        """(m, which link): the smallest distance of any arm link to any obstacle at ``q`` (7,), up to ``upto``
+        (beyond: (upto, "")). A far reach costs: a hull against a trimesh walks every triangle in reach."""
         p, cid, rob = self.p, self.cid, self.robot
         self.set_q(q)
         best, which = upto, ""
