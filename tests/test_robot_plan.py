@@ -229,3 +229,28 @@ def test_a_retreat_into_a_box_is_cut_short_and_holds_the_line():
         assert RETREAT_LEAST <= ok < 0.05
     finally:
         w.close()
+
+
+def test_a_table_under_the_arm_is_an_obstacle_but_the_base_standing_on_it_is_not():
+    """pybullet_data's plane (the GUI's table) added to the scene: the base (link 0) stands on it and is not
+    checked; the picture posture is clear, a posture with the sponge on the floor is not."""
+    import os
+
+    import pybullet_data
+
+    sc = PyBulletScene()
+    try:
+        sc.p.loadURDF(os.path.join(pybullet_data.getDataPath(), "plane.urdf"), physicsClientId=sc.cid)
+        w = CollisionWorld(sc)
+        try:
+            assert w.slack(Q_MID) >= 0
+            q = Q_MID.copy()
+            q[1], q[3] = 1.5, -0.3  # shoulder forward, elbow open: the tool at the floor
+            sc.set_arm(q)
+            tip = sc.tcp_pose()[2, 3]
+            assert tip < SPONGE_MARGIN  # (the physics scene's own kinematics say it is at the floor)
+            assert w.slack(q) < 0
+        finally:
+            w.close()
+    finally:
+        sc.close()
