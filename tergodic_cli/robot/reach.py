@@ -84,14 +84,17 @@ def ik(chain, T: np.ndarray, q0: np.ndarray, q_min: np.ndarray, q_max: np.ndarra
     return q, pe, oe
 
 
-def posture(chain, T: np.ndarray, q_ref: np.ndarray, q_min: np.ndarray, q_max: np.ndarray) -> tuple[np.ndarray, float, float]:
+def posture(chain, T: np.ndarray, q_ref: np.ndarray, q_min: np.ndarray, q_max: np.ndarray,
+            valid=None) -> tuple[np.ndarray, float, float]:
     """Inverse kinematics of ``T`` (4, 4) from a few seeds, the best posture of those that converge.
 
     Seeds: ``q_ref`` (7,) and ``q_ref`` with the base turned towards the target, each also with the
     wrist rolled either way (joints 5 and 7). One seed alone can settle in a twisted elbow (joints 1
     and 3 counter-rotated, joint 4 and 6 near their limits: measured on the bowl's far wall), where
     the line controller's null-space spring would then hold the arm. Best: the widest joint margin
-    (up to 0.5 rad), then the nearest to ``q_ref``. Returns (q (7,), position error m, orientation error rad).
+    (up to 0.5 rad), then the nearest to ``q_ref``; with ``valid`` (q (7,) -> bool, e.g. clear of the
+    object) a posture it refuses only wins when no converged one passes. Returns (q (7,), position
+    error m, orientation error rad).
     """
     q_ref = np.asarray(q_ref, dtype=float)
     turned = q_ref.copy()
@@ -103,6 +106,8 @@ def posture(chain, T: np.ndarray, q_ref: np.ndarray, q_min: np.ndarray, q_max: n
         ok = pe <= 1e-3 and oe <= 1e-2
         score = (0.0 if ok else -10.0) + min(0.5, float(np.min(np.minimum(q - q_min, q_max - q)))) \
             - 0.1 * float(np.linalg.norm(q - q_ref))
+        if ok and valid is not None and not valid(q):
+            score -= 5.0
         if score > best_score:
             best, best_score = (q, pe, oe), score
     return best

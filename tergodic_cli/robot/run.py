@@ -402,11 +402,18 @@ class ContactRun:
         cfg = self.cfg
         start = self.arm.get_observation(sensor=False).state.ee_pose[:3, 3].copy()
         target = LineTarget(a, d, "move", speed=-cfg.retreat_speed)
+        want = max(cfg.retreat_distance, cfg.hover_height)
+        if hasattr(self.arm, "retreat_limit"):  # a backend that checks its moves against the object (plan.py)
+            ok = self.arm.retreat_limit(d, want)
+            if ok < want - 1e-9:
+                self.on_event(step, f"robot: the retreat stops after {ok * 1e3:.0f} of {want * 1e3:.0f} mm (further back "
+                                    "an arm link would come closer to the object); the next move starts from there")
+                want = ok
         for _ in range(int(round(RETREAT_TIMEOUT_S / self.dt))):
             obs, fault = self._tick(target, checks=checks, sensor=sensor)
             if fault is not None:
                 self._stop(fault, step)
-            if float((start - obs.state.ee_pose[:3, 3]) @ d) >= max(cfg.retreat_distance, cfg.hover_height):
+            if float((start - obs.state.ee_pose[:3, 3]) @ d) >= want:
                 break
 
     def _unreachable(self, problem: str, fix: str) -> None:
@@ -438,13 +445,19 @@ class ContactRun:
                 self._unreachable(f"the start point {fmt_xyz(a)} m or its hover pose is outside the workspace box",
                                   "move the object with --object-pose, or choose another start")
             err = self.arm.reach(T_hover)
+            if err is None and hasattr(self.arm, "plan"):  # a backend that plans its set-up moves (plan.py)
+                err = self.arm.plan(T_hover)
+                if err is not None and getattr(self.arm, "start_blocked", False):
+                    break  # the present posture itself is too close: no other start helps
             if err is None:
                 break
             # The reach map is sampled: where the hover pose is out of reach after all, mark it so.
             self.reachable[np.asarray(self.kdtree.query_ball_point(self._to_obj(a), TRANSIT_M), dtype=np.intp)] = False
         if err is not None:
-            self._unreachable(f"the robot cannot reach the hover pose above the agent at {fmt_xyz(a)} m ({err})",
-                              "move the object closer with --object-pose, or choose another start")
+            self._unreachable(f"the robot cannot reach the hover pose above the agent at {fmt_xyz(a)} m without "
+                              f"touching anything ({err})",
+                              "place the object where the arm reaches it from above, e.g. a lower or nearer "
+                              "--object-pose (without one it stands 0.5 m in front of the base on a 0.2 m stand)")
         if a is not start:
             self.on_event(self._step(), f"robot: the tool cannot follow the normal at the start {fmt_xyz(start)} m; "
                                         f"starting at the nearest reachable target point {fmt_xyz(a)} m")

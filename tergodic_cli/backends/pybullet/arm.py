@@ -19,13 +19,16 @@ from typing import Callable
 import numpy as np
 
 from tergodic_cli.backends.pybullet.devices import PyBulletArm, PyBulletWrenchSensor
+from tergodic_cli.backends.pybullet.plan import (END_FLOOR, PLAN_SLACK, SPONGE_MARGIN, CollisionWorld, Plan, plan_path,
+                                                 retreat_clear)
 from tergodic_cli.backends.pybullet.scene import PyBulletScene
+from tergodic_cli.errors import TergodicError
 from tergodic_cli.robot import kernels as Kn
 from tergodic_cli.robot.config import RobotConfig, validate_robot_config
 from tergodic_cli.robot.controller import JointImpedance, LineForceController, min_jerk
 from tergodic_cli.robot.interfaces import ArmState, ContactWrench, LineTarget, Observation
 from tergodic_cli.robot.kinematics import FrankaModel, tool_offset
-from tergodic_cli.robot.reach import ik, plan_reach, posture, tool_rotation
+from tergodic_cli.robot.reach import plan_reach, posture, tool_rotation
 from tergodic_cli.robot.run import SETTLE_S, ContactRun, object_pose
 from tergodic_cli.robot.safety import Fault, fmt_xyz
 from tergodic_cli.robot.surface import (SurfaceMesh, check_reachable, curved_edge, near_border, oriented_normals,
@@ -40,8 +43,6 @@ APPROACH_D = 100.0
 #: Metres the hand, its fingers and the sponge keep from the object, table and stand, with the tool on the
 #: normal, for a point to count as reachable (the tilt's 95th percentile, ~3 deg, moves the hand ~7 mm).
 HAND_CLEAR = 0.01
-#: Metres above the object's highest point the tool passes on its way to and from the picture pose.
-CLEARANCE = 0.04
 
 
 class SimArm:
@@ -76,10 +77,18 @@ class SimArm:
             st = self.dev.read_state()
             self.model = FrankaModel()
             self.model.tool = tool_offset(self.model, st.q, st.ee_pose)
+            #: The set-up moves' collision check: the arm and every other body of the scene (plan.py).
+            self.world = CollisionWorld(self.scene)
         except BaseException:
             self.scene.close()
             raise
-        self._mesh_top = float(transform_points(T_mesh, mesh.vertices)[:, 2].max())
+        #: The set-up moves planned so far: [(what, Plan)] (planner, clearance, seconds; the summary's figures).
+        self.plans: list[tuple[str, Plan]] = []
+        self.start_blocked = False
+        self.plan_seconds = 0.0  # wall seconds spent planning, failed plans included
+        #: The retreats checked so far: [(m allowed, m wanted, smallest link slack m on the way)].
+        self.retreats: list[tuple[float, float, float]] = []
+        self._planned: tuple[bytes, Plan] | None = None
         self.joint_names = list(self.dev.joint_names)
         self.dt = float(cfg.physics_dt)
         self.q_min, self.q_max, self.dq_max = self.dev.q_min, self.dev.q_max, self.dev.dq_max
@@ -215,61 +224,118 @@ class SimArm:
 
     def reach(self, T: np.ndarray) -> str | None:
         q_h, pe, oe = self._ik_hover(T)
-        return None if pe <= 1e-3 and oe <= 1e-2 else \
-            f"inverse kinematics off by {pe * 1e3:.1f} mm, {math.degrees(oe):.1f} deg"
+        if not (pe <= 1e-3 and oe <= 1e-2):
+            return f"inverse kinematics off by {pe * 1e3:.1f} mm, {math.degrees(oe):.1f} deg"
+        if not self._clear(q_h):
+            d, link = self.world.clearance(q_h)
+            return f"at the hover pose its {link} is {d * 1e3:.0f} mm from an obstacle"
+        return None
+
+    def posture_blocked(self) -> str | None:
+        """Why no set-up move can start from the present posture (a link closer to a body than
+        plan.END_FLOOR allows: plan.plan_path would refuse every move), or None."""
+        self.world.sync()
+        q = self.dev.read_state().q
+        if self.world.slack(q, PLAN_SLACK) >= END_FLOOR - SPONGE_MARGIN:
+            return None
+        d, link = self.world.clearance(q)
+        return f"its {link} is {d * 1e3:.0f} mm from it" if d >= 0 else f"its {link} is {-d * 1e3:.0f} mm inside it"
+
+    def _clear(self, q: np.ndarray) -> bool:
+        """The posture ``q`` (7,) keeps the set-up moves' margins (plan.py) from every non-arm body."""
+        self.world.sync()
+        return self.world.slack(q) >= 0.0
 
     def _ik_hover(self, T: np.ndarray):
-        """The hover posture (reach.posture: several seeds, no twisted elbow), the line controller's rest posture."""
+        """The hover posture (reach.posture: several seeds, no twisted elbow, clear of the object), the
+        line controller's rest posture."""
         key = T.tobytes()
         if key not in self._ik:
-            self._ik[key] = posture(self.dev._chain, T, np.array(self.cfg.picture_q), self.q_min, self.q_max)
+            self.world.sync()
+            self._ik[key] = posture(self.dev._chain, T, np.array(self.cfg.picture_q), self.q_min, self.q_max,
+                                    valid=lambda q: self.world.slack(q) >= 0.0)
         return self._ik[key]
 
     def set_object_pose(self, T_mesh: np.ndarray) -> None:
         """Move the object (its mesh frame to ``T_mesh`` (4, 4), base frame) before the run."""
         self.scene.move_object(T_mesh)
-        self._mesh_top = float(transform_points(T_mesh, self.mesh.vertices)[:, 2].max())
+        self._ik.clear()
+
+    def plan(self, T: np.ndarray) -> str | None:
+        """Plan the set-up move from the present joints to the hover posture of ``T`` (4, 4) (plan.py: a
+        straight joint-space line when it is clear, else OMPL's RRTConnect; every non-arm body of the scene
+        avoided by the margins); :meth:`move_to` follows it. Returns None, or why no move was found."""
+        q_h = self._ik_hover(T)[0]
+        plan, err = self._plan_to(q_h)
+        #: Whether the last plan failed at its start: the present posture is too close to a body.
+        self.start_blocked = plan is None and err.startswith("the start")
+        if plan is None:
+            return err
+        self._planned = (T.tobytes(), plan)
+        return None
+
+    def _plan_to(self, q_goal: np.ndarray) -> tuple[Plan | None, str | None]:
+        t0 = time.perf_counter()
+        self.world.sync()
+        q0 = self.dev.read_state().q.copy()
+        g = self.guard
+        out = plan_path(self.world, q0, q_goal, g.q_lo, g.q_hi)
+        self.plan_seconds += time.perf_counter() - t0
+        return out
 
     def move_to(self, T: np.ndarray, check):
-        """Come down from above the object (a joint-space path straight to a hover pose low in a bowl
-        can sweep the sponge through the rim), then to ``T``; the posture spring rests there."""
+        """The planned move (:meth:`plan`) to the hover posture of ``T``; the posture spring rests there."""
         q_h = self._ik_hover(T)[0]
+        if self._planned is not None and self._planned[0] == T.tobytes():
+            plan, err = self._planned[1], None
+        else:
+            plan, err = self._plan_to(q_h)
+        self._planned = None
         self._ik.clear()
+        if plan is None:
+            return Fault("plan", "hold", f"no collision-free move to the hover pose ({err}); holding position", self.t)
+        self.plans.append(("hover", plan))
         self.ctrl = LineForceController(self.cfg.gains, self.cfg.physics_dt, q_rest=q_h, x_ref=self.ctrl.x_ref.copy())
         self._mode = None
-        return self._move_joints(self._above(T, q_h), check) or self._move_joints(q_h, check)
+        return self._move_path(plan.path, check)
 
     def to_picture(self, check):
-        """Straight up to clear the object first, then the picture pose (joint space)."""
-        st = self.dev.read_state()
-        return self._move_joints(self._above(st.ee_pose, st.q), check) or \
-            self._move_joints(np.array(self.cfg.picture_q, dtype=float), check)
+        """The planned move (plan.py) to the picture pose."""
+        plan, err = self._plan_to(np.array(self.cfg.picture_q, dtype=float))
+        if plan is None:
+            return Fault("plan", "hold", f"no collision-free move to the picture pose ({err}); holding position", self.t)
+        self.plans.append(("picture", plan))
+        return self._move_path(plan.path, check)
 
-    def _above(self, T: np.ndarray, q_near: np.ndarray) -> np.ndarray:
-        """Joints that put the TCP at ``T``'s orientation and x, y, lifted to ``CLEARANCE`` above the
-        object's top (or ``q_near`` when ``T`` is that high already or the lift is out of reach)."""
-        z_top = self._mesh_top + CLEARANCE
-        if T[2, 3] >= z_top - 1e-3:
-            return q_near
-        T_up = T.copy()
-        T_up[2, 3] = z_top
-        q_up, pe, oe = ik(self.dev._chain, T_up, q_near, self.q_min, self.q_max, q_rest=np.asarray(q_near, dtype=float),
-                          iters=300, margin=0.05)
-        return q_up if pe < 1e-3 and oe < 1e-2 and self.guard.inside(T_up[:3, 3]) else q_near
+    def retreat_limit(self, d: np.ndarray, distance: float) -> float:
+        """How far (m, up to ``distance``) the tool may back off along the line direction ``d`` (3,) from here,
+        checked before it starts (plan.retreat_clear: no arm link comes closer to a body than it is now)."""
+        self.world.sync()
+        ok, worst = retreat_clear(self.world, self.dev._chain, self.dev.read_state().q, np.asarray(d, float), distance)
+        self.retreats.append((ok, distance, worst))
+        return ok
 
-    def _move_joints(self, q_target: np.ndarray, check):
-        """Joint-impedance min-jerk move from the present joints to ``q_target`` (7,), then settle."""
+    def _move_path(self, path: np.ndarray, check):
+        """Joint-impedance min-jerk moves along the planned path's straight joint-space segments (m, 7),
+        each at rest at its ends (the reference never leaves the checked segments), then settle."""
         cfg = self.cfg
-        q0 = self.dev.read_state().q.copy()
-        # Min-jerk peaks at 1.875 × the mean speed: keep the joints under move_speed and the TCP
-        # under half the guard's speed limit.
-        dist = float(np.max(np.abs(q_target - q0)))
-        path = np.array([self.model.fk(q0 + s * (q_target - q0))[:3, 3] for s in np.linspace(0, 1, 21)])
-        length = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
-        duration = max(1.0, 1.875 * dist / cfg.move_speed, 1.875 * length / (0.5 * self.guard.cfg.tcp_speed_max))
-        n = int(round(duration / self.dt))
-        path = [min_jerk(q0, q_target, duration, (i + 1) * self.dt) for i in range(n + int(round(SETTLE_S / self.dt)))]
-        QD, DQD = map(np.array, zip(*path))
+        QD, DQD = [], []
+        for q0, q1 in zip(path[:-1], path[1:]):
+            # Min-jerk peaks at 1.875 × the mean speed: keep the joints under move_speed and the TCP
+            # under half the guard's speed limit.
+            dist = float(np.max(np.abs(q1 - q0)))
+            tcp = np.array([self.model.fk(q0 + s * (q1 - q0))[:3, 3] for s in np.linspace(0, 1, 21)])
+            length = float(np.sum(np.linalg.norm(np.diff(tcp, axis=0), axis=1)))
+            duration = max(0.5 if len(path) > 2 else 1.0, 1.875 * dist / cfg.move_speed,
+                           1.875 * length / (0.5 * self.guard.cfg.tcp_speed_max))
+            n = int(round(duration / self.dt))
+            for i in range(n):
+                qd, dqd = min_jerk(q0, q1, duration, (i + 1) * self.dt)
+                QD.append(qd)
+                DQD.append(dqd)
+        QD += [np.asarray(path[-1], float)] * int(round(SETTLE_S / self.dt))
+        DQD += [np.zeros(7)] * int(round(SETTLE_S / self.dt))
+        QD, DQD = np.array(QD), np.array(DQD)
         if self.fast:
             return self._joint_fast(QD, DQD)
         for qd, dqd in zip(QD, DQD):
@@ -320,12 +386,19 @@ class SimArm:
         pass
 
     def summary(self) -> dict:
-        return {"mesh_triangles": int(len(self.mesh.triangles)), "arm_contacts": self.scene.collision.stats.to_dict()}
+        moves = [pl for _, pl in self.plans]
+        return {"mesh_triangles": int(len(self.mesh.triangles)), "arm_contacts": self.scene.collision.stats.to_dict(),
+                "setup_moves": {"count": len(moves), "planned": sum(pl.planner != "straight" for pl in moves),
+                                "slack_min_mm": 1e3 * min(pl.clearance for pl in moves) if moves else None,
+                                "planning_seconds": self.plan_seconds},
+                "retreats": {"count": len(self.retreats),
+                             "shortened": sum(ok < want - 1e-9 for ok, want, _ in self.retreats)}}
 
     def disconnect(self) -> None:
         try:
             self.dev.disconnect()
         finally:
+            self.world.close()
             self.scene.close()
 
     # ------------------------------------------------------------------ the compiled loops
@@ -488,6 +561,11 @@ class RobotRun(ContactRun):
             self.on_event(0, "robot: no --object-pose given; the object stands on a 0.2 m stand, its footprint centre "
                              f"{float(np.hypot(*T[:2, 3])):.2f} m in front of the base, turned {yaw:.0f} deg so the arm "
                              f"reaches its target (object pose {fmt_xyz(T[:3, 3])} m)")
+        blocked = arm.posture_blocked()
+        if blocked is not None:  # before any motion: no set-up move could start clear of the object
+            raise TergodicError(f"the object at {fmt_xyz(self.T_obj[:3, 3])} m touches the arm at its picture pose "
+                                f"({blocked})", "place the object lower or farther out, e.g. --object-pose 0.5,0,0.2 "
+                                "(without one it stands 0.5 m in front of the base on a 0.2 m stand)")
         # The hand is 0.2 m wide: tilted along a steep wall with the spin reach.tool_rotation gives, it cuts
         # through a bowl's rim (82 % of the bowl's wall). Where the hand, its fingers or the sponge would come
         # within HAND_CLEAR of the object, the table or the stand with the tool on the normal, the tool

@@ -156,6 +156,9 @@ class PyBulletScene:
         self.collision = ArmCollision(self, data)
         self.table = self.collision.add_table()
         self.object: int | None = None
+        #: {body: (vertices (n, 3), triangles (k, 3))} of every mesh body built from vertices (PyBullet
+        #: cannot hand those back): the set-up moves' collision check copies them (plan.CollisionWorld).
+        self.mesh_data: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.t = 0.0
         self.steps = 0
         self.teleports = 0  # counts set_arm calls (cached kinematics are stale after one)
@@ -284,6 +287,7 @@ class PyBulletScene:
         body = p.createMultiBody(0.0, col, vis, basePosition=pose[:3, 3].tolist(),
                                  baseOrientation=matrix_to_quat(pose[:3, :3]).tolist(), physicsClientId=cid)
         p.changeDynamics(body, -1, lateralFriction=self.sponge.friction, physicsClientId=cid)
+        self.mesh_data[body] = (np.asarray(vertices, float), np.asarray(triangles, np.int64))
         # Only the sponge touches the object: a hand or finger hull against the concave mesh costs
         # 5-10× a physics step (docs/robot.md). Collision groups: object 2, sponge 1|2, other links 1.
         p.setCollisionFilterGroupMask(body, -1, 2, 2, physicsClientId=cid)
