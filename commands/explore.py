@@ -27,6 +27,7 @@ def explore(
     diffusion: str = typer.Option("carry", "--diffusion", help="'carry': u <- e^{-δtL}u + s (default, measured best); 'source': eq. 19 on the current source only."),
     integrator: str = typer.Option("resolvent", "--integrator", help="'resolvent' (eq. 4 in the eigenbasis, 1/(1+λδt); default, measured most robust), 'spectral' (eq. 19, e^{-λδt}) or 'implicit' (sparse (M + δt L)^-1 M, the exact baseline)."),
     coverage_norm: str = typer.Option("cloud", "--coverage-norm", help="What the source's coverage is normalised over: 'cloud' (default: the whole cloud, eq. 2 as printed) or 'target' (the marked points only; tuned in wave 1 to the touched share, which the neutral ε does not reward: docs/explore.md)."),
+    sheets: str = typer.Option("mixed", "--sheets", help="Neighbours of the tangent fit, gradient and projection: 'mixed' (all n_N nearest, the paper's; default) or 'separate' (the agent's own sheet only: never inside a wall whose two sides are sampled, but on thin-walled objects the agent can stall on a wall's inner side: docs/explore.md)."),
     v_max: float = typer.Option(0.003, "--v-max", help="Speed limit, m/s (paper: 0.003)."),
     a_max: float = typer.Option(0.003, "--a-max", help="Acceleration limit, m/s² (paper: 0.003)."),
     dt: float = typer.Option(1.0, "--dt", help="Seconds per explorer step (paper: 1)."),

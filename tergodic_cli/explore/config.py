@@ -11,6 +11,7 @@ from tergodic_cli.errors import TergodicError, check_seed, require
 DIFFUSIONS = ("carry", "source")
 INTEGRATORS = ("resolvent", "spectral", "implicit")
 COVERAGE_NORMS = ("target", "cloud")
+SHEETS = ("mixed", "separate")
 #: The paper's n_N (Table II, "M = 20"): neighbours for the tangent fit and the gradient fit.
 DEFAULT_NEIGHBORS = 20
 #: Default footprint shape: ε r_a = 2, so the disc of radius r_a holds 1 - e^-4 = 98 % of the
@@ -44,6 +45,11 @@ class ExploreConfig(Config):
         exact baseline).
     coverage_norm : what the source's coverage is normalised over, c̄ = c̃ / ∫c̃: "cloud" (the
         whole cloud, eq. 2 as printed; the default) or "target" (the target's support {p > 0}).
+    sheets : which neighbours the tangent fit, the gradient and the projection use: "mixed" (all
+        n_N nearest, the paper's; the default) or "separate" (only the agent's own sheet: never inside
+        a wall whose two sides are sampled; the footprint and the gain still reach through a wall, so on
+        a thin-walled object an agent can stall on the inner side of an outer marking: docs/explore.md,
+        "Sheet separation"). The run's off-surface figure tests one sheet either way.
     seed : seed of everything random in the run (random starts).
     resync_every : K: the incrementally kept spectral source (docs/speed.md) is recomputed in
         full every K steps to bound round-off; 1 recomputes every step (the O(n_target nK)
@@ -71,6 +77,7 @@ class ExploreConfig(Config):
     diffusion: str = "carry"
     integrator: str = "resolvent"
     coverage_norm: str = "cloud"
+    sheets: str = "mixed"
     seed: int = 0
     resync_every: int = 1000
     n_neighbors: int = DEFAULT_NEIGHBORS
@@ -141,6 +148,7 @@ def validate_config(cfg: ExploreConfig) -> None:
                 f"e.g. {opt} {eg}")
     for opt, v, choices in (("--diffusion", cfg.diffusion, DIFFUSIONS),
                             ("--coverage-norm", cfg.coverage_norm, COVERAGE_NORMS),
+                            ("--sheets", cfg.sheets, SHEETS),
                             ("--integrator", cfg.integrator, INTEGRATORS)):
         require(v in choices, f"{opt} '{v}' is unknown", f"use one of {', '.join(choices)}")
     require(int(cfg.resync_every) >= 0, f"resync_every must be >= 0 steps, got {cfg.resync_every}",

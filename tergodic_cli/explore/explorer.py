@@ -157,7 +157,8 @@ class Explorer:
         self._prm[K.PR_MAXSTART] = cfg.max_start_distance
         self._prm[K.PR_REACH] = K.SURFACE_REACH * self.h
         self._prm[K.PR_HEAT] = cfg.heat_weight
-        self._prm[K.PR_SHEET_GAP] = gap
+        # "mixed": no gap splits the neighbours (inf), the fit takes all n_N as the paper does
+        self._prm[K.PR_SHEET_GAP] = gap if cfg.sheets == "separate" else math.inf
         # The gain is a footprint integral (∫φ = π/ε²): per unit area it weighs like the heat.
         geps = self.eps / cfg.gain_width
         self._prm[K.PR_GAIN_EPS2] = geps * geps
