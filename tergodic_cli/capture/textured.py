@@ -192,43 +192,12 @@ def read_obj(path: str | Path, units: str = "m") -> tuple[np.ndarray, np.ndarray
     Polygons are fan-triangulated. A vertex used with different texture coordinates is split,
     so every output vertex has one UV.
     """
+    from tergodic_cli.capture.mesh import parse_obj
+
     path = Path(path)
     require(path.is_file(), f"object file {path} does not exist", "check the path given to --object")
     require(path.suffix.lower() == ".obj", f"object file {path} is not a .obj", "give a Wavefront .obj mesh, or bowl, plate or mug")
-    pos, tex, corners = [], [], []
-    try:
-        with open(path, encoding="utf-8", errors="replace") as fh:
-            for line in fh:
-                parts = line.split()
-                if not parts:
-                    continue
-                if parts[0] == "v":
-                    pos.append([float(x) for x in parts[1:4]])
-                elif parts[0] == "vt":
-                    tex.append([float(x) for x in parts[1:3]])
-                elif parts[0] == "f":
-                    face = []
-                    for item in parts[1:]:
-                        idx = item.split("/")
-                        vi = int(idx[0])
-                        ti = int(idx[1]) if len(idx) > 1 and idx[1] else 0
-                        # OBJ indices are 1-based; negative ones count back from the last element.
-                        face.append((vi - 1 if vi > 0 else len(pos) + vi, (ti - 1 if ti > 0 else len(tex) + ti) if ti else -1))
-                    corners += [(face[0], face[k], face[k + 1]) for k in range(1, len(face) - 1)]
-    except (ValueError, IndexError):
-        raise TergodicError(f"{path} is not a readable .obj (bad v/vt/f line)", "re-export the mesh as a Wavefront .obj") from None
-    require(len(pos) >= 3 and len(corners) > 0, f"{path} has no triangles", "give a mesh with faces (f lines)")
-    V = np.asarray(pos, dtype=float)
-    flat = np.array([c for tri in corners for c in tri], dtype=np.int64)  # (3k, 2): vertex, uv index
-    require(flat[:, 0].min() >= 0 and flat[:, 0].max() < len(V), f"{path} has face indices outside its vertex list",
-            "re-export the mesh")
-    has_uv = len(tex) > 0 and bool(np.all(flat[:, 1] >= 0))
-    require(not has_uv or flat[:, 1].max() < len(tex), f"{path} has texture indices outside its vt list",
-            "re-export the mesh")
-    # one output vertex per (vertex, uv) pair used, or per vertex used
-    pairs, inverse = np.unique(flat if has_uv else flat[:, :1], axis=0, return_inverse=True)
-    vertices, triangles = V[pairs[:, 0]], inverse.reshape(-1, 3)
-    uvs = np.asarray(tex, dtype=float)[pairs[:, 1]] if has_uv else None
+    vertices, triangles, uvs, _ = parse_obj(path, "--object")
     require(units in ("m", "mm"), f"unknown mesh units '{units}'", "use m or mm")
     if units == "mm":
         vertices = vertices * 1e-3
