@@ -398,6 +398,7 @@ class RobotRun(ContactRun):
         sim = meta.get("sim")
         source = getattr(capture, "mesh", None)
         h = float(meta.get("spacing_h_m") or mean_spacing(points))
+        normals = oriented_normals(points, resolve_side(cfg.normal_side, meta))  # the loop's, computed once
         if scene_mesh is not None:
             mesh, T_mesh = scene_mesh
             self.mesh_source = "given"
@@ -411,20 +412,19 @@ class RobotRun(ContactRun):
             mesh, T_mesh = source_mesh(source, cfg.mesh_edge), np.eye(4)
             self.mesh_source = "source_mesh"
         else:
-            normals = oriented_normals(points, resolve_side(cfg.normal_side, meta))
             mesh, T_mesh = reconstruct_mesh(points, normals, h, curved_edge(points, normals, cfg.mesh_edge)), np.eye(4)
             self.mesh_source = "cloud"
         # The surface's check, before any body or motion exists: refused in one line (exit 2).
         self.surface = surface_figures(SurfaceMesh(transform_points(np.asarray(T_mesh, dtype=float), mesh.vertices),
                                                    mesh.triangles, mesh.seconds, mesh.method or self.mesh_source),
-                                       points, h)
+                                       points, h, normals)
         check_surface(self.surface, rebuilt=self.mesh_source == "cloud")
         self.mesh = mesh
         self._T_mesh_obj = np.asarray(T_mesh, dtype=float)
         self.T_mesh = T_obj @ self._T_mesh_obj  # mesh frame -> base frame
         arm = SimArm(cfg, mesh, self.T_mesh)
         try:
-            super().__init__(capture, explorer, cfg, arm, T_obj, on_event=on_event)
+            super().__init__(capture, explorer, cfg, arm, T_obj, on_event=on_event, normals=normals)
             self.max_tilt_deg = None  # the tool follows the normal; what the arm cannot reach is dropped
             self.closest = closest_point_fn(mesh, self._T_mesh_obj)
             self._plan_reach(capture, pose_given)
