@@ -68,9 +68,11 @@ def explore(
     object, else the mesh the capture was sampled from when it holds one, else a surface rebuilt
     from the cloud (screened Poisson cropped to within 2 point spacings of the cloud; ball
     pivoting when the cloud is an open sheet, which Poisson would close), decimated to the
-    coarsest triangles whose 95th-percentile angle between neighbours is at most 12 deg. The
-    surface is checked before any motion (coverage of the cloud, distance from it, crinkle) and
-    its figures are written to summary.json under contact_surface.
+    coarsest triangles whose 95th-percentile angle between neighbours is at most 12 deg where the
+    object is smooth (a Poisson surface decimated to twice that and split once by Loop
+    subdivision). It is checked before any motion (it must cover the cloud, and a rebuilt one
+    must stay near it and not fold where the cloud does not) and its figures are written to
+    summary.json under contact_surface.
 
     Examples:
 

@@ -134,3 +134,45 @@ def test_source_mesh_is_used_as_given_and_decimated_like_a_sim_object():
     assert np.max(np.abs(np.linalg.norm(dec.vertices, axis=1) - 0.05)) < 1e-3
     with pytest.raises(TergodicError, match="source mesh"):
         source_mesh((V, T + len(V)))
+
+
+def test_run_presses_on_the_mesh_a_hand_built_capture_carries():
+    # A Capture built by hand that carries its source mesh (capture.mesh: vertices (n, 3) m, triangles
+    # (k, 3), the points' frame): the run presses on that mesh, not on one rebuilt from the cloud,
+    # and reports it in its summary.
+    pytest.importorskip("pybullet")
+    pytest.importorskip("pygafro")
+    from tergodic_cli.backends.pybullet import RobotRun, explore_with_robot
+    from tergodic_cli.basis import compute_basis
+    from tergodic_cli.capture.artefact import Capture
+    from tergodic_cli.explore import ExploreConfig, Explorer
+    from tergodic_cli.robot import RobotConfig, robot_explore_config
+
+    # a flat 12 cm square plate of 10 mm grid triangles at z = 0, sampled every 3 mm
+    g = np.linspace(-0.06, 0.06, 13)
+    x, y = np.meshgrid(g, g, indexing="ij")
+    V = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    idx = np.arange(13 * 13).reshape(13, 13)
+    T = np.concatenate([np.column_stack([idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()]),
+                        np.column_stack([idx[:-1, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()])]).astype(np.int64)
+    rng = np.random.default_rng(0)
+    s = np.linspace(-0.057, 0.057, 39)
+    px, py = np.meshgrid(s, s, indexing="ij")
+    pts = np.column_stack([px.ravel(), py.ravel(), np.zeros(px.size)]) + rng.normal(0, 2e-4, (px.size, 3)) * [1, 1, 0]
+    target = (np.linalg.norm(pts[:, :2] - [0.02, 0.0], axis=1) < 0.02).astype(float)
+    cap = Capture(pts, None, target, {"spacing_h_m": mean_spacing(pts)})
+    cap.mesh = (V, T)
+    basis = compute_basis(cap.points, 40, 30)
+    cfg = RobotConfig(move_speed=1.6, hover_height=0.02)
+    ec = robot_explore_config(ExploreConfig(nk=40, seed=0, agent_radius=0.008), cfg.explore_dt)
+    start = pts[np.argmin(np.linalg.norm(pts[:, :2] - [0.02, 0.0], axis=1))][None]
+
+    with RobotRun(cap, Explorer(basis, target, ec, start, on_event=lambda m: None), cfg) as run:
+        assert run.mesh_source == "source_mesh" and run.surface["method"] == "source_mesh"
+        np.testing.assert_array_equal(run.mesh.triangles, T)  # coarser than mesh_edge: kept as given
+        np.testing.assert_allclose(run.mesh.vertices, V)
+    out = explore_with_robot(cap, Explorer(basis, target, ec, start, on_event=lambda m: None), cfg, 5)
+    assert out["stop_reason"] == "completed" and out["mesh_source"] == "source_mesh"
+    cs = out["contact_surface"]
+    assert cs["triangles"] == len(T) and cs["border_edges"] == 4 * 12 and cs["dihedral_p95_deg"] == pytest.approx(0.0, abs=1e-6)
+    assert cs["coverage"] == 1.0
