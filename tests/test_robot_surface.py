@@ -148,10 +148,11 @@ def test_run_presses_on_the_mesh_a_hand_built_capture_carries():
     from tergodic_cli.explore import ExploreConfig, Explorer
     from tergodic_cli.robot import RobotConfig, robot_explore_config
 
-    # a flat 12 cm square plate of 10 mm grid triangles at z = 0, sampled every 3 mm
+    # a 12 cm square dish (z = 0.3 (x² + y²), 2 mm deep at the corners: a flat cloud defeats the normals'
+    # spanning tree) of 10 mm grid triangles, sampled every 3 mm
     g = np.linspace(-0.06, 0.06, 13)
     x, y = np.meshgrid(g, g, indexing="ij")
-    V = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    V = np.column_stack([x.ravel(), y.ravel(), 0.3 * (x.ravel() ** 2 + y.ravel() ** 2)])
     idx = np.arange(13 * 13).reshape(13, 13)
     T = np.concatenate([np.column_stack([idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()]),
                         np.column_stack([idx[:-1, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()])]).astype(np.int64)
@@ -159,6 +160,7 @@ def test_run_presses_on_the_mesh_a_hand_built_capture_carries():
     s = np.linspace(-0.057, 0.057, 39)
     px, py = np.meshgrid(s, s, indexing="ij")
     pts = np.column_stack([px.ravel(), py.ravel(), np.zeros(px.size)]) + rng.normal(0, 2e-4, (px.size, 3)) * [1, 1, 0]
+    pts[:, 2] = 0.3 * (pts[:, 0] ** 2 + pts[:, 1] ** 2)
     target = (np.linalg.norm(pts[:, :2] - [0.02, 0.0], axis=1) < 0.02).astype(float)
     cap = Capture(pts, None, target, {"spacing_h_m": mean_spacing(pts)})
     cap.mesh = (V, T)
@@ -174,5 +176,6 @@ def test_run_presses_on_the_mesh_a_hand_built_capture_carries():
     out = explore_with_robot(cap, Explorer(basis, target, ec, start, on_event=lambda m: None), cfg, 5)
     assert out["stop_reason"] == "completed" and out["mesh_source"] == "source_mesh"
     cs = out["contact_surface"]
-    assert cs["triangles"] == len(T) and cs["border_edges"] == 4 * 12 and cs["dihedral_p95_deg"] == pytest.approx(0.0, abs=1e-6)
+    # the dish's folds: neighbouring facet normals 10 mm apart on a curvature of 0.6 /m: ~0.3 deg
+    assert cs["triangles"] == len(T) and cs["border_edges"] == 4 * 12 and cs["dihedral_p95_deg"] < 1.0
     assert cs["coverage"] == 1.0
