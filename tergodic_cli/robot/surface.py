@@ -140,6 +140,10 @@ def curved_edge(points: np.ndarray, normals: np.ndarray, edge: float, floor: flo
 #: box's), not part of the smooth part. CRINKLE_DEG: a rebuilt surface whose folds exceed the
 #: cloud's own (95th percentile) by more is refused: it folds where the object does not.
 SMOOTH_GOAL_DEG = 12.0
+#: The ladder's finest triangle edge, m (and never below 0.9 h): the ball's contact tests every
+#: triangle in its box, so the cost grows with their number (same run, a 12 mm ball pressed on the
+#: duck: 16 800 triangles of 2.8 mm cost 2.5x the 3 300 of the former 6.3 mm mesh per step).
+MIN_EDGE = 0.003
 SHARP_DEG = 30.0
 CRINKLE_DEG = 30.0
 #: Coverage: the share of cloud points within COVER_H·h of the surface must reach MIN_COVERAGE.
@@ -413,7 +417,7 @@ def reconstruct_mesh(points: np.ndarray, normals: np.ndarray, spacing: float, ed
     if the crop removed more than OPEN_SHARE of its area the cloud is an open sheet (Poisson closed
     it with a made-up lid) and ball pivoting (radii 1.5h, 3h, 6h) builds it instead, following the
     sheet and keeping its sharp edges. Either is then quadric-decimated to the coarsest of ``edge``,
-    edge/1.5, ... (not below 0.9 h) whose dihedral p95 over its smooth part is at most
+    edge/1.5, ... (not below 0.9 h nor MIN_EDGE) whose dihedral p95 over its smooth part is at most
     SMOOTH_GOAL_DEG (:func:`smooth_decimation`); the Poisson surface to twice that edge, then split
     once by Loop subdivision and put back on the Poisson surface (the same triangle count, smaller
     folds). The corpus duck (15 cm, 4968 points) went from a dihedral p95 of 46 deg (ball pivoting
@@ -445,7 +449,7 @@ def reconstruct_mesh(points: np.ndarray, normals: np.ndarray, spacing: float, ed
     n_tri = len(m.triangles)
     require(n_tri >= 10, f"could not build a surface from the cloud ({n_tri} triangles)",
             "check the capture: the robot needs a cloud that samples one connected sheet")
-    m, _ = smooth_decimation(m, edge, 0.9 * spacing, points, normals, goal_deg, subdivide=used == "poisson")
+    m, _ = smooth_decimation(m, edge, max(0.9 * spacing, MIN_EDGE), points, normals, goal_deg, subdivide=used == "poisson")
     return SurfaceMesh(np.asarray(m.vertices).copy(), np.asarray(m.triangles, dtype=np.int64).copy(),
                        time.perf_counter() - t0, used)
 
