@@ -45,7 +45,7 @@ def explore(
     force: Optional[float] = typer.Option(None, "--force", help="[robot] Desired contact force along the tool axis, N [default: 5]."),
     force_limit: Optional[float] = typer.Option(None, "--force-limit", help="[robot] Contact force, low-passed at 10 Hz, that makes the robot retreat and stop, N [default: 3 x --force, at least --force + 5]; one tick over 5 x --force (at least 30 N) is an impact and stops at once."),
     contact_force: Optional[float] = typer.Option(None, "--contact-force", help="[robot] Force that counts as touching (coverage is deposited above it), N [default: 20% of --force]."),
-    object_pose: Optional[str] = typer.Option(None, "--object-pose", help="[robot] Capture frame in the robot base frame: x,y,z[,roll,pitch,yaw] (m, deg) or x,y,z,qx,qy,qz,qw [default: 0.5 m in front of the base on a 0.2 m stand; identity for sim captures]."),
+    object_pose: Optional[str] = typer.Option(None, "--object-pose", help="[robot] Capture frame in the robot base frame: x,y,z[,roll,pitch,yaw] (m, deg) or x,y,z,qx,qy,qz,qw [default: the identity for a capture taken in the base frame (--source sim, or a calibrated --camera-pose); otherwise, pybullet only, the cloud's footprint centre 0.5 m in front of the base with its lowest point on a 0.2 m stand, turned 0, 90, -90 or 180 deg about the vertical, then the same at 0.4 m: the first pose where the arm reaches the whole target, else the one reaching most of it (the pose is printed and saved in summary.json); franka refuses to guess]."),
     workspace: Optional[str] = typer.Option(None, "--workspace", help="[robot] Workspace box xmin,ymin,zmin,xmax,ymax,zmax in the base frame, m."),
     explore_dt: Optional[float] = typer.Option(None, "--explore-dt", help="[robot] Simulated seconds per explorer step [default: 0.2; agent limits are rescaled so a step moves the same path]."),
     normal_side: Optional[str] = typer.Option(None, "--normal-side", help="[robot] Side of the sheet the tool works on: auto (= outward), outward, up or out."),
@@ -64,6 +64,16 @@ def explore(
 
     The basis is looked up in the cache (any cached basis with >= nK eigenpairs and the same
     --neighbors) or computed, so this works straight from a fresh capture.
+
+    With --robot pybullet the sponge presses on a contact surface: a --source sim capture's own
+    object, else the mesh the capture was sampled from when it holds one, else a surface rebuilt
+    from the cloud (screened Poisson cropped to within 2 point spacings of the cloud; ball
+    pivoting when the cloud is an open sheet, which Poisson would close), decimated to the
+    coarsest triangles whose 95th-percentile angle between neighbours is at most 12 deg where the
+    object is smooth (a Poisson surface decimated to twice that and split once by Loop
+    subdivision). It is checked before any motion (it must cover the cloud, and a rebuilt one
+    must stay near it and not fold where the cloud does not) and its figures are written to
+    summary.json under contact_surface.
 
     Examples:
 

@@ -134,13 +134,14 @@ class ContactRun:
         every window of 1 kHz ticks (record: state, t_start, t_end, ticks, force_max and force_mean
         of |f| over the window's ticks, N, and the run's cumulative tick figures); a window closes at
         each robot sample, each transition and the end, so the windows hold every tick once.
+    normals : (N, 3) the cloud's oriented unit normals when the backend has them (else computed).
 
     Tests and benchmarks reach in for fault injection (``run.arm``, ``run.guard``); the CLI goes
     through the backends' ``explore_with_*``.
     """
 
     def __init__(self, capture, explorer, cfg, arm, T_obj: np.ndarray, on_event: Callable[[int, str], None] | None = None,
-                 on_log: Callable[[str, int, dict], None] | None = None):
+                 on_log: Callable[[str, int, dict], None] | None = None, normals: np.ndarray | None = None):
         self.cfg = cfg
         self.on_log = on_log
         self.capture = capture
@@ -162,7 +163,9 @@ class ContactRun:
         self.T_obj = np.asarray(T_obj, dtype=float)
         self.points = np.asarray(capture.points, dtype=float)
         self.points_base = transform_points(self.T_obj, self.points)
-        self.normals = oriented_normals(self.points, resolve_side(cfg.normal_side, getattr(capture, "meta", {}) or {}))
+        # (a backend that already oriented them, for its contact surface, passes them in: ~1-3 s each)
+        self.normals = (np.asarray(normals, dtype=float) if normals is not None else
+                        oriented_normals(self.points, resolve_side(cfg.normal_side, getattr(capture, "meta", {}) or {})))
         self.kdtree = cKDTree(self.points)
         self.safety = loop_safety(cfg, self.dt)
         self.guard = SafetyGuard(self.safety, arm.q_min, arm.q_max, arm.dq_max, self.F_d, dt=self.dt)

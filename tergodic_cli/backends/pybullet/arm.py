@@ -31,8 +31,9 @@ from tergodic_cli.robot.kinematics import FrankaModel, tool_offset
 from tergodic_cli.robot.reach import plan_reach, posture, tool_rotation
 from tergodic_cli.robot.run import SETTLE_S, ContactRun, object_pose
 from tergodic_cli.robot.safety import Fault, fmt_xyz
-from tergodic_cli.robot.surface import (SurfaceMesh, check_reachable, curved_edge, near_border, oriented_normals,
-                                         reconstruct_mesh, resolve_side, sim_object_mesh, transform_points)
+from tergodic_cli.robot.surface import (SurfaceMesh, check_reachable, check_surface, curved_edge, near_border,
+                                         oriented_normals, reconstruct_mesh, resolve_side, sim_object_mesh, source_mesh,
+                                         surface_figures, transform_points)
 
 #: N/m of the approach's axial position servo: its set-point advances at the guarded speed, so a
 #: steady push on the tool (gravity-model error, posture torques) cannot make it touch faster (a
@@ -509,6 +510,9 @@ class RobotRun(ContactRun):
         T_obj = object_pose(capture, cfg)
         check_reachable(transform_points(T_obj, points))
         sim = meta.get("sim")
+        source = getattr(capture, "mesh", None)
+        h = float(meta.get("spacing_h_m") or mean_spacing(points))
+        normals = oriented_normals(points, resolve_side(cfg.normal_side, meta))  # the loop's, computed once
         if scene_mesh is not None:
             mesh, T_mesh = scene_mesh
             self.mesh_source = "given"
@@ -517,17 +521,24 @@ class RobotRun(ContactRun):
             # mesh rebuilt from the cloud; the cleaning model fades exactly that surface.
             mesh, T_mesh = sim_object_mesh(sim, cfg.mesh_edge)
             self.mesh_source = "sim_object"
+        elif source is not None:
+            # The capture holds the mesh its cloud was sampled from: the object's own surface.
+            mesh, T_mesh = source_mesh(source, cfg.mesh_edge), np.eye(4)
+            self.mesh_source = "source_mesh"
         else:
-            h = float(meta.get("spacing_h_m") or mean_spacing(points))
-            normals = oriented_normals(points, resolve_side(cfg.normal_side, meta))
             mesh, T_mesh = reconstruct_mesh(points, normals, h, curved_edge(points, normals, cfg.mesh_edge)), np.eye(4)
             self.mesh_source = "cloud"
+        # The surface's check, before any body or motion exists: refused in one line (exit 2).
+        self.surface = surface_figures(SurfaceMesh(transform_points(np.asarray(T_mesh, dtype=float), mesh.vertices),
+                                                   mesh.triangles, mesh.seconds, mesh.method or self.mesh_source),
+                                       points, h, normals)
+        check_surface(self.surface, rebuilt=self.mesh_source == "cloud")
         self.mesh = mesh
         self._T_mesh_obj = np.asarray(T_mesh, dtype=float)
         self.T_mesh = T_obj @ self._T_mesh_obj  # mesh frame -> base frame
         arm = SimArm(cfg, mesh, self.T_mesh)
         try:
-            super().__init__(capture, explorer, cfg, arm, T_obj, on_event=on_event, on_log=on_log)
+            super().__init__(capture, explorer, cfg, arm, T_obj, on_event=on_event, on_log=on_log, normals=normals)
             arm.step_of = self._step
             self.max_tilt_deg = None  # the tool follows the normal; what the arm cannot reach is dropped
             self.closest = closest_point_fn(mesh, self._T_mesh_obj)
@@ -588,10 +599,14 @@ class RobotRun(ContactRun):
     def begin(self) -> None:
         super().begin()
         self.arm.wall0 = self._t0
-        self.on_event(0, f"robot: collision mesh from the {self.mesh_source}")
+        f = self.surface
+        self.on_event(0, f"robot: contact surface from the {self.mesh_source} ({f['method']}, {f['triangles']} triangles, "
+                         f"dihedral p95 {f['dihedral_p95_deg']:.1f} deg, {f['border_edges']} open border edges, "
+                         f"covers {100 * f['coverage']:.1f} % of the cloud)")
 
     def result(self) -> dict:
-        return {**super().result(), "setup_seconds": self.setup_s, "mesh_source": self.mesh_source}
+        return {**super().result(), "setup_seconds": self.setup_s, "mesh_source": self.mesh_source,
+                "contact_surface": dict(self.surface)}
 
 
 def explore_with_robot(capture, explorer, robot_cfg: RobotConfig, steps: int,
