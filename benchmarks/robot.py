@@ -310,6 +310,15 @@ def replay_states(rows: list[dict], vertices: np.ndarray, triangles: np.ndarray)
     return out
 
 
+def _arm_cell(arm: list) -> str:
+    """The runs' own ``arm_contacts``: contacts summed over the runs, the deepest one (mm)."""
+    if not arm:
+        return "not reported"
+    count = sum(int(a.get("count", 0)) for a in arm if isinstance(a, dict))
+    deepest = max((float(a.get("deepest_mm") or 0.0) for a in arm if isinstance(a, dict)), default=0.0)
+    return f"{count} in {len(arm)} runs" + (f", deepest {deepest:.1f} mm" if count else "")
+
+
 def _reason_key(text: str | None) -> str:
     """A fault reason without its numbers, to count reasons across runs."""
     import re
@@ -407,7 +416,7 @@ def corpus_report(rows: list[dict]) -> str:
         deepest = f"{deep['deepest_mm']:.1f} ({deep['deepest_link']})" if deep and deep["deepest_mm"] > 0 else "0"
         lines.append(f"| {name} | {placement} | {len(rs)} | {done} ({100 * done / len(rs):.0f}%) | "
                      f"{'; '.join(f'{k}: {v}' for k, v in stops.items()) or '-'} | "
-                     f"{json.dumps(arm) if arm else 'not reported'} | {pen} / {logged} | "
+                     f"{_arm_cell(arm)} | {pen} / {logged} | "
                      f"{deepest} | "
                      f"{eps} |")
     return "\n".join(lines)
