@@ -111,8 +111,8 @@ def test_a_robot_fault_does_not_replace_the_earlier_run(tmp_path):
     run = tmp_path / "run"
     assert run_cli("explore", bowl, "--steps", "30", "--nk", "60", "--out", run).code == 0
     before = hashes(run)
-    res = run_cli("explore", bowl, "--robot", "pybullet", "--steps", "120", "--nk", "60", "--start=-0.01,0,0",
-                  "--workspace", "0.15,-0.6,-0.01,0.53,0.6,0.9", "--no-log", "--overwrite", "--out", run)
+    res = run_cli("explore", bowl, "--robot", "pybullet", "--steps", "120", "--nk", "60", "--start=-0.02,0,0",
+                  "--workspace", "0.15,-0.6,-0.01,0.50,0.6,0.9", "--no-log", "--overwrite", "--out", run)
     assert res.code == 3, res.err[-2000:]
     assert hashes(run) == before
     (beside,) = sorted(tmp_path.glob("run.partial-*"))

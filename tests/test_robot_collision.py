@@ -154,12 +154,19 @@ def test_a_fault_in_every_state_ends_lifted(plate, state, action):
 
 def test_an_arm_contact_faults_lifted_and_the_run_folder_replays(tmp_path, monkeypatch):
     """Through the CLI: a plate 50 mm under the table's top (the workspace let down to allow it), with the
-    hand-clearance planning switched off (it refuses this pose before motion, exit 2): the move to hover
+    hand-clearance filter and the set-up planning switched off (they refuse this pose before motion, exit 2): the move to hover
     drives the sponge and fingers into the table. A contact fault before the first explorer step: exit 3
     with one line, lifted, and the run folder (events, summary, log) is written and replays."""
     from tergodic_cli.backends.pybullet.collision import ArmCollision
 
+    from tergodic_cli.backends.pybullet import plan as plan_mod
+
     monkeypatch.setattr(ArmCollision, "tool_clearance", lambda self, T, clear=0.0: np.ones(len(T), dtype=bool))
+    # ... and the set-up moves' checking world blinded (it refuses the hover before motion, exit 2): the
+    # contact has to happen for its fault path to be tested
+    for name in ("slack", "segment_slack", "path_slack"):
+        monkeypatch.setattr(plan_mod.CollisionWorld, name, lambda self, *a, **k: 1.0)
+    monkeypatch.setattr(plan_mod.CollisionWorld, "clearance", lambda self, *a, **k: (1.0, "none"))
     plate_cap = tmp_path / "cap"
     assert run_cli("capture", "--synthetic", "plate", "--out", plate_cap).code == 0
     res = run_cli("explore", plate_cap, "--robot", "pybullet", "--steps", "20", "--nk", "40", "--object-pose", "0.5,0,-0.05",

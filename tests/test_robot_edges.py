@@ -77,7 +77,8 @@ def test_box_edge_crossed_below_the_force_limit():
         before = [at(s) for s in samples if s["step"] <= hops[0]["step"] and s["in_contact"]]
         after = [at(s) for s in samples if s["step"] > hops[0]["step"] and s["in_contact"]]
         assert before[-1][2] > c - 0.005 and before[-1][0] > a / 2 - 0.005
-        assert after[0][0] > a / 2 - 1e-3 and after[0][2] < c - 0.002, (before[-1], after[0])
+        # on the wall's plane at once, and going down it (the contact surface rounds the edge by ~1-2 mm)
+        assert after[0][0] > a / 2 - 1e-3 and min(x[2] for x in after[:5]) < c - 0.002, (before[-1], after[:5])
         cps = np.array([run._to_obj(s["contact_point"]) for s in samples if s["in_contact"]])
         limit = run.guard.force_limit
     assert (cps[:, 2] > c - 1e-3).any() and (cps[:, 2] < c - 0.008).any()  # on the top, then over the edge

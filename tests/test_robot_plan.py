@@ -110,7 +110,9 @@ def test_the_checking_world_copies_every_non_arm_body_of_the_scene():
             sph = p.createMultiBody(0.0, p.createCollisionShape(p.GEOM_SPHERE, radius=0.03, physicsClientId=cid), -1,
                                     basePosition=(ball + [0.0, 0.0, 0.25]).tolist(), physicsClientId=cid)
             w.sync()
-            assert len(w.obstacles) == 2 and (sph, -1) in w.obstacles
+            # every body but the arm: the box, the sphere and the scene's own (its table)
+            assert len(w.obstacles) == p.getNumBodies(physicsClientId=cid) - 1
+            assert (box, -1) in w.obstacles and (sph, -1) in w.obstacles
         finally:
             w.close()
     finally:
