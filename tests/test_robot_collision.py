@@ -16,7 +16,7 @@ import pytest
 pytest.importorskip("pybullet")
 pytest.importorskip("pygafro")
 
-from conftest import REPO, run_cli  # noqa: E402
+from conftest import run_cli  # noqa: E402
 from test_robot_sim import FAST, _explorer, plate  # noqa: E402,F401
 
 from tergodic_cli.backends.pybullet import PyBulletScene, RobotRun  # noqa: E402
