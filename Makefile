@@ -42,9 +42,9 @@ test: setup
 # Basis (cached), 1000 kinematic exploration steps logged to MCAP, then the replay's plots.
 demo: setup
 	$(BIN)/tergodic precompute data/bowl
-	$(BIN)/tergodic explore data/bowl --robot kinematic --steps 1000 --start random --seed 0 --out $(DEMO)/kinematic
-	$(BIN)/tergodic replay $(DEMO)/kinematic --plot $(DEMO)/kinematic/plots
-	@echo "demo: see $(DEMO)/kinematic/summary.json and the PNGs in $(DEMO)/kinematic/plots/"
+	$(BIN)/tergodic explore data/bowl --robot kinematic --steps 1000 --start random --seed 0 --out $(DEMO)/kinematic --overwrite
+	$(BIN)/tergodic replay $(DEMO)/kinematic --plot $(DEMO)/kinematic/plots --html $(DEMO)/kinematic/report.html --overwrite
+	@echo "demo: see $(DEMO)/kinematic/summary.json, $(DEMO)/kinematic/report.html and the PNGs in $(DEMO)/kinematic/plots/"
 
 # Every benchmark, BLAS pinned to one thread; each prints medians and ratios against the reference.
 BENCH_ENV := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 TERGODIC_NO_PROGRESS=1

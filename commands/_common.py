@@ -25,7 +25,16 @@ def given_options(ctx) -> set[str]:
     return {n for n in ctx.params if (src := ctx.get_parameter_source(n)) is not None and src.name == "COMMANDLINE"}
 
 
-#: The ``--help`` epilog of every verb ("\b": click prints the lines as they are).
-EXIT_CODES = ("Exit codes:\n\n\b\n  0    complete\n  2    bad input, or an output that cannot be written\n"
-              "  3    the robot stopped on a fault and reached a safe state\n  130  interrupted (Ctrl-C)\n"
-              "  143  terminated (SIGTERM)")
+#: The ``--help`` epilog of every verb ("\b": click prints the lines as they are); the verbs that
+#: never drive a robot (capture, precompute) leave out code 3.
+_CODES = (("0", "complete"), ("2", "bad input, or an output that cannot be written"),
+          ("3", "the robot stopped on a fault and reached a safe state"), ("130", "interrupted (Ctrl-C)"),
+          ("143", "terminated (SIGTERM)"))
+
+
+def exit_codes(robot: bool = True) -> str:
+    """The exit-code table of a verb's ``--help``; ``robot`` adds code 3 (a fault ended in a safe state)."""
+    rows = [f"  {c:<5}{what}" for c, what in _CODES if robot or c != "3"]
+    return "Exit codes:\n\n\b\n" + "\n".join(rows)
+
+

@@ -20,7 +20,7 @@ def explore(
     nk: int = typer.Option(200, "--nk", help="Eigenpairs used by the spectral diffusion (a larger cached basis is truncated)."),
     agent_radius: float = typer.Option(0.0075, "--agent-radius", help="Footprint radius r_a in METRES (paper: 0.0075 bunny/cup, 0.015 plate)."),
     start: Optional[str] = typer.Option(None, "--start", help="Start: x,y,z in metres, a point index, or 'random' [default: random]."),
-    starts: Optional[Path] = typer.Option(None, "--starts", help="Start file .npz with key x0_arr (n, 3) metres (the reference starts)."),
+    starts: Optional[Path] = typer.Option(None, "--starts", help="Start positions (n, 3) metres: .npz with key x0_arr (the reference starts), x0 or starts; .npy; or .csv rows x,y,z."),
     start_index: Optional[int] = typer.Option(None, "--start-index", help="Row of --starts to use [default: 0]."),
     seed: int = typer.Option(0, "--seed", help="Seed for random starts."),
     agents: int = typer.Option(1, "--agents", help="Agents sharing one coverage field (eq. 3)."),

@@ -77,11 +77,11 @@ class _Command(typer.core.TyperCommand):
 
 
 from tergodic_cli.commands import capture, explore, precompute, replay, sweep  # noqa: E402  (after app)
-from tergodic_cli.commands._common import EXIT_CODES  # noqa: E402
+from tergodic_cli.commands._common import exit_codes  # noqa: E402
 
 for _verb in (capture.capture, precompute.precompute, explore.explore, replay.replay, sweep.sweep):
-    # the verbs that can stop a robot or be resumed list their exit codes under --help
-    _epilog = None if _verb in (capture.capture, precompute.precompute) else EXIT_CODES
+    # every verb lists its exit codes under --help; only the robot's verbs can end on a fault (3)
+    _epilog = exit_codes(robot=_verb not in (capture.capture, precompute.precompute))
     app.command(_verb.__name__, no_args_is_help=True, epilog=_epilog, cls=_Command)(_verb)
 
 

@@ -21,13 +21,14 @@ from tergodic_cli.explore.summary import summarize_run
 
 ROBOTS = ("kinematic", "pybullet", "franka")
 #: What a run folder may hold: explore's files and replay's default outputs (--overwrite replaces only these).
-RUN_FILES = frozenset({"run.mcap", "summary.json", "config.json", "trajectory.npz", "series.npz", "series.csv", "plots", "run.rrd"})
+RUN_FILES = frozenset({"run.mcap", "summary.json", "config.json", "trajectory.npz", "series.npz", "series.csv", "plots",
+                       "run.rrd", "report.html"})
 
 
 @dataclass
 class StartSpec:
     """Where the agents start: ``start`` is "random", a point index, or "x,y,z" (metres);
-    or ``starts_file`` (npz with key ``x0_arr`` (m, 3) metres) from ``start_index`` on."""
+    or ``starts_file`` (see :func:`read_starts`: (m, 3) metres) from ``start_index`` on."""
 
     start: str | None = None
     starts_file: str | None = None
@@ -98,6 +99,47 @@ def apply_saved(path, fields: dict, given: set, starts: StartSpec, robot: str, r
             log_cloud_every if "log_cloud_every" in given else d.get("log_cloud_every", 50))
 
 
+#: The keys a starts file may hold its (n, 3) start positions under, in order of preference (x0_arr: the
+#: paper's reference starts).
+STARTS_KEYS = ("x0_arr", "x0", "starts")
+
+
+def read_starts(path: Path) -> np.ndarray:
+    """Start positions (n, 3), metres: an .npz with key x0_arr, x0 or starts, an .npy, or a text
+    file (.csv/.txt) of rows x, y, z.
+
+    A one-line :class:`TergodicError` for a missing or unreadable file, no known key, or a shape other
+    than (n, 3) with n >= 1.
+    """
+    fix = ("give an .npz with key x0_arr, x0 or starts (n, 3) in metres, an .npy of shape (n, 3), "
+           "or a .csv of rows x,y,z")
+    require(path.is_file(), f"--starts {path} does not exist", fix)
+    try:
+        if path.suffix.lower() in (".csv", ".txt"):
+            x0, where = np.atleast_2d(np.loadtxt(path, delimiter="," if path.suffix.lower() == ".csv" else None,
+                                                 dtype=np.float64, ndmin=2)), "the rows"
+        else:
+            data = np.load(path, allow_pickle=False)
+            if isinstance(data, np.ndarray):  # an .npy
+                x0, where = np.asarray(data, dtype=np.float64), "the array"
+            else:
+                with data:
+                    keys = list(data.files)
+                    key = next((k for k in STARTS_KEYS if k in keys), None)
+                    require(key is not None, f"--starts {path} has no key {', '.join(STARTS_KEYS)} "
+                            f"(keys: {', '.join(keys) or 'none'})", fix)
+                    x0, where = np.asarray(data[key], dtype=np.float64), f"key {key}"
+    except TergodicError:
+        raise
+    except Exception as exc:
+        raise TergodicError(f"--starts {path} is unreadable ({type(exc).__name__})", fix) from None
+    require(x0.ndim == 2 and x0.shape[1] == 3 and len(x0) > 0, f"--starts {path}: {where} has shape {x0.shape}, "
+            "not (n, 3)", "give start positions as rows x, y, z in metres")
+    require(bool(np.isfinite(x0).all()), f"--starts {path}: {where} holds NaN or infinite values",
+            "give finite start positions in metres")
+    return x0
+
+
 def resolve_starts(spec: StartSpec, points: np.ndarray, n_agents: int, seed: int) -> np.ndarray:
     """Start positions (n_agents, 3), metres.
 
@@ -108,18 +150,8 @@ def resolve_starts(spec: StartSpec, points: np.ndarray, n_agents: int, seed: int
     rng = np.random.default_rng(seed)
     if spec.starts_file is not None:
         require(spec.start is None, "--start and --starts are both given", "use one of them")
-        path, fix = Path(spec.starts_file), "give an .npz with key x0_arr (n, 3) in metres"
-        require(path.is_file(), f"--starts {path} does not exist", fix)
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                keys = data.files
-                x0 = np.asarray(data["x0_arr"], dtype=np.float64) if "x0_arr" in keys else None
-        except Exception as exc:
-            raise TergodicError(f"--starts {path} is unreadable ({type(exc).__name__})",
-                                fix) from None
-        require(x0 is not None, f"--starts {path} has no key x0_arr (keys: {', '.join(keys)})", fix)
-        require(x0.ndim == 2 and x0.shape[1] == 3 and len(x0) > 0, f"--starts x0_arr has shape {x0.shape}, not (n, 3)",
-                "give start positions as rows x, y, z in metres")
+        path = Path(spec.starts_file)
+        x0 = read_starts(path)
         i = 0 if spec.start_index is None else int(spec.start_index)
         require(0 <= i < len(x0), f"--start-index {i} is outside 0..{len(x0) - 1}", f"use 0 <= i < {len(x0)}")
         return x0[(i + np.arange(n_agents)) % len(x0)]

@@ -110,6 +110,29 @@ def test_starts_file_and_index_and_several_agents(cap, tmp_path):
         assert t["positions"].shape == (10, 2, 3)
 
 
+@pytest.mark.parametrize("kind", ["x0", "starts", "npy", "csv"])
+def test_starts_in_every_accepted_form_give_the_same_start(cap, tmp_path, kind):
+    with np.load(cap / "cloud.npz", allow_pickle=False) as c:
+        rows = c["points"][[10, 200]]
+    path = tmp_path / {"npy": "s.npy", "csv": "s.csv"}.get(kind, "s.npz")
+    if kind == "npy":
+        np.save(path, rows)
+    elif kind == "csv":
+        np.savetxt(path, rows, delimiter=",", fmt="%.9f")
+    else:
+        np.savez(path, **{kind: rows})
+    res = _explore(cap, tmp_path / "run", "--steps", "2", "--starts", path, "--start-index", "1")
+    assert res.code == 0, res.err
+    with np.load(tmp_path / "run" / "trajectory.npz", allow_pickle=False) as t:
+        np.testing.assert_allclose(t["start"][0], rows[1], atol=1e-9)
+
+
+def test_starts_of_the_wrong_shape_are_one_line(cap, tmp_path):
+    path = tmp_path / "flat.npy"
+    np.save(path, np.zeros(6))
+    assert_one_line_error(_explore(cap, tmp_path / "r", "--starts", path), "(n, 3)")
+
+
 def test_start_slightly_off_is_projected_with_a_warning(cap, tmp_path):
     with np.load(cap / "cloud.npz", allow_pickle=False) as c:
         p = c["points"][100] + np.array([0.0, 0.0, 0.008])
@@ -134,6 +157,9 @@ def test_small_agent_radius_warns(cap, tmp_path):
     (("--start", "999999"), "index"),
     (("--start", "1,2"), "--start"),
     (("--agent-radius", "0"), "agent-radius"),
+    (("--agent-radius", "7.5"), "millimetres"),
+    (("--v-max", "3"), "millimetres"),
+    (("--a-max", "30"), "millimetres"),
     (("--steps", "0"), "steps"),
     (("--diffusion", "magic"), "diffusion"),
     (("--integrator", "magic"), "integrator"),

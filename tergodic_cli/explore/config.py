@@ -130,6 +130,11 @@ def parse_alpha(text: str | float) -> list[tuple[int, float]]:
     return stages
 
 
+#: Largest accepted lengths and rates (SI): above these a value is almost surely millimetres typed as
+#: metres (a 0.5 m footprint, 1 m/s or 10 m/s² on a surface being polished).
+UNIT_GUARD = {"--agent-radius": 0.5, "--v-max": 1.0, "--a-max": 10.0}
+
+
 def validate_config(cfg: ExploreConfig) -> None:
     """Refuse impossible settings with a one-line problem; fix message.
 
@@ -146,6 +151,10 @@ def validate_config(cfg: ExploreConfig) -> None:
                              ("--a-max", cfg.a_max, "m/s²", "0.003"), ("--dt", cfg.dt, "s", "1")):
         require(math.isfinite(v) and v > 0, f"{opt} must be > 0 {unit}, got {v}",
                 f"e.g. {opt} {eg}")
+        # the lengths are SI: a value this large is millimetres typed as metres (7.5 for 7.5 mm)
+        require(opt not in UNIT_GUARD or v <= UNIT_GUARD[opt], f"{opt} {v:g} {unit} is far too large for a "
+                f"contact tool (limit {UNIT_GUARD.get(opt, 0):g} {unit}): the value looks like millimetres",
+                f"give it in SI units, e.g. {opt} {eg}")
     for opt, v, choices in (("--diffusion", cfg.diffusion, DIFFUSIONS),
                             ("--coverage-norm", cfg.coverage_norm, COVERAGE_NORMS),
                             ("--sheets", cfg.sheets, SHEETS),

@@ -150,7 +150,7 @@ def _parse_object(name: str, spec, base: Path, fname: str) -> ObjectSpec:
         elif key == "starts":
             p = base / str(value)
             require(p.is_file(), f"{fname}: [objects.{name}] starts {value} does not exist",
-                    "give an .npz with key x0_arr (n, 3) metres, relative to the grid file")
+                    "give an .npz with key x0_arr, x0 or starts (n, 3) metres (or an .npy/.csv), relative to the grid file")
             obj.starts_file = str(p)
         elif key in EXPLORE_KEYS and key not in ("nk",):
             obj.explore[key] = str(value) if key == "alpha" else value
