@@ -77,13 +77,13 @@ def explore(
 
     Examples:
 
-      tergodic explore cap/ --robot kinematic --steps 1000 --out run/
+      tergodic explore data/bowl --robot kinematic --steps 1000 --out run/
 
-      tergodic explore cap/ --starts ../shared/data/reference/starts/bun270_X.npz --start-index 0 --neighbors 40 --out run/
+      tergodic explore data/bowl --starts starts.csv --start-index 0 --out run/   (starts.csv: rows x,y,z in metres)
 
-      tergodic explore cap/ --alpha 50:10@200 --agents 3 --seed 1 --no-log --json --out run/
+      tergodic explore data/bowl --alpha 50:10@200 --agents 3 --seed 1 --no-log --json --out run/
 
-      tergodic explore cap/ --config run/config.json --steps 2000 --out run2/
+      tergodic explore data/bowl --config run/config.json --steps 2000 --out run2/
 
       tergodic explore data/bowl --robot pybullet --force 5 --steps 300 --out run/
 

@@ -37,13 +37,17 @@ def sweep(
       steps = 1000
 
     \b
-      [objects.bunny]
-      file = "bun270_X.ply"      # or capture = "cap/", or synthetic = "mug"
+      [objects.bowl]
+      capture = "data/bowl"      # or file = "cloud.ply", or synthetic = "mug"
+      neighbors = 30
+      agent_radius = 0.0075
+
+    \b
+      [objects.bunny]            # the paper's bunny and starts (its reference data)
+      file = "bun270_X.ply"
       voxel = 0.003
       voxel_rule = "all"
-      neighbors = 40
       starts = "starts/bun270_X.npz"
-      agent_radius = 0.0075
 
     \b
       [grid]
