@@ -63,8 +63,8 @@ def plot_run(data: RunLogData, out_dir: str | os.PathLike) -> list[Path]:
     written = [_plot_ergodicity(plt, t, tlabel, s, note, out / "ergodicity.png")]
 
     def touched(ax) -> None:
-        ax.plot(t, 100 * s["touched_fraction"], color="C2")
-        ax.set_ylim(0, 100)
+        ax.plot(t, 100 * s["touched_fraction"], color="C2", clip_on=False)
+        ax.set_ylim(0, 103)  # a curve at 100 % stays above the frame's top edge
 
     written.append(_single(plt, out / "touched.png", f"Target touched over time{note}", tlabel,
                            "target touched (%)", touched))
@@ -74,7 +74,7 @@ def plot_run(data: RunLogData, out_dir: str | os.PathLike) -> list[Path]:
     if data.clouds:
         cloud, traj = data.clouds[-1], data.series.get("positions")
         for field, cmap, label, line in (("target", "cividis", "target weight p (0-1, unitless)", "red"),
-                                         ("coverage", "viridis", "coverage c̃ (summed footprint, unitless)", "white"),
+                                         ("coverage", "viridis", "coverage c̃ (summed footprint, unitless)", "red"),
                                          ("heat", "inferno", "heat u (1/m²)", "cyan")):
             if field in cloud.fields:
                 written.append(_plot_cloud(plt, cloud, field, cmap, label, traj, out / f"cloud_{field}.png", note, line))
