@@ -7,6 +7,8 @@ described in docs/explore.md; they are built in a temporary folder and renamed i
 from __future__ import annotations
 
 import json
+import os
+import shutil
 from contextlib import nullcontext, suppress
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -212,6 +214,57 @@ class LogSpec:
     live: str | None = None
 
 
+#: Bytes a run holds in memory per explorer step and agent (positions, velocities, normals,
+#: accelerations: 4 x 3 float64) and per step (time, ε, residual, touched, step time); a robot run adds
+#: its per-step sample. Measured from trajectory.npz and the robot's samples.
+STEP_BYTES, AGENT_STEP_BYTES, ROBOT_STEP_BYTES = 40, 96, 4096
+#: Log bytes per explorer step (agent poses, scalars, events) and per logged cloud point (position and
+#: four float32 fields), measured on the demo run's MCAP before compression.
+LOG_STEP_BYTES, LOG_POINT_BYTES = 400, 28
+#: Above this many steps, or this many log bytes, a run says up front what it will hold and write.
+BIG_STEPS, BIG_LOG = 100_000, 1 << 30
+
+
+def estimate_run_size(steps: int, n_agents: int, n_points: int, cloud_every: int | None,
+                      robot: bool) -> tuple[int, int]:
+    """What a run of ``steps`` explorer steps holds in memory and writes to its log, bytes.
+
+    Returns
+    -------
+    (memory, log) : tuple of int
+        The per-step series kept until the run ends, and the MCAP's size (0 without a log).
+    """
+    memory = steps * (STEP_BYTES + n_agents * AGENT_STEP_BYTES + (ROBOT_STEP_BYTES if robot else 0))
+    log = 0 if cloud_every is None else steps * LOG_STEP_BYTES * n_agents + \
+        (steps // cloud_every + 2) * n_points * LOG_POINT_BYTES + (steps * ROBOT_STEP_BYTES if robot else 0)
+    return memory, log
+
+
+def _check_run_size(run: "_Run", out_dir: Path) -> None:
+    """Refuse a run whose series would not fit in the free memory, or whose log would not fit on the
+    disk; say up front what a huge run will hold and write."""
+    steps = int(run.cfg.steps)
+    memory, log = estimate_run_size(steps, int(run.cfg.n_agents), len(run.capture.points),
+                                    None if run.log is None else run.log.cloud_every,
+                                    run.backend.robot_cfg is not None)
+    gb = lambda b: f"{b / 1e9:.1f} GB" if b >= 1e8 else f"{b / 1e6:.0f} MB"  # noqa: E731
+    try:
+        free_mem = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):  # not Linux: no figure, no refusal
+        free_mem = None
+    require(free_mem is None or memory < free_mem, f"--steps {steps} would hold {gb(memory)} of series in memory, "
+            f"more than the {gb(free_mem or 0)} free", "use fewer --steps")
+    parent = next((p for p in (out_dir.resolve(), *out_dir.resolve().parents) if p.exists()), None)
+    free_disk = shutil.disk_usage(parent).free if parent is not None else None
+    require(free_disk is None or log < free_disk, f"--steps {steps} would write about {gb(log)} of log, more than "
+            f"the {gb(free_disk or 0)} free on the disk of --out", "use fewer --steps, a larger --log-cloud-every "
+            "or --no-log")
+    if steps >= BIG_STEPS or log >= BIG_LOG:
+        run.say(f"note: {steps} steps hold about {gb(memory)} in memory"
+                + (f" and write about {gb(log)} of log" if run.log is not None else "")
+                + " until the run ends")
+
+
 def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path, backend=None,
                 starts: StartSpec | None = None, log: LogSpec | None = LogSpec(), cache_dir=None,
                 on_event: Callable[[str], None] | None = None, overwrite: bool = False,
@@ -265,6 +318,7 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
         run.capture, run.start_xyz = load_for_run(capture_dir, cfg, starts)
         run.backend.check(run.capture, run.start_xyz)
         run.cfg = run.backend.explore_config(cfg)
+        _check_run_size(run, Path(out_dir))
         run.basis, run.hit = find_basis(run.capture.points, cfg.nk, cfg.basis_neighbors, cache_dir, on_event=run.event)
         require(np.array_equal(run.basis.points, run.capture.points),
                 "the basis does not match the capture's points", "recompute it: tergodic precompute CAPTURE --force")
