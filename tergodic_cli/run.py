@@ -7,8 +7,6 @@ described in docs/explore.md; they are built in a temporary folder and renamed i
 from __future__ import annotations
 
 import json
-import os
-import shutil
 from contextlib import nullcontext, suppress
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -16,7 +14,9 @@ from typing import Callable
 
 import numpy as np
 
+from tergodic_cli.capture.readers import check_npz_size
 from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.resources import free_disk, free_memory
 from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_config
 from tergodic_cli.explore.explorer import Explorer
 from tergodic_cli.explore.summary import summarize_run
@@ -121,6 +121,8 @@ def read_starts(path: Path) -> np.ndarray:
             x0, where = np.atleast_2d(np.loadtxt(path, delimiter="," if path.suffix.lower() == ".csv" else None,
                                                  dtype=np.float64, ndmin=2)), "the rows"
         else:
+            if path.suffix.lower() == ".npz":
+                check_npz_size(path, f"--starts {path}", fix)
             data = np.load(path, allow_pickle=False)
             if isinstance(data, np.ndarray):  # an .npy
                 x0, where = np.asarray(data, dtype=np.float64), "the array"
@@ -248,16 +250,12 @@ def _check_run_size(run: "_Run", out_dir: Path) -> None:
                                     None if run.log is None else run.log.cloud_every,
                                     run.backend.robot_cfg is not None)
     gb = lambda b: f"{b / 1e9:.1f} GB" if b >= 1e8 else f"{b / 1e6:.0f} MB"  # noqa: E731
-    try:
-        free_mem = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):  # not Linux: no figure, no refusal
-        free_mem = None
+    free_mem = free_memory()
     require(free_mem is None or memory < free_mem, f"--steps {steps} would hold {gb(memory)} of series in memory, "
             f"more than the {gb(free_mem or 0)} free", "use fewer --steps")
-    parent = next((p for p in (out_dir.resolve(), *out_dir.resolve().parents) if p.exists()), None)
-    free_disk = shutil.disk_usage(parent).free if parent is not None else None
-    require(free_disk is None or log < free_disk, f"--steps {steps} would write about {gb(log)} of log, more than "
-            f"the {gb(free_disk or 0)} free on the disk of --out", "use fewer --steps, a larger --log-cloud-every "
+    disk = free_disk(out_dir)
+    require(disk is None or log < disk, f"--steps {steps} would write about {gb(log)} of log, more than "
+            f"the {gb(disk or 0)} free on the disk of --out", "use fewer --steps, a larger --log-cloud-every "
             "or --no-log")
     if steps >= BIG_STEPS or log >= BIG_LOG:
         run.say(f"note: {steps} steps hold about {gb(memory)} in memory"

@@ -37,3 +37,18 @@ def test_a_run_that_cannot_fit_in_memory_is_refused_before_work(tmp_path):
     res = run_cli("explore", REPO / "data" / "bowl", "--steps", str(10**13), "--out", tmp_path / "run")
     assert_one_line_error(res, "--steps", "memory", "fewer")
     assert not (tmp_path / "run").exists()
+
+
+def test_an_npz_that_unpacks_beyond_the_cap_is_refused_before_unpacking(tmp_path, monkeypatch):
+    """A few kilobytes of zip that unpack to 24 MB, against a cap lowered to 1 MB (the real cap is half
+    the free memory): refused from the declared sizes, both as a cloud and as starts."""
+    import tergodic_cli.capture.readers as readers
+
+    monkeypatch.setattr(readers, "npz_cap", lambda: 1 << 20)
+    cloud, starts = tmp_path / "bomb.npz", tmp_path / "starts.npz"
+    np.savez_compressed(cloud, points=np.zeros((10**6, 3)))
+    np.savez_compressed(starts, x0_arr=np.zeros((10**6, 3)))
+    assert cloud.stat().st_size < 100_000
+    assert_one_line_error(run_cli("capture", "--from", cloud, "--out", tmp_path / "cap"), "unpacks to", "free memory")
+    assert_one_line_error(run_cli("explore", REPO / "data" / "bowl", "--starts", starts, "--out", tmp_path / "r"),
+                          "unpacks to")

@@ -29,6 +29,41 @@ _FIX_PLY_COUNT = "fix the 'element vertex' count in the header or re-export the 
 _FIX_PCD_COUNT = "fix POINTS (and WIDTH) in the header or re-export the cloud"
 
 
+#: The most a user's NPZ may unpack to: half the free memory (an NPZ is a zip; a few kilobytes can
+#: claim gigabytes), never below 64 MB.
+NPZ_MIN_CAP = 64 << 20
+
+
+def npz_cap() -> int:
+    """Bytes a user's NPZ may unpack to: half the free memory, at least :data:`NPZ_MIN_CAP` (16 GB
+    where the OS does not say)."""
+    from tergodic_cli.resources import free_memory
+
+    free = free_memory()
+    return 1 << 34 if free is None else max(NPZ_MIN_CAP, free // 2)
+
+
+def check_npz_size(source, name: str, fix: str) -> None:
+    """A one-line :class:`TergodicError`, before anything is unpacked, when the members of the NPZ
+    ``source`` (a path or a binary file object) declare more bytes than half the free memory.
+
+    The declared sizes bound what is unpacked: zipfile reads a member only up to its declared size.
+    """
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(source) as z:
+            declared = sum(i.file_size for i in z.infolist())
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError):
+        return  # np.load then names the damage
+    finally:
+        if hasattr(source, "seek"):
+            source.seek(0)
+    cap = npz_cap()
+    require(declared <= cap, f"{name} unpacks to {declared / 1e9:.1f} GB, more than half the free memory "
+            f"({2 * cap / 1e9:.1f} GB)", fix)
+
+
 def read_cloud(path: str | Path, drop_invalid: bool = False,
                colour_depth: int | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     """Read a coloured point cloud from ``path`` (format from the extension).
@@ -272,8 +307,10 @@ class _Reader:
     def npz(self):
         import zipfile
 
+        blob = io.BytesIO(self.blob)
+        check_npz_size(blob, self.name, "save a smaller cloud (or voxel it first) with np.savez(points=..., colors=...)")
         try:
-            with np.load(io.BytesIO(self.blob), allow_pickle=False) as data:
+            with np.load(blob, allow_pickle=False) as data:
                 other = [n for n in data.zip.namelist() if not n.endswith(".npy")]  # np.load gives their raw bytes
                 if other:
                     self.fail(f"member '{other[0]}'", "is not a .npy array", "save the cloud with np.savez(points=..., colors=...)")
