@@ -82,6 +82,50 @@ def check_geometry(points: np.ndarray) -> None:
     require(n_dup == 0, f"the cloud has {n_dup} duplicate points", "re-capture with a voxel filter (--voxel 0.003)")
 
 
+#: From this many points the Laplacian is built in a child process: robust_laplacian holds the GIL for
+#: the whole call (about 1 s at 20k points, 70 s at 150k on a loaded 2-core machine), so only a child,
+#: killed on Ctrl-C or SIGTERM, lets the run answer within a second. Below it the ~0.5 s start of a
+#: child would cost more than it saves.
+CHILD_POINTS = 20_000
+
+
+def _laplacian_in_child(points: np.ndarray, n_neighbors: int, fix: str) -> tuple[sp.csr_matrix, np.ndarray]:
+    """:func:`robust_laplacian.point_cloud_laplacian` in ``python -m tergodic_cli.basis._laplacian_child``,
+    arrays passed as ``.npy`` files; the child is killed when the wait is interrupted."""
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory(prefix="tergodic-laplacian-") as tmp:
+        d = Path(tmp)
+        np.save(d / "points.npy", np.ascontiguousarray(points, dtype=np.float64))
+        np.save(d / "k.npy", np.int64(n_neighbors))
+        proc = subprocess.Popen([sys.executable, "-m", "tergodic_cli.basis._laplacian_child", tmp],
+                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        try:
+            while True:  # short waits: the signal handlers run between them
+                try:
+                    _, err = proc.communicate(timeout=0.1)
+                    break
+                except subprocess.TimeoutExpired:
+                    continue
+        except BaseException:
+            proc.kill()
+            proc.wait()
+            raise
+        if (d / "error.txt").exists():
+            raise TergodicError(f"robust_laplacian failed on this cloud ({(d / 'error.txt').read_text()})", fix)
+        if proc.returncode != 0:
+            last = (err.decode(errors="replace").strip().splitlines() or ["no message"])[-1][:120]
+            raise TergodicError(f"the Laplacian's process failed (exit {proc.returncode}: {last})",
+                                "check free memory, or voxel the capture more coarsely") from None
+        n = len(points)
+        arrays = {k: np.load(d / f"{k}.npy", allow_pickle=False) for k in ("data", "indices", "indptr", "mass")}
+    L = sp.csr_matrix((arrays["data"], arrays["indices"], arrays["indptr"]), shape=(n, n))
+    return L, arrays["mass"]
+
+
 def compute_laplacian(points: np.ndarray, n_neighbors: int, validate: bool = True) -> tuple[sp.csr_matrix, np.ndarray]:
     """Robust point-cloud Laplacian (Sharp & Crane 2020) by ``robust_laplacian.point_cloud_laplacian``.
 
@@ -100,14 +144,18 @@ def compute_laplacian(points: np.ndarray, n_neighbors: int, validate: bool = Tru
         check_geometry(points)
     require(n_neighbors >= 3, f"--neighbors {n_neighbors} is too small", "use at least 3 (default 30)")
     require(n_neighbors < len(points), f"--neighbors {n_neighbors} is not below the {len(points)} points", "use fewer neighbours")
-    import robust_laplacian
+    fix = "the points may be degenerate; check the capture or change --neighbors"
+    if len(points) >= CHILD_POINTS:
+        L, mass = _laplacian_in_child(points, n_neighbors, fix)
+    else:
+        import robust_laplacian
 
-    try:
-        L, M = robust_laplacian.point_cloud_laplacian(points, n_neighbors=n_neighbors)
-    except (RuntimeError, ValueError, AssertionError) as exc:
-        raise TergodicError(f"robust_laplacian failed on this cloud ({str(exc).splitlines()[0][:80]})",
-                            "the points may be degenerate; check the capture or change --neighbors") from None
-    mass = np.asarray(M.diagonal(), dtype=np.float64)
+        try:
+            L, M = robust_laplacian.point_cloud_laplacian(points, n_neighbors=n_neighbors)
+        except (RuntimeError, ValueError, AssertionError) as exc:
+            raise TergodicError(f"robust_laplacian failed on this cloud ({str(exc).splitlines()[0][:80]})",
+                                fix) from None
+        mass = np.asarray(M.diagonal(), dtype=np.float64)
     require(np.all(np.isfinite(mass)) and np.all(mass > 0), "the Laplacian has zero-area points (degenerate sampling)",
             "re-capture with a voxel filter, or change --neighbors")
     return sp.csr_matrix(L, dtype=np.float64), mass
