@@ -13,8 +13,8 @@ def replay(
     run: Path = typer.Argument(..., help="Run folder written by 'tergodic explore' (holding run.mcap), or the .mcap file."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON: the keys of summary.json plus 'truncated' and 'status' (complete, interrupted, truncated)."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write PNG figures into this folder (ε(t), touched(t), force(t), cloud views)."),
-    export: Optional[str] = typer.Option(None, "--export", help="Export the time series: npz or csv."),
-    export_out: Optional[Path] = typer.Option(None, "--export-out", help="Where --export writes (default: series.npz or series.csv beside run.mcap)."),
+    export: Optional[str] = typer.Option(None, "--export", help="Export the time series (npz or csv), or the run as a ROS 2 bag folder (rosbag2: tf, agents, cloud, wrench, joint states)."),
+    export_out: Optional[Path] = typer.Option(None, "--export-out", help="Where --export writes (default: series.npz, series.csv or the folder rosbag2 beside run.mcap)."),
     step: Optional[int] = typer.Option(None, "--step", help="Print the state at explorer step N instead of the summary."),
     gui: bool = typer.Option(False, "--gui", help="Replay the logged joint states in the PyBullet GUI (robot runs; needs a display, else exit 2)."),
     speed: float = typer.Option(1.0, "--speed", help="--gui playback speed, times real time."),
@@ -38,6 +38,8 @@ def replay(
 
       tergodic replay run/ --plot run/plots --export csv
 
+      tergodic replay run/ --export rosbag2 --export-out run/rosbag2   (then: ros2 bag play run/rosbag2)
+
       tergodic replay run/ --step 500
 
       tergodic replay run/ --html run/report.html
@@ -45,7 +47,8 @@ def replay(
     from tergodic_cli.errors import TergodicError, require
     from tergodic_cli.runlog import resolve_log_path
 
-    require(export in (None, "npz", "csv"), f"--export '{export}' is not a format", "use --export npz or --export csv")
+    require(export in (None, "npz", "csv", "rosbag2"), f"--export '{export}' is not a format",
+            "use --export npz, csv or rosbag2")
     require(rerun is None or rerun.suffix == ".rrd", f"--rerun {rerun} does not end in .rrd", "e.g. --rerun run.rrd")
     if speed <= 0:
         raise TergodicError(f"--speed must be > 0, got {speed}", "e.g. --speed 2")
@@ -62,21 +65,33 @@ def replay(
     if html is not None:
         check_output_file(html, overwrite, "--html", inputs=(path,))
     dest = None
-    if export is not None:
+    bag = None
+    if export == "rosbag2":
+        from tergodic_cli.runlog.rosbag import require_rosbags
+
+        require_rosbags()
+        dest = export_out or path.parent / "rosbag2"
+        require(dest.resolve() != path.parent.resolve(), f"--export-out {dest} is the run folder itself",
+                "give a new folder for the bag, e.g. --export-out run/rosbag2")
+        bag = AtomicFolder(dest, overwrite=overwrite, option="--export-out", what="ROS 2 bag",
+                           owned=lambda name: name == "metadata.yaml" or name.endswith((".db3", ".mcap")))
+    elif export is not None:
         dest = export_out or path.parent / f"series.{export}"
         check_output_file(dest, overwrite, "--export-out", inputs=(path,))
     plots = AtomicFolder(plot, overwrite=overwrite, option="--plot", what="set of plots",
                          owned=lambda name: name.endswith(".png")) if plot is not None else None
     try:
-        if plots is not None:
-            plots.check()
-        _replay(path, plots, plot, dest, export, rerun, html, step, gui, speed, json_out)
+        for folder in (plots, bag):
+            if folder is not None:
+                folder.check()
+        _replay(path, plots, plot, dest, export, rerun, html, step, gui, speed, json_out, bag)
     finally:
-        if plots is not None:
-            plots.release()
+        for folder in (plots, bag):
+            if folder is not None:
+                folder.release()
 
 
-def _replay(path, plots, plot, dest, export, rerun, html, step, gui, speed, json_out) -> None:
+def _replay(path, plots, plot, dest, export, rerun, html, step, gui, speed, json_out, bag=None) -> None:
     """The read and every output, once the outputs are checked (``plots`` locked)."""
     from tergodic_cli.progress import Spinner, echo as echo_err
     from tergodic_cli.runlog import read_run_log
@@ -87,7 +102,7 @@ def _replay(path, plots, plot, dest, export, rerun, html, step, gui, speed, json
                                              state_at, to_json)
     from tergodic_cli.runlog.viewers import replay_gui, write_rerun
 
-    need_clouds = plot is not None or rerun is not None or step is not None or gui or html is not None
+    need_clouds = plot is not None or rerun is not None or step is not None or gui or html is not None or bag is not None
     with Spinner(f"reading {path.name}"):
         data = read_run_log(path, clouds=need_clouds)
     # "wrote ..." notes go to stderr when stdout carries JSON
@@ -109,7 +124,13 @@ def _replay(path, plots, plot, dest, export, rerun, html, step, gui, speed, json
         else:
             typer.echo(format_table(summary, data, compare_with_file(summary, path.parent / "summary.json")))
 
-    if export is not None:
+    if bag is not None:
+        from tergodic_cli.runlog.rosbag import write_rosbag2_aside
+
+        with bag as tmp:
+            write_rosbag2_aside(data, dest, tmp)
+        say(f"wrote {dest} (ROS 2 bag: {data.steps} steps, {len(data.clouds)} clouds; ros2 bag play {dest})")
+    elif export is not None:
         export_series(data, export, dest)
         say(f"wrote {dest} ({data.steps} rows)")
     if plot is not None:

@@ -35,3 +35,19 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
         q[3] = (R[k, j] - R[j, k]) / s
     q /= np.linalg.norm(q)
     return -q if q[3] < 0 else q
+
+
+def quat_from_axis(axis: int, v) -> tuple[float, float, float, float]:
+    """Shortest-arc quaternion (x, y, z, w) turning the unit ``axis`` (0: +x, 2: +z) onto ``v`` (3,).
+
+    A zero ``v`` gives the identity; ``v`` opposite the axis a half turn (about z for +x, about x for +z).
+    """
+    x, y, z = (float(c) for c in v)
+    n = math.sqrt(x * x + y * y + z * z)
+    q = (0.0, -z, y, n + x) if axis == 0 else (-y, x, 0.0, n + z)  # [axis × v, |v| + axis·v]
+    qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    if qn < 1e-12 * max(n, 1e-300):
+        if n == 0.0:
+            return 0.0, 0.0, 0.0, 1.0
+        return (0.0, 0.0, 1.0, 0.0) if axis == 0 else (1.0, 0.0, 0.0, 0.0)
+    return q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn

@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.runlog import RunLog, read_run_log
 from tergodic_cli.runlog import schema as S
-from tergodic_cli.runlog.writer import _quat_to
+from tergodic_cli.rotations import quat_from_axis as _quat_to
 
 LINKS = ("panda_link1", "panda_link2", "panda_hand")
 

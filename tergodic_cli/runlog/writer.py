@@ -20,6 +20,7 @@ import numpy as np
 
 from tergodic_cli.atomic import _json_default
 from tergodic_cli.errors import TergodicError
+from tergodic_cli.rotations import quat_from_axis
 from tergodic_cli.runlog import schema as S
 from tergodic_cli.runlog.proto import METRIC_FIELDS, VECTOR_FIELDS
 
@@ -31,22 +32,6 @@ CHUNK_BYTES = 4 * 1024 * 1024
 
 def _dumps(obj: Any) -> str:
     return json.dumps(obj, default=_json_default, allow_nan=True)
-
-
-def _quat_to(axis: int, v) -> tuple[float, float, float, float]:
-    """Shortest-arc quaternion (x, y, z, w) turning the unit ``axis`` (0: +x, 2: +z) onto ``v`` (3,).
-
-    A zero ``v`` gives the identity; ``v`` opposite the axis a half turn (about z for +x, about x for +z).
-    """
-    x, y, z = (float(c) for c in v)
-    n = math.sqrt(x * x + y * y + z * z)
-    q = (0.0, -z, y, n + x) if axis == 0 else (-y, x, 0.0, n + z)  # [axis × v, |v| + axis·v]
-    qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    if qn < 1e-12 * max(n, 1e-300):
-        if n == 0.0:
-            return 0.0, 0.0, 0.0, 1.0
-        return (0.0, 0.0, 1.0, 0.0) if axis == 0 else (1.0, 0.0, 0.0, 0.0)
-    return q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn
 
 
 def _quat(M: Any, x: float, y: float, z: float, w: float) -> Any:
@@ -284,13 +269,13 @@ class RunLog:
         poses, entities = [], []
         for i, (p, v, nrm) in enumerate(zip(P.tolist(), V.tolist(), Nn.tolist())):
             pos = M.Vector3(x=p[0], y=p[1], z=p[2])
-            poses.append(M.Pose(position=pos, orientation=_quat(M, *_quat_to(2, nrm))))  # z along the normal
+            poses.append(M.Pose(position=pos, orientation=_quat(M, *quat_from_axis(2, nrm))))  # z along the normal
             speed = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
             line = M.LinePrimitive(type=M.LinePrimitiveLineType.LineList, pose=M.Pose(orientation=M.Quaternion(w=1.0)),
                                    thickness=2.0, scale_invariant=True, color=M.Color(r=0.1, g=0.8, b=1.0, a=1.0),
                                    points=[M.Point3(x=p[0] + s * nrm[0], y=p[1] + s * nrm[1], z=p[2] + s * nrm[2])
                                            for s in (-half, half)])
-            arrow = M.ArrowPrimitive(pose=M.Pose(position=pos, orientation=_quat(M, *_quat_to(0, v))),
+            arrow = M.ArrowPrimitive(pose=M.Pose(position=pos, orientation=_quat(M, *quat_from_axis(0, v))),
                                      shaft_length=min(5.0 * speed, half), shaft_diameter=shaft_d,  # 5 s of travel
                                      head_length=3 * shaft_d, head_diameter=3 * shaft_d,
                                      color=M.Color(r=1.0, g=0.5, b=0.0, a=1.0))
@@ -350,7 +335,7 @@ class RunLog:
             rec[key] = dict(zip(("fx", "fy", "fz", "tx", "ty", "tz"), w))
             fn = math.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
             arrows = [] if fn <= 1e-9 else [M.ArrowPrimitive(  # 5 mm per newton
-                pose=M.Pose(orientation=_quat(M, *_quat_to(0, w[:3]))), shaft_length=0.005 * fn,
+                pose=M.Pose(orientation=_quat(M, *quat_from_axis(0, w[:3]))), shaft_length=0.005 * fn,
                 shaft_diameter=0.002, head_length=0.006, head_diameter=0.006, color=M.Color(r=r, g=g, b=b, a=1.0))]
             entities.append(M.SceneEntity(timestamp=stamp, frame_id=S.FRAME_EE, id=f"force_{key}", arrows=arrows))
         rec.update({key: robot[key] for key in ("force_normal", "in_contact") if key in robot})
