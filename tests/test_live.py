@@ -29,7 +29,7 @@ class FoxgloveClient:
     """The least of a Foxglove WebSocket protocol client (``foxglove.websocket.v1``, called ``foxglove.sdk.v1``
     by foxglove-sdk 0.30): RFC 6455 framing over a plain socket."""
 
-    def __init__(self, port: int):
+    def __init__(self, port: int, subprotocols: tuple[str, ...] = SUBPROTOCOLS):
         end = time.monotonic() + DEADLINE_S
         while True:
             try:
@@ -42,15 +42,18 @@ class FoxgloveClient:
         key = base64.b64encode(os.urandom(16)).decode()
         self.sock.sendall((f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
                            f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n"
-                           f"Sec-WebSocket-Protocol: {', '.join(SUBPROTOCOLS)}\r\n\r\n").encode())
+                           f"Sec-WebSocket-Protocol: {', '.join(subprotocols)}\r\n\r\n").encode())
         head = b""
         while b"\r\n\r\n" not in head:
             chunk = self.sock.recv(4096)
             assert chunk, "the server closed during the handshake"
             head += chunk
         head, self.buf = head.split(b"\r\n\r\n", 1)
-        assert head.startswith(b"HTTP/1.1 101"), head
-        self.subprotocol = next(p for p in SUBPROTOCOLS if p.encode() in head.lower())
+        self.status = head.split(b"\r\n", 1)[0]
+        if not head.startswith(b"HTTP/1.1 101"):
+            self.subprotocol = None
+            return
+        self.subprotocol = next(p for p in subprotocols if p.encode() in head.lower())
 
     def _read(self, n: int) -> bytes:
         while len(self.buf) < n:
@@ -94,6 +97,40 @@ class FoxgloveClient:
 
     def close(self) -> None:
         self.sock.close()
+
+
+@pytest.mark.parametrize("offered", [("foxglove.websocket.v1",), ("foxglove.sdk.v1",)])
+def test_clients_of_either_protocol_name_connect_and_get_the_server_info(tmp_path, offered):
+    """A client written to the published spec offers only foxglove.websocket.v1; foxglove-sdk's own
+    name is foxglove.sdk.v1. Each is answered under the name it offered and then speaks the protocol."""
+    inp = demo_inputs(steps=5, seed=1)
+    port = _free_port()
+    log = RunLog(tmp_path / "run.mcap", config=inp["config"], seed=1, points=inp["points"], target=inp["target"],
+                 live=("127.0.0.1", port))
+    try:
+        client = FoxgloveClient(port, offered)
+        assert client.subprotocol == offered[0], client.status
+        op, data = client.frame()
+        assert op == 0x1 and json.loads(data)["op"] == "serverInfo"
+        client.close()
+    finally:
+        log.close()
+
+
+def test_a_client_offering_no_foxglove_protocol_is_refused_in_one_line(tmp_path, capfd):
+    inp = demo_inputs(steps=5, seed=1)
+    port = _free_port()
+    log = RunLog(tmp_path / "run.mcap", config=inp["config"], seed=1, points=inp["points"], target=inp["target"],
+                 live=("127.0.0.1", port))
+    try:
+        for _ in range(3):
+            client = FoxgloveClient(port, ("chat.v2",))
+            assert client.status.startswith(b"HTTP/1.1 400"), client.status
+            client.close()
+    finally:
+        log.close()
+    lines = [ln for ln in capfd.readouterr().err.splitlines() if "live:" in ln]
+    assert len(lines) == 1 and "foxglove.websocket.v1" in lines[0] and "chat.v2" in lines[0], lines
 
 
 def _free_port() -> int:

@@ -70,18 +70,27 @@ class LiveServer:
     context: Any
     server: Any
 
+    bridge: "SubprotocolBridge | None" = None
+
     @classmethod
     def start(cls, where: str | tuple[str, int]) -> "LiveServer":
+        """The SDK's server on a private loopback port, behind a :class:`SubprotocolBridge` on ``where``."""
         import foxglove
 
         host, port = parse_live(where) if isinstance(where, str) else (str(where[0]), int(where[1]))
+        check_bindable(host, port)
         ctx = foxglove.Context()
         try:
-            server = foxglove.start_server(name="tergodic", host=host, port=port, context=ctx)
+            server = foxglove.start_server(name="tergodic", host="127.0.0.1", port=0, context=ctx)
         except Exception as exc:  # noqa: BLE001 - the SDK raises its own error type for bind failures
             raise TergodicError(f"--live {host}:{port}: the server did not start ({str(exc).splitlines()[0][:120]})",
                                 "stop what listens there, or choose another port: --live HOST:PORT") from None
-        return cls(host, server.port, ctx, server)
+        try:
+            bridge = SubprotocolBridge(host, port, server.port)
+        except OSError as exc:
+            server.stop()
+            raise TergodicError(f"--live {host}:{port}: cannot listen there ({exc.strerror or exc})", _FIX) from None
+        return cls(host, bridge.port, ctx, server, bridge)
 
     @property
     def url(self) -> str:
@@ -90,6 +99,8 @@ class LiveServer:
     def stop(self, wait_s: float = 2.0) -> None:
         """Stop the server and wait (up to ``wait_s`` seconds) until its port is free: the SDK
         shuts its listener down on its own thread, and a next run may want the same port."""
+        if self.bridge is not None:
+            self.bridge.stop()
         try:
             self.server.stop()
         except Exception:  # noqa: BLE001 - best effort at the end of a run
@@ -100,3 +111,153 @@ class LiveServer:
                 return check_bindable(self.host, self.port)
             except TergodicError:
                 time.sleep(0.02)
+
+
+#: The protocol's names: foxglove-sdk 0.30 accepts only the first; clients written to the published
+#: ws-protocol spec (Lichtblick, older Foxglove builds) offer the second. The protocol is the same.
+SDK_SUBPROTOCOL, SPEC_SUBPROTOCOL = "foxglove.sdk.v1", "foxglove.websocket.v1"
+_MAX_HEADER = 16384
+
+
+class SubprotocolBridge:
+    """The public ``--live`` port: forwards each WebSocket connection to the SDK's private port,
+    renaming the subprotocol a ``foxglove.websocket.v1`` client offers (and the server's answer), so
+    clients of either name connect. A client offering neither gets a 400 and one line on stderr.
+
+    One thread accepts; one thread per connection pumps bytes both ways. A slow viewer only slows its
+    own pump; the SDK drops what that viewer cannot take, so the run never waits for it.
+    """
+
+    def __init__(self, host: str, port: int, upstream_port: int):
+        import threading
+
+        family, _, _, _, addr = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)[0]
+        self.sock = socket.socket(family, socket.SOCK_STREAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            self.sock.bind(addr)
+            self.sock.listen(16)
+        except OSError:
+            self.sock.close()
+            raise
+        self.sock.settimeout(0.2)
+        self.port = self.sock.getsockname()[1]
+        self.upstream = ("127.0.0.1", int(upstream_port))
+        self.connected = threading.Event()  # set once a viewer completed its handshake
+        self._stop = threading.Event()
+        self._conns: list[socket.socket] = []
+        self._said: set[str] = set()
+        self._thread = threading.Thread(target=self._accept, name="tergodic-live-bridge", daemon=True)
+        self._thread.start()
+
+    def _accept(self) -> None:
+        import threading
+
+        while not self._stop.is_set():
+            try:
+                conn, _ = self.sock.accept()
+            except (TimeoutError, socket.timeout):
+                continue
+            except OSError:
+                return
+            self._conns.append(conn)
+            threading.Thread(target=self._serve, args=(conn,), name="tergodic-live-client", daemon=True).start()
+
+    def _say(self, line: str) -> None:
+        import sys
+
+        if line not in self._said:  # once per reason, not once per attempt
+            self._said.add(line)
+            sys.stderr.write(line + "\n")
+
+    def _serve(self, client: socket.socket) -> None:
+        upstream = None
+        try:
+            client.settimeout(10.0)
+            head, rest = _read_header(client)
+            if head is None:
+                return
+            lines = head.split(b"\r\n")
+            offered, at = [], None
+            for i, line in enumerate(lines):
+                name, _, value = line.partition(b":")
+                if name.strip().lower() == b"sec-websocket-protocol":
+                    offered, at = [v.strip().decode("latin-1") for v in value.split(b",")], i
+            if SDK_SUBPROTOCOL not in offered and SPEC_SUBPROTOCOL not in offered:
+                self._say(f"tergodic: live: refused a viewer offering {', '.join(offered) or 'no subprotocol'}; "
+                          f"connect with Foxglove or Lichtblick (subprotocol {SDK_SUBPROTOCOL} or {SPEC_SUBPROTOCOL})")
+                client.sendall(b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\nConnection: close\r\n\r\n")
+                return
+            legacy = SDK_SUBPROTOCOL not in offered
+            if legacy:
+                lines[at] = b"Sec-WebSocket-Protocol: " + SDK_SUBPROTOCOL.encode()
+            upstream = socket.create_connection(self.upstream, timeout=10.0)
+            self._conns.append(upstream)
+            upstream.sendall(b"\r\n".join(lines) + b"\r\n\r\n" + rest)
+            answer, more = _read_header(upstream)
+            if answer is None:
+                return
+            if legacy:
+                answer = answer.replace(SDK_SUBPROTOCOL.encode(), SPEC_SUBPROTOCOL.encode())
+            client.sendall(answer + b"\r\n\r\n" + more)
+            if answer.startswith(b"HTTP/1.1 101"):
+                self.connected.set()
+            _pump(client, upstream, self._stop)
+        except OSError:
+            pass
+        finally:
+            for s in (client, upstream):
+                if s is not None:
+                    with _suppress_os():
+                        s.close()
+
+    def stop(self) -> None:
+        """Close the port and every connection."""
+        self._stop.set()
+        with _suppress_os():
+            self.sock.close()
+        for s in list(self._conns):
+            with _suppress_os():
+                s.shutdown(socket.SHUT_RDWR)
+            with _suppress_os():
+                s.close()
+        self._thread.join(timeout=1.0)
+
+
+def _suppress_os():
+    from contextlib import suppress
+
+    return suppress(OSError)
+
+
+def _read_header(sock: socket.socket) -> tuple[bytes | None, bytes]:
+    """An HTTP header (without its blank line) and any bytes read past it; None when the peer closed
+    or sent more than 16 KB of header."""
+    buf = b""
+    while b"\r\n\r\n" not in buf:
+        chunk = sock.recv(4096)
+        if not chunk or len(buf) > _MAX_HEADER:
+            return None, b""
+        buf += chunk
+    head, _, rest = buf.partition(b"\r\n\r\n")
+    return head, rest
+
+
+def _pump(a: socket.socket, b: socket.socket, stop) -> None:
+    """Copy bytes both ways until either side closes or ``stop`` is set."""
+    import selectors
+
+    sel = selectors.DefaultSelector()
+    a.settimeout(None)
+    b.settimeout(None)
+    sel.register(a, selectors.EVENT_READ, b)
+    sel.register(b, selectors.EVENT_READ, a)
+    try:
+        while not stop.is_set():
+            for key, _ in sel.select(timeout=0.2):
+                data = key.fileobj.recv(65536)
+                if not data:
+                    return
+                key.data.sendall(data)
+    finally:
+        sel.close()
