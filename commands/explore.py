@@ -37,6 +37,7 @@ def explore(
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Basis cache root [default: $TERGODIC_CACHE_DIR or ~/.cache/tergodic]."),
     no_log: bool = typer.Option(False, "--no-log", help="Do not write the per-step MCAP log (for timing)."),
     live: Optional[str] = typer.Option(None, "--live", metavar="[HOST:PORT]", help="Stream the log's channels to Foxglove over WebSocket while the run goes on (Open connection: ws://HOST:PORT); --live alone: 127.0.0.1:8765."),
+    live_wait: bool = typer.Option(False, "--live-wait", help="With --live (implied, at 127.0.0.1:8765 unless given): start only once a viewer has connected, and keep serving the final state until Ctrl-C."),
     log_cloud_every: int = typer.Option(50, "--log-cloud-every", help="Log coverage/heat/source per point every N steps (and at the end)."),
     max_start_distance: float = typer.Option(0.02, "--max-start-distance", help="Refuse a start farther than this (metres) from the cloud; closer ones are projected."),
     config: Optional[Path] = typer.Option(None, "--config", help="Repeat a run: its RUN/config.json (explore config, start, seed, robot); options given beside it override it."),
@@ -87,10 +88,14 @@ def explore(
 
       tergodic explore data/bowl --robot pybullet --force 5 --steps 300 --out run/
 
+      tergodic explore data/bowl --live-wait --out run/   (then in Foxglove: Open connection ws://127.0.0.1:8765)
+
       tergodic explore simcap/ --robot pybullet --recapture-every 200 --until-clean 0.05 --max-steps 1000 --out run/
 
       tergodic explore cap/ --robot franka --robot-ip 172.16.0.2 --ft bota --ft-address bota.json --dry-run --out run/
     """
+    if live_wait and live is None:
+        from tergodic_cli.runlog.live import DEFAULT as live
     live_at = _check_live(live, no_log or dry_run) if live is not None else None  # exit 2 before anything is written
     from tergodic_cli.explore import ExploreConfig
     from tergodic_cli.run import (RENAMED, LogSpec, StartSpec, apply_saved, dry_run_report, make_backend, placed_line,
@@ -121,7 +126,7 @@ def explore(
         typer.echo(dry_run_report(capture, cfg, backend, spec))
         return
     placed: dict = {}
-    summary = run_explore(capture, cfg, out, backend, spec, None if no_log else LogSpec(log_cloud_every, live_at),
+    summary = run_explore(capture, cfg, out, backend, spec, None if no_log else LogSpec(log_cloud_every, live_at, live_wait),
                           cache_dir, on_event=echo_err, overwrite=overwrite, placed=placed)
     where = placed_line(placed.get("dir"), out, "partial run")
     if summary.get("interrupted"):

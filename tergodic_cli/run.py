@@ -214,6 +214,8 @@ class LogSpec:
 
     cloud_every: int = 50
     live: str | None = None
+    #: with ``live``: start once a viewer has connected; keep serving the final state until Ctrl-C
+    live_wait: bool = False
 
 
 #: Bytes a run holds in memory per explorer step and agent (positions, velocities, normals,
@@ -455,6 +457,9 @@ def _write_run(out: Path, run: _Run) -> dict:
         if runlog is not None:
             if runlog.live is not None:
                 say(f"live: {runlog.live.url} (Foxglove: Open connection)")
+                if spec.live_wait:
+                    say("live: waiting for a viewer to connect (Ctrl-C stops)")
+                    runlog.live.wait_for_viewer()
             for msg in run.events:
                 runlog.log_event(0, 0.0, msg)
 
@@ -496,7 +501,9 @@ def _write_run(out: Path, run: _Run) -> dict:
         write_json(out / "summary.json", summary)
         write_config(out / CONFIG_FILE, RUN_CONFIG_KIND, **_run_config(run, spec.cloud_every))
         if runlog is not None:
-            runlog.close(summary, status="interrupted" if summary.get("interrupted") else "ok")  # robot made safe
+            hold = (lambda: runlog.live.hold(say)) if spec.live_wait and runlog.live is not None else None
+            runlog.close(summary, status="interrupted" if summary.get("interrupted") else "ok",  # robot made safe
+                         hold=hold)
         return summary
 
 

@@ -243,3 +243,45 @@ def test_explore_with_live_runs_and_says_where(tmp_path):
 def test_live_is_in_the_help(flag):
     res = run_cli("explore", "--help")
     assert flag in res.out and "HOST:PORT" in res.out
+
+
+def test_live_wait_starts_when_a_viewer_connects_and_serves_until_ctrl_c(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from conftest import default_signals
+
+    port = _free_port()
+    exe = Path(sys.executable).with_name("tergodic")
+    proc = subprocess.Popen([str(exe), "explore", str(BOWL), "--steps", "30", "--nk", "40", "--live-wait",
+                             "--live", f"127.0.0.1:{port}", "--out", str(tmp_path / "run")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=default_signals,
+                            env={**os.environ, "TERGODIC_NO_PROGRESS": "1"})
+    try:
+        seen = []
+        for line in proc.stderr:
+            seen.append(line)
+            if "waiting for a viewer" in line:
+                break
+        assert any("waiting for a viewer" in ln for ln in seen), seen
+        time.sleep(0.5)
+        assert proc.poll() is None and not any(tmp_path.glob(".run.tmp-*/summary.json"))  # held before step 1
+        client = FoxgloveClient(port, ("foxglove.websocket.v1",))
+        assert client.subprotocol == "foxglove.websocket.v1"
+        for line in proc.stderr:
+            seen.append(line)
+            if "serving its final state" in line:
+                break
+        assert any("serving its final state" in ln for ln in seen), seen
+        assert proc.poll() is None  # still serving the viewer
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+        client.close()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, "".join(seen) + err
+    assert "live: stopped" in err and "Traceback" not in err
+    assert (tmp_path / "run" / "summary.json").exists()  # the run is complete and in place

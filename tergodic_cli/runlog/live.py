@@ -92,6 +92,21 @@ class LiveServer:
             raise TergodicError(f"--live {host}:{port}: cannot listen there ({exc.strerror or exc})", _FIX) from None
         return cls(host, bridge.port, ctx, server, bridge)
 
+    def wait_for_viewer(self) -> None:
+        """Block until a viewer has completed its handshake (Ctrl-C and SIGTERM interrupt the wait)."""
+        while self.bridge is not None and not self.bridge.connected.wait(0.2):
+            pass
+
+    def hold(self, say) -> None:
+        """Keep the server (and the viewers' connections, showing the final state) up until Ctrl-C or
+        SIGTERM, which end the hold, not the run: the run is complete."""
+        say("live: the run is complete; serving its final state until Ctrl-C")
+        try:
+            while True:
+                time.sleep(0.2)
+        except KeyboardInterrupt:
+            say("live: stopped")
+
     @property
     def url(self) -> str:
         return f"ws://{self.host}:{self.port}"

@@ -405,8 +405,9 @@ class RunLog:
             self._ch[S.TOPIC_EVENTS].log(msg, log_time=t_ns)
 
     # -- end -----------------------------------------------------------------------------------
-    def close(self, summary: Mapping[str, Any] | None = None, status: str = "ok") -> None:
-        """Store ``summary`` (the summary.json dict) and finish the file; idempotent."""
+    def close(self, summary: Mapping[str, Any] | None = None, status: str = "ok", hold=None) -> None:
+        """Store ``summary`` (the summary.json dict) and finish the file; idempotent. ``hold()``, when
+        given, runs once the file is complete and before the live channels close (``--live-wait``)."""
         if self._closed:
             return
         try:
@@ -416,6 +417,8 @@ class RunLog:
                 self._w.write_metadata(S.META_END, {"steps": str(self.n_steps), "clouds": str(self.n_clouds),
                                                     "status": status})
                 self._w.close()
+            if hold is not None:
+                hold()
         finally:
             self._closed = True
             for ch in self._ch.values():
