@@ -127,8 +127,6 @@ def test_agent_on_a_closed_box_with_10mm_walls_stays_on_its_outside(hollow_box):
     assert np.mean(dm > TOLERANCE) > 0.5  # before sheet separation: inside the wall
 
 
-@pytest.mark.xfail(strict=True, reason="known (issue 25, item 2 left): with transits the agent visits a box edge where "
-                   "it overshoots by up to 3.3 mm, beyond the chamfer bound, on ~3 % of steps")
 def test_agent_on_a_closed_box_stays_within_the_chamfer_of_its_edges(hollow_box):
     pts, basis = hollow_box
     _, xs = _run(basis, np.array([0.01, -0.02, OUTER + 0.001]), 1000)

@@ -1257,17 +1257,19 @@ def gain_gradient(P, Nrm, perm, nodes, boxes, tpts, pf, pb, fs, prm, x, t1, t2, 
     (``ball``'s indices) to P's; ``ball`` (n + 1,) is scratch (left holding the indices summed)."""
     eps2 = prm[PR_GAIN_EPS2] / (width * width)
     cnt = tree_ball(perm, nodes, boxes, tpts, x, reach * 2.0 / math.sqrt(eps2), ball)
-    if tmap is not None:
-        for t in range(cnt):
-            ball[t] = tmap[ball[t]]
-    if anchor >= 0 or tmap is None:
+    mapped = tmap is None
+    if gap < np.inf and (anchor >= 0 or tmap is None):  # (no extra pass over the ball otherwise)
+        if tmap is not None:
+            for t in range(cnt):
+                ball[t] = tmap[ball[t]]
+            mapped = True
         cnt = sheet_of(P, Nrm, ball, cnt, x, anchor, gap)
     mass, pbar, cov, target = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV], pb[PB_TARGET]
     Z = fs[FS_ZC]
     inv = 1.0 / Z if Z > 0.0 else 0.0
     g0 = g1 = g2 = G = 0.0
     for t in range(cnt):
-        j = ball[t]
+        j = ball[t] if mapped else tmap[ball[t]]
         if target[j] == 0:
             continue
         e = pbar[j] - cov[j] * inv
