@@ -26,8 +26,8 @@ REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "data" / "reference
 STEPS = 1000
 
 
-def _run(basis, target, x0, radius, steps=STEPS):
-    cfg = ExploreConfig(steps=steps, agent_radius=radius)
+def _run(basis, target, x0, radius, steps=STEPS, sheets="mixed"):
+    cfg = ExploreConfig(steps=steps, agent_radius=radius, sheets=sheets)
     ex = Explorer(basis, target, cfg, np.atleast_2d(x0), on_event=lambda msg: None)
     X = np.empty((steps, 3))
     for k in range(steps):
@@ -39,7 +39,8 @@ def _run(basis, target, x0, radius, steps=STEPS):
 #: Objects where the default ("mixed", the paper's) fit leaves the surface of one sheet, as the
 #: one-sheet off-surface figure shows (issue 25, item 2, left): the thin mug's 4 mm wall (the agent
 #: runs between its sheets), the box's edges (the fit crosses an edge by up to a step).
-#: ``--sheets separate`` keeps the agent on one sheet but stalls it on the mug (docs/explore.md).
+#: ``--sheets separate`` keeps the agent on one sheet (below), at a higher ε on household meshes
+#: (docs/explore.md, "Sheet separation").
 INSIDE_KNOWN = {"thin-mug", "box"}
 
 
@@ -53,6 +54,23 @@ def test_the_agent_never_leaves_one_sheet_on_thin_walls_and_edges(name, tmp_path
     x0 = cap.points[np.random.default_rng(1).choice(cap.n_points, 1, replace=False)]
     _, X, _ = _run(basis, cap.target, x0, 0.0075)
     assert coverage_score(cap.points, cap.target, X, 0.0075, basis.h)["off_surface_fraction"] == 0.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(INSIDE_KNOWN))
+def test_with_separate_sheets_the_agent_never_leaves_one_sheet_on_thin_walls_and_edges(name, tmp_path):
+    # the same runs with the fit, the footprint and the gain on the agent's sheet: the one-sheet
+    # off-surface figure (recomputed from the trajectory) is 0, and the target is still reached
+    # (mixed: 0.91 on the thin mug, 0.035 on the box)
+    obj = next(o for o in COVERAGE_OBJECTS if o.object == name)
+    cap = capture_cloud(CaptureConfig(source="synthetic", synthetic=obj.object, marking=obj.marking, noise=obj.noise))
+    basis, _ = get_basis(cap.points, BasisConfig(nk=200, neighbors=30), str(tmp_path))
+    x0 = cap.points[np.random.default_rng(1).choice(cap.n_points, 1, replace=False)]
+    _, X, cfg = _run(basis, cap.target, x0, 0.0075, sheets="separate")
+    ref = coverage_score(cap.points, cap.target, X, 0.0075, basis.h)
+    assert ref["off_surface_fraction"] == 0.0
+    assert ref["touched_fraction"] >= 0.98
+    assert ref["step_max_m"] <= cfg.v_max * cfg.dt * (1 + 1e-9)
 
 
 @pytest.mark.slow

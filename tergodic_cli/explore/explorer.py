@@ -185,6 +185,7 @@ class Explorer:
         self._reset_status = np.full(N, -1, dtype=np.int64)
         self._no_deposits = np.zeros((0, 3))
         self._resync = int(cfg.resync_every)
+        self._ball = np.empty(n + 1, dtype=np.int64)  # the stall check's gain: its points, one more for the anchor
         self._transit: list[Transit | None] = [None] * N
         self._moving = False  # some agent is on a transit
         self.transits = 0
@@ -528,17 +529,20 @@ class Explorer:
         e = np.maximum(self._pf[K.PF_PBAR, T] - (self._cov[T] / zc if zc > 0 else 0.0), 0.0)
         w = self._pf[K.PF_MASS, T] * e
         gain = self._target_kernel() @ w  # G at every target point: what a deposit there would remove
-        eps2 = self._prm[K.PR_GAIN_EPS2]
         graph = cached("surface_graph", self._P, lambda: surface_graph(self._P, 2.0 * K.SURFACE_REACH * self._field.h))
         worst = None
         for i in range(len(self.positions)):
             src = int(self._nbrs[i, 0])
             dist, pred = paths_from(graph, src)
-            reach = np.isfinite(dist[T]) & ~self._banned
-            if not np.any(reach):
+            ok = np.isfinite(dist[T]) & ~self._banned
+            if not np.any(ok):
                 continue
-            best = float(np.max(gain[reach]))
-            here = float(w @ np.exp(-eps2 * np.sum((P[T] - self.positions[i]) ** 2, axis=1)))
+            best = float(np.max(gain[ok]))
+            # G where the agent stands, over its own sheet (kernels.sheet_of): residual seen through a
+            # wall is nothing a deposit here would remove, so an agent parked under it is stalled
+            here = K.gain_gradient(P, self._nrm, *self._tree, self._pf, self._pb, self._fs, self._prm,
+                                   self.positions[i], self._ag[i, K.AG_T1:K.AG_T1 + 3],
+                                   self._ag[i, K.AG_T2:K.AG_T2 + 3], self._ball, src, self._prm[K.PR_SHEET_GAP])[1]
             if stalled(s_then, s_now, here, best) and (worst is None or here / best < worst[0]):
                 worst = (here / best, i, src, dist, pred, gain)
         if worst is not None:

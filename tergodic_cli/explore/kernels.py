@@ -447,15 +447,18 @@ def fit_project(P, nb, k, x, ref, out_xp, out_n):
 
 
 @njit
-def sheet_select(P, Nrm, nb, k, gap, d):
-    """Reorder the neighbours ``nb[:k]`` (nearest first) so that those on the nearest point's
-    sheet come first (each group in its order) and return their count.
+def sheet_select(P, Nrm, nb, k, gap, d, least=3, keep_turned=False):
+    """Reorder the points ``nb[:k]`` so that those on the sheet of the first, j0 = nb[0], come
+    first (each group in its order) and return their count: the one sheet test of the explorer
+    (the fit's neighbours, and the points under the footprint and the gain, :func:`sheet_of`).
 
-    The sheet of j0 = nb[0]: of the neighbours whose normal lines (``Nrm``, unoriented) lie within
-    SHEET_ANGLE of j0's, their offsets along j0's line, sorted, are cut wherever two consecutive
-    ones are more than ``gap`` (metres) apart; the sheet is the run holding j0's (0). A wall's
-    other side lies beyond such a gap; a face across an edge, or a hole's wall, turns its normal
-    away. Fewer than 3 on the sheet: all are kept (as with ``gap`` inf). ``d`` (k,) is scratch.
+    The sheet of j0: of the points whose normal lines (``Nrm``, unoriented) lie within
+    60 degrees (SHEET_COS) of j0's, their offsets along j0's line, sorted, are cut wherever two
+    consecutive ones are more than ``gap`` (metres) apart; the sheet is the run holding j0's (0).
+    A wall's other side lies beyond such a gap; a face across an edge, or a hole's wall, turns its
+    normal away: left out of a fit, kept with ``keep_turned`` (what a footprint or a path along the
+    surface reaches over an edge). Fewer than ``least`` on the sheet: all are kept (as with ``gap``
+    inf; a fit needs 3). ``d`` (k,) is scratch.
     """
     if not gap < np.inf:
         return k
@@ -467,16 +470,23 @@ def sheet_select(P, Nrm, nb, k, gap, d):
     for t in range(k):
         j = nb[t]
         if abs(Nrm[j, 0] * n0 + Nrm[j, 1] * n1 + Nrm[j, 2] * n2) < SHEET_COS:
-            d[t] = np.inf  # not on j0's sheet, whatever its offset
+            # another face (over an edge), whatever its offset: kept (offset 0 is in j0's run) or not
+            d[t] = 0.0 if keep_turned else np.inf
             continue
         v = (P[j, 0] - px) * n0 + (P[j, 1] - py) * n1 + (P[j, 2] - pz) * n2
         d[t] = v
-        u = npar  # insertion sort: k is n_N (20)
-        while u > 0 and srt[u - 1] > v:
-            srt[u] = srt[u - 1]
-            u -= 1
-        srt[u] = v
+        srt[npar] = v
         npar += 1
+    if npar <= 32:  # insertion sort: the fit's n_N (20), a footprint's points
+        for t in range(1, npar):
+            v = srt[t]
+            u = t
+            while u > 0 and srt[u - 1] > v:
+                srt[u] = srt[u - 1]
+                u -= 1
+            srt[u] = v
+    else:  # a gain's ball
+        srt[:npar] = np.sort(srt[:npar])
     lo = 0
     while srt[lo] < 0.0:  # j0's own offset is exactly 0
         lo += 1
@@ -485,10 +495,15 @@ def sheet_select(P, Nrm, nb, k, gap, d):
         lo -= 1
     while hi < npar - 1 and srt[hi + 1] - srt[hi] <= gap:
         hi += 1
-    m = hi - lo + 1
-    if m == k or m < 3:
+    if hi - lo + 1 < least:
         return k
     dlo, dhi = srt[lo], srt[hi]
+    m = 0
+    for t in range(k):
+        if dlo <= d[t] <= dhi:
+            m += 1
+    if m == k:
+        return k
     rest = np.empty(k - m, np.int64)
     a = b = 0
     for t in range(k):
@@ -501,6 +516,35 @@ def sheet_select(P, Nrm, nb, k, gap, d):
     for t in range(b):
         nb[a + t] = rest[t]
     return m
+
+
+@njit
+def sheet_of(P, Nrm, ball, cnt, x, anchor, gap):
+    """Reorder ``ball[:cnt]`` (point indices, any order) so that the points on the sheet of
+    ``anchor`` (a point index; -1: the point of the ball nearest ``x``) come first and return their
+    count (:func:`sheet_select`, without its fallback for a fit): what a footprint or a gain at x
+    on that sheet reaches, never a wall's other side. ``gap`` inf keeps all. An anchor not in the
+    ball is put first (the ball must have room for one more)."""
+    if not gap < np.inf or cnt == 0:
+        return cnt
+    pos = -1
+    if anchor < 0:
+        best = np.inf
+        for t in range(cnt):
+            dd = _dist2(P[ball[t]], x)
+            if dd < best:
+                best, pos = dd, t
+    else:
+        for t in range(cnt):
+            if ball[t] == anchor:
+                pos = t
+                break
+        if pos < 0:
+            ball[cnt] = anchor
+            pos = cnt
+            cnt += 1
+    ball[0], ball[pos] = ball[pos], ball[0]
+    return sheet_select(P, Nrm, ball, cnt, gap, np.empty(cnt), 1, True)
 
 
 @njit
@@ -1068,11 +1112,14 @@ def heat_at(Phi, pf, sp, fs, j, mode, u_full):
 
 # ---------------------------------------------------------------------------------- coverage
 @njit
-def deposit(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, x, n):
+def deposit(P, Nrm, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, x, n):
     """Add the footprint φ(r) = exp(-ε² r²) (eq. 30), r the tangent-plane distance to ``x``
-    with normal ``n`` (eq. 31), to every point within r_a of ``x``; note changed target points."""
+    with normal ``n`` (eq. 31), to every point within r_a of ``x`` on the sheet of the one nearest
+    x (:func:`sheet_of`, when PR_SHEET_GAP is finite: a wall's other side gets nothing); note
+    changed target points."""
     ball = pi[PI_BALL]
-    cnt = tree_ball(perm, nodes, boxes, tpts, x, prm[PR_RA], ball)
+    visited = tree_ball(perm, nodes, boxes, tpts, x, prm[PR_RA], ball)
+    cnt = sheet_of(P, Nrm, ball, visited, x, -1, prm[PR_SHEET_GAP])
     mass, cov, oldc, phat = pf[PF_MASS], pf[PF_COV], pf[PF_OLDC], pf[PF_PHAT]
     target, mark = pb[PB_TARGET], pb[PB_MARK]
     chg = pi[PI_CHG]
@@ -1110,7 +1157,7 @@ def deposit(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, x, n):
     fs[FS_REF_UNTOUCHED] = untouched
     is_[IS_NCHG] = nchg
     is_[IS_TOUCHED] = touched
-    is_[IS_FOOTPRINT] += cnt
+    is_[IS_FOOTPRINT] += visited
     return cnt
 
 
@@ -1199,19 +1246,30 @@ def agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full):
 
 
 @njit
-def gain_gradient(P, perm, nodes, boxes, tpts, pf, pb, fs, prm, x, t1, t2, ball, width=1.0, reach=GAIN_REACH, tmap=None):
-    """∇G (3,) in the tangent plane (t1, t2) at ``x``, where G(x) = Σ_j M_j e_j φ(|x - x_j|) is the
-    footprint-weighted residual e = max(p̄ - c̃/Z_Ω, 0) a deposit at x would reduce: the descent
-    direction of the coverage error ε (eq. 48) for the next deposit. Exact, over the points within
-    GAIN_REACH r_a (φ < 1e-7 beyond, at the default ε = 2/r_a)."""
+def gain_gradient(P, Nrm, perm, nodes, boxes, tpts, pf, pb, fs, prm, x, t1, t2, ball, anchor=-1, gap=np.inf,
+                  width=1.0, reach=GAIN_REACH, tmap=None):
+    """∇G (3,) in the tangent plane (t1, t2) at ``x``, and G itself, where G(x) = Σ_j M_j e_j φ(|x - x_j|)
+    is the footprint-weighted residual e = max(p̄ - c̃/Z_Ω, 0) a deposit at x would reduce: the
+    descent direction of the coverage error ε (eq. 48) for the next deposit. Exact, over the points
+    within GAIN_REACH r_a (φ < 1e-7 beyond, at the default ε = 2/r_a) that lie on the sheet of the
+    point ``anchor`` (:func:`sheet_of`; with ``gap`` inf, or ``anchor`` -1 and ``tmap`` given, all):
+    a deposit on one side of a wall removes nothing on the other. ``tmap`` maps the tree's points
+    (``ball``'s indices) to P's; ``ball`` (n + 1,) is scratch (left holding the indices summed)."""
     eps2 = prm[PR_GAIN_EPS2] / (width * width)
     cnt = tree_ball(perm, nodes, boxes, tpts, x, reach * 2.0 / math.sqrt(eps2), ball)
+    mapped = tmap is None
+    if gap < np.inf and (anchor >= 0 or tmap is None):  # (no extra pass over the ball otherwise)
+        if tmap is not None:
+            for t in range(cnt):
+                ball[t] = tmap[ball[t]]
+            mapped = True
+        cnt = sheet_of(P, Nrm, ball, cnt, x, anchor, gap)
     mass, pbar, cov, target = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV], pb[PB_TARGET]
     Z = fs[FS_ZC]
     inv = 1.0 / Z if Z > 0.0 else 0.0
-    g0 = g1 = g2 = 0.0
+    g0 = g1 = g2 = G = 0.0
     for t in range(cnt):
-        j = ball[t] if tmap is None else tmap[ball[t]]
+        j = ball[t] if mapped else tmap[ball[t]]
         if target[j] == 0:
             continue
         e = pbar[j] - cov[j] * inv
@@ -1219,13 +1277,14 @@ def gain_gradient(P, perm, nodes, boxes, tpts, pf, pb, fs, prm, x, t1, t2, ball,
             continue
         d0, d1, d2 = P[j, 0] - x[0], P[j, 1] - x[1], P[j, 2] - x[2]
         w = mass[j] * e * math.exp(-eps2 * (d0 * d0 + d1 * d1 + d2 * d2))
+        G += w
         g0 += w * d0
         g1 += w * d1
         g2 += w * d2
     f = 2.0 * eps2
     a = f * (g0 * t1[0] + g1 * t1[1] + g2 * t1[2])
     b = f * (g0 * t2[0] + g1 * t2[1] + g2 * t2[2])
-    return a * t1 + b * t2
+    return a * t1 + b * t2, G
 
 
 @njit
@@ -1274,12 +1333,17 @@ def move_agent(P, Nrm, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp,
     if prm[PR_GAIN] > 0.0:
         # taken where the agent's momentum carries it next (x + v dt): it cannot turn at once
         ahead = ag[i, AG_POS:AG_POS + 3] + ag[i, AG_VEL:AG_VEL + 3] * prm[PR_DT]
-        gl = gain_gradient(P, perm, nodes, boxes, tpts, pf, pb, fs, prm, ahead,
-                           ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3], pi[PI_BALL])
+        # over the agent's sheet (its nearest point's): a deposit there removes nothing through a wall
+        gl = gain_gradient(P, Nrm, perm, nodes, boxes, tpts, pf, pb, fs, prm, ahead,
+                           ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3], pi[PI_BALL], nbrs[i, 0],
+                           prm[PR_SHEET_GAP])[0]
         # plus the same gain seen wider, over the target's points only: it pulls towards residual
-        # a few footprints away that the local gain cannot see (the plate's separate shapes)
-        gb = gain_gradient(P, tgt[0], tgt[1], tgt[2], tgt[3], pf, pb, fs, prm, ahead,
-                           ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3], pi[PI_BALL], BROAD_WIDTH, BROAD_REACH, tgt[4])
+        # a few footprints away that the local gain cannot see (the plate's separate shapes); on the
+        # agent's sheet too (summed in 3-D it held the agent under a marking on a wall's other side:
+        # median ε .741 against .706 on the mug and the shape sorter, docs/explore.md)
+        gb = gain_gradient(P, Nrm, tgt[0], tgt[1], tgt[2], tgt[3], pf, pb, fs, prm, ahead,
+                           ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3], pi[PI_BALL], nbrs[i, 0], prm[PR_SHEET_GAP],
+                           BROAD_WIDTH, BROAD_REACH, tgt[4])[0]
         for d in range(3):
             g[d] = prm[PR_HEAT] * g[d] + prm[PR_GAIN] * (gl[d] + BROAD_WEIGHT * gb[d])
     gn = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
@@ -1372,7 +1436,7 @@ def step_kernel(P, Nrm, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp
     if phase != 2:
         if n_deposits < 0:
             for i in range(N):
-                deposit(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, ag[i, AG_POS:AG_POS + 3],
+                deposit(P, Nrm, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, ag[i, AG_POS:AG_POS + 3],
                         ag[i, AG_NRM:AG_NRM + 3])
         else:
             xp = np.empty(3)
@@ -1385,7 +1449,7 @@ def step_kernel(P, Nrm, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp
                 if nearest_distance(perm, nodes, boxes, tpts, q) > prm[PR_RA]:
                     continue  # a contact off the cloud covers no cloud point
                 locate(P, Nrm, perm, nodes, boxes, tpts, q, ref, k, prm[PR_SHEET_GAP], xp, nn, nb, d2)
-                deposit(P, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, xp, nn)
+                deposit(P, Nrm, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, xp, nn)
         update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_)
         is_[IS_SINCE_RESYNC] += 1
         if resync_every > 0 and is_[IS_SINCE_RESYNC] >= resync_every:
