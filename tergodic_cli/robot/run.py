@@ -178,7 +178,10 @@ class ContactRun:
         self.samples: list[dict] = []
         self.stop_reason: str | None = None
         self.fault: Fault | None = None
-        self._shadow = _AgentCoverage(explorer)
+        #: The unit-mass score (explore.metrics.CoverageScore) of the sponge's contact points, one per
+        #: sample in contact, on the explorer's target: the run's headline ε (made at the first sample).
+        self._contacts = None
+        self._contacts_p: np.ndarray | None = None
         #: The tool's spin pointing straight down (reach.tool_rotation): the arm's at the start.
         self._x_down = arm.get_observation(sensor=False).state.ee_pose[:3, 0].copy()
         #: (N,) where the tool can follow the normal (a backend that plans its reach narrows it).
@@ -615,7 +618,6 @@ class ContactRun:
                 self.guard.feed_target(self.t)
                 # The spin is a continuous function of the tool axis (no flips, the wrist mid-range).
                 self.arm.spin_ref = tool_rotation(d_next, self._x_down)[:, 0]
-            self._shadow.deposit()
             # The line target glides from the previous agent line to the new one over the interval.
             A = a_cur + s * (a_next - a_cur)
             Dd = d_cur + s * (d_next - d_cur)
@@ -646,7 +648,7 @@ class ContactRun:
                 self._fault_sample(Fault("reach", "retreat", f"the tool presses {press:.0f} deg off the surface "
                                          f"normal in contact (limit {CONTACT_TILT_MAX_DEG:.0f}); lifting the tool off the "
                                          "surface", self.t), step, obs, a_cur, d_cur, on_step, record=True)
-            self.samples.append(sample)
+            self._record(sample)
             if defer_last and k == steps - 1:
                 self._deferred = (on_step, step)
             else:
@@ -679,7 +681,7 @@ class ContactRun:
         fault = resolve_stop(fault, self.sm.state, self._touching())  # the sample names what is done about it
         self.emit_deferred()
         if record:
-            self.samples.append(self._sample(step, obs, a, d, stop_reason=fault.reason))
+            self._record(self._sample(step, obs, a, d, stop_reason=fault.reason))
             self._emit(on_step, step)
         self._stop(fault, step)
 
@@ -724,6 +726,40 @@ class ContactRun:
         return {"contact_point": cp, "force_contact": fsum, "in_contact": bool(cp is not None and fsum >= self.threshold),
                 "normal": n, "at": x, "press_angle_deg": press}
 
+    def _record(self, sample: dict) -> None:
+        """Keep ``sample`` (it goes to the log): its contact point scored first, ``eps_sponge`` and
+        ``touched_sponge`` set to the sponge's score so far (so every logged contact point, and only
+        those, counts)."""
+        sponge = self._score_contact(sample)
+        sample["eps_sponge"], sample["touched_sponge"] = sponge.get("ergodicity"), sponge.get("touched_fraction")
+        self.samples.append(sample)
+
+    def _score_contact(self, sample: dict) -> dict:
+        """Add the sample's contact point (when in contact) to the sponge's coverage score and return
+        the score so far ({} when the explorer has no agent radius or spacing to score with).
+
+        The score is :class:`~tergodic_cli.explore.metrics.CoverageScore`, the explorer's own neutral
+        score, fed the contact points (capture frame) instead of the agent's positions, on the target
+        the explorer works on (re-targeted, coverage kept, when that changes: the closed loop)."""
+        ex = self.explorer
+        if not (hasattr(ex, "r_a") and hasattr(ex, "h")):
+            return {}
+        p = self.target()
+        if self._contacts is None:
+            from tergodic_cli.explore.index import cloud_index
+            from tergodic_cli.explore.metrics import CoverageScore
+
+            self._contacts = CoverageScore(cloud_index(self.points), p, float(ex.r_a), float(ex.h), 1)
+            self._contacts_p = p.copy()
+        elif not np.array_equal(p, self._contacts_p):
+            from tergodic_cli.explore.index import cloud_index
+
+            self._contacts.set_target(p, cloud_index(self.points))
+            self._contacts_p = p.copy()
+        if sample["in_contact"]:
+            self._contacts.add(self._to_obj(sample["contact_point"])[None, :])
+        return self._contacts.metrics()
+
     def _sample(self, step: int, obs, a: np.ndarray, d: np.ndarray, stop_reason: str | None = None) -> dict:
         """The robot_sample_dict of CONTRACTS.md (plus extras) at the end of an explorer interval."""
         self._log_window(step)
@@ -734,8 +770,7 @@ class ContactRun:
         n = meas["normal"]
         tilt = math.degrees(math.acos(max(-1.0, min(1.0, float(-R[:, 2] @ n)))))
         f_base = R @ w[:3]
-        metrics = self.explorer.metrics() if hasattr(self.explorer, "metrics") else {}
-        shadow = self._shadow.metrics()
+        agent = self.explorer.metrics() if hasattr(self.explorer, "metrics") else {}
         sample = {
             "t_sim": float(st.t - self._t_arm0),
             "t_wall": time.perf_counter() - self._t0 - self._cb_s - self.paused_s,
@@ -758,10 +793,11 @@ class ContactRun:
             "track_mm": 1e3 * point_line_distance(meas["at"], a, d),
             "agent_line_point": np.asarray(a, dtype=float).copy(),
             "agent_line_dir": np.asarray(d, dtype=float).copy(),
-            "contact_ergodicity": metrics.get("ergodicity"),
-            "contact_touched_fraction": metrics.get("touched_fraction"),
-            "agent_ergodicity": shadow.get("ergodicity"),
-            "agent_touched_fraction": shadow.get("touched_fraction"),
+            # ε so far (unit-mass, explore.metrics.coverage_score) of the sponge's contact points, and of
+            # the virtual agent's own path (the explorer's neutral score), on the same target
+            # (eps_sponge and touched_sponge are added when the sample is recorded: _record)
+            "eps_agent": agent.get("ergodicity"),
+            "touched_agent": agent.get("touched_fraction"),
             "step": int(step),
             **Kn.tick_figures(self.ts),
         }
@@ -916,36 +952,6 @@ class ContactRun:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-class _AgentCoverage:
-    """Coverage the virtual agent's own path would have left (the kinematic agent's), for comparison."""
-
-    def __init__(self, explorer):
-        need = ("points", "mass", "p", "kdtree", "r_a", "eps", "positions", "normals")
-        self.ok = all(hasattr(explorer, k) for k in need)
-        self.ex = explorer
-        if self.ok:
-            self.cov = np.zeros(len(explorer.points))
-
-    def deposit(self) -> None:
-        if not self.ok:
-            return
-        ex = self.ex
-        for x, n in zip(ex.positions, ex.normals):
-            idx = np.asarray(ex.kdtree.query_ball_point(x, ex.r_a), dtype=np.intp)
-            if len(idx):
-                dd = ex.points[idx] - x
-                off = dd @ n
-                r2 = np.maximum(np.einsum("ij,ij->i", dd, dd) - off * off, 0.0)
-                self.cov[idx] += np.exp(-(ex.eps * ex.eps) * r2)
-
-    def metrics(self) -> dict:
-        if not self.ok:
-            return {}
-        from tergodic_cli.explore.metrics import ergodicity, touched_fraction
-
-        return {"ergodicity": ergodicity(self.ex.p, self.cov, self.ex.mass), "touched_fraction": touched_fraction(self.ex.p, self.cov)}
 
 
 def turn_towards(d0: np.ndarray, d1: np.ndarray, max_deg: float) -> np.ndarray:
