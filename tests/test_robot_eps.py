@@ -65,3 +65,12 @@ def test_a_log_from_before_the_sponge_score_keeps_its_figures():
     out = summarize_robot(old)
     assert out["contact_ergodicity"] == pytest.approx(0.3) and out["agent_touched_fraction"] == 0.3
     assert "eps_sponge" not in out
+
+
+def test_the_sponge_keeps_the_agents_pace(plate_run):
+    """The agent is not reset to a tool trailing it by ~1 mm (it lost that much of every 3 mm step: the
+    sponge moved 2.7 mm a step against the kinematic agent's 3.0): the contact point moves a full step."""
+    _, summary, data = plate_run
+    cps = np.array([s["contact_point"] for s in data.robot if s["in_contact"]], dtype=float)
+    step = summary["config"]["v_max"] * summary["config"]["dt"]  # the agent's step at full speed, m
+    assert np.median(np.linalg.norm(np.diff(cps, axis=0), axis=1)) >= 0.95 * step

@@ -14,7 +14,10 @@ Franka streams it to the SDK's impedance controller).
 
 Coverage comes from the real contact: at each explorer step the backend's contact point is
 deposited when the contact force is at or above ``contact_threshold``; the agent is reset to
-the measured tool tip (paper eq. 22) before its gradient step.
+the measured tool tip (paper eq. 22) before its gradient step when the tip is more than
+:data:`RESET_M` off the agent's line (else it keeps its own path, which the tool follows), never
+while the tool rolls over an edge. The run's headline ε is the unit-mass score of the sponge's
+logged contact points (``eps_sponge`` in each sample).
 """
 
 from __future__ import annotations
