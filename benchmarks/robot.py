@@ -467,9 +467,11 @@ def corpus_report(rows: list[dict]) -> str:
         deep = max(rep, key=lambda x: x["deepest_mm"], default=None)
         arm = [r.get("arm_contacts_run") for r in rs if r.get("arm_contacts_run") is not None]
         ratios = [r["eps_ratio"] for r in rs if r.get("eps_ratio") is not None]
+        reach = [r["eps_ratio_reach"] for r in rs if r.get("eps_ratio_reach") is not None]
         eps = (f"{np.median([r['eps_sponge'] for r in rs if 'eps_sponge' in r]):.3f} / "
                f"{np.median([r['eps_kinematic'] for r in rs if 'eps_kinematic' in r]):.3f} "
-               f"(ratio median {np.median(ratios):.2f})") if ratios else "n/a"
+               f"(ratio median {np.median(ratios):.2f}"
+               + (f"; on the reachable target {np.median(reach):.2f}" if reach else "") + ")") if ratios else "n/a"
         deepest = f"{deep['deepest_mm']:.1f} ({deep['deepest_link']})" if deep and deep["deepest_mm"] > 0 else "0"
         lines.append(f"| {name} | {placement} | {len(rs)} | {done} ({100 * done / len(rs):.0f}%) | "
                      f"{'; '.join(f'{k}: {v}' for k, v in stops.items()) or '-'} | "
