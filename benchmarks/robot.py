@@ -378,16 +378,73 @@ def corpus_run(case, placement: str, seed: int, steps: int, force: float, out_ro
     cfg = from_dict(ExploreConfig, sm["config"], "summary config")
     start = np.asarray(sm["starts"]["xyz"], dtype=float)
     basis, _ = find_basis(cap.points, cfg.nk, int(sm["basis"]["neighbors"]))
-    sponge = sponge_path(read_run_log(mcap, clouds=False).robot) if os.path.exists(mcap) else np.zeros((0, 3))
+    data = read_run_log(mcap) if os.path.exists(mcap) else None
+    sponge = sponge_path(data.robot) if data is not None and data.robot else np.zeros((0, 3))
     kin = kinematic_path(basis, cap.target, cfg, start, steps)
     h = mean_spacing(cap.points)
 
-    def eps(path) -> float:
-        return coverage_score(cap.points, cap.target, path, cfg.agent_radius, h)["ergodicity"] if len(path) else 1.0
+    def eps(path, target=cap.target) -> float:
+        return coverage_score(cap.points, target, path, cfg.agent_radius, h)["ergodicity"] if len(path) else 1.0
 
     row.update(eps_sponge=eps(sponge), eps_kinematic=eps(kin), sponge_points=len(sponge))
     row["eps_ratio"] = row["eps_sponge"] / row["eps_kinematic"] if row["eps_kinematic"] > 0 else None
+    if data is not None and data.robot and data.clouds:
+        row.update(sponge_losses(data, sm, cap, basis, cfg, start, steps, eps))
     return row
+
+
+def sponge_losses(data, sm: dict, cap, basis, cfg, start: np.ndarray, steps: int, eps) -> dict:
+    """Where the sponge loses ε against the kinematic agent, from one run's log (issue 24, item 8).
+
+    - ``target_dropped``: share of the target the robot dropped as out of reach (the kinematic agent
+      explores all of it); ``eps_sponge_reach`` / ``eps_kinematic_reach``: both scored on the target the
+      robot explored, the kinematic agent run on that target from the same start: ``eps_ratio_reach``.
+    - ``eps_agent_reach``: the virtual agent's own logged path (reset to the tool tip every step) on that
+      target: sponge → agent is what the tool loses following the agent, agent → kinematic what the
+      robot's resets, waits and restarts cost the explorer.
+    - per explorer step: ``no_contact_steps`` (samples out of contact), ``lag_mm_median`` / ``lag_mm_p95``
+      (the contact point to the agent's logged position), ``wait_steps`` (the contact more than 6 mm from
+      the agent: the tool waiting on the reach boundary while the agent moves alone), ``still_steps``
+      (the contact point moved less than 0.5 mm over the step: pinned);
+    - robot time: ``explore_s`` (in state explore) against ``robot_s`` (all; move-overs are the rest).
+    """
+    from tergodic_cli.rotations import quat_to_matrix
+
+    target = np.asarray(data.clouds[-1].fields["target"], dtype=float)
+    out = {"target_dropped": 1.0 - float(target.sum()) / float(np.sum(cap.target))}
+    rows = [s for s in data.robot if s.get("state") == "explore" or s.get("in_contact")]
+    pos = np.asarray(data.series["positions"], dtype=float).reshape(len(data.series["positions"]), -1, 3)[:, 0]
+    step_of = {int(k): i for i, k in enumerate(data.series["step"])}
+    lag, still, prev = [], 0, None
+    for s in rows:
+        if not s.get("in_contact") or s.get("contact_point") is None:
+            prev = None
+            continue
+        pose = np.asarray(s["object_pose"], dtype=float)
+        c = (np.asarray(s["contact_point"], dtype=float) - pose[:3]) @ quat_to_matrix(pose[3:])
+        i = step_of.get(int(s.get("step", -1)))
+        if i is not None:
+            lag.append(float(np.linalg.norm(c - pos[i])))
+        if prev is not None and np.linalg.norm(c - prev) < 5e-4:
+            still += 1
+        prev = c
+    lag = np.array(lag)
+    out.update(no_contact_steps=int(sum(not s.get("in_contact") for s in data.robot)),
+               lag_mm_median=1e3 * float(np.median(lag)) if len(lag) else None,
+               lag_mm_p95=1e3 * float(np.percentile(lag, 95)) if len(lag) else None,
+               wait_steps=int(np.sum(lag > 6e-3)), still_steps=still)
+    sponge = sponge_path(data.robot)
+    kin_reach = kinematic_path(basis, target, cfg, start, steps)
+    out.update(eps_sponge_reach=eps(sponge, target), eps_kinematic_reach=eps(kin_reach, target),
+               eps_agent_reach=eps(pos, target), eps_sponge_run=sm.get("eps_sponge"))
+    out["eps_ratio_reach"] = out["eps_sponge_reach"] / out["eps_kinematic_reach"] if out["eps_kinematic_reach"] > 0 else None
+    tr = sm.get("transitions") or []
+    explore_s = 0.0
+    for a, b in zip(tr, tr[1:]):
+        if a.get("to") == "explore":
+            explore_s += float(b["t"]) - float(a["t"])
+    out.update(explore_s=explore_s, robot_s=sm.get("robot_seconds"))
+    return out
 
 
 def corpus_report(rows: list[dict]) -> str:
@@ -410,9 +467,11 @@ def corpus_report(rows: list[dict]) -> str:
         deep = max(rep, key=lambda x: x["deepest_mm"], default=None)
         arm = [r.get("arm_contacts_run") for r in rs if r.get("arm_contacts_run") is not None]
         ratios = [r["eps_ratio"] for r in rs if r.get("eps_ratio") is not None]
+        reach = [r["eps_ratio_reach"] for r in rs if r.get("eps_ratio_reach") is not None]
         eps = (f"{np.median([r['eps_sponge'] for r in rs if 'eps_sponge' in r]):.3f} / "
                f"{np.median([r['eps_kinematic'] for r in rs if 'eps_kinematic' in r]):.3f} "
-               f"(ratio median {np.median(ratios):.2f})") if ratios else "n/a"
+               f"(ratio median {np.median(ratios):.2f}"
+               + (f"; on the reachable target {np.median(reach):.2f}" if reach else "") + ")") if ratios else "n/a"
         deepest = f"{deep['deepest_mm']:.1f} ({deep['deepest_link']})" if deep and deep["deepest_mm"] > 0 else "0"
         lines.append(f"| {name} | {placement} | {len(rs)} | {done} ({100 * done / len(rs):.0f}%) | "
                      f"{'; '.join(f'{k}: {v}' for k, v in stops.items()) or '-'} | "

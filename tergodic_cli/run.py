@@ -471,10 +471,11 @@ def _write_run(out: Path, run: _Run) -> dict:
         explorer.on_event = lambda msg: event_hook(explorer.step_index, msg)
 
         def after_step(step: int, robot_sample: dict | None) -> None:
-            recorder.record(step)
+            metrics = step_metrics(explorer, robot_sample)
+            recorder.record(step, metrics)
             if runlog is not None:
                 runlog.log_step(step, step * cfg.dt, positions=explorer.positions, velocities=explorer.velocities,
-                                normals=explorer.normals, metrics=explorer.metrics(), step_ms=explorer.last_step_ms,
+                                normals=explorer.normals, metrics=metrics, step_ms=explorer.last_step_ms,
                                 robot=robot_sample)
                 if step % spec.cloud_every == 0 or step == cfg.steps:
                     _log_cloud(runlog, explorer, step)
@@ -700,6 +701,17 @@ VEC_FIELDS = ("positions", "velocities", "normals", "accelerations")
 SCALAR_FIELDS = ("time", "ergodicity", "residual_ref", "touched_fraction", "step_ms")
 
 
+def step_metrics(explorer: Explorer, robot_sample: dict | None) -> dict:
+    """The step's metrics for the series and the log: the explorer's (its agent's path), but on a robot
+    run ε and the touched share are the sponge's real contact points (the sample's ``eps_sponge``,
+    ``touched_sponge``), with the agent's beside them as ``ergodicity_agent``, ``touched_fraction_agent``."""
+    m = dict(explorer.metrics())
+    if robot_sample is not None and robot_sample.get("eps_sponge") is not None:
+        m["ergodicity_agent"], m["touched_fraction_agent"] = m["ergodicity"], m["touched_fraction"]
+        m["ergodicity"], m["touched_fraction"] = robot_sample["eps_sponge"], robot_sample["touched_sponge"]
+    return m
+
+
 class RunRecorder:
     """The explorer's state after every step: trajectory.npz and the summary's series."""
 
@@ -710,8 +722,11 @@ class RunRecorder:
     def count(self) -> int:
         return len(self.rows)
 
-    def record(self, step: int) -> None:
-        ex, m = self.ex, self.ex.metrics()
+    def record(self, step: int, metrics: dict | None = None) -> None:
+        """Keep the explorer's state after ``step``; ``metrics`` (default ``explorer.metrics()``) gives
+        the step's ergodicity, residual_ref and touched_fraction (:func:`step_metrics`)."""
+        ex = self.ex
+        m = ex.metrics() if metrics is None else metrics
         # np.stack copies: the explorer updates its arrays in place
         self.vecs.append(np.stack([getattr(ex, k) for k in VEC_FIELDS]))
         self.rows.append((step * ex.cfg.dt, m["ergodicity"], m["residual_ref"],
@@ -746,6 +761,8 @@ def _provenance(run: _Run, robot_extra: dict, logged: bool) -> dict:
     score = explorer.score()
     extra = {
         "robot": run.backend.name,
+        # what the headline ε (ergodicity, its series and milestones) scores: the real contacts on a robot run
+        "eps_source": "agent path" if run.backend.name == "kinematic" else "sponge contacts",
         "capture": {"path": str(Path(run.capture_dir)), "n_points": int(capture.n_points),
                     "n_target": int(np.count_nonzero(capture.target > 0)),
                     "sha256": capture.meta.get("arrays", {}).get("sha256")},

@@ -172,8 +172,8 @@ def test_summarize_robot_against_hand_computation():
     forces = [9.0, 9.0, 9.0, 5.5, 4.5, 5.0, 6.0]
     samples = [_sample(0.2 * i, f, tilt=i, track=10 - i) for i, f in enumerate(forces)]
     samples.append(_sample(1.4, 0.0, contact=False, tilt=50.0, track=50.0))
-    samples[-1]["contact_touched_fraction"] = 0.4
-    samples[-1]["agent_touched_fraction"] = 0.5
+    samples[-1]["touched_sponge"] = 0.4
+    samples[-1]["touched_agent"] = 0.5
     out = summarize_robot(samples)
     steady = np.array([5.5, 4.5, 5.0, 6.0])
     assert out["force_rms_error_rel"] == pytest.approx(math.sqrt(np.mean(((steady - 5) / 5) ** 2)))
@@ -181,11 +181,11 @@ def test_summarize_robot_against_hand_computation():
     assert out["tilt_deg_median"] == pytest.approx(3.0)  # median of 0..6, the no-contact sample excluded
     assert out["track_mm_median"] == pytest.approx(7.0)
     assert out["realtime_factor"] == pytest.approx(4.0)
-    assert out["contact_touched_fraction"] == 0.4 and out["agent_touched_fraction"] == 0.5
+    assert out["touched_sponge"] == 0.4 and out["touched_agent"] == 0.5
     assert out["stop_reason"] == "completed" and out["steady_samples"] == 4
     # columns give the same answer (the replay verb may pass columns)
     cols = {k: [s.get(k) for s in samples] for k in samples[0]}
-    cols["contact_touched_fraction"] = [s.get("contact_touched_fraction") for s in samples]
+    cols["touched_sponge"] = [s.get("touched_sponge") for s in samples]
     assert summarize_robot(cols)["force_rms_error_rel"] == out["force_rms_error_rel"]
 
 

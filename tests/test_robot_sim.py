@@ -203,7 +203,7 @@ def test_robot_run_on_plate(plate):
     assert out["contact_fraction"] == 1.0
     assert out["force_mean_N"] == pytest.approx(5.0, abs=0.5)
     assert out["track_mm_median"] < 5 and out["tilt_deg_median"] < 5
-    assert out["contact_touched_fraction"] > 0 and out["agent_touched_fraction"] > 0
+    assert out["touched_sponge"] > 0 and out["touched_agent"] > 0
     # coverage came from the real contacts: the explorer's coverage sits where the sponge touched
     pts = np.array([s["contact_point"] for _, s in steps if s["in_contact"]])
     assert len(pts) >= 10
@@ -348,7 +348,7 @@ def test_bowl_run_meets_the_control_goals():
     assert out["tilt_deg_median"] <= 5.0
     assert out["track_mm_median"] <= 5.0
     assert out["contact_fraction"] >= 0.95
-    assert out["contact_touched_fraction"] >= 0.9 * out["agent_touched_fraction"]
+    assert out["touched_sponge"] >= 0.9 * out["touched_agent"]
 
 
 @pytest.fixture(scope="module")

@@ -31,6 +31,12 @@ def _columns(samples) -> tuple[dict[str, list], int]:
     return {k: [r.get(k) for r in rows] for k in keys}, len(rows)
 
 
+#: The coverage figures the samples carry (their last value is the run's): the unit-mass ε and the
+#: touched share of the sponge's contact points and of the virtual agent's own path.
+EPS_KEYS = ("eps_sponge", "touched_sponge", "eps_agent", "touched_agent")
+#: The names of older logs (before the sponge's own score: their "contact" figures were the agent's path).
+LEGACY_EPS_KEYS = ("contact_ergodicity", "contact_touched_fraction", "agent_ergodicity", "agent_touched_fraction")
+
 #: The 1 kHz figures (from every control tick) and the 5 Hz ones (from the samples) they replace.
 TICK_KEYS = {"force_rms_error_rel": "tick_force_rms_rel", "tilt_deg_median": "tick_tilt_median_deg",
              "tilt_deg_p95": "tick_tilt_p95_deg", "force_peak_N": "tick_force_peak_N"}
@@ -45,7 +51,7 @@ def summarize_robot(samples: Iterable[Mapping] | Mapping[str, Iterable], settle_
     samples : the robot sample dicts, one per explorer step (CONTRACTS.md robot_sample_dict plus
         the keys listed below), or the same as columns {key: sequence}. Keys used: t_sim, t_wall,
         state, in_contact, force_normal, wrench_desired, tilt_deg, track_mm, and when present
-        contact_ergodicity, contact_touched_fraction, agent_ergodicity, agent_touched_fraction, stop_reason.
+        eps_sponge, touched_sponge, eps_agent, touched_agent (:data:`EPS_KEYS`), stop_reason.
     settle_s : contact younger than this many simulated seconds is excluded from the force error.
     stop_reason : overrides the reason found in the samples (a fault outside the explore phase
         leaves no sample behind; the run log's last robot event carries it).
@@ -59,9 +65,11 @@ def summarize_robot(samples: Iterable[Mapping] | Mapping[str, Iterable], settle_
     over every tick), each also over the 5 Hz samples as ``*_5hz`` (the samples only: the figure
     itself when the samples carry no tick figures), force_max_N (force_peak_N, else the 5 Hz one),
     track_mm_median (tool contact point to the agent line), contact_fraction (share of explore
-    samples in contact), realtime_factor (simulated / wall time), contact_* and agent_*
-    ergodicity and touched fraction (coverage from the real contacts, and from the virtual
-    agent's own path), and supporting figures. Numbers that cannot be computed are None.
+    samples in contact), realtime_factor (simulated / wall time), eps_sponge and touched_sponge
+    (the unit-mass ε and touched share of the sponge's logged contact points: the run's headline),
+    eps_agent and touched_agent (the same score of the virtual agent's own path), and supporting
+    figures. Numbers that cannot be computed are None. A log written before the sponge's score
+    (samples with contact_ergodicity etc., :data:`LEGACY_EPS_KEYS`) keeps those keys as they were.
     """
     cols, n = _columns(samples)
     out: dict = {"robot_samples": n}
@@ -71,8 +79,7 @@ def summarize_robot(samples: Iterable[Mapping] | Mapping[str, Iterable], settle_
                                       "force_rms_error_rel_5hz", "tilt_deg_median_5hz", "tilt_deg_p95_5hz",
                                       "force_peak_5hz_N", "tick_steady",
                                       "track_mm_median", "track_mm_p95", "contact_fraction", "realtime_factor",
-                                      "contact_ergodicity", "contact_touched_fraction", "agent_ergodicity",
-                                      "agent_touched_fraction")})
+                                      *EPS_KEYS)})
         out.update(explore_samples=0, steady_samples=0)
         for key, tk in TICK_KEYS.items():
             out[key] = _num((ticks or {}).get(tk))
@@ -120,7 +127,8 @@ def summarize_robot(samples: Iterable[Mapping] | Mapping[str, Iterable], settle_
     wall = cols.get("t_wall")
     ran = wall is not None and wall[-1] is not None and float(wall[-1]) > 0
     out["realtime_factor"] = _num(t[-1] / float(wall[-1])) if ran else None
-    for key in ("contact_ergodicity", "contact_touched_fraction", "agent_ergodicity", "agent_touched_fraction"):
+    legacy = not any(k in cols for k in EPS_KEYS) and any(k in cols for k in LEGACY_EPS_KEYS)
+    for key in LEGACY_EPS_KEYS if legacy else EPS_KEYS:
         vals = [v for v in cols.get(key, []) if v is not None]
         out[key] = _num(vals[-1]) if vals else None
     # Every tick counts: the 1 kHz figures replace the 5 Hz ones, which stay as *_5hz.

@@ -112,7 +112,8 @@ def _meta_line(data: RunLogData) -> str:
     if data.clouds:
         bits.append(f"{len(data.clouds[-1].points)} points, {len(data.clouds)} logged clouds")
     if len(s.get("ergodicity", ())):
-        bits.append(f"final ε {s['ergodicity'][-1]:.4g}")
+        sponge = " (sponge contacts)" if "ergodicity_agent" in s else ""  # a robot run's ε is its real contacts'
+        bits.append(f"final ε{sponge} {s['ergodicity'][-1]:.4g}")
     if len(s.get("touched_fraction", ())):
         bits.append(f"touched {100 * s['touched_fraction'][-1]:.1f} %")
     bits.append("robot run" if data.robot else "kinematic run")
@@ -264,7 +265,8 @@ def _series_figure(data: RunLogData) -> tuple[Any, dict]:
     solo = dict(showlegend=False)
     # (title, y title, traces, y axis options)
     rows = [("Ergodicity ε over time", "ε (dimensionless)",
-             [line(embedded, "ergodicity", t, eps, "ε (eq. 48)", "#1f77b4", **solo)],
+             [line(embedded, "ergodicity", t, eps, "ε of the sponge's contacts (eq. 48)" if "ergodicity_agent" in s
+                   else "ε (eq. 48)", "#1f77b4", **solo)],
              dict(type="log") if log_scale(eps) else dict(rangemode="tozero"))]
     if ref := next((k for k in RESIDUAL_KEYS if k in s), None):
         rows.append(("Authors' residual: share of the target's heat not yet touched", f"{ref} (unitless)",

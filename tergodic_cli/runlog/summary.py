@@ -112,7 +112,10 @@ def _robot_rows(summary: dict[str, Any]) -> list[tuple[str, str]]:
     for key, label, unit in (("tilt_deg", "tool tilt", "deg"), ("track_mm", "line tracking", "mm")):
         if f"{key}_median" in summary:
             rows.append((label, f"median {_fmt(g(f'{key}_median'), '.3g')} {unit}, p95 {_fmt(g(f'{key}_p95'), '.3g')} {unit}"))
-    if "contact_ergodicity" in summary:
+    if "eps_sponge" in summary:
+        rows.append(("ε / touched: sponge contacts", f"{_fmt(g('eps_sponge'))} / {_pct(g('touched_sponge'))}"))
+        rows.append(("ε / touched: agent's own path", f"{_fmt(g('eps_agent'))} / {_pct(g('touched_agent'))}"))
+    elif "contact_ergodicity" in summary:  # a log from before the sponge's own score: both are the agent's path
         rows.append(("contact ε / touched", f"{_fmt(g('contact_ergodicity'))} / {_pct(g('contact_touched_fraction'))}"))
     if "realtime_factor" in summary:
         rows.append(("real-time factor", f"{_fmt(g('realtime_factor'), '.3g')} x"))
@@ -134,7 +137,8 @@ def format_table(summary: dict[str, Any], data: RunLogData, comparison: tuple[st
         rows.append(("stop reason", str(summary["stop_reason"])))
     rows += [(f"ε at step {k}", _fmt(v)) for k, v in (summary.get("ergodicity_at") or {}).items()
              if v is not None]
-    rows.append(("ε at end (unit-mass, 0 best)", _fmt(summary.get("ergodicity"))))
+    source = f", {summary['eps_source']}" if summary.get("eps_source") else ""
+    rows.append((f"ε at end (unit-mass, 0 best{source})", _fmt(summary.get("ergodicity"))))
     rows.append(("authors' residual at end", _fmt(summary.get("residual_ref"))))
     tf = summary.get("touched_fraction")
     rows.append(("target touched", "n/a" if tf is None else f"{100 * tf:.2f} %"))
