@@ -106,7 +106,8 @@ def test_short_contact_run_on_the_bowl(bowl, name):
     assert out["final_state"] == "done", out.get("stop_reason")
     assert len(samples) == 20
     f = np.array([s["force_normal"] for s in samples[5:]])
-    assert np.all(np.abs(f - 5.0) < 1.0), f
+    # (single 5 Hz samples catch the contact's 1 kHz jitter on the trimesh: up to ~1.5 N, docs/robot.md)
+    assert abs(float(np.median(f)) - 5.0) < 0.2 and np.all(np.abs(f - 5.0) < 2.5), f
     assert out["force_rms_error_rel"] < 0.15
     assert (out.get("arm_contacts") or {}).get("count", 0) == 0
     assert out["robot_config"]["arm"] == name
