@@ -3,7 +3,7 @@
 Usage (a few minutes with the defaults; the full run of docs/robot.md uses --steps 1000):
     OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/robot.py [--steps 300]
         [--objects bowl,plate,mug,box,torus,partial,thin-mug] [--force 5] [--seed 0] [--seeds 3]
-        [--gains tuned|paper] [--json out.json]
+        [--gains tuned|paper] [--arm panda|xarm6|iiwa] [--json out.json]
     .venv/bin/python benchmarks/robot.py --corpus [tune|check|all] [--objects duck,teddy] [--placements stand,table]
         [--densities 3mm] [--markings patch,band] [--seeds 3] [--steps 1000] [--runs DIR]
 
@@ -124,7 +124,8 @@ def kinematic_path(basis, target: np.ndarray, cfg, start: np.ndarray, steps: int
     return np.array(path)
 
 
-def run_one(obj: str, steps: int, seed: int, force: float, nk: int, cache: str, gains: str = "tuned") -> dict:
+def run_one(obj: str, steps: int, seed: int, force: float, nk: int, cache: str, gains: str = "tuned",
+            arm: str = "panda") -> dict:
     from tergodic_cli.basis import BasisConfig, get_basis
     from tergodic_cli.capture import CaptureConfig, capture_cloud
     from tergodic_cli.capture.filters import mean_spacing
@@ -137,7 +138,7 @@ def run_one(obj: str, steps: int, seed: int, force: float, nk: int, cache: str, 
     cap = capture_cloud(CaptureConfig(source="synthetic", synthetic=obj, seed=0), on_event=lambda m: None)
     basis, _ = get_basis(cap.points, BasisConfig(nk=nk, neighbors=30), cache_dir=cache)
     start = cap.points[np.random.default_rng(seed).integers(len(cap.points))][None]
-    rcfg = RobotConfig(force=force, **({"gains": PAPER_GAINS} if gains == "paper" else {}))
+    rcfg = RobotConfig(force=force, arm=arm, **({"gains": PAPER_GAINS} if gains == "paper" else {}))
     cfg = robot_explore_config(ExploreConfig(nk=nk, seed=seed), rcfg.explore_dt)
     bare = bare_pybullet_rate()
     ex = Explorer(basis, cap.target, cfg, start, on_event=lambda m: None)
@@ -148,7 +149,7 @@ def run_one(obj: str, steps: int, seed: int, force: float, nk: int, cache: str, 
     try:
         out = explore_with_robot(cap, ex, rcfg, steps, on_step=on_step)
     except TergodicError as exc:  # refused before any motion (bad input, nothing reachable): a row that says so
-        return {"object": obj, "seed": seed, "steps": steps, "force_N": force, "steps_done": 0,
+        return {"object": obj, "arm": arm, "seed": seed, "steps": steps, "force_N": force, "steps_done": 0,
                 "stop_reason": f"refused: {exc}", "bare_steps_per_s": bare,
                 **dict.fromkeys(("eps_sponge", "eps_kinematic", "eps_sponge_whole", "eps_kinematic_whole"), float("nan"))}
     wall = time.perf_counter() - t0
@@ -165,7 +166,7 @@ def run_one(obj: str, steps: int, seed: int, force: float, nk: int, cache: str, 
          "eps_sponge_whole": eps(sponge, cap.target), "eps_kinematic_whole": eps(kin_whole, cap.target),
          "eps_kinematic_reach_whole": eps(kin, cap.target), "eps_agent_whole": eps(agent_path, cap.target)}
     return {
-        "object": obj, "seed": seed, "steps": steps, "force_N": force, "steps_done": len(samples),
+        "object": obj, "arm": arm, "seed": seed, "steps": steps, "force_N": force, "steps_done": len(samples),
         **{k: out.get(k) for k in ("force_rms_error_rel", "force_peak_N", "force_peak_approach_N", "tilt_deg_median",
                                     "tilt_deg_p95", "track_mm_median", "contact_fraction", "realtime_factor",
                                     "stop_reason", "force_rms_error_rel_5hz", "force_peak_5hz_N", "move_overs")},
@@ -521,6 +522,7 @@ def main(argv=None) -> int:
     ap.add_argument("--nk", type=int, default=200)
     ap.add_argument("--json", default=None, help="write every row to this JSON file")
     ap.add_argument("--gains", choices=("tuned", "paper"), default="tuned", help="the tuned gains or the paper's (V-A3)")
+    ap.add_argument("--arm", default="panda", help="the simulated arm (--arm of tergodic explore) [default: panda]")
     ap.add_argument("--corpus", nargs="?", const="all", choices=("tune", "check", "all"), default=None,
                     help="run the household corpus (benchmarks/corpus.py) through the CLI instead of the synthetic "
                          "objects: every case at each placement, seeds --seed.. ; --objects then names corpus meshes")
@@ -538,11 +540,11 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as cache:
         for obj in args.objects.split(","):
             for seed in range(args.seed, args.seed + args.seeds):
-                rows.append(run_one(obj, args.steps, seed, args.force, args.nk, cache, args.gains))
+                rows.append(run_one(obj, args.steps, seed, args.force, args.nk, cache, args.gains, args.arm))
                 print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in rows[-1].items()}),
                       file=sys.stderr, flush=True)
     seeds = f"seeds {args.seed}-{args.seed + args.seeds - 1}" if args.seeds > 1 else f"seed {args.seed}"
-    print(f"{args.steps} explorer steps at {args.force:g} N, {seeds} (ε ratios: median; goals: worst seed); "
+    print(f"{args.arm}: {args.steps} explorer steps at {args.force:g} N, {seeds} (ε ratios: median; goals: worst seed); "
           f"bare PyBullet now {np.median([r['bare_steps_per_s'] for r in rows]):.0f} steps per CPU second "
           f"(reference {REFERENCE_BARE_STEPS_PER_S:.0f})\n")
     print(table([combine([r for r in rows if r["object"] == o]) for o in dict.fromkeys(r["object"] for r in rows)]))

@@ -14,7 +14,7 @@ def explore(
     ctx: typer.Context,
     capture: Path = typer.Argument(..., help="Capture folder written by 'tergodic capture'."),
     out: Path = typer.Option(..., "--out", "-o", help="Run folder: trajectory.npz, summary.json, run.mcap."),
-    robot: str = typer.Option("kinematic", "--robot", help="'kinematic' (virtual agent only), 'pybullet' (simulated Franka Panda, 1 kHz torque control) or 'franka' (real arm through franky)."),
+    robot: str = typer.Option("kinematic", "--robot", help="'kinematic' (virtual agent only), 'pybullet' (a simulated arm, --arm, 1 kHz torque control) or 'franka' (real arm through franky)."),
     steps: int = typer.Option(1000, "--steps", help="Explorer steps (one step = --dt seconds)."),
     alpha: str = typer.Option("10", "--alpha", help="α of δt = α h₀² (eq. 21, h₀ = 2.5 mm fixed), or a schedule A0:A1@S1, e.g. 50:10@200 (50 for 200 steps, then 10)."),
     nk: int = typer.Option(200, "--nk", help="Eigenpairs used by the spectral diffusion (a larger cached basis is truncated)."),
@@ -51,6 +51,7 @@ def explore(
     explore_dt: Optional[float] = typer.Option(None, "--explore-dt", help="[robot] Simulated seconds per explorer step [default: 0.2; agent limits are rescaled so a step moves the same path]."),
     normal_side: Optional[str] = typer.Option(None, "--normal-side", help="[robot] Side of the sheet the tool works on: auto (= outward), outward, up or out."),
     gains: Optional[str] = typer.Option(None, "--gains", help="[pybullet] Controller gains: tuned (default) or paper (the paper's K, D and wrench PID on the full wrench, V-A3)."),
+    arm: Optional[str] = typer.Option(None, "--arm", help="[pybullet] The simulated arm: panda, xarm6 (UFactory xArm 6, 6 DoF) or iiwa (KUKA LBR iiwa) [default: panda]."),
     gui: bool = typer.Option(False, "--gui", help="[pybullet] Open the PyBullet GUI (needs a display)."),
     realtime: bool = typer.Option(False, "--realtime", help="[pybullet] Pace the simulation to wall-clock time (with --gui)."),
     robot_ip: Optional[str] = typer.Option(None, "--robot-ip", help="[franka] IP address of the Franka controller."),
@@ -110,7 +111,7 @@ def explore(
     spec = StartSpec(start=start, starts_file=str(starts) if starts is not None else None, start_index=start_index)
     robot_options = {
         "force": force, "contact_force": contact_force, "explore_dt": explore_dt, "normal_side": normal_side,
-        "gains": gains, "gui": gui or None, "realtime": realtime or None,
+        "gains": gains, "gui": gui or None, "realtime": realtime or None, "arm": arm,
         "object_pose": parse_floats(object_pose, None, "--object-pose", "0.5,0,0.2") if object_pose else None,
         "safety": {"force_limit": force_limit,
                    **({"workspace_min": box[:3], "workspace_max": box[3:]} if box else {})},

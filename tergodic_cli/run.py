@@ -560,7 +560,7 @@ def _robot_log(runlog, explorer):
 
 
 class PyBullet(Kinematic):
-    """The simulated Panda (``--robot pybullet``) with ``robot_cfg`` (a RobotConfig); with
+    """The simulated arm (``--robot pybullet``, ``--arm``) with ``robot_cfg`` (a RobotConfig); with
     ``recapture_every`` the closed loop (a ``--source sim`` capture): re-capture every K steps and stop
     once the camera sees less than ``until_clean`` of the marking or ``max_steps`` (default: the run's) are spent."""
 
@@ -670,7 +670,12 @@ def make_backend(robot: str = "kinematic", robot_options: dict | None = None, ha
 
     robot_cfg = make_robot_config(RobotConfig, robot_options)
     if robot == "franka":
+        require(robot_cfg.arm == "panda", f"--arm {robot_cfg.arm} is a simulated arm; the real robot is a Franka",
+                "leave --arm out with --robot franka, or use --robot pybullet")
         return Franka(robot_cfg, hardware)
+    from tergodic_cli.backends.pybullet.arms import get_arm
+
+    get_arm(robot_cfg.arm)  # an unknown arm: one line naming the choices, before anything runs
     backend = PyBullet(robot_cfg, recapture_every, until_clean, max_steps)
     if recapture_every is not None:
         from tergodic_cli.backends.pybullet.closed_loop import validate_loop_config

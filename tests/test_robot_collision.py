@@ -21,6 +21,7 @@ from test_robot_sim import FAST, _explorer, plate  # noqa: E402,F401
 
 from tergodic_cli.backends.pybullet import PyBulletScene, RobotRun  # noqa: E402
 from tergodic_cli.backends.pybullet.collision import BASE_MARGIN, _obj_vertices, replay_contacts, stand_box  # noqa: E402
+from tergodic_cli.backends.pybullet.arms.panda import HOME as PANDA_HOME  # noqa: E402
 from tergodic_cli.robot import RobotConfig  # noqa: E402
 from tergodic_cli.robot.safety import FAULT_EXIT_CODE, Fault, fault_exit_code  # noqa: E402
 
@@ -84,7 +85,7 @@ def test_a_finger_driven_into_the_table_is_found_at_its_depth():
     sc = PyBulletScene()
     try:
         col = sc.collision
-        sc.set_arm(np.array(RobotConfig().picture_q))
+        sc.set_arm(np.array(PANDA_HOME))
         assert col.check() == []  # the picture pose touches nothing
         sc.set_arm(np.array([0.0, 1.5, 0.0, -0.5, 0.0, 2.0, 0.785]))  # the hand low over the table
         found = col.check(step=7)
@@ -100,7 +101,7 @@ def test_a_finger_driven_into_the_table_is_found_at_its_depth():
         assert st.count >= 2 and st.first["body"] == "table" and st.first["step"] == 7
         assert st.deepest_mm == pytest.approx(1e3 * max(depth.values()), abs=1e-6)
         # Replayed joint states count the same (a logged run's check).
-        again = replay_contacts(sc, np.array([RobotConfig().picture_q, [0.0, 1.5, 0.0, -0.5, 0.0, 2.0, 0.785]]))
+        again = replay_contacts(sc, np.array([PANDA_HOME, [0.0, 1.5, 0.0, -0.5, 0.0, 2.0, 0.785]]))
         assert again.count == len(found) and again.first["step"] == 1
     finally:
         sc.close()

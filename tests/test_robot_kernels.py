@@ -19,7 +19,7 @@ from tergodic_cli.robot import kernels as Kn  # noqa: E402
 from tergodic_cli.backends.pybullet import RobotRun  # noqa: E402
 from tergodic_cli.robot import RobotConfig, SafetyConfig, SafetyGuard, robot_explore_config  # noqa: E402
 from tergodic_cli.backends.pybullet import PyBulletArm, PyBulletScene  # noqa: E402
-from tergodic_cli.robot.kinematics import DQ_MAX, Q_MAX, Q_MIN  # noqa: E402
+from tergodic_cli.backends.pybullet.arms.panda import DQ_MAX, Q_MAX, Q_MIN  # noqa: E402
 
 
 def test_compiled_kinematics_match_pybullet():

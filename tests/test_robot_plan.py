@@ -20,8 +20,9 @@ from conftest import run_cli  # noqa: E402
 from tergodic_cli.backends.pybullet.plan import (DENSE_STEP, LINK_MARGIN, SPONGE_MARGIN, CollisionWorld,  # noqa: E402
                                                  plan_path)
 from tergodic_cli.backends.pybullet.scene import PyBulletScene  # noqa: E402
-from tergodic_cli.robot.config import PICTURE_Q, SpongeSpec  # noqa: E402
-from tergodic_cli.robot.kinematics import Q_MAX, Q_MIN  # noqa: E402
+from tergodic_cli.backends.pybullet.arms.panda import HOME as PICTURE_Q
+from tergodic_cli.robot.config import SpongeSpec  # noqa: E402
+from tergodic_cli.backends.pybullet.arms.panda import Q_MAX, Q_MIN  # noqa: E402
 
 Q_MID = np.array(PICTURE_Q)
 Q_A, Q_B = Q_MID.copy(), Q_MID.copy()

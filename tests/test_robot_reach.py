@@ -220,7 +220,7 @@ def test_hover_posture_is_not_a_twisted_elbow():
     """The bowl's far wall, 45 deg (seen in a run): from the picture pose alone the inverse kinematics
     settles with joints 1 and 3 counter-rotated and joint 4 near its limit; the multi-seed posture
     finds the untwisted arm."""
-    from tergodic_cli.robot.config import PICTURE_Q
+    from tergodic_cli.backends.pybullet.arms.panda import HOME as PICTURE_Q
     from tergodic_cli.robot.ga import pose_matrix
     from tergodic_cli.backends.pybullet import PyBulletArm, PyBulletScene
     from tergodic_cli.robot.reach import ik, posture

@@ -10,7 +10,7 @@ import pytest
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.robot import RobotConfig, SafetyConfig, SafetyGuard, summarize_robot, validate_robot_config
 from tergodic_cli.robot import statemachine as S
-from tergodic_cli.robot.kinematics import DQ_MAX, Q_MAX, Q_MIN
+from tergodic_cli.backends.pybullet.arms.panda import DQ_MAX, Q_MAX, Q_MIN
 from tergodic_cli.robot.surface import default_object_pose, parse_object_pose
 
 Q_OK = np.array([0.0, 0.2, 0.0, -2.2, 0.0, 2.4, 0.785])

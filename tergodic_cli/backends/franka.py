@@ -27,7 +27,7 @@ from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.backends.extras import import_sdk, one_line
 from tergodic_cli.backends.impedance import ImpedanceTarget
 from tergodic_cli.robot.interfaces import ArmState, WrenchSensor
-from tergodic_cli.robot.kinematics import DQ_MAX, Q_MAX, Q_MIN
+from tergodic_cli.backends.pybullet.arms.panda import DQ_MAX, HOME, Q_MAX, Q_MIN
 
 #: Joint limits (rad, rad/s) from Franka's datasheets.
 LIMITS = {
@@ -95,6 +95,8 @@ class FrankyArm:
         self.cfg = cfg
         self.joint_names = [f"panda_joint{i}" for i in range(1, 8)]
         self.q_min, self.q_max, self.dq_max = (x.copy() for x in LIMITS[cfg.model])
+        #: The picture posture (the Panda's "ready" pose) when the run gives none.
+        self.home = np.array(HOME)
         self.stream_hz = float(cfg.stream_hz)
         self.robot = self._fr = self._motion = self._gains_key = self._error = None
         self._mode: str | None = None  # None | "impedance"

@@ -47,6 +47,8 @@ class ImpedanceArm(Protocol):
     q_min: np.ndarray
     q_max: np.ndarray
     dq_max: np.ndarray
+    #: (dof,) the picture posture, rad, when the run's config gives none
+    home: np.ndarray
     #: rate (Hz) at which the host streams references to the SDK
     stream_hz: float
 

@@ -161,7 +161,7 @@ class StreamedArm(_PlanArm):
         """The planned joint move to the picture pose (``go_to_picture``), then a Cartesian min-jerk
         in impedance to ``T``, every period checked."""
         if self.hw.go_to_picture:
-            self.dev.move_joints(np.asarray(self.cfg.picture_q, dtype=float))
+            self.dev.move_joints(self._picture_q())
         self._mode = None
         T0 = self.dev.read_state().ee_pose
         dist = float(np.linalg.norm(T[:3, 3] - T0[:3, 3]))
@@ -180,9 +180,14 @@ class StreamedArm(_PlanArm):
             self._send(ref)
         return None
 
+    def _picture_q(self) -> np.ndarray:
+        """The run's picture posture, else the arm's own."""
+        q = self.cfg.picture_q if self.cfg.picture_q is not None else self.dev.home
+        return np.asarray(q, dtype=float)
+
     def to_picture(self, check):
         self.dev.stop()
-        self.dev.move_joints(np.asarray(self.cfg.picture_q, dtype=float))
+        self.dev.move_joints(self._picture_q())
         self._mode = None
         return None
 

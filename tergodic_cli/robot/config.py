@@ -11,8 +11,6 @@ from tergodic_cli.robot.controller import ControllerGains
 from tergodic_cli.robot.safety import SafetyConfig
 
 BACKENDS = ("pybullet",)
-#: The Panda's "ready" pose, from which a wrist camera sees the table in front of the robot.
-PICTURE_Q = (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785)
 
 
 @dataclass
@@ -39,6 +37,7 @@ class RobotConfig(Config):
     """Everything that determines a robot run; saved in a run's ``config.json`` (``robot_config``).
 
     backend : "pybullet" (real backends come later behind the same Arm/WrenchSensor protocols).
+    arm : the simulated arm (pybullet): a name in ``backends.pybullet.arms.ARMS`` (panda, xarm6, iiwa).
     force : desired contact force F_d along the tool axis, N.
     gui : open the PyBullet GUI (DIRECT otherwise); realtime : pace the GUI to wall-clock time.
     object_pose : the capture frame's pose in the robot base frame: x,y,z[,roll,pitch,yaw] (m, deg)
@@ -68,11 +67,13 @@ class RobotConfig(Config):
     max_tool_tilt_deg : hardware runs only: the commanded tool axis is kept within this angle of
         straight down. The simulated run follows the normal and drops what the arm cannot reach
         (:mod:`tergodic_cli.robot.reach`).
+    picture_q : the picture posture, rad (one angle per joint); None: the arm's own ("ready" pose).
     inertial_compensation : remove the tool's inertial wrench (mass × acceleration from the arm's
         state) from the F/T reading as well as its weight, so the wrench is the contact's.
     """
 
     backend: str = "pybullet"
+    arm: str = "panda"
     force: float = 5.0
     gui: bool = False
     realtime: bool = False
@@ -94,7 +95,7 @@ class RobotConfig(Config):
     velocity_feedforward: bool = True
     max_tool_tilt_deg: float = 60.0
     inertial_compensation: bool = True
-    picture_q: tuple[float, ...] = PICTURE_Q
+    picture_q: tuple[float, ...] | None = None
     sponge: SpongeSpec = field(default_factory=SpongeSpec)
     gains: ControllerGains = field(default_factory=ControllerGains)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
@@ -122,7 +123,6 @@ def validate_robot_config(cfg: RobotConfig) -> None:
             "lower --contact-force")
     require(cfg.sponge.radius > 0.002, "the sponge radius must be > 2 mm", "e.g. 0.012")
     require(cfg.mesh_edge >= 0, "mesh_edge must be >= 0 m", "e.g. 0.006")
-    require(len(cfg.picture_q) == 7, "picture_q needs 7 joint angles", "give the Panda's 7 joint angles in rad")
     require(1 <= int(cfg.jacobian_every) <= 10, "jacobian_every must be 1..10 control steps", "use 4 (250 Hz)")
     require(1 <= int(cfg.dynamics_every) <= 10, "dynamics_every must be 1..10 control steps", "use 4 (250 Hz)")
     require(0 < cfg.max_tool_tilt_deg <= 90, "max_tool_tilt_deg must be in (0, 90]", "e.g. 60")

@@ -79,7 +79,7 @@ PAPER_GAINS = ControllerGains(k_trans=(750.0, 750.0, 300.0), k_rot=(30.0, 30.0, 
 class ControlOutput(NamedTuple):
     """One control step's torques and diagnostics (ee frame); views into the step's diagnostics array."""
 
-    tau: np.ndarray  # (7,) task torques, N m
+    tau: np.ndarray  # (n,) task torques, N m
     twist_error: np.ndarray  # (6,) V_L = (t, φ), φz being the spin error about the tool axis
     wrench_cmd: np.ndarray  # (6,) total commanded wrench (f, m), ee frame
     force_filtered: float  # N along the tool axis
@@ -99,16 +99,18 @@ class LineForceController:
     ----------
     gains : :class:`ControllerGains`.
     dt : control period, s.
-    q_rest : (7,) posture the null-space spring pulls towards.
+    q_rest : (n,) posture the null-space spring pulls towards (n: the arm's joints, its model's DoF).
     x_ref : (3,) base-frame direction the ee x-axis is held near (the spin about the tool axis).
+    q_min, q_max : (n,) the arm's joint limits, rad (its model's): the null-space repulsion near them;
+        None: no repulsion.
 
     The arithmetic is :func:`tergodic_cli.robot.kernels.line_force_step` (compiled); this class
     holds its packed parameters ``kpk`` and state ``mut`` (PID, null-space terms).
     """
 
-    def __init__(self, gains: ControllerGains, dt: float, q_rest: np.ndarray, x_ref: np.ndarray):
+    def __init__(self, gains: ControllerGains, dt: float, q_rest: np.ndarray, x_ref: np.ndarray,
+                 q_min: np.ndarray | None = None, q_max: np.ndarray | None = None):
         from tergodic_cli.robot import kernels as Kn
-        from tergodic_cli.robot.kinematics import Q_MAX, Q_MIN
 
         self._Kn = Kn
         self.g = gains
@@ -125,8 +127,18 @@ class LineForceController:
                         g.limit_stiffness, self.dt, LIMIT_ZONE, g.guard_speed, g.guard_damping,
                         1.0 if g.pid_wrench else 0.0, lowpass(g.derivative_filter_hz)])
         #: Packed constants (kernels.KPK_*) and mutable state (kernels.MUT_*) of the compiled step.
-        self.kpk = np.concatenate([self.K, self.D, prm, np.asarray(x_ref, dtype=float), np.asarray(q_rest, dtype=float),
-                                   Q_MIN, Q_MAX])  # the Panda's limits: the null-space repulsion
+        q_rest = np.asarray(q_rest, dtype=float)
+        self.dof = n = len(q_rest)
+        if not 1 <= n <= Kn.MAX_DOF:
+            raise ValueError(f"the controller takes 1..{Kn.MAX_DOF} joints, got {n}")
+
+        def slots(x, fill: float) -> np.ndarray:  # n joints in MAX_DOF slots
+            out = np.full(Kn.MAX_DOF, fill)
+            out[:n] = np.full(n, fill) if x is None else np.asarray(x, dtype=float)
+            return out
+
+        self.kpk = np.concatenate([self.K, self.D, prm, np.asarray(x_ref, dtype=float), slots(q_rest, 0.0),
+                                   slots(q_min, -np.inf), slots(q_max, np.inf)])  # the limits: null-space repulsion
         assert self.kpk.shape == (Kn.N_KPK,)
         self.mut = np.zeros(Kn.N_MUT)
         self._vref = np.zeros(3)
@@ -184,7 +196,7 @@ class LineForceController:
         m = self._modes.get(mode)
         if m is None:
             raise ValueError(f"unknown control mode {mode!r}")
-        tau = np.empty(7)
+        tau = np.empty(self.dof)
         diag = np.empty(19)
         use_vref = v_ref is not None
         if use_vref:
@@ -202,10 +214,12 @@ def _f64(x) -> np.ndarray:
 
 class JointImpedance:
     """τ = K (q_d - q) + D (q̇_d - q̇): the paper's "simple joint impedance controller" (V-A3), for
-    moves between poses and for holding."""
+    moves between poses and for holding. K (n,) N m/rad and D (n,) N m s/rad: the arm's (its module's
+    ``joint_gains``)."""
 
-    K = np.array([600.0, 600.0, 600.0, 600.0, 250.0, 150.0, 50.0])  # N m/rad
-    D = np.array([50.0, 50.0, 50.0, 50.0, 20.0, 15.0, 6.0])  # N m s/rad
+    def __init__(self, K, D):
+        self.K = np.asarray(K, dtype=float)
+        self.D = np.asarray(D, dtype=float)
 
     def __call__(self, q: np.ndarray, dq: np.ndarray, q_d: np.ndarray, dq_d: np.ndarray | None = None) -> np.ndarray:
         dq_d = np.zeros_like(q) if dq_d is None else dq_d

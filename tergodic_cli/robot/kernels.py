@@ -41,15 +41,19 @@ N_CS = 26
 CD_TWIST, CD_WRENCH, CD_FFILT, CD_VEE = 0, 6, 12, 13
 N_CD = 19
 
+#: Joint slots of the packed arrays below: an arm has n <= MAX_DOF joints (its model's DoF, read from
+#: its URDF) and uses the first n of each slot; the kernels take n from the Jacobian's width.
+MAX_DOF = 7
 # The controller's packed constants ``kpk`` and mutable state ``mut`` (held by LineForceController):
-# kpk: K (6), D (6), prm (N_CP), x_ref (3), q_rest (7), q_min (7), q_max (7)
+# kpk: K (6), D (6), prm (N_CP), x_ref (3), q_rest (MAX_DOF), q_min (MAX_DOF), q_max (MAX_DOF)
 KPK_K, KPK_D, KPK_PRM = 0, 6, 12
 KPK_XREF = KPK_PRM + N_CP
-KPK_QREST, KPK_QMIN, KPK_QMAX = KPK_XREF + 3, KPK_XREF + 10, KPK_XREF + 17
-N_KPK = KPK_XREF + 24
-# mut: PID state (N_CS), null-space spring torques (7), null-space damping (7 x 7, row-major)
-MUT_STATE, MUT_SPRING, MUT_DAMP = 0, N_CS, N_CS + 7
-N_MUT = N_CS + 56
+KPK_QREST, KPK_QMIN, KPK_QMAX = KPK_XREF + 3, KPK_XREF + 3 + MAX_DOF, KPK_XREF + 3 + 2 * MAX_DOF
+N_KPK = KPK_XREF + 3 + 3 * MAX_DOF
+# mut: PID state (N_CS), null-space spring torques (MAX_DOF), null-space damping (n x n, row-major, in
+# MAX_DOF² slots)
+MUT_STATE, MUT_SPRING, MUT_DAMP = 0, N_CS, N_CS + MAX_DOF
+N_MUT = N_CS + MAX_DOF + MAX_DOF * MAX_DOF
 
 # Safety fault codes of :func:`state_fault`, :func:`force_fault`, :func:`pybullet_tick`.
 OK, F_JOINT_POS, F_JOINT_VEL, F_TCP_SPEED, F_WORKSPACE, F_FORCE, F_SENSOR, F_IMPACT = 0, 1, 2, 3, 4, 5, 6, 7
@@ -245,12 +249,13 @@ def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use
                     tau, diag):
     """One step of eq. 47 with the wrench PID (see :class:`~tergodic_cli.robot.controller.LineForceController`).
 
-    T (4, 4) TCP pose, J (6, 7) base-frame Jacobian, q, dq (7,), a, d (3,) target line (base frame, d
+    T (4, 4) TCP pose, J (6, n) base-frame Jacobian, q, dq (n,), a, d (3,) target line (base frame, d
     into the surface), w (6,) measured ee wrench, mode MODE_*, v_ref (3,) target line velocity (used
     when ``use_vref``). kpk (N_KPK,): the controller's packed constants (gains K, D, parameters,
     x_ref, q_rest, joint limits); mut (N_MUT,): its PID state and the null-space terms, refreshed
-    here every 10 steps (updated). Fills tau (7,) and diag (N_CD,).
+    here every 10 steps (updated). Fills tau (n,) and diag (N_CD,). n <= MAX_DOF joints.
     """
+    n = J.shape[1]
     K, D, x_ref = kpk[KPK_K:KPK_K + 6], kpk[KPK_D:KPK_D + 6], kpk[KPK_XREF:KPK_XREF + 3]
     prm = kpk[KPK_PRM:KPK_PRM + N_CP]
     state = mut[MUT_STATE:MUT_STATE + N_CS]
@@ -260,7 +265,7 @@ def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use
     tx, ty, tz, fx_, fy_, _unused = line_motor_z(e0, e1, e2, u0, u1, u2)
     xe0, xe1, _xe2 = rot_t(T, x_ref[0], x_ref[1], x_ref[2])
     spin = math.atan2(xe1, xe0)
-    V0, V1, V2, V3, V4, V5 = tcp_twist(J, dq, 7)  # base-frame TCP twist J q̇
+    V0, V1, V2, V3, V4, V5 = tcp_twist(J, dq, n)  # base-frame TCP twist J q̇
     if use_vref:
         V0 -= v_ref[0]
         V1 -= v_ref[1]
@@ -309,13 +314,13 @@ def line_force_step(T, J, q, dq, a, d, w, mode, force_desired, speed, v_ref, use
     mz = prm[CP_SPIN] * spin - D[5] * ve5 + c[5]
     W0, W1, W2 = rot(T, wx, wy, wz)
     W3, W4, W5 = rot(T, mx, my, mz)
-    tau_spring, n_damp = mut[MUT_SPRING:MUT_SPRING + 7], mut[MUT_DAMP:MUT_DAMP + 49].reshape((7, 7))
-    _posture(J, q, prm, state, kpk[KPK_QREST:KPK_QREST + 7], kpk[KPK_QMIN:KPK_QMIN + 7],
-             kpk[KPK_QMAX:KPK_QMAX + 7], tau_spring, n_damp)
-    for j in range(7):
+    tau_spring, n_damp = mut[MUT_SPRING:MUT_SPRING + n], mut[MUT_DAMP:MUT_DAMP + n * n].reshape((n, n))
+    _posture(J, q, prm, state, kpk[KPK_QREST:KPK_QREST + n], kpk[KPK_QMIN:KPK_QMIN + n],
+             kpk[KPK_QMAX:KPK_QMAX + n], tau_spring, n_damp)
+    for j in range(n):
         acc = J[0, j] * W0 + J[1, j] * W1 + J[2, j] * W2 + J[3, j] * W3 + J[4, j] * W4 + J[5, j] * W5
         acc += tau_spring[j]
-        for k in range(7):
+        for k in range(n):
             acc -= n_damp[j, k] * dq[k]
         tau[j] = acc
     diag[0], diag[1], diag[2], diag[3], diag[4], diag[5] = tx, ty, tz, fx_, fy_, spin
@@ -329,6 +334,8 @@ def _posture(J, q, prm, state, q_rest, q_min, q_max, tau_spring, n_damp):
     # Posture spring, joint-limit repulsion and damper in the Jacobian's null space,
     # N = I - Jᵀ (J Jᵀ + 1e-4 I)⁻¹ J. The task damping cannot see self-motion, so the null-space
     # damper runs every step; N and the slowly varying spring terms are refreshed at 100 Hz.
+    # (A 6-joint arm has no self-motion: N is ~0 away from singularities.)
+    n = J.shape[1]
     if int(state[CS_AGE]) % 10 == 0:
         # A = J Jᵀ + 1e-4 I (SPD), Cholesky A = L Lᵀ, X = A⁻¹ J, N = I - Jᵀ X; written out (6×6:
         # no LAPACK call, and numba compiles it in a fraction of the time np.linalg takes).
@@ -336,7 +343,7 @@ def _posture(J, q, prm, state, q_rest, q_min, q_max, tau_spring, n_damp):
         for r in range(6):
             for c in range(r + 1):
                 acc = 0.0
-                for k in range(7):
+                for k in range(n):
                     acc += J[r, k] * J[c, k]
                 A[r, c] = acc
                 A[c, r] = acc
@@ -348,8 +355,8 @@ def _posture(J, q, prm, state, q_rest, q_min, q_max, tau_spring, n_damp):
                 for k in range(c):
                     acc -= L[r, k] * L[c, k]
                 L[r, c] = math.sqrt(acc) if r == c else acc / L[c, c]
-        X = np.empty((6, 7))
-        for col in range(7):
+        X = np.empty((6, n))
+        for col in range(n):
             y = np.empty(6)
             for r in range(6):  # L y = J[:, col]
                 acc = J[r, col]
@@ -361,22 +368,22 @@ def _posture(J, q, prm, state, q_rest, q_min, q_max, tau_spring, n_damp):
                 for k in range(r + 1, 6):
                     acc -= L[k, r] * X[k, col]
                 X[r, col] = acc / L[r, r]
-        N = np.empty((7, 7))
-        for r in range(7):
-            for c in range(7):
+        N = np.empty((n, n))
+        for r in range(n):
+            for c in range(n):
                 acc = 0.0
                 for k in range(6):
                     acc += J[k, r] * X[k, c]
                 N[r, c] = (1.0 if r == c else 0.0) - acc
         zone = prm[CP_LIMIT_ZONE]
-        s = np.empty(7)
-        for j in range(7):
+        s = np.empty(n)
+        for j in range(n):
             lo = min(q[j] - (q_min[j] + zone), 0.0)
             hi = max(q[j] - (q_max[j] - zone), 0.0)
             s[j] = prm[CP_NS_K] * (q_rest[j] - q[j]) - prm[CP_LIM_K] * (lo + hi)
-        for j in range(7):
+        for j in range(n):
             acc = 0.0
-            for k in range(7):
+            for k in range(n):
                 acc += N[j, k] * s[k]
                 n_damp[j, k] = prm[CP_NS_D] * N[j, k]
             tau_spring[j] = acc
@@ -523,21 +530,25 @@ def new_tick_stats(force_desired: float, threshold: float, settle_ticks: int) ->
 # tuples (``zip(*states)``), the controller's kpk and mut, and two packed arrays.
 # cst (built by :func:`pack_constants` once per explorer interval): header [m, F_d, use_vref],
 # v_ref (3), the chain (F (m, 4, 4), axis (m, 3), qidx (m,)), tcp offset (3), R_se (3, 3), p_se (3),
-# m g, com (3), tare load (6), guard q_lo (7), q_hi (7), dq_hi (7), tcp speed max, workspace lo (3),
-# hi (3), tau_max (7), inertial compensation on (1/0), tool mass, principal inertia (3).
-# io (read back by SimArm.follow): q (7), q̇ (7), w (6), tau (7, the total torque to send),
-# diag (N_CD), T (16), J (42).
-IO_Q, IO_DQ, IO_W, IO_TAU, IO_DIAG = 0, 7, 14, 20, 27
+# m g, com (3), tare load (6), guard q_lo (n), q_hi (n), dq_hi (n), tcp speed max, workspace lo (3),
+# hi (3), tau_max (n), inertial compensation on (1/0), tool mass, principal inertia (3); n = the arm's
+# joints (the header's second number is the chain length m, the DoF n follows it).
+# io (read back by SimArm.follow), MAX_DOF slots per joint vector, the first n used: q, q̇, w (6),
+# tau (the total torque to send), diag (N_CD), T (16), J (6 x n, row-major, in 6 MAX_DOF slots).
+IO_Q, IO_DQ = 0, MAX_DOF
+IO_W = 2 * MAX_DOF
+IO_TAU = IO_W + 6
+IO_DIAG = IO_TAU + MAX_DOF
 IO_T = IO_DIAG + N_CD
 IO_J = IO_T + 16
-N_IO = IO_J + 42
+N_IO = IO_J + 6 * MAX_DOF
 
 
 def pack_constants(chain, contact, guard, tau_max, force_desired: float, v_ref) -> np.ndarray:
     """The ``cst`` array of :func:`pybullet_tick` (see the layout above)."""
     F, axis, qidx, off = chain
     use = v_ref is not None
-    parts = [[len(qidx), float(force_desired), 1.0 if use else 0.0], v_ref if use else np.zeros(3),
+    parts = [[len(qidx), float(force_desired), 1.0 if use else 0.0, int(np.max(qidx)) + 1], v_ref if use else np.zeros(3),
              F.ravel(), axis.ravel(), qidx.astype(float), off, contact.R_se_m.ravel(), contact.p_se_v, [contact.mg],
              contact.com, contact.tare_load, guard.q_lo, guard.q_hi, guard.dq_hi, [guard.cfg.tcp_speed_max],
              guard.ws_lo, guard.ws_hi, tau_max,
@@ -551,27 +562,31 @@ def _unpack_constants(cst):
     m = int(cst[0])
     force_desired = cst[1]
     use_vref = cst[2] != 0.0
-    v_ref = cst[3:6]
-    F = cst[6:6 + 16 * m].reshape((m, 4, 4))
-    axis = cst[6 + 16 * m:6 + 19 * m].reshape((m, 3))
-    qidx = cst[6 + 19 * m:6 + 20 * m].astype(np.int64)
-    o = 6 + 20 * m  # the fixed-size rest
+    n = int(cst[3])
+    v_ref = cst[4:7]
+    F = cst[7:7 + 16 * m].reshape((m, 4, 4))
+    axis = cst[7 + 16 * m:7 + 19 * m].reshape((m, 3))
+    qidx = cst[7 + 19 * m:7 + 20 * m].astype(np.int64)
+    o = 7 + 20 * m  # the rest: sizes fixed by n
     tcp_off = cst[o:o + 3]
     R_se = cst[o + 3:o + 12].reshape((3, 3))
     p_se = cst[o + 12:o + 15]
     mg = cst[o + 15]
     com = cst[o + 16:o + 19]
     tare = cst[o + 19:o + 25]
-    q_lo = cst[o + 25:o + 32]
-    q_hi = cst[o + 32:o + 39]
-    dq_hi = cst[o + 39:o + 46]
-    tcp_max = cst[o + 46]
-    ws_lo = cst[o + 47:o + 50]
-    ws_hi = cst[o + 50:o + 53]
-    tau_max = cst[o + 53:o + 60]
-    inertial = cst[o + 60] != 0.0
-    mass = cst[o + 61]
-    inertia = cst[o + 62:o + 65]
+    o += 25
+    q_lo = cst[o:o + n]
+    q_hi = cst[o + n:o + 2 * n]
+    dq_hi = cst[o + 2 * n:o + 3 * n]
+    o += 3 * n
+    tcp_max = cst[o]
+    ws_lo = cst[o + 1:o + 4]
+    ws_hi = cst[o + 4:o + 7]
+    tau_max = cst[o + 7:o + 7 + n]
+    o += 7 + n
+    inertial = cst[o] != 0.0
+    mass = cst[o + 1]
+    inertia = cst[o + 2:o + 5]
     return (force_desired, use_vref, v_ref, F, axis, qidx, tcp_off, R_se, p_se, mg, com, tare, q_lo, q_hi, dq_hi,
             tcp_max, ws_lo, ws_hi, tau_max, inertial, mass, inertia)
 
@@ -584,23 +599,24 @@ def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, kd, io, ts, t,
     The law: with ``kd`` empty, the "track" loop's line controller towards row i of A, D (n, 3),
     the gliding target line (kpk, mut: the controller's; ``mut`` is updated); else a joint-impedance
     move (the set-up moves), τ = K (q_d - q) + D (q̇_d - q̇) (:class:`JointImpedance`), q_d (rad)
-    and q̇_d (rad/s) row i of A, D (n, 7), kd (14,) the joint stiffness (7) then damping (7).
-    qs, dqs : joint positions (rad) and velocities (rad/s), flat tuples whose first 7 entries are
-    the arm's (``zip(*getJointStates(...))``). reading : the sensor's 6 numbers (tare removed);
-    bias : gravity + Coriolis (7 numbers). ts : :func:`tick_stats` (updated). t : the sample time,
+    and q̇_d (rad/s) row i of A, D (k, n), kd (2n,) the joint stiffness (n) then damping (n); n the
+    arm's joints (cst's header). qs, dqs : joint positions (rad) and velocities (rad/s), flat tuples
+    whose first n entries are the arm's (``zip(*getJointStates(...))``). reading : the sensor's 6
+    numbers (tare removed); bias : gravity + Coriolis (n numbers). ts : :func:`tick_stats` (updated). t : the sample time,
     s; dyn : the inertial compensation's state (:func:`inertial_wrench`, updated); fg : the force
     guard's limits and filter (:func:`force_fault`, updated).
-    Returns an F_* code (OK: send io[IO_TAU:IO_TAU + 7]). The separate kernels, chained.
+    Returns an F_* code (OK: send io[IO_TAU:IO_TAU + n]). The separate kernels, chained.
     """
-    q = io[IO_Q:IO_Q + 7]
-    dq = io[IO_DQ:IO_DQ + 7]
-    for j in range(7):
+    n = int(cst[3])
+    q = io[IO_Q:IO_Q + n]
+    dq = io[IO_DQ:IO_DQ + n]
+    for j in range(n):
         q[j] = qs[j]
         dq[j] = dqs[j]
     (force_desired, use_vref, v_ref, F, axis, qidx, tcp_off, R_se, p_se, mg, com, tare, q_lo, q_hi, dq_hi, tcp_max,
      ws_lo, ws_hi, tau_max, inertial, mass, inertia) = _unpack_constants(cst)
     T = io[IO_T:IO_T + 16].reshape((4, 4))
-    J = io[IO_J:IO_J + 42].reshape((6, 7))
+    J = io[IO_J:IO_J + 6 * n].reshape((6, n))
     w = io[IO_W:IO_W + 6]
     diag = io[IO_DIAG:IO_DIAG + N_CD]
     fk_jacobian(q, F, axis, qidx, tcp_off, T, J)
@@ -616,9 +632,9 @@ def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, kd, io, ts, t,
     if code != OK:
         return code
     joint = kd.shape[0] > 0
-    task = np.empty(7)
+    task = np.empty(n)
     if joint:
-        v0, v1, v2, _w0, _w1, _w2 = tcp_twist(J, dq, 7)
+        v0, v1, v2, _w0, _w1, _w2 = tcp_twist(J, dq, n)
         diag[CD_VEE], diag[CD_VEE + 1], diag[CD_VEE + 2] = v0, v1, v2
     else:
         line_force_step(T, J, q, dq, A[i], D[i], w, MODE_TRACK, force_desired, 0.0, v_ref, use_vref,
@@ -629,8 +645,8 @@ def pybullet_tick(i, A, D, qs, dqs, reading, bias, cst, kpk, mut, kd, io, ts, t,
     code, _j = state_fault(q, dq, pos, math.sqrt(v0 * v0 + v1 * v1 + v2 * v2), q_lo, q_hi, dq_hi, tcp_max, ws_lo, ws_hi)
     if code != OK:
         return code
-    for j in range(7):
+    for j in range(n):
         lim = tau_max[j]
-        tau = kd[j] * (A[i, j] - q[j]) + kd[7 + j] * (D[i, j] - dq[j]) if joint else task[j]
+        tau = kd[j] * (A[i, j] - q[j]) + kd[n + j] * (D[i, j] - dq[j]) if joint else task[j]
         io[IO_TAU + j] = min(max(tau + bias[j], -lim), lim)
     return OK

@@ -17,13 +17,6 @@ import numpy as np
 from tergodic_cli.errors import TergodicError
 from tergodic_cli.robot.ga import motor_inverse
 
-#: Franka Emika datasheet limits (stricter than the pybullet URDF's).
-Q_MIN = np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973])
-Q_MAX = np.array([2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973])
-DQ_MAX = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])
-TAU_MAX = np.array([87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0])
-
-
 class FrankaModel:
     """pygafro's Franka Emika model with a fixed tool motor appended."""
 

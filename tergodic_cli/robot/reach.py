@@ -57,7 +57,7 @@ def ik(chain, T: np.ndarray, q0: np.ndarray, q_min: np.ndarray, q_max: np.ndarra
        iters: int = 150, margin: float = 0.02) -> tuple[np.ndarray, float, float]:
     """Damped least squares inverse kinematics of the TCP pose ``T`` (4, 4) on the compiled ``chain``.
 
-    Returns (q (7,), position error m, orientation error rad); the posture ``q_rest`` is favoured
+    Returns (q (n,), position error m, orientation error rad); the posture ``q_rest`` is favoured
     in the null space, the joints are kept ``margin`` rad inside their limits.
     """
     from tergodic_cli.robot.ga import matrix_to_rotvec
@@ -67,7 +67,8 @@ def ik(chain, T: np.ndarray, q0: np.ndarray, q_min: np.ndarray, q_max: np.ndarra
     lo, hi = q_min + margin, q_max - margin
     q = np.clip(np.asarray(q0, dtype=float), lo, hi)
     q_rest = q.copy() if q_rest is None else np.asarray(q_rest, dtype=float)
-    Tq, J = np.empty((4, 4)), np.empty((6, 7))
+    n = len(q)
+    Tq, J = np.empty((4, 4)), np.empty((6, n))
     pe = oe = math.inf
     for _ in range(iters):
         fk_jacobian(q, F, axis, qidx, off, Tq, J)
@@ -76,7 +77,7 @@ def ik(chain, T: np.ndarray, q0: np.ndarray, q_min: np.ndarray, q_max: np.ndarra
         if pe < 1e-5 and oe < 1e-4:
             break
         Jp = J.T @ np.linalg.inv(J @ J.T + 1e-4 * np.eye(6))
-        dq = Jp @ e + (np.eye(7) - Jp @ J) @ (0.2 * (q_rest - q))
+        dq = Jp @ e + (np.eye(n) - Jp @ J) @ (0.2 * (q_rest - q))
         big = float(np.max(np.abs(dq)))
         if big > 0.2:
             dq *= 0.2 / big
@@ -88,18 +89,19 @@ def posture(chain, T: np.ndarray, q_ref: np.ndarray, q_min: np.ndarray, q_max: n
             valid=None) -> tuple[np.ndarray, float, float]:
     """Inverse kinematics of ``T`` (4, 4) from a few seeds, the best posture of those that converge.
 
-    Seeds: ``q_ref`` (7,) and ``q_ref`` with the base turned towards the target, each also with the
-    wrist rolled either way (joints 5 and 7). One seed alone can settle in a twisted elbow (joints 1
+    Seeds: ``q_ref`` (n,) and ``q_ref`` with the base turned towards the target, each also with the
+    wrist rolled either way (joints n - 2 and n: the Panda's and iiwa's 5 and 7, the xArm 6's 4 and 6). One seed alone can settle in a twisted elbow (joints 1
     and 3 counter-rotated, joint 4 and 6 near their limits: measured on the bowl's far wall), where
     the line controller's null-space spring would then hold the arm. Best: the widest joint margin
-    (up to 0.5 rad), then the nearest to ``q_ref``; with ``valid`` (q (7,) -> bool, e.g. clear of the
-    object) a posture it refuses only wins when no converged one passes. Returns (q (7,), position
+    (up to 0.5 rad), then the nearest to ``q_ref``; with ``valid`` (q (n,) -> bool, e.g. clear of the
+    object) a posture it refuses only wins when no converged one passes. Returns (q (n,), position
     error m, orientation error rad).
     """
     q_ref = np.asarray(q_ref, dtype=float)
     turned = q_ref.copy()
     turned[0] = math.atan2(T[1, 3], T[0, 3])
-    roll = np.array([0.0, 0.0, 0.0, 0.0, 1.2, 0.0, -1.0])
+    roll = np.zeros(len(q_ref))
+    roll[-3], roll[-1] = 1.2, -1.0
     best, best_score = None, -math.inf
     for seed in (q_ref, turned, q_ref + roll, q_ref - roll, turned + roll, turned - roll):
         q, pe, oe = ik(chain, T, seed, q_min, q_max, q_rest=seed)
@@ -117,7 +119,7 @@ def pose_ok(chain, a: np.ndarray, d: np.ndarray, x_down: np.ndarray, q0: np.ndar
             q_max: np.ndarray, hover: float = 0.04, margin: float = REACH_MARGIN) -> tuple[bool, np.ndarray]:
     """Whether the arm holds the tool along ``d`` at ``a`` and ``hover`` m back, ``margin`` rad inside the limits.
 
-    Returns (reachable, joints (7,) at ``a``).
+    Returns (reachable, joints (n,) at ``a``).
     """
     from tergodic_cli.robot.ga import pose_matrix
 

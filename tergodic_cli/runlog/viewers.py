@@ -87,13 +87,17 @@ def joint_series(data: RunLogData) -> tuple[np.ndarray, list[str] | None]:
     return q, (list(names) if names else None)
 
 
-def load_arm(client: int) -> tuple[int, list[int]]:
-    """Load the Franka Panda from pybullet_data; returns (body id, its movable joint indices in order)."""
+def load_arm(client: int, names: list[str] | None = None) -> tuple[int, list[int]]:
+    """Load the logged arm's stock URDF from pybullet_data (the simulated arm whose joints are ``names``, the
+    log's joint names; else the Panda); returns (body id, its movable joint indices in order)."""
     import pybullet as p
     import pybullet_data
 
+    from tergodic_cli.backends.pybullet.arms import ARMS
+
+    spec = next((a for a in ARMS.values() if names and list(a.joints) == list(names)), ARMS["panda"])
     p.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=client)
-    body = p.loadURDF("franka_panda/panda.urdf", useFixedBase=True, physicsClientId=client)
+    body = p.loadURDF(spec.urdf, useFixedBase=True, physicsClientId=client)
     movable = [j for j in range(p.getNumJoints(body, physicsClientId=client))
                if p.getJointInfo(body, j, physicsClientId=client)[2] in (p.JOINT_REVOLUTE, p.JOINT_PRISMATIC)]
     return body, movable
@@ -133,7 +137,7 @@ def replay_gui(data: RunLogData, speed: float = 1.0) -> int:
     if client < 0:
         raise TergodicError("PyBullet could not open its GUI window", "check the display, or use --plot OUT_DIR")
     try:
-        body, movable = load_arm(client)
+        body, movable = load_arm(client, names)
         idx = joint_indices(client, body, movable, names, q.shape[1])
         cloud = data.clouds[-1] if data.clouds else None
         obj = data.robot[0].get("object_pose")

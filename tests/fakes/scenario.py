@@ -51,7 +51,7 @@ def explorer(plate: Plate, cfg, seed: int = 0):
 
 def world(plate: Plate, monkeypatch, **kw) -> FakeWorld:
     """A fake world holding the plate, registered as the robot at ROBOT_IP."""
-    from tergodic_cli.robot.config import PICTURE_Q
+    from tergodic_cli.backends.pybullet.arms.panda import HOME as PICTURE_Q
     from tergodic_cli.robot.surface import oriented_normals, transform_points
 
     w = FakeWorld(transform_points(plate.T_obj, plate.capture.points), oriented_normals(plate.capture.points, "up"),

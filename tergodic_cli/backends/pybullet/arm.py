@@ -1,4 +1,4 @@
-"""The simulated Panda with its sponge and wrist F/T sensor behind the contact loop's :class:`Arm`.
+"""The simulated arm (``--arm``) with its sponge and wrist F/T sensor behind the contact loop's :class:`Arm`.
 
 The line target becomes joint torques inside the 1 kHz tick: the line-impedance law with the
 wrench PID (eq. 47, :class:`~tergodic_cli.robot.controller.LineForceController`), on top of
@@ -22,12 +22,11 @@ from tergodic_cli.backends.pybullet.devices import PyBulletArm, PyBulletWrenchSe
 from tergodic_cli.backends.pybullet.plan import (END_FLOOR, PLAN_SLACK, SPONGE_MARGIN, CollisionWorld, Plan, plan_path,
                                                  retreat_clear)
 from tergodic_cli.backends.pybullet.scene import PyBulletScene
-from tergodic_cli.errors import TergodicError
+from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.robot import kernels as Kn
 from tergodic_cli.robot.config import RobotConfig, validate_robot_config
 from tergodic_cli.robot.controller import JointImpedance, LineForceController, min_jerk
 from tergodic_cli.robot.interfaces import ArmState, ContactWrench, LineTarget, Observation
-from tergodic_cli.robot.kinematics import FrankaModel, tool_offset
 from tergodic_cli.robot.reach import plan_reach, posture, tool_rotation
 from tergodic_cli.robot.run import SETTLE_S, ContactRun, object_pose
 from tergodic_cli.robot.safety import Fault, fmt_xyz
@@ -46,12 +45,33 @@ APPROACH_D = 100.0
 HAND_CLEAR = 0.01
 
 
+def arm_gains(gains, spec):
+    """The controller gains of a run: ``gains`` as given, or, where the run keeps the default gains, the
+    default with the arm's own tuning (its module's ``gains``) on top."""
+    from dataclasses import replace
+
+    from tergodic_cli.robot.controller import ControllerGains
+
+    return replace(gains, **spec.gains) if spec.gains and gains == ControllerGains() else gains
+
+
+def part_label(part: str) -> str:
+    """A collision part's name for a message, the robot's prefix dropped: "panda_link3" -> "link 3",
+    "panda_hand" -> "hand", "lbr_iiwa_link_3" -> "link 3"."""
+    import re
+
+    i = part.find("link")
+    part = part[i:] if i > 0 else re.sub(r"^[a-z]+_", "", part)
+    return re.sub(r"link_?(\d)", r"link \1", part)
+
+
 class SimArm:
-    """The PyBullet scene's Panda, sponge and sensor as one :class:`~tergodic_cli.robot.interfaces.Arm`.
+    """The PyBullet scene's arm, sponge and sensor as one :class:`~tergodic_cli.robot.interfaces.Arm`.
 
     Parameters
     ----------
-    cfg : the RobotConfig (gains, physics_dt, picture_q, sponge, ...).
+    cfg : the RobotConfig (arm, gains, physics_dt, picture_q, sponge, ...). The arm is known through its
+        :class:`~tergodic_cli.robot.model.ArmModel` (:attr:`model`: DoF, limits, chain, read from its URDF).
     mesh : the object's collision mesh (vertices (V, 3), triangles (F, 3)) and T_mesh (4, 4), its
         pose in the base frame.
     """
@@ -61,23 +81,30 @@ class SimArm:
     def __init__(self, cfg: RobotConfig, mesh, T_mesh: np.ndarray):
         self.cfg = cfg
         self.mesh = mesh
-        self.scene = PyBulletScene(cfg.sponge, gui=cfg.gui, dt=cfg.physics_dt, solver_iterations=cfg.solver_iterations)
+        self.scene = PyBulletScene(cfg.sponge, gui=cfg.gui, dt=cfg.physics_dt, solver_iterations=cfg.solver_iterations,
+                                   arm=cfg.arm)
         try:
             self.scene.add_object(mesh.vertices, mesh.triangles, T_mesh)
             self.dev = PyBulletArm(self.scene)
+            #: The arm as the robot layer knows it (robot/model.py).
+            self.model = model = self.dev.model
+            n = model.dof
+            #: The picture posture: the run's, else the arm's own.
+            self.picture_q = model.home.copy() if cfg.picture_q is None else np.asarray(cfg.picture_q, dtype=float)
+            require(len(self.picture_q) == n, f"picture_q needs {n} joint angles for the {model.name}",
+                    f"give the {model.name}'s {n} joint angles in rad, or leave picture_q out")
+            self.gains = arm_gains(cfg.gains, self.scene.spec)
             self.dev.dynamics_every = int(cfg.dynamics_every)
             self.dev.connect()
-            self.scene.set_arm(np.array(cfg.picture_q))
+            self.scene.set_arm(self.picture_q)
             self.sensor = PyBulletWrenchSensor(self.scene, self.dev)
             if not self.sensor.read().valid:  # PyBullet reads 0 until its first step: hold still for one
-                self.dev.command(np.zeros(7))
+                self.dev.command(np.zeros(n))
                 self.scene.step()
             # Gravity and inertia of the tool removed: the wrench is the contact's (issue 15, item 3).
             self.contact_wrench = ContactWrench(self.scene.tool_load(), self.sensor.frame_in_ee,
                                                 inertial=cfg.inertial_compensation)
             st = self.dev.read_state()
-            self.model = FrankaModel()
-            self.model.tool = tool_offset(self.model, st.q, st.ee_pose)
             #: The set-up moves' collision check: the arm and every other body of the scene (plan.py).
             self.world = CollisionWorld(self.scene)
         except BaseException:
@@ -94,8 +121,9 @@ class SimArm:
         self.dt = float(cfg.physics_dt)
         self.q_min, self.q_max, self.dq_max = self.dev.q_min, self.dev.q_max, self.dev.dq_max
         self.t_origin = 0.0
-        self.joint = JointImpedance()
-        self.ctrl = LineForceController(cfg.gains, cfg.physics_dt, q_rest=np.array(cfg.picture_q), x_ref=st.ee_pose[:3, 0])
+        self.joint = JointImpedance(*self.scene.spec.joint_gains)
+        self.ctrl = LineForceController(self.gains, cfg.physics_dt, q_rest=self.picture_q, x_ref=st.ee_pose[:3, 0],
+                                        q_min=self.q_min, q_max=self.q_max)
         #: The compiled 1 kHz loops (:meth:`follow`); False: every tick through get_observation / send_action.
         self.fast = True
         #: Called as contact_hook(contacts, dt) every ``hook_every`` physics steps with the sponge's
@@ -202,7 +230,7 @@ class SimArm:
         found = self.scene.collision.check(self.step_of())
         if found and self.hit is None and self.collision_faults:
             part, body, depth, x = max(found, key=lambda c: c[2])
-            what = "sponge" if part == "sponge" else part.replace("panda_", "arm's ").replace("link", "link ")
+            what = "sponge" if part == "sponge" else f"arm's {part_label(part)}"
             self.hit = Fault("collision", "retreat", f"the {what} touches the {body} ({1e3 * depth:.0f} mm deep at "
                              f"{fmt_xyz(x)} m); retreating", self.scene.t, {"part": part, "body": body})
 
@@ -243,7 +271,7 @@ class SimArm:
         return f"its {link} is {d * 1e3:.0f} mm from it" if d >= 0 else f"its {link} is {-d * 1e3:.0f} mm inside it"
 
     def _clear(self, q: np.ndarray) -> bool:
-        """The posture ``q`` (7,) keeps the set-up moves' margins (plan.py) from every non-arm body."""
+        """The posture ``q`` (n,) keeps the set-up moves' margins (plan.py) from every non-arm body."""
         self.world.sync()
         return self.world.slack(q) >= 0.0
 
@@ -253,7 +281,7 @@ class SimArm:
         key = T.tobytes()
         if key not in self._ik:
             self.world.sync()
-            self._ik[key] = posture(self.dev._chain, T, np.array(self.cfg.picture_q), self.q_min, self.q_max,
+            self._ik[key] = posture(self.dev._chain, T, self.picture_q, self.q_min, self.q_max,
                                     valid=lambda q: self.world.slack(q) >= 0.0)
         return self._ik[key]
 
@@ -296,13 +324,14 @@ class SimArm:
         if plan is None:
             return Fault("plan", "hold", f"no collision-free move to the hover pose ({err}); holding position", self.t)
         self.plans.append(("hover", plan))
-        self.ctrl = LineForceController(self.cfg.gains, self.cfg.physics_dt, q_rest=q_h, x_ref=self.ctrl.x_ref.copy())
+        self.ctrl = LineForceController(self.gains, self.cfg.physics_dt, q_rest=q_h, x_ref=self.ctrl.x_ref.copy(),
+                                        q_min=self.q_min, q_max=self.q_max)
         self._mode = None
         return self._move_path(plan.path, check)
 
     def to_picture(self, check):
         """The planned move (plan.py) to the picture pose."""
-        plan, err = self._plan_to(np.array(self.cfg.picture_q, dtype=float))
+        plan, err = self._plan_to(self.picture_q)
         if plan is None:
             return Fault("plan", "hold", f"no collision-free move to the picture pose ({err}); holding position", self.t)
         self.plans.append(("picture", plan))
@@ -317,7 +346,7 @@ class SimArm:
         return ok
 
     def _move_path(self, path: np.ndarray, check):
-        """Joint-impedance min-jerk moves along the planned path's straight joint-space segments (m, 7),
+        """Joint-impedance min-jerk moves along the planned path's straight joint-space segments (m, n),
         each at rest at its ends (the reference never leaves the checked segments), then settle."""
         cfg = self.cfg
         QD, DQD = [], []
@@ -335,7 +364,7 @@ class SimArm:
                 QD.append(qd)
                 DQD.append(dqd)
         QD += [np.asarray(path[-1], float)] * int(round(SETTLE_S / self.dt))
-        DQD += [np.zeros(7)] * int(round(SETTLE_S / self.dt))
+        DQD += [np.zeros(self.model.dof)] * int(round(SETTLE_S / self.dt))
         QD, DQD = np.array(QD), np.array(DQD)
         if self.fast:
             return self._joint_fast(QD, DQD)
@@ -412,8 +441,9 @@ class SimArm:
         i, t, io, rd, fault = self._compiled(A, D, np.zeros(0), v_line)
         if i < 0:
             return self.get_observation(), None, None, None
-        st = ArmState(t, io[Kn.IO_Q:Kn.IO_Q + 7].copy(), io[Kn.IO_DQ:Kn.IO_DQ + 7].copy(),
-                      io[Kn.IO_T:Kn.IO_T + 16].reshape(4, 4).copy(), io[Kn.IO_J:Kn.IO_J + 42].reshape(6, 7).copy())
+        n = self.model.dof
+        st = ArmState(t, io[Kn.IO_Q:Kn.IO_Q + n].copy(), io[Kn.IO_DQ:Kn.IO_DQ + n].copy(),
+                      io[Kn.IO_T:Kn.IO_T + 16].reshape(4, 4).copy(), io[Kn.IO_J:Kn.IO_J + 6 * n].reshape(6, n).copy())
         return Observation(st, rd, io[Kn.IO_W:Kn.IO_W + 6].copy()), A[i], D[i], fault
 
     def _joint_fast(self, QD: np.ndarray, DQD: np.ndarray):
@@ -440,7 +470,8 @@ class SimArm:
         joints, mode_torque, sread = sc.arm_joints, p.TORQUE_CONTROL, self.sensor.read
         check_sensor, timeout = g.check_sensor, g.cfg.explorer_timeout
         io = np.zeros(Kn.N_IO)
-        OK, F_FORCE, F_IMPACT, tau_sl = Kn.OK, Kn.F_FORCE, Kn.F_IMPACT, slice(Kn.IO_TAU, Kn.IO_TAU + 7)
+        n = self.model.dof
+        OK, F_FORCE, F_IMPACT, tau_sl = Kn.OK, Kn.F_FORCE, Kn.F_IMPACT, slice(Kn.IO_TAU, Kn.IO_TAU + n)
         fg = g.force_state
         i, t, rd, fault = -1, sc.t, None, None
         for i in range(len(A)):
@@ -457,7 +488,7 @@ class SimArm:
                     fault = g.force_fault(t, code)
                 elif code != OK:
                     v = io[Kn.IO_DIAG + Kn.CD_VEE:Kn.IO_DIAG + Kn.CD_VEE + 3]
-                    fault = g.check_state(t, io[Kn.IO_Q:Kn.IO_Q + 7].copy(), io[Kn.IO_DQ:Kn.IO_DQ + 7].copy(),
+                    fault = g.check_state(t, io[Kn.IO_Q:Kn.IO_Q + n].copy(), io[Kn.IO_DQ:Kn.IO_DQ + n].copy(),
                                           io[Kn.IO_T:Kn.IO_T + 16].reshape(4, 4)[:3, 3].copy(), float(np.sqrt(v @ v)))
                 elif explorer and g._target_t is not None and t - g._target_t > timeout:
                     fault = g.check_explorer(t)
@@ -554,7 +585,7 @@ class RobotRun(ContactRun):
         arm = self.arm
         target = self.target()
         T, self.reachable = plan_reach(arm.dev._chain, self.points, self.normals, target, self._x_down,
-                                       np.array(self.cfg.picture_q), arm.q_min, arm.q_max,
+                                       arm.picture_q, arm.q_min, arm.q_max,
                                        self.T_obj if pose_given else None, self.cfg.hover_height)
         # The ball hangs over an open sheet's border (a partial scan's free edge) and rolls off it.
         border = near_border(SurfaceMesh(transform_points(self._T_mesh_obj, self.mesh.vertices), self.mesh.triangles),

@@ -3,7 +3,7 @@ against the object, the table and the stand.
 
 The physics step keeps one contact pair only, the sponge ball on the object (the tuned contact, and a
 hand hull against the concave trimesh costs 5-10 × a physics step, docs/robot.md). Every other pair is
-*checked*: each part's convex hull (the stock Panda's collision meshes; the ball for the sponge), at
+*checked*: each part's convex hull (the arm's own collision meshes, arms/; the ball for the sponge), at
 its link's pose, against each obstacle body with ``getClosestPoints`` (exact convex-hull distances,
 hulls with Bullet's 1 mm collision margin). A check costs ~20 µs per queried pair, so it is culled and
 paced:
@@ -24,8 +24,6 @@ surface has no thickness: a plate's sheet lies on the stand's top, and pressing 
 
 from __future__ import annotations
 
-import math
-import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -101,14 +99,15 @@ class ArmCollision:
 
     Parameters
     ----------
-    scene : the scene (its client, robot, sponge and link names).
-    data : pybullet_data's folder (the stock Panda's collision meshes).
+    scene : the scene (its client, robot, arm spec, sponge and link names).
+    data : pybullet_data's folder (the arm's collision meshes: ``scene.spec.collision_parts``).
     """
 
     def __init__(self, scene, data: str):
+        from tergodic_cli.backends.pybullet.arms import mesh_vertices
+
         self.scene = scene
         p, cid = scene.p, scene.cid
-        mesh = os.path.join(data, "franka_panda", "meshes", "collision")
         self.parts: list[Part] = []
 
         def add(name, link, shape, verts, pos=(0.0, 0.0, 0.0), rpy=(0.0, 0.0, 0.0), sponge=False):
@@ -120,22 +119,25 @@ class ArmCollision:
             self.parts.append(Part(name, link, shape, np.asarray(pos, float), orn, c,
                                    float(np.max(np.linalg.norm(v - c, axis=1))), sponge))
 
-        def hull(name, link, fname, **kw):
-            path = os.path.join(mesh, fname)
-            add(name, link, p.createCollisionShape(p.GEOM_MESH, fileName=path, physicsClientId=cid),
-                _obj_vertices(path), **kw)
+        base_v = None
+        for name, link, path, pos, rpy in scene.spec.collision_parts(data):
+            V = mesh_vertices(path)
+            j = -1 if link is None else scene.link_index[link]
+            add(name, j, p.createCollisionShape(p.GEOM_MESH, fileName=path, physicsClientId=cid), V, pos=pos, rpy=rpy)
+            if base_v is None:  # the base's piece comes first: its footprint, base frame (it never moves)
+                T = np.eye(4) if j < 0 else scene.link_pose(j)
+                base_v = (V @ _quat_matrix(p.getQuaternionFromEuler(rpy)).T + np.asarray(pos)) @ T[:3, :3].T + T[:3, 3]
+        tool = scene.sponge_link
+        if scene.spec.build is None:  # the generic tool's holder (arms.flange_tool_urdf), on the tool link
+            from tergodic_cli.backends.pybullet.arms import HOLDER_LENGTH, HOLDER_RADIUS
 
-        hull("panda_link0", -1, "link0.obj")
-        for i in range(1, 8):
-            hull(f"panda_link{i}", scene.link_index[f"panda_link{i}"], f"link{i}.obj")
-        hand = scene.link_index["panda_hand"]
-        hull("panda_hand", hand, "hand.obj")
-        # The stock fingers (closed), drawn on the hand: they stand 18 mm short of the sponge ball.
-        hull("panda_leftfinger", hand, "finger.obj", pos=(0.0, 0.0, 0.0584))
-        hull("panda_rightfinger", hand, "finger.obj", pos=(0.0, 0.0, 0.0584), rpy=(0.0, 0.0, math.pi))
+            cyl = p.createCollisionShape(p.GEOM_CYLINDER, radius=HOLDER_RADIUS, height=HOLDER_LENGTH, physicsClientId=cid)
+            r, h = HOLDER_RADIUS, HOLDER_LENGTH / 2
+            add("holder", tool, cyl, np.array([[x, y, z] for x in (-r, r) for y in (-r, r) for z in (-h, h)]),
+                pos=(0.0, 0.0, h))
         s = scene.sponge
         ball = p.createCollisionShape(p.GEOM_SPHERE, radius=s.radius, physicsClientId=cid)
-        add("sponge", hand, ball, s.radius * np.array([[1.0, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]),
+        add("sponge", tool, ball, s.radius * np.array([[1.0, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]),
             pos=(0.0, 0.0, s.offset), sponge=True)
         self._links = sorted({pt.link for pt in self.parts if pt.link >= 0})
         # Per part: its row in link_states (0: the base), bounding ball, and its link's centre of mass
@@ -146,7 +148,6 @@ class ArmCollision:
         self._centre = np.array([pt.centre for pt in self.parts])
         self._radius = np.array([pt.radius for pt in self.parts])
         self._sponge = np.array([pt.sponge for pt in self.parts])
-        base_v = _obj_vertices(os.path.join(mesh, "link0.obj"))
         #: The hole in the table around the base: link0's footprint + BASE_MARGIN.
         self.hole = (base_v[:, :2].min(axis=0) - BASE_MARGIN, base_v[:, :2].max(axis=0) + BASE_MARGIN)
         self.bodies: dict[str, int] = {}
@@ -298,10 +299,11 @@ class ArmCollision:
 
 
     def tool_clearance(self, T_tcp: np.ndarray, clear: float = 0.01) -> np.ndarray:
-        """(n,) whether the hand, its fingers and the sponge, with the TCP at each pose ``T_tcp`` (n, 4, 4) base
-        frame, stay ``clear`` m from every body (the sponge's own contact with the object aside)."""
+        """(n,) whether the tool link's parts (the hand and its fingers, or the holder) and the sponge, with
+        the TCP at each pose ``T_tcp`` (n, 4, 4) base frame, stay ``clear`` m from every body (the sponge's own
+        contact with the object aside)."""
         p, cid = self.scene.p, self.scene.cid
-        hand = self.scene.link_index["panda_hand"]
+        hand = self.scene.sponge_link
         idx = [i for i, pt in enumerate(self.parts) if pt.link == hand]
         off = np.asarray(self.scene.tcp_offset, dtype=float)
         T_tcp = np.asarray(T_tcp, dtype=float)

@@ -13,11 +13,10 @@ from __future__ import annotations
 import numpy as np
 
 from tergodic_cli.errors import require
-from tergodic_cli.robot.ga import motor_inverse
+from tergodic_cli.robot.ga import motor_inverse, quat_to_matrix
 from tergodic_cli.robot.interfaces import ArmState, WrenchReading, WrenchSensor
 from tergodic_cli.robot.kernels import fk_jacobian
-from tergodic_cli.backends.pybullet.scene import ARM_JOINTS, PyBulletScene
-from tergodic_cli.robot.kinematics import DQ_MAX, Q_MAX, Q_MIN, TAU_MAX
+from tergodic_cli.backends.pybullet.scene import PyBulletScene
 
 
 def kinematic_chain(scene: PyBulletScene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -25,7 +24,8 @@ def kinematic_chain(scene: PyBulletScene) -> tuple[np.ndarray, np.ndarray, np.nd
 
     Calibrated on PyBullet itself: with every movable joint at 0, each link frame in its parent's
     (``getLinkState`` link frames; the base link frame is the world origin, where the robot is loaded)
-    is the fixed transform F; the joint rotates the child about ``jointAxis`` (its own frame). The
+    is the fixed transform F; the joint rotates the child about ``jointAxis`` (its own frame; PyBullet
+    reports it in the child's inertial frame, turned back here). The
     joint states are restored afterwards.
     """
     p, cid, rob = scene.p, scene.cid, scene.robot
@@ -41,7 +41,10 @@ def kinematic_chain(scene: PyBulletScene) -> tuple[np.ndarray, np.ndarray, np.nd
             F.append(np.linalg.solve(T_prev, T))
             info = p.getJointInfo(rob, link, physicsClientId=cid)
             movable = info[2] != p.JOINT_FIXED
-            ax = np.array(info[13], dtype=float)
+            # PyBullet gives the axis in the link's inertial frame, which it turns to the principal axes of
+            # a URDF's full inertia tensor (the xArm's): back into the link frame.
+            R_in = quat_to_matrix(p.getDynamicsInfo(rob, link, physicsClientId=cid)[4])
+            ax = R_in @ np.array(info[13], dtype=float)
             axis.append(ax / np.linalg.norm(ax) if movable else np.array([0.0, 0.0, 1.0]))
             qidx.append(scene.movable.index(link) if movable else -1)
             T_prev = T
@@ -53,14 +56,16 @@ def kinematic_chain(scene: PyBulletScene) -> tuple[np.ndarray, np.ndarray, np.nd
 
 
 class PyBulletArm:
-    """The simulated Panda behind the :class:`Arm` protocol (7 torque-controlled joints)."""
-
-    name = "panda-pybullet"
+    """The scene's arm behind the :class:`Arm` protocol (its model's n torque-controlled joints)."""
 
     def __init__(self, scene: PyBulletScene):
         self.scene = scene
-        self.joint_names = list(ARM_JOINTS)
-        self.q_min, self.q_max, self.dq_max, self.tau_max = Q_MIN.copy(), Q_MAX.copy(), DQ_MAX.copy(), TAU_MAX.copy()
+        #: The arm as the robot layer knows it (DoF, limits, chain: read from its URDF).
+        self.model = model = scene.arm_model()
+        self.name = f"{model.name}-pybullet"
+        self.joint_names = list(model.joint_names)
+        self.q_min, self.q_max, self.dq_max, self.tau_max = (model.q_min.copy(), model.q_max.copy(),
+                                                             model.dq_max.copy(), model.tau_max.copy())
         self._connected = False
         self._read_idx = scene.movable + [scene.sensor_joint]
         self._zeros = [0.0] * len(scene.movable)
@@ -68,14 +73,14 @@ class PyBulletArm:
         self._dq9: list[float] | None = None
         self.reaction: tuple | None = None  # the sensor joint's reaction, cached per step
         self.reaction_step = -1
-        self.last_tau = [0.0] * 7  # total torque sent (task + compensation)
+        self.last_tau = [0.0] * model.dof  # total torque sent (task + compensation)
         self._tau_lim = self.tau_max.tolist()
         #: Gravity + Coriolis (calculateInverseDynamics) every this many commands (1 = every step).
         self.dynamics_every = 1
         self._bias: tuple | None = None
         self._bias_age = 0
         self._bias_epoch = -1
-        self._chain = kinematic_chain(scene)
+        self._chain = model.chain
 
     @property
     def is_connected(self) -> bool:
@@ -92,12 +97,12 @@ class PyBulletArm:
         states = p.getJointStates(rob, self._read_idx, physicsClientId=cid)
         self._q9, self._dq9 = [s[0] for s in states[:-1]], [s[1] for s in states[:-1]]
         self.reaction, self.reaction_step = states[-1][2], sc.steps  # the sensor joint's
-        q, T, J = np.array(self._q9), np.empty((4, 4)), np.empty((6, 7))
+        q, T, J = np.array(self._q9), np.empty((4, 4)), np.empty((6, len(self._q9)))
         fk_jacobian(q, *self._chain, T, J)
         return ArmState(sc.t, q, np.array(self._dq9), T, J)
 
     def command(self, tau: np.ndarray) -> None:
-        """Joint torques (7,) on top of gravity + Coriolis from ``calculateInverseDynamics``.
+        """Joint torques (n,) on top of gravity + Coriolis from ``calculateInverseDynamics``.
 
         TORQUE_CONTROL is not sticky in PyBullet: call this every physics step.
         """
@@ -129,7 +134,7 @@ class PyBulletArm:
         """Leave the joints braked (velocity motors back on) and mark the arm disconnected."""
         if self.is_connected:
             sc = self.scene
-            sc.p.setJointMotorControlArray(sc.robot, sc.arm_joints, sc.p.VELOCITY_CONTROL, targetVelocities=[0.0] * 7,
+            sc.p.setJointMotorControlArray(sc.robot, sc.arm_joints, sc.p.VELOCITY_CONTROL, targetVelocities=[0.0] * len(sc.arm_joints),
                                            forces=self.tau_max.tolist(), physicsClientId=sc.cid)
         self._connected = False
 

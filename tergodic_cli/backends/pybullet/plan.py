@@ -5,21 +5,21 @@ moves through free space. A straight joint-space line between two postures can s
 the sponge through the object (issue 24: 42 N on a duck, 103 N on a bowl placed high), so every
 such move is planned and checked before it starts:
 
-- :class:`CollisionWorld`: a second PyBullet client (DIRECT) holding the Panda with a collision
-  shape on every link (the hand's hull, both fingers, the sponge ball as a link of its own) and a
+- :class:`CollisionWorld`: a second PyBullet client (DIRECT) holding the arm with a collision
+  shape on every link (the tool link's pieces, the sponge ball as a link of its own) and a
   copy of **every body of the physics scene but the arm** (the object; a table or stand as soon
   as the scene has one), their poses synchronised before each plan. The physics scene is never
   touched: no state to save or restore, nothing a run could notice.
 - A posture is *clear* when every arm link stays :data:`LINK_MARGIN` from every obstacle and the
   sponge ball :data:`SPONGE_MARGIN` (the ball's only business near the object is the final approach,
   which runs along the surface normal and is not planned here), and the hand and the ball stay
-  :data:`SELF_MARGIN` off the base and link 1 (self-collision).
+  :data:`SELF_MARGIN` off the base and the first moving link (self-collision).
 - :func:`plan_path`: the straight joint-space line when it is clear, else OMPL's RRTConnect in the
-  7-D joint box (the guard's limits) with the margins + :data:`PLAN_SLACK` as the state validity
+  n-D joint box (the guard's limits) with the margins + :data:`PLAN_SLACK` as the state validity
   checker (motions checked every :data:`CHECK_STEP` rad), OMPL's path simplifier (shortcuts, B-spline
   smoothing). Lines and planned paths are then certified by conservative advancement
   (:meth:`CollisionWorld.segment_slack`): from a posture whose clearance beats the margin by e, the
-  next check is e / sum_i |dq_i| R_i further on (:data:`REACH_BOUND`), so no point of the arm can
+  next check is e / sum_i |dq_i| R_i further on (the arm module's ``reach_bound``), so no point of the arm can
   come nearer than the margin between two checks (steps never below :data:`DENSE_STEP`).
 - :func:`retreat_clear`: a retreat (the tool backing off along its axis) stops where an arm link would
   come closer to a body than it started.
@@ -55,10 +55,6 @@ DENSE_STEP = 0.0025
 #: link's hull against a trimesh costs more the more triangles lie within reach: the duck's move to
 #: hover, certified, took 32 ms at 0.02 (147 checks), 246 ms at 0.05 (64), 1.8 s at 0.08 (51).
 PROBE = 0.02
-#: Metres: an upper bound on the distance of any point of the arm and tool from joint i's axis
-#: (link lengths of the Panda from its datasheet, + the hand's and hulls' half widths, + the tool):
-#: a joint step dq moves no point further than sum_i |dq_i| R_i.
-REACH_BOUND = np.array([1.2, 1.2, 0.9, 0.9, 0.5, 0.5, 0.2])
 #: Seconds OMPL may search for one move (the bowl at z = 0.6 m: 1.7 s in all, simplification and
 #: certification included, on a loaded machine; a straight line is certified in tens of ms).
 PLAN_TIME_S = 1.5
@@ -76,56 +72,73 @@ END_FLOOR = 0.003
 _GEOM_SPHERE, _GEOM_BOX, _GEOM_CYLINDER, _GEOM_MESH, _GEOM_PLANE, _GEOM_CAPSULE = 2, 3, 4, 5, 6, 7
 
 
-def hull_meshes(data: str, out: str) -> None:
-    """The stock Panda's collision meshes (pybullet_data) written to ``out`` as their convex hulls' vertices
-    only: PyBullet hulls an .obj's every vertex (links 4-7: 600-966), and its distance queries walk them
-    all; the hull's own vertices (102-260) give the same shape at 3-4 times less cost per query."""
+def hull_meshes(text: str, out: str) -> str:
+    """The URDF ``text`` with every collision mesh replaced by its convex hull's vertices only, written to
+    ``out``: PyBullet hulls a mesh's every vertex (the Panda's links 4-7: 600-966), and its distance
+    queries walk them all; the hull's own vertices (102-260) give the same shape at 3-4 times less cost
+    per query."""
     from scipy.spatial import ConvexHull
 
-    src = os.path.join(data, "franka_panda", "meshes", "collision")
-    for name in sorted(os.listdir(src)):
-        if name.endswith(".obj"):
-            with open(os.path.join(src, name)) as fh:
-                V = np.array([[float(x) for x in ln.split()[1:4]] for ln in fh if ln.startswith("v ")])
-            hull = ConvexHull(V)
-            keep = np.sort(hull.vertices)
-            faces = np.searchsorted(keep, hull.simplices) + 1  # 1-based, into the kept vertices
-            with open(os.path.join(out, name), "w") as fh:
+    from tergodic_cli.backends.pybullet.arms import mesh_vertices
+
+    done: dict[str, str] = {}
+
+    def hull(m):
+        src = m.group(1)
+        if src not in done:
+            V = mesh_vertices(src)
+            h = ConvexHull(V)
+            keep = np.sort(h.vertices)
+            faces = np.searchsorted(keep, h.simplices) + 1  # 1-based, into the kept vertices
+            dst = os.path.join(out, f"{len(done)}_{os.path.splitext(os.path.basename(src))[0]}.obj")
+            with open(dst, "w") as fh:
                 fh.writelines(f"v {x:.7f} {y:.7f} {z:.7f}\n" for x, y, z in V[keep])
                 fh.writelines(f"f {a} {b} {c}\n" for a, b, c in faces)
+            done[src] = dst
+        return f'<mesh filename="{done[src]}"'
+
+    def per_collision(m):
+        return re.sub(r'<mesh filename="([^"]+)"', hull, m.group(0))
+
+    return re.sub(r"<collision>.*?</collision>", per_collision, text, flags=re.S)
 
 
-def checking_urdf(data: str, sponge, meshes: str) -> str:
-    """The simulated Panda (:func:`~tergodic_cli.backends.pybullet.scene.panda_sponge_urdf`) with a
-    collision shape on every link: the stock hulls of links 0-7 (from ``meshes``, :func:`hull_meshes`),
-    the hand's hull and both fingers on the hand, and the sponge ball as a link of its own
-    (``sponge_ball``, fixed to the hand) so it keeps its own margin. Kinematics unchanged."""
-    from tergodic_cli.backends.pybullet.scene import panda_sponge_urdf
+def checking_urdf(spec, data: str, sponge, meshes: str) -> str:
+    """The simulated arm (``spec``: :class:`~tergodic_cli.backends.pybullet.arms.ArmSpec`, its URDF with
+    the sponge tool) with a collision shape on every link: the arm's own collision meshes as their hulls
+    (written to ``meshes``, :func:`hull_meshes`), the tool link's pieces (the Panda's hand and fingers, a
+    generic tool's holder), and the sponge ball as a link of its own (``sponge_ball``, fixed to the tool
+    link) so it keeps its own margin. Kinematics unchanged."""
+    from tergodic_cli.backends.pybullet.arms import HOLDER_LENGTH, HOLDER_RADIUS
 
-    text = panda_sponge_urdf(data, sponge, arm_collision=True)
-    text = text.replace(os.path.join(data, "franka_panda", "meshes", "collision"), meshes)
-    i0 = text.index('<link name="panda_hand">')
+    text = spec.urdf_text(data, sponge, arm_collision=True)
+    tool = spec.tool_link
+    i0 = text.index(f'<link name="{tool}">')
     i1 = text.index("</link>", i0)
-    hand = re.sub(r"<collision>.*?</collision>", "", text[i0:i1], flags=re.S)
-    hand += (f'<collision><origin rpy="0 0 0" xyz="0 0 0"/><geometry><mesh filename="{meshes}/hand.obj"/></geometry></collision>'
-             f'<collision><origin rpy="0 0 0" xyz="0 0 0.0584"/><geometry><mesh filename="{meshes}/finger.obj"/></geometry></collision>'
-             f'<collision><origin rpy="0 0 3.14159265359" xyz="0 0 0.0584"/><geometry><mesh filename="{meshes}/finger.obj"/>'
-             "</geometry></collision>")
+    pieces = []
+    for _name, link, path, pos, rpy in spec.collision_parts(data):
+        if link == tool:
+            pieces.append(f'<collision><origin rpy="{rpy[0]} {rpy[1]} {rpy[2]}" xyz="{pos[0]} {pos[1]} {pos[2]}"/>'
+                          f'<geometry><mesh filename="{path}"/></geometry></collision>')
+    if spec.build is None:  # the generic tool's holder (arms.flange_tool_urdf)
+        pieces.append(f'<collision><origin rpy="0 0 0" xyz="0 0 {HOLDER_LENGTH / 2}"/><geometry><cylinder '
+                      f'radius="{HOLDER_RADIUS}" length="{HOLDER_LENGTH}"/></geometry></collision>')
+    hand = re.sub(r"<collision>.*?</collision>", "", text[i0:i1], flags=re.S) + "".join(pieces)
     ball = (f'<link name="sponge_ball"><inertial><origin rpy="0 0 0" xyz="0 0 0"/><mass value="0.01"/>'
             f'<inertia ixx="1e-6" ixy="0" ixz="0" iyy="1e-6" iyz="0" izz="1e-6"/></inertial>'
             f'<collision><origin rpy="0 0 0" xyz="0 0 {sponge.offset}"/><geometry><sphere radius="{sponge.radius}"/>'
             '</geometry></collision></link>'
-            '<joint name="sponge_ball_joint" type="fixed"><parent link="panda_hand"/><child link="sponge_ball"/>'
+            f'<joint name="sponge_ball_joint" type="fixed"><parent link="{tool}"/><child link="sponge_ball"/>'
             '<origin rpy="0 0 0" xyz="0 0 0"/></joint>')
     text = text[:i0] + hand + text[i1:]
-    return text.replace("</robot>", ball + "</robot>")
+    return hull_meshes(text.replace("</robot>", ball + "</robot>"), meshes)
 
 
 @dataclass
 class Plan:
     """A checked joint-space path.
 
-    path : (m, 7) postures (rad), first the start, last the goal; straight lines between them.
+    path : (m, n) postures (rad), first the start, last the goal; straight lines between them.
     clearance : m, the smallest obstacle distance minus its margin over the dense re-check (>= 0 when
         the margins hold; a relaxed end, see :data:`END_FLOOR`, can make it negative down to its floor).
     planner : "straight" or "RRTConnect". seconds : wall time spent planning.
@@ -144,9 +157,15 @@ class CollisionWorld:
     ----------
     scene : the :class:`~tergodic_cli.backends.pybullet.scene.PyBulletScene` whose non-arm bodies are
         the obstacles (None: an empty world, add obstacles with :meth:`add_box`).
+    sponge : the tool's :class:`SpongeSpec` (default: the scene's). arm : the arm's name or spec (default:
+        the scene's, else "panda").
+
+    ``reach_bound`` (n,), m: an upper bound on the distance of any point of the arm and tool from joint
+    i's axis (the arm's module): a joint step dq moves no point further than sum_i |dq_i| R_i.
     """
 
-    def __init__(self, scene=None, sponge=None):
+    def __init__(self, scene=None, sponge=None, arm=None):
+        from tergodic_cli.backends.pybullet.arms import ArmSpec, get_arm
         from tergodic_cli.backends.pybullet.camera import quiet_native_output
         from tergodic_cli.robot.config import SpongeSpec
 
@@ -157,25 +176,29 @@ class CollisionWorld:
         self.p = p
         self.cid = p.connect(p.DIRECT)
         self.sponge = sponge or (scene.sponge if scene is not None else SpongeSpec())
+        spec = arm if isinstance(arm, ArmSpec) else get_arm(arm) if arm else scene.spec if scene is not None \
+            else get_arm("panda")
+        self.spec = spec
+        self.reach_bound = np.asarray(spec.reach_bound, dtype=float)
         with tempfile.TemporaryDirectory(prefix="tergodic_check_") as tmp:
-            hull_meshes(pybullet_data.getDataPath(), tmp)
-            path = os.path.join(tmp, "panda.urdf")
+            path = os.path.join(tmp, "arm.urdf")
             with open(path, "w") as fh:
-                fh.write(checking_urdf(pybullet_data.getDataPath(), self.sponge, tmp))
+                fh.write(checking_urdf(spec, pybullet_data.getDataPath(), self.sponge, tmp))
             self.robot = p.loadURDF(path, useFixedBase=True, physicsClientId=self.cid)
         n = p.getNumJoints(self.robot, physicsClientId=self.cid)
         infos = [p.getJointInfo(self.robot, j, physicsClientId=self.cid) for j in range(n)]
         names = {info[1].decode(): j for j, info in enumerate(infos)}
         links = {info[12].decode(): j for j, info in enumerate(infos)}
-        from tergodic_cli.backends.pybullet.scene import ARM_JOINTS
-
-        self.joints = [names[j] for j in ARM_JOINTS]
+        self.joints = [names[j] for j in spec.joints]
         self.ball = links["sponge_ball"]
         #: (n_links + 1,) margin per link index + 1 (index 0: the base, link0, which never moves: not checked).
         self.margin = np.full(n + 1, LINK_MARGIN)
         self.margin[self.ball + 1] = SPONGE_MARGIN
-        distal = [links["panda_hand"], self.ball]
-        proximal = [-1, links["panda_link1"]]
+        # Links fixed to the base (the xArm's link_base behind its world joint) never move: like the base
+        # itself (index -1), not checked (the table's hole is their footprint).
+        self.margin[[j + 1 for j in range(n) if not set(self._chain(j, infos)) & set(self.joints)]] = -np.inf
+        distal = [links[spec.tool_link], self.ball]
+        proximal = [-1, self.joints[0]]  # the base and the first moving link
         self.self_pairs = [(a, b) for a in distal for b in proximal]
         self.obstacles: dict[tuple[int, int], int] = {}  # (scene body, link) -> our body
         self.extra: list[int] = []  # bodies added here only (tests, a planning table)
@@ -183,6 +206,15 @@ class CollisionWorld:
         self.checks = 0
         if scene is not None:
             self.sync()
+
+    @staticmethod
+    def _chain(j: int, infos) -> list[int]:
+        """Link ``j`` and its ancestors (joint infos' parent indices)."""
+        out = []
+        while j >= 0:
+            out.append(j)
+            j = infos[j][16]
+        return out
 
     # ------------------------------------------------------------------ obstacles
     def sync(self) -> None:
@@ -268,7 +300,7 @@ class CollisionWorld:
 
     def slack(self, q: np.ndarray, reach: float = 0.0, ball: bool = True) -> float:
         """Metres: the smallest (distance - margin) over every arm link against every obstacle, and the
-        self-collision pairs against :data:`SELF_MARGIN`, at the posture ``q`` (7,). Only distances up to
+        self-collision pairs against :data:`SELF_MARGIN`, at the posture ``q`` (n,). Only distances up to
         the margins + ``reach`` are looked at; beyond that it returns ``reach`` (clear by at least that).
         ``ball`` False: the sponge ball against the obstacles is left out."""
         p, cid, rob = self.p, self.cid, self.robot
@@ -288,24 +320,24 @@ class CollisionWorld:
         return best
 
     def clearance(self, q: np.ndarray, upto: float = 0.06) -> tuple[float, str]:
-        """(m, which link): the smallest distance of any arm link to any obstacle at ``q`` (7,), up to ``upto``
+        """(m, which link): the smallest distance of any arm link to any obstacle at ``q`` (n,), up to ``upto``
         (beyond: (upto, "")). A far reach costs: a hull against a trimesh walks every triangle in reach."""
         p, cid, rob = self.p, self.cid, self.robot
         self.set_q(q)
         best, which = upto, ""
         for b in self.bodies():
             for c in p.getClosestPoints(rob, b, upto, physicsClientId=cid):
-                if c[3] >= 0 and c[8] < best:
+                if c[3] >= 0 and np.isfinite(self.margin[c[3] + 1]) and c[8] < best:
                     best, which = c[8], p.getJointInfo(rob, c[3], physicsClientId=cid)[12].decode()
         return best, which
 
     def segment_slack(self, q0: np.ndarray, q1: np.ndarray, need: float = 0.0, step: float | None = None) -> float:
-        """The smallest :meth:`slack` along the straight joint-space segment ``q0`` -> ``q1`` (7,), or a value
+        """The smallest :meth:`slack` along the straight joint-space segment ``q0`` -> ``q1`` (n,), or a value
         below ``need`` as soon as one posture falls below it.
 
         ``step`` (rad, largest joint): check postures that far apart, ends included. None: certified
         steps (conservative advancement): from a posture whose slack exceeds ``need`` by e, the next is
-        e / sum_i |dq_i| R_i further on (:data:`REACH_BOUND`), so no point of the arm can have come
+        e / sum_i |dq_i| R_i further on (the arm module's ``reach_bound``), so no point of the arm can have come
         closer than ``need`` in between; never shorter than :data:`DENSE_STEP`.
         """
         q0, q1 = np.asarray(q0, float), np.asarray(q1, float)
@@ -319,7 +351,7 @@ class CollisionWorld:
                 if worst < need:
                     break
             return worst
-        rate = float(np.abs(dq) @ REACH_BOUND)  # m of arm motion per unit of the segment's parameter, at most
+        rate = float(np.abs(dq) @ self.reach_bound)  # m of arm motion per unit of the segment's parameter, at most
         t_min = DENSE_STEP / span if span > 0 else 1.0
         t, worst = 0.0, math.inf
         while True:
@@ -330,7 +362,7 @@ class CollisionWorld:
             t = min(1.0, t + max(t_min, (sl - need) / rate if rate > 0 else 1.0))
 
     def path_slack(self, path: np.ndarray, need: float = 0.0, step: float | None = None) -> float:
-        """The smallest :meth:`segment_slack` over the straight joint-space segments of ``path`` (m, 7)."""
+        """The smallest :meth:`segment_slack` over the straight joint-space segments of ``path`` (m, n)."""
         return min(self.segment_slack(a, b, need, step) for a, b in zip(path[:-1], path[1:]))
 
     def close(self) -> None:
@@ -342,7 +374,7 @@ class CollisionWorld:
 
 def plan_path(world: CollisionWorld, q0: np.ndarray, q1: np.ndarray, q_lo: np.ndarray, q_hi: np.ndarray,
               seed: int = 0, time_s: float = PLAN_TIME_S) -> tuple[Plan | None, str | None]:
-    """A checked joint-space path from ``q0`` to ``q1`` (7,) inside the joint box [q_lo, q_hi] (7,).
+    """A checked joint-space path from ``q0`` to ``q1`` (n,) inside the joint box [q_lo, q_hi] (n,).
 
     The straight line when it keeps the margins (certified, :meth:`CollisionWorld.segment_slack`); else
     OMPL's RRTConnect with the margins + :data:`PLAN_SLACK` as its validity check (every
@@ -376,26 +408,27 @@ def plan_path(world: CollisionWorld, q0: np.ndarray, q1: np.ndarray, q_lo: np.nd
 
 
 def _rrt_connect(world, q0, q1, lo, hi, valid, seed: int, time_s: float):
-    """OMPL RRTConnect in the joint box [lo, hi] (7,) with ``valid(q)`` as its state validity checker.
-    Returns the simplified path (m, 7) or None."""
+    """OMPL RRTConnect in the joint box [lo, hi] (n,) with ``valid(q)`` as its state validity checker.
+    Returns the simplified path (m, n) or None."""
     from ompl import base as ob, geometric as og, util as ou
 
     ou.setLogLevel(ou.LOG_NONE)
     with suppress(Exception):
         ou.RNG.setSeed(int(seed) + 1)  # OMPL takes the global seed once per process, before its first use
-    space = ob.RealVectorStateSpace(7)
-    bounds = ob.RealVectorBounds(7)
-    for i in range(7):
+    n = len(q0)
+    space = ob.RealVectorStateSpace(n)
+    bounds = ob.RealVectorBounds(n)
+    for i in range(n):
         bounds.setLow(i, float(lo[i]))
         bounds.setHigh(i, float(hi[i]))
     space.setBounds(bounds)
     ss = og.SimpleSetup(space)
-    ss.setStateValidityChecker(lambda st: bool(valid(np.array([st[i] for i in range(7)]))))
+    ss.setStateValidityChecker(lambda st: bool(valid(np.array([st[i] for i in range(n)]))))
     si = ss.getSpaceInformation()
     # OMPL checks motions every fraction × the space's extent: make that CHECK_STEP rad.
     si.setStateValidityCheckingResolution(CHECK_STEP / space.getMaximumExtent())
     start, goal = space.allocState(), space.allocState()
-    for i in range(7):
+    for i in range(n):
         start[i], goal[i] = float(q0[i]), float(q1[i])
     ss.setStartAndGoalStates(start, goal)
     ss.setPlanner(og.RRTConnect(si))
@@ -405,20 +438,20 @@ def _rrt_connect(world, q0, q1, lo, hi, valid, seed: int, time_s: float):
             return None
         ss.simplifySolution(SIMPLIFY_TIME_S)
         sol = ss.getSolutionPath()
-        return np.array([[sol.getState(k)[i] for i in range(7)] for k in range(sol.getStateCount())])
+        return np.array([[sol.getState(k)[i] for i in range(n)] for k in range(sol.getStateCount())])
     finally:
         del ss, si, space, bounds, start, goal  # nanobind: release OMPL's objects before interpreter exit
 
 
 def retreat_postures(chain, q0: np.ndarray, d: np.ndarray, distance: float, step: float = RETREAT_STEP) -> np.ndarray:
-    """(k + 1, 7) postures backing the TCP off along ``-d`` (unit (3,), the tool axis) by up to ``distance``
-    m from ``q0`` (7,), orientation held, every ``step`` m: resolved-rate steps on the compiled chain
+    """(k + 1, n) postures backing the TCP off along ``-d`` (unit (3,), the tool axis) by up to ``distance``
+    m from ``q0`` (n,), orientation held, every ``step`` m: resolved-rate steps on the compiled chain
     (:func:`~tergodic_cli.robot.kernels.fk_jacobian`; a few µs each), one posture per step."""
     from tergodic_cli.robot.kernels import fk_jacobian
 
     F, axis, qidx, off = chain
-    T, J = np.empty((4, 4)), np.empty((6, 7))
     q = np.asarray(q0, dtype=float).copy()
+    T, J = np.empty((4, 4)), np.empty((6, len(q)))
     fk_jacobian(q, F, axis, qidx, off, T, J)
     p0, R0 = T[:3, 3].copy(), T[:3, :3].copy()
     out = [q.copy()]

@@ -1,4 +1,4 @@
-"""The PyBullet world: a Franka Panda with a sponge tool and a wrist F/T sensor, a table, an object.
+"""The PyBullet world: an arm (``--arm``, arms/) with a sponge tool and a wrist F/T sensor, a table, an object.
 
 Known PyBullet traps handled here:
 
@@ -7,111 +7,35 @@ Known PyBullet traps handled here:
 - links get a default linear/angular damping that no model knows about: set to zero;
 - ``calculateJacobian`` and ``calculateInverseDynamics`` need numDoF-sized inputs (every
   non-fixed joint, fingers included when a gripper is loaded; here the sponge replaces it);
-- the hand joint's reaction (the F/T sensor) is reported in the hand's *inertial* frame,
-  moment about the hand's centre of mass, not about the joint.
+- joint damping from a URDF's ``<dynamics>`` is applied by PyBullet: set to zero;
+- the sensor joint's reaction (the F/T sensor) is reported in the tool link's *inertial* frame,
+  moment about the tool's centre of mass, not about the joint.
 """
 
 from __future__ import annotations
 
 import math
 import os
-import re
 import tempfile
 from contextlib import suppress
 
 import numpy as np
 
 from tergodic_cli.errors import TergodicError, require
+from tergodic_cli.backends.pybullet.arms import ArmSpec, get_arm
 from tergodic_cli.robot.config import SpongeSpec
 from tergodic_cli.robot.ga import matrix_to_quat, pose_matrix, quat_to_matrix
 from tergodic_cli.robot.interfaces import ToolLoad
-
-ARM_JOINTS = tuple(f"panda_joint{i}" for i in range(1, 8))
-SENSOR_JOINT = "panda_hand_joint"  # fixed joint flange -> hand: the wrist F/T sensor
-#: The link carrying the sponge ball (part of the hand: see :func:`_hand_with_sponge`).
-SPONGE_LINK = "panda_hand"
-
-
-#: The stock hand's inertial (panda.urdf): 0.81 kg, centre of mass 40 mm along the hand's z.
-_HAND_MASS, _HAND_COM_Z, _HAND_INERTIA = 0.81, 0.04, 0.1
-_HAND_INERTIAL = r'<inertial>\s*<origin rpy="0 0 0" xyz="0 0 0.04"/>\s*<mass value=".81"/>\s*' \
-                 r'<inertia ixx="0.1" ixy="0" ixz="0" iyy="0.1" iyz="0" izz="0.1"/>\s*</inertial>'
-
-
-def _hand_with_sponge(spec: SpongeSpec) -> tuple[str, str, str]:
-    """(inertial, visual, collision) URDF of the hand carrying the sponge ball as one rigid link.
-
-    The ball is part of the hand link, not a link of its own behind a fixed joint: PyBullet's
-    Featherstone solver walks every link of the chain for each contact row and in the
-    articulated-body passes, fixed links included: one link fewer saves a few per cent of a tick
-    in contact (docs/robot.md, "Timing"). Mass, centre of mass and inertia are the two bodies combined (parallel axes); the
-    only collision shape of the hand is the ball (the hand's hull touched nothing: only the
-    sponge may touch the object).
-    """
-    m = _HAND_MASS + spec.mass
-    cz = (_HAND_MASS * _HAND_COM_Z + spec.mass * spec.offset) / m
-    i_s = 0.4 * spec.mass * spec.radius ** 2  # solid ball
-    ixx = _HAND_INERTIA + _HAND_MASS * (_HAND_COM_Z - cz) ** 2 + i_s + spec.mass * (spec.offset - cz) ** 2
-    izz = _HAND_INERTIA + i_s
-    inertial = (f'<inertial><origin rpy="0 0 0" xyz="0 0 {cz:.9f}"/><mass value="{m:.9f}"/>'
-                f'<inertia ixx="{ixx:.9f}" ixy="0" ixz="0" iyy="{ixx:.9f}" iyz="0" izz="{izz:.9f}"/></inertial>')
-    ball = f'<origin rpy="0 0 0" xyz="0 0 {spec.offset}"/><geometry><sphere radius="{spec.radius}"/></geometry>'
-    visual = f'<visual>{ball}<material name="sponge_yellow"><color rgba="0.95 0.8 0.2 1"/></material></visual>'
-    return inertial, visual, f"<collision>{ball}</collision>"
-
-
-_FINGER_VISUALS = """
-    <visual><origin rpy="0 0 0" xyz="0 0 0.0584"/><geometry><mesh filename="{m}/visual/finger.obj"/></geometry>
-      <material name="panda_white"/></visual>
-    <visual><origin rpy="0 0 3.14159265359" xyz="0 0 0.0584"/><geometry><mesh filename="{m}/visual/finger.obj"/></geometry>
-      <material name="panda_white"/></visual>
-"""
-
-
-def panda_sponge_urdf(data: str, sponge: SpongeSpec, arm_collision: bool = True) -> str:
-    """The stock ``franka_panda/panda.urdf`` with the gripper replaced by the sponge tool.
-
-    The paper's sponge sits on the F/T sensor at the flange (V): the fingers become visuals of
-    the hand, and the massless helper links (panda_link8, panda_grasptarget) are folded into the
-    fixed hand joint, which stays as the F/T sensor (flange -> hand, rotated -45° about z). Five
-    fewer links make each physics step ~15 % cheaper; the kinematics to the flange are untouched.
-    """
-    meshes = os.path.join(data, "franka_panda", "meshes")
-    with open(os.path.join(data, "franka_panda", "panda.urdf")) as fh:
-        text = fh.read()
-    text = text.replace("package://meshes/", meshes + "/")
-    for pattern in (r'<link name="panda_leftfinger">.*?</link>', r'<link name="panda_rightfinger">.*?</link>',
-                    r'<joint name="panda_finger_joint1".*?</joint>', r'<joint name="panda_finger_joint2".*?</joint>',
-                    r'<link name="panda_grasptarget">.*?</link>', r'<joint name="panda_grasptarget_hand".*?</joint>',
-                    r'<joint name="panda_joint8".*?</joint>', r'<link name="panda_link8"\s*/>',
-                    r'<link name="panda_link8">.*?</link>'):
-        text = re.sub(pattern, "", text, flags=re.S)
-    hand = ('<parent link="panda_link8"/>\n    <child link="panda_hand"/>\n'
-            '    <origin rpy="0 0 -0.785398163397" xyz="0 0 0"/>')
-    require(hand in text and "panda_leftfinger" not in text, "pybullet_data's panda.urdf is not the expected file", "use pybullet 3.2.7")
-    text = text.replace(hand, '<parent link="panda_link7"/>\n    <child link="panda_hand"/>\n'
-                              '    <origin rpy="0 0 -0.785398163397" xyz="0 0 0.107"/>')
-    i0, i1 = text.index('<link name="panda_hand">'), text.index("</link>", text.index('<link name="panda_hand">'))
-    hand_link = text[i0:i1]
-    inertial, sponge_visual, sponge_collision = _hand_with_sponge(sponge)
-    hand_link, n_in = re.subn(_HAND_INERTIAL, inertial, hand_link)
-    hand_link, n_col = re.subn(r"<collision>.*?</collision>", sponge_collision, hand_link, flags=re.S)
-    require(n_in == 1 and n_col == 1, "pybullet_data's panda.urdf is not the expected file", "use pybullet 3.2.7")
-    hand_link = re.sub(r"(</visual>)", lambda m: m.group(1) + _FINGER_VISUALS.format(m=meshes) + sponge_visual,
-                       hand_link, count=1)
-    text = text[:i0] + hand_link + text[i1:]
-    if not arm_collision:  # only the sponge has a collision shape
-        text = re.sub(r"<collision>.*?</collision>", "", text[:i0], flags=re.S) + text[i0:]
-    return text
-
+from tergodic_cli.robot.model import ArmModel
 
 class PyBulletScene:
-    """One PyBullet client holding the Panda, an optional table and an optional object.
+    """One PyBullet client holding the arm, an optional table and an optional object.
 
     Parameters
     ----------
     sponge : :class:`SpongeSpec`.
     gui : open the PyBullet GUI instead of DIRECT.
+    arm : the arm's name in :data:`~tergodic_cli.backends.pybullet.arms.ARMS` (or its :class:`ArmSpec`).
 
     The table (top at z = 0, a hole for the base) and, under a lifted object, a stand are bodies of
     every scene; they and the object are checked against every arm part (:attr:`collision`,
@@ -122,7 +46,7 @@ class PyBulletScene:
     """
 
     def __init__(self, sponge: SpongeSpec | None = None, gui: bool = False, dt: float = 1e-3,
-                 solver_iterations: int = 10):
+                 solver_iterations: int = 10, arm: str | ArmSpec = "panda"):
         from tergodic_cli.backends.pybullet.camera import quiet_native_output
 
         with quiet_native_output():  # PyBullet's build banner, printed from C at import
@@ -131,6 +55,7 @@ class PyBulletScene:
 
         self.p = p
         self.sponge = sponge or SpongeSpec()
+        self.spec = arm if isinstance(arm, ArmSpec) else get_arm(arm)
         self.dt = float(dt)
         self.gui = bool(gui)
         if self.gui:
@@ -166,32 +91,36 @@ class PyBulletScene:
     # ------------------------------------------------------------------ robot
     def _load_robot(self, data: str) -> int:
         p, cid = self.p, self.cid
-        fd, path = tempfile.mkstemp(suffix=".urdf", prefix="tergodic_panda_")
+        spec = self.spec
+        fd, path = tempfile.mkstemp(suffix=".urdf", prefix=f"tergodic_{spec.name}_")
         try:
             with os.fdopen(fd, "w") as fh:
-                fh.write(panda_sponge_urdf(data, self.sponge, arm_collision=False))
+                fh.write(spec.urdf_text(data, self.sponge, arm_collision=False))
             robot = p.loadURDF(path, useFixedBase=True, flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=cid)
         finally:
             os.unlink(path)
         n = p.getNumJoints(robot, physicsClientId=cid)
         infos = [p.getJointInfo(robot, j, physicsClientId=cid) for j in range(n)]
         for j in range(n):
-            p.changeDynamics(robot, j, linearDamping=0.0, angularDamping=0.0, physicsClientId=cid)
+            p.changeDynamics(robot, j, linearDamping=0.0, angularDamping=0.0, jointDamping=0.0, physicsClientId=cid)
         names = {info[1].decode(): j for j, info in enumerate(infos)}
         self.link_names = [info[12].decode() for info in infos]
         self.link_index = links = {n: j for j, n in enumerate(self.link_names)}
-        self.arm_joints = [names[n] for n in ARM_JOINTS]
+        self.base_link = p.getBodyInfo(robot, physicsClientId=cid)[0].decode()
+        self.arm_joints = [names[n] for n in spec.joints]
         # Every non-fixed joint, in index order: the numDoF-sized inputs of calculateJacobian and
-        # calculateInverseDynamics (the arm's 7: the sponge replaces the gripper's fingers).
+        # calculateInverseDynamics (the arm's: the sponge replaces any gripper).
         self.movable = [j for j, info in enumerate(infos) if info[2] != p.JOINT_FIXED]
-        assert self.movable == self.arm_joints
-        self.sensor_joint = names[SENSOR_JOINT]
-        self.sponge_link = links[SPONGE_LINK]
+        require(self.movable == self.arm_joints, f"the {spec.name} URDF's movable joints are not {', '.join(spec.joints)}",
+                "list every non-fixed joint of the URDF, base to tip, in the arm's module")
+        self.sensor_joint = names[spec.sensor_joint]
+        self.sponge_link = links[spec.tool_link]
         #: The TCP is the sponge's tip, a point on the sponge's link (no link of its own: one fewer body).
         self.tcp_link = self.sponge_link
         self.tcp_offset = (0.0, 0.0, float(self.sponge.offset + self.sponge.radius))
         # Torque control: switch the arm's default velocity motors off (force = 0).
-        p.setJointMotorControlArray(robot, self.arm_joints, p.VELOCITY_CONTROL, forces=[0.0] * 7, physicsClientId=cid)
+        p.setJointMotorControlArray(robot, self.arm_joints, p.VELOCITY_CONTROL, forces=[0.0] * len(self.arm_joints),
+                                    physicsClientId=cid)
         p.enableJointForceTorqueSensor(robot, self.sensor_joint, True, physicsClientId=cid)
         s = self.sponge
         # contactProcessingThreshold=0: only touching or penetrating points reach the solver. The
@@ -219,8 +148,26 @@ class PyBulletScene:
         r = math.sqrt(3.0) * self.sponge.radius
         return 0.02 * r / (float(np.linalg.norm(ball - com)) + r)
 
+    def arm_model(self) -> ArmModel:
+        """The arm as the robot layer sees it (:class:`~tergodic_cli.robot.model.ArmModel`): DoF and joint
+        limits read from the loaded URDF (``getJointInfo``), replaced where the arm's module gives
+        datasheet values; the chain base -> TCP (:func:`~tergodic_cli.backends.pybullet.devices.kinematic_chain`)."""
+        from tergodic_cli.backends.pybullet.devices import kinematic_chain
+
+        p, cid = self.p, self.cid
+        info = [p.getJointInfo(self.robot, j, physicsClientId=cid) for j in self.arm_joints]
+        urdf = {"q_min": np.array([i[8] for i in info]), "q_max": np.array([i[9] for i in info]),
+                "tau_max": np.array([i[10] for i in info]), "dq_max": np.array([i[11] for i in info])}
+        lim = {k: np.asarray(self.spec.limits.get(k, v), dtype=float).copy() for k, v in urdf.items()}
+        n = len(self.arm_joints)
+        require(all(len(v) == n for v in lim.values()) and len(self.spec.home) == n,
+                f"the {self.spec.name} module's limits or home posture do not have {n} joints", "fix the arm's module")
+        links = tuple([self.base_link] + self.link_names)
+        return ArmModel(self.spec.name, tuple(self.spec.joints), lim["q_min"], lim["q_max"], lim["dq_max"],
+                        lim["tau_max"], np.array(self.spec.home, dtype=float), kinematic_chain(self), links)
+
     def set_arm(self, q: np.ndarray) -> None:
-        """Teleport the arm to ``q`` (7,) at rest (set-up only, never mid-run)."""
+        """Teleport the arm to ``q`` (n,) at rest (set-up only, never mid-run)."""
         self.teleports += 1
         for j, qi in zip(self.arm_joints, q):
             self.p.resetJointState(self.robot, j, float(qi), 0.0, physicsClientId=self.cid)
@@ -240,7 +187,7 @@ class PyBulletScene:
         """{link name: (7,) xyz + quaternion xyzw} of every robot link, base frame, for logging."""
         idx = list(range(len(self.link_names)))
         states = self.p.getLinkStates(self.robot, idx, computeForwardKinematics=True, physicsClientId=self.cid)
-        return {"panda_link0": np.array([0, 0, 0, 0, 0, 0, 1.0]),
+        return {self.base_link: np.array([0, 0, 0, 0, 0, 0, 1.0]),
                 **{name: np.array(tuple(s[4]) + tuple(s[5])) for name, s in zip(self.link_names, states)}}
 
     def tool_load(self):
@@ -257,7 +204,7 @@ class PyBulletScene:
         com_world = mc / total
         com_sensor = T_sensor[:3, :3].T @ (com_world - T_sensor[:3, 3])
         # The sensor frame is the hand's inertial frame: its principal inertia is along the sensor axes.
-        inertia = np.array(p.getDynamicsInfo(rob, self.link_index["panda_hand"], physicsClientId=cid)[2], dtype=float)
+        inertia = np.array(p.getDynamicsInfo(rob, self.sponge_link, physicsClientId=cid)[2], dtype=float)
         return ToolLoad(total, com_sensor, inertia)
 
     def chain_to(self, j: int) -> list[int]:
@@ -269,9 +216,9 @@ class PyBulletScene:
         return chain[::-1]
 
     def sensor_frame_world(self) -> np.ndarray:
-        """(4, 4) world pose of the F/T frame: the hand's inertial frame (where PyBullet reports the reaction)."""
-        T_hand = self.link_pose(self.link_index["panda_hand"])
-        info = self.p.getDynamicsInfo(self.robot, self.link_index["panda_hand"], physicsClientId=self.cid)
+        """(4, 4) world pose of the F/T frame: the tool link's inertial frame (where PyBullet reports the reaction)."""
+        T_hand = self.link_pose(self.sponge_link)
+        info = self.p.getDynamicsInfo(self.robot, self.sponge_link, physicsClientId=self.cid)
         return T_hand @ pose_matrix(quat_to_matrix(info[4]), np.array(info[3]))
 
     # ------------------------------------------------------------------ object
