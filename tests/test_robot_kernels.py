@@ -45,7 +45,7 @@ def test_compiled_kinematics_match_pybullet():
         # the chain calibration leaves the arm where it was
         q0 = np.array([0.1, -0.5, 0.2, -2.0, 0.1, 1.6, 0.7])
         sc.set_arm(q0)
-        from tergodic_cli.backends.pybullet.devices import kinematic_chain
+        from tergodic_cli.backends.pybullet.scene import kinematic_chain
 
         kinematic_chain(sc)
         np.testing.assert_allclose([s[0] for s in p.getJointStates(sc.robot, sc.arm_joints, physicsClientId=sc.cid)], q0)

@@ -203,7 +203,7 @@ def test_the_cli_refuses_it_with_one_line_and_leaves_an_earlier_run(tmp_path):
 
 
 def test_a_retreat_into_a_box_is_cut_short_and_holds_the_line():
-    from tergodic_cli.backends.pybullet.devices import kinematic_chain
+    from tergodic_cli.backends.pybullet.scene import kinematic_chain
     from tergodic_cli.backends.pybullet.plan import RETREAT_LEAST, retreat_clear, retreat_postures
 
     sc = PyBulletScene()

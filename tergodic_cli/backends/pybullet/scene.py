@@ -151,8 +151,7 @@ class PyBulletScene:
     def arm_model(self) -> ArmModel:
         """The arm as the robot layer sees it (:class:`~tergodic_cli.robot.model.ArmModel`): DoF and joint
         limits read from the loaded URDF (``getJointInfo``), replaced where the arm's module gives
-        datasheet values; the chain base -> TCP (:func:`~tergodic_cli.backends.pybullet.devices.kinematic_chain`)."""
-        from tergodic_cli.backends.pybullet.devices import kinematic_chain
+        datasheet values; the chain base -> TCP (:func:`kinematic_chain`)."""
 
         p, cid = self.p, self.cid
         info = [p.getJointInfo(self.robot, j, physicsClientId=cid) for j in self.arm_joints]
@@ -274,3 +273,39 @@ class PyBulletScene:
             with suppress(self.p.error):
                 self.p.disconnect(physicsClientId=self.cid)
             self.cid = -1
+
+
+def kinematic_chain(scene: "PyBulletScene") -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The chain base -> TCP link as :func:`fk_jacobian` wants it: (F (m, 4, 4), axis (m, 3), qidx (m,), tcp_off (3,)).
+
+    Calibrated on PyBullet itself: with every movable joint at 0, each link frame in its parent's
+    (``getLinkState`` link frames; the base link frame is the world origin, where the robot is loaded)
+    is the fixed transform F; the joint rotates the child about ``jointAxis`` (its own frame; PyBullet
+    reports it in the child's inertial frame, turned back here). The
+    joint states are restored afterwards.
+    """
+    p, cid, rob = scene.p, scene.cid, scene.robot
+    chain = scene.chain_to(scene.tcp_link)
+    saved = p.getJointStates(rob, scene.movable, physicsClientId=cid)
+    try:
+        for jj in scene.movable:
+            p.resetJointState(rob, jj, 0.0, 0.0, physicsClientId=cid)
+        F, axis, qidx = [], [], []
+        T_prev = np.eye(4)
+        for link in chain:
+            T = scene.link_pose(link)
+            F.append(np.linalg.solve(T_prev, T))
+            info = p.getJointInfo(rob, link, physicsClientId=cid)
+            movable = info[2] != p.JOINT_FIXED
+            # PyBullet gives the axis in the link's inertial frame, which it turns to the principal axes of
+            # a URDF's full inertia tensor (the xArm's): back into the link frame.
+            R_in = quat_to_matrix(p.getDynamicsInfo(rob, link, physicsClientId=cid)[4])
+            ax = R_in @ np.array(info[13], dtype=float)
+            axis.append(ax / np.linalg.norm(ax) if movable else np.array([0.0, 0.0, 1.0]))
+            qidx.append(scene.movable.index(link) if movable else -1)
+            T_prev = T
+    finally:
+        for jj, st in zip(scene.movable, saved):
+            p.resetJointState(rob, jj, st[0], st[1], physicsClientId=cid)
+    return (np.ascontiguousarray(F, dtype=float), np.ascontiguousarray(axis, dtype=float), np.asarray(qidx, dtype=np.int64),
+            np.asarray(scene.tcp_offset, dtype=float))
