@@ -48,7 +48,7 @@ def replay(
     from tergodic_cli.runlog import resolve_log_path
 
     require(export in (None, "npz", "csv", "rosbag2"), f"--export '{export}' is not a format",
-            "use --export npz, csv or rosbag2")
+            "use --export npz, --export csv or --export rosbag2")
     require(rerun is None or rerun.suffix == ".rrd", f"--rerun {rerun} does not end in .rrd", "e.g. --rerun run.rrd")
     if speed <= 0:
         raise TergodicError(f"--speed must be > 0, got {speed}", "e.g. --speed 2")

@@ -46,7 +46,7 @@ def test_sweep_help_prints_the_grid_example_verbatim():
     from tergodic_cli.commands.sweep import sweep
 
     doc = sweep.__doc__
-    block = doc[doc.index("[objects.bunny]"): doc.index("Examples:")]
+    block = doc[doc.index("[objects.bowl]"): doc.index("Examples:")]
     lines = [ln.strip() for ln in block.splitlines() if ln.strip() and ln.strip() != "\b"]
     assert len(lines) >= 10
     shown = [ln.strip() for ln in res.out.splitlines()]
@@ -174,7 +174,8 @@ def test_interrupting_explore_is_one_line(tmp_path, sig, code, word):
         time.sleep(0.05)
     got, out, err = _stop(proc, sig, group=sig == signal.SIGINT)
     assert got == code, (got, err)
-    lines = [ln for ln in err.splitlines() if not ln.startswith("computing basis") and "cache" not in ln]
+    lines = [ln for ln in err.splitlines()
+             if not ln.startswith(("computing basis", "note:")) and "cache" not in ln]  # notes: the run's size
     assert len(lines) == 1 and lines[0].startswith(f"tergodic: {word}; the partial run is in"), err
     assert "Traceback" not in out + err
     assert (tmp_path / "run" / "run.mcap").exists()  # the partial run was renamed into place

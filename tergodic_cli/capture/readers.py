@@ -35,8 +35,13 @@ NPZ_MIN_CAP = 64 << 20
 
 
 def npz_cap() -> int:
-    """Bytes a user's NPZ may unpack to: half the free memory, at least :data:`NPZ_MIN_CAP` (16 GB
-    where the OS does not say)."""
+    """Bytes a user's NPZ may unpack to.
+
+    Returns
+    -------
+    int
+        Half the free memory, at least :data:`NPZ_MIN_CAP` (16 GB where the OS does not say).
+    """
     from tergodic_cli.resources import free_memory
 
     free = free_memory()
@@ -44,10 +49,23 @@ def npz_cap() -> int:
 
 
 def check_npz_size(source, name: str, fix: str) -> None:
-    """A one-line :class:`TergodicError`, before anything is unpacked, when the members of the NPZ
-    ``source`` (a path or a binary file object) declare more bytes than half the free memory.
+    """A one-line :class:`TergodicError`, before anything is unpacked, when the members of an NPZ
+    declare more bytes than :func:`npz_cap`.
 
     The declared sizes bound what is unpacked: zipfile reads a member only up to its declared size.
+
+    Parameters
+    ----------
+    source : path or binary file object
+        The NPZ (a file object is rewound afterwards).
+    name : str
+        How the message names the file.
+    fix : str
+        The message's fix.
+
+    Returns
+    -------
+    None
     """
     import zipfile
 
