@@ -35,11 +35,11 @@ $(STAMP): pyproject.toml
 
 setup: $(STAMP)
 
-# The suite on every core (pytest-xdist; a file's tests share a worker, so module fixtures are built once);
+# The suite on every core (pytest-xdist; worksteal: an idle worker takes tests from a busy one, so one long file does not leave a core idle);
 # TEST_JOBS=0 runs it in one process. The slowest tests are listed at the end.
 TEST_JOBS ?= auto
 test: setup
-	$(BIN)/python -m pytest -n $(TEST_JOBS) --dist loadfile --durations=15
+	$(BIN)/python -m pytest -n $(TEST_JOBS) --dist worksteal --durations=15
 
 # The main job on the built-in data: the procedurally built bowl with an X in data/bowl.
 # Basis (cached), 1000 kinematic exploration steps logged to MCAP, then the replay's plots.
