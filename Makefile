@@ -37,8 +37,14 @@ setup: $(STAMP)
 
 # The suite on every core (pytest-xdist; worksteal: an idle worker takes tests from a busy one, so one long file does not leave a core idle);
 # TEST_JOBS=0 runs it in one process. The slowest tests are listed at the end.
+# make test leaves out the tests marked long (end-to-end coverage and robot runs of a minute or more each,
+# listed in pyproject.toml's markers); make test-all runs every test.
 TEST_JOBS ?= auto
 test: setup
+	$(BIN)/python -m pytest -n $(TEST_JOBS) --dist worksteal --durations=15 -m "not long"
+
+.PHONY: test-all
+test-all: setup
 	$(BIN)/python -m pytest -n $(TEST_JOBS) --dist worksteal --durations=15
 
 # The main job on the built-in data: the procedurally built bowl with an X in data/bowl.

@@ -630,6 +630,7 @@ def test_size_guard_with_a_low_limit(tmp_path, small):
     one_line_error(*run("precompute", small, "--max-points", "100"), f"{n:,} points", "--max-points", "--voxel")
 
 
+@pytest.mark.long
 def test_size_guard_default_limit_on_a_large_cloud(tmp_path):
     rng = np.random.default_rng(0)
     pts = rng.uniform(0, 0.2, (520_000, 3))

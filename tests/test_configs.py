@@ -101,6 +101,7 @@ def _positions(run):
         return t["positions"]
 
 
+@pytest.mark.long
 def test_a_pybullet_run_repeats_with_its_robot_options_and_an_override_changes_it(tmp_path):
     common = ("--no-log", "--nk", "60")
     res = run_cli("explore", BOWL, "--robot", "pybullet", "--force", "3", "--steps", "12", "--seed", "1", *common,

@@ -73,6 +73,7 @@ def test_with_separate_sheets_the_agent_never_leaves_one_sheet_on_thin_walls_and
     assert ref["step_max_m"] <= cfg.v_max * cfg.dt * (1 + 1e-9)
 
 
+@pytest.mark.long
 @pytest.mark.slow
 @pytest.mark.parametrize("obj", COVERAGE_OBJECTS, ids=lambda o: f"{o.object}-{o.marking}-{o.noise * 1e3:g}mm")
 def test_the_agent_stays_on_the_data_and_reaches_the_target(obj, tmp_path):
@@ -94,6 +95,7 @@ def test_the_agent_stays_on_the_data_and_reaches_the_target(obj, tmp_path):
 AUTHORS = {"bun270_X": (0.0075, 5, 0.468), "plate_shapes": (0.015, 3, 0.398)}
 
 
+@pytest.mark.long
 @pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(AUTHORS))
 def test_the_reference_clouds_are_covered_better_than_by_the_authors_code(name, tmp_path):

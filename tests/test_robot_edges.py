@@ -39,6 +39,7 @@ def test_torus_hole_blocks_the_tool():
     assert hit[inner].mean() > 0.95 and not hit[top].any()
 
 
+@pytest.mark.long
 def test_box_edge_crossed_below_the_force_limit():
     """Across the box's top edge the tool lifts and moves over (rolling over it held the agent back
     ~30 steps) and touches the wall below the force limit."""

@@ -130,6 +130,7 @@ def test_a_start_whose_hover_pose_is_out_of_reach_moves_to_the_next(mug):
     assert any("starting at the nearest reachable target point" in m for m in events)
 
 
+@pytest.mark.long
 def test_a_joint_near_its_limit_marks_the_place_out_of_reach(mug, monkeypatch):
     """Where the arm's posture nears a joint limit in contact (the torus's far wall drove joint 6 past
     it), the place is marked out of reach: the tool waits there, the agent moves on, the tool moves
@@ -248,6 +249,7 @@ def test_hover_posture_is_not_a_twisted_elbow():
         scene.close()
 
 
+@pytest.mark.long
 def test_a_press_at_an_angle_lifts_and_touches_again_and_a_repeat_is_a_fault(mug):
     """A soft sponge near a sharp edge wraps it and its contact normals tilt: two steps in a row over
     CONTACT_TILT_MAX_DEG lift the tool, which touches again on the agent's line (RESEATS times within

@@ -100,8 +100,8 @@ class LiveServer:
     def hold(self, say) -> None:
         """Keep the server (and the viewers' connections, showing the final state) up until Ctrl-C or
         SIGTERM, which end the hold, not the run: the run is complete."""
-        say("live: the run is complete; serving its final state until Ctrl-C")
-        try:
+        try:  # the line inside: a Ctrl-C right after it still ends the hold, not the run
+            say("live: the run is complete; serving its final state until Ctrl-C")
             while True:
                 time.sleep(0.2)
         except KeyboardInterrupt:
