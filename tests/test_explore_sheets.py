@@ -133,8 +133,11 @@ def test_agent_on_a_closed_box_stays_within_the_chamfer_of_its_edges(hollow_box)
     d = np.minimum(_box_surface_distance(xs, OUTER), _box_surface_distance(xs, OUTER - WALL))
     # On a face the fit is the face's plane (0); at an edge the samples cannot tell the box from
     # its chamfer: the plane through the two rows beside the edge (each half a spacing from it)
-    # passes SPACING / (2√2) = 2.4 mm inside the edge, the farthest a fit through them can be.
-    assert d.max() <= SPACING / (2 * np.sqrt(2)), np.percentile(d, [50, 99, 100])
+    # passes SPACING / (2√2) = 2.4 mm inside the edge, the farthest a plane through them can be. A
+    # sphere fitted across an edge may bulge outside it instead (3.3 mm on 6 of 1000 steps of this
+    # path), so the bound is asserted on 99 % of the steps, and nowhere half a wall deep.
+    assert np.mean(d <= SPACING / (2 * np.sqrt(2))) >= 0.99, np.percentile(d, [50, 99, 100])
+    assert d.max() < WALL / 2 - TOLERANCE
 
 
 def test_off_surface_figure_catches_a_path_between_two_sheets(planes):
@@ -200,3 +203,58 @@ def test_the_gain_sums_the_agents_sheet_only(planes):
             assert G == 0.0 and not np.any(grad)  # the target lies through the wall: nothing a deposit here removes
         else:  # on the target's sheet (or with no sheets): every target point counts
             assert G == pytest.approx(want, rel=1e-12)
+
+
+def _fibonacci_sphere(radius: float, n: int) -> np.ndarray:
+    i = np.arange(n) + 0.5
+    z = 1 - 2 * i / n
+    phi = np.pi * (1 + 5 ** 0.5) * i
+    r = np.sqrt(1 - z * z)
+    return radius * np.c_[r * np.cos(phi), r * np.sin(phi), z]
+
+
+def test_normals_are_oriented_consistently_and_opposite_across_a_wall(hollow_box, planes):
+    # A sphere: every normal along ±p/|p| with one sign (outward: the first piece points away from the centroid).
+    pts = _fibonacci_sphere(0.03, 1200)
+    index = cloud_index(pts)
+    n = sheet_normals(index, mean_spacing(pts))[0][index.rank]
+    radial = np.sum(n * pts, axis=1) / 0.03
+    assert radial.min() > 0.99, radial.min()
+    # The hollow box: two closed pieces. The outer points outward, the inner into the cavity (away from
+    # the material), so the two sides of every wall point opposite ways.
+    pts, basis = hollow_box
+    index = cloud_index(basis.points)
+    n = sheet_normals(index, basis.h)[0][index.rank]
+    axis = np.argmax(np.abs(pts), axis=1)
+    out = np.sign(n[np.arange(len(pts)), axis] * pts[np.arange(len(pts)), axis])
+    outer = np.arange(len(pts)) < len(_box_faces(OUTER, SPACING))
+    assert np.all(out[outer] > 0) and np.all(out[~outer] < 0)
+    # Two planes 10 mm apart, each its own piece: opposite ways.
+    pts, basis = planes
+    index = cloud_index(basis.points)
+    n = sheet_normals(index, basis.h)[0][index.rank]
+    upper = pts[:, 2] > WALL / 2
+    assert np.abs(n[:, 2]).min() > 0.999
+    assert len(set(np.sign(n[upper, 2]))) == 1 and len(set(np.sign(n[~upper, 2]))) == 1
+    assert np.sign(n[upper, 2][0]) == -np.sign(n[~upper, 2][0])
+
+
+def test_the_sheet_of_a_curved_ball_is_the_whole_ball():
+    # On a sphere of radius 30 mm, a 22 mm ball (the gain's reach) spans normals at most
+    # 2 asin(11/30) = 43 degrees apart: one sheet, so every point of the 3-D ball is on it. Offsets along
+    # one normal line (the former test) left gaps wider than half a spacing at the ball's far rim.
+    from tergodic_cli.explore import kernels as K
+
+    pts = _fibonacci_sphere(0.03, 300)  # 6 mm apart, like a 6 mm capture: the former test dropped 1-2 of 40
+    index = cloud_index(pts)
+    P = index.points
+    nrm, gap = sheet_normals(index, mean_spacing(pts))
+    assert gap < np.inf
+    for j in range(0, 300, 10):
+        x = P[j]
+        ball = np.flatnonzero(np.linalg.norm(P - x, axis=1) <= 0.022)
+        buf = np.empty(len(ball) + 1, np.int64)
+        buf[:len(ball)] = ball
+        m = K.sheet_of(P, nrm, buf, len(ball), x, j, gap)
+        assert m == len(ball) and buf[0] == j
+        assert set(buf[:m]) == set(ball)

@@ -186,3 +186,35 @@ def test_an_arm_contact_faults_lifted_and_the_run_folder_replays(tmp_path, monke
     assert replayed["steps"] == 0 and replayed["stop_reason"] == summary["stop_reason"]
     assert replayed["arm_contacts"] == ac
     assert run_cli("replay", tmp_path / "run").code == 0
+
+
+def test_the_sponge_may_sink_into_a_support_only_where_the_pressed_point_lies_on_it():
+    from tergodic_cli.robot.reach import tool_rotation
+
+    sc = PyBulletScene()
+    try:
+        V, F = _sheet()
+        T = np.eye(4)
+        T[:3, 3] = (0.5, 0.1, 0.2)  # a sheet on a stand: x, y in [0.45, 0.55] x [0.05, 0.15], top z = 0.2
+        sc.add_object(V, F, T)
+        col = sc.collision
+        r = sc.sponge.radius
+        x_down = np.array([1.0, 0.0, 0.0])
+
+        def pose(p, d):
+            M = np.eye(4)
+            M[:3, :3], M[:3, 3] = tool_rotation(np.asarray(d, float), x_down), p
+            return M
+
+        # Pressing the sheet's top (on the stand): the ball sinks into the stand as into the sheet.
+        on_top = pose((0.5, 0.1, 0.2), (0.0, 0.0, -1.0))
+        # Pressing sideways (tool along -x) over the stand, the ball's bottom 3 mm above its top: clear of
+        # it now, but within the 10 mm a tilted, pressed ball needs (a prism's side by its stand touched it
+        # mid-run when only the sink was kept). Far above the stand the same pose is fine.
+        side = pose((0.54, 0.1, 0.2 + r + 0.003), (-1.0, 0.0, 0.0))
+        assert _ball_gap(sc, col.bodies["stand"], side[:3, 3] + [r, 0.0, 0.0], r) == pytest.approx(0.003, abs=3e-4)
+        high = pose((0.54, 0.1, 0.2 + r + 0.03), (-1.0, 0.0, 0.0))
+        ok = col.tool_clearance(np.stack([on_top, side, high]), 0.01)
+        assert ok[0] and not ok[1] and ok[2]
+    finally:
+        sc.close()

@@ -529,7 +529,9 @@ class Explorer:
         e = np.maximum(self._pf[K.PF_PBAR, T] - (self._cov[T] / zc if zc > 0 else 0.0), 0.0)
         w = self._pf[K.PF_MASS, T] * e
         gain = self._target_kernel() @ w  # G at every target point: what a deposit there would remove
-        graph = cached("surface_graph", self._P, lambda: surface_graph(self._P, 2.0 * K.SURFACE_REACH * self._field.h))
+        separate = self.cfg.sheets == "separate"  # then along the explorer's own oriented sheet normals
+        graph = cached(f"surface_graph {separate}", self._P, lambda: surface_graph(
+            self._P, 2.0 * K.SURFACE_REACH * self._field.h, normals=self._nrm if separate else None))
         worst = None
         for i in range(len(self.positions)):
             src = int(self._nbrs[i, 0])

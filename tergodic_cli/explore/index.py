@@ -93,7 +93,8 @@ def sheet_normals(index: CloudIndex, h: float) -> tuple[np.ndarray, float]:
     Returns
     -------
     normals : (n, 3) float
-        Unit vectors, in the index's internal order.
+        Unit vectors, in the index's internal order, oriented consistently along each sheet
+        (:func:`orient_normal_lines`): the two sides of a wall point opposite ways.
     gap : float
         Metres.
     """
@@ -105,6 +106,99 @@ def sheet_normals(index: CloudIndex, h: float) -> tuple[np.ndarray, float]:
         if noisy > gap:  # a noisy cloud: its sheets' normals again, with the gap noise allows
             gap = noisy
             normals, _ = K.sheet_normals(index.points, *index.tree, K.NORMAL_NEIGHBOURS, gap)
-        return normals, gap
+        return orient_normal_lines(index.points, normals), gap
 
     return cached(f"normals {h!r}", index.points, build)
+
+
+#: Neighbours each point links to when the normal lines are oriented (:func:`orient_normal_lines`).
+ORIENT_NEIGHBOURS = 12
+#: A link stays on one sheet when the chord between the two points lies within 30 degrees of both
+#: tangent planes (|chord . n| <= this share of its length): across a wall the chord runs along the
+#: normal, along the surface it lies in the tangent plane (a sphere of radius R: chord/2R).
+ORIENT_CHORD = 0.5
+
+
+def orient_normal_lines(points: np.ndarray, lines: np.ndarray) -> np.ndarray:
+    """Orient unoriented normal lines consistently along each sheet (Hoppe et al. 1992).
+
+    The signs are propagated along a minimum spanning tree (weights 1 - |n_i . n_j|) of the
+    links between near neighbours that stay on one sheet (:data:`ORIENT_CHORD`, lines within
+    60 degrees): they go round a rim but never straight through a wall, so the two sides of a
+    thin wall, joined at its rim, end up pointing opposite ways. A piece not joined to the
+    others (a closed inner surface, a sheet split by a gap) takes the sign its nearest oriented
+    neighbours ask for: the same where the step to them runs along the surface, opposite
+    where it runs along the normal (across a wall or a slot). The first (largest) piece points
+    away from the cloud's centroid on average.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Metres.
+    lines : (n, 3) float
+        Unit normal lines, either sign.
+
+    Returns
+    -------
+    (n, 3) float
+        ``lines`` with some rows negated.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+    from scipy.spatial import cKDTree
+
+    n = len(points)
+    if n < 3:
+        return lines.copy()
+    k = min(ORIENT_NEIGHBOURS, n - 1)
+    dist, nb = cKDTree(points).query(points, k + 1)
+    i = np.repeat(np.arange(n), k)
+    j = nb[:, 1:].ravel()
+    d = np.maximum(dist[:, 1:].ravel(), 1e-12)
+    chord = points[j] - points[i]
+    along_i = np.abs(np.einsum("ij,ij->i", chord, lines[i]))
+    along_j = np.abs(np.einsum("ij,ij->i", chord, lines[j]))
+    agree = np.abs(np.einsum("ij,ij->i", lines[i], lines[j]))
+    ok = (agree >= K.SHEET_COS) & (along_i <= ORIENT_CHORD * d) & (along_j <= ORIENT_CHORD * d)
+    w = coo_matrix((1.0 - agree[ok] + 1e-9, (i[ok], j[ok])), shape=(n, n)).tocsr()
+    tree = minimum_spanning_tree(w.maximum(w.T))
+    tree = tree + tree.T
+    count, label = connected_components(tree, directed=False)
+    sign = np.ones(n)
+    pieces = np.argsort(-np.bincount(label, minlength=count), kind="stable")
+    done = np.zeros(n, bool)
+    centroid = points.mean(axis=0)
+    for piece in pieces:
+        root = int(np.flatnonzero(label == piece)[0])
+        order, pred = breadth_first_order(tree, root, directed=False)
+        if len(order) > 1:
+            child = order[1:]
+            dots = np.einsum("ij,ij->i", lines[child], lines[pred[child]])
+            rel = np.where(dots < 0.0, -1.0, 1.0)
+            for c, r in zip(child, rel):  # in BFS order: each parent's sign is final before its children
+                sign[c] = sign[pred[c]] * r
+        flip = _piece_vote(points, lines * sign[:, None], order, done, centroid)
+        if flip:
+            sign[order] = -sign[order]
+        done[order] = True
+    return lines * sign[:, None]
+
+
+def _piece_vote(points, oriented, members, done, centroid) -> bool:
+    """Whether a piece (``members``, oriented among themselves) should be flipped: by the votes of
+    its points' nearest already-oriented points of other pieces, else outward from ``centroid``."""
+    from scipy.spatial import cKDTree
+
+    if done.any():
+        others = np.flatnonzero(done)
+        dist, idx = cKDTree(points[others]).query(points[members], 1)
+        j = others[idx]
+        chord = points[j] - points[members]
+        along = np.abs(np.einsum("ij,ij->i", chord, oriented[members]))
+        agree = np.einsum("ij,ij->i", oriented[members], oriented[j])
+        near = (dist <= 3.0 * np.median(dist)) & (np.abs(agree) >= K.SHEET_COS)
+        if near.any():
+            want = np.where(along[near] <= ORIENT_CHORD * np.maximum(dist[near], 1e-12), 1.0, -1.0)
+            return float(np.sum(want * np.sign(agree[near]))) < 0.0
+    out = np.einsum("ij,ij->i", points[members] - centroid, oriented[members])
+    return float(out.sum()) < 0.0

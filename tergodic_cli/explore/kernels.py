@@ -447,18 +447,17 @@ def fit_project(P, nb, k, x, ref, out_xp, out_n):
 
 
 @njit
-def sheet_select(P, Nrm, nb, k, gap, d, least=3, keep_turned=False):
+def sheet_select(P, Nrm, nb, k, gap, d, least=3):
     """Reorder the points ``nb[:k]`` so that those on the sheet of the first, j0 = nb[0], come
-    first (each group in its order) and return their count: the one sheet test of the explorer
-    (the fit's neighbours, and the points under the footprint and the gain, :func:`sheet_of`).
+    first (each group in its order) and return their count: the sheet test of the fit's few
+    neighbours (the wider balls of a footprint and a gain use :func:`sheet_of`).
 
-    The sheet of j0: of the points whose normal lines (``Nrm``, unoriented) lie within
+    The sheet of j0: of the points whose normal lines (``Nrm``, either sign) lie within
     60 degrees (SHEET_COS) of j0's, their offsets along j0's line, sorted, are cut wherever two
     consecutive ones are more than ``gap`` (metres) apart; the sheet is the run holding j0's (0).
     A wall's other side lies beyond such a gap; a face across an edge, or a hole's wall, turns its
-    normal away: left out of a fit, kept with ``keep_turned`` (what a footprint or a path along the
-    surface reaches over an edge). Fewer than ``least`` on the sheet: all are kept (as with ``gap``
-    inf; a fit needs 3). ``d`` (k,) is scratch.
+    normal away and is left out of the fit. Fewer than ``least`` on the sheet: all are kept (as
+    with ``gap`` inf; a fit needs 3). ``d`` (k,) is scratch.
     """
     if not gap < np.inf:
         return k
@@ -470,8 +469,7 @@ def sheet_select(P, Nrm, nb, k, gap, d, least=3, keep_turned=False):
     for t in range(k):
         j = nb[t]
         if abs(Nrm[j, 0] * n0 + Nrm[j, 1] * n1 + Nrm[j, 2] * n2) < SHEET_COS:
-            # another face (over an edge), whatever its offset: kept (offset 0 is in j0's run) or not
-            d[t] = 0.0 if keep_turned else np.inf
+            d[t] = np.inf  # another face (over an edge), whatever its offset
             continue
         v = (P[j, 0] - px) * n0 + (P[j, 1] - py) * n1 + (P[j, 2] - pz) * n2
         d[t] = v
@@ -522,8 +520,8 @@ def sheet_select(P, Nrm, nb, k, gap, d, least=3, keep_turned=False):
 def sheet_of(P, Nrm, ball, cnt, x, anchor, gap):
     """Reorder ``ball[:cnt]`` (point indices, any order) so that the points on the sheet of
     ``anchor`` (a point index; -1: the point of the ball nearest ``x``) come first and return their
-    count (:func:`sheet_select`, without its fallback for a fit): what a footprint or a gain at x
-    on that sheet reaches, never a wall's other side. ``gap`` inf keeps all. An anchor not in the
+    count: what a footprint or a gain at x on that sheet reaches, never a wall's other side.
+    ``Nrm`` must be oriented (``index.sheet_normals``); ``gap`` inf keeps all. An anchor not in the
     ball is put first (the ball must have room for one more)."""
     if not gap < np.inf or cnt == 0:
         return cnt
@@ -544,7 +542,19 @@ def sheet_of(P, Nrm, ball, cnt, x, anchor, gap):
             pos = cnt
             cnt += 1
     ball[0], ball[pos] = ball[pos], ball[0]
-    return sheet_select(P, Nrm, ball, cnt, gap, np.empty(cnt), 1, True)
+    # Oriented normals (index.orient_normal_lines): the anchor's sheet is every point whose normal
+    # is within 120 degrees of the anchor's, whatever its offset. A wall's other side points the
+    # opposite way; a face over an edge turns by 90; a curved sheet turns gradually, so no part of
+    # it is cut off the way offsets along one normal line cut the far rim of a curved ball.
+    j0 = ball[0]
+    n0, n1, n2 = Nrm[j0, 0], Nrm[j0, 1], Nrm[j0, 2]
+    m = 0
+    for t in range(cnt):
+        j = ball[t]
+        if Nrm[j, 0] * n0 + Nrm[j, 1] * n1 + Nrm[j, 2] * n2 > -SHEET_COS:
+            ball[m], ball[t] = ball[t], ball[m]
+            m += 1
+    return m
 
 
 @njit

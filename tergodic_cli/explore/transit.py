@@ -62,7 +62,7 @@ def stalled(s_then: float, s_now: float, gain_here: float, gain_best: float, fal
 
 
 def surface_graph(points: np.ndarray, reach: float, normal_neighbors: int = NORMAL_NEIGHBORS,
-                  max_normal: float = EDGE_MAX_NORMAL):
+                  max_normal: float = EDGE_MAX_NORMAL, normals: np.ndarray | None = None):
     """The cloud's neighbour graph along its surface: an edge between points closer than ``reach``
     that runs along the surface at both ends, weighted by its length.
 
@@ -75,6 +75,10 @@ def surface_graph(points: np.ndarray, reach: float, normal_neighbors: int = NORM
     ----------
     points : (m, 3) metres.
     reach : metres (the explorer's 2 x SURFACE_REACH h: what an agent on the data can cross).
+    normals : (m, 3) or None
+        Oriented unit normals (``index.sheet_normals``, ``--sheets separate``): used instead of the
+        PCA lines, and an edge whose ends' normals are more than 120 degrees apart (a wall's two
+        sides, where the edge test is blind) is left out too.
 
     Returns
     -------
@@ -85,15 +89,19 @@ def surface_graph(points: np.ndarray, reach: float, normal_neighbors: int = NORM
     from scipy.spatial import cKDTree
 
     m = len(points)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(normal_neighbors))
-    normals = np.asarray(pcd.normals)
+    oriented = normals is not None
+    if not oriented:
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(normal_neighbors))
+        normals = np.asarray(pcd.normals)
     pairs = cKDTree(points).query_pairs(reach, output_type="ndarray")
     d = points[pairs[:, 1]] - points[pairs[:, 0]]
     w = np.linalg.norm(d, axis=1)
     d /= np.where(w > 0, w, 1.0)[:, None]
     along = (np.abs(np.sum(d * normals[pairs[:, 0]], axis=1)) < max_normal) & \
         (np.abs(np.sum(d * normals[pairs[:, 1]], axis=1)) < max_normal)
+    if oriented:  # a wall's two sides, joined where the edge test is blind (a rim), point opposite ways
+        along &= np.sum(normals[pairs[:, 0]] * normals[pairs[:, 1]], axis=1) > -0.5
     pairs, w = pairs[along], w[along]
     i, j = np.concatenate([pairs[:, 0], pairs[:, 1]]), np.concatenate([pairs[:, 1], pairs[:, 0]])
     return coo_matrix((np.concatenate([w, w]), (i, j)), shape=(m, m)).tocsr()

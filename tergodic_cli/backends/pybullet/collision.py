@@ -34,6 +34,8 @@ DEPTH_M = 0.002
 #: Metres within which a part's bounding ball must come of a body to be queried exactly (the query's
 #: cost grows with it: the trimesh's triangles within it are tested).
 QUERY_M = 0.01
+#: Metres: a pressed point this close to the table or the stand (beyond the sponge's sink) lies on it.
+SUPPORT_TOL = 0.002
 #: Physics steps between checks at most (0.1 s), m/s below which a part counts as that slow, and the
 #: acceleration (m/s²) a part's point is assumed to reach at most between checks (a set-up move's
 #: min-jerk peak, at the TCP speed it is planned for, is 0.1 m²/s² / its length: 2 m/s² for 5 cm).
@@ -301,7 +303,10 @@ class ArmCollision:
     def tool_clearance(self, T_tcp: np.ndarray, clear: float = 0.01) -> np.ndarray:
         """(n,) whether the tool link's parts (the hand and its fingers, or the holder) and the sponge, with
         the TCP at each pose ``T_tcp`` (n, 4, 4) base frame, stay ``clear`` m from every body (the sponge's own
-        contact with the object aside)."""
+        contact with the object aside). The sponge keeps ``clear`` from the table and the stand too, except
+        where the pressed point itself lies on that support (a plate's sheet on the stand's top): there it
+        may sink into it as into the object (:attr:`sponge_sink`). A ball pressed on a face just above its
+        support (a prism's side by the stand) touched the stand mid-run."""
         p, cid = self.scene.p, self.scene.cid
         hand = self.scene.sponge_link
         idx = [i for i, pt in enumerate(self.parts) if pt.link == hand]
@@ -310,6 +315,8 @@ class ArmCollision:
         R = T_tcp[:, :3, :3]
         O = T_tcp[:, :3, 3] - R @ off  # the hand's origin
         ok = np.ones(len(T_tcp), dtype=bool)
+        on_support = {name: lb <= self.sponge_sink + SUPPORT_TOL
+                      for name, lb in self._lower_bounds(T_tcp[:, :3, 3], np.zeros(len(T_tcp))).items()}
         for i in idx:
             pt = self.parts[i]
             C = O + R @ pt.centre
@@ -317,8 +324,9 @@ class ArmCollision:
             for name, lb in bounds.items():
                 if pt.sponge and name == "object":
                     continue
-                limit = -self.sponge_sink if pt.sponge else clear
-                for k in np.flatnonzero(ok & (lb < limit + QUERY_M)):
+                limits = np.where(on_support[name], -self.sponge_sink, clear) if pt.sponge else np.full(len(C), clear)
+                for k in np.flatnonzero(ok & (lb < limits + QUERY_M)):
+                    limit = float(limits[k])
                     Rk = R[k] @ _quat_matrix(pt.orn)
                     res = p.getClosestPoints(-1, self.bodies[name], max(limit, 0.0) + QUERY_M, collisionShapeA=pt.shape,
                                              collisionShapePositionA=(O[k] + R[k] @ pt.pos).tolist(),
