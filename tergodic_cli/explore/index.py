@@ -117,6 +117,8 @@ ORIENT_NEIGHBOURS = 12
 #: tangent planes (|chord . n| <= this share of its length): across a wall the chord runs along the
 #: normal, along the surface it lies in the tangent plane (a sphere of radius R: chord/2R).
 ORIENT_CHORD = 0.5
+#: Pieces of fewer points (stray bits of a noisy cloud) are oriented together in one vote.
+ORIENT_PIECE = 20
 
 
 def orient_normal_lines(points: np.ndarray, lines: np.ndarray) -> np.ndarray:
@@ -162,26 +164,51 @@ def orient_normal_lines(points: np.ndarray, lines: np.ndarray) -> np.ndarray:
     ok = (agree >= K.SHEET_COS) & (along_i <= ORIENT_CHORD * d) & (along_j <= ORIENT_CHORD * d)
     w = coo_matrix((1.0 - agree[ok] + 1e-9, (i[ok], j[ok])), shape=(n, n)).tocsr()
     tree = minimum_spanning_tree(w.maximum(w.T))
-    tree = tree + tree.T
+    tree = (tree + tree.T).tocsr()
     count, label = connected_components(tree, directed=False)
-    sign = np.ones(n)
-    pieces = np.argsort(-np.bincount(label, minlength=count), kind="stable")
+    # One breadth-first pass over every piece at once: a virtual node n joined to each piece's first point.
+    roots = np.unique(label, return_index=True)[1]
+    tc = tree.tocoo()
+    ext = coo_matrix((np.r_[tc.data, np.ones(len(roots))], (np.r_[tc.row, np.full(len(roots), n)], np.r_[tc.col, roots])),
+                     shape=(n + 1, n + 1)).tocsr()
+    _, pred = breadth_first_order(ext, n, directed=False)
+    parent = pred[:n].copy()
+    top = parent == n
+    parent[top] = np.flatnonzero(top)  # a piece's root is its own parent
+    rel = np.where(np.einsum("ij,ij->i", lines, lines[parent]) < 0.0, -1.0, 1.0)
+    # Each point's sign relative to its piece's root: the product of the flips along its path, by pointer
+    # jumping (log2 of the depth passes).
+    sign, up = rel, parent
+    while np.any(up[up] != up):
+        sign, up = sign * sign[up], up[up]
+    sign = sign * sign[up]  # (the root's own factor is 1)
+    oriented = lines * sign[:, None]
+    # Pieces, largest first, take the sign their nearest oriented neighbours ask for (_piece_vote).
+    size = np.bincount(label, minlength=count)
+    order = np.argsort(-size, kind="stable")
     done = np.zeros(n, bool)
     centroid = points.mean(axis=0)
-    for piece in pieces:
-        root = int(np.flatnonzero(label == piece)[0])
-        order, pred = breadth_first_order(tree, root, directed=False)
-        if len(order) > 1:
-            child = order[1:]
-            dots = np.einsum("ij,ij->i", lines[child], lines[pred[child]])
-            rel = np.where(dots < 0.0, -1.0, 1.0)
-            for c, r in zip(child, rel):  # in BFS order: each parent's sign is final before its children
-                sign[c] = sign[pred[c]] * r
-        flip = _piece_vote(points, lines * sign[:, None], order, done, centroid)
-        if flip:
-            sign[order] = -sign[order]
-        done[order] = True
-    return lines * sign[:, None]
+    small = size[order] < ORIENT_PIECE
+    for piece in order[~small]:
+        members = np.flatnonzero(label == piece)
+        if _piece_vote(points, oriented, members, done, centroid):
+            oriented[members] *= -1.0
+        done[members] = True
+    rest = np.flatnonzero(small[np.argsort(order)][label])  # the points of the small pieces (stray bits)
+    if len(rest):
+        if done.any():  # each small piece: one vote over its points, against the large pieces only
+            others = np.flatnonzero(done)
+            dist, idx = cKDTree(points[others]).query(points[rest], 1)
+            j = others[idx]
+            chord = points[j] - points[rest]
+            along = np.abs(np.einsum("ij,ij->i", chord, oriented[rest]))
+            agree = np.einsum("ij,ij->i", oriented[rest], oriented[j])
+            want = np.where(along <= ORIENT_CHORD * np.maximum(dist, 1e-12), 1.0, -1.0)
+            vote = np.bincount(label[rest], weights=want * np.sign(agree), minlength=count)
+            oriented[rest] *= np.where(vote[label[rest]] < 0.0, -1.0, 1.0)[:, None]
+        elif _piece_vote(points, oriented, rest, done, centroid):
+            oriented[rest] *= -1.0
+    return oriented
 
 
 def _piece_vote(points, oriented, members, done, centroid) -> bool:
