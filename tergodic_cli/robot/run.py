@@ -440,12 +440,17 @@ class ContactRun:
                 self.on_event(step, f"robot: the retreat stops after {ok * 1e3:.0f} of {want * 1e3:.0f} mm (further back "
                                     "an arm link would come closer to the object); the next move starts from there")
                 want = ok
+        gone = 0.0
         for _ in range(int(round(RETREAT_TIMEOUT_S / self.dt))):
             obs, fault = self._tick(target, checks=checks, sensor=sensor)
             if fault is not None:
                 self._stop(fault, step)
-            if float((start - obs.state.ee_pose[:3, 3]) @ d) >= want:
+            gone = float((start - obs.state.ee_pose[:3, 3]) @ d)
+            if gone >= want:
                 break
+        else:  # said, so a move refused next for a tool still near the surface is explained in the log
+            self.on_event(step, f"robot: the retreat reached {gone * 1e3:.0f} of {want * 1e3:.0f} mm in its "
+                                f"{RETREAT_TIMEOUT_S:g} s")
 
     def _unreachable(self, problem: str, fix: str) -> None:
         """Before the run: bad input (TergodicError). Mid-run (a later cycle of the closed loop):
