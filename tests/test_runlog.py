@@ -64,7 +64,8 @@ def demo_inputs(steps: int = 120, n_points: int = 400, n_agents: int = 2, robot:
             "sidecar": {"source": "synthetic bowl", "n_points": n_points, "h": 0.003}}
 
 
-#: The demo logs' wall-clock origin (whole seconds, so that log_time // 1e9 - T0_S is the step).
+#: The demo logs' stamp origin (whole seconds, so that a stamp's seconds - T0_S is the step; log times are
+#: the wall clock when written).
 T0_S = 1_795_000_000
 T0 = T0_S * 10**9
 
@@ -99,23 +100,21 @@ def robot_log(tmp_path_factory):
 
 
 def _decoded(path: Path) -> dict[str, list]:
-    """Every message of ``path`` decoded by mcap's own reader (protobuf via the schema in the file)."""
+    """Every message of ``path`` decoded by mcap's own reader with the protobuf decoder alone (the schemas in
+    the file), in file order."""
     from mcap.reader import make_reader
     from mcap_protobuf.decoder import DecoderFactory
 
     out: dict[str, list] = {}
-    factory, decoders = DecoderFactory(), {}
     with open(path, "rb") as fh:
-        reader = make_reader(fh)
-        for schema, channel, message in reader.iter_messages(log_time_order=False):
-            if channel.message_encoding == "json":
-                value = json.loads(message.data)
-            else:
-                if schema.id not in decoders:
-                    decoders[schema.id] = factory.decoder_for(channel.message_encoding, schema)
-                value = decoders[schema.id](message.data)
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])  # a JSON channel raises DecoderNotFoundError
+        for _, channel, message, value in reader.iter_decoded_messages(log_time_order=False):
             out.setdefault(channel.topic, []).append((message, value))
     return out
+
+
+def _ns(stamp) -> int:
+    return stamp.seconds * 10**9 + stamp.nanos
 
 
 # --- geometry helpers of the writer ------------------------------------------------------------
@@ -157,8 +156,10 @@ def test_schema_names_and_encodings_are_foxglove_protobuf(robot_log):
     assert by_topic[S.TOPIC_AGENT_SCENE] == ("foxglove.SceneUpdate", "protobuf", "protobuf")
     assert by_topic[S.TOPIC_EE_POSE] == ("foxglove.PoseInFrame", "protobuf", "protobuf")
     assert by_topic[S.TOPIC_METRICS] == ("tergodic.StepRecord", "protobuf", "protobuf")
-    for topic in (S.TOPIC_ROBOT_SAMPLE, S.TOPIC_WRENCH):
-        assert by_topic[topic][1:] == ("jsonschema", "json"), topic
+    assert by_topic[S.TOPIC_ROBOT_SAMPLE] == ("tergodic.RobotSample", "protobuf", "protobuf")
+    assert by_topic[S.TOPIC_WRENCH] == ("tergodic.Wrench", "protobuf", "protobuf")
+    assert {enc for _, enc, _ in by_topic.values()} == {"protobuf"}  # one encoding
+    assert {enc for _, _, enc in by_topic.values()} == {"protobuf"}
     # chunked, indexed, compressed
     assert len(summary.chunk_indexes) >= 3
     assert {ci.compression for ci in summary.chunk_indexes} == {"lz4"}
@@ -174,7 +175,7 @@ def test_every_channel_round_trips(robot_log):
     metrics = msgs[S.TOPIC_METRICS]  # decoded with the schema stored in the file, not tergodic's class
     assert len(metrics) == T
     for k, (m, rec) in enumerate(metrics):
-        assert rec.step == k + 1 and rec.t == k + 1 and m.log_time == T0 + (k + 1) * 10**9
+        assert rec.step == k + 1 and rec.t == k + 1
         for name, series in inp["metrics"].items():
             assert getattr(rec, name) == series[k]  # exact float64
         assert rec.step_ms == inp["step_ms"][k] and rec.n_agents == A
@@ -218,7 +219,7 @@ def test_every_channel_round_trips(robot_log):
                 assert arrow.shaft_length == 0.0
 
     clouds = msgs[S.TOPIC_CLOUD]
-    assert [m.log_time // 10**9 - T0_S for m, _ in clouds] == sorted(inp["clouds"])  # t = step s
+    assert [msg.timestamp.seconds - T0_S for _, msg in clouds] == sorted(inp["clouds"])  # t = step s
     for m, msg in clouds:
         names = [f.name for f in msg.fields]
         assert names == ["x", "y", "z", "target", "coverage", "heat", "source"]
@@ -227,17 +228,20 @@ def test_every_channel_round_trips(robot_log):
         np.testing.assert_array_equal(arr[:, :3], inp["points"].astype(np.float32))
         np.testing.assert_array_equal(arr[:, 3], inp["target"].astype(np.float32))
         for col, name in ((4, "coverage"), (5, "heat"), (6, "source")):
-            np.testing.assert_array_equal(arr[:, col], inp["clouds"][m.log_time // 10**9 - T0_S][name].astype(np.float32))
+            np.testing.assert_array_equal(arr[:, col], inp["clouds"][msg.timestamp.seconds - T0_S][name].astype(np.float32))
 
-    samples = msgs[S.TOPIC_ROBOT_SAMPLE]
+    samples = msgs[S.TOPIC_ROBOT_SAMPLE]  # tergodic.RobotSample, decoded with the schema in the file
     assert len(samples) == T
     for k, (_, rec) in enumerate(samples):
         src = inp["robot"][k]
-        assert rec["t_sim"] == src["t_sim"] and rec["state"] == src["state"] and rec["in_contact"] == src["in_contact"]
+        assert _ns(rec.timestamp) == T0 + (k + 1) * 10**9 and rec.step == k + 1
+        assert rec.t_sim == src["t_sim"] and rec.state == src["state"] and rec.in_contact == src["in_contact"]
         for key in ("ee_pose", "q", "dq", "tau", "wrench_measured", "wrench_desired"):
-            assert rec[key] == np.asarray(src[key]).tolist(), key
-        assert rec["contact_point"] == (None if src["contact_point"] is None else src["contact_point"].tolist())
-        assert rec["link_poses"] == {n: p.tolist() for n, p in src["link_poses"].items()}
+            assert list(getattr(rec, key)) == np.asarray(src[key]).tolist(), key
+        assert (list(rec.contact_point), list(rec.nulls)) == (([], ["contact_point"]) if src["contact_point"] is None
+                                                              else (src["contact_point"].tolist(), []))
+        assert {p.name: list(p.pose) for p in rec.link_poses} == {n: p.tolist() for n, p in src["link_poses"].items()}
+        assert rec.force_normal == src["force_normal"] and rec.tilt_deg == src["tilt_deg"] and not rec.extras
 
     ee = msgs[S.TOPIC_EE_POSE]
     for k, (_, msg) in enumerate(ee):
@@ -249,7 +253,7 @@ def test_every_channel_round_trips(robot_log):
     tfs = msgs[S.TOPIC_TF]
     assert len(tfs) == T * (len(LINKS) + 1)
     for m, tf in tfs:
-        k = m.log_time // 10**9 - T0_S - 1
+        k = tf.timestamp.seconds - T0_S - 1
         src = inp["robot"][k]
         expected = src["ee_pose"] if tf.child_frame_id == S.FRAME_EE else src["link_poses"][tf.child_frame_id]
         got = [tf.translation.x, tf.translation.y, tf.translation.z, tf.rotation.x, tf.rotation.y, tf.rotation.z,
@@ -266,9 +270,11 @@ def test_every_channel_round_trips(robot_log):
     wrench = msgs[S.TOPIC_WRENCH]
     for k, (_, rec) in enumerate(wrench):
         src = inp["robot"][k]
-        assert list(rec["measured"].values()) == src["wrench_measured"].tolist()
-        assert list(rec["desired"].values()) == src["wrench_desired"].tolist()
-        assert rec["force_normal"] == src["force_normal"]
+        components = ("fx", "fy", "fz", "tx", "ty", "tz")
+        assert [getattr(rec.measured, c) for c in components] == src["wrench_measured"].tolist()
+        assert [getattr(rec.desired, c) for c in components] == src["wrench_desired"].tolist()
+        assert rec.force_normal == src["force_normal"] and rec.in_contact == src["in_contact"]
+        assert rec.frame_id == S.FRAME_EE and _ns(rec.timestamp) == T0 + (k + 1) * 10**9
     wscene = msgs[S.TOPIC_WRENCH_SCENE]
     _, first = wscene[0]
     desired = next(e for e in first.entities if e.id == "force_desired")
@@ -278,7 +284,7 @@ def test_every_channel_round_trips(robot_log):
     assert arrow.shaft_length == pytest.approx(0.005 * 5.0)
 
     (ev_msg, ev), = msgs[S.TOPIC_EVENTS]
-    assert ev.message == "step 4: contact established" and ev_msg.log_time == T0 + 4 * 10**9
+    assert ev.message == "step 4: contact established" and _ns(ev.timestamp) == T0 + 4 * 10**9
 
     from mcap.reader import make_reader
 
@@ -340,7 +346,27 @@ def test_chunks_are_flushed_every_flush_every_steps(tmp_path):
         chunks = make_reader(fh).get_summary().chunk_indexes
     # one chunk per 25 steps (+ the event's own step inside the first): 200 / 25 = 8
     assert len(chunks) == 8
-    assert [c.message_end_time // 10**9 - T0_S for c in chunks] == list(range(25, 201, 25))
+    assert _last_step_of_each_chunk(tmp_path / "run.mcap") == list(range(25, 201, 25))
+
+
+def _last_step_of_each_chunk(path: Path) -> list[int]:
+    """The step of the last StepRecord in each chunk, reading the records in file order (a chunk's messages
+    are followed by its message indexes)."""
+    from mcap.records import Channel, Message, MessageIndex
+    from mcap.stream_reader import StreamReader
+
+    from tergodic_cli.runlog.proto import step_record_class
+
+    Record, metrics, out, last = step_record_class(), set(), [], None
+    with open(path, "rb") as fh:
+        for rec in StreamReader(fh).records:
+            if isinstance(rec, Channel) and rec.topic == S.TOPIC_METRICS:
+                metrics.add(rec.id)
+            elif isinstance(rec, Message) and rec.channel_id in metrics:
+                last = Record.FromString(rec.data).step
+            elif isinstance(rec, MessageIndex) and last is not None:
+                out, last = out + [last], None
+    return out
 
 
 def test_context_manager_finishes_the_file_on_error(tmp_path):
@@ -481,7 +507,7 @@ def test_step_messages_decode_exactly_with_the_official_schemas(tmp_path, n_agen
     for k, ((m, rec), (_, poses), (_, scene)) in enumerate(zip(msgs[S.TOPIC_METRICS], msgs[S.TOPIC_AGENT_POSES],
                                                                 msgs[S.TOPIC_AGENT_SCENE])):
         t_ns = t0 + round(times[k] * 1e9)
-        assert m.log_time == t_ns and rec.step == 2**40 + k and rec.t == times[k] and rec.n_agents == n_agents
+        assert rec.step == 2**40 + k and rec.t == times[k] and rec.n_agents == n_agents
         for name, series in inp["metrics"].items():
             np.testing.assert_array_equal(getattr(rec, name), series[k])  # NaN == NaN here
         assert np.signbit(rec.touched_fraction) == np.signbit(inp["metrics"]["touched_fraction"][k])
@@ -527,13 +553,17 @@ def test_extra_metrics_and_a_changing_agent_count(tmp_path):
 
 def test_events_and_robot_messages_follow_their_step(tmp_path):
     inp = demo_inputs(steps=5, robot=True, n_agents=1)
+    before = time.time_ns()
     write_demo_log(tmp_path / "run.mcap", inp)  # the event is logged after step 4
+    after = time.time_ns()
     from mcap.reader import make_reader
 
-    with open(tmp_path / "run.mcap", "rb") as fh:
-        order = [(ch.topic, m.log_time - T0) for _, ch, m in make_reader(fh).iter_messages(log_time_order=False)]
-    i_event = order.index((S.TOPIC_EVENTS, 4 * 10**9))
-    assert order[i_event - 1][1] == 4 * 10**9 and (S.TOPIC_METRICS, 5 * 10**9) in order[i_event + 1:]
-    step4 = [topic for topic, t in order if t == 4 * 10**9]
+    with open(tmp_path / "run.mcap", "rb") as fh:  # file order: the order of writing
+        msgs = [(ch.topic, m) for _, ch, m in make_reader(fh).iter_messages(log_time_order=False)]
+    log_times = [m.log_time for _, m in msgs]
+    assert log_times == sorted(log_times) and before <= log_times[0] and log_times[-1] <= after  # the wall clock
+    order = [topic for topic, _ in msgs]
+    starts = [i for i, topic in enumerate(order) if topic == S.TOPIC_METRICS]  # where each step begins
+    step4 = order[starts[3]:starts[4]]
     assert step4[:3] == [S.TOPIC_METRICS, S.TOPIC_AGENT_POSES, S.TOPIC_AGENT_SCENE]
-    assert S.TOPIC_ROBOT_SAMPLE in step4 and S.TOPIC_TF in step4
+    assert S.TOPIC_ROBOT_SAMPLE in step4 and S.TOPIC_TF in step4 and step4[-1] == S.TOPIC_EVENTS
