@@ -567,3 +567,118 @@ def test_events_and_robot_messages_follow_their_step(tmp_path):
     step4 = order[starts[3]:starts[4]]
     assert step4[:3] == [S.TOPIC_METRICS, S.TOPIC_AGENT_POSES, S.TOPIC_AGENT_SCENE]
     assert S.TOPIC_ROBOT_SAMPLE in step4 and S.TOPIC_TF in step4 and step4[-1] == S.TOPIC_EVENTS
+
+
+# --- logs written before version 3 ---------------------------------------------------------------
+def _write_v2_log(path: Path, inp: dict, t0: int) -> None:
+    """A log laid out as tergodic wrote them before version 3, by hand with mcap's own writer: log times
+    t0 + simulated t (the stamps the same), /robot/sample as JSON (a JSON schema), the rest protobuf."""
+    from foxglove_schemas_protobuf.Log_pb2 import Log
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+    from mcap.writer import Writer
+    from mcap_protobuf.schema import build_file_descriptor_set
+
+    from tergodic_cli.runlog.proto import FULL_NAME, step_record_class, step_record_schema
+
+    Record = step_record_class()
+    with open(path, "wb") as fh:
+        w = Writer(fh)
+        w.start(profile="", library="tergodic before version 3")
+        w.add_metadata(S.META_TERGODIC, {"log_schema_version": "2", "time_origin_ns": str(t0), "cloud_every": "50"})
+        w.add_metadata(S.META_CONFIG, {"json": json.dumps(inp["config"])})
+        w.add_metadata(S.META_SEED, {"seed": "7"})
+
+        def channel(topic: str, name: str, encoding: str, data: bytes, message_encoding: str) -> int:
+            return w.register_channel(topic, message_encoding, w.register_schema(name, encoding, data))
+
+        def fds(cls) -> bytes:
+            return build_file_descriptor_set(cls).SerializeToString()
+
+        ch_m = channel(S.TOPIC_METRICS, FULL_NAME, "protobuf", step_record_schema(), "protobuf")
+        ch_s = channel(S.TOPIC_ROBOT_SAMPLE, "tergodic.RobotSample", "jsonschema", b'{"type": "object"}', "json")
+        ch_e = channel(S.TOPIC_EVENTS, "foxglove.Log", "protobuf", fds(Log), "protobuf")
+        ch_c = channel(S.TOPIC_CLOUD, "foxglove.PointCloud", "protobuf", fds(PointCloud), "protobuf")
+        for k in range(inp["steps"]):
+            step, t = k + 1, float(k + 1)
+            t_ns = t0 + step * 10**9
+            rec = Record(step=step, t=t, step_ms=float(inp["step_ms"][k]), n_agents=inp["P"].shape[1],
+                         **{m: float(v[k]) for m, v in inp["metrics"].items()})
+            for name, key in (("positions", "P"), ("velocities", "V"), ("normals", "N")):
+                getattr(rec, name).extend(inp[key][k].ravel().tolist())
+            w.add_message(ch_m, log_time=t_ns, publish_time=t_ns, data=rec.SerializeToString())
+            sample = {"step": step, **inp["robot"][k]}
+            w.add_message(ch_s, log_time=t_ns, publish_time=t_ns,
+                          data=json.dumps(sample, default=lambda a: a.tolist()).encode())
+            if step == 4:
+                ev = Log(message="step 4: contact established", name="tergodic")
+                ev.timestamp.FromNanoseconds(t_ns)
+                w.add_message(ch_e, log_time=t_ns, publish_time=t_ns, data=ev.SerializeToString())
+            if step in inp["clouds"]:
+                c = inp["clouds"][step]
+                cols = [inp["points"][:, 0], inp["points"][:, 1], inp["points"][:, 2], inp["target"],
+                        c["coverage"], c["heat"], c["source"]]
+                names = ("x", "y", "z", *S.CLOUD_FIELDS)
+                msg = PointCloud(frame_id=S.FRAME_OBJECT, point_stride=28,
+                                 data=np.column_stack(cols).astype("<f4").tobytes())
+                msg.timestamp.FromNanoseconds(t_ns)
+                for i, name in enumerate(names):
+                    msg.fields.add(name=name, offset=4 * i, type=7)  # FLOAT32
+                w.add_message(ch_c, log_time=t_ns, publish_time=t_ns, data=msg.SerializeToString())
+        w.add_metadata(S.META_END, {"steps": str(inp["steps"]), "clouds": str(len(inp["clouds"])), "status": "ok"})
+        w.finish()
+
+
+def test_a_version_2_log_with_json_samples_reads_as_before(tmp_path):
+    """Logs written before version 3 (JSON robot samples, log times = start + simulated time) still read:
+    the same samples, steps, event and cloud times as the current writer's log of the same run."""
+    inp = demo_inputs(steps=60, robot=True, n_agents=2, seed=5)
+    _write_v2_log(tmp_path / "old.mcap", inp, T0)
+    write_demo_log(tmp_path / "new.mcap", inp)
+    old, new = read_run_log(tmp_path / "old.mcap"), read_run_log(tmp_path / "new.mcap")
+    assert old.version == "2" and new.version == S.LOG_SCHEMA_VERSION
+    assert old.topics[S.TOPIC_ROBOT_SAMPLE]["message_encoding"] == "json"
+    assert new.topics[S.TOPIC_ROBOT_SAMPLE]["message_encoding"] == "protobuf"
+    assert old.events == new.events == [(4, 4.0, "contact established")]
+    assert [(c.step, c.t) for c in old.clouds] == [(c.step, c.t) for c in new.clouds] == [(50, 50.0), (60, 60.0)]
+    np.testing.assert_array_equal(old.clouds[-1].coverage, new.clouds[-1].coverage)
+    for key in ("step", "t", "ergodicity", "positions"):
+        np.testing.assert_array_equal(old.series[key], new.series[key])
+    assert len(old.robot) == len(new.robot) == 60
+    for a, b, src in zip(old.robot, new.robot, inp["robot"]):
+        assert set(a) == set(b) == {"step", *src}
+        for key, v in src.items():
+            if isinstance(v, dict):
+                assert {n: p.tolist() for n, p in a[key].items()} == {n: p.tolist() for n, p in b[key].items()} \
+                    == {n: np.asarray(p).tolist() for n, p in v.items()}
+            elif isinstance(v, np.ndarray):
+                assert a[key].dtype == b[key].dtype == np.float64
+                assert a[key].tolist() == b[key].tolist() == v.tolist(), key
+            else:
+                assert a[key] == b[key] == v and type(a[key]) is type(b[key]), key
+    for key, col in old.robot_series().items():
+        np.testing.assert_array_equal(col, new.robot_series()[key])
+
+
+def test_robot_sample_encoding_keeps_every_key_and_type():
+    """tergodic.RobotSample round-trips what a robot may put in a sample: None, keys outside the table,
+    values not of their field's kind, integers, nested dicts."""
+    from tergodic_cli.runlog.proto import ROBOT_SAMPLE, encode_sample, robot_class, sample_from_message
+
+    sample = {"step": 2**40, "t_sim": 0.1 + 0.2, "state": "explore", "q": np.arange(7) / 3, "contact_point": None,
+              "in_contact": np.bool_(True), "tick_steady": np.int64(12), "eps_agent": None,
+              "force_normal": 3,  # an int in a double field: a float of the same value
+              "link_poses": {"a": np.r_[1.0, 2, 3, 0, 0, 0, 1]}, "joint_names": ["j1", "j2"],
+              "recapture": {"share": 0.5, "ok": True}, "note": "hi", "count": 3, "flag": False, "ratio": 0.25,
+              "weights": [1, 2.5], "state_list": ["a", "b"], "empty": [], "t_wall": "not a number"}
+    msg = robot_class(ROBOT_SAMPLE).FromString(encode_sample(sample, 1_795_000_000_123_456_789))
+    assert (msg.timestamp.seconds, msg.timestamp.nanos) == (1_795_000_000, 123_456_789)
+    back = sample_from_message(msg)
+    assert set(back) == set(sample)
+    assert back["step"] == 2**40 and back["t_sim"] == 0.1 + 0.2 and back["state"] == "explore"
+    assert back["q"].tolist() == (np.arange(7) / 3).tolist() and back["contact_point"] is None
+    assert back["in_contact"] is True and back["tick_steady"] == 12 and back["eps_agent"] is None
+    assert back["force_normal"] == 3.0 and back["link_poses"]["a"].tolist() == [1, 2, 3, 0, 0, 0, 1]
+    assert back["joint_names"] == ["j1", "j2"] and back["recapture"] == {"share": 0.5, "ok": True}
+    assert (back["note"], back["count"], back["flag"], back["ratio"]) == ("hi", 3, False, 0.25)
+    assert type(back["count"]) is int and back["weights"].tolist() == [1.0, 2.5]
+    assert back["state_list"] == ["a", "b"] and back["empty"] == [] and back["t_wall"] == "not a number"
