@@ -1,10 +1,12 @@
-"""``tergodic.StepRecord``: the exact per-step record, as a protobuf message built at import.
+"""The project's protobuf schemas, for the channels Foxglove has no schema for: ``tergodic.StepRecord``
+(the exact per-step record), ``tergodic.RobotSample`` and ``tergodic.Wrench`` (the robot's sample and
+wrench), ``tergodic.RobotPhase`` and ``tergodic.ForceWindow`` (the robot's own records).
 
 Binary float64 (protobuf ``double``) is exact and costs no text formatting, at one record per
-explorer step. The proto2 message is described in code (no protoc): step (fixed64), t (s), the
-three metrics, step_ms, n_agents, then positions (m), velocities (m/s) and normals as packed (N, 3)
-row-major doubles, and extra_names / extra_values for further metrics. Its FileDescriptorSet
-travels in the MCAP schema record, so protobuf-aware viewers decode it without tergodic
+explorer step. Each proto2 message is described in code (no protoc); the step record: step (fixed64),
+t (s), the three metrics, step_ms, n_agents, then positions (m), velocities (m/s) and normals as packed
+(N, 3) row-major doubles, and extra_names / extra_values for further metrics. Each FileDescriptorSet
+travels in its MCAP schema record, so protobuf-aware viewers decode them without tergodic
 (docs/logging.md). proto2 keeps explicit presence: a metric never set reads as absent, not 0.
 """
 

@@ -1,10 +1,10 @@
 """Read a run log back: series, robot samples, clouds, events, metadata.
 
-Times come from the messages (the step records' and robot samples' ``t``, the clouds' and events'
-stamps minus the log's ``time_origin_ns``), never from log times, which are the wall clock from
-version 3 on. Robot samples are read from protobuf (version 3) or JSON (before). Record by record, so a log cut short by a crash reads up to its last complete chunk
-(``truncated = True``); chunk CRCs are checked, so a half-written chunk is dropped
-(docs/logging.md).
+Times come from the messages (the step records' ``t``, the robot samples' ``t_sim``, the clouds' and
+events' stamps minus the log's ``time_origin_ns``), never from log times, which are the wall clock
+from version 3 on. Robot samples are read from protobuf (version 3) or JSON (before). Record by
+record, so a log cut short by a crash reads up to its last complete chunk (``truncated = True``);
+chunk CRCs are checked, so a half-written chunk is dropped (docs/logging.md).
 """
 
 from __future__ import annotations
