@@ -254,9 +254,23 @@ def _flat_reals(v: Any) -> list | None:
 
 
 def encode_sample(sample: dict, t_ns: int) -> bytes:
-    """A robot sample dict (CONTRACTS robot_sample_dict plus extras) as tergodic.RobotSample bytes, stamped
-    ``t_ns`` (ns since the epoch: the log's origin + the simulated time). Lossless for what the robot produces:
-    :func:`sample_from_message` gives the same keys and values back (vectors as float64 arrays)."""
+    """A robot sample as ``tergodic.RobotSample`` bytes, lossless for what a robot produces.
+
+    Parameters
+    ----------
+    sample : dict
+        The robot sample (CONTRACTS robot_sample_dict plus extras; SI units, base frame). Keys of
+        :data:`SAMPLE_FIELDS` with a value of their kind go to their field, None values to ``nulls``,
+        anything else to ``extras`` (typed; nested values as JSON).
+    t_ns : int
+        The stamp, ns since the epoch: the log's ``time_origin_ns`` + the simulated time.
+
+    Returns
+    -------
+    bytes
+        The serialized message; :func:`sample_from_message` gives the same keys and values back
+        (vectors as (k,) float64 arrays).
+    """
     msg = robot_class(ROBOT_SAMPLE)()
     _set_stamp(msg, t_ns)
     for key, v in sample.items():
@@ -306,7 +320,20 @@ def encode_sample(sample: dict, t_ns: int) -> bytes:
 
 
 def sample_from_message(m: Any) -> dict:
-    """A decoded tergodic.RobotSample (any protobuf class of it) back to the sample dict."""
+    """A decoded ``tergodic.RobotSample`` back to the sample dict.
+
+    Parameters
+    ----------
+    m : protobuf message
+        The decoded message, of any class generated from the schema (tergodic's, or ``mcap_protobuf``'s
+        from the schema stored in the file).
+
+    Returns
+    -------
+    dict
+        The sample's keys in :data:`SAMPLE_FIELDS` order, then the extras: vectors as (k,) float64 arrays,
+        ``link_poses`` as {name: (7,) array}, ``joint_names`` as a list, None where the sample had None.
+    """
     nulls = set(m.nulls)
     out: dict = {}
     for key, kind in SAMPLE_FIELDS:
@@ -331,8 +358,26 @@ def sample_from_message(m: Any) -> dict:
 
 
 def encode_wrench(step: int, t_ns: int, measured: Any, desired: Any, force_normal: Any, in_contact: Any) -> bytes:
-    """tergodic.Wrench bytes: measured and desired wrench (N, N m, ee frame; either may be None), the normal
-    force (N) and the contact flag, stamped ``t_ns`` (the log's origin + the simulated time)."""
+    """The ``tergodic.Wrench`` message of one robot sample.
+
+    Parameters
+    ----------
+    step : int
+        Explorer step.
+    t_ns : int
+        The stamp, ns since the epoch: the log's ``time_origin_ns`` + the simulated time.
+    measured, desired : (6,) float array or None
+        Wrench fx fy fz (N), tx ty tz (N m) in the ee frame; None leaves it absent.
+    force_normal : float or None
+        Normal force on the surface, N.
+    in_contact : bool or None
+        Whether the tool is in contact.
+
+    Returns
+    -------
+    bytes
+        The serialized message.
+    """
     msg = robot_class(WRENCH)()
     _set_stamp(msg, t_ns)
     msg.frame_id, msg.step = "ee", int(step)
