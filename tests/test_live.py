@@ -174,15 +174,17 @@ def test_a_client_sees_the_channels_and_decodes_a_point_cloud(tmp_path):
         expected = {S.TOPIC_METRICS: "tergodic.StepRecord", S.TOPIC_AGENT_POSES: "foxglove.PosesInFrame",
                     S.TOPIC_AGENT_SCENE: "foxglove.SceneUpdate", S.TOPIC_CLOUD: "foxglove.PointCloud",
                     S.TOPIC_TF: "foxglove.FrameTransform", S.TOPIC_WRENCH: "tergodic.Wrench",
-                    S.TOPIC_WRENCH_SCENE: "foxglove.SceneUpdate", S.TOPIC_EE_POSE: "foxglove.PoseInFrame"}
+                    S.TOPIC_WRENCH_SCENE: "foxglove.SceneUpdate", S.TOPIC_EE_POSE: "foxglove.PoseInFrame",
+                    S.TOPIC_ROBOT_SAMPLE: "tergodic.RobotSample"}
         for topic, schema in expected.items():  # the MCAP's channels, advertised with their schemas
             assert channels[topic]["schemaName"] == schema, topic
             assert channels[topic]["schema"], topic
-        assert channels[S.TOPIC_CLOUD]["encoding"] == "protobuf"
+        assert {ch["encoding"] for ch in channels.values()} == {"protobuf"}  # one encoding on every channel
 
         time.sleep(0.2)  # the SDK may send an advertisement before it takes subscriptions to that channel
         client.send_json({"op": "subscribe", "subscriptions": [{"id": 7, "channelId": channels[S.TOPIC_CLOUD]["id"]}]})
         time.sleep(0.2)  # the subscription reaches the server before the next cloud
+        sent_after = time.time_ns()
         steps(50, 100)
         end = time.monotonic() + DEADLINE_S
         while True:
@@ -192,7 +194,9 @@ def test_a_client_sees_the_channels_and_decodes_a_point_cloud(tmp_path):
                 sub_id, log_time = struct.unpack_from("<IQ", data, 1)
                 cloud = PointCloud.FromString(data[13:])
                 break
-        assert sub_id == 7 and log_time == log.time_origin_ns + 100 * 10**9
+        # the log time is the wall clock when the cloud was written, its stamp the simulated time (step 100 = 100 s)
+        assert sub_id == 7 and sent_after <= log_time <= time.time_ns()
+        assert cloud.timestamp.seconds * 10**9 + cloud.timestamp.nanos == log.time_origin_ns + 100 * 10**9
         assert cloud.frame_id == S.FRAME_OBJECT and cloud.pose.HasField("position")
         assert len(cloud.data) // cloud.point_stride == len(inp["points"])
         xyz = np.frombuffer(cloud.data, dtype="<f4").reshape(-1, 7)[:, :3]

@@ -64,7 +64,8 @@ def demo_inputs(steps: int = 120, n_points: int = 400, n_agents: int = 2, robot:
             "sidecar": {"source": "synthetic bowl", "n_points": n_points, "h": 0.003}}
 
 
-#: The demo logs' wall-clock origin (whole seconds, so that log_time // 1e9 - T0_S is the step).
+#: The demo logs' stamp origin (whole seconds, so that a stamp's seconds - T0_S is the step; log times are
+#: the wall clock when written).
 T0_S = 1_795_000_000
 T0 = T0_S * 10**9
 
@@ -99,23 +100,21 @@ def robot_log(tmp_path_factory):
 
 
 def _decoded(path: Path) -> dict[str, list]:
-    """Every message of ``path`` decoded by mcap's own reader (protobuf via the schema in the file)."""
+    """Every message of ``path`` decoded by mcap's own reader with the protobuf decoder alone (the schemas in
+    the file), in file order."""
     from mcap.reader import make_reader
     from mcap_protobuf.decoder import DecoderFactory
 
     out: dict[str, list] = {}
-    factory, decoders = DecoderFactory(), {}
     with open(path, "rb") as fh:
-        reader = make_reader(fh)
-        for schema, channel, message in reader.iter_messages(log_time_order=False):
-            if channel.message_encoding == "json":
-                value = json.loads(message.data)
-            else:
-                if schema.id not in decoders:
-                    decoders[schema.id] = factory.decoder_for(channel.message_encoding, schema)
-                value = decoders[schema.id](message.data)
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])  # a JSON channel raises DecoderNotFoundError
+        for _, channel, message, value in reader.iter_decoded_messages(log_time_order=False):
             out.setdefault(channel.topic, []).append((message, value))
     return out
+
+
+def _ns(stamp) -> int:
+    return stamp.seconds * 10**9 + stamp.nanos
 
 
 # --- geometry helpers of the writer ------------------------------------------------------------
@@ -157,8 +156,10 @@ def test_schema_names_and_encodings_are_foxglove_protobuf(robot_log):
     assert by_topic[S.TOPIC_AGENT_SCENE] == ("foxglove.SceneUpdate", "protobuf", "protobuf")
     assert by_topic[S.TOPIC_EE_POSE] == ("foxglove.PoseInFrame", "protobuf", "protobuf")
     assert by_topic[S.TOPIC_METRICS] == ("tergodic.StepRecord", "protobuf", "protobuf")
-    for topic in (S.TOPIC_ROBOT_SAMPLE, S.TOPIC_WRENCH):
-        assert by_topic[topic][1:] == ("jsonschema", "json"), topic
+    assert by_topic[S.TOPIC_ROBOT_SAMPLE] == ("tergodic.RobotSample", "protobuf", "protobuf")
+    assert by_topic[S.TOPIC_WRENCH] == ("tergodic.Wrench", "protobuf", "protobuf")
+    assert {enc for _, enc, _ in by_topic.values()} == {"protobuf"}  # one encoding
+    assert {enc for _, _, enc in by_topic.values()} == {"protobuf"}
     # chunked, indexed, compressed
     assert len(summary.chunk_indexes) >= 3
     assert {ci.compression for ci in summary.chunk_indexes} == {"lz4"}
@@ -174,7 +175,7 @@ def test_every_channel_round_trips(robot_log):
     metrics = msgs[S.TOPIC_METRICS]  # decoded with the schema stored in the file, not tergodic's class
     assert len(metrics) == T
     for k, (m, rec) in enumerate(metrics):
-        assert rec.step == k + 1 and rec.t == k + 1 and m.log_time == T0 + (k + 1) * 10**9
+        assert rec.step == k + 1 and rec.t == k + 1
         for name, series in inp["metrics"].items():
             assert getattr(rec, name) == series[k]  # exact float64
         assert rec.step_ms == inp["step_ms"][k] and rec.n_agents == A
@@ -218,7 +219,7 @@ def test_every_channel_round_trips(robot_log):
                 assert arrow.shaft_length == 0.0
 
     clouds = msgs[S.TOPIC_CLOUD]
-    assert [m.log_time // 10**9 - T0_S for m, _ in clouds] == sorted(inp["clouds"])  # t = step s
+    assert [msg.timestamp.seconds - T0_S for _, msg in clouds] == sorted(inp["clouds"])  # t = step s
     for m, msg in clouds:
         names = [f.name for f in msg.fields]
         assert names == ["x", "y", "z", "target", "coverage", "heat", "source"]
@@ -227,17 +228,20 @@ def test_every_channel_round_trips(robot_log):
         np.testing.assert_array_equal(arr[:, :3], inp["points"].astype(np.float32))
         np.testing.assert_array_equal(arr[:, 3], inp["target"].astype(np.float32))
         for col, name in ((4, "coverage"), (5, "heat"), (6, "source")):
-            np.testing.assert_array_equal(arr[:, col], inp["clouds"][m.log_time // 10**9 - T0_S][name].astype(np.float32))
+            np.testing.assert_array_equal(arr[:, col], inp["clouds"][msg.timestamp.seconds - T0_S][name].astype(np.float32))
 
-    samples = msgs[S.TOPIC_ROBOT_SAMPLE]
+    samples = msgs[S.TOPIC_ROBOT_SAMPLE]  # tergodic.RobotSample, decoded with the schema in the file
     assert len(samples) == T
     for k, (_, rec) in enumerate(samples):
         src = inp["robot"][k]
-        assert rec["t_sim"] == src["t_sim"] and rec["state"] == src["state"] and rec["in_contact"] == src["in_contact"]
+        assert _ns(rec.timestamp) == T0 + (k + 1) * 10**9 and rec.step == k + 1
+        assert rec.t_sim == src["t_sim"] and rec.state == src["state"] and rec.in_contact == src["in_contact"]
         for key in ("ee_pose", "q", "dq", "tau", "wrench_measured", "wrench_desired"):
-            assert rec[key] == np.asarray(src[key]).tolist(), key
-        assert rec["contact_point"] == (None if src["contact_point"] is None else src["contact_point"].tolist())
-        assert rec["link_poses"] == {n: p.tolist() for n, p in src["link_poses"].items()}
+            assert list(getattr(rec, key)) == np.asarray(src[key]).tolist(), key
+        assert (list(rec.contact_point), list(rec.nulls)) == (([], ["contact_point"]) if src["contact_point"] is None
+                                                              else (src["contact_point"].tolist(), []))
+        assert {p.name: list(p.pose) for p in rec.link_poses} == {n: p.tolist() for n, p in src["link_poses"].items()}
+        assert rec.force_normal == src["force_normal"] and rec.tilt_deg == src["tilt_deg"] and not rec.extras
 
     ee = msgs[S.TOPIC_EE_POSE]
     for k, (_, msg) in enumerate(ee):
@@ -249,7 +253,7 @@ def test_every_channel_round_trips(robot_log):
     tfs = msgs[S.TOPIC_TF]
     assert len(tfs) == T * (len(LINKS) + 1)
     for m, tf in tfs:
-        k = m.log_time // 10**9 - T0_S - 1
+        k = tf.timestamp.seconds - T0_S - 1
         src = inp["robot"][k]
         expected = src["ee_pose"] if tf.child_frame_id == S.FRAME_EE else src["link_poses"][tf.child_frame_id]
         got = [tf.translation.x, tf.translation.y, tf.translation.z, tf.rotation.x, tf.rotation.y, tf.rotation.z,
@@ -266,9 +270,11 @@ def test_every_channel_round_trips(robot_log):
     wrench = msgs[S.TOPIC_WRENCH]
     for k, (_, rec) in enumerate(wrench):
         src = inp["robot"][k]
-        assert list(rec["measured"].values()) == src["wrench_measured"].tolist()
-        assert list(rec["desired"].values()) == src["wrench_desired"].tolist()
-        assert rec["force_normal"] == src["force_normal"]
+        components = ("fx", "fy", "fz", "tx", "ty", "tz")
+        assert [getattr(rec.measured, c) for c in components] == src["wrench_measured"].tolist()
+        assert [getattr(rec.desired, c) for c in components] == src["wrench_desired"].tolist()
+        assert rec.force_normal == src["force_normal"] and rec.in_contact == src["in_contact"]
+        assert rec.frame_id == S.FRAME_EE and _ns(rec.timestamp) == T0 + (k + 1) * 10**9
     wscene = msgs[S.TOPIC_WRENCH_SCENE]
     _, first = wscene[0]
     desired = next(e for e in first.entities if e.id == "force_desired")
@@ -278,7 +284,7 @@ def test_every_channel_round_trips(robot_log):
     assert arrow.shaft_length == pytest.approx(0.005 * 5.0)
 
     (ev_msg, ev), = msgs[S.TOPIC_EVENTS]
-    assert ev.message == "step 4: contact established" and ev_msg.log_time == T0 + 4 * 10**9
+    assert ev.message == "step 4: contact established" and _ns(ev.timestamp) == T0 + 4 * 10**9
 
     from mcap.reader import make_reader
 
@@ -340,7 +346,27 @@ def test_chunks_are_flushed_every_flush_every_steps(tmp_path):
         chunks = make_reader(fh).get_summary().chunk_indexes
     # one chunk per 25 steps (+ the event's own step inside the first): 200 / 25 = 8
     assert len(chunks) == 8
-    assert [c.message_end_time // 10**9 - T0_S for c in chunks] == list(range(25, 201, 25))
+    assert _last_step_of_each_chunk(tmp_path / "run.mcap") == list(range(25, 201, 25))
+
+
+def _last_step_of_each_chunk(path: Path) -> list[int]:
+    """The step of the last StepRecord in each chunk, reading the records in file order (a chunk's messages
+    are followed by its message indexes)."""
+    from mcap.records import Channel, Message, MessageIndex
+    from mcap.stream_reader import StreamReader
+
+    from tergodic_cli.runlog.proto import step_record_class
+
+    Record, metrics, out, last = step_record_class(), set(), [], None
+    with open(path, "rb") as fh:
+        for rec in StreamReader(fh).records:
+            if isinstance(rec, Channel) and rec.topic == S.TOPIC_METRICS:
+                metrics.add(rec.id)
+            elif isinstance(rec, Message) and rec.channel_id in metrics:
+                last = Record.FromString(rec.data).step
+            elif isinstance(rec, MessageIndex) and last is not None:
+                out, last = out + [last], None
+    return out
 
 
 def test_context_manager_finishes_the_file_on_error(tmp_path):
@@ -481,7 +507,7 @@ def test_step_messages_decode_exactly_with_the_official_schemas(tmp_path, n_agen
     for k, ((m, rec), (_, poses), (_, scene)) in enumerate(zip(msgs[S.TOPIC_METRICS], msgs[S.TOPIC_AGENT_POSES],
                                                                 msgs[S.TOPIC_AGENT_SCENE])):
         t_ns = t0 + round(times[k] * 1e9)
-        assert m.log_time == t_ns and rec.step == 2**40 + k and rec.t == times[k] and rec.n_agents == n_agents
+        assert rec.step == 2**40 + k and rec.t == times[k] and rec.n_agents == n_agents
         for name, series in inp["metrics"].items():
             np.testing.assert_array_equal(getattr(rec, name), series[k])  # NaN == NaN here
         assert np.signbit(rec.touched_fraction) == np.signbit(inp["metrics"]["touched_fraction"][k])
@@ -527,13 +553,132 @@ def test_extra_metrics_and_a_changing_agent_count(tmp_path):
 
 def test_events_and_robot_messages_follow_their_step(tmp_path):
     inp = demo_inputs(steps=5, robot=True, n_agents=1)
+    before = time.time_ns()
     write_demo_log(tmp_path / "run.mcap", inp)  # the event is logged after step 4
+    after = time.time_ns()
     from mcap.reader import make_reader
 
-    with open(tmp_path / "run.mcap", "rb") as fh:
-        order = [(ch.topic, m.log_time - T0) for _, ch, m in make_reader(fh).iter_messages(log_time_order=False)]
-    i_event = order.index((S.TOPIC_EVENTS, 4 * 10**9))
-    assert order[i_event - 1][1] == 4 * 10**9 and (S.TOPIC_METRICS, 5 * 10**9) in order[i_event + 1:]
-    step4 = [topic for topic, t in order if t == 4 * 10**9]
+    with open(tmp_path / "run.mcap", "rb") as fh:  # file order: the order of writing
+        msgs = [(ch.topic, m) for _, ch, m in make_reader(fh).iter_messages(log_time_order=False)]
+    log_times = [m.log_time for _, m in msgs]
+    assert log_times == sorted(log_times) and before <= log_times[0] and log_times[-1] <= after  # the wall clock
+    order = [topic for topic, _ in msgs]
+    starts = [i for i, topic in enumerate(order) if topic == S.TOPIC_METRICS]  # where each step begins
+    step4 = order[starts[3]:starts[4]]
     assert step4[:3] == [S.TOPIC_METRICS, S.TOPIC_AGENT_POSES, S.TOPIC_AGENT_SCENE]
-    assert S.TOPIC_ROBOT_SAMPLE in step4 and S.TOPIC_TF in step4
+    assert S.TOPIC_ROBOT_SAMPLE in step4 and S.TOPIC_TF in step4 and step4[-1] == S.TOPIC_EVENTS
+
+
+# --- logs written before version 3 ---------------------------------------------------------------
+def _write_v2_log(path: Path, inp: dict, t0: int) -> None:
+    """A log laid out as tergodic wrote them before version 3, by hand with mcap's own writer: log times
+    t0 + simulated t (the stamps the same), /robot/sample as JSON (a JSON schema), the rest protobuf."""
+    from foxglove_schemas_protobuf.Log_pb2 import Log
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+    from mcap.writer import Writer
+    from mcap_protobuf.schema import build_file_descriptor_set
+
+    from tergodic_cli.runlog.proto import FULL_NAME, step_record_class, step_record_schema
+
+    Record = step_record_class()
+    with open(path, "wb") as fh:
+        w = Writer(fh)
+        w.start(profile="", library="tergodic before version 3")
+        w.add_metadata(S.META_TERGODIC, {"log_schema_version": "2", "time_origin_ns": str(t0), "cloud_every": "50"})
+        w.add_metadata(S.META_CONFIG, {"json": json.dumps(inp["config"])})
+        w.add_metadata(S.META_SEED, {"seed": "7"})
+
+        def channel(topic: str, name: str, encoding: str, data: bytes, message_encoding: str) -> int:
+            return w.register_channel(topic, message_encoding, w.register_schema(name, encoding, data))
+
+        def fds(cls) -> bytes:
+            return build_file_descriptor_set(cls).SerializeToString()
+
+        ch_m = channel(S.TOPIC_METRICS, FULL_NAME, "protobuf", step_record_schema(), "protobuf")
+        ch_s = channel(S.TOPIC_ROBOT_SAMPLE, "tergodic.RobotSample", "jsonschema", b'{"type": "object"}', "json")
+        ch_e = channel(S.TOPIC_EVENTS, "foxglove.Log", "protobuf", fds(Log), "protobuf")
+        ch_c = channel(S.TOPIC_CLOUD, "foxglove.PointCloud", "protobuf", fds(PointCloud), "protobuf")
+        for k in range(inp["steps"]):
+            step, t = k + 1, float(k + 1)
+            t_ns = t0 + step * 10**9
+            rec = Record(step=step, t=t, step_ms=float(inp["step_ms"][k]), n_agents=inp["P"].shape[1],
+                         **{m: float(v[k]) for m, v in inp["metrics"].items()})
+            for name, key in (("positions", "P"), ("velocities", "V"), ("normals", "N")):
+                getattr(rec, name).extend(inp[key][k].ravel().tolist())
+            w.add_message(ch_m, log_time=t_ns, publish_time=t_ns, data=rec.SerializeToString())
+            sample = {"step": step, **inp["robot"][k]}
+            w.add_message(ch_s, log_time=t_ns, publish_time=t_ns,
+                          data=json.dumps(sample, default=lambda a: a.tolist()).encode())
+            if step == 4:
+                ev = Log(message="step 4: contact established", name="tergodic")
+                ev.timestamp.FromNanoseconds(t_ns)
+                w.add_message(ch_e, log_time=t_ns, publish_time=t_ns, data=ev.SerializeToString())
+            if step in inp["clouds"]:
+                c = inp["clouds"][step]
+                cols = [inp["points"][:, 0], inp["points"][:, 1], inp["points"][:, 2], inp["target"],
+                        c["coverage"], c["heat"], c["source"]]
+                names = ("x", "y", "z", *S.CLOUD_FIELDS)
+                msg = PointCloud(frame_id=S.FRAME_OBJECT, point_stride=28,
+                                 data=np.column_stack(cols).astype("<f4").tobytes())
+                msg.timestamp.FromNanoseconds(t_ns)
+                for i, name in enumerate(names):
+                    msg.fields.add(name=name, offset=4 * i, type=7)  # FLOAT32
+                w.add_message(ch_c, log_time=t_ns, publish_time=t_ns, data=msg.SerializeToString())
+        w.add_metadata(S.META_END, {"steps": str(inp["steps"]), "clouds": str(len(inp["clouds"])), "status": "ok"})
+        w.finish()
+
+
+def test_a_version_2_log_with_json_samples_reads_as_before(tmp_path):
+    """Logs written before version 3 (JSON robot samples, log times = start + simulated time) still read:
+    the same samples, steps, event and cloud times as the current writer's log of the same run."""
+    inp = demo_inputs(steps=60, robot=True, n_agents=2, seed=5)
+    _write_v2_log(tmp_path / "old.mcap", inp, T0)
+    write_demo_log(tmp_path / "new.mcap", inp)
+    old, new = read_run_log(tmp_path / "old.mcap"), read_run_log(tmp_path / "new.mcap")
+    assert old.version == "2" and new.version == S.LOG_SCHEMA_VERSION
+    assert old.topics[S.TOPIC_ROBOT_SAMPLE]["message_encoding"] == "json"
+    assert new.topics[S.TOPIC_ROBOT_SAMPLE]["message_encoding"] == "protobuf"
+    assert old.events == new.events == [(4, 4.0, "contact established")]
+    assert [(c.step, c.t) for c in old.clouds] == [(c.step, c.t) for c in new.clouds] == [(50, 50.0), (60, 60.0)]
+    np.testing.assert_array_equal(old.clouds[-1].coverage, new.clouds[-1].coverage)
+    for key in ("step", "t", "ergodicity", "positions"):
+        np.testing.assert_array_equal(old.series[key], new.series[key])
+    assert len(old.robot) == len(new.robot) == 60
+    for a, b, src in zip(old.robot, new.robot, inp["robot"]):
+        assert set(a) == set(b) == {"step", *src}
+        for key, v in src.items():
+            if isinstance(v, dict):
+                assert {n: p.tolist() for n, p in a[key].items()} == {n: p.tolist() for n, p in b[key].items()} \
+                    == {n: np.asarray(p).tolist() for n, p in v.items()}
+            elif isinstance(v, np.ndarray):
+                assert a[key].dtype == b[key].dtype == np.float64
+                assert a[key].tolist() == b[key].tolist() == v.tolist(), key
+            else:
+                assert a[key] == b[key] == v and type(a[key]) is type(b[key]), key
+    for key, col in old.robot_series().items():
+        np.testing.assert_array_equal(col, new.robot_series()[key])
+
+
+def test_robot_sample_encoding_keeps_every_key_and_type():
+    """tergodic.RobotSample round-trips what a robot may put in a sample: None, keys outside the table,
+    values not of their field's kind, integers, nested dicts."""
+    from tergodic_cli.runlog.proto import ROBOT_SAMPLE, encode_sample, robot_class, sample_from_message
+
+    sample = {"step": 2**40, "t_sim": 0.1 + 0.2, "state": "explore", "q": np.arange(7) / 3, "contact_point": None,
+              "in_contact": np.bool_(True), "tick_steady": np.int64(12), "eps_agent": None,
+              "force_normal": 3,  # an int in a double field: a float of the same value
+              "link_poses": {"a": np.r_[1.0, 2, 3, 0, 0, 0, 1]}, "joint_names": ["j1", "j2"],
+              "recapture": {"share": 0.5, "ok": True}, "note": "hi", "count": 3, "flag": False, "ratio": 0.25,
+              "weights": [1, 2.5], "state_list": ["a", "b"], "empty": [], "t_wall": "not a number"}
+    msg = robot_class(ROBOT_SAMPLE).FromString(encode_sample(sample, 1_795_000_000_123_456_789))
+    assert (msg.timestamp.seconds, msg.timestamp.nanos) == (1_795_000_000, 123_456_789)
+    back = sample_from_message(msg)
+    assert set(back) == set(sample)
+    assert back["step"] == 2**40 and back["t_sim"] == 0.1 + 0.2 and back["state"] == "explore"
+    assert back["q"].tolist() == (np.arange(7) / 3).tolist() and back["contact_point"] is None
+    assert back["in_contact"] is True and back["tick_steady"] == 12 and back["eps_agent"] is None
+    assert back["force_normal"] == 3.0 and back["link_poses"]["a"].tolist() == [1, 2, 3, 0, 0, 0, 1]
+    assert back["joint_names"] == ["j1", "j2"] and back["recapture"] == {"share": 0.5, "ok": True}
+    assert (back["note"], back["count"], back["flag"], back["ratio"]) == ("hi", 3, False, 0.25)
+    assert type(back["count"]) is int and back["weights"].tolist() == [1.0, 2.5]
+    assert back["state_list"] == ["a", "b"] and back["empty"] == [] and back["t_wall"] == "not a number"

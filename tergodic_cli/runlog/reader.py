@@ -1,8 +1,10 @@
 """Read a run log back: series, robot samples, clouds, events, metadata.
 
-Record by record, so a log cut short by a crash reads up to its last complete chunk
-(``truncated = True``); chunk CRCs are checked, so a half-written chunk is dropped
-(docs/logging.md).
+Times come from the messages (the step records' ``t``, the robot samples' ``t_sim``, the clouds' and
+events' stamps minus the log's ``time_origin_ns``), never from log times, which are the wall clock
+from version 3 on. Robot samples are read from protobuf (version 3) or JSON (before). Record by
+record, so a log cut short by a crash reads up to its last complete chunk (``truncated = True``);
+chunk CRCs are checked, so a half-written chunk is dropped (docs/logging.md).
 """
 
 from __future__ import annotations
@@ -235,7 +237,12 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
                     step_decoder = step_decoder or _step_decoder(schemas[ch.schema_id])
                     rows.append(step_decoder(rec.data))
                 elif topic == S.TOPIC_ROBOT_SAMPLE:
-                    robot.append(json.loads(rec.data))
+                    if ch.message_encoding == "json":  # written before version 3
+                        robot.append(_arrays(json.loads(rec.data)))
+                    else:
+                        if ch.schema_id not in record_decoders:
+                            record_decoders[ch.schema_id] = _sample_decoder(schemas[ch.schema_id])
+                        robot.append(record_decoders[ch.schema_id](rec.data))
                 elif topic in robot_records:
                     if ch.schema_id not in record_decoders:
                         record_decoders[ch.schema_id] = _record_decoder(schemas[ch.schema_id])
@@ -246,7 +253,7 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
                     msg = Log.FromString(rec.data)
                     m = _EVENT_RE.match(msg.message)
                     step, text = (int(m.group(1)), m.group(2)) if m else (int(rec.sequence), msg.message)
-                    events.append((step, (rec.log_time - t0) / 1e9, text))  # t0: metadata first
+                    events.append((step, (_stamp_ns(msg, rec) - t0) / 1e9, text))  # t0: metadata first
             elif isinstance(rec, Channel):
                 channels[rec.id] = rec
             elif isinstance(rec, Schema):
@@ -254,7 +261,7 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
             elif isinstance(rec, Metadata):
                 metadata[rec.name] = dict(rec.metadata)
                 if rec.name == S.META_TERGODIC:
-                    t0 = _time_origin(rec.metadata)  # version 2: wall-clock log times
+                    t0 = _time_origin(rec.metadata)  # the stamp of simulated time 0 (0 in version 1)
                     if (v := rec.metadata.get("log_schema_version")) not in S.SUPPORTED_VERSIONS:
                         raise TergodicError(f"{path} uses log schema version {v!r}; this tergodic "
                                             f"reads {', '.join(S.SUPPORTED_VERSIONS)}",
@@ -312,7 +319,7 @@ def read_run_log(path: str | os.PathLike, *, clouds: bool = True) -> RunLogData:
         config=_meta_json(S.META_CONFIG) or {}, seed=int(seed_txt) if seed_txt.strip().lstrip("-").isdigit() else None,
         versions=metadata.get(S.META_VERSIONS, {}), capture_sidecar=json.loads(sidecar) if sidecar else None,
         stored_summary=_meta_json(S.META_SUMMARY), end=metadata.get(S.META_END),
-        series=series, robot=[_arrays(s) for s in robot] or None, clouds=cloud_frames, events=events,
+        series=series, robot=robot or None, clouds=cloud_frames, events=events,
         topics=topics, truncated=truncated, truncation_note=note, metadata=metadata,
         phases=robot_records[S.TOPIC_ROBOT_PHASE], force_windows=robot_records[S.TOPIC_ROBOT_FORCE])
 
@@ -438,6 +445,27 @@ def _record_decoder(schema: Any):
     return record
 
 
+def _sample_decoder(schema: Any):
+    """bytes -> the robot sample dict, for /robot/sample (tergodic.RobotSample), decoded with the schema
+    stored in the file."""
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from tergodic_cli.runlog.proto import ROBOT_SAMPLE, sample_from_message
+
+    if schema.encoding != "protobuf" or schema.name != ROBOT_SAMPLE:
+        raise TergodicError(f"robot samples have schema {schema.name!r} ({schema.encoding})",
+                            "this log was not written by a tergodic that this version reads")
+    decode = DecoderFactory().decoder_for("protobuf", schema)
+    return lambda data: sample_from_message(decode(data))
+
+
+def _stamp_ns(msg: Any, rec: Any) -> int:
+    """A Foxglove message's ``timestamp`` in ns (its simulated time + the origin); the log time when it has none."""
+    if not msg.HasField("timestamp"):
+        return int(rec.log_time)
+    return msg.timestamp.seconds * 1_000_000_000 + msg.timestamp.nanos
+
+
 def _stack_rows(rows: list[dict]) -> dict[str, np.ndarray]:
     out: dict[str, np.ndarray] = {"step": np.array([r["step"] for r in rows], dtype=np.int64),
                                   "t": np.array([r["t"] for r in rows], dtype=np.float64)}
@@ -465,7 +493,7 @@ def _time_origin(info: dict) -> int:
 
 
 def _assign_cloud_steps(clouds: list[CloudFrame], series: dict[str, np.ndarray]) -> None:
-    """A cloud belongs to the last step logged at or before its log time (writers number messages differently)."""
+    """A cloud belongs to the last step at or before its simulated time (writers number messages differently)."""
     t_ns = np.rint(series["t"] * 1e9).astype(np.int64)
     order = np.argsort(t_ns, kind="stable")
     for c in clouds:
@@ -490,7 +518,7 @@ _NUMPY_OF = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "
 
 
 def _decode_cloud(msg: Any, rec: Any, t0: int) -> CloudFrame:
-    """``t0``: the log's time origin (log times are wall-clock from version 2 on)."""
+    """``t0``: the log's time origin; the cloud's simulated time is its stamp minus it."""
     stride = msg.point_stride
     n = len(msg.data) // stride if stride else 0
     dtype = np.dtype({"names": [f.name for f in msg.fields],
@@ -499,7 +527,7 @@ def _decode_cloud(msg: Any, rec: Any, t0: int) -> CloudFrame:
     arr = np.frombuffer(msg.data, dtype=dtype, count=n)
     pts = np.column_stack([arr["x"], arr["y"], arr["z"]]).astype(np.float64)
     fields = {f.name: arr[f.name].astype(np.float64) for f in msg.fields if f.name not in ("x", "y", "z")}
-    t_ns = int(rec.log_time) - t0
+    t_ns = _stamp_ns(msg, rec) - t0
     return CloudFrame(step=int(rec.sequence), t=t_ns / 1e9, points=pts, fields=fields, t_ns=t_ns)
 
 

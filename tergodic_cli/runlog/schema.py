@@ -9,11 +9,14 @@ of any version it does not list in :data:`SUPPORTED_VERSIONS`.
 from __future__ import annotations
 
 #: Version of the log layout, stored in metadata ``tergodic`` as ``log_schema_version``.
-# 2: log times are wall-clock, metadata ``time_origin_ns`` + simulated t (1: simulated t alone)
-LOG_SCHEMA_VERSION = "2"
-SUPPORTED_VERSIONS = ("1", "2")
+# 3: log times are the wall clock when each message was written; the simulated time is in the messages
+#    (stamps = metadata ``time_origin_ns`` + t, records' t); /robot/sample and /robot/wrench are protobuf.
+# 2: log times were ``time_origin_ns`` + simulated t (stamps the same); /robot/sample, /robot/wrench JSON.
+# 1: log times and stamps were simulated t from 0. The reader reads all three.
+LOG_SCHEMA_VERSION = "3"
+SUPPORTED_VERSIONS = ("1", "2", "3")
 
-#: MCAP profile string in the header ("" = no ROS profile; messages are protobuf and JSON).
+#: MCAP profile string in the header ("" = no ROS profile; every message is protobuf).
 PROFILE = ""
 
 # Frames. Agent positions, normals and the cloud are in the capture's frame; the
@@ -30,11 +33,13 @@ TOPIC_METRICS = "/explorer/metrics"          # tergodic.StepRecord (protobuf, pr
 TOPIC_AGENT_POSES = "/explorer/agent_poses"  # foxglove.PosesInFrame, one pose per agent (z = surface normal, x = heading)
 TOPIC_AGENT_SCENE = "/explorer/agent_scene"  # foxglove.SceneUpdate: normal line L_a⊥ and velocity arrow per agent
 # Every step, robot runs only.
-TOPIC_ROBOT_SAMPLE = "/robot/sample"         # JSON: the robot sample dict exactly as the robot produced it
+TOPIC_ROBOT_SAMPLE = "/robot/sample"         # tergodic.RobotSample (protobuf, proto.py): the robot sample dict
+                                             #   exactly as the robot produced it (JSON before version 3)
 TOPIC_EE_POSE = "/robot/ee_pose"             # foxglove.PoseInFrame in the base frame
 TOPIC_TF = "/tf"                             # foxglove.FrameTransform, one message per link (+ ee, + object when known)
 TOPIC_JOINTS = "/robot/joint_states"         # foxglove.JointStates: q, dq, tau
-TOPIC_WRENCH = "/robot/wrench"               # JSON: measured and desired wrench with named components
+TOPIC_WRENCH = "/robot/wrench"               # tergodic.Wrench (protobuf, proto.py): measured and desired wrench
+                                             #   with named components (JSON before version 3)
 TOPIC_WRENCH_SCENE = "/robot/wrench_scene"   # foxglove.SceneUpdate: measured and desired force arrows at the tool
 # Robot runs, whenever the robot's state changes / every window of 1 kHz ticks (protobuf, proto.py).
 TOPIC_ROBOT_PHASE = "/robot/phase"           # tergodic.RobotPhase: step, t, source, target, reason
@@ -56,27 +61,3 @@ ATTACHMENT_SIDECAR = "capture.json"
 
 #: Float fields of every PointCloud point after x, y, z, in order (all float32).
 CLOUD_FIELDS = ("target", "coverage", "heat", "source")
-
-_NUM = {"type": "number"}
-_ARRAY = {"type": "array", "items": _NUM}
-_WRENCH = {"type": "object", "properties": {k: _NUM for k in ("fx", "fy", "fz", "tx", "ty", "tz")}}
-
-JSON_SCHEMAS: dict[str, dict] = {
-    "tergodic.RobotSample": {
-        "title": "tergodic.RobotSample",
-        "description": "The robot sample after one explorer step (SI units, robot base frame; wrenches in the ee frame).",
-        "type": "object",
-        "properties": {"step": {"type": "integer"}, "t_sim": _NUM, "state": {"type": "string"},
-                       **{k: _ARRAY for k in ("ee_pose", "q", "dq", "tau", "wrench_measured",
-                                              "wrench_desired")},
-                       "force_normal": _NUM, "in_contact": {"type": "boolean"}, "tilt_deg": _NUM,
-                       "track_mm": _NUM},
-    },
-    "tergodic.Wrench": {
-        "title": "tergodic.Wrench",
-        "description": "Measured and desired wrench in the end-effector frame, N and N m.",
-        "type": "object",
-        "properties": {"step": {"type": "integer"}, "measured": _WRENCH, "desired": _WRENCH,
-                       "force_normal": _NUM, "in_contact": {"type": "boolean"}},
-    },
-}

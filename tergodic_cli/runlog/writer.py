@@ -1,9 +1,11 @@
 """Write one exploration run, step by step, into a chunked, indexed MCAP file.
 
-Visual topics use Foxglove's protobuf schemas through foxglove-sdk's typed channels; the numbers
-replay needs are float64 as the explorer produced them (``tergodic.StepRecord``, JSON robot
-samples), so ``tergodic replay`` recomputes ``summary.json`` bit for bit. The file is written in
-place and flushed every few steps (crash safety: docs/logging.md).
+Every channel is protobuf: visual topics use Foxglove's schemas through foxglove-sdk's typed channels;
+the numbers replay needs are float64 as the explorer and the robot produced them (``tergodic.StepRecord``,
+``tergodic.RobotSample``: runlog/proto.py), so ``tergodic replay`` recomputes ``summary.json`` bit for bit.
+Each message's log time is the wall clock when it is written; its simulated time is in the message
+(the stamps, the records' ``t``). The file is written in place and flushed every few steps (crash
+safety: docs/logging.md).
 """
 
 from __future__ import annotations
@@ -74,8 +76,9 @@ class RunLog:
     flush_seconds : float
         Also flush when this much wall time has passed since the last flush (slow robot steps).
     time_origin_ns : int or None
-        Unix time (ns) of simulated time 0: every log time is this plus the simulated time
-        (default: now). Stored in metadata ``tergodic`` as ``time_origin_ns``.
+        Unix time (ns) of simulated time 0: every message's stamp is this plus the simulated time
+        (default: now). Stored in metadata ``tergodic`` as ``time_origin_ns``. Log times are the
+        wall clock when each message is written, whatever this is.
     live : str, (host, port), LiveServer or None
         Also stream every message to Foxglove over WebSocket: ``"HOST:PORT"`` or ``(host, port)``
         starts a server for this log (stopped at close); a
@@ -100,7 +103,8 @@ class RunLog:
 
         from tergodic_cli import __version__ as tergodic_version
         from tergodic_cli.runlog.live import LiveServer
-        from tergodic_cli.runlog.proto import FULL_NAME, step_record_class, step_record_schema
+        from tergodic_cli.runlog.proto import (FULL_NAME, ROBOT_SAMPLE, WRENCH, robot_schema, step_record_class,
+                                               step_record_schema)
 
         self.path = Path(path)
         pts = np.asarray(points, dtype=np.float64)
@@ -120,8 +124,9 @@ class RunLog:
         self.points, self.target = pts, target
         self.n_steps = self.n_clouds = self._since_flush = 0
         self._closed, self._last_t, self._last_flush = False, 0.0, time.monotonic()
-        # log times are wall-clock (viewers place the run in real time): origin + simulated t
+        # stamps: origin + simulated t (the run's own clock); log times: the wall clock when written
         self.time_origin_ns = time.time_ns() if time_origin_ns is None else int(time_origin_ns)
+        self._log_ns = 0  # the last log time handed out (they never decrease within the file)
         self._line_half = 0.25 * float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))  # the drawn normal line
         self._cloud_buf = np.empty((n, 3 + len(S.CLOUD_FIELDS)), dtype=np.float32)
         self._cloud_buf[:, :3] = pts
@@ -150,8 +155,8 @@ class RunLog:
 
         self._raw = raw
 
-        def js(topic: str, title: str) -> Any:
-            return raw(topic, title, "jsonschema", json.dumps(S.JSON_SCHEMAS[title]).encode(), "json")
+        def pb(topic: str, name: str) -> Any:
+            return raw(topic, name, "protobuf", robot_schema(name), "protobuf")
 
         self._ch = {
             S.TOPIC_METRICS: raw(S.TOPIC_METRICS, FULL_NAME, "protobuf", step_record_schema(), "protobuf"),
@@ -161,8 +166,8 @@ class RunLog:
             S.TOPIC_EVENTS: C.LogChannel(S.TOPIC_EVENTS, context=ctx),
         }
         self._robot_channels = lambda: {
-            S.TOPIC_ROBOT_SAMPLE: js(S.TOPIC_ROBOT_SAMPLE, "tergodic.RobotSample"),
-            S.TOPIC_WRENCH: js(S.TOPIC_WRENCH, "tergodic.Wrench"),
+            S.TOPIC_ROBOT_SAMPLE: pb(S.TOPIC_ROBOT_SAMPLE, ROBOT_SAMPLE),
+            S.TOPIC_WRENCH: pb(S.TOPIC_WRENCH, WRENCH),
             S.TOPIC_EE_POSE: C.PoseInFrameChannel(S.TOPIC_EE_POSE, context=ctx),
             S.TOPIC_TF: C.FrameTransformChannel(S.TOPIC_TF, context=ctx),
             S.TOPIC_JOINTS: C.JointStatesChannel(S.TOPIC_JOINTS, context=ctx),
@@ -180,7 +185,8 @@ class RunLog:
             self._w.write_metadata(S.META_SEED, {"seed": "none" if seed is None else str(int(seed))})
             self._w.write_metadata(S.META_VERSIONS, versions)
             if capture_sidecar is not None:
-                self._w.attach(log_time=self.time_origin_ns, create_time=self.time_origin_ns,
+                now = self._now_ns()
+                self._w.attach(log_time=now, create_time=now,
                                name=S.ATTACHMENT_SIDECAR, media_type="application/json",
                                data=_dumps(dict(capture_sidecar)).encode())
             self._w.flush()  # the version marker and config are on disk before the first step
@@ -208,7 +214,13 @@ class RunLog:
             raise TergodicError(f"the run log {self.path} is closed", "log steps before close()")
 
     def _t_ns(self, t: float) -> int:
+        """The stamp of simulated time ``t`` (s): ns since the epoch."""
         return self.time_origin_ns + round(float(t) * 1e9)
+
+    def _now_ns(self) -> int:
+        """The log time of what is written now: the wall clock, held at the last one if the clock stepped back."""
+        self._log_ns = max(time.time_ns(), self._log_ns)
+        return self._log_ns
 
     def sync(self) -> None:
         """Close the chunk in progress and flush the file: what was logged survives a crash from here on."""
@@ -229,8 +241,8 @@ class RunLog:
         step : int
             Explorer step index (>= 0).
         t : float
-            Simulated time of the step, s (>= 0), kept in the step record; the messages' log time is
-            ``time_origin_ns`` plus this.
+            Simulated time of the step, s (>= 0), kept in the step record and the robot sample; the
+            messages' stamps are ``time_origin_ns`` plus this, their log time the wall clock now.
         positions, velocities, normals : (N, 3) float arrays
             Agent positions (m), velocities (m/s) and unit surface normals, object frame.
         metrics : dict
@@ -251,7 +263,7 @@ class RunLog:
         if not (len(P) == len(V) == len(Nn)) or len(P) == 0:
             raise TergodicError(f"run log got {len(P)} positions, {len(V)} velocities, "
                                 f"{len(Nn)} normals", "pass (N, 3) arrays for N >= 1 agents")
-        t_ns = self._t_ns(t)
+        t_ns, now = self._t_ns(t), self._now_ns()
         rec = self._Record(step=int(step), t=t, step_ms=float(step_ms), n_agents=len(P))
         for k, v in metrics.items():
             if not isinstance(k, str) or k in ("step", "t", "step_ms"):
@@ -279,15 +291,15 @@ class RunLog:
                                      shaft_length=min(5.0 * speed, half), shaft_diameter=shaft_d,  # 5 s of travel
                                      head_length=3 * shaft_d, head_diameter=3 * shaft_d,
                                      color=M.Color(r=1.0, g=0.5, b=0.0, a=1.0))
-            entities.append(M.SceneEntity(frame_id=S.FRAME_OBJECT, id=f"agent{i:04d}", frame_locked=True,
-                                          lines=[line], arrows=[arrow]))
+            entities.append(M.SceneEntity(timestamp=stamp, frame_id=S.FRAME_OBJECT, id=f"agent{i:04d}",
+                                          frame_locked=True, lines=[line], arrows=[arrow]))
         with self._writing():
-            self._ch[S.TOPIC_METRICS].log(rec.SerializeToString(), log_time=t_ns)
+            self._ch[S.TOPIC_METRICS].log(rec.SerializeToString(), log_time=now)
             self._ch[S.TOPIC_AGENT_POSES].log(M.PosesInFrame(timestamp=stamp, frame_id=S.FRAME_OBJECT, poses=poses),
-                                              log_time=t_ns)
-            self._ch[S.TOPIC_AGENT_SCENE].log(M.SceneUpdate(entities=entities), log_time=t_ns)
+                                              log_time=now)
+            self._ch[S.TOPIC_AGENT_SCENE].log(M.SceneUpdate(entities=entities), log_time=now)
             if robot is not None:
-                self._log_robot(int(step), t_ns, stamp, robot)
+                self._log_robot(int(step), t_ns, now, stamp, robot)
         self.n_steps += 1
         self._last_t = t
         self._since_flush += 1
@@ -295,26 +307,29 @@ class RunLog:
                 self.flush_seconds > 0 and time.monotonic() - self._last_flush >= self.flush_seconds):
             self.sync()
 
-    def _log_robot(self, step: int, t_ns: int, stamp: Any, robot: Mapping[str, Any]) -> None:
+    def _log_robot(self, step: int, t_ns: int, now: int, stamp: Any, robot: Mapping[str, Any]) -> None:
+        """The robot sample's messages, stamped ``t_ns`` (simulated time) and logged at ``now`` (wall clock)."""
         from foxglove import messages as M
+
+        from tergodic_cli.runlog.proto import encode_sample, encode_wrench
 
         if S.TOPIC_TF not in self._ch:
             self._ch.update(self._robot_channels())
         ch = self._ch
-        ch[S.TOPIC_ROBOT_SAMPLE].log(_dumps({"step": step, **robot}).encode(), log_time=t_ns)
+        ch[S.TOPIC_ROBOT_SAMPLE].log(encode_sample({"step": step, **robot}, t_ns), log_time=now)
         frames = dict(robot.get("link_poses") or {})
         ee = robot.get("ee_pose")
         if ee is not None:
             ee = frames[S.FRAME_EE] = np.asarray(ee, dtype=np.float64).tolist()
             pose = M.Pose(position=M.Vector3(x=ee[0], y=ee[1], z=ee[2]), orientation=_quat(M, *ee[3:7]))
-            ch[S.TOPIC_EE_POSE].log(M.PoseInFrame(timestamp=stamp, frame_id=S.FRAME_BASE, pose=pose), log_time=t_ns)
+            ch[S.TOPIC_EE_POSE].log(M.PoseInFrame(timestamp=stamp, frame_id=S.FRAME_BASE, pose=pose), log_time=now)
         if robot.get("object_pose") is not None:  # where the capture frame sits in the base frame
             frames[S.FRAME_OBJECT] = robot["object_pose"]
         for child, pose in frames.items():
             p = np.asarray(pose, dtype=np.float64).tolist()
             ch[S.TOPIC_TF].log(M.FrameTransform(timestamp=stamp, parent_frame_id=S.FRAME_BASE, child_frame_id=str(child),
                                                 translation=M.Vector3(x=p[0], y=p[1], z=p[2]),
-                                                rotation=_quat(M, *p[3:7])), log_time=t_ns)
+                                                rotation=_quat(M, *p[3:7])), log_time=now)
         q = robot.get("q")
         if q is not None:
             q = np.asarray(q, dtype=np.float64).ravel().tolist()
@@ -322,31 +337,30 @@ class RunLog:
             names = list(robot.get("joint_names") or [f"joint{i + 1}" for i in range(len(q))])
             joints = [M.JointState(name=str(name), position=a, velocity=b, effort=c)
                       for name, a, b, c in zip(names, q, dq, tau)]
-            ch[S.TOPIC_JOINTS].log(M.JointStates(timestamp=stamp, joints=joints), log_time=t_ns)
+            ch[S.TOPIC_JOINTS].log(M.JointStates(timestamp=stamp, joints=joints), log_time=now)
         wm, wd = robot.get("wrench_measured"), robot.get("wrench_desired")
         if wm is None and wd is None:
             return
-        rec: dict[str, Any] = {"step": step}
         entities = []
         for key, w, (r, g, b) in (("measured", wm, (1.0, 0.2, 0.2)), ("desired", wd, (0.2, 1.0, 0.2))):
             if w is None:
                 continue
             w = np.asarray(w, dtype=np.float64).ravel().tolist()
-            rec[key] = dict(zip(("fx", "fy", "fz", "tx", "ty", "tz"), w))
             fn = math.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
             arrows = [] if fn <= 1e-9 else [M.ArrowPrimitive(  # 5 mm per newton
                 pose=M.Pose(orientation=_quat(M, *quat_from_axis(0, w[:3]))), shaft_length=0.005 * fn,
                 shaft_diameter=0.002, head_length=0.006, head_diameter=0.006, color=M.Color(r=r, g=g, b=b, a=1.0))]
             entities.append(M.SceneEntity(timestamp=stamp, frame_id=S.FRAME_EE, id=f"force_{key}", arrows=arrows))
-        rec.update({key: robot[key] for key in ("force_normal", "in_contact") if key in robot})
-        ch[S.TOPIC_WRENCH].log(_dumps(rec).encode(), log_time=t_ns)
-        ch[S.TOPIC_WRENCH_SCENE].log(M.SceneUpdate(entities=entities), log_time=t_ns)
+        ch[S.TOPIC_WRENCH].log(encode_wrench(step, t_ns, wm, wd, robot.get("force_normal"), robot.get("in_contact")),
+                               log_time=now)
+        ch[S.TOPIC_WRENCH_SCENE].log(M.SceneUpdate(entities=entities), log_time=now)
 
     def log_robot_record(self, kind: str, step: int, t: float, record: Mapping[str, Any]) -> None:
         """Log one of the robot's own records (``ContactRun``'s ``on_log``): kind "phase" (a state
         transition, ``tergodic.RobotPhase`` on /robot/phase) or "force" (a window of 1 kHz ticks,
         ``tergodic.ForceWindow`` on /robot/force), at explorer step ``step`` and simulated time ``t``
-        (s, the explorer's time base, like the events)."""
+        (s, the explorer's time base, like the events; the records carry the robot's own time ``t``),
+        logged at the wall clock."""
         from tergodic_cli.runlog.proto import FORCE_WINDOW, ROBOT_PHASE, encode_record, record_schema
 
         self._require_open()
@@ -354,7 +368,7 @@ class RunLog:
         with self._writing():
             if topic not in self._ch:  # made at the first record: a kinematic log has none
                 self._ch[topic] = self._raw(topic, name, "protobuf", record_schema(name), "protobuf")
-            self._ch[topic].log(encode_record(name, {**record, "step": int(step)}), log_time=self._t_ns(t))
+            self._ch[topic].log(encode_record(name, {**record, "step": int(step)}), log_time=self._now_ns())
 
     # -- every K steps -------------------------------------------------------------------------
     def log_cloud(self, step: int, *, coverage: np.ndarray, heat: np.ndarray, source: np.ndarray,
@@ -362,7 +376,7 @@ class RunLog:
         """Log the cloud with per-point target p, coverage c, heat u and source s, each (n,).
 
         ``target`` None repeats the last target logged (the one given at open, or by an earlier
-        cloud). ``t`` defaults to the time of the last logged step. The message is a
+        cloud). ``t`` (simulated s, the message's stamp) defaults to the time of the last logged step. The message is a
         ``foxglove.PointCloud`` with float32 fields x y z target coverage heat source, in a
         chunk of its own that is on disk when this returns.
         """
@@ -389,12 +403,13 @@ class RunLog:
                                    for i, name in enumerate(("x", "y", "z") + S.CLOUD_FIELDS)])
         self.sync()  # the steps before the cloud, in their own chunk
         with self._writing():
-            self._ch[S.TOPIC_CLOUD].log(msg, log_time=t_ns)
+            self._ch[S.TOPIC_CLOUD].log(msg, log_time=self._now_ns())
         self.n_clouds += 1
         self.sync()
 
     def log_event(self, step: int, t: float, text: str) -> None:
-        """Log a state-machine transition or warning as a ``foxglove.Log`` ("step N: text")."""
+        """Log a state-machine transition or warning as a ``foxglove.Log`` ("step N: text") stamped with
+        simulated time ``t`` (s)."""
         from foxglove import messages as M
 
         self._require_open()
@@ -402,7 +417,7 @@ class RunLog:
         msg = M.Log(timestamp=_stamp(M, t_ns), level=M.LogLevel.Info, name="tergodic",
                     message=f"step {int(step)}: {text}")
         with self._writing():
-            self._ch[S.TOPIC_EVENTS].log(msg, log_time=t_ns)
+            self._ch[S.TOPIC_EVENTS].log(msg, log_time=self._now_ns())
 
     # -- end -----------------------------------------------------------------------------------
     def close(self, summary: Mapping[str, Any] | None = None, status: str = "ok", hold=None) -> None:
