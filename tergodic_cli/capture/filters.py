@@ -100,6 +100,41 @@ def mean_spacing(points: np.ndarray, k: int = 3) -> float:
     return float(dists[:, 1:].mean())
 
 
+def voxel_standins(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """One stand-in point per occupied voxel: the point nearest its voxel's centroid (a real point,
+    on the data). The grid's origin is the bounding-box minimum; voxels are numbered in
+    lexicographic (x, y, z) order of their cells.
+
+    Parameters
+    ----------
+    points : (n, 3) float64
+        Metres.
+    voxel : float
+        Voxel edge, metres (> 0).
+
+    Returns
+    -------
+    sel : (m,) int64
+        The stand-ins' indices into ``points``, ascending.
+    rep : (n,) int64
+        Each point's stand-in, as a position in ``sel`` (``points[sel[rep[i]]]`` stands for point i,
+        and lies in point i's voxel).
+    """
+    cell = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
+    dims = cell.max(axis=0) + 1
+    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]  # lexicographic: as unique(cell, axis=0)
+    _, group, counts = np.unique(key, return_inverse=True, return_counts=True)
+    group = group.ravel()
+    centre = np.zeros((len(counts), 3))
+    np.add.at(centre, group, points)
+    centre /= counts[:, None]
+    d = np.linalg.norm(points - centre[group], axis=1)
+    order = np.lexsort((d, group))
+    sel = np.sort(order[np.unique(group[order], return_index=True)[1]])
+    rep = np.argsort(group[sel])[group]  # each point's voxel's slot in sel (group[sel] inverted)
+    return sel.astype(np.int64), rep.astype(np.int64)
+
+
 def isolated_points(points: np.ndarray) -> np.ndarray:
     """Mask (n,) of stray points: fewer than ISOLATED_MIN other points within ISOLATED_RADIUS times
     the cloud's median nearest-neighbour distance.
