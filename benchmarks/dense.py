@@ -126,6 +126,31 @@ def start_indices(cap: Path, k: int) -> list[int]:
     return [int(marked[np.argmin(np.linalg.norm(c.points[marked] - x, axis=1))]) for x in places]
 
 
+def cross_score(caps: dict[str, Path], runs: dict[str, list[Path]]) -> None:
+    """Each capture's explorer paths (``trajectory.npz``) scored on every capture's points and target:
+    the same metric on the same cloud tells the explorers apart from the metric's sampling."""
+    from tergodic_cli.capture import load_capture
+    from tergodic_cli.capture.filters import mean_spacing
+    from tergodic_cli.explore import ExploreConfig
+    from tergodic_cli.explore.metrics import coverage_score
+
+    r_a = ExploreConfig().agent_radius
+    clouds = {name: load_capture(cap) for name, cap in caps.items()}
+    spacing = {name: mean_spacing(c.points) for name, c in clouds.items()}
+    table = {}
+    for path_of, folders in runs.items():
+        for on, c in clouds.items():
+            table[path_of, on] = [coverage_score(c.points, c.target, np.load(f / "trajectory.npz")["positions"], r_a,
+                                                 spacing[on])["ergodicity"] for f in folders]
+    print("the same paths scored on each capture (ε mean over the starts):")
+    print(f"{'paths of':>10} " + " ".join(f"{'on ' + on:>13}" for on in clouds))
+    for path_of in runs:
+        print(f"{path_of:>10} " + " ".join(f"{np.mean(table[path_of, on]):13.4f}" for on in clouds))
+    for on in clouds:
+        a, b = np.mean(table["dense", on]), np.mean(table["voxel3mm", on])
+        print(f"on {on}: dense paths / 3 mm paths {a / b:.3f} ({abs(a - b) / b:.1%} apart)")
+
+
 def mb(b: float) -> str:
     return f"{b / 2**20:.0f} MB"
 
@@ -171,17 +196,19 @@ def main() -> None:
             return
         print(f"\n2. {args.big:,} points against the same file voxelised at 3 mm; explore {args.steps} steps")
         cloud = object_file(work, args.big)
-        rows = {}
+        rows, runs, caps_big = {}, {}, {}
         for name, voxel in (("dense", 0.0), ("voxel3mm", 0.003)):
             cap, t_cap, p_cap = capture(work, cloud, f"big_{name}", voxel)
             t_pre, p_pre, meta = precompute(cap, work / "cache_big", args.nk)
             eps, t_exp, p_exp = [], [], []
             for s, start in enumerate(start_indices(cap, args.starts)):
                 t, p, summary = explore(cap, work / "cache_big", work / f"run_{name}_{s}", args.nk, args.steps, start)
+                runs.setdefault(name, []).append(work / f"run_{name}_{s}")
                 eps.append(summary["ergodicity"])
                 t_exp.append(t)
                 p_exp.append(p)
             rows[name] = eps
+            caps_big[name] = cap
             print(f"{name:>9}: {meta['n_points']:>8} points ({meta.get('n_standins', meta['n_points'])} stand-ins); "
                   f"capture {t_cap:.1f} s {mb(p_cap)}, precompute {t_pre:.1f} s {mb(p_pre)}, explore "
                   f"{np.median(t_exp):.1f} s {mb(np.median(p_exp))} (median); ε " + ", ".join(f"{e:.4f}" for e in eps),
@@ -191,6 +218,7 @@ def main() -> None:
         print(f"ε dense / 3 mm: mean {d.mean():.4f} / {v.mean():.4f}, relative difference of the means "
               f"{abs(d.mean() - v.mean()) / v.mean():.1%} (goal <= {EPS_GOAL:.0%}), per start "
               + ", ".join(f"{r:.1%}" for r in rel))
+        cross_score(caps_big, runs)
     print(f"load average at end: {os.getloadavg()[0]:.2f}")
 
 

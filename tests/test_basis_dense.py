@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from tergodic_cli.basis import BasisConfig, compute_basis, get_basis
-from tergodic_cli.basis.core import FIELD_VOXEL
+from tergodic_cli.capture.filters import FIELD_VOXEL
 from tergodic_cli.capture.synthetic import SPHERE_RADIUS, generate_synthetic
 from tergodic_cli.explore import ExploreConfig, Explorer
 
@@ -105,3 +105,19 @@ def test_explorer_keeps_target_coverage_and_heat_per_point(sphere, integrator):
     np.testing.assert_array_equal(heat, heat[basis.sel[basis.rep]])
     score = ex.score()
     assert 0.0 < score["touched_fraction"] < 1.0 and 0.0 < score["ergodicity"] < 1.0
+
+
+def test_size_guard_counts_the_points_the_basis_is_on(sphere):
+    """--max-points bounds the basis' points: a dense cloud's stand-ins, not its raw points."""
+    from tergodic_cli.capture.filters import basis_size, mean_spacing
+    from tergodic_cli.capture.pipeline import check_size
+    from tergodic_cli.errors import TergodicError
+
+    cloud, basis = sphere
+    n = len(cloud.points)
+    m = basis_size(cloud.points, mean_spacing(cloud.points), NK, 30)
+    assert m == len(basis.sel) < n
+    check_size("cap", n, n - 1, m)  # more raw points than the limit: accepted, the basis is on m
+    with pytest.raises(TergodicError) as err:
+        check_size("cap", n, m - 1, m)
+    assert f"{m:,} 3 mm stand-ins" in str(err.value) and f"--max-points {m}" in err.value.fix

@@ -9,22 +9,8 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
-from tergodic_cli.capture.filters import mean_spacing, voxel_standins
+from tergodic_cli.capture.filters import FIELD_VOXEL, count_duplicates, enough_standins, mean_spacing, thins, voxel_standins
 from tergodic_cli.errors import TergodicError, require
-
-#: A cloud much denser than a 3 mm capture has its basis (and the explorer its fields) on one
-#: stand-in point per voxel of this edge (metres): the paper's capture voxel, where its α and
-#: footprint were tuned. Precompute then costs about the same on any sampling of an object, and a
-#: step too (docs/precompute.md, "Dense clouds"; docs/explore.md).
-FIELD_VOXEL = 0.003
-#: ... when the cloud's spacing h is below this share of FIELD_VOXEL (a 3 mm capture is used whole).
-THIN_BELOW = 0.5
-
-
-def thins(h: float) -> bool:
-    """Whether a cloud of spacing ``h`` (metres) is carried by stand-ins (:data:`FIELD_VOXEL`, :data:`THIN_BELOW`)."""
-    return h < THIN_BELOW * FIELD_VOXEL
-
 
 @dataclass
 class Basis:
@@ -113,9 +99,7 @@ def check_geometry(points: np.ndarray) -> None:
     require(sv[0] > 0, "all points are identical", "give a cloud that spans a surface")
     require(sv[1] > 1e-6 * sv[0], "the points are (nearly) collinear, so they span no surface",
             "give a cloud that samples a 2-D surface")
-    # Duplicates by one lexicographic sort (np.unique(axis=0) sorts a structured copy: 5x slower).
-    ordered = points[np.lexsort((points[:, 2], points[:, 1], points[:, 0]))]
-    n_dup = int(np.count_nonzero(np.all(ordered[1:] == ordered[:-1], axis=1)))
+    n_dup = count_duplicates(points)
     require(n_dup == 0, f"the cloud has {n_dup} duplicate points", "re-capture with a voxel filter (--voxel 0.003)")
 
 
@@ -264,7 +248,7 @@ def compute_basis(points: np.ndarray, nk: int, n_neighbors: int, timings: dict |
         carrier = points[sel]
         try:  # a strip one voxel wide has collinear stand-ins
             check_geometry(carrier)
-            enough = len(sel) > max(nk, n_neighbors)
+            enough = enough_standins(len(sel), nk, n_neighbors)
         except TergodicError:
             enough = False
         if not enough:  # stand-ins cannot carry the basis asked for: the whole cloud (slow, but what was asked)

@@ -18,8 +18,7 @@ from typing import Callable
 
 import numpy as np
 
-from tergodic_cli.basis.core import FIELD_VOXEL, thins
-from tergodic_cli.capture.filters import mean_spacing, voxel_standins
+from tergodic_cli.capture.filters import FIELD_VOXEL, mean_spacing, thins, voxel_standins
 from tergodic_cli.errors import require
 from tergodic_cli.explore import kernels as K
 from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_config
@@ -38,7 +37,7 @@ class FieldSet:
     A basis on stand-ins (:attr:`Basis.thinned <tergodic_cli.basis.Basis.thinned>`) gives them; a
     basis on every point of a cloud much denser than a 3 mm capture is thinned here by the same
     rule (:func:`~tergodic_cli.capture.filters.voxel_standins` at
-    :data:`~tergodic_cli.basis.core.FIELD_VOXEL`), unless ``whole``.
+    :data:`~tergodic_cli.capture.filters.FIELD_VOXEL`), unless ``whole``.
     """
 
     def __init__(self, basis, whole: bool = False):
