@@ -61,7 +61,8 @@ def precompute(
     else:
         t = basis.meta["timings"]
         typer.echo("computed basis: " + ", ".join(f"{k.removesuffix('_ms')} {v:.0f} ms" for k, v in t.items()))
-    typer.echo(f"  {cap.n_points} points, nK = {basis.nk}, neighbours = {bcfg.neighbors}, h = {basis.h * 1e3:.3f} mm, "
+    on = f" (the basis on {len(basis.sel)} 3 mm stand-ins)" if basis.thinned else ""
+    typer.echo(f"  {cap.n_points} points{on}, nK = {basis.nk}, neighbours = {bcfg.neighbors}, h = {basis.h * 1e3:.3f} mm, "
                f"λ = {basis.evals[0]:.3g} .. {basis.evals[-1]:.4g} 1/m²")
     typer.echo(f"  {basis.meta['path']}")
 

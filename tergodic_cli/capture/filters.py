@@ -20,13 +20,35 @@ THIN_BELOW = 0.5
 
 
 def thins(h: float) -> bool:
-    """Whether a cloud of mean spacing ``h`` (metres) is carried by stand-ins (:data:`FIELD_VOXEL`, :data:`THIN_BELOW`)."""
+    """Whether a cloud's basis and fields are carried by stand-ins (:data:`FIELD_VOXEL`, :data:`THIN_BELOW`).
+
+    Parameters
+    ----------
+    h : float
+        The cloud's mean spacing, metres.
+
+    Returns
+    -------
+    bool
+    """
     return h < THIN_BELOW * FIELD_VOXEL
 
 
 def enough_standins(m: int, nk: int, n_neighbors: int) -> bool:
-    """Whether ``m`` stand-ins can carry ``nk`` eigenpairs and a Laplacian of ``n_neighbors`` neighbours
-    (else the basis is computed on every point)."""
+    """Whether stand-ins can carry the basis (else it is computed on every point).
+
+    Parameters
+    ----------
+    m : int
+        Stand-ins.
+    nk, n_neighbors : int
+        The basis' eigenpairs and the Laplacian's neighbours.
+
+    Returns
+    -------
+    bool
+        More stand-ins than either.
+    """
     return m > max(nk, n_neighbors)
 
 
