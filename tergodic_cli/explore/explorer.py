@@ -111,8 +111,8 @@ class Explorer:
         self._k = int(cfg.n_neighbors)
         self._full = cloud_index(self.points)  # what lies on the data, the score, the starts
         # The fields live on the cloud, or on its stand-ins when the cloud is much denser than a 3 mm
-        # capture (the implicit integrator needs L where the fields are: the basis' stand-ins, or all).
-        # once per cloud, or per stand-in map (the basis' own, whichever entry it came from)
+        # capture (the implicit integrator needs L where the fields are: the basis' stand-ins, or all);
+        # built once per cloud, or per stand-in map (the basis' own, whichever cache entry it came from).
         fset = cached("fields", basis.rep if basis.thinned else self.points, lambda: FieldSet(basis))
         if fset.thinned and not fset.from_basis and cfg.integrator == "implicit":
             fset = FieldSet(basis, whole=True)
@@ -163,7 +163,7 @@ class Explorer:
         self._prm[K.PR_GAIN] = cfg.gain_weight * geps * geps / math.pi
         self._cov = self._pf[K.PF_COV]
         self._u_full = np.zeros(n if not self._spectral else 0)  # implicit: u in internal order
-        self._u_orig = np.zeros(n if not self._spectral else 0)  # ... and in the cloud's order
+        self._u_orig = np.zeros(n if not self._spectral else 0)  # ... and in the order of L's rows
         self.step_index, self.last_step_ms = 0, 0.0
         self._score = None
         starts = np.asarray(starts, dtype=np.float64)
