@@ -121,3 +121,23 @@ def test_size_guard_counts_the_points_the_basis_is_on(sphere):
     with pytest.raises(TergodicError) as err:
         check_size("cap", n, m - 1, m)
     assert f"{m:,} 3 mm stand-ins" in str(err.value) and f"--max-points {m}" in err.value.fix
+
+
+def test_stray_points_and_duplicates_by_their_definitions():
+    """The dense-capture filters (one k-nearest query, one sort) against their definitions: fewer than
+    ISOLATED_MIN others within ISOLATED_RADIUS median spacings (ball counts), and np.unique."""
+    from scipy.spatial import cKDTree
+
+    from tergodic_cli.capture.filters import ISOLATED_MIN, ISOLATED_RADIUS, count_duplicates, isolated_points
+
+    rng = np.random.default_rng(7)
+    sheet = rng.random((20_000, 3)) * [0.1, 0.1, 0.001]
+    pair = np.array([[0.3, 0.3, 0.3], [0.3, 0.3, 0.3001]])  # two strays next to each other: one other each
+    pts = np.vstack([sheet, rng.random((40, 3)) * 0.3 + 0.15, pair])
+    tree = cKDTree(pts)
+    r = ISOLATED_RADIUS * float(np.median(tree.query(pts, k=2)[0][:, 1]))
+    expected = tree.query_ball_point(pts, r, return_length=True) - 1 < ISOLATED_MIN
+    assert expected[-2:].all() and expected.sum() >= 42
+    np.testing.assert_array_equal(isolated_points(pts), expected)
+    dup = np.vstack([pts, pts[[5, 9, 9]]])
+    assert count_duplicates(dup) == len(dup) - len(np.unique(dup, axis=0)) == 3
