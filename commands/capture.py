@@ -37,7 +37,7 @@ def capture(
     units: str = typer.Option("m", "--units", help="Units of the input coordinates (the cloud or mesh file, or the sim .obj): m or mm."),
     drop_invalid: bool = typer.Option(False, "--drop-invalid", help="Drop NaN/inf points instead of refusing the cloud."),
     colour_depth: Optional[int] = typer.Option(None, "--colour-depth", help="Bits per colour channel, 8 or 16, when the file does not say (XYZRGB text, NPZ); default: 0..1 floats or 0..255, and more is refused."),
-    max_points: int = typer.Option(500_000, "--max-points", help="Warn when more points than this remain after filtering (precompute refuses them)."),
+    max_points: int = typer.Option(500_000, "--max-points", help="Warn when the basis would need more points than this after filtering (precompute refuses them); a cloud much denser than 3 mm needs only its 3 mm stand-ins."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing capture folder at --out."),
     json_out: bool = typer.Option(False, "--json", help="Print the sidecar as JSON instead of the table."),
     config: Optional[Path] = typer.Option(None, "--config", help="Repeat a capture: its CAP/config.json; options given beside it override it."),

@@ -16,7 +16,7 @@ def precompute(
     neighbors: int = typer.Option(30, "--neighbors", help="Neighbours for robust_laplacian. 40 bridges scan gaps (the bunny's ear joins the body)."),
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Cache root [default: $TERGODIC_CACHE_DIR or ~/.cache/tergodic]."),
     force: bool = typer.Option(False, "--force", help="Recompute even when the cache holds this basis."),
-    max_points: int = typer.Option(500_000, "--max-points", help="Refuse captures with more points than this (GBs and minutes of work)."),
+    max_points: int = typer.Option(500_000, "--max-points", help="Refuse captures whose basis needs more points than this (GBs and minutes of work); a cloud much denser than 3 mm needs only its 3 mm stand-ins."),
     json_out: bool = typer.Option(False, "--json", help="Print the basis metadata as JSON."),
     config: Optional[Path] = typer.Option(None, "--config", help="Repeat a basis: the config.json of its cache entry (nK, neighbours, solver); --nk/--neighbors given beside it override it."),
 ) -> None:
@@ -34,6 +34,7 @@ def precompute(
     from tergodic_cli.basis import BasisConfig, get_basis
     from tergodic_cli.basis.cache import BASIS_CONFIG_KIND, validate_basis_config
     from tergodic_cli.capture import load_capture
+    from tergodic_cli.capture.filters import basis_size
     from tergodic_cli.capture.pipeline import check_size
     from tergodic_cli.commands._common import given_options
     from tergodic_cli.config import override, read_config
@@ -47,7 +48,9 @@ def precompute(
         bcfg = override(saved, bcfg, given_options(ctx) & {"nk", "neighbors"})
     validate_basis_config(bcfg)  # before the capture is read
     cap = load_capture(capture)
-    check_size(capture, cap.n_points, max_points)
+    h = cap.meta.get("spacing_h_m")
+    check_size(capture, cap.n_points, max_points,
+               basis_size(cap.points, float(h), bcfg.nk, bcfg.neighbors) if isinstance(h, (int, float)) else None)
     basis, hit = get_basis(cap.points, bcfg, cache_dir, force=force, on_event=echo_err)
     if json_out:
         typer.echo(json.dumps({**basis.meta, "cache_hit": hit}, indent=2))
@@ -58,7 +61,8 @@ def precompute(
     else:
         t = basis.meta["timings"]
         typer.echo("computed basis: " + ", ".join(f"{k.removesuffix('_ms')} {v:.0f} ms" for k, v in t.items()))
-    typer.echo(f"  {cap.n_points} points, nK = {basis.nk}, neighbours = {bcfg.neighbors}, h = {basis.h * 1e3:.3f} mm, "
+    on = f" (the basis on {len(basis.sel)} 3 mm stand-ins)" if basis.thinned else ""
+    typer.echo(f"  {cap.n_points} points{on}, nK = {basis.nk}, neighbours = {bcfg.neighbors}, h = {basis.h * 1e3:.3f} mm, "
                f"λ = {basis.evals[0]:.3g} .. {basis.evals[-1]:.4g} 1/m²")
     typer.echo(f"  {basis.meta['path']}")
 

@@ -47,7 +47,7 @@ QUANTUM_M = 1e-6
 _DEGENERATE = 1e-7
 #: Layout of a cache entry (files, row order, checksum); part of the key, so entries of an
 #: older layout are never read: they are recomputed under their new key.
-CACHE_LAYOUT = 3
+CACHE_LAYOUT = 4  # 4: the stand-ins of a dense cloud (standin_sel, standin_rep)
 _CACHE_OPTION = "--cache-dir (or $TERGODIC_CACHE_DIR)"
 #: The kind of a basis entry's ``config.json`` (``tergodic precompute CAPTURE --config`` repeats it).
 BASIS_CONFIG_KIND = "tergodic.basis_config"
@@ -230,14 +230,18 @@ def _check_npy_size(path: Path) -> None:
         raise CacheMiss(f"unreadable (its header claims {need} bytes of data, {dtype} of shape {shape}; the file holds {body})")
 
 
-_ARRAY_NAMES = ("points_order", "canonical_points", "evals", "evecs", "mass", "L_data", "L_indices", "L_indptr", "h")
+_ARRAY_NAMES = ("points_order", "canonical_points", "evals", "evecs", "mass", "L_data", "L_indices", "L_indptr", "h",
+                "standin_sel", "standin_rep")
+_NO_STANDINS = np.zeros(0, dtype=np.int64)  # a basis on every point stores both stand-in arrays empty
 
 
 def _to_arrays(basis: Basis, order: np.ndarray, canon: np.ndarray) -> dict[str, np.ndarray]:
     """The arrays of an entry, in the computing cloud's point order (plus its canonical order)."""
     L = sp.csr_matrix(basis.L)
+    sel = _NO_STANDINS if basis.sel is None else np.asarray(basis.sel, dtype=np.int64)
+    rep = _NO_STANDINS if basis.rep is None else np.asarray(basis.rep, dtype=np.int64)
     return dict(zip(_ARRAY_NAMES, (np.asarray(order, dtype=np.int64), canon, basis.evals, basis.evecs, basis.mass,
-                                   L.data, L.indices, L.indptr, np.array(basis.h))))
+                                   L.data, L.indices, L.indptr, np.array(basis.h), sel, rep)))
 
 
 def _from_arrays(arrays: dict[str, np.ndarray], points: np.ndarray, order: np.ndarray, meta: dict) -> Basis:
@@ -245,17 +249,35 @@ def _from_arrays(arrays: dict[str, np.ndarray], points: np.ndarray, order: np.nd
     n = len(points)
     stored_order = arrays["points_order"]
     nk = int(meta["config"]["nk"])
-    shapes_ok = (stored_order.shape == (n,) and arrays["evecs"].shape == (n, nk) and arrays["evals"].shape == (nk,)
-                 and arrays["mass"].shape == (n,) and arrays["L_indptr"].shape == (n + 1,) and arrays["h"].shape == ())
+    sel, rep = arrays["standin_sel"], arrays["standin_rep"]
+    thinned = len(rep) > 0
+    m = len(sel) if thinned else n
+    shapes_ok = (stored_order.shape == (n,) and arrays["evecs"].shape == (m, nk) and arrays["evals"].shape == (nk,)
+                 and arrays["mass"].shape == (m,) and arrays["L_indptr"].shape == (m + 1,) and arrays["h"].shape == ())
+    if thinned:  # every point has a stand-in, every stand-in is a point
+        shapes_ok = (shapes_ok and rep.shape == (n,) and sel.ndim == 1 and 0 < m <= n and int(rep.min()) >= 0
+                     and int(rep.max()) < m and int(sel.min()) >= 0 and int(sel.max()) < n)
+    elif len(sel):
+        shapes_ok = False
     if not shapes_ok:
         raise CacheMiss("its arrays do not fit this cloud")
-    L = sp.csr_matrix((arrays["L_data"], arrays["L_indices"], arrays["L_indptr"]), shape=(n, n))
-    if np.array_equal(order, stored_order):  # the caller's order is the stored one: no copies
-        return Basis(points, L, arrays["mass"], arrays["evals"], arrays["evecs"], float(arrays["h"]), meta)
+    L = sp.csr_matrix((arrays["L_data"], arrays["L_indices"], arrays["L_indptr"]), shape=(m, m))
+    h = float(arrays["h"])
+    same = np.array_equal(order, stored_order)
+    if thinned:
+        # L, mass and evecs are per stand-in: kept as stored; the maps follow the caller's point order.
+        if not same:
+            rows = stored_order[np.argsort(order)]  # caller's point i is stored point rows[i] (see below)
+            where = np.empty(n, dtype=np.int64)
+            where[rows] = np.arange(n)
+            sel, rep = where[sel], rep[rows]
+        return Basis(points, L, arrays["mass"], arrays["evals"], arrays["evecs"], h, meta, sel, rep)
+    if same:  # the caller's order is the stored one: no copies
+        return Basis(points, L, arrays["mass"], arrays["evals"], arrays["evecs"], h, meta)
     # Caller's row i is canonical point k = argsort(order)[i] (order inverted), stored as row stored_order[k].
     rows = stored_order[np.argsort(order)]
     return Basis(points, L[rows][:, rows].tocsr(), arrays["mass"][rows], arrays["evals"], arrays["evecs"][rows],
-                 float(arrays["h"]), meta)
+                 h, meta)
 
 
 def _load_entry(entry: Path, points: np.ndarray, order: np.ndarray, canon: np.ndarray) -> Basis:
@@ -326,7 +348,8 @@ def get_basis(points: np.ndarray, cfg: BasisConfig, cache_dir: str | Path | None
     arrays = _to_arrays(basis, order, canon)
     meta = {
         "kind": "tergodic.basis", "format_version": FORMAT_VERSION, "layout": CACHE_LAYOUT, "key": key,
-        "config": cfg.to_dict(), "n_points": len(points), "rigid_invariant": invariant, "h_m": basis.h,
+        "config": cfg.to_dict(), "n_points": len(points), "n_standins": len(basis.mass),
+        "rigid_invariant": invariant, "h_m": basis.h,
         "lambda_range": [float(basis.evals[0]), float(basis.evals[-1])],
         "timings": timings,
         "versions": library_versions(),

@@ -10,6 +10,70 @@ VOXEL_RULES = ("fraction", "all", "intensity")
 #: distances is a stray point (a flying pixel): dropped by default, since it inflates the spacing h
 #: and ties far-apart points together in the Laplacian.
 ISOLATED_RADIUS, ISOLATED_MIN = 8.0, 2
+#: A cloud much denser than a 3 mm capture has its basis (and the explorer its fields) on one
+#: stand-in point per voxel of this edge (metres, :func:`voxel_standins`): the paper's capture
+#: voxel, where its α and footprint were tuned. Precompute then costs about the same on any
+#: sampling of an object, and a step too (docs/precompute.md, "Dense clouds").
+FIELD_VOXEL = 0.003
+#: ... when the cloud's spacing h is below this share of FIELD_VOXEL (a 3 mm capture is used whole).
+THIN_BELOW = 0.5
+
+
+def thins(h: float) -> bool:
+    """Whether a cloud's basis and fields are carried by stand-ins (:data:`FIELD_VOXEL`, :data:`THIN_BELOW`).
+
+    Parameters
+    ----------
+    h : float
+        The cloud's mean spacing, metres.
+
+    Returns
+    -------
+    bool
+    """
+    return h < THIN_BELOW * FIELD_VOXEL
+
+
+def enough_standins(m: int, nk: int, n_neighbors: int) -> bool:
+    """Whether stand-ins can carry the basis (else it is computed on every point).
+
+    Parameters
+    ----------
+    m : int
+        Stand-ins.
+    nk, n_neighbors : int
+        The basis' eigenpairs and the Laplacian's neighbours.
+
+    Returns
+    -------
+    bool
+        More stand-ins than either.
+    """
+    return m > max(nk, n_neighbors)
+
+
+def basis_size(points: np.ndarray, h: float, nk: int, n_neighbors: int) -> int:
+    """How many points a basis of this cloud is computed on (``basis.compute_basis``'s rule): its
+    stand-ins when the cloud is dense (:func:`thins`) and they are enough, else all of them.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Metres.
+    h : float
+        Their mean spacing, metres.
+    nk, n_neighbors : int
+        The basis' eigenpairs and neighbours.
+
+    Returns
+    -------
+    int
+    """
+    if thins(h):
+        m = len(np.unique(_voxel_key(points, FIELD_VOXEL)))
+        if enough_standins(m, nk, n_neighbors):
+            return m
+    return len(points)
 
 
 def remove_statistical_outliers(points: np.ndarray, nb_neighbors: int, std_ratio: float) -> np.ndarray:
@@ -100,6 +164,46 @@ def mean_spacing(points: np.ndarray, k: int = 3) -> float:
     return float(dists[:, 1:].mean())
 
 
+def _voxel_key(points: np.ndarray, voxel: float) -> np.ndarray:
+    """(n,) int64 voxel of each point, numbered in lexicographic (x, y, z) order of the cells
+    (as ``np.unique(cell, axis=0)`` orders them, 10x faster); origin at the bounding-box minimum."""
+    cell = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
+    dims = cell.max(axis=0) + 1
+    return (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+
+
+def voxel_standins(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """One stand-in point per occupied voxel: the point nearest its voxel's centroid (a real point,
+    on the data). The grid's origin is the bounding-box minimum; voxels are numbered in
+    lexicographic (x, y, z) order of their cells.
+
+    Parameters
+    ----------
+    points : (n, 3) float64
+        Metres.
+    voxel : float
+        Voxel edge, metres (> 0).
+
+    Returns
+    -------
+    sel : (m,) int64
+        The stand-ins' indices into ``points``, ascending.
+    rep : (n,) int64
+        Each point's stand-in, as a position in ``sel`` (``points[sel[rep[i]]]`` stands for point i,
+        and lies in point i's voxel).
+    """
+    _, group, counts = np.unique(_voxel_key(points, voxel), return_inverse=True, return_counts=True)
+    group = group.ravel()
+    centre = np.zeros((len(counts), 3))
+    np.add.at(centre, group, points)
+    centre /= counts[:, None]
+    d = np.linalg.norm(points - centre[group], axis=1)
+    order = np.lexsort((d, group))
+    sel = np.sort(order[np.unique(group[order], return_index=True)[1]])
+    rep = np.argsort(group[sel])[group]  # each point's voxel's slot in sel (group[sel] inverted)
+    return sel.astype(np.int64), rep.astype(np.int64)
+
+
 def isolated_points(points: np.ndarray) -> np.ndarray:
     """Mask (n,) of stray points: fewer than ISOLATED_MIN other points within ISOLATED_RADIUS times
     the cloud's median nearest-neighbour distance.
@@ -116,7 +220,25 @@ def isolated_points(points: np.ndarray) -> np.ndarray:
     """
     from scipy.spatial import cKDTree
 
-    tree = cKDTree(points)
-    d, _ = tree.query(points, k=2)
+    # Fewer than ISOLATED_MIN others within r <=> the ISOLATED_MIN-th nearest other is farther than r:
+    # one k-nearest query, where counting every ball (~200 points each on a dense scan) took minutes at 1M.
+    d, _ = cKDTree(points).query(points, k=ISOLATED_MIN + 1)
     r = ISOLATED_RADIUS * float(np.median(d[:, 1]))
-    return tree.query_ball_point(points, r, return_length=True) - 1 < ISOLATED_MIN
+    return d[:, ISOLATED_MIN] > r
+
+
+def count_duplicates(points: np.ndarray) -> int:
+    """How many points repeat an earlier one exactly (n minus the distinct points).
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Metres.
+
+    Returns
+    -------
+    int
+    """
+    # one lexicographic sort (np.unique(axis=0) sorts a structured copy: 5x slower)
+    ordered = points[np.lexsort((points[:, 2], points[:, 1], points[:, 0]))]
+    return int(np.count_nonzero(np.all(ordered[1:] == ordered[:-1], axis=1)))

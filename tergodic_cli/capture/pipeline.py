@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from tergodic_cli.capture.artefact import Capture
-from tergodic_cli.capture.filters import (ISOLATED_MIN, VOXEL_RULES, isolated_points, mean_spacing,
+from tergodic_cli.capture.filters import (ISOLATED_MIN, VOXEL_RULES, basis_size, count_duplicates, isolated_points, mean_spacing,
                                           remove_statistical_outliers, voxel_downsample)
 from tergodic_cli.capture.readers import read_cloud
 from tergodic_cli.capture.segment import parse_target, target_weight
@@ -30,12 +30,19 @@ MIN_EXTENT_M = 0.005
 #: Spans beyond these are not a units mistake (x1000 would not make them an object): a corrupt body.
 CORRUPT_EXTENT_M = MAX_EXTENT_M * 1e3
 DEGENERATE_EXTENT_M = MIN_EXTENT_M * 1e-3
-#: Above this many points after filtering, precompute needs GBs and minutes (issue 16, item 6).
+#: Above this many points after filtering, precompute needs GBs and minutes (issue 16, item 6); on a
+#: dense cloud the limit is on its 3 mm stand-ins, which carry the basis (issue 27, item 5).
 MAX_POINTS = 500_000
+#: The basis' default nK and neighbours, for the capture's size warning (precompute's defaults).
+BASIS_NK, BASIS_NEIGHBORS = 200, 30
 #: Rough cost of precompute per point (nK = 200), measured at 120k points: 1.6 GB peak, 27 s on 2 cores.
 #: Time grows faster than linearly, so the estimate is a lower bound.
 BYTES_PER_POINT = 13_000
 SECONDS_PER_POINT = 2.3e-4
+#: ... and per point of a dense cloud whose basis is on stand-ins (filters.FIELD_VOXEL): its key,
+#: spacing and map; measured at 1M points (4507 stand-ins): 297 MB peak, 12 s on 2 loaded cores.
+BYTES_PER_DENSE_POINT = 300
+SECONDS_PER_DENSE_POINT = 1.2e-5
 
 
 @dataclass
@@ -147,15 +154,10 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
     if cfg.voxel > 0:
         points, colors, p = voxel_downsample(points, colors, weight, cfg.voxel, cfg.voxel_rule)
         stages.append((f"voxel {cfg.voxel * 1e3:g} mm", len(points)))
-    if len(points) > cfg.max_points:  # before the duplicate check and the k-d tree
-        n = len(points)
-        on_event(f"warning: {n:,} points after filtering, above the {cfg.max_points:,}-point "
-                 f"limit: precompute would need {_size_estimate(n)}; use a coarser --voxel "
-                 f"(e.g. 0.003), or --max-points {n} to accept")
     if cfg.voxel <= 0:
         p = weight
-        n_unique = len(np.unique(points, axis=0))
-        require(n_unique == len(points), f"the cloud has {len(points) - n_unique} duplicate points",
+        n_dup = count_duplicates(points)
+        require(n_dup == 0, f"the cloud has {n_dup} duplicate points",
                 "merge them with a voxel filter (--voxel 0.003) or remove them from the file")
     if cfg.drop_isolated and len(points) > ISOLATED_MIN:
         lone = isolated_points(points)
@@ -170,6 +172,12 @@ def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] 
             "check --target (e.g. --target red, hsv:H1-H2,SMIN,VMIN) or use --target all")
 
     h = mean_spacing(points)
+    if len(points) > cfg.max_points:  # the basis' points: a dense cloud's are its 3 mm stand-ins
+        n, m = len(points), basis_size(points, h, BASIS_NK, BASIS_NEIGHBORS)
+        if m > cfg.max_points:
+            on_event(f"warning: {_points_phrase(n, m)} after filtering, above the {cfg.max_points:,}-point "
+                     f"limit: precompute would need {_size_estimate(n, m)}; use a coarser --voxel "
+                     f"(e.g. 0.003), or --max-points {m} to accept")
     lo, hi = points.min(axis=0), points.max(axis=0)
     from tergodic_cli.provenance import library_versions  # importlib.metadata: only when recorded
 
@@ -272,14 +280,22 @@ def _check_extent(points: np.ndarray, units: str, label: str = "") -> None:
             "millimetres", "pass --units m" if units == "mm" else "check the file's units")
 
 
-def _size_estimate(n: int) -> str:
-    """What precompute would roughly need at nK = 200, e.g. "~1.6 GB and over 28 s"."""
-    gb, seconds = n * BYTES_PER_POINT / 1e9, n * SECONDS_PER_POINT
+def _points_phrase(n: int, m: int) -> str:
+    return f"{n:,} points" if m == n else f"{n:,} points ({m:,} 3 mm stand-ins carry the basis)"
+
+
+def _size_estimate(n: int, m: int | None = None) -> str:
+    """What precompute would roughly need at nK = 200 for ``n`` points whose basis is on ``m`` of them
+    (default all), e.g. "~1.6 GB and over 28 s"."""
+    m = n if m is None else m
+    gb, seconds = m * BYTES_PER_POINT / 1e9, m * SECONDS_PER_POINT
+    if m < n:  # a dense cloud on stand-ins: every point costs its key, spacing and map
+        gb, seconds = gb + n * BYTES_PER_DENSE_POINT / 1e9, seconds + n * SECONDS_PER_DENSE_POINT
     memory = f"~{gb:.1f} GB" if gb >= 1 else f"~{max(gb * 1e3, 1):.0f} MB"
     return f"{memory} and over {seconds / 60:.0f} min" if seconds >= 60 else f"{memory} and over {max(seconds, 1):.0f} s"
 
 
-def check_size(where, n: int, limit: int) -> None:
+def check_size(where, n: int, limit: int, m: int | None = None) -> None:
     """Refuse a cloud too large to precompute in reasonable memory and time, unless the limit allows it.
 
     Parameters
@@ -289,7 +305,10 @@ def check_size(where, n: int, limit: int) -> None:
     n : int
         Its points.
     limit : int
-        The ``--max-points`` limit.
+        The ``--max-points`` limit, on the points the basis is computed on.
+    m : int, optional
+        Those points (``filters.basis_size``): a dense cloud's 3 mm stand-ins; default all ``n``.
     """
-    require(n <= limit, f"{where} has {n:,} points, above the {limit:,}-point limit: precompute would need "
-            f"{_size_estimate(n)}", f"re-capture with a coarser --voxel (e.g. 0.003), or pass --max-points {n}")
+    m = n if m is None else m
+    require(m <= limit, f"{where} has {_points_phrase(n, m)}, above the {limit:,}-point limit: precompute would need "
+            f"{_size_estimate(n, m)}", f"re-capture with a coarser --voxel (e.g. 0.003), or pass --max-points {m}")

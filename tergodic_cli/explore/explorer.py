@@ -18,7 +18,7 @@ from typing import Callable
 
 import numpy as np
 
-from tergodic_cli.capture.filters import mean_spacing
+from tergodic_cli.capture.filters import FIELD_VOXEL, mean_spacing, thins, voxel_standins
 from tergodic_cli.errors import require
 from tergodic_cli.explore import kernels as K
 from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_config
@@ -28,37 +28,34 @@ from tergodic_cli.explore.metrics import CoverageScore, source_term
 from tergodic_cli.explore.transit import (ARRIVE_RA, BAN_RA, STALL_FALL, STALL_WINDOW, Transit, choose_goal, path_to, paths_from,
                                           stalled, surface_graph)
 
-#: The explorer keeps coverage, source and heat on the cloud thinned to a voxel grid of this size
-#: (metres) when the cloud is much denser: the paper's capture voxel, where its α and footprint were
-#: tuned. A step then costs about the same on any sampling of an object (docs/explore.md).
-FIELD_VOXEL = 0.003
-#: ... when the cloud's spacing h is below this share of FIELD_VOXEL (a 3 mm capture is used whole).
-THIN_BELOW = 0.5
-
-
 class FieldSet:
     """The points that carry the explorer's fields: ``sel`` (m,) cloud indices, ``rep`` (n,) the
     position in ``sel`` that stands for each cloud point, ``mass`` (m,) the summed lumped mass of
-    the points each stands for (m²), ``points`` (m, 3), ``h`` their mean spacing (metres)."""
+    the points each stands for (m²), ``points`` (m, 3), ``h`` their mean spacing (metres),
+    ``rows`` (m,) each one's row of the basis' eigenvectors.
 
-    def __init__(self, points: np.ndarray, mass: np.ndarray, h: float):
+    A basis on stand-ins (:attr:`Basis.thinned <tergodic_cli.basis.Basis.thinned>`) gives them; a
+    basis on every point of a cloud much denser than a 3 mm capture is thinned here by the same
+    rule (:func:`~tergodic_cli.capture.filters.voxel_standins` at
+    :data:`~tergodic_cli.capture.filters.FIELD_VOXEL`), unless ``whole``.
+    """
+
+    def __init__(self, basis, whole: bool = False):
+        points, mass, h = basis.points, basis.point_mass, basis.h
         n = len(points)
-        self.thinned = h < THIN_BELOW * FIELD_VOXEL
-        if not self.thinned:
+        self.from_basis = basis.thinned
+        self.thinned = basis.thinned or (thins(h) and not whole)
+        if basis.thinned:
+            self.sel, self.rep, self.mass = basis.sel, basis.rep, basis.mass
+            self.rows = np.arange(len(basis.sel))
+        elif not self.thinned:
             self.sel, self.rep, self.mass, self.points, self.h = np.arange(n), np.arange(n), mass, points, h
+            self.rows = self.sel
             return
-        cell = np.floor((points - points.min(axis=0)) / FIELD_VOXEL).astype(np.int64)
-        _, group, counts = np.unique(cell, axis=0, return_inverse=True, return_counts=True)
-        group = group.ravel()
-        centre = np.zeros((len(counts), 3))
-        np.add.at(centre, group, points)
-        centre /= counts[:, None]
-        # each voxel's stand-in: its point nearest the voxel's centroid (a real point, on the data)
-        d = np.linalg.norm(points - centre[group], axis=1)
-        order = np.lexsort((d, group))
-        self.sel = np.sort(order[np.unique(group[order], return_index=True)[1]])
-        self.rep = np.argsort(group[self.sel])[group]  # each point's voxel's slot in sel (group[sel] inverted)
-        self.mass = np.bincount(self.rep, weights=mass, minlength=len(self.sel))
+        else:
+            self.sel, self.rep = voxel_standins(points, FIELD_VOXEL)
+            self.mass = np.bincount(self.rep, weights=mass, minlength=len(self.sel))
+            self.rows = self.sel
         self.points = np.ascontiguousarray(points[self.sel])
         self.h = mean_spacing(self.points)
 
@@ -106,18 +103,19 @@ class Explorer:
                 "use fewer neighbours")
         self._basis = basis
         self.points = np.ascontiguousarray(basis.points, dtype=np.float64)
-        self.mass = basis.mass
+        self.mass = basis.point_mass  # (n,) per cloud point, m²
         self.h = float(basis.h)
         self.evals = basis.evals[: cfg.nk]
         self.eps = cfg.footprint_epsilon
         self.r_a = float(cfg.agent_radius)
         self._k = int(cfg.n_neighbors)
         self._full = cloud_index(self.points)  # what lies on the data, the score, the starts
-        # The fields live on the cloud, or on its thinned field set when the cloud is much denser
-        # than a 3 mm capture (the implicit integrator needs the whole cloud's L).
-        fset = cached("fields", self.points, lambda: FieldSet(self.points, self.mass, self.h))
-        if fset.thinned and cfg.integrator == "implicit":
-            fset = FieldSet(self.points, self.mass, float("inf"))
+        # The fields live on the cloud, or on its stand-ins when the cloud is much denser than a 3 mm
+        # capture (the implicit integrator needs L where the fields are: the basis' stand-ins, or all);
+        # built once per cloud, or per stand-in map (the basis' own, whichever cache entry it came from).
+        fset = cached("fields", basis.rep if basis.thinned else self.points, lambda: FieldSet(basis))
+        if fset.thinned and not fset.from_basis and cfg.integrator == "implicit":
+            fset = FieldSet(basis, whole=True)
         self._field = fset
         index = cloud_index(fset.points)
         self._order, self._rank, self._P, self._tree = index.order, index.rank, index.points, index.tree
@@ -126,7 +124,7 @@ class Explorer:
         phis = cached("phi", basis.evecs, dict)  # Φ[:, :nK], rows in internal order: once per nK and point set
         key = (cfg.nk, len(fset.sel))  # the whole cloud, or its field set (one per cloud)
         if key not in phis:
-            phis[key] = np.ascontiguousarray(basis.evecs[fset.sel[self._order], : cfg.nk], dtype=np.float64)
+            phis[key] = np.ascontiguousarray(basis.evecs[fset.rows[self._order], : cfg.nk], dtype=np.float64)
         self._phi = phis[key]
         n = len(fset.sel)
         if self.r_a < self.h:
@@ -165,7 +163,7 @@ class Explorer:
         self._prm[K.PR_GAIN] = cfg.gain_weight * geps * geps / math.pi
         self._cov = self._pf[K.PF_COV]
         self._u_full = np.zeros(n if not self._spectral else 0)  # implicit: u in internal order
-        self._u_orig = np.zeros(n if not self._spectral else 0)  # ... and in the cloud's order
+        self._u_orig = np.zeros(n if not self._spectral else 0)  # ... and in the order of L's rows
         self.step_index, self.last_step_ms = 0, 0.0
         self._score = None
         starts = np.asarray(starts, dtype=np.float64)
@@ -384,9 +382,14 @@ class Explorer:
     @property
     def heat(self) -> np.ndarray:
         """(n,) the potential u in the cloud's order (reconstructed: O(n nK))."""
-        if not self._spectral:
-            return self._u_orig.copy()
         f = self._field
+        if not self._spectral:
+            return self._u_orig[f.rep] if f.from_basis else self._u_orig.copy()
+        if f.from_basis:  # every point takes its stand-in's
+            u = K.expand_rows(self._phi, self._sp[K.SP_A])[self._rank]
+            if self._mode == K.HEAT_CARRY:
+                u += self._sbar()[self._rank]
+            return u[f.rep]
         if f.thinned:  # the spectral part on every point; the residual from each one's field point
             u = K.expand_rows(np.ascontiguousarray(self._basis.evecs[:, : self.cfg.nk]), self._sp[K.SP_A])
         else:
@@ -431,7 +434,7 @@ class Explorer:
             elif self.cfg.integrator == "resolvent":
                 self._sp[K.SP_DECAY] = 1.0 / (1.0 + self.evals * dt)  # eq. 4: (M + δt L)⁻¹ M in the eigenbasis
             elif alpha not in self._implicit:
-                self._implicit[alpha] = ImplicitDiffusion(self._basis.L, self.mass, dt)
+                self._implicit[alpha] = ImplicitDiffusion(self._basis.L, self._basis.mass, dt)
 
     # ------------------------------------------------------------------ the step
     def step(self, deposit_at: np.ndarray | None = None, agent_at: np.ndarray | None = None) -> None:
