@@ -179,7 +179,7 @@ def test_the_gain_sums_the_agents_sheet_only(planes):
     pts, basis = planes
     index = cloud_index(basis.points)
     P = index.points
-    nrm, gap = sheet_normals(index, basis.h)
+    nrm, gap = sheet_normals(index, basis.h, oriented=True)
     n = len(P)
     upper = P[:, 2] > WALL / 2
     pf, pb, fs, prm = np.zeros((K.N_PF, n)), np.zeros((K.N_PB, n), np.int8), np.zeros(K.N_FS), np.zeros(K.N_PR)
@@ -217,14 +217,14 @@ def test_normals_are_oriented_consistently_and_opposite_across_a_wall(hollow_box
     # A sphere: every normal along ±p/|p| with one sign (outward: the first piece points away from the centroid).
     pts = _fibonacci_sphere(0.03, 1200)
     index = cloud_index(pts)
-    n = sheet_normals(index, mean_spacing(pts))[0][index.rank]
+    n = sheet_normals(index, mean_spacing(pts), oriented=True)[0][index.rank]
     radial = np.sum(n * pts, axis=1) / 0.03
     assert radial.min() > 0.99, radial.min()
     # The hollow box: two closed pieces. The outer points outward, the inner into the cavity (away from
     # the material), so the two sides of every wall point opposite ways.
     pts, basis = hollow_box
     index = cloud_index(basis.points)
-    n = sheet_normals(index, basis.h)[0][index.rank]
+    n = sheet_normals(index, basis.h, oriented=True)[0][index.rank]
     axis = np.argmax(np.abs(pts), axis=1)
     out = np.sign(n[np.arange(len(pts)), axis] * pts[np.arange(len(pts)), axis])
     outer = np.arange(len(pts)) < len(_box_faces(OUTER, SPACING))
@@ -232,7 +232,7 @@ def test_normals_are_oriented_consistently_and_opposite_across_a_wall(hollow_box
     # Two planes 10 mm apart, each its own piece: opposite ways.
     pts, basis = planes
     index = cloud_index(basis.points)
-    n = sheet_normals(index, basis.h)[0][index.rank]
+    n = sheet_normals(index, basis.h, oriented=True)[0][index.rank]
     upper = pts[:, 2] > WALL / 2
     assert np.abs(n[:, 2]).min() > 0.999
     assert len(set(np.sign(n[upper, 2]))) == 1 and len(set(np.sign(n[~upper, 2]))) == 1
@@ -248,7 +248,7 @@ def test_the_sheet_of_a_curved_ball_is_the_whole_ball():
     pts = _fibonacci_sphere(0.03, 300)  # 6 mm apart, like a 6 mm capture: the former test dropped 1-2 of 40
     index = cloud_index(pts)
     P = index.points
-    nrm, gap = sheet_normals(index, mean_spacing(pts))
+    nrm, gap = sheet_normals(index, mean_spacing(pts), oriented=True)
     assert gap < np.inf
     for j in range(0, 300, 10):
         x = P[j]

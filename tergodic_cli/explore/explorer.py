@@ -120,7 +120,7 @@ class Explorer:
         index = cloud_index(fset.points)
         self._order, self._rank, self._P, self._tree = index.order, index.rank, index.points, index.tree
         # each field point's normal line, fitted to its own sheet: once per cloud (docs/explore.md)
-        self._nrm, gap = sheet_normals(index, fset.h)
+        self._nrm, gap = sheet_normals(index, fset.h, oriented=cfg.sheets == "separate")
         phis = cached("phi", basis.evecs, dict)  # Φ[:, :nK], rows in internal order: once per nK and point set
         key = (cfg.nk, len(fset.sel))  # the whole cloud, or its field set (one per cloud)
         if key not in phis:

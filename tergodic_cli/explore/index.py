@@ -74,9 +74,9 @@ def cloud_index(points: np.ndarray) -> CloudIndex:
     return cached("tree", points, lambda: CloudIndex(points))
 
 
-def sheet_normals(index: CloudIndex, h: float) -> tuple[np.ndarray, float]:
-    """Each point's unoriented normal line, fitted to its own sheet, and the sheet gap: once per
-    cloud and spacing (:func:`kernels.sheet_normals`).
+def sheet_normals(index: CloudIndex, h: float, oriented: bool = False) -> tuple[np.ndarray, float]:
+    """Each point's normal line, fitted to its own sheet, and the sheet gap: once per cloud and
+    spacing (:func:`kernels.sheet_normals`); with ``oriented``, also oriented once.
 
     The gap (metres) is the wider of ``kernels.SHEET_GAP`` h and ``kernels.SHEET_NOISE`` times
     the cloud's noise (a robust σ: the median over its points of the median absolute offset of
@@ -89,12 +89,16 @@ def sheet_normals(index: CloudIndex, h: float) -> tuple[np.ndarray, float]:
         The cloud's index.
     h : float
         Its mean point spacing, metres.
+    oriented : bool
+        Orient the lines consistently along each sheet (:func:`orient_normal_lines`: the two sides
+        of a wall point opposite ways), what ``--sheets separate`` needs; the fit and the score use
+        the lines only (either sign), so they skip its cost (a second neighbour search and a
+        spanning tree over the points).
 
     Returns
     -------
     normals : (n, 3) float
-        Unit vectors, in the index's internal order, oriented consistently along each sheet
-        (:func:`orient_normal_lines`): the two sides of a wall point opposite ways.
+        Unit vectors, in the index's internal order.
     gap : float
         Metres.
     """
@@ -106,9 +110,12 @@ def sheet_normals(index: CloudIndex, h: float) -> tuple[np.ndarray, float]:
         if noisy > gap:  # a noisy cloud: its sheets' normals again, with the gap noise allows
             gap = noisy
             normals, _ = K.sheet_normals(index.points, *index.tree, K.NORMAL_NEIGHBOURS, gap)
-        return orient_normal_lines(index.points, normals), gap
+        return normals, gap
 
-    return cached(f"normals {h!r}", index.points, build)
+    lines = cached(f"normals {h!r}", index.points, build)
+    if not oriented:
+        return lines
+    return cached(f"oriented normals {h!r}", index.points, lambda: (orient_normal_lines(index.points, lines[0]), lines[1]))
 
 
 #: Neighbours each point links to when the normal lines are oriented (:func:`orient_normal_lines`).
