@@ -115,8 +115,9 @@ def main() -> int:
           "border edges | coverage % | surface-cloud p95 / h (mm) | build (s) | refused |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     if args.objects:
-        import corpus
+        import _env
 
+        corpus = _env.load("corpus")
         for c in corpus.cases("all", args.densities.split(","), ("band",), args.objects.split(",")):
             for line in compare(f"{c.mesh_name} {c.density} ({c.capture.n_points} pts)", c.capture.points,
                                 (c.vertices, c.triangles), args.contact_cost):
