@@ -146,13 +146,14 @@ def _toward_views(points: np.ndarray, normals: np.ndarray, views: int = 64, neig
     minus = np.bincount(pi, weights=(free & (cos[pi, di] < 0)).astype(float), minlength=len(P))
     decided = ((plus >= 2) & (minus == 0)) | ((minus >= 2) & (plus == 0))
     n[decided & (minus > 0)] *= -1.0
-    # the rest: from the decided points inward, each takes the side its already placed neighbours
-    # along the sheet agree on (across a thin wall the other sheet faces the other way)
+    # points seen from both sides (an open sheet) keep their sign; the unseen ones, from the placed
+    # points inward, take the side their placed neighbours along the sheet agree on (across a thin
+    # wall the other sheet faces the other way)
     _, nb = cKDTree(P).query(P, k=min(neighbors + 1, len(P)))
     nb = nb[:, 1:]
     dx = P[nb] - P[:, None]
     along = np.abs(np.einsum("ijk,ik->ij", dx, n)) < 0.5 * np.linalg.norm(dx, axis=2)
-    known = decided.copy()
+    known = decided | ((plus > 0) & (minus > 0))
     while not known.all():
         rest = np.flatnonzero(~known)
         c = np.einsum("ijk,ik->ij", n[nb[rest]], n[rest])
