@@ -126,7 +126,7 @@ def main() -> int:
           "border edges | coverage % | surface-cloud p95 / h (mm) | vertices-source mesh p95 / max (mm) | build (s) | refused |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     if args.objects:
-        import _env
+        import _env  # noqa: F811
 
         corpus = _env.load("corpus")
         names = corpus.mesh_names("all") if args.objects == "all" else args.objects.split(",")

@@ -5,9 +5,10 @@ from the cloud (:func:`reconstruct_mesh`): screened Poisson cropped to the data 
 nearly closed object, ball pivoting for an open sheet (what a depth camera sees: the inside of a
 bowl, a plate; Poisson would close it with a made-up lid), then a decimation ladder that keeps the
 angle between neighbouring triangles small where the object is smooth, since the sponge
-feels every fold as a jump of the contact normal. :func:`surface_figures` and
-:func:`check_surface` measure it and refuse one that does not cover the cloud, floats off it or is
-crinkled. The mesh becomes one static concave PyBullet body (GEOM_MESH, FORCE_CONCAVE_TRIMESH): on
+feels every fold as a jump of the contact normal (a Poisson level Taubin-faired within h/4 of the
+Poisson surface when it misses that; ball pivoting when Poisson crinkles a thin object's rims).
+:func:`surface_figures` and :func:`check_surface` measure it and refuse one that does not cover
+the cloud, floats off it or is crinkled. The mesh becomes one static concave PyBullet body (GEOM_MESH, FORCE_CONCAVE_TRIMESH): on
 curved sheets this gives steadier contact than a convex decomposition, which cannot represent a
 thin concave shell. docs/robot.md ("The contact surface") has the measurements.
 """
@@ -53,7 +54,8 @@ def oriented_normals(points: np.ndarray, side: str, neighbors: int = 20) -> np.n
 
     side : "outward" (consistent over the whole sheet, propagated along its surface, facing out of
         the object: the side a camera above sees; works on closed shapes, undersides, holes and
-        sharp edges), "up" (n·z >= 0) or "out" (away from the cloud's centroid).
+        sharp edges; then each point turned to the side rays from it escape to, :func:`_toward_views`),
+        "up" (n·z >= 0) or "out" (away from the cloud's centroid).
     """
     import open3d as o3d
 
@@ -464,9 +466,10 @@ def _onto(d, m, scene=None):
 
 def _fair(d, scene, limit: float, iterations: int = FAIR_ITERATIONS):
     """The open3d mesh ``d`` (its vertices on the surface of ``scene``) Taubin-smoothed (open3d's
-    ``filter_smooth_taubin``: a low-pass filter that does not shrink the shape), then each vertex
-    pulled back to within ``limit`` m of that surface: the folds the data's own sampling and the
-    Poisson grid leave are smoothed, the surface stays where the cloud is."""
+    ``filter_smooth_taubin``, a low-pass filter; λ 0.5, μ -0.51: the default μ -0.53 inflated a
+    60 mm sphere by 0.6 mm, -0.50 shrank it by 0.3), then each vertex pulled back to within
+    ``limit`` m of that surface: the folds the Poisson grid and the sampling leave are smoothed,
+    the surface stays where the cloud is."""
     import open3d as o3d
 
     s = d.filter_smooth_taubin(number_of_iterations=int(iterations), lambda_filter=0.5, mu=-0.51)
@@ -497,7 +500,9 @@ def smooth_decimation(m, edge: float, floor: float, points: np.ndarray | None = 
     edge, splits once by Loop subdivision and puts the vertices back on ``m`` (Loop's surface lies
     inside a convex one: 1.7 mm on a 60 mm sphere at 10 mm triangles; 0.04 mm once put back): the
     same triangle count with smaller folds (duck, ~3300 triangles: 20 deg against 24 decimated
-    alone, ~7500: 14.5 against 17). Returns (mesh, that p95)."""
+    alone, ~7500: 14.5 against 17). ``fair`` > 0 (m): a level that misses ``goal_deg`` is also
+    Taubin-faired within ``fair`` of ``m`` (:func:`_fair`) and kept faired when that folds less.
+    Returns (mesh, that p95)."""
     import open3d as o3d
     from scipy.spatial import cKDTree
 
@@ -547,8 +552,11 @@ def reconstruct_mesh(points: np.ndarray, normals: np.ndarray, spacing: float, ed
     edge/1.5, ... (not below 0.9 h nor MIN_EDGE) whose dihedral p95 over its smooth part is at most
     SMOOTH_GOAL_DEG (:func:`smooth_decimation`); the Poisson surface to twice that edge, then split
     once by Loop subdivision and put back on the Poisson surface (the same triangle count, smaller
-    folds). The corpus duck (15 cm, 4968 points) went from a dihedral p95 of 46 deg (ball pivoting
-    decimated once) to 14.5.
+    folds), and a level that still misses the goal Taubin-faired within FAIR_H·h of the Poisson
+    surface (:func:`_fair`). The corpus duck (15 cm, 4968 points) went from a dihedral p95 of 46 deg
+    (ball pivoting decimated once) to 14.5, then 13.1 faired. ``auto`` builds ball pivoting too when
+    the Poisson surface folds more than CRINKLE_DEG beyond the cloud (a thin tray's rims rounded
+    into creases) and keeps the one that folds less.
 
     Parameters
     ----------
@@ -578,7 +586,8 @@ def reconstruct_mesh(points: np.ndarray, normals: np.ndarray, spacing: float, ed
             "check the capture: the robot needs a cloud that samples one connected sheet")
     floor = max(0.9 * spacing, MIN_EDGE)
     poisson = used == "poisson"
-    m, _ = smooth_decimation(m, edge, floor, points, normals, goal_deg, subdivide=poisson, fair=FAIR_H * spacing if poisson else 0.0)
+    m, _ = smooth_decimation(m, edge, floor, points, normals, goal_deg, subdivide=poisson,
+                             fair=FAIR_H * spacing if poisson else 0.0)
     if method == "auto" and poisson and _fold_excess(m, points, normals) > CRINKLE_DEG:
         # Poisson rounds a thin object's sharp rims into folds the cloud does not have (the check
         # would refuse it as crinkled); ball pivoting follows the sheet and keeps the rims
