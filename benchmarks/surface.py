@@ -3,10 +3,12 @@
 "before": ball pivoting decimated once to the curved edge (the former rule); "after": the surface
 ``tergodic explore --robot pybullet`` builds now (:func:`~tergodic_cli.robot.surface.reconstruct_mesh`:
 screened Poisson cropped to the cloud, ball pivoting for open sheets, the decimation ladder), and,
-for the corpus, the source mesh as a capture that holds it would use. Figures from
+for the corpus, the source mesh as a capture that holds it would use, and the distance of every
+surface's vertices to that source mesh (the sponge must touch the object where it is). Figures from
 :func:`~tergodic_cli.robot.surface.surface_figures`; "refused" is the check the run applies.
 
     python benchmarks/surface.py                         # corpus smooth objects at 3 mm + built-ins
+    python benchmarks/surface.py --objects all           # every corpus mesh (tune and check)
     python benchmarks/surface.py --objects duck,bunny --densities 3mm,6mm --no-builtins
     python benchmarks/surface.py --objects duck,bunny --no-builtins --contact-cost   # + PyBullet cost
 
@@ -43,12 +45,19 @@ def figures(points, h, normals, mesh, rebuilt: bool) -> dict:
     return f
 
 
-def row(name: str, what: str, f: dict) -> str:
+def row(name: str, what: str, f: dict, mesh=None, source=None) -> str:
+    """One table row; with ``source`` (vertices, triangles), the distance of ``mesh``'s vertices to it."""
     sm = f["dihedral_smooth_p95_deg"]
     ex = f["fold_excess_p95_deg"]
+    to_source = "-"
+    if source is not None and mesh is not None:
+        from tergodic_cli.capture.mesh import mesh_distance
+
+        d = 1e3 * mesh_distance(source[0], source[1], mesh.vertices)
+        to_source = f"{np.percentile(d, 95):.2f} / {d.max():.2f}"
     return (f"| {name} | {what} | {f['method']} | {f['triangles']} | {f['dihedral_p95_deg']:.1f} | "
             f"{'-' if sm is None else f'{sm:.1f}'} | {'-' if ex is None else f'{ex:.1f}'} | {f['border_edges']} | "
-            f"{100 * f['coverage']:.1f} | {f['surface_to_cloud_p95_mm']:.2f} / {f['spacing_mm']:.2f} | "
+            f"{100 * f['coverage']:.1f} | {f['surface_to_cloud_p95_mm']:.2f} / {f['spacing_mm']:.2f} | {to_source} | "
             f"{f['build_seconds']:.2f} | {f['refused'] or 'no'} |")
 
 
@@ -91,16 +100,18 @@ def compare(name: str, points: np.ndarray, source=None, cost: bool = False) -> l
     e = curved_edge(points, n, 0.01)  # RobotConfig.mesh_edge's default, finer on tight curves
     before = reconstruct_mesh(points, n, h, e, "ball_pivoting", math.inf)
     after = reconstruct_mesh(points, n, h, e)
-    out = [row(name, "before", figures(points, h, n, before, True)), row(name, "after", figures(points, h, n, after, True))]
+    out = [row(name, "before", figures(points, h, n, before, True), before, source),
+           row(name, "after", figures(points, h, n, after, True), after, source)]
     if cost:
         us = {"before": [], "after": []}
         for _ in range(3):
             for k, m in (("before", before), ("after", after)):
                 us[k].append(step_cost(m, points, n))
         b, a = float(np.median(us["before"])), float(np.median(us["after"]))
-        out.append(f"| {name} | contact cost | | | before {b:.0f} us/step, after {a:.0f} us/step: x{a / b:.2f} | | | | | | | |")
+        out.append(f"| {name} | contact cost | | | before {b:.0f} us/step, after {a:.0f} us/step: x{a / b:.2f} | | | | | | | | |")
     if source is not None:
-        out.append(row(name, "source mesh", figures(points, h, n, source_mesh(source, 0.01), False)))
+        sm = source_mesh(source, 0.01)
+        out.append(row(name, "source mesh", figures(points, h, n, sm, False), sm, source))
     return out
 
 
@@ -112,12 +123,14 @@ def main() -> int:
     ap.add_argument("--contact-cost", action="store_true", help="also time PyBullet contact on both surfaces")
     args = ap.parse_args()
     print("| object | surface | method | triangles | dihedral p95 (deg) | smooth part p95 | fold excess p95 | "
-          "border edges | coverage % | surface-cloud p95 / h (mm) | build (s) | refused |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "border edges | coverage % | surface-cloud p95 / h (mm) | vertices-source mesh p95 / max (mm) | build (s) | refused |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     if args.objects:
-        import corpus
+        import _env  # noqa: F811
 
-        for c in corpus.cases("all", args.densities.split(","), ("band",), args.objects.split(",")):
+        corpus = _env.load("corpus")
+        names = corpus.mesh_names("all") if args.objects == "all" else args.objects.split(",")
+        for c in corpus.cases("all", args.densities.split(","), ("band",), names):
             for line in compare(f"{c.mesh_name} {c.density} ({c.capture.n_points} pts)", c.capture.points,
                                 (c.vertices, c.triangles), args.contact_cost):
                 print(line, flush=True)

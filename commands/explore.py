@@ -49,7 +49,7 @@ def explore(
     object_pose: Optional[str] = typer.Option(None, "--object-pose", help="[robot] Capture frame in the robot base frame: x,y,z[,roll,pitch,yaw] (m, deg) or x,y,z,qx,qy,qz,qw [default: the identity for a capture taken in the base frame (--source sim, or a calibrated --camera-pose); otherwise, pybullet only, the cloud's footprint centre 0.5 m in front of the base with its lowest point on a 0.2 m stand, turned 0, 90, -90 or 180 deg about the vertical, then the same at 0.4 m: the first pose where the arm reaches the whole target, else the one reaching most of it (the pose is printed and saved in summary.json); franka refuses to guess]."),
     workspace: Optional[str] = typer.Option(None, "--workspace", help="[robot] Workspace box xmin,ymin,zmin,xmax,ymax,zmax in the base frame, m."),
     explore_dt: Optional[float] = typer.Option(None, "--explore-dt", help="[robot] Simulated seconds per explorer step [default: 0.2; agent limits are rescaled so a step moves the same path]."),
-    normal_side: Optional[str] = typer.Option(None, "--normal-side", help="[robot] Side of the sheet the tool works on: auto (= outward), outward, up or out."),
+    normal_side: Optional[str] = typer.Option(None, "--normal-side", help="[robot] Side of the sheet the tool works on: auto (= outward: consistent over the sheet, facing the side the cloud is seen from), outward, up or out."),
     gains: Optional[str] = typer.Option(None, "--gains", help="[pybullet] Controller gains: tuned (default) or paper (the paper's K, D and wrench PID on the full wrench, V-A3)."),
     arm: Optional[str] = typer.Option(None, "--arm", help="[pybullet] The simulated arm: panda, xarm6 (UFactory xArm 6, 6 DoF) or iiwa (KUKA LBR iiwa) [default: panda]."),
     gui: bool = typer.Option(False, "--gui", help="[pybullet] Open the PyBullet GUI (needs a display)."),
@@ -72,10 +72,13 @@ def explore(
     from the cloud (screened Poisson cropped to within 2 point spacings of the cloud; ball
     pivoting when the cloud is an open sheet, which Poisson would close), decimated to the
     coarsest triangles whose 95th-percentile angle between neighbours is at most 12 deg where the
-    object is smooth (a Poisson surface decimated to twice that and split once by Loop
-    subdivision). It is checked before any motion (it must cover the cloud, and a rebuilt one
-    must stay near it and not fold where the cloud does not) and its figures are written to
-    summary.json under contact_surface.
+    object is smooth (a Poisson surface decimated to twice that, split once by Loop subdivision
+    and, where that still folds more, Taubin-smoothed with each vertex kept within a quarter point
+    spacing of the Poisson surface; ball pivoting instead when Poisson folds a thin object's rims).
+    The outward normals it is built from face the side rays from each point escape to. It is
+    checked before any motion (it must cover the cloud, and a rebuilt one must stay near it and
+    not fold where the cloud does not) and its figures are written to summary.json under
+    contact_surface.
 
     Examples:
 

@@ -57,6 +57,61 @@ def test_sphere_surface_is_smooth_and_on_the_sphere():
     check_surface(fig)  # not refused
 
 
+def test_torus_surface_meets_the_goal_and_stays_on_the_torus():
+    # issue 24's goal on a smooth closed object with two curvatures: dihedral p95 <= 15 deg, and
+    # every vertex within 0.25 mm (a tenth of the 2.4 mm spacing) of the analytic torus; its mean
+    # signed distance within 0.1 mm (smoothing neither shrinks nor inflates it)
+    import open3d as o3d
+
+    R, r = 0.05, 0.02
+    o3d.utility.random.seed(0)
+    pts = np.asarray(o3d.geometry.TriangleMesh.create_torus(R, r, 120, 60).sample_points_poisson_disk(6000, init_factor=5).points)
+    mesh, fig = _rebuilt(pts.copy())
+    assert fig["method"] == "poisson" and fig["border_edges"] == 0 and fig["coverage"] > 0.99
+    assert fig["dihedral_p95_deg"] <= 15.0 and fig["dihedral_smooth_p95_deg"] <= 15.0
+    V = mesh.vertices
+    d = np.hypot(np.linalg.norm(V[:, :2], axis=1) - R, V[:, 2]) - r
+    assert np.max(np.abs(d)) < 0.25e-3 and abs(float(np.mean(d))) < 0.1e-3
+    check_surface(fig)
+
+
+def test_noisy_sphere_is_smoothed_but_not_moved():
+    # A 30 mm sphere sampled with 0.3 mm of noise: the Poisson surface follows part of the noise,
+    # the ladder's level misses the 12 deg goal and is Taubin-faired; the result meets the issue's
+    # 15 deg and stays on the sphere: every vertex within the noise's 2 sigma plus h/4 (the fairing's
+    # limit), the mean radius within 0.1 mm.
+    R, sigma = 0.03, 0.0003
+    pts = _sphere_cloud(R, 3000) + np.random.default_rng(0).normal(0.0, sigma, (3000, 3))
+    mesh, fig = _rebuilt(pts)
+    assert fig["method"] == "poisson" and fig["dihedral_p95_deg"] <= 15.0
+    rad = np.linalg.norm(mesh.vertices, axis=1)
+    assert np.max(np.abs(rad - R)) < 2 * sigma + 0.25 * fig["spacing_mm"] * 1e-3
+    assert abs(float(np.mean(rad)) - R) < 0.1e-3
+    check_surface(fig)
+
+
+def test_outward_normals_of_a_union_of_blobs_face_out():
+    # A body with a head, arms and ears (a union of spheres, each sampled where it is outside the
+    # others): the spanning tree's sign flips across the concave creases where the pieces meet
+    # (2.5 % of the points before the ray test); each point's normal must point out of its own
+    # sphere, the true outside there.
+    import open3d as o3d
+
+    blobs = [((0, 0, 0.04), 0.04), ((0, 0, 0.095), 0.028), ((0.035, 0, 0.06), 0.015), ((-0.035, 0, 0.06), 0.015),
+             ((0.02, 0, 0.125), 0.01), ((-0.02, 0, 0.125), 0.01)]
+    o3d.utility.random.seed(0)
+    pts, out = [], []
+    for c, r in blobs:
+        p = np.asarray(o3d.geometry.TriangleMesh.create_sphere(r, 60).sample_points_poisson_disk(
+            int(1.2e5 * 4 * math.pi * r * r), init_factor=5).points) + c
+        keep = np.all([np.linalg.norm(p - c2, axis=1) > r2 for c2, r2 in blobs if c2 != c], axis=0)
+        pts.append(p[keep])
+        out.append((p[keep] - c) / r)
+    pts, out = np.vstack(pts), np.vstack(out)
+    n = oriented_normals(pts, "outward")
+    assert np.mean(np.einsum("ij,ij->i", n, out) < 0) < 0.005
+
+
 def test_box_keeps_its_sharp_edges_and_is_not_refused():
     cap = capture_cloud(CaptureConfig(source="synthetic", synthetic="box"))
     a, b, c = 0.10, 0.08, 0.06  # synthetic.BOX_SIZE: the top at z = c, its four edges
