@@ -198,3 +198,126 @@ def test_write_error_is_one_line(bowl_run, tmp_path, monkeypatch):
     res = run_cli("replay", run, "--html", tmp_path / "r.html")
     assert_one_line_error(res, "no space left on device", "--html")
     assert not list(tmp_path.iterdir())
+
+
+# ------------------------------------------------------------------ a page that follows the run (issue 26)
+def _cursor_x(layout: dict) -> dict[str, float]:
+    """{x axis ref: cursor x} of a layout's cursor shapes (x0 == x1: a vertical line)."""
+    out = {}
+    for sh in layout.get("shapes", []):
+        if sh.get("name") == "cursor":
+            assert sh["x0"] == sh["x1"] and sh["type"] == "line"
+            assert sh["yref"].endswith(" domain") and (sh["y0"], sh["y1"]) == (0, 1)
+            out[sh["xref"]] = sh["x0"]
+    return out
+
+
+def _x_axes(layout: dict) -> list[str]:
+    """The series figure's x axes as shape refs: "x", "x2", ..."""
+    return sorted(("x" + k[len("xaxis"):]) for k in layout if re.fullmatch(r"xaxis\d*", k))
+
+
+def test_colour_limits_are_each_frames_percentiles(bowl_run):
+    """Every field but the target is coloured between the 2nd and 98th percentile of the frame's own values
+    (heat's offset no longer washes it out); the target stays 0-1; each field has its colour bar."""
+    _, page, data = bowl_run
+    cloud_fig = _plotly_calls(page.read_text(encoding="utf-8"))["tergodic-cloud"]
+    names = [t.get("name") for t in cloud_fig["data"]]
+    field_of = {"target p": "target", "coverage c̃": "coverage", "heat u": "heat", "source s": "source"}
+    for label, f in field_of.items():
+        tr = cloud_fig["data"][names.index(label)]
+        assert tr["marker"]["colorbar"]["title"]["text"].startswith(f)  # a legend per field
+        vals = data.clouds[-1].fields[f].astype(np.float32).astype(np.float64)
+        lo, hi = (0.0, 1.0) if f == "target" else np.percentile(vals, [2, 98])
+        assert (tr["marker"]["cmin"], tr["marker"]["cmax"]) == pytest.approx((lo, hi), rel=1e-9, abs=1e-12)
+    heat = data.clouds[-1].fields["heat"]
+    assert np.ptp(heat) > 0  # the test means something: the heat varies over the cloud
+    for fr, c in zip(cloud_fig["frames"], data.clouds):
+        for f in ("coverage", "heat", "source"):
+            d = fr["data"][fr["traces"].index(names.index(next(k for k, v in field_of.items() if v == f)))]
+            vals = c.fields[f].astype(np.float32).astype(np.float64)
+            lo, hi = np.percentile(vals, [2, 98])
+            if hi > lo:
+                assert (d["marker"]["cmin"], d["marker"]["cmax"]) == pytest.approx((lo, hi), rel=1e-9, abs=1e-12)
+            else:  # a constant field (coverage before the agent moved): a small interval around it
+                assert d["marker"]["cmin"] < lo <= hi < d["marker"]["cmax"]
+        assert names.index("target p") not in fr["traces"]  # unchanged target: its 0-1 scale stays
+
+
+def test_colour_range_of_an_offset_field():
+    """Heat spanning 1.8e4-2.4e4 gets limits inside that span, not from 0; a constant field a non-empty one."""
+    from tergodic_cli.runlog.report import colour_range
+
+    rng = np.random.default_rng(3)
+    heat = 1.8e4 + 6e3 * rng.random(1000)
+    lo, hi = colour_range("heat", heat)
+    assert 1.8e4 < lo < 1.82e4 and 2.38e4 < hi < 2.4e4
+    assert np.mean((heat >= lo) & (heat <= hi)) == pytest.approx(0.96, abs=0.002)
+    assert colour_range("target", heat) == (0.0, 1.0)
+    lo, hi = colour_range("coverage", np.zeros(50))
+    assert lo < 0 < hi
+    assert colour_range("heat", np.full(4, np.nan)) == (0.0, 1.0)
+
+
+def test_trajectory_and_cursors_follow_the_slider(bowl_run):
+    """Frame k draws the trajectory up to its cloud's step, and moves a cursor on every time plot to that
+    step's time; the time plots' frames have the cloud frames' names (the page's script plays them together)."""
+    _, page, data = bowl_run
+    html = page.read_text(encoding="utf-8")
+    figs = _plotly_calls(html)
+    cloud_fig, series_fig = figs["tergodic-cloud"], figs["tergodic-series"]
+    pos, t = data.series["positions"], data.series["t"]
+    names = [tr.get("name") for tr in cloud_fig["data"]]
+    traj = names.index("agent 0 trajectory")
+    assert len(cloud_fig["frames"]) == 3
+    axes = _x_axes(series_fig["layout"])
+    assert len(axes) >= 3  # ε, residual, touched
+    seen = []
+    sframes = {fr["name"]: fr for fr in series_fig["frames"]}
+    assert list(sframes) == [fr["name"] for fr in cloud_fig["frames"]]
+    for fr, c in zip(cloud_fig["frames"], data.clouds):
+        row = data.index_of(c.step)
+        d = fr["data"][fr["traces"].index(traj)]
+        xyz = np.column_stack([_decode(d[a]) for a in "xyz"])
+        assert len(xyz) == row + 1 == c.step  # one row per step, from step 1
+        np.testing.assert_allclose(xyz, pos[:row + 1, 0], rtol=0, atol=1e-12)
+        cur = _cursor_x(sframes[fr["name"]]["layout"])
+        assert sorted(cur) == axes  # a cursor on every time plot
+        np.testing.assert_allclose(list(cur.values()), t[row], rtol=0, atol=1e-12)
+        seen.append(cur["x"])
+    assert seen == sorted(seen) and len(set(seen)) == 3  # the cursor moves with the slider
+    assert _cursor_x(series_fig["layout"])["x"] == pytest.approx(seen[-1])  # the page opens at the last frame
+    assert 'cloud.on("plotly_animatingframe"' in html
+
+
+def test_the_pages_script_plays_the_time_plots_with_the_slider(bowl_run, tmp_path):
+    """The bridge script, run in node with the two plot divs stubbed: a cloud frame animates the same-named
+    time-plot frame."""
+    import shutil
+    import subprocess
+
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip("node is not installed")
+    _, page, _ = bowl_run
+    html = page.read_text(encoding="utf-8")
+    scripts = re.findall(r'<script type="text/javascript">(.*?)</script>', html, re.S)
+    (bridge,) = [s for s in scripts if "plotly_animatingframe" in s and len(s) < 5000]
+    harness = """
+    const calls = [], handlers = {};
+    const cloud = {id: "tergodic-cloud", on: (ev, f) => { handlers[ev] = f; }};
+    const series = {id: "tergodic-series"};
+    let onload = null;
+    global.window = {addEventListener: (ev, f) => { if (ev === "load") onload = f; }};
+    global.document = {getElementById: (id) => ({"tergodic-cloud": cloud, "tergodic-series": series})[id]};
+    global.Plotly = {animate: (gd, names, opts) => { calls.push([gd.id, names, opts.mode]); }};
+    """ + bridge + """
+    onload();
+    handlers["plotly_animatingframe"]({name: "1", frame: {}});
+    handlers["plotly_animatingframe"]({name: "2", frame: {}});
+    console.log(JSON.stringify(calls));
+    """
+    (tmp_path / "h.js").write_text(harness)
+    out = subprocess.run([node, str(tmp_path / "h.js")], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout) == [["tergodic-series", ["1"], "immediate"], ["tergodic-series", ["2"], "immediate"]]
