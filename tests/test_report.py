@@ -321,3 +321,95 @@ def test_the_pages_script_plays_the_time_plots_with_the_slider(bowl_run, tmp_pat
     out = subprocess.run([node, str(tmp_path / "h.js")], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout) == [["tergodic-series", ["1"], "immediate"], ["tergodic-series", ["2"], "immediate"]]
+
+
+@pytest.fixture(scope="module")
+def loop_run(tmp_path_factory):
+    """A closed-loop-shaped log of 60 steps in 3 cycles of 20, written as the CLI writes one: the robot's
+    clock jumps 4 s over each re-capture pause, each cycle's last sample carries the marking left, and the
+    re-capture cloud (log_recapture) and the periodic cloud share a step. Heat sits at 1.8e4-2.4e4."""
+    from types import SimpleNamespace
+
+    from test_runlog import demo_inputs
+
+    from tergodic_cli.backends.pybullet.closed_loop import log_recapture
+    from tergodic_cli.runlog import RunLog
+
+    root = tmp_path_factory.mktemp("loop")
+    inp = demo_inputs(steps=60, robot=True, n_points=300, n_agents=1)
+    rng = np.random.default_rng(5)
+    dt, pause, K = 0.2, 4.0, 20
+    shares = {20: (0.6, 0.7), 40: (0.2, 0.3), 60: (0.04, 0.07)}
+    for k, smp in enumerate(inp["robot"]):
+        step = k + 1
+        smp["t_sim"] = 0.5 + step * dt + pause * (k // K)  # the physics clock, with a pause per re-capture
+        if step in shares:
+            smp["marking_remaining"], smp["marking_remaining_true"] = shares[step]
+            smp["recapture_ms"] = 150.0
+    n = len(inp["points"])
+    with RunLog(root / "run" / "run.mcap", config=inp["config"], seed=1, versions=inp["versions"],
+                capture_sidecar=inp["sidecar"], points=inp["points"], target=inp["target"], cloud_every=K) as log:
+        for k in range(60):
+            step = k + 1
+            log.log_step(step, step * dt, positions=inp["P"][k], velocities=inp["V"][k], normals=inp["N"][k],
+                         metrics={m: v[k] for m, v in inp["metrics"].items()}, step_ms=1.0, robot=inp["robot"][k])
+            if step % K == 0:
+                ex = SimpleNamespace(coverage=rng.random(n) * step, heat=1.8e4 + 6e3 * rng.random(n),
+                                     source=rng.standard_normal(n))
+                rec = {"target": (rng.random(n) > 0.5).astype(float), "marking_remaining": shares[step][0],
+                       "marking_remaining_true": shares[step][1], "ms": 150.0, "basis_cache_hit": True,
+                       "applied": step < 60}
+                log_recapture(log, ex, step, step * dt, rec)
+                log.log_cloud(step, coverage=ex.coverage, heat=ex.heat, source=ex.source)
+    res = run_cli("replay", root / "run", "--html", root / "r.html")
+    assert res.code == 0, res.err
+    return inp, (root / "r.html").read_text(encoding="utf-8"), read_run_log(root / "run")
+
+
+def test_closed_loop_page_has_one_time_axis_breaks_marks_and_the_ink_left(loop_run):
+    inp, html, data = loop_run
+    figs = _plotly_calls(html)
+    cloud_fig, series_fig = figs["tergodic-cloud"], figs["tergodic-series"]
+    lay = series_fig["layout"]
+    t_sim = np.array([s["t_sim"] for s in inp["robot"]])
+    # one time axis: every plot's x axis follows the first, whose data is the robot's simulated time
+    axes = _x_axes(lay)
+    assert len(axes) >= 6  # ε, residual, touched, force, tilt, marking left
+    assert all(lay["xaxis" + a[1:]].get("matches") == "x" for a in axes if a != "x")
+    series = {tr["name"]: tr for tr in series_fig["data"]}
+    gap_rows = [19, 39]  # the last step of each cycle that the run went on after
+    for name in ("ε (eq. 48)", "touched", "measured normal force", "tilt"):
+        x, y = _decode(series[name]["x"]), _decode(series[name]["y"])
+        # a break (no line) after each cycle's last step: the pause is not drawn as a ramp
+        assert len(x) == 60 + len(gap_rows)
+        breaks = np.flatnonzero(np.isnan(y))
+        np.testing.assert_array_equal(breaks, [g + 1 + i for i, g in enumerate(gap_rows)])
+        np.testing.assert_allclose(x[np.isfinite(x)], t_sim, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(_decode(series["tilt"]["y"])[:20], [s["tilt_deg"] for s in inp["robot"][:20]])
+    # the ink left: capture 0 (100 % at t 0), then each re-capture, camera-seen and true
+    seen, true = series["marking seen by the camera"], series["ink left in the texture"]
+    np.testing.assert_allclose(_decode(seen["x"]), [0, t_sim[19], t_sim[39], t_sim[59]])
+    np.testing.assert_allclose(_decode(seen["y"]), [1, 0.6, 0.2, 0.04])
+    np.testing.assert_allclose(_decode(true["y"]), [1, 0.7, 0.3, 0.07])
+    # re-capture marks: a band over each pause and a line at its start
+    bands = [(sh["x0"], sh["x1"]) for sh in lay["shapes"] if sh.get("name") == "recapture" and sh["type"] == "rect"]
+    lines = [sh["x0"] for sh in lay["shapes"] if sh.get("name") == "recapture" and sh["type"] == "line"]
+    np.testing.assert_allclose(bands, [(t_sim[19], t_sim[20]), (t_sim[39], t_sim[40]), (t_sim[59], t_sim[59])])
+    np.testing.assert_allclose(lines, t_sim[[19, 39, 59]])
+    # the slider: one frame per step (the re-capture's cloud and the periodic one share it), unique labels
+    labels = [st["label"] for st in cloud_fig["layout"]["sliders"][0]["steps"]]
+    assert len(data.clouds) == 6 and labels == ["20", "40", "60"]
+    # the cursors sit at the physics time of each frame's step, on every plot
+    for fr, row in zip(series_fig["frames"], (19, 39, 59)):
+        cur = _cursor_x(fr["layout"])
+        assert sorted(cur) == axes
+        np.testing.assert_allclose(list(cur.values()), t_sim[row], rtol=0, atol=1e-12)
+    # the offset heat is coloured between its own percentiles, per frame
+    names = [tr.get("name") for tr in cloud_fig["data"]]
+    last_at = {c.step: c for c in data.clouds}
+    for fr, step in zip(cloud_fig["frames"], (20, 40, 60)):
+        d = fr["data"][fr["traces"].index(names.index("heat u"))]
+        vals = last_at[step].fields["heat"].astype(np.float32).astype(np.float64)
+        lo, hi = np.percentile(vals, [2, 98])
+        assert d["marker"]["cmin"] == pytest.approx(lo, rel=1e-9) and d["marker"]["cmax"] == pytest.approx(hi, rel=1e-9)
+        assert 1.8e4 < lo < hi < 2.4e4
