@@ -137,8 +137,8 @@ def _positions(data: RunLogData) -> np.ndarray | None:
 
 
 #: Colour limits of the fields that are not already on a fixed 0-1 scale: these percentiles of the
-#: frame's own values, so that a few extreme points (or an offset: heat spans 1.8e4-2.4e4) do not wash
-#: out the rest.
+#: frame's own values (the upper one among the values above the lower), so that a few extreme points
+#: (or an offset: heat spans 1.8e4-2.4e4) do not wash out the rest.
 ROBUST_PERCENTILES = (2.0, 98.0)
 
 
@@ -155,8 +155,10 @@ def colour_range(field: str, vals: np.ndarray) -> tuple[float, float]:
     Returns
     -------
     (float, float)
-        ``(cmin, cmax)``: the :data:`ROBUST_PERCENTILES` of the finite values, widened to a
-        non-empty interval when they are equal (a constant field).
+        ``(cmin, cmax)``: the lower :data:`ROBUST_PERCENTILES` of the finite values, and the upper one
+        of the values above that (a sparse field, coverage after a few steps, is mostly at its floor:
+        the covered points keep their shades instead of all saturating); widened to a non-empty
+        interval when they are equal (a constant field).
     """
     if field == "target":
         return 0.0, 1.0
@@ -164,7 +166,9 @@ def colour_range(field: str, vals: np.ndarray) -> tuple[float, float]:
     finite = finite[np.isfinite(finite)]
     if finite.size == 0:
         return 0.0, 1.0
-    lo, hi = (float(v) for v in np.percentile(finite, ROBUST_PERCENTILES))
+    lo = float(np.percentile(finite, ROBUST_PERCENTILES[0]))
+    above = finite[finite > lo]
+    hi = float(np.percentile(above, ROBUST_PERCENTILES[1])) if above.size else lo
     if hi <= lo:
         pad = max(abs(lo) * 1e-6, 1e-12)
         lo, hi = lo - pad, hi + pad
