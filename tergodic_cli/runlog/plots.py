@@ -114,18 +114,49 @@ def _plot_ergodicity(plt, t, tlabel: str, s: dict, note: str, path: Path) -> Pat
     return _save(fig, path)
 
 
+def timeline(data: RunLogData) -> tuple[np.ndarray, list[int]]:
+    """One simulated-time axis for every plot, and the rows after which the run paused for a re-capture.
+
+    Returns
+    -------
+    x : (T,) array, s
+        Per logged step: the robot's simulated time ``t_sim`` when every step has a robot sample (the
+        physics clock, which also runs through approaches, retreats and re-capture moves), else the
+        explorer's ``t``.
+    gaps : list of int
+        Rows (increasing) of the cycle's last step before each re-capture: its sample carries
+        ``marking_remaining`` (the closed loop, docs/closed_loop.md). Lines break after them.
+    """
+    t = np.asarray(data.series["t"], dtype=np.float64)
+    robot = data.robot or []
+    if len(robot) == len(t) and all(isinstance(r.get("t_sim"), (int, float)) for r in robot):
+        t = np.array([float(r["t_sim"]) for r in robot])
+    gaps = [i for i, r in enumerate(robot[:len(t)]) if r.get("marking_remaining") is not None]
+    return t, gaps
+
+
+def broken_at(x: np.ndarray, y: np.ndarray, gaps: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """``x``, ``y`` with a NaN point after each row in ``gaps``: plotly draws no line across it."""
+    gaps = [g for g in gaps if g < len(x) - 1]
+    if not gaps:
+        return x, y
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    return np.insert(x, np.array(gaps) + 1, np.nan), np.insert(y, np.array(gaps) + 1, np.nan)
+
+
 def _plot_force(plt, data: RunLogData, rs: dict, out: Path, note: str) -> list[Path]:
     """Measured normal force against the desired one (wrench_desired's z, the tool axis), per explorer step."""
     if "force_normal" not in rs and "wrench_measured" not in rs:
         return []
     t = rs["t_sim"] if "t_sim" in rs else data.series["t"][:len(data.robot)]
     measured = rs["force_normal"] if "force_normal" in rs else np.linalg.norm(rs["wrench_measured"][:, :3], axis=1)
+    gaps = timeline(data)[1]  # closed loop: no line across a re-capture pause
 
     def draw(ax) -> None:
-        ax.plot(t, measured, label="measured normal force", color="C3", lw=1)
+        ax.plot(*broken_at(t, measured, gaps), label="measured normal force", color="C3", lw=1)
         if "wrench_desired" in rs and rs["wrench_desired"].ndim == 2:
-            ax.plot(t, rs["wrench_desired"][:, 2], label="desired normal force", color="k", ls="--",
-                    lw=1)
+            ax.plot(*broken_at(t, rs["wrench_desired"][:, 2], gaps), label="desired normal force", color="k",
+                    ls="--", lw=1)
         off = ~rs["in_contact"].astype(bool) if "in_contact" in rs else np.zeros(0, bool)
         if off.any():
             ax.fill_between(t, 0, 1, where=off, transform=ax.get_xaxis_transform(), color="0.85", lw=0,

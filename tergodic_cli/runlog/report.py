@@ -24,7 +24,7 @@ import numpy as np
 
 from tergodic_cli.atomic import atomic_path, check_output_file
 from tergodic_cli.errors import TergodicError
-from tergodic_cli.runlog.plots import RESIDUAL_KEYS, log_scale
+from tergodic_cli.runlog.plots import RESIDUAL_KEYS, broken_at, log_scale, timeline
 from tergodic_cli.runlog.reader import RunLogData
 
 #: More points than this are subsampled on the page (evenly, deterministic); the page says so.
@@ -175,36 +175,6 @@ def colour_range(field: str, vals: np.ndarray) -> tuple[float, float]:
     return lo, hi
 
 
-def _timeline(data: RunLogData) -> tuple[np.ndarray, list[int]]:
-    """One simulated-time axis for every plot, and the rows after which the run paused for a re-capture.
-
-    Returns
-    -------
-    x : (T,) array, s
-        Per logged step: the robot's simulated time ``t_sim`` when every step has a robot sample (the
-        physics clock, which also runs through approaches, retreats and re-capture moves), else the
-        explorer's ``t``.
-    gaps : list of int
-        Rows (increasing) of the cycle's last step before each re-capture: its sample carries
-        ``marking_remaining`` (the closed loop, docs/closed_loop.md). Lines break after them.
-    """
-    t = np.asarray(data.series["t"], dtype=np.float64)
-    robot = data.robot or []
-    if len(robot) == len(t) and all(isinstance(r.get("t_sim"), (int, float)) for r in robot):
-        t = np.array([float(r["t_sim"]) for r in robot])
-    gaps = [i for i, r in enumerate(robot[:len(t)]) if r.get("marking_remaining") is not None]
-    return t, gaps
-
-
-def _broken(x: np.ndarray, y: np.ndarray, gaps: list[int]) -> tuple[np.ndarray, np.ndarray]:
-    """``x``, ``y`` with a NaN point after each row in ``gaps``: plotly draws no line across it."""
-    gaps = [g for g in gaps if g < len(x) - 1]
-    if not gaps:
-        return x, y
-    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
-    return np.insert(x, np.array(gaps) + 1, np.nan), np.insert(y, np.array(gaps) + 1, np.nan)
-
-
 def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
     import plotly.graph_objects as go
 
@@ -353,14 +323,14 @@ def _series_figure(data: RunLogData, frames: list[dict]) -> tuple[Any, dict]:
     from plotly.subplots import make_subplots
 
     s, t = data.series, data.series["t"]
-    x, gaps = _timeline(data)
+    x, gaps = timeline(data)
     embedded: dict[str, Any] = {"step": s["step"].tolist(), "t": t.tolist(), "time": x.tolist(),
                                 "recapture_rows": gaps}
 
     def line(into: dict, key: str, xs, y, name: str, colour: str, dash: str | None = None,
              **kw) -> Any:
         into[key] = _nested(y)  # the numbers drawn (unbroken), also in the page's JSON block
-        xs, y = _broken(xs, y, gaps) if len(xs) == len(x) else (xs, y)
+        xs, y = broken_at(xs, y, gaps) if len(xs) == len(x) else (xs, y)
         return go.Scatter(x=xs, y=y, name=name, line=dict(color=colour, dash=dash), **kw)
 
     eps = np.asarray(s["ergodicity"], dtype=np.float64)
