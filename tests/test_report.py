@@ -426,3 +426,20 @@ def test_closed_loop_page_has_one_time_axis_breaks_marks_and_the_ink_left(loop_r
         lo, hi = _robust(vals)
         assert d["marker"]["cmin"] == pytest.approx(lo, rel=1e-9) and d["marker"]["cmax"] == pytest.approx(hi, rel=1e-9)
         assert 1.8e4 < lo < hi < 2.4e4
+
+
+def test_a_long_trajectory_is_drawn_through_a_subset_and_says_so(tmp_path, monkeypatch):
+    from tergodic_cli.runlog import report
+
+    inp = _make_run(tmp_path / "run", steps=120, n_points=200)
+    monkeypatch.setattr(report, "MAX_TRAJ_ROWS", 25)
+    data = read_run_log(tmp_path / "run")
+    report.write_html_report(data, tmp_path / "r.html")
+    html = (tmp_path / "r.html").read_text(encoding="utf-8")
+    assert "The trajectory has 120 steps; the page draws every 5th of them." in html
+    cloud_fig = _plotly_calls(html)["tergodic-cloud"]
+    traj = [t.get("name") for t in cloud_fig["data"]].index("agent 0 trajectory")
+    for fr, c in zip(cloud_fig["frames"], data.clouds):  # steps 50, 100, 120
+        d = fr["data"][fr["traces"].index(traj)]
+        rows = sorted(set(range(0, c.step, 5)) | {c.step - 1})  # every 5th row, and the cloud's step
+        np.testing.assert_allclose(_decode(d["x"]), inp["P"][rows, 0, 0], rtol=0, atol=1e-12)

@@ -31,6 +31,9 @@ from tergodic_cli.runlog.reader import RunLogData
 MAX_POINTS = 40_000
 #: Budget of per-point values over all slider frames (float32: 4 bytes each, before base64).
 MAX_FRAME_VALUES = 6_000_000
+#: Longer trajectories are drawn through an even subset of their steps (each frame carries its path so
+#: far, so the page grows with frames x steps); the page says so.
+MAX_TRAJ_ROWS = 4_000
 
 #: field -> (colour scale, colour bar title with units, button label)
 _FIELDS = {
@@ -226,9 +229,18 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
     traj_traces: list[int] = []
     if pos is not None:
         upto = len(pos) if not clouds else _row_of(steps, clouds[shown[-1]].step) + 1  # the slider's start
+        stride = -(-len(pos) // MAX_TRAJ_ROWS)
+        if stride > 1:
+            notes.append(f"The trajectory has {len(pos)} steps; the page draws every {stride}th of them.")
+
+        def path(k: int, upto: int) -> dict:
+            """Agent k's path through steps 0..upto-1 (every ``stride``th, and the last)."""
+            rows = np.unique(np.r_[np.arange(0, upto, stride), upto - 1])
+            return dict(x=pos[rows, k, 0], y=pos[rows, k, 1], z=pos[rows, k, 2])
+
         for k in range(pos.shape[1]):
             traj_traces.append(len(fig.data))
-            fig.add_trace(go.Scatter3d(x=pos[:upto, k, 0], y=pos[:upto, k, 1], z=pos[:upto, k, 2], mode="lines",
+            fig.add_trace(go.Scatter3d(**path(k, upto), mode="lines",
                                        name=f"agent {k} trajectory", hoverinfo="skip",
                                        line=dict(color=_AGENT_COLOURS[k % len(_AGENT_COLOURS)],
                                                  width=3)))
@@ -267,7 +279,7 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
             if pos is not None:
                 row = _row_of(steps, c.step)
                 for k, tr in enumerate(traj_traces):
-                    fdata.append(go.Scatter3d(x=pos[:row + 1, k, 0], y=pos[:row + 1, k, 1], z=pos[:row + 1, k, 2]))
+                    fdata.append(go.Scatter3d(**path(k, row + 1)))
                     traces.append(tr)
                 a = pos[row]
                 fdata.append(go.Scatter3d(x=a[:, 0], y=a[:, 1], z=a[:, 2]))
