@@ -443,3 +443,25 @@ def test_a_long_trajectory_is_drawn_through_a_subset_and_says_so(tmp_path, monke
         d = fr["data"][fr["traces"].index(traj)]
         rows = sorted(set(range(0, c.step, 5)) | {c.step - 1})  # every 5th row, and the cloud's step
         np.testing.assert_allclose(_decode(d["x"]), inp["P"][rows, 0, 0], rtol=0, atol=1e-12)
+
+
+def test_closed_loop_pngs_share_the_clock_and_break_at_re_captures(loop_run, monkeypatch, tmp_path):
+    """ε, touched and force PNGs: x is the robot's simulated time, and each line breaks after a cycle's last step."""
+    from tergodic_cli.runlog import plots
+
+    inp, _, data = loop_run
+    kept = {}
+    monkeypatch.setattr(plots, "_save", lambda fig, path: kept.setdefault(Path(path).name, fig) and Path(path))
+    plots.plot_run(data, tmp_path)
+    t_sim = np.array([s["t_sim"] for s in inp["robot"]])
+    try:
+        for name in ("ergodicity.png", "touched.png", "force.png"):
+            line = [ln for ax in kept[name].axes for ln in ax.lines][0]
+            x, y = np.asarray(line.get_xdata(), float), np.asarray(line.get_ydata(), float)
+            np.testing.assert_array_equal(np.flatnonzero(np.isnan(y)), [20, 41])
+            np.testing.assert_allclose(x[np.isfinite(x)], t_sim, rtol=0, atol=1e-12)
+    finally:
+        import matplotlib.pyplot as plt
+
+        for fig in kept.values():
+            plt.close(fig)

@@ -57,13 +57,14 @@ def plot_run(data: RunLogData, out_dir: str | os.PathLike) -> list[Path]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     s = data.series
-    t, tlabel = data.series["t"], "simulated time t (s)"
+    t, gaps = timeline(data)  # the force plot's clock too; lines break at re-capture pauses
+    tlabel = "simulated time (s)"
     note = " (truncated log)" if data.truncated else ""
 
-    written = [_plot_ergodicity(plt, t, tlabel, s, note, out / "ergodicity.png")]
+    written = [_plot_ergodicity(plt, t, tlabel, s, note, out / "ergodicity.png", gaps)]
 
     def touched(ax) -> None:
-        ax.plot(t, 100 * s["touched_fraction"], color="C2", clip_on=False)
+        ax.plot(*broken_at(t, 100 * s["touched_fraction"], gaps), color="C2", clip_on=False)
         ax.set_ylim(0, 103)  # a curve at 100 % stays above the frame's top edge
 
     written.append(_single(plt, out / "touched.png", f"Target touched over time{note}", tlabel,
@@ -91,19 +92,20 @@ def log_scale(eps: np.ndarray) -> bool:
     return bool(fin.size and np.all(fin > 0) and fin.max() > 10 * fin.min())
 
 
-def _plot_ergodicity(plt, t, tlabel: str, s: dict, note: str, path: Path) -> Path:
-    """ε (eq. 48) and the authors' residual, each on its own axis: they are different quantities."""
+def _plot_ergodicity(plt, t, tlabel: str, s: dict, note: str, path: Path, gaps: list[int] = ()) -> Path:
+    """ε (eq. 48) and the authors' residual, each on its own axis: they are different quantities; no line
+    after the rows in ``gaps`` (re-capture pauses)."""
     ref = next((k for k in RESIDUAL_KEYS if k in s), None)
     fig, axes = plt.subplots(2 if ref else 1, 1, figsize=(7, 5.6 if ref else 3.6), sharex=True, squeeze=False)
     ax = axes[0, 0]
     eps = np.asarray(s["ergodicity"], dtype=np.float64)
-    ax.plot(t, eps, color="C0")
+    ax.plot(*broken_at(t, eps, list(gaps)), color="C0")
     if log_scale(eps):
         ax.set_yscale("log")
     ax.set(ylabel="ε (eq. 48)", title=f"Ergodicity ε over time{note}")
     if ref:
         ax2 = axes[1, 0]
-        ax2.plot(t, s[ref], color="C1")
+        ax2.plot(*broken_at(t, s[ref], list(gaps)), color="C1")
         ax2.set_ylim(0, max(1.0, float(np.nanmax(s[ref])) if len(s[ref]) else 1.0) * 1.02)
         ax2.set_ylabel(f"{ref} (unitless)")
         ax2.set_title("Residual of the authors' code: share of the target's heat not yet touched", fontsize=10)
