@@ -254,7 +254,7 @@ def test_colour_limits_are_each_frames_percentiles(bowl_run):
 
 def test_colour_range_of_an_offset_field():
     """Heat spanning 1.8e4-2.4e4 gets limits inside that span, not from 0; a constant field a non-empty one."""
-    from tergodic_cli.runlog.report import colour_range
+    from tergodic_cli.runlog.plots import colour_range
 
     rng = np.random.default_rng(3)
     heat = 1.8e4 + 6e3 * rng.random(1000)

@@ -193,16 +193,43 @@ def _plot_cleaning(plt, data: RunLogData, out: Path, note: str) -> list[Path]:
                     "explorer step", "marking left (% of the initial)", draw)]
 
 
-def _color_range(vals: np.ndarray) -> tuple[float, float]:
-    """Colour limits: the minimum, and the 98th percentile of the values above it, so that a few
-    heavily covered points do not wash out the rest."""
-    finite = vals[np.isfinite(vals)]
+#: Colour limits of the fields that are not already on a fixed 0-1 scale: these percentiles of the
+#: frame's own values (the upper one among the values above the lower), so that a few extreme points
+#: (or an offset: heat spans 1.8e4-2.4e4) do not wash out the rest.
+ROBUST_PERCENTILES = (2.0, 98.0)
+
+
+def colour_range(field: str, vals: np.ndarray) -> tuple[float, float]:
+    """Colour limits of one field's values on one frame.
+
+    Parameters
+    ----------
+    field : str
+        The field's name; ``target`` (p in 0-1) keeps the fixed range 0-1.
+    vals : (n,) array
+        The values shown.
+
+    Returns
+    -------
+    (float, float)
+        ``(cmin, cmax)``: the lower :data:`ROBUST_PERCENTILES` of the finite values, and the upper one
+        of the values above that (a sparse field, coverage after a few steps, is mostly at its floor:
+        the covered points keep their shades instead of all saturating); widened to a non-empty
+        interval when they are equal (a constant field).
+    """
+    if field == "target":
+        return 0.0, 1.0
+    finite = np.asarray(vals, dtype=np.float64)
+    finite = finite[np.isfinite(finite)]
     if finite.size == 0:
         return 0.0, 1.0
-    vmin = float(finite.min())
-    above = finite[finite > vmin]
-    vmax = float(np.percentile(above, 98)) if above.size else vmin + 1.0
-    return vmin, (vmax if vmax > vmin else vmin + 1.0)
+    lo = float(np.percentile(finite, ROBUST_PERCENTILES[0]))
+    above = finite[finite > lo]
+    hi = float(np.percentile(above, ROBUST_PERCENTILES[1])) if above.size else lo
+    if hi <= lo:
+        pad = max(abs(lo) * 1e-6, 1e-12)
+        lo, hi = lo - pad, hi + pad
+    return lo, hi
 
 
 def _plot_cloud(plt, cloud, field: str, cmap: str, label: str, traj, path: Path, note: str, line: str) -> Path:
@@ -212,7 +239,7 @@ def _plot_cloud(plt, cloud, field: str, cmap: str, label: str, traj, path: Path,
 
     pts = cloud.points
     vals = cloud.fields[field]
-    vmin, vmax = _color_range(vals)
+    vmin, vmax = colour_range(field, vals)
     span = pts.max(0) - pts.min(0)
     big = float(span.max()) or 1.0
     sx, sy, sz = np.maximum(span, 0.35 * big)  # no strip thinner than about a third of the largest extent
@@ -243,7 +270,9 @@ def _plot_cloud(plt, cloud, field: str, cmap: str, label: str, traj, path: Path,
         ax.set(xlabel="xyz"[h] + " (mm)", ylabel="xyz"[v] + " (mm)")
         ax.grid(True, alpha=0.2)
     cax = fig.add_subplot(gs[:, 2])
-    fig.colorbar(sc, cax=cax, label=label, extend="max" if vmax < np.nanmax(vals) else "neither")
+    below, above = vmin > np.nanmin(vals), vmax < np.nanmax(vals)  # arrows where colours saturate
+    fig.colorbar(sc, cax=cax, label=label,
+                 extend={(True, True): "both", (True, False): "min", (False, True): "max"}.get((below, above), "neither"))
     fig.text(0.54, 0.3, f"step {cloud.step}\n\nagent trajectory: {line} line\ndot: last position", fontsize=10,
              va="center")
     fig.suptitle(f"{label} at step {cloud.step}{note}")

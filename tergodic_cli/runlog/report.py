@@ -24,7 +24,7 @@ import numpy as np
 
 from tergodic_cli.atomic import atomic_path, check_output_file
 from tergodic_cli.errors import TergodicError
-from tergodic_cli.runlog.plots import RESIDUAL_KEYS, broken_at, log_scale, timeline
+from tergodic_cli.runlog.plots import RESIDUAL_KEYS, broken_at, colour_range, log_scale, timeline
 from tergodic_cli.runlog.reader import RunLogData
 
 #: More points than this are subsampled on the page (evenly, deterministic); the page says so.
@@ -139,45 +139,6 @@ def _positions(data: RunLogData) -> np.ndarray | None:
     return pos
 
 
-#: Colour limits of the fields that are not already on a fixed 0-1 scale: these percentiles of the
-#: frame's own values (the upper one among the values above the lower), so that a few extreme points
-#: (or an offset: heat spans 1.8e4-2.4e4) do not wash out the rest.
-ROBUST_PERCENTILES = (2.0, 98.0)
-
-
-def colour_range(field: str, vals: np.ndarray) -> tuple[float, float]:
-    """Colour limits of one field's values on one frame.
-
-    Parameters
-    ----------
-    field : str
-        The field's name; ``target`` (p in 0-1) keeps the fixed range 0-1.
-    vals : (n,) array
-        The values shown.
-
-    Returns
-    -------
-    (float, float)
-        ``(cmin, cmax)``: the lower :data:`ROBUST_PERCENTILES` of the finite values, and the upper one
-        of the values above that (a sparse field, coverage after a few steps, is mostly at its floor:
-        the covered points keep their shades instead of all saturating); widened to a non-empty
-        interval when they are equal (a constant field).
-    """
-    if field == "target":
-        return 0.0, 1.0
-    finite = np.asarray(vals, dtype=np.float64)
-    finite = finite[np.isfinite(finite)]
-    if finite.size == 0:
-        return 0.0, 1.0
-    lo = float(np.percentile(finite, ROBUST_PERCENTILES[0]))
-    above = finite[finite > lo]
-    hi = float(np.percentile(above, ROBUST_PERCENTILES[1])) if above.size else lo
-    if hi <= lo:
-        pad = max(abs(lo) * 1e-6, 1e-12)
-        lo, hi = lo - pad, hi + pad
-    return lo, hi
-
-
 def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
     import plotly.graph_objects as go
 
@@ -199,7 +160,6 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
         # which clouds get a slider frame: all of them, unless that exceeds the size budget
         per_frame = max(1, len(fields) * len(last.points[idx]))
         keep = max(2, MAX_FRAME_VALUES // per_frame)
-        shown = list(range(len(clouds)))
         # two clouds at one step (a re-capture's and the periodic one): the slider shows the later
         last_at = {c.step: i for i, c in enumerate(clouds)}
         shown = sorted(last_at.values())
