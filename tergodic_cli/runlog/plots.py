@@ -119,6 +119,11 @@ def _plot_ergodicity(plt, t, tlabel: str, s: dict, note: str, path: Path, gaps: 
 def timeline(data: RunLogData) -> tuple[np.ndarray, list[int]]:
     """One simulated-time axis for every plot, and the rows after which the run paused for a re-capture.
 
+    Parameters
+    ----------
+    data : RunLogData
+        The run log.
+
     Returns
     -------
     x : (T,) array, s
@@ -127,18 +132,21 @@ def timeline(data: RunLogData) -> tuple[np.ndarray, list[int]]:
         explorer's ``t``.
     gaps : list of int
         Rows (increasing) of the cycle's last step before each re-capture: its sample carries
-        ``marking_remaining`` (the closed loop, docs/closed_loop.md). Lines break after them.
+        ``marking_remaining`` (the closed loop, docs/closed_loop.md). Lines break after them. Empty
+        unless there is one robot sample per step.
     """
     t = np.asarray(data.series["t"], dtype=np.float64)
     robot = data.robot or []
-    if len(robot) == len(t) and all(isinstance(r.get("t_sim"), (int, float)) for r in robot):
+    if len(robot) != len(t):  # samples not one per step: their rows are not the steps' rows
+        return t, []
+    if all(isinstance(r.get("t_sim"), (int, float)) for r in robot):
         t = np.array([float(r["t_sim"]) for r in robot])
-    gaps = [i for i, r in enumerate(robot[:len(t)]) if r.get("marking_remaining") is not None]
-    return t, gaps
+    return t, [i for i, r in enumerate(robot) if r.get("marking_remaining") is not None]
 
 
 def broken_at(x: np.ndarray, y: np.ndarray, gaps: list[int]) -> tuple[np.ndarray, np.ndarray]:
-    """``x``, ``y`` with a NaN point after each row in ``gaps``: plotly draws no line across it."""
+    """``x``, ``y`` (n,) with a NaN point after each row in ``gaps`` (plotly and matplotlib draw no line
+    across it): (n + number of gaps before the last row,) each."""
     gaps = [g for g in gaps if g < len(x) - 1]
     if not gaps:
         return x, y
