@@ -279,8 +279,8 @@ def _plot_cloud(plt, cloud, field: str, cmap: str, label: str, traj, path: Path,
         ax.grid(True, alpha=0.2)
     cax = fig.add_subplot(gs[:, 2])
     below, above = vmin > np.nanmin(vals), vmax < np.nanmax(vals)  # arrows where colours saturate
-    fig.colorbar(sc, cax=cax, label=label,
-                 extend={(True, True): "both", (True, False): "min", (False, True): "max"}.get((below, above), "neither"))
+    extend = {(True, True): "both", (True, False): "min", (False, True): "max"}.get((below, above), "neither")
+    fig.colorbar(sc, cax=cax, label=label, extend=extend)
     fig.text(0.54, 0.3, f"step {cloud.step}\n\nagent trajectory: {line} line\ndot: last position", fontsize=10,
              va="center")
     fig.suptitle(f"{label} at step {cloud.step}{note}")
