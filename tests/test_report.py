@@ -198,3 +198,270 @@ def test_write_error_is_one_line(bowl_run, tmp_path, monkeypatch):
     res = run_cli("replay", run, "--html", tmp_path / "r.html")
     assert_one_line_error(res, "no space left on device", "--html")
     assert not list(tmp_path.iterdir())
+
+
+# ------------------------------------------------------------------ a page that follows the run (issue 26)
+def _robust(vals: np.ndarray) -> tuple[float, float]:
+    """The page's colour limits, written out: the 2nd percentile, and the 98th of the values above it."""
+    lo = np.percentile(vals, 2)
+    above = vals[vals > lo]
+    return lo, (np.percentile(above, 98) if above.size else lo)
+
+
+def _cursor_x(layout: dict) -> dict[str, float]:
+    """{x axis ref: cursor x} of a layout's cursor shapes (x0 == x1: a vertical line)."""
+    out = {}
+    for sh in layout.get("shapes", []):
+        if sh.get("name") == "cursor":
+            assert sh["x0"] == sh["x1"] and sh["type"] == "line"
+            assert sh["yref"].endswith(" domain") and (sh["y0"], sh["y1"]) == (0, 1)
+            out[sh["xref"]] = sh["x0"]
+    return out
+
+
+def _x_axes(layout: dict) -> list[str]:
+    """The series figure's x axes as shape refs: "x", "x2", ..."""
+    return sorted(("x" + k[len("xaxis"):]) for k in layout if re.fullmatch(r"xaxis\d*", k))
+
+
+def test_colour_limits_are_each_frames_percentiles(bowl_run):
+    """Every field but the target is coloured between the 2nd percentile of the frame's own values and the 98th
+    of those above it
+    (heat's offset no longer washes it out); the target stays 0-1; each field has its colour bar."""
+    _, page, data = bowl_run
+    cloud_fig = _plotly_calls(page.read_text(encoding="utf-8"))["tergodic-cloud"]
+    names = [t.get("name") for t in cloud_fig["data"]]
+    field_of = {"target p": "target", "coverage c̃": "coverage", "heat u": "heat", "source s": "source"}
+    for label, f in field_of.items():
+        tr = cloud_fig["data"][names.index(label)]
+        assert tr["marker"]["colorbar"]["title"]["text"].startswith(f)  # a legend per field
+        vals = data.clouds[-1].fields[f].astype(np.float32).astype(np.float64)
+        lo, hi = (0.0, 1.0) if f == "target" else _robust(vals)
+        assert (tr["marker"]["cmin"], tr["marker"]["cmax"]) == pytest.approx((lo, hi), rel=1e-9, abs=1e-12)
+    heat = data.clouds[-1].fields["heat"]
+    assert np.ptp(heat) > 0  # the test means something: the heat varies over the cloud
+    for fr, c in zip(cloud_fig["frames"], data.clouds):
+        for f in ("coverage", "heat", "source"):
+            d = fr["data"][fr["traces"].index(names.index(next(k for k, v in field_of.items() if v == f)))]
+            vals = c.fields[f].astype(np.float32).astype(np.float64)
+            lo, hi = _robust(vals)
+            if hi > lo:
+                assert (d["marker"]["cmin"], d["marker"]["cmax"]) == pytest.approx((lo, hi), rel=1e-9, abs=1e-12)
+            else:  # a constant field (coverage before the agent moved): a small interval around it
+                assert d["marker"]["cmin"] < lo <= hi < d["marker"]["cmax"]
+        assert names.index("target p") not in fr["traces"]  # unchanged target: its 0-1 scale stays
+
+
+def test_colour_range_of_an_offset_field():
+    """Heat spanning 1.8e4-2.4e4 gets limits inside that span, not from 0; a constant field a non-empty one."""
+    from tergodic_cli.runlog.plots import colour_range
+
+    rng = np.random.default_rng(3)
+    heat = 1.8e4 + 6e3 * rng.random(1000)
+    lo, hi = colour_range("heat", heat)
+    assert 1.8e4 < lo < 1.82e4 and 2.38e4 < hi < 2.4e4
+    assert np.mean((heat >= lo) & (heat <= hi)) == pytest.approx(0.96, abs=0.003)
+    # sparse coverage (3 % of the points covered): the covered points keep their shades, not all saturated
+    cov = np.zeros(1000)
+    cov[:30] = np.linspace(1, 30, 30)
+    lo, hi = colour_range("coverage", cov)
+    assert lo == 0 and 29 < hi < 30
+    assert colour_range("target", heat) == (0.0, 1.0)
+    lo, hi = colour_range("coverage", np.zeros(50))
+    assert lo < 0 < hi
+    assert colour_range("heat", np.full(4, np.nan)) == (0.0, 1.0)
+
+
+def test_trajectory_and_cursors_follow_the_slider(bowl_run):
+    """Frame k draws the trajectory up to its cloud's step, and moves a cursor on every time plot to that
+    step's time; the time plots' frames have the cloud frames' names (the page's script plays them together)."""
+    _, page, data = bowl_run
+    html = page.read_text(encoding="utf-8")
+    figs = _plotly_calls(html)
+    cloud_fig, series_fig = figs["tergodic-cloud"], figs["tergodic-series"]
+    pos, t = data.series["positions"], data.series["t"]
+    names = [tr.get("name") for tr in cloud_fig["data"]]
+    traj = names.index("agent 0 trajectory")
+    assert len(cloud_fig["frames"]) == 3
+    axes = _x_axes(series_fig["layout"])
+    assert len(axes) >= 3  # ε, residual, touched
+    seen = []
+    sframes = {fr["name"]: fr for fr in series_fig["frames"]}
+    assert list(sframes) == [fr["name"] for fr in cloud_fig["frames"]]
+    for fr, c in zip(cloud_fig["frames"], data.clouds):
+        row = data.index_of(c.step)
+        d = fr["data"][fr["traces"].index(traj)]
+        xyz = np.column_stack([_decode(d[a]) for a in "xyz"])
+        assert len(xyz) == row + 1 == c.step  # one row per step, from step 1
+        np.testing.assert_allclose(xyz, pos[:row + 1, 0], rtol=0, atol=1e-12)
+        cur = _cursor_x(sframes[fr["name"]]["layout"])
+        assert sorted(cur) == axes  # a cursor on every time plot
+        np.testing.assert_allclose(list(cur.values()), t[row], rtol=0, atol=1e-12)
+        seen.append(cur["x"])
+    assert seen == sorted(seen) and len(set(seen)) == 3  # the cursor moves with the slider
+    assert _cursor_x(series_fig["layout"])["x"] == pytest.approx(seen[-1])  # the page opens at the last frame
+    assert 'cloud.on("plotly_animatingframe"' in html
+
+
+def test_the_pages_script_plays_the_time_plots_with_the_slider(bowl_run, tmp_path):
+    """The bridge script, run in node with the two plot divs stubbed: a cloud frame animates the same-named
+    time-plot frame."""
+    import shutil
+    import subprocess
+
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip("node is not installed")
+    _, page, _ = bowl_run
+    html = page.read_text(encoding="utf-8")
+    scripts = re.findall(r'<script type="text/javascript">(.*?)</script>', html, re.S)
+    (bridge,) = [s for s in scripts if "plotly_animatingframe" in s and len(s) < 5000]
+    harness = """
+    const calls = [], handlers = {};
+    const cloud = {id: "tergodic-cloud", on: (ev, f) => { handlers[ev] = f; }};
+    const series = {id: "tergodic-series"};
+    let onload = null;
+    global.window = {addEventListener: (ev, f) => { if (ev === "load") onload = f; }};
+    global.document = {getElementById: (id) => ({"tergodic-cloud": cloud, "tergodic-series": series})[id]};
+    global.Plotly = {animate: (gd, names, opts) => { calls.push([gd.id, names, opts.mode]); }};
+    """ + bridge + """
+    onload();
+    handlers["plotly_animatingframe"]({name: "1", frame: {}});
+    handlers["plotly_animatingframe"]({name: "2", frame: {}});
+    console.log(JSON.stringify(calls));
+    """
+    (tmp_path / "h.js").write_text(harness)
+    out = subprocess.run([node, str(tmp_path / "h.js")], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout) == [["tergodic-series", ["1"], "immediate"], ["tergodic-series", ["2"], "immediate"]]
+
+
+@pytest.fixture(scope="module")
+def loop_run(tmp_path_factory):
+    """A closed-loop-shaped log of 60 steps in 3 cycles of 20, written as the CLI writes one: the robot's
+    clock jumps 4 s over each re-capture pause, each cycle's last sample carries the marking left, and the
+    re-capture cloud (log_recapture) and the periodic cloud share a step. Heat sits at 1.8e4-2.4e4."""
+    from types import SimpleNamespace
+
+    from test_runlog import demo_inputs
+
+    from tergodic_cli.backends.pybullet.closed_loop import log_recapture
+    from tergodic_cli.runlog import RunLog
+
+    root = tmp_path_factory.mktemp("loop")
+    inp = demo_inputs(steps=60, robot=True, n_points=300, n_agents=1)
+    rng = np.random.default_rng(5)
+    dt, pause, K = 0.2, 4.0, 20
+    shares = {20: (0.6, 0.7), 40: (0.2, 0.3), 60: (0.04, 0.07)}
+    for k, smp in enumerate(inp["robot"]):
+        step = k + 1
+        smp["t_sim"] = 0.5 + step * dt + pause * (k // K)  # the physics clock, with a pause per re-capture
+        if step in shares:
+            smp["marking_remaining"], smp["marking_remaining_true"] = shares[step]
+            smp["recapture_ms"] = 150.0
+    n = len(inp["points"])
+    with RunLog(root / "run" / "run.mcap", config=inp["config"], seed=1, versions=inp["versions"],
+                capture_sidecar=inp["sidecar"], points=inp["points"], target=inp["target"], cloud_every=K) as log:
+        for k in range(60):
+            step = k + 1
+            log.log_step(step, step * dt, positions=inp["P"][k], velocities=inp["V"][k], normals=inp["N"][k],
+                         metrics={m: v[k] for m, v in inp["metrics"].items()}, step_ms=1.0, robot=inp["robot"][k])
+            if step % K == 0:
+                ex = SimpleNamespace(coverage=rng.random(n) * step, heat=1.8e4 + 6e3 * rng.random(n),
+                                     source=rng.standard_normal(n))
+                rec = {"target": (rng.random(n) > 0.5).astype(float), "marking_remaining": shares[step][0],
+                       "marking_remaining_true": shares[step][1], "ms": 150.0, "basis_cache_hit": True,
+                       "applied": step < 60}
+                log_recapture(log, ex, step, step * dt, rec)
+                log.log_cloud(step, coverage=ex.coverage, heat=ex.heat, source=ex.source)
+    res = run_cli("replay", root / "run", "--html", root / "r.html")
+    assert res.code == 0, res.err
+    return inp, (root / "r.html").read_text(encoding="utf-8"), read_run_log(root / "run")
+
+
+def test_closed_loop_page_has_one_time_axis_breaks_marks_and_the_ink_left(loop_run):
+    inp, html, data = loop_run
+    figs = _plotly_calls(html)
+    cloud_fig, series_fig = figs["tergodic-cloud"], figs["tergodic-series"]
+    lay = series_fig["layout"]
+    t_sim = np.array([s["t_sim"] for s in inp["robot"]])
+    # one time axis: every plot's x axis follows the first, whose data is the robot's simulated time
+    axes = _x_axes(lay)
+    assert len(axes) >= 6  # ε, residual, touched, force, tilt, marking left
+    assert all(lay["xaxis" + a[1:]].get("matches") == "x" for a in axes if a != "x")
+    series = {tr["name"]: tr for tr in series_fig["data"]}
+    gap_rows = [19, 39]  # the last step of each cycle that the run went on after
+    for name in ("ε (eq. 48)", "touched", "measured normal force", "tilt"):
+        x, y = _decode(series[name]["x"]), _decode(series[name]["y"])
+        # a break (no line) after each cycle's last step: the pause is not drawn as a ramp
+        assert len(x) == 60 + len(gap_rows)
+        breaks = np.flatnonzero(np.isnan(y))
+        np.testing.assert_array_equal(breaks, [g + 1 + i for i, g in enumerate(gap_rows)])
+        np.testing.assert_allclose(x[np.isfinite(x)], t_sim, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(_decode(series["tilt"]["y"])[:20], [s["tilt_deg"] for s in inp["robot"][:20]])
+    # the ink left: capture 0 (100 % at t 0), then each re-capture, camera-seen and true
+    seen, true = series["marking seen by the camera"], series["ink left in the texture"]
+    np.testing.assert_allclose(_decode(seen["x"]), [0, t_sim[19], t_sim[39], t_sim[59]])
+    np.testing.assert_allclose(_decode(seen["y"]), [1, 0.6, 0.2, 0.04])
+    np.testing.assert_allclose(_decode(true["y"]), [1, 0.7, 0.3, 0.07])
+    # re-capture marks: a band over each pause and a line at its start
+    bands = [(sh["x0"], sh["x1"]) for sh in lay["shapes"] if sh.get("name") == "recapture" and sh["type"] == "rect"]
+    lines = [sh["x0"] for sh in lay["shapes"] if sh.get("name") == "recapture" and sh["type"] == "line"]
+    np.testing.assert_allclose(bands, [(t_sim[19], t_sim[20]), (t_sim[39], t_sim[40]), (t_sim[59], t_sim[59])])
+    np.testing.assert_allclose(lines, t_sim[[19, 39, 59]])
+    # the slider: one frame per step (the re-capture's cloud and the periodic one share it), unique labels
+    labels = [st["label"] for st in cloud_fig["layout"]["sliders"][0]["steps"]]
+    assert len(data.clouds) == 6 and labels == ["20", "40", "60"]
+    # the cursors sit at the physics time of each frame's step, on every plot
+    for fr, row in zip(series_fig["frames"], (19, 39, 59)):
+        cur = _cursor_x(fr["layout"])
+        assert sorted(cur) == axes
+        np.testing.assert_allclose(list(cur.values()), t_sim[row], rtol=0, atol=1e-12)
+    # the offset heat is coloured between its own percentiles, per frame
+    names = [tr.get("name") for tr in cloud_fig["data"]]
+    last_at = {c.step: c for c in data.clouds}
+    for fr, step in zip(cloud_fig["frames"], (20, 40, 60)):
+        d = fr["data"][fr["traces"].index(names.index("heat u"))]
+        vals = last_at[step].fields["heat"].astype(np.float32).astype(np.float64)
+        lo, hi = _robust(vals)
+        assert d["marker"]["cmin"] == pytest.approx(lo, rel=1e-9) and d["marker"]["cmax"] == pytest.approx(hi, rel=1e-9)
+        assert 1.8e4 < lo < hi < 2.4e4
+
+
+def test_a_long_trajectory_is_drawn_through_a_subset_and_says_so(tmp_path, monkeypatch):
+    from tergodic_cli.runlog import report
+
+    inp = _make_run(tmp_path / "run", steps=120, n_points=200)
+    monkeypatch.setattr(report, "MAX_TRAJ_ROWS", 25)
+    data = read_run_log(tmp_path / "run")
+    report.write_html_report(data, tmp_path / "r.html")
+    html = (tmp_path / "r.html").read_text(encoding="utf-8")
+    assert "The trajectory has 120 steps; the page draws every 5th of them." in html
+    cloud_fig = _plotly_calls(html)["tergodic-cloud"]
+    traj = [t.get("name") for t in cloud_fig["data"]].index("agent 0 trajectory")
+    for fr, c in zip(cloud_fig["frames"], data.clouds):  # steps 50, 100, 120
+        d = fr["data"][fr["traces"].index(traj)]
+        rows = sorted(set(range(0, c.step, 5)) | {c.step - 1})  # every 5th row, and the cloud's step
+        np.testing.assert_allclose(_decode(d["x"]), inp["P"][rows, 0, 0], rtol=0, atol=1e-12)
+
+
+def test_closed_loop_pngs_share_the_clock_and_break_at_re_captures(loop_run, monkeypatch, tmp_path):
+    """ε, touched and force PNGs: x is the robot's simulated time, and each line breaks after a cycle's last step."""
+    from tergodic_cli.runlog import plots
+
+    inp, _, data = loop_run
+    kept = {}
+    monkeypatch.setattr(plots, "_save", lambda fig, path: kept.setdefault(Path(path).name, fig) and Path(path))
+    plots.plot_run(data, tmp_path)
+    t_sim = np.array([s["t_sim"] for s in inp["robot"]])
+    try:
+        for name in ("ergodicity.png", "touched.png", "force.png"):
+            line = [ln for ax in kept[name].axes for ln in ax.lines][0]
+            x, y = np.asarray(line.get_xdata(), float), np.asarray(line.get_ydata(), float)
+            np.testing.assert_array_equal(np.flatnonzero(np.isnan(y)), [20, 41])
+            np.testing.assert_allclose(x[np.isfinite(x)], t_sim, rtol=0, atol=1e-12)
+    finally:
+        import matplotlib.pyplot as plt
+
+        for fig in kept.values():
+            plt.close(fig)

@@ -57,13 +57,14 @@ def plot_run(data: RunLogData, out_dir: str | os.PathLike) -> list[Path]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     s = data.series
-    t, tlabel = data.series["t"], "simulated time t (s)"
+    t, gaps = timeline(data)  # the force plot's clock too; lines break at re-capture pauses
+    tlabel = "simulated time (s)"
     note = " (truncated log)" if data.truncated else ""
 
-    written = [_plot_ergodicity(plt, t, tlabel, s, note, out / "ergodicity.png")]
+    written = [_plot_ergodicity(plt, t, tlabel, s, note, out / "ergodicity.png", gaps)]
 
     def touched(ax) -> None:
-        ax.plot(t, 100 * s["touched_fraction"], color="C2", clip_on=False)
+        ax.plot(*broken_at(t, 100 * s["touched_fraction"], gaps), color="C2", clip_on=False)
         ax.set_ylim(0, 103)  # a curve at 100 % stays above the frame's top edge
 
     written.append(_single(plt, out / "touched.png", f"Target touched over time{note}", tlabel,
@@ -91,19 +92,20 @@ def log_scale(eps: np.ndarray) -> bool:
     return bool(fin.size and np.all(fin > 0) and fin.max() > 10 * fin.min())
 
 
-def _plot_ergodicity(plt, t, tlabel: str, s: dict, note: str, path: Path) -> Path:
-    """ε (eq. 48) and the authors' residual, each on its own axis: they are different quantities."""
+def _plot_ergodicity(plt, t, tlabel: str, s: dict, note: str, path: Path, gaps: list[int] = ()) -> Path:
+    """ε (eq. 48) and the authors' residual, each on its own axis: they are different quantities; no line
+    after the rows in ``gaps`` (re-capture pauses)."""
     ref = next((k for k in RESIDUAL_KEYS if k in s), None)
     fig, axes = plt.subplots(2 if ref else 1, 1, figsize=(7, 5.6 if ref else 3.6), sharex=True, squeeze=False)
     ax = axes[0, 0]
     eps = np.asarray(s["ergodicity"], dtype=np.float64)
-    ax.plot(t, eps, color="C0")
+    ax.plot(*broken_at(t, eps, list(gaps)), color="C0")
     if log_scale(eps):
         ax.set_yscale("log")
     ax.set(ylabel="ε (eq. 48)", title=f"Ergodicity ε over time{note}")
     if ref:
         ax2 = axes[1, 0]
-        ax2.plot(t, s[ref], color="C1")
+        ax2.plot(*broken_at(t, s[ref], list(gaps)), color="C1")
         ax2.set_ylim(0, max(1.0, float(np.nanmax(s[ref])) if len(s[ref]) else 1.0) * 1.02)
         ax2.set_ylabel(f"{ref} (unitless)")
         ax2.set_title("Residual of the authors' code: share of the target's heat not yet touched", fontsize=10)
@@ -114,18 +116,57 @@ def _plot_ergodicity(plt, t, tlabel: str, s: dict, note: str, path: Path) -> Pat
     return _save(fig, path)
 
 
+def timeline(data: RunLogData) -> tuple[np.ndarray, list[int]]:
+    """One simulated-time axis for every plot, and the rows after which the run paused for a re-capture.
+
+    Parameters
+    ----------
+    data : RunLogData
+        The run log.
+
+    Returns
+    -------
+    x : (T,) array, s
+        Per logged step: the robot's simulated time ``t_sim`` when every step has a robot sample (the
+        physics clock, which also runs through approaches, retreats and re-capture moves), else the
+        explorer's ``t``.
+    gaps : list of int
+        Rows (increasing) of the cycle's last step before each re-capture: its sample carries
+        ``marking_remaining`` (the closed loop, docs/closed_loop.md). Lines break after them. Empty
+        unless there is one robot sample per step.
+    """
+    t = np.asarray(data.series["t"], dtype=np.float64)
+    robot = data.robot or []
+    if len(robot) != len(t):  # samples not one per step: their rows are not the steps' rows
+        return t, []
+    if all(isinstance(r.get("t_sim"), (int, float)) for r in robot):
+        t = np.array([float(r["t_sim"]) for r in robot])
+    return t, [i for i, r in enumerate(robot) if r.get("marking_remaining") is not None]
+
+
+def broken_at(x: np.ndarray, y: np.ndarray, gaps: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """``x``, ``y`` (n,) with a NaN point after each row in ``gaps`` (plotly and matplotlib draw no line
+    across it): (n + number of gaps before the last row,) each."""
+    gaps = [g for g in gaps if g < len(x) - 1]
+    if not gaps:
+        return x, y
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    return np.insert(x, np.array(gaps) + 1, np.nan), np.insert(y, np.array(gaps) + 1, np.nan)
+
+
 def _plot_force(plt, data: RunLogData, rs: dict, out: Path, note: str) -> list[Path]:
     """Measured normal force against the desired one (wrench_desired's z, the tool axis), per explorer step."""
     if "force_normal" not in rs and "wrench_measured" not in rs:
         return []
     t = rs["t_sim"] if "t_sim" in rs else data.series["t"][:len(data.robot)]
     measured = rs["force_normal"] if "force_normal" in rs else np.linalg.norm(rs["wrench_measured"][:, :3], axis=1)
+    gaps = timeline(data)[1]  # closed loop: no line across a re-capture pause
 
     def draw(ax) -> None:
-        ax.plot(t, measured, label="measured normal force", color="C3", lw=1)
+        ax.plot(*broken_at(t, measured, gaps), label="measured normal force", color="C3", lw=1)
         if "wrench_desired" in rs and rs["wrench_desired"].ndim == 2:
-            ax.plot(t, rs["wrench_desired"][:, 2], label="desired normal force", color="k", ls="--",
-                    lw=1)
+            ax.plot(*broken_at(t, rs["wrench_desired"][:, 2], gaps), label="desired normal force", color="k",
+                    ls="--", lw=1)
         off = ~rs["in_contact"].astype(bool) if "in_contact" in rs else np.zeros(0, bool)
         if off.any():
             ax.fill_between(t, 0, 1, where=off, transform=ax.get_xaxis_transform(), color="0.85", lw=0,
@@ -160,16 +201,43 @@ def _plot_cleaning(plt, data: RunLogData, out: Path, note: str) -> list[Path]:
                     "explorer step", "marking left (% of the initial)", draw)]
 
 
-def _color_range(vals: np.ndarray) -> tuple[float, float]:
-    """Colour limits: the minimum, and the 98th percentile of the values above it, so that a few
-    heavily covered points do not wash out the rest."""
-    finite = vals[np.isfinite(vals)]
+#: Colour limits of the fields that are not already on a fixed 0-1 scale: these percentiles of the
+#: frame's own values (the upper one among the values above the lower), so that a few extreme points
+#: (or an offset: heat spans 1.8e4-2.4e4) do not wash out the rest.
+ROBUST_PERCENTILES = (2.0, 98.0)
+
+
+def colour_range(field: str, vals: np.ndarray) -> tuple[float, float]:
+    """Colour limits of one field's values on one frame.
+
+    Parameters
+    ----------
+    field : str
+        The field's name; ``target`` (p in 0-1) keeps the fixed range 0-1.
+    vals : (n,) array
+        The values shown.
+
+    Returns
+    -------
+    (float, float)
+        ``(cmin, cmax)``: the lower :data:`ROBUST_PERCENTILES` of the finite values, and the upper one
+        of the values above that (a sparse field, coverage after a few steps, is mostly at its floor:
+        the covered points keep their shades instead of all saturating); widened to a non-empty
+        interval when they are equal (a constant field).
+    """
+    if field == "target":
+        return 0.0, 1.0
+    finite = np.asarray(vals, dtype=np.float64)
+    finite = finite[np.isfinite(finite)]
     if finite.size == 0:
         return 0.0, 1.0
-    vmin = float(finite.min())
-    above = finite[finite > vmin]
-    vmax = float(np.percentile(above, 98)) if above.size else vmin + 1.0
-    return vmin, (vmax if vmax > vmin else vmin + 1.0)
+    lo = float(np.percentile(finite, ROBUST_PERCENTILES[0]))
+    above = finite[finite > lo]
+    hi = float(np.percentile(above, ROBUST_PERCENTILES[1])) if above.size else lo
+    if hi <= lo:
+        pad = max(abs(lo) * 1e-6, 1e-12)
+        lo, hi = lo - pad, hi + pad
+    return lo, hi
 
 
 def _plot_cloud(plt, cloud, field: str, cmap: str, label: str, traj, path: Path, note: str, line: str) -> Path:
@@ -179,7 +247,7 @@ def _plot_cloud(plt, cloud, field: str, cmap: str, label: str, traj, path: Path,
 
     pts = cloud.points
     vals = cloud.fields[field]
-    vmin, vmax = _color_range(vals)
+    vmin, vmax = colour_range(field, vals)
     span = pts.max(0) - pts.min(0)
     big = float(span.max()) or 1.0
     sx, sy, sz = np.maximum(span, 0.35 * big)  # no strip thinner than about a third of the largest extent
@@ -210,7 +278,9 @@ def _plot_cloud(plt, cloud, field: str, cmap: str, label: str, traj, path: Path,
         ax.set(xlabel="xyz"[h] + " (mm)", ylabel="xyz"[v] + " (mm)")
         ax.grid(True, alpha=0.2)
     cax = fig.add_subplot(gs[:, 2])
-    fig.colorbar(sc, cax=cax, label=label, extend="max" if vmax < np.nanmax(vals) else "neither")
+    below, above = vmin > np.nanmin(vals), vmax < np.nanmax(vals)  # arrows where colours saturate
+    extend = {(True, True): "both", (True, False): "min", (False, True): "max"}.get((below, above), "neither")
+    fig.colorbar(sc, cax=cax, label=label, extend=extend)
     fig.text(0.54, 0.3, f"step {cloud.step}\n\nagent trajectory: {line} line\ndot: last position", fontsize=10,
              va="center")
     fig.suptitle(f"{label} at step {cloud.step}{note}")

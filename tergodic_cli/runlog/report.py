@@ -24,13 +24,16 @@ import numpy as np
 
 from tergodic_cli.atomic import atomic_path, check_output_file
 from tergodic_cli.errors import TergodicError
-from tergodic_cli.runlog.plots import RESIDUAL_KEYS, _color_range, log_scale
+from tergodic_cli.runlog.plots import RESIDUAL_KEYS, broken_at, colour_range, log_scale, timeline
 from tergodic_cli.runlog.reader import RunLogData
 
 #: More points than this are subsampled on the page (evenly, deterministic); the page says so.
 MAX_POINTS = 40_000
 #: Budget of per-point values over all slider frames (float32: 4 bytes each, before base64).
 MAX_FRAME_VALUES = 6_000_000
+#: Longer trajectories are drawn through an even subset of their steps (each frame carries its path so
+#: far, so the page grows with frames x steps); the page says so.
+MAX_TRAJ_ROWS = 4_000
 
 #: field -> (colour scale, colour bar title with units, button label)
 _FIELDS = {
@@ -78,7 +81,7 @@ def write_html_report(data: RunLogData, path: str | os.PathLike) -> Path:
     check_output_file(path, True, "--html")  # the verb asked for --overwrite already
     notes: list[str] = []
     cloud_fig, embedded = _cloud_figure(data, notes)
-    series_fig, series_rows = _series_figure(data)
+    series_fig, series_rows = _series_figure(data, embedded.get("frames", []))
     embedded.update(series_rows)
     config = {"displaylogo": False, "responsive": True,
               "toImageButtonOptions": {"format": "png", "filename": "tergodic_report"}}
@@ -157,14 +160,17 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
         # which clouds get a slider frame: all of them, unless that exceeds the size budget
         per_frame = max(1, len(fields) * len(last.points[idx]))
         keep = max(2, MAX_FRAME_VALUES // per_frame)
-        shown = list(range(len(clouds)))
-        if len(clouds) > keep:
-            shown = sorted(set(np.linspace(0, len(clouds) - 1, keep).round().astype(int).tolist()))
+        # two clouds at one step (a re-capture's and the periodic one): the slider shows the later
+        last_at = {c.step: i for i, c in enumerate(clouds)}
+        shown = sorted(last_at.values())
+        if len(shown) > keep:
+            pick = np.linspace(0, len(shown) - 1, keep).round().astype(int)
+            shown = sorted({shown[i] for i in pick.tolist()})
             notes.append(f"{len(clouds)} clouds were logged; the slider shows {len(shown)} of them, evenly spaced.")
         pts = _f32(last.points[idx])
         for j, f in enumerate(fields):
             cmap, cbar, label = _FIELDS.get(f, ("Viridis", f, f))
-            vmin, vmax = _color_range(np.concatenate([clouds[i].fields[f][idx] for i in shown if f in clouds[i].fields]))
+            vmin, vmax = colour_range(f, last.fields[f][idx])  # each frame carries its own limits
             fig.add_trace(go.Scatter3d(
                 x=pts[:, 0], y=pts[:, 1], z=pts[:, 2], mode="markers", name=label,
                 visible=(j == min(1, len(fields) - 1)),  # coverage first: what the run did
@@ -180,13 +186,25 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
                                   else {"points": _nested(_f32(clouds[i].points[idx]))}),
                                **{f: _nested(_f32(clouds[i].fields[f][idx])) for f in fields if f in clouds[i].fields}}
                               for i in shown]
+    traj_traces: list[int] = []
     if pos is not None:
+        upto = len(pos) if not clouds else _row_of(steps, clouds[shown[-1]].step) + 1  # the slider's start
+        stride = -(-len(pos) // MAX_TRAJ_ROWS)
+        if stride > 1:
+            notes.append(f"The trajectory has {len(pos)} steps; the page draws every {stride}th of them.")
+
+        def path(k: int, upto: int) -> dict:
+            """Agent k's path through steps 0..upto-1 (every ``stride``th, and the last)."""
+            rows = np.unique(np.r_[np.arange(0, upto, stride), upto - 1])
+            return dict(x=pos[rows, k, 0], y=pos[rows, k, 1], z=pos[rows, k, 2])
+
         for k in range(pos.shape[1]):
-            fig.add_trace(go.Scatter3d(x=pos[:, k, 0], y=pos[:, k, 1], z=pos[:, k, 2], mode="lines",
+            traj_traces.append(len(fig.data))
+            fig.add_trace(go.Scatter3d(**path(k, upto), mode="lines",
                                        name=f"agent {k} trajectory", hoverinfo="skip",
                                        line=dict(color=_AGENT_COLOURS[k % len(_AGENT_COLOURS)],
                                                  width=3)))
-        at = pos[-1] if not clouds else pos[_row_of(steps, clouds[-1].step)]
+        at = pos[upto - 1]
         fig.add_trace(go.Scatter3d(x=at[:, 0], y=at[:, 1], z=at[:, 2], mode="markers", name="agents at the cloud's step",
                                    marker=dict(size=8, color="white", line=dict(color="black", width=3), symbol="diamond")))
         embedded["positions"] = _nested(pos)
@@ -198,16 +216,32 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
                    if moved or any(f in clouds[i].fields and not np.array_equal(clouds[i].fields[f], last.fields[f])
                                    for i in shown)]
         frames, slider_steps = [], []
+        # every frame: the fields that change (colours, and points when a re-capture moved them), the
+        # colour limits of every field but the fixed 0-1 target, the trajectory up to the cloud's step
+        # and the agents there
+        framed = [j for j, f in enumerate(fields) if j in varying or f != "target"]
+        p = None
         for i in shown:
             c = clouds[i]
-            fdata = [go.Scatter3d(marker=dict(color=_f32(c.fields[fields[j]][idx]))) for j in varying]
+            fdata, traces = [], []
             if moved:
                 p = _f32(c.points[idx])
-                for d in fdata:
+            for j in framed:
+                f = fields[j]
+                vals = c.fields[f][idx] if f in c.fields else last.fields[f][idx]
+                lo, hi = colour_range(f, vals)
+                marker = dict(cmin=lo, cmax=hi, **({"color": _f32(vals)} if j in varying else {}))
+                d = go.Scatter3d(marker=marker)
+                if moved:
                     d.update(x=p[:, 0], y=p[:, 1], z=p[:, 2])
-            traces = list(varying)
+                fdata.append(d)
+                traces.append(j)
             if pos is not None:
-                a = pos[_row_of(steps, c.step)]
+                row = _row_of(steps, c.step)
+                for k, tr in enumerate(traj_traces):
+                    fdata.append(go.Scatter3d(**path(k, row + 1)))
+                    traces.append(tr)
+                a = pos[row]
                 fdata.append(go.Scatter3d(x=a[:, 0], y=a[:, 1], z=a[:, 2]))
                 traces.append(agent_trace)
             frames.append(go.Frame(name=str(i), data=fdata, traces=traces))
@@ -246,35 +280,45 @@ def _cloud_figure(data: RunLogData, notes: list[str]) -> tuple[Any, dict]:
                    camera=dict(eye=dict(x=1.3, y=-1.3, z=1.0)), domain=dict(x=[0, 0.9], y=[0.1, 0.93])),
         legend=dict(x=0.01, y=0.1, yanchor="bottom", bgcolor="rgba(255,255,255,0.7)"),
     )
+    embedded["frames"] = [{"name": str(i), "step": int(clouds[i].step)} for i in shown]
     return fig, embedded
 
 
-def _series_figure(data: RunLogData) -> tuple[Any, dict]:
+def _series_figure(data: RunLogData, frames: list[dict]) -> tuple[Any, dict]:
+    """The time plots on one simulated-time axis, a cursor on each, the re-captures marked.
+
+    ``frames`` (the cloud figure's slider frames: name, step) become this figure's frames of the
+    same names, each moving the cursors to its step's time; the page's script plays them with the
+    cloud's slider.
+    """
     import plotly.graph_objects as go
     from plotly.subplots import make_subplots
 
     s, t = data.series, data.series["t"]
-    embedded: dict[str, Any] = {"step": s["step"].tolist(), "t": t.tolist()}
+    x, gaps = timeline(data)
+    embedded: dict[str, Any] = {"step": s["step"].tolist(), "t": t.tolist(), "time": x.tolist(),
+                                "recapture_rows": gaps}
 
-    def line(into: dict, key: str, x, y, name: str, colour: str, dash: str | None = None,
+    def line(into: dict, key: str, xs, y, name: str, colour: str, dash: str | None = None,
              **kw) -> Any:
-        into[key] = _nested(y)  # the numbers drawn, also in the page's JSON block
-        return go.Scatter(x=x, y=y, name=name, line=dict(color=colour, dash=dash), **kw)
+        into[key] = _nested(y)  # the numbers drawn (unbroken), also in the page's JSON block
+        xs, y = broken_at(xs, y, gaps) if len(xs) == len(x) else (xs, y)
+        return go.Scatter(x=xs, y=y, name=name, line=dict(color=colour, dash=dash), **kw)
 
     eps = np.asarray(s["ergodicity"], dtype=np.float64)
     solo = dict(showlegend=False)
     # (title, y title, traces, y axis options)
     rows = [("Ergodicity ε over time", "ε (dimensionless)",
-             [line(embedded, "ergodicity", t, eps, "ε of the sponge's contacts (eq. 48)" if "ergodicity_agent" in s
+             [line(embedded, "ergodicity", x, eps, "ε of the sponge's contacts (eq. 48)" if "ergodicity_agent" in s
                    else "ε (eq. 48)", "#1f77b4", **solo)],
              dict(type="log") if log_scale(eps) else dict(rangemode="tozero"))]
     if ref := next((k for k in RESIDUAL_KEYS if k in s), None):
         rows.append(("Authors' residual: share of the target's heat not yet touched", f"{ref} (unitless)",
-                     [line(embedded, ref, t, s[ref], ref, "#ff7f0e", **solo)],
+                     [line(embedded, ref, x, s[ref], ref, "#ff7f0e", **solo)],
                      dict(rangemode="tozero")))
     if "touched_fraction" in s:
         rows.append(("Target touched over time", "touched (% of target)",
-                     [line(embedded, "touched_fraction", t, s["touched_fraction"], "touched",
+                     [line(embedded, "touched_fraction", x, s["touched_fraction"], "touched",
                            "#2ca02c", **solo)],
                      dict(range=[0, 1.02], tickformat=".0%")))
     n_explorer = len(rows)
@@ -295,18 +339,58 @@ def _series_figure(data: RunLogData) -> tuple[Any, dict]:
             rows.append(("Tool tilt from the surface normal", "tilt (°)",
                          [line(robot, "tilt_deg", rt, rs["tilt_deg"], "tilt", "#9467bd", **solo)],
                          dict(rangemode="tozero")))
+        if gaps:  # the closed loop: the ink left at each re-capture, capture 0 being all of it
+            ink = []
+            for key, name, colour in (("marking_remaining", "marking seen by the camera", "#8c564b"),
+                                      ("marking_remaining_true", "ink left in the texture", "#e377c2")):
+                rows_k = [i for i in gaps if data.robot[i].get(key) is not None]
+                if rows_k:
+                    tk = np.r_[0.0, rt[rows_k]]
+                    vk = np.r_[1.0, [float(data.robot[i][key]) for i in rows_k]]
+                    robot[key] = {"t_sim": _nested(tk), "share": _nested(vk)}
+                    ink.append(go.Scatter(x=tk, y=vk, name=name, mode="lines+markers",
+                                          line=dict(color=colour, shape="hv")))
+            if ink:
+                rows.append(("Marking left (capture 0 = 100 %, then each re-capture)", "left (% of capture 0)",
+                             ink, dict(range=[0, 1.05], tickformat=".0%")))
+    one_axis = not data.robot or len(data.robot) == len(x)  # every step has its physics time
 
     fig = make_subplots(rows=len(rows), cols=1, subplot_titles=[r[0] for r in rows], vertical_spacing=0.42 / len(rows))
     for r, (_, ytitle, traces, yopts) in enumerate(rows, start=1):
         for tr in traces:
             fig.add_trace(tr, row=r, col=1)
         fig.update_yaxes(title_text=ytitle, row=r, col=1, gridcolor="#e5e5e5", **yopts)
-        # the explorer's rows share one time axis, the robot's rows another (the physics clock)
-        fig.update_xaxes(matches="x" if r <= n_explorer else f"x{n_explorer + 1}", row=r, col=1,
+        # one time axis; a robot log with fewer samples than steps keeps the physics clock apart
+        fig.update_xaxes(matches="x" if one_axis or r <= n_explorer else f"x{n_explorer + 1}", row=r, col=1,
                          showticklabels=True, gridcolor="#e5e5e5")
-    fig.update_xaxes(title_text="simulated time t (s)", row=n_explorer, col=1)
-    if len(rows) > n_explorer:
+    fig.update_xaxes(title_text="simulated time (s)", row=len(rows), col=1)
+    if not one_axis:
+        fig.update_xaxes(title_text="simulated time t (s)", row=n_explorer, col=1)
         fig.update_xaxes(title_text="robot simulated time (s)", row=len(rows), col=1)
+
+    # re-captures: a grey band over each pause (retreat, picture, hover, approach) and a line at its start
+    marks = []
+    for g in gaps:
+        end = x[g + 1] if g + 1 < len(x) else x[g]
+        marks.append(dict(type="rect", name="recapture", xref="x", yref="paper", x0=x[g], x1=end, y0=0, y1=1,
+                          fillcolor="#bbbbbb", opacity=0.25, line=dict(width=0), layer="below"))
+        marks.append(dict(type="line", name="recapture", xref="x", yref="paper", x0=x[g], x1=x[g], y0=0, y1=1,
+                          line=dict(color="#8c564b", width=1, dash="dash"), layer="below"))
+    if gaps:
+        fig.add_annotation(text="grey bands: re-capture pauses", xref="paper", yref="paper", x=1, y=1.0,
+                           xanchor="right", yanchor="bottom", showarrow=False, font=dict(size=11, color="#555"))
+
+    def cursors(at: float) -> list[dict]:
+        return [dict(type="line", name="cursor", xref=f"x{r if r > 1 else ''}", yref=f"y{r if r > 1 else ''} domain",
+                     x0=at, x1=at, y0=0, y1=1, line=dict(color="#333", width=1.5, dash="dot"))
+                for r in range(1, len(rows) + 1)]
+
+    steps = np.asarray(s["step"])
+    frame_time = [float(x[_row_of(steps, f["step"])]) for f in frames]
+    fig.update_layout(shapes=marks + cursors(frame_time[-1] if frames else float(x[-1])))
+    fig.frames = [go.Frame(name=f["name"], layout=dict(shapes=marks + cursors(at)))
+                  for f, at in zip(frames, frame_time)]
+    embedded["frame_time"] = frame_time
     fig.update_annotations(font_size=13)
     fig.update_layout(height=max(820, 250 * len(rows)), margin=dict(l=70, r=20, t=40, b=50),
                       paper_bgcolor="white", plot_bgcolor="white", hovermode="x unified",
@@ -366,6 +450,20 @@ _PAGE = """<!DOCTYPE html>
 {figures}
 </main>
 <script type="application/json" id="tergodic-data">{data}</script>
+<script type="text/javascript">
+  // The cloud's slider (and its play button) drives the time plots: each cloud frame has a time-plot
+  // frame of the same name that moves the cursors to that step's time.
+  window.addEventListener("load", function () {{
+    var cloud = document.getElementById("tergodic-cloud"), series = document.getElementById("tergodic-series");
+    if (!cloud || !series || !cloud.on) return;
+    cloud.on("plotly_animatingframe", function (ev) {{
+      if (ev && ev.name != null) {{
+        Plotly.animate(series, [ev.name], {{mode: "immediate", frame: {{duration: 0, redraw: true}},
+                                           transition: {{duration: 0}}}});
+      }}
+    }});
+  }});
+</script>
 </body>
 </html>
 """
