@@ -256,7 +256,8 @@ def replay_contacts(mcap: str, vertices: np.ndarray, triangles: np.ndarray) -> d
     """
     from tergodic_cli.runlog.reader import read_run_log
 
-    return replay_states([s for s in read_run_log(mcap, clouds=False).robot if s.get("q") is not None], vertices, triangles)
+    robot = read_run_log(mcap, clouds=False).robot or []  # a run stopped before its first sample has none
+    return replay_states([s for s in robot if s.get("q") is not None], vertices, triangles)
 
 
 def replay_states(rows: list[dict], vertices: np.ndarray, triangles: np.ndarray) -> dict:

@@ -257,3 +257,39 @@ def test_a_table_under_the_arm_is_an_obstacle_but_the_base_standing_on_it_is_not
             w.close()
     finally:
         sc.close()
+
+
+def test_a_move_keeps_the_tool_inside_a_box_it_is_given():
+    """``inside(q)`` (the guard's workspace box) holds along the whole path, re-checked 4x finer than the
+    planner's step; a goal outside it is refused with one reason. The swing's straight line passes the
+    front of the arm, which the box here leaves out."""
+    from tergodic_cli.backends.pybullet.plan import CHECK_STEP
+
+    sc = PyBulletScene()
+    w = CollisionWorld()
+    try:
+        def ball(q):
+            sc.set_arm(q)
+            T = sc.link_pose(sc.sponge_link)
+            return T[:3, 3] + T[:3, 2] * SpongeSpec().offset
+
+        front = ball(Q_MID)[0]
+        limit = front - 0.05  # the straight swing's middle is 5 cm beyond it
+
+        def inside(q):
+            return bool(ball(q)[0] <= limit)
+
+        assert inside(Q_A) and inside(Q_B) and not inside(Q_MID)
+        plan, err = plan_path(w, Q_A, Q_B, Q_MIN + 0.02, Q_MAX - 0.02, inside=inside)
+        if plan is not None:
+            assert plan.planner == "RRTConnect"
+            for a, b in zip(plan.path[:-1], plan.path[1:]):
+                k = max(1, int(np.ceil(np.max(np.abs(b - a)) / (CHECK_STEP / 4))))
+                assert max(ball(a + s * (b - a))[0] for s in np.linspace(0, 1, k + 1)) <= limit + 1e-3
+        else:
+            assert err in ("no collision-free path found in 1.5 s", "the planned path takes the tool outside the workspace box")
+        plan, err = plan_path(w, Q_A, Q_MID, Q_MIN + 0.02, Q_MAX - 0.02, inside=inside)
+        assert plan is None and err == "the goal posture has the tool outside the workspace box"
+    finally:
+        w.close()
+        sc.close()

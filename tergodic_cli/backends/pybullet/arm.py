@@ -43,6 +43,9 @@ APPROACH_D = 100.0
 #: Metres the hand, its fingers and the sponge keep from the object, table and stand, with the tool on the
 #: normal, for a point to count as reachable (the tilt's 95th percentile, ~3 deg, moves the hand ~7 mm).
 HAND_CLEAR = 0.01
+#: Metres a planned set-up move keeps its TCP inside the guard's workspace box (the joint impedance
+#: tracks its reference to ~1 mm in free space).
+WORKSPACE_MARGIN = 0.01
 
 
 def arm_gains(gains, spec):
@@ -308,7 +311,14 @@ class SimArm:
         self.world.sync()
         q0 = self.dev.read_state().q.copy()
         g = self.guard
-        out = plan_path(self.world, q0, q_goal, g.q_lo, g.q_hi)
+        lo = np.asarray(g.cfg.workspace_min, float) + WORKSPACE_MARGIN
+        hi = np.asarray(g.cfg.workspace_max, float) - WORKSPACE_MARGIN
+
+        def inside(q):  # the guard faults a tool that leaves its box: a set-up move keeps inside it
+            x = self.model.fk(q)[:3, 3]
+            return bool(np.all(x >= lo) and np.all(x <= hi))
+
+        out = plan_path(self.world, q0, q_goal, g.q_lo, g.q_hi, inside=inside)
         self.plan_seconds += time.perf_counter() - t0
         return out
 

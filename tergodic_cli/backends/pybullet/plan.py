@@ -373,14 +373,16 @@ class CollisionWorld:
 
 
 def plan_path(world: CollisionWorld, q0: np.ndarray, q1: np.ndarray, q_lo: np.ndarray, q_hi: np.ndarray,
-              seed: int = 0, time_s: float = PLAN_TIME_S) -> tuple[Plan | None, str | None]:
+              seed: int = 0, time_s: float = PLAN_TIME_S, inside=None) -> tuple[Plan | None, str | None]:
     """A checked joint-space path from ``q0`` to ``q1`` (n,) inside the joint box [q_lo, q_hi] (n,).
 
     The straight line when it keeps the margins (certified, :meth:`CollisionWorld.segment_slack`); else
     OMPL's RRTConnect with the margins + :data:`PLAN_SLACK` as its validity check (every
     :data:`CHECK_STEP` rad), simplified, then certified like the line. When an end itself is closer
     than the margins (but at least :data:`END_FLOOR` clear), the whole move is held to that end's
-    clearance instead. Returns (plan, None) or (None, the reason in a few words).
+    clearance instead. ``inside(q) -> bool``, when given, must hold at every posture of the path too
+    (checked every :data:`CHECK_STEP` rad: the TCP in the guard's workspace box, which a move that
+    leaves it would fault on). Returns (plan, None) or (None, the reason in a few words).
     """
     import time
 
@@ -392,19 +394,35 @@ def plan_path(world: CollisionWorld, q0: np.ndarray, q1: np.ndarray, q_lo: np.nd
         which, q = ("goal", q1) if s1 <= s0 else ("start", q0)
         d, link = world.clearance(q)
         return None, f"the {which} posture has its {link} {1e3 * d:.0f} mm from an obstacle"
+    if inside is not None and not (inside(q0) and inside(q1)):
+        return None, f"the {'start' if not inside(q0) else 'goal'} posture has the tool outside the workspace box"
     line = world.segment_slack(q0, q1, need)
-    if line >= need:
+    if line >= need and _stays_inside(inside, np.array([q0, q1])):
         return Plan(np.array([q0, q1]), line, "straight", time.perf_counter() - t0), None
     if not (np.all(q0 >= q_lo) and np.all(q0 <= q_hi) and np.all(q1 >= q_lo) and np.all(q1 <= q_hi)):
         return None, "an end of the move is outside the joint limits"
     path = _rrt_connect(world, q0, q1, np.asarray(q_lo, float), np.asarray(q_hi, float),
-                        lambda q: world.slack(q, PLAN_SLACK) >= need + PLAN_SLACK, seed, time_s)
+                        lambda q: world.slack(q, PLAN_SLACK) >= need + PLAN_SLACK and (inside is None or inside(q)),
+                        seed, time_s)
     if path is None:
         return None, f"no collision-free path found in {time_s:g} s"
     s = world.path_slack(path, need)
     if s < need:
         return None, f"the planned path comes within {1e3 * max(0.0, s + SPONGE_MARGIN):.0f} mm of an obstacle"
+    if not _stays_inside(inside, path):
+        return None, "the planned path takes the tool outside the workspace box"
     return Plan(path, s, "RRTConnect", time.perf_counter() - t0), None
+
+
+def _stays_inside(inside, path: np.ndarray) -> bool:
+    """Whether ``inside(q)`` holds every :data:`CHECK_STEP` rad along the straight segments of ``path`` (m, n)."""
+    if inside is None:
+        return True
+    for a, b in zip(path[:-1], path[1:]):
+        k = max(1, int(np.ceil(np.max(np.abs(b - a)) / CHECK_STEP)))
+        if not all(inside(a + s * (b - a)) for s in np.linspace(0.0, 1.0, k + 1)):
+            return False
+    return True
 
 
 def _rrt_connect(world, q0, q1, lo, hi, valid, seed: int, time_s: float):
