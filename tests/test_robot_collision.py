@@ -188,7 +188,8 @@ def test_an_arm_contact_faults_lifted_and_the_run_folder_replays(tmp_path, monke
     assert run_cli("replay", tmp_path / "run").code == 0
 
 
-def test_the_sponge_may_sink_into_a_support_only_where_the_pressed_point_lies_on_it():
+def test_the_sponge_may_sink_into_a_support_only_where_the_pressed_point_lies_on_it(monkeypatch):
+    from tergodic_cli.backends.pybullet import collision
     from tergodic_cli.robot.reach import tool_rotation
 
     sc = PyBulletScene()
@@ -214,7 +215,18 @@ def test_the_sponge_may_sink_into_a_support_only_where_the_pressed_point_lies_on
         side = pose((0.54, 0.1, 0.2 + r + 0.003), (-1.0, 0.0, 0.0))
         assert _ball_gap(sc, col.bodies["stand"], side[:3, 3] + [r, 0.0, 0.0], r) == pytest.approx(0.003, abs=3e-4)
         high = pose((0.54, 0.1, 0.2 + r + 0.03), (-1.0, 0.0, 0.0))
-        ok = col.tool_clearance(np.stack([on_top, side, high]), 0.01)
-        assert ok[0] and not ok[1] and ok[2]
+        # A face sloped 30 degrees (the tool 60 degrees from straight down) pressed 4.5 mm above the stand's
+        # top: by the support, not on it. The ball's lowest point is r - r sin 30 - 4.5 mm = 1.5 mm into the
+        # stand, within the foam's sink (3 mm), which a pressed, tilted ball exceeds (the corpus prism: 3 mm).
+        d = np.array([-np.cos(np.radians(30)), 0.0, -np.sin(np.radians(30))])
+        sloped = pose((0.52, 0.1, 0.2045), d)
+        assert col.sponge_sink > 0.0015
+        assert _ball_gap(sc, col.bodies["stand"], sloped[:3, 3] - r * d, r) == pytest.approx(0.0045 - r / 2, abs=3e-4)
+        ok = col.tool_clearance(np.stack([on_top, side, high, sloped]), 0.01)
+        assert ok[0] and not ok[1] and ok[2] and not ok[3]
+        # Counted as on the support whatever the tool's direction (the former rule), the sloped pose passed:
+        # nothing but the sponge's sink into the stand refuses it.
+        monkeypatch.setattr(collision, "SUPPORT_COS", -2.0)
+        assert col.tool_clearance(sloped[None], 0.01)[0]
     finally:
         sc.close()

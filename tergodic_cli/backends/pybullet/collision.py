@@ -36,6 +36,9 @@ DEPTH_M = 0.002
 QUERY_M = 0.01
 #: Metres: a pressed point this close to the table or the stand (beyond the sponge's sink) lies on it.
 SUPPORT_TOL = 0.002
+#: ... and the tool axis within 30 degrees of straight down (a sloped face by the stand is not on it: the
+#: corpus prism's side, 2 mm above its stand, let the ball sink 3 mm into the stand).
+SUPPORT_COS = 0.866
 #: Physics steps between checks at most (0.1 s), m/s below which a part counts as that slow, and the
 #: acceleration (m/s²) a part's point is assumed to reach at most between checks (a set-up move's
 #: min-jerk peak, at the TCP speed it is planned for, is 0.1 m²/s² / its length: 2 m/s² for 5 cm).
@@ -304,8 +307,8 @@ class ArmCollision:
         """(n,) whether the tool link's parts (the hand and its fingers, or the holder) and the sponge, with
         the TCP at each pose ``T_tcp`` (n, 4, 4) base frame, stay ``clear`` m from every body (the sponge's own
         contact with the object aside). The sponge keeps ``clear`` from the table and the stand too, except
-        where the pressed point itself lies on that support (a plate's sheet on the stand's top): there it
-        may sink into it as into the object (:attr:`sponge_sink`). A ball pressed on a face just above its
+        where the pressed point itself lies on that support with the tool pointing down (a plate's sheet on
+        the stand's top): there it may sink into it as into the object (:attr:`sponge_sink`). A ball pressed on a face just above its
         support (a prism's side by the stand) touched the stand mid-run."""
         p, cid = self.scene.p, self.scene.cid
         hand = self.scene.sponge_link
@@ -315,7 +318,9 @@ class ArmCollision:
         R = T_tcp[:, :3, :3]
         O = T_tcp[:, :3, 3] - R @ off  # the hand's origin
         ok = np.ones(len(T_tcp), dtype=bool)
-        on_support = {name: lb <= self.sponge_sink + SUPPORT_TOL
+        # pressed on a surface that lies on the support and faces up as its top does: the tool points down
+        down = T_tcp[:, 2, 2] <= -SUPPORT_COS
+        on_support = {name: (lb <= self.sponge_sink + SUPPORT_TOL) & down
                       for name, lb in self._lower_bounds(T_tcp[:, :3, 3], np.zeros(len(T_tcp))).items()}
         for i in idx:
             pt = self.parts[i]
