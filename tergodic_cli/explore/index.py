@@ -204,14 +204,7 @@ def orient_normal_lines(points: np.ndarray, lines: np.ndarray) -> np.ndarray:
     rest = np.flatnonzero(small[np.argsort(order)][label])  # the points of the small pieces (stray bits)
     if len(rest):
         if done.any():  # each small piece: one vote over its points, against the large pieces only
-            others = np.flatnonzero(done)
-            dist, idx = cKDTree(points[others]).query(points[rest], 1)
-            j = others[idx]
-            chord = points[j] - points[rest]
-            along = np.abs(np.einsum("ij,ij->i", chord, oriented[rest]))
-            agree = np.einsum("ij,ij->i", oriented[rest], oriented[j])
-            want = np.where(along <= ORIENT_CHORD * np.maximum(dist, 1e-12), 1.0, -1.0)
-            vote = np.bincount(label[rest], weights=want * np.sign(agree), minlength=count)
+            vote = np.bincount(label[rest], weights=_votes(points, oriented, rest, done)[0], minlength=count)
             oriented[rest] *= np.where(vote[label[rest]] < 0.0, -1.0, 1.0)[:, None]
         elif _piece_vote(points, oriented, rest, done, centroid):
             oriented[rest] *= -1.0
@@ -221,18 +214,25 @@ def orient_normal_lines(points: np.ndarray, lines: np.ndarray) -> np.ndarray:
 def _piece_vote(points, oriented, members, done, centroid) -> bool:
     """Whether a piece (``members``, oriented among themselves) should be flipped: by the votes of
     its points' nearest already-oriented points of other pieces, else outward from ``centroid``."""
-    from scipy.spatial import cKDTree
-
     if done.any():
-        others = np.flatnonzero(done)
-        dist, idx = cKDTree(points[others]).query(points[members], 1)
-        j = others[idx]
-        chord = points[j] - points[members]
-        along = np.abs(np.einsum("ij,ij->i", chord, oriented[members]))
-        agree = np.einsum("ij,ij->i", oriented[members], oriented[j])
+        vote, dist, agree = _votes(points, oriented, members, done)
         near = (dist <= 3.0 * np.median(dist)) & (np.abs(agree) >= K.SHEET_COS)
         if near.any():
-            want = np.where(along[near] <= ORIENT_CHORD * np.maximum(dist[near], 1e-12), 1.0, -1.0)
-            return float(np.sum(want * np.sign(agree[near]))) < 0.0
+            return float(np.sum(vote[near])) < 0.0
     out = np.einsum("ij,ij->i", points[members] - centroid, oriented[members])
     return float(out.sum()) < 0.0
+
+
+def _votes(points, oriented, members, done):
+    """Each of ``members``' vote (+1 keep, -1 flip) from its nearest point among ``done`` (n,) bool:
+    the same sign where the step to it runs along the surface, opposite where it runs along the
+    normal (across a wall or a slot). Returns (votes, distances m, n_i . n_j), each (len(members),)."""
+    from scipy.spatial import cKDTree
+
+    others = np.flatnonzero(done)
+    dist, idx = cKDTree(points[others]).query(points[members], 1)
+    j = others[idx]
+    along = np.abs(np.einsum("ij,ij->i", points[j] - points[members], oriented[members]))
+    agree = np.einsum("ij,ij->i", oriented[members], oriented[j])
+    want = np.where(along <= ORIENT_CHORD * np.maximum(dist, 1e-12), 1.0, -1.0)
+    return want * np.sign(agree), dist, agree
