@@ -491,6 +491,10 @@ def corpus_main(args) -> int:
                          objects=args.objects.split(",") if args.objects else None)
     if args.max_cases:
         cases = cases[: args.max_cases]
+    if not cases:
+        print(f"no corpus case matches --corpus {args.corpus} --objects {args.objects}: see benchmarks/corpus.py for "
+              "which meshes are in TUNE and CHECK", file=sys.stderr)
+        return 2
     rows = []
     out_root = args.runs or tempfile.mkdtemp(prefix="tergodic-corpus-runs-")
     print(f"{len(cases)} cases x {len(placements)} placements x {args.seeds} seeds, {args.steps} steps at {args.force:g} N; "

@@ -132,3 +132,28 @@ def test_cli_exits_3_on_a_workspace_fault(tmp_path):
     assert summary["final_state"] == "stopped" and "workspace" in summary["stop_reason"]
     line = [ln for ln in res.err.splitlines() if ln.startswith("robot stopped:")]
     assert len(line) == 1 and "workspace" in line[0]
+
+
+def test_the_lift_overcomes_a_steady_push_towards_the_surface(plate):
+    """A 4 N push on the tool towards the surface, from the fault on (a gravity-model or posture error):
+    the lift still ends with no contact. A retreat that only damps towards 50 mm/s pulls D_z x 0.05 m/s
+    = 2.5 N and stays pressed (the corpus soccer ball stayed touching 0 of 45 mm back after 3 s)."""
+    run = _run(plate, "nan")
+    with run:
+        rec = _watch(run)
+        sc = run.scene
+        step = sc.step
+
+        def pushed_step():
+            if rec["at_fault"] is not None:
+                ls = sc.p.getLinkState(sc.robot, sc.sponge_link, physicsClientId=sc.cid)
+                axis = np.array(sc.p.getMatrixFromQuaternion(ls[5])).reshape(3, 3)[:, 2]
+                sc.p.applyExternalForce(sc.robot, sc.sponge_link, (4.0 * axis).tolist(), list(ls[4]),
+                                        sc.p.WORLD_FRAME, physicsClientId=sc.cid)
+            step()
+
+        sc.step = pushed_step
+        out = run.run(15)
+        assert out["final_state"] == "stopped" and "non-finite" in out["stop_reason"]
+        assert rec["state"] == "explore" and rec["at_fault"] > 0.5 * run.F_d
+        assert sc.sponge_contacts() == []  # lifted despite the push

@@ -40,6 +40,11 @@ from tergodic_cli.robot.surface import (SurfaceMesh, check_reachable, check_surf
 APPROACH_K = 2000.0
 #: N s/m added to the approach's axial damping (the controller's D_z, 50) on the speed error.
 APPROACH_D = 100.0
+#: N the retreat's servo may pull the tool back with while it lags its set-point (the same servo as
+#: the approach, backwards): a pure velocity servo pulls only D_z x 0.05 m/s = 2.5 N, which a steady
+#: posture or gravity-model torque held at 0 of 45 mm for 3 s (corpus soccer ball, stand, 2 N,
+#: seed 2, step 762), and the tool stayed touching after its fault.
+RETREAT_PULL = 20.0
 #: Metres the hand, its fingers and the sponge keep from the object, table and stand, with the tool on the
 #: normal, for a point to count as reachable (the tilt's 95th percentile, ~3 deg, moves the hand ~7 mm).
 HAND_CLEAR = 0.01
@@ -190,26 +195,29 @@ class SimArm:
         st, w = self._obs.state, self._obs.wrench
         ctrl = self.ctrl
         approach = target.mode == "move" and target.speed > 0
+        mode = "approach" if approach else "retreat" if target.mode == "move" else target.mode
         if target.mode == "press":
             if self._mode == "approach":  # first contact: the PID continues from the push it replaces
                 ctrl.start_tracking(target.force, ctrl.D[2] * self._speed)
             out = ctrl.step(st, target.a, target.d, w, "track", target.force, 0.0, target.v_line)
-        elif approach:
-            # A position servo along the axis whose set-point advances at the commanded speed: while
-            # the tool is blocked the set-point runs ahead and the push grows (APPROACH_K × v) until
-            # the force registers, capped at twice the contact threshold.
+        else:
+            # A position servo along the axis whose set-point moves at the commanded speed. Approach:
+            # while the tool is blocked the set-point runs ahead and the push grows (APPROACH_K × v)
+            # until the force registers, capped at twice the contact threshold. Retreat: the pull is
+            # capped at RETREAT_PULL.
             d = target.d
             p_along = float(st.ee_pose[:3, 3] @ d)
-            if self._mode != "approach":
+            if self._mode != mode:
                 ctrl.reset()
                 self._s_set = p_along
-            self._s_set = min(self._s_set + target.speed * self.dt, p_along + 2.0 * self.threshold / APPROACH_K)
+            if approach:
+                self._s_set = min(self._s_set + target.speed * self.dt, p_along + 2.0 * self.threshold / APPROACH_K)
+            else:
+                self._s_set = max(self._s_set + target.speed * self.dt, p_along - RETREAT_PULL / APPROACH_K)
             push = APPROACH_K * (self._s_set - p_along) + APPROACH_D * (target.speed - float(d @ (st.jacobian[:3] @ st.dq)))
             self._speed = target.speed + push / ctrl.D[2]
             out = ctrl.step(st, target.a, d, w, "approach", self.F_d, self._speed)
-        else:
-            out = ctrl.step(st, target.a, target.d, w, "retreat", self.F_d, -target.speed)
-        self._mode = "approach" if approach else target.mode
+        self._mode = mode
         self.dev.command(out.tau)
         self._physics()
 
