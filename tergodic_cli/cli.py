@@ -95,10 +95,10 @@ def _on_sigterm(signum, frame) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``tergodic`` console script; returns the exit code (130 on Ctrl-C, 143 on SIGTERM)."""
     code = _main(argv)
-    if argv is None and code in (130, 143) and native.workers_running():
-        # the console script, interrupted while a native call still computes in a worker thread (its
-        # result is no longer wanted): every artefact is closed by now, and the interpreter's teardown
-        # would wait 0.3-1 s on it (tergodic_cli.native)
+    if argv is None and code in (130, 143) and native.may_exit_now():
+        # the console script, interrupted: every artefact is closed or set aside by now (the one line said
+        # where), and the interpreter's teardown with open3d, PyBullet and numba loaded takes ~1 s more
+        # (and waits on a native worker an interrupt left computing: tergodic_cli.native)
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(code)

@@ -36,13 +36,20 @@ T = TypeVar("T")
 
 #: How often the waiting main thread wakes up to let the signal handlers run, seconds.
 POLL_S = 0.05
-#: Name prefix of :func:`in_thread`'s workers (:func:`workers_running` finds them by it).
+#: Name prefix of :func:`in_thread`'s workers.
 WORKER = "tergodic-native-"
 
 
-def workers_running() -> bool:
-    """True while an :func:`in_thread` worker still computes (one an interrupt left behind)."""
-    return any(t.name.startswith(WORKER) and t.is_alive() for t in threading.enumerate())
+def may_exit_now() -> bool:
+    """Whether an interrupted console script may end with ``os._exit``, skipping the interpreter's
+    teardown: no worker process is alive (a sweep's pool shuts its workers down at exit) and no
+    thread but the main one, the daemons and :func:`in_thread`'s workers is running."""
+    import multiprocessing
+
+    if multiprocessing.active_children():
+        return False
+    main = threading.main_thread()
+    return all(t is main or t.daemon or not t.is_alive() for t in threading.enumerate())
 
 
 def in_thread(fn: Callable[..., T], *args, **kwargs) -> T:
