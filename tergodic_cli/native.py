@@ -42,11 +42,21 @@ WORKER = "tergodic-native-"
 
 def may_exit_now() -> bool:
     """Whether an interrupted console script may end with ``os._exit``, skipping the interpreter's
-    teardown: no worker process is alive (a sweep's pool shuts its workers down at exit) and no
-    thread but the main one, the daemons and :func:`in_thread`'s workers is running."""
+    teardown: no child process is alive (a sweep's pool and its resource tracker are shut down at
+    exit) and no thread but the main one, the daemons and :func:`in_thread`'s workers is running."""
     import multiprocessing
+    import sys
 
     if multiprocessing.active_children():
+        return False
+    tasks = Path("/proc/self/task")
+    if tasks.is_dir():
+        try:
+            if any((t / "children").read_text().strip() for t in tasks.iterdir()):
+                return False
+        except OSError:
+            return False
+    elif "joblib" in sys.modules or "ray" in sys.modules:  # no /proc to see their processes by
         return False
     main = threading.main_thread()
     return all(t is main or t.daemon or not t.is_alive() for t in threading.enumerate())

@@ -26,12 +26,17 @@ pytest.importorskip("plotly")
 DEADLINE_S = 60.0  # every wait below is bounded by this (a loaded 2-core machine)
 
 
-def _chromium() -> str:
+def _chromium() -> str | None:
     for name in ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable"):
         path = shutil.which(name)
         if path:
             return path
-    pytest.skip("no headless Chromium installed (apt-get install chromium; make images installs it)")
+    return None
+
+
+CHROMIUM = _chromium()
+pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no headless Chromium installed "
+                                "(apt-get install chromium; make images installs it)")
 
 
 class Browser:
@@ -46,7 +51,7 @@ class Browser:
             os.dup2(from_child_w, 4)
 
         self.proc = subprocess.Popen(
-            [_chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--remote-debugging-pipe",
+            [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--remote-debugging-pipe",
              "--no-first-run", "--no-default-browser-check", f"--user-data-dir={tmp_path / 'profile'}",
              "--window-size=1400,900", "about:blank"],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
