@@ -68,6 +68,11 @@ def in_thread(fn: Callable[..., T], *args, **kwargs) -> T:
     Only worth it for a call that releases the GIL. Off the main thread (no signal handlers run
     there anyway) the call is made directly.
 
+    Parameters
+    ----------
+    fn : callable
+        The native call. args, kwargs : its arguments.
+
     Returns
     -------
     What ``fn`` returns; what it raises is raised here.

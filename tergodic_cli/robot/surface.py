@@ -624,8 +624,18 @@ def rebuild_surface(points: np.ndarray, normals: np.ndarray, spacing: float, edg
 
     open3d holds the GIL through its Poisson reconstruction and decimation (10 s at 50k points on a
     loaded 2-core machine), so in-process the run could not answer Ctrl-C or SIGTERM until it
-    returned; the child is killed instead (:func:`tergodic_cli.native.in_fork`). Same arguments and
-    result as :func:`reconstruct_mesh`.
+    returned; the child is killed instead (:func:`tergodic_cli.native.in_fork`).
+
+    Parameters
+    ----------
+    points : (n, 3) cloud, metres. normals : (n, 3) oriented unit normals.
+    spacing : mean point spacing h, metres.
+    edge : the coarsest mean triangle edge after decimation, metres.
+
+    Returns
+    -------
+    SurfaceMesh
+        Equal to :func:`reconstruct_mesh`'s (vertices (m, 3) m, triangles (k, 3), seconds, method).
     """
     from tergodic_cli.native import in_fork
 
