@@ -55,16 +55,26 @@ demo: setup
 	$(BIN)/tergodic replay $(DEMO)/kinematic --plot $(DEMO)/kinematic/plots --html $(DEMO)/kinematic/report.html --overwrite
 	@echo "demo: see $(DEMO)/kinematic/summary.json, $(DEMO)/kinematic/report.html and the PNGs in $(DEMO)/kinematic/plots/"
 
-# The README's images from the demo run; the report's screenshot needs a headless Chromium.
-.PHONY: images
-images: demo
+# The README's images from the demo run; the report's screenshot is taken by a headless Chromium, installed
+# from apt when missing (Debian's package chromium, Ubuntu's chromium-browser). tests/test_report_browser.py
+# opens the report in the same browser, and skips when none is installed.
+.PHONY: images chromium
+chromium:
+	@if ! command -v chromium >/dev/null && ! command -v chromium-browser >/dev/null && ! command -v google-chrome >/dev/null; then \
+	  echo "installing a headless Chromium for the report's screenshot"; \
+	  SUDO=""; [ "$$(id -u)" -ne 0 ] && SUDO=sudo; \
+	  $$SUDO apt-get update -qq && (DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium >/dev/null \
+	    || DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium-browser >/dev/null); \
+	fi
+
+images: demo chromium
 	cp $(DEMO)/kinematic/plots/cloud_target.png docs/img/demo.png
 	cp $(DEMO)/kinematic/plots/ergodicity.png docs/img/demo_ergodicity.png
 	@browser=$$(command -v chromium || command -v chromium-browser || command -v google-chrome || true); \
 	if [ -n "$$browser" ]; then \
-	  $$browser --headless --disable-gpu --no-sandbox --screenshot=docs/img/report.png --window-size=1400,900 \
-	    file://$(CURDIR)/$(DEMO)/kinematic/report.html; \
-	else echo "images: no chromium found; docs/img/report.png left as it is"; fi
+	  $$browser --headless --disable-gpu --no-sandbox --hide-scrollbars --screenshot=docs/img/report.png --window-size=1400,900 \
+	    file://$(CURDIR)/$(DEMO)/kinematic/report.html 2>/dev/null; \
+	else echo "images: no chromium could be installed; docs/img/report.png left as it is"; fi
 
 # Every benchmark, BLAS pinned to one thread; each prints medians and ratios against the reference.
 BENCH_ENV := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 TERGODIC_NO_PROGRESS=1

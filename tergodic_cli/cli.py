@@ -6,12 +6,14 @@ Every verb module imports only typer and the standard library at import time, so
 
 from __future__ import annotations
 
+import os
 import platform
 import signal
 import sys
 
 import typer
 
+from tergodic_cli import native
 from tergodic_cli.errors import Terminated, TergodicError, os_cause
 from tergodic_cli.progress import echo
 
@@ -92,6 +94,18 @@ def _on_sigterm(signum, frame) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``tergodic`` console script; returns the exit code (130 on Ctrl-C, 143 on SIGTERM)."""
+    code = _main(argv)
+    if argv is None and code in (130, 143) and native.may_exit_now():
+        # the console script, interrupted: every artefact is closed or set aside by now (the one line said
+        # where), and the interpreter's teardown with open3d, PyBullet and numba loaded takes ~1 s more
+        # (and waits on a native worker an interrupt left computing: tergodic_cli.native)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
+
+
+def _main(argv: list[str] | None) -> int:
     try:
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
     except ValueError:  # not the main thread (an embedding caller): leave SIGTERM alone

@@ -289,3 +289,64 @@ def test_live_wait_starts_when_a_viewer_connects_and_serves_until_ctrl_c(tmp_pat
     assert proc.returncode == 0, "".join(seen) + err
     assert "live: stopped" in err and "Traceback" not in err
     assert (tmp_path / "run" / "summary.json").exists()  # the run is complete and in place
+
+
+def test_a_viewer_that_stops_reading_never_holds_the_run(tmp_path):
+    """A real client subscribes to every channel, then never reads again (its receive buffer 4 KB) while the
+    run logs 20 clouds a second. The run still completes, serves its final state (--live-wait), and a SIGTERM
+    then ends the process at once: the stalled viewer is dropped, the run is whole (issue 27)."""
+    import fcntl
+    import signal
+    import subprocess
+    import sys
+    import termios
+    from pathlib import Path
+
+    from conftest import default_signals
+
+    from tergodic_cli.runlog import read_run_log
+
+    port = _free_port()
+    exe = Path(sys.executable).with_name("tergodic")
+    proc = subprocess.Popen([str(exe), "explore", str(BOWL), "--steps", "600", "--nk", "40", "--log-cloud-every", "5",
+                             "--live-wait", "--live", f"127.0.0.1:{port}", "--out", str(tmp_path / "run")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=default_signals,
+                            env={**os.environ, "TERGODIC_NO_PROGRESS": "1"})
+    client = None
+    try:
+        seen = []
+        for line in proc.stderr:
+            seen.append(line)
+            if "waiting for a viewer" in line:
+                break
+        client = FoxgloveClient(port)
+        client.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        subscribed, end = set(), time.monotonic() + DEADLINE_S
+        while S.TOPIC_CLOUD not in subscribed:  # subscribe to each channel as it is advertised, up to the cloud's
+            assert time.monotonic() < end, f"advertised only {sorted(subscribed)}"
+            op, data = client.frame()
+            msg = json.loads(data) if op == 0x1 else {}
+            if msg.get("op") == "advertise":
+                client.send_json({"op": "subscribe", "subscriptions": [{"id": ch["id"], "channelId": ch["id"]}
+                                                                         for ch in msg["channels"]]})
+                subscribed.update(ch["topic"] for ch in msg["channels"])
+        # from here on the client reads nothing
+        for line in proc.stderr:
+            seen.append(line)
+            if "serving its final state" in line:
+                break
+        assert any("serving its final state" in ln for ln in seen), "".join(seen)
+        pending = struct.unpack("i", fcntl.ioctl(client.sock.fileno(), termios.FIONREAD, b"\0\0\0\0"))[0]
+        assert pending > 0  # the viewer really is behind: data waits in its socket, unread
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=30)  # generous; the hold ends at once (docs/logging.md)
+    finally:
+        if client is not None:
+            client.close()
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, "".join(seen) + err  # SIGTERM ends the hold, not the run: the run is complete
+    assert "live: stopped" in err and "Traceback" not in err
+    assert (tmp_path / "run" / "summary.json").exists()
+    log = read_run_log(tmp_path / "run")
+    assert log.status == "complete" and len(log.clouds) >= 100

@@ -23,6 +23,8 @@ from scipy.linalg.lapack import dstevd
 from scipy.sparse.csgraph import connected_components
 from threadpoolctl import ThreadpoolController
 
+from tergodic_cli.native import in_thread
+
 #: Lanczos convergence: ‖OP y − θ y‖ ≤ TOL_RITZ |θ| for every wanted Ritz pair.
 TOL_RITZ = 1e-10
 #: Accepted true residual ‖A y − λ y‖ relative to the largest wanted eigenvalue ...
@@ -74,7 +76,9 @@ class SymmetricFactor:
         K = sp.csc_matrix(K)
         self.n = K.shape[0]
         try:
-            self._solver = qdldl.Solver(sp.triu(K, format="csc"), upper=True)
+            # the factorisation releases the GIL but takes seconds on a dense cloud: off the main thread,
+            # so Ctrl-C and SIGTERM are answered while it runs (tergodic_cli.native)
+            self._solver = in_thread(qdldl.Solver, sp.triu(K, format="csc"), upper=True)
         except Exception as exc:  # zero pivot: the shift hit the spectrum
             raise EigensolverFailure(f"LDL factorisation failed ({exc})") from None
         self.solve = self._solver.solve
@@ -94,7 +98,7 @@ class SymmetricFactor:
             ``self``.
         """
         try:
-            self._solver.update(sp.triu(K, format="csc"), upper=True)
+            in_thread(self._solver.update, sp.triu(K, format="csc"), upper=True)
         except Exception as exc:
             raise EigensolverFailure(f"LDL factorisation failed ({exc})") from None
         self._set_inertia(self._solver.factors()[1], None)
@@ -434,7 +438,7 @@ def arpack_eigenpairs(L: sp.spmatrix, mass: np.ndarray, nk: int, sigma: float = 
     """
     from scipy.sparse.linalg import eigsh
 
-    evals, evecs = eigsh(sp.csc_matrix(L), k=nk, M=sp.diags(mass).tocsc(), sigma=sigma, v0=v0)
+    evals, evecs = in_thread(eigsh, sp.csc_matrix(L), k=nk, M=sp.diags(mass).tocsc(), sigma=sigma, v0=v0)
     order = np.argsort(evals)
     return evals[order], evecs[:, order]
 

@@ -56,10 +56,27 @@ def oriented_normals(points: np.ndarray, side: str, neighbors: int = 20) -> np.n
         the object: the side a camera above sees; works on closed shapes, undersides, holes and
         sharp edges; then each point turned to the side rays from it escape to, :func:`_toward_views`),
         "up" (n·z >= 0) or "out" (away from the cloud's centroid).
+
+    From :data:`FORK_POINTS` points the work runs in a forked child (:func:`tergodic_cli.native.in_fork`):
+    open3d holds the GIL through it (3 s at 26k points on a loaded 2-core machine), and the child,
+    unlike the main thread, can be killed at once on Ctrl-C or SIGTERM.
     """
+    require(side in ("outward", "up", "out"), f"unknown normal side '{side}'", "use outward, up or out")
+    if len(points) >= FORK_POINTS:
+        from tergodic_cli.native import in_fork
+
+        return in_fork(lambda: {"normals": _oriented_normals(points, side, neighbors)}, "the cloud's normals")["normals"]
+    return _oriented_normals(points, side, neighbors)
+
+
+#: From this many points :func:`oriented_normals` runs in a forked child (about 0.5 s of open3d below it).
+FORK_POINTS = 5000
+
+
+def _oriented_normals(points: np.ndarray, side: str, neighbors: int) -> np.ndarray:
+    """:func:`oriented_normals` in this process."""
     import open3d as o3d
 
-    require(side in ("outward", "up", "out"), f"unknown normal side '{side}'", "use outward, up or out")
     points = np.asarray(points, dtype=float)
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(min(neighbors, len(points) - 1)))
@@ -600,6 +617,35 @@ def reconstruct_mesh(points: np.ndarray, normals: np.ndarray, spacing: float, ed
                 m, used = b, "ball_pivoting"
     return SurfaceMesh(np.asarray(m.vertices).copy(), np.asarray(m.triangles, dtype=np.int64).copy(),
                        time.perf_counter() - t0, used)
+
+
+def rebuild_surface(points: np.ndarray, normals: np.ndarray, spacing: float, edge: float = 0.006) -> SurfaceMesh:
+    """:func:`reconstruct_mesh` (method ``auto``) in a forked child process.
+
+    open3d holds the GIL through its Poisson reconstruction and decimation (10 s at 50k points on a
+    loaded 2-core machine), so in-process the run could not answer Ctrl-C or SIGTERM until it
+    returned; the child is killed instead (:func:`tergodic_cli.native.in_fork`).
+
+    Parameters
+    ----------
+    points : (n, 3) cloud, metres. normals : (n, 3) oriented unit normals.
+    spacing : mean point spacing h, metres.
+    edge : the coarsest mean triangle edge after decimation, metres.
+
+    Returns
+    -------
+    SurfaceMesh
+        Equal to :func:`reconstruct_mesh`'s (vertices (m, 3) m, triangles (k, 3), seconds, method).
+    """
+    from tergodic_cli.native import in_fork
+
+    def build() -> dict[str, np.ndarray]:
+        m = reconstruct_mesh(points, normals, spacing, edge)
+        return {"vertices": m.vertices, "triangles": m.triangles, "seconds": np.float64(m.seconds),
+                "method": np.array(m.method)}
+
+    out = in_fork(build, "the contact surface's reconstruction")
+    return SurfaceMesh(out["vertices"], out["triangles"], float(out["seconds"]), str(out["method"]))
 
 
 def source_mesh(mesh, edge: float = 0.01) -> SurfaceMesh:

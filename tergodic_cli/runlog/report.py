@@ -320,7 +320,7 @@ def _series_figure(data: RunLogData, frames: list[dict]) -> tuple[Any, dict]:
         rows.append(("Target touched over time", "touched (% of target)",
                      [line(embedded, "touched_fraction", x, s["touched_fraction"], "touched",
                            "#2ca02c", **solo)],
-                     dict(range=[0, 1.02], tickformat=".0%")))
+                     dict(range=[0, 1.05], tickformat=".0%")))
     n_explorer = len(rows)
 
     if rs := data.robot_series():

@@ -31,7 +31,7 @@ from tergodic_cli.robot.reach import plan_reach, posture, tool_rotation
 from tergodic_cli.robot.run import SETTLE_S, ContactRun, object_pose
 from tergodic_cli.robot.safety import Fault, fmt_xyz
 from tergodic_cli.robot.surface import (SurfaceMesh, check_reachable, check_surface, curved_edge, near_border,
-                                         oriented_normals, reconstruct_mesh, resolve_side, sim_object_mesh, source_mesh,
+                                         oriented_normals, rebuild_surface, resolve_side, sim_object_mesh, source_mesh,
                                          surface_figures, transform_points)
 
 #: N/m of the approach's axial position servo: its set-point advances at the guarded speed, so a
@@ -575,7 +575,7 @@ class RobotRun(ContactRun):
             mesh, T_mesh = source_mesh(source, cfg.mesh_edge), np.eye(4)
             self.mesh_source = "source_mesh"
         else:
-            mesh, T_mesh = reconstruct_mesh(points, normals, h, curved_edge(points, normals, cfg.mesh_edge)), np.eye(4)
+            mesh, T_mesh = rebuild_surface(points, normals, h, curved_edge(points, normals, cfg.mesh_edge)), np.eye(4)
             self.mesh_source = "cloud"
         # The surface's check, before any body or motion exists: refused in one line (exit 2).
         self.surface = surface_figures(SurfaceMesh(transform_points(np.asarray(T_mesh, dtype=float), mesh.vertices),
