@@ -94,7 +94,25 @@ class ExploreConfig(Config):
     @property
     def footprint_epsilon(self) -> float:
         """ε in 1/m actually used."""
-        return float(self.epsilon) if self.epsilon is not None else FOOTPRINT_EPS_RA / self.agent_radius
+        return footprint_epsilon(self.agent_radius, self.epsilon)
+
+
+def footprint_epsilon(agent_radius: float, epsilon: float | None = None) -> float:
+    """The footprint's ε (eq. 30, φ = exp(-ε² r²)): ``epsilon`` when given, else FOOTPRINT_EPS_RA / r_a.
+
+    Parameters
+    ----------
+    agent_radius : float
+        r_a, metres.
+    epsilon : float, optional
+        An explicit ε, 1/m.
+
+    Returns
+    -------
+    float
+        ε, 1/m.
+    """
+    return float(epsilon) if epsilon is not None else FOOTPRINT_EPS_RA / float(agent_radius)
 
 
 def parse_alpha(text: str | float) -> list[tuple[int, float]]:
