@@ -1028,10 +1028,10 @@ def _take_row(pf, pi, fs, is_, j, n, w0, w1, w2):
 
 
 @njit
-def _enter_or_wait(Phi, st, j, n, size):
+def _enter_or_wait(Phi, pf, pb, pi, hk, hi, fs, is_, j, n, size):
     """A point off the active set: it enters (its row queued) when Z has passed its threshold
-    c̃/p̄, else its threshold goes onto the heap. Returns (rows queued, heap size)."""
-    pf, pb, pi, hk, hi, fs, is_ = st.pf, st.pb, st.pi, st.heap_key, st.heap_idx, st.fs, st.is_
+    c̃/p̄, else its threshold goes onto the heap. Returns (rows queued, heap size). (The arrays one
+    by one, not the :class:`State`: it runs per re-entering point, docs/speed.md.)"""
     c, p, m, Z = pf[PF_COV, j], pf[PF_PBAR, j], pf[PF_MASS, j], fs[FS_Z]
     if _is_active(c, p, Z):
         n = _take_row(pf, pi, fs, is_, j, n, m * p * p, m * p * c, m * c * c)
@@ -1068,7 +1068,7 @@ def update_source(Phi, st):
             npend += 1
         else:  # enters if Z passed its threshold while it was pending
             pending[j] = 0
-            nrows, size = _enter_or_wait(Phi, st, j, nrows, size)
+            nrows, size = _enter_or_wait(Phi, pf, pb, pi, hk, hi, fs, is_, j, nrows, size)
     for t in range(is_[IS_NCHG]):
         j = chg[t]
         mark[j] = 0
@@ -1099,7 +1099,7 @@ def update_source(Phi, st):
         if active[j] == 1:
             continue  # a stale entry of a point that re-entered through its own deposit step
         # enters, or its key was stale (c̃ has grown since) and it waits for the true threshold
-        nrows, size = _enter_or_wait(Phi, st, j, nrows, size)
+        nrows, size = _enter_or_wait(Phi, pf, pb, pi, hk, hi, fs, is_, j, nrows, size)
     _add_rows(sp, Phi, pi[PI_BALL], pf[PF_W0], pf[PF_W1], pf[PF_W2], nrows)
     is_[IS_HEAP] = size
     inv = 1.0 / Z if Z > 0.0 else 0.0
@@ -1179,13 +1179,14 @@ def expand_rows(Phi, c):
 
 
 @njit
-def heat_at(Phi, st, j, mode):
-    """u at point ``j`` as the agents see it: Φ_j · a (+ s̄_j for carry-over), or st.u_full[j]."""
+def heat_at(Phi, pf, sp, fs, j, mode, u_full):
+    """u at point ``j`` as the agents see it: Φ_j · a (+ s̄_j for carry-over), or u_full[j]. (The
+    arrays one by one, not the :class:`State`: it runs per neighbour.)"""
     if mode == HEAT_FULL:
-        return st.u_full[j]
-    u = row_dot(Phi[j], st.sp[SP_A])
+        return u_full[j]
+    u = row_dot(Phi[j], sp[SP_A])
     if mode == HEAT_CARRY:
-        u += sbar_at(st.pf, st.fs, j)
+        u += sbar_at(pf, fs, j)
     return u
 
 
@@ -1308,6 +1309,7 @@ def agent_gradient(sf, st, i, prm, mode):
     neighbours on its sheet (the first ag[i, AG_NKEEP] of its row of ``nbrs``), each weighted by
     the footprint at its distance."""
     P, Phi, ag, nbrs = sf.P, sf.Phi, st.ag, st.nbrs
+    pf, sp, fs, u_full = st.pf, st.sp, st.fs, st.u_full
     k = int(ag[i, AG_NKEEP])
     uv = np.empty((k, 2))
     vals = np.empty(k)
@@ -1324,7 +1326,7 @@ def agent_gradient(sf, st, i, prm, mode):
         r2 = u * u + v * v
         r2min = min(r2min, r2)
         w[t] = footprint(eps2, r2)
-        vals[t] = heat_at(Phi, st, j, mode)
+        vals[t] = heat_at(Phi, pf, sp, fs, j, mode, u_full)
     # Off the sampled surface the neighbours lie on one side: a plane, not an extrapolated cubic.
     # (too few on the sheet for the cubic's 10 unknowns: a plane too)
     degree = 3 if r2min <= prm[PR_H2] and k >= MIN_CUBIC_FIT else 1
@@ -1343,11 +1345,15 @@ def gain_gradient(sf, st, prm, x, t1, t2, ball, anchor, gap, broad):
     the target's tree (``sf.tgt``, its points mapped to P's by ``sf.tmap``) with a kernel BROAD_WIDTH
     times as wide, summed within BROAD_REACH widths; else over ``sf.tree`` within GAIN_REACH.
     ``ball`` (n + 1,) is scratch (left holding the indices summed)."""
-    P, Nrm, pf, pb, fs = sf.P, sf.Nrm, st.pf, st.pb, st.fs
-    tree, tmap = sf.tgt if broad else sf.tree, sf.tmap
-    width, reach = (BROAD_WIDTH, BROAD_REACH) if broad else (1.0, GAIN_REACH)
-    eps2 = prm[PR_GAIN_EPS2] / (width * width)
-    cnt = tree_ball(tree.perm, tree.nodes, tree.boxes, tree.tpts, x, reach * 2.0 / math.sqrt(eps2), ball)
+    P, Nrm, pf, pb, fs, tmap = sf.P, sf.Nrm, st.pf, st.pb, st.fs, sf.tmap
+    if broad:
+        eps2 = prm[PR_GAIN_EPS2] / (BROAD_WIDTH * BROAD_WIDTH)
+        t = sf.tgt
+        cnt = tree_ball(t.perm, t.nodes, t.boxes, t.tpts, x, BROAD_REACH * 2.0 / math.sqrt(eps2), ball)
+    else:
+        eps2 = prm[PR_GAIN_EPS2] / (1.0 * 1.0)
+        t = sf.tree
+        cnt = tree_ball(t.perm, t.nodes, t.boxes, t.tpts, x, GAIN_REACH * 2.0 / math.sqrt(eps2), ball)
     mapped = not broad
     if gap < np.inf and (anchor >= 0 or not broad):  # (no extra pass over the ball otherwise)
         if broad:
@@ -1642,6 +1648,18 @@ def score_position(tree, Nrm, sc, sp_, x, prev, has_prev):
     if has_prev:
         ss[SS_STEPMAX] = max(ss[SS_STEPMAX], math.sqrt(_dist2(x, prev)))
     ss[SS_N] += 1.0
+
+
+@njit
+def score_step(tree, Nrm, score, sp_, X, prev):
+    """:func:`score_position` for each agent's position X[i] (N, 3), then prev[i] = X[i]: one step of
+    the score. ``tree`` and ``score`` are a :class:`Tree` and a :class:`Score` as plain tuples
+    (:func:`plain`: one call a step, on numba's fast path)."""
+    tr, sc = Tree(*tree), Score(*score)
+    has_prev = sc.ss[SS_N] > 0
+    for i in range(X.shape[0]):
+        score_position(tr, Nrm, sc, sp_, X[i], prev[i], has_prev)
+        prev[i, :] = X[i]
 
 
 @njit

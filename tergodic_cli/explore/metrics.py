@@ -154,6 +154,7 @@ class CoverageScore:
         self._target = np.zeros(n, dtype=np.int8)
         self._sc = K.Score(self._cov, self._touched, self._target, self._ss, np.zeros(n, dtype=np.int64),
                            np.zeros(nb, dtype=np.int64), np.zeros(nb))
+        self._args = (K.plain(self._tree), K.plain(self._sc))
         self._prm = np.zeros(K.N_SC)
         # the paper's footprint at ε = 2/r_a, whatever ε the explorer ran with: a neutral score
         self._prm[[K.SC_EPS2, K.SC_CUT, K.SC_RA, K.SC_OFFDIST]] = (footprint_epsilon(agent_radius) ** 2,
@@ -187,11 +188,8 @@ class CoverageScore:
         positions : (N, 3) float
             The agents' positions, metres.
         """
-        ss = self._ss
-        has_prev = ss[K.SS_N] > 0
-        for i, x in enumerate(positions):
-            K.score_position(self._tree, self._nrm, self._sc, self._prm, x, self._prev[i], has_prev)
-            self._prev[i] = x
+        K.score_step(self._args[0], self._nrm, self._args[1], self._prm,
+                     np.ascontiguousarray(positions, dtype=np.float64), self._prev)
 
     def metrics(self) -> dict:
         """The score so far.
