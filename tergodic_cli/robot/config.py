@@ -5,9 +5,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from tergodic_cli.config import Config
+from tergodic_cli.config import Config, option, parse_floats
 from tergodic_cli.errors import require
-from tergodic_cli.robot.controller import ControllerGains
+from tergodic_cli.robot.controller import ControllerGains, gains_preset
 from tergodic_cli.robot.safety import SafetyConfig
 
 BACKENDS = ("pybullet",)
@@ -73,20 +73,37 @@ class RobotConfig(Config):
     """
 
     backend: str = "pybullet"
-    arm: str = "panda"
-    force: float = 5.0
-    gui: bool = False
-    realtime: bool = False
-    object_pose: tuple[float, ...] | None = None
-    explore_dt: float = 0.2
+    arm: str = field(default="panda", metadata=option(
+        "--arm", "The simulated arm: panda, xarm6 (UFactory xArm 6, 6 DoF) or iiwa (KUKA LBR iiwa).", group="pybullet"))
+    force: float = field(default=5.0, metadata=option(
+        "--force", "Desired contact force along the tool axis", unit="N", group="robot"))
+    gui: bool = field(default=False, metadata=option(
+        "--gui", "Open the PyBullet GUI (needs a display).", group="pybullet"))
+    realtime: bool = field(default=False, metadata=option(
+        "--realtime", "Pace the simulation to wall-clock time (with --gui).", group="pybullet"))
+    object_pose: tuple[float, ...] | None = field(default=None, metadata=option(
+        "--object-pose", "Capture frame in the robot base frame: x,y,z[,roll,pitch,yaw] (m, deg) or x,y,z,qx,qy,qz,qw",
+        group="robot", type=str, parse=lambda text: parse_floats(text, None, "--object-pose", "0.5,0,0.2"),
+        default="the identity for a capture taken in the base frame (--source sim, or a calibrated --camera-pose); "
+                "otherwise, pybullet only, the cloud's footprint centre 0.5 m in front of the base with its lowest "
+                "point on a 0.2 m stand, turned 0, 90, -90 or 180 deg about the vertical, then the same at 0.4 m: the "
+                "first pose where the arm reaches the whole target, else the one reaching most of it (the pose is "
+                "printed and saved in summary.json); franka refuses to guess"))
+    explore_dt: float = field(default=0.2, metadata=option(
+        "--explore-dt", "Simulated seconds per explorer step (agent limits are rescaled so a step moves the same "
+        "path)", group="robot"))
     physics_dt: float = 0.001
     hover_height: float = 0.04
     approach_speed: float = 0.02
     contact_speed: float = 0.002
     retreat_speed: float = 0.05
     retreat_distance: float = 0.05
-    contact_force: float | None = None
-    normal_side: str = "auto"
+    contact_force: float | None = field(default=None, metadata=option(
+        "--contact-force", "Force that counts as touching (coverage is deposited above it)", unit="N", group="robot",
+        default="20% of --force"))
+    normal_side: str = field(default="auto", metadata=option(
+        "--normal-side", "Side of the sheet the tool works on: auto (= outward: consistent over the sheet, facing the "
+        "side the cloud is seen from), outward, up or out.", group="robot"))
     mesh_edge: float = 0.01
     move_speed: float = 0.8
     solver_iterations: int = 10
@@ -97,7 +114,9 @@ class RobotConfig(Config):
     inertial_compensation: bool = True
     picture_q: tuple[float, ...] | None = None
     sponge: SpongeSpec = field(default_factory=SpongeSpec)
-    gains: ControllerGains = field(default_factory=ControllerGains)
+    gains: ControllerGains = field(default_factory=ControllerGains, metadata=option(
+        "--gains", "Controller gains: tuned or paper (the paper's K, D and wrench PID on the full wrench, V-A3).",
+        group="pybullet", type=str, parse=gains_preset, default="tuned"))
     safety: SafetyConfig = field(default_factory=SafetyConfig)
 
     @property

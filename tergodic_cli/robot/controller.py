@@ -76,6 +76,25 @@ PAPER_GAINS = ControllerGains(k_trans=(750.0, 750.0, 300.0), k_rot=(30.0, 30.0, 
                               derivative_filter_hz=5.0)
 
 
+def gains_preset(name: str) -> dict:
+    """The gains a ``--gains`` name stands for, as a config dict: "tuned" (:class:`ControllerGains`' defaults)
+    or "paper" (:data:`PAPER_GAINS`).
+
+    Parameters
+    ----------
+    name : str
+
+    Returns
+    -------
+    dict
+        :class:`ControllerGains` fields.
+    """
+    from tergodic_cli.errors import require
+
+    require(name in ("tuned", "paper"), f"unknown --gains {name!r}", "use --gains tuned or --gains paper")
+    return (PAPER_GAINS if name == "paper" else ControllerGains()).to_dict()
+
+
 class ControlOutput(NamedTuple):
     """One control step's torques and diagnostics (ee frame); views into the step's diagnostics array."""
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tergodic_cli.config import Config
+from tergodic_cli.config import Config, option, parse_floats
 from tergodic_cli.errors import require
 
 
@@ -46,7 +46,10 @@ class SafetyConfig(Config):
     explorer_timeout : s (robot clock) without a fresh explorer target before holding.
     """
 
-    force_limit: float | None = None
+    force_limit: float | None = field(default=None, metadata=option(
+        "--force-limit", "Contact force, low-passed at 10 Hz, that makes the robot retreat and stop (one tick over "
+        "5 x --force, at least 30 N, is an impact and stops at once)", unit="N", group="robot",
+        default="3 x --force, at least --force + 5"))
     force_limit_factor: float = 3.0
     force_limit_margin: float = 5.0
     force_filter_hz: float = 10.0
@@ -56,7 +59,10 @@ class SafetyConfig(Config):
     joint_margin: float = 0.02
     velocity_factor: float = 0.9
     tcp_speed_max: float = 0.5
-    workspace_min: tuple[float, float, float] = (0.15, -0.6, -0.01)
+    workspace_min: tuple[float, float, float] = field(default=(0.15, -0.6, -0.01), metadata=option(
+        "--workspace", "Workspace box xmin,ymin,zmin,xmax,ymax,zmax in the base frame", unit="m", group="robot",
+        type=str, sets=("workspace_min", "workspace_max"),
+        parse=lambda text: (lambda b: (b[:3], b[3:]))(parse_floats(text, 6, "--workspace", "0.15,-0.6,0,0.85,0.6,0.9"))))
     workspace_max: tuple[float, float, float] = (0.85, 0.6, 0.9)
     sensor_timeout: float = 0.02
     explorer_timeout: float = 0.5
