@@ -37,7 +37,8 @@ def cached(kind: str, owner, build):
     if hit is not None and hit[0]() is owner:
         return hit[1]
     value = build()
-    _STORE[key] = (weakref.ref(owner, lambda _ref, key=key: _STORE.pop(key, None)), value)
+    # (the store bound now: at interpreter exit the module's globals may already be None)
+    _STORE[key] = (weakref.ref(owner, lambda _ref, key=key, store=_STORE: store.pop(key, None)), value)
     return value
 
 
