@@ -11,8 +11,7 @@ import typer
 
 from tergodic_cli.commands._options import with_options
 from tergodic_cli.explore.config import ExploreConfig
-from tergodic_cli.robot.config import RobotConfig
-from tergodic_cli.robot.safety import SafetyConfig
+from tergodic_cli.robot.config import RobotConfig, SafetyConfig
 from tergodic_cli.runspec import ClosedLoopSpec, HardwareSpec, LogSpec, StartSpec
 
 

@@ -7,10 +7,115 @@ from dataclasses import dataclass, field
 
 from tergodic_cli.config import Config, option, parse_floats
 from tergodic_cli.errors import require
-from tergodic_cli.robot.controller import ControllerGains, gains_preset
-from tergodic_cli.robot.safety import SafetyConfig
 
 BACKENDS = ("pybullet",)
+
+
+@dataclass
+class ControllerGains(Config):
+    """Gains of eq. 47 and the wrench PID (eq. 40), SI units; see :data:`PAPER_GAINS`.
+
+    k_trans, k_rot : K_L on the translational (N/m) and rotational (N m/rad) error, ee axes x, y, z.
+    d_trans, d_rot : D_V on the ee velocity (N s/m) and angular velocity (N m s/rad).
+    kp, ki, kd : wrench PID on the force along the tool axis (N/N, 1/s, s).
+    force_filter_hz : cut-off of the first-order filter on the measured force.
+    integral_max : the PID integral term is kept in [0, integral_max × F_d].
+    spin_stiffness : N m/rad holding the rotation about the tool axis (free for a line).
+    nullspace_stiffness, nullspace_damping : posture spring (N m/rad, N m s/rad) in the null space.
+    limit_stiffness : N m/rad pushing joints out of the last LIMIT_ZONE rad before a limit (null space).
+    guard_speed, guard_damping : while pressing ("track"), a tool moving into the surface faster than
+        guard_speed (m/s) gets guard_damping (N s/m) more damping on the excess: when contact is lost
+        the force PID's push no longer flies it into the surface (issue 15: 38 N at F_d = 1 N).
+    pid_wrench : the PID acts on the full wrench (eqs. 40-41, W_d = (0, 0, F_d, 0, 0, 0), zero desired
+        torque): kp and kd on all six components, ki on the axial force (across the line the integral
+        winds up against the friction until the tool sticks); False: on the axial force only.
+    derivative_filter_hz : cut-off of a second first-order filter (after force_filter_hz) on the
+        wrench the derivative term differentiates (0: none).
+    """
+
+    k_trans: tuple[float, float, float] = (3000.0, 3000.0, 300.0)
+    k_rot: tuple[float, float, float] = (30.0, 30.0, 30.0)
+    d_trans: tuple[float, float, float] = (80.0, 80.0, 50.0)
+    d_rot: tuple[float, float, float] = (2.0, 2.0, 2.0)
+    kp: float = 2.0
+    ki: float = 60.0
+    kd: float = 0.0
+    force_filter_hz: float = 30.0
+    integral_max: float = 3.0
+    spin_stiffness: float = 5.0
+    nullspace_stiffness: float = 10.0
+    nullspace_damping: float = 3.0
+    limit_stiffness: float = 30.0
+    guard_speed: float = 0.005
+    guard_damping: float = 1000.0
+    pid_wrench: bool = False
+    derivative_filter_hz: float = 0.0
+
+
+#: The paper's gains (V-A3), for comparison runs.
+PAPER_GAINS = ControllerGains(k_trans=(750.0, 750.0, 300.0), k_rot=(30.0, 30.0, 30.0), d_trans=(150.0, 150.0, 50.0),
+                              d_rot=(10.0, 10.0, 10.0), kp=0.5, ki=5.0, kd=0.5, pid_wrench=True,
+                              derivative_filter_hz=5.0)
+
+
+def gains_preset(name: str) -> dict:
+    """The gains a ``--gains`` name stands for, as a config dict: "tuned" (:class:`ControllerGains`' defaults)
+    or "paper" (:data:`PAPER_GAINS`).
+
+    Parameters
+    ----------
+    name : str
+
+    Returns
+    -------
+    dict
+        :class:`ControllerGains` fields.
+    """
+    require(name in ("tuned", "paper"), f"unknown --gains {name!r}", "use --gains tuned or --gains paper")
+    return (PAPER_GAINS if name == "paper" else ControllerGains()).to_dict()
+
+
+@dataclass
+class SafetyConfig(Config):
+    """Limits, SI units.
+
+    force_limit : N: the contact force |F|, low-passed at force_filter_hz, over this is an overload
+        (retreat); None = force_limit_factor × F_d, at least F_d + force_limit_margin. The filter
+        passes a sustained overload and not the contact's single-tick spikes (1 kHz peaks of
+        1.9-3.2 × F_d in normal runs stopped them on a raw 3 × F_d limit; docs/robot.md, "Force limits").
+    force_filter_hz : cut-off of the first-order low-pass the force limit applies to, Hz (0: none).
+    force_limit_margin : N: the low-passed limit's floor above F_d (a light press jitters as many
+        newtons as a firm one: 3 × 2 N = 6 N stopped 2 N runs).
+    force_impact_limit : N: one tick's |F| over this is an impact (retreat at once, no filter);
+        None = force_impact_factor × F_d, at least force_impact_min and the force limit.
+    joint_margin : rad kept inside the joint position limits.
+    velocity_factor : share of the joint velocity limits allowed.
+    tcp_speed_max : m/s allowed at the TCP.
+    workspace_min, workspace_max : corners of the box (base frame, m) the TCP and every target must stay in.
+    sensor_timeout : s without a new F/T sample before holding.
+    explorer_timeout : s (robot clock) without a fresh explorer target before holding.
+    """
+
+    force_limit: float | None = field(default=None, metadata=option(
+        "--force-limit", "Contact force, low-passed at 10 Hz, that makes the robot retreat and stop (one tick over "
+        "5 x --force, at least 30 N, is an impact and stops at once)", unit="N", group="robot",
+        default="3 x --force, at least --force + 5"))
+    force_limit_factor: float = 3.0
+    force_limit_margin: float = 5.0
+    force_filter_hz: float = 10.0
+    force_impact_limit: float | None = None
+    force_impact_factor: float = 5.0
+    force_impact_min: float = 30.0
+    joint_margin: float = 0.02
+    velocity_factor: float = 0.9
+    tcp_speed_max: float = 0.5
+    workspace_min: tuple[float, float, float] = field(default=(0.15, -0.6, -0.01), metadata=option(
+        "--workspace", "Workspace box xmin,ymin,zmin,xmax,ymax,zmax in the base frame", unit="m", group="robot",
+        type=str, sets=("workspace_min", "workspace_max"),
+        parse=lambda text: (lambda b: (b[:3], b[3:]))(parse_floats(text, 6, "--workspace", "0.15,-0.6,0,0.85,0.6,0.9"))))
+    workspace_max: tuple[float, float, float] = (0.85, 0.6, 0.9)
+    sensor_timeout: float = 0.02
+    explorer_timeout: float = 0.5
 
 
 @dataclass
