@@ -104,6 +104,7 @@ def kernel_split(basis, target, start, steps: int = 300, **cfg_kw) -> dict:
         "knn (n_N)": lambda: K.tree_knn(*tree, x, ex._k, nb, d2),
         "CGA fit + projection": lambda: K.fit_project(pts, ex._nbrs[0], ex._k, x, n, xp, nn),
         "footprint ball query": lambda: K.tree_ball(*tree, x, ex.r_a, buf),
+        # (called alone it unboxes the named Surface and State, ~0.2 µs an array: part of this figure, not of a step)
         "gradient (u at n_N + cubic)": lambda: K.agent_gradient(ex._surface, ex._st, 0, ex._prm, ex._mode),
         "diffusion (nK)": lambda: K.diffuse(ex._sp.copy(), ex._fs, True),
     }
