@@ -2,22 +2,7 @@
 
 from __future__ import annotations
 
-from tergodic_cli.errors import TergodicError
-
-
-def parse_floats(text: str | None, n: int | None, option: str, example: str) -> tuple[float, ...] | None:
-    """Parse ``"a,b,c"`` into ``n`` floats (any count when ``n`` is None: the stage checks it), None into None,
-    or raise a one-line error naming ``option``."""
-    if text is None:
-        return None
-    try:
-        values = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        count = f"{n} " if n is not None else ""
-        raise TergodicError(f"{option} '{text}' is not {count}comma-separated numbers", f"e.g. {option} {example}") from None
-    if n is not None and len(values) != n:
-        raise TergodicError(f"{option} needs {n} numbers, got {len(values)}", f"e.g. {option} {example}")
-    return values
+from tergodic_cli.config import parse_floats  # noqa: F401  (its home is config.py; the verbs import it from here)
 
 
 def given_options(ctx) -> set[str]:

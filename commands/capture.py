@@ -8,16 +8,18 @@ from typing import Optional
 
 import typer
 
+from tergodic_cli.capture.config import CaptureConfig
 from tergodic_cli.commands._common import given_options, parse_floats
+from tergodic_cli.commands._options import with_options
 
 
+@with_options(CaptureConfig)
 def capture(
     ctx: typer.Context,
     from_file: Optional[Path] = typer.Option(None, "--from", help="Point-cloud file: .ply, .pcd, .xyz/.xyzrgb/.txt (x y z [r g b]) or .npz (points, colors); or a triangle mesh: .obj (its .mtl texture), .stl, .glb/.gltf, .off, or a .ply with faces, sampled by Poisson disk at the --voxel spacing (seeded by --seed), coloured from its texture or vertex colours, and kept in the capture (mesh.npz)."),
     synthetic: Optional[str] = typer.Option(None, "--synthetic", help="Generate an object instead: bowl, plate, mug, sphere, holed-plate (3 cm hole), thin-mug (walls 4 mm apart), torus, box (sharp edges) or partial (one side missing)."),
     source: Optional[str] = typer.Option(None, "--source", help="file, synthetic, sim or realsense; inferred from --from / --synthetic / --object when omitted."),
     sim_object: Optional[str] = typer.Option(None, "--object", help="Simulated camera (--source sim): bowl, plate, mug, or FILE.obj (metres; --units mm for millimetres)."),
-    marking: str = typer.Option("X", "--marking", help="Marking: X, ring, dots or patches (two discs on opposite sides); with --source sim also IMAGE.png (alpha = intensity, else non-white = marking)."),
     object_pose: Optional[str] = typer.Option(None, "--object-pose", help="Sim: object pose in the robot base frame x,y,z[,roll,pitch,yaw] (m, deg) or x,y,z,qx,qy,qz,qw. Default 0.5,0,0 (the mug turned 180 deg so its marking faces the camera)."),
     camera_pose: Optional[str] = typer.Option(None, "--camera-pose", help="Sim: eye and target ex,ey,ez,tx,ty,tz (m), or the optical frame x,y,z,qx,qy,qz,qw (z forward). Default: eye 0.30,0,0.60 looking at the object. RealSense: the optical frame x,y,z,qx,qy,qz,qw in the robot base frame (hand-eye calibration); default: the camera frame."),
     serial: Optional[str] = typer.Option(None, "--serial", help="RealSense: the camera's serial number (needed when several are connected)."),
@@ -25,22 +27,11 @@ def capture(
     height: int = typer.Option(480, "--height", help="Sim/RealSense: image height, pixels."),
     fov: float = typer.Option(42.0, "--fov", help="Sim: vertical field of view, degrees."),
     renderer: str = typer.Option("auto", "--renderer", help="Sim: auto (EGL when it loads, else TinyRenderer), egl or tiny."),
-    seed: int = typer.Option(0, "--seed", help="Seed for synthetic sampling, colour noise, surface noise, the dots marking and the sampling of a mesh."),
-    noise: float = typer.Option(0.0, "--noise", help="Synthetic: Gaussian noise along the surface normal, σ in METRES (e.g. 0.0015 = 1.5 mm; 0 = none)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder for the capture (cloud.npz, cloud.ply, capture.json)."),
-    voxel: float = typer.Option(0.003, "--voxel", help="Voxel edge in METRES (0 disables). The paper uses 0.003."),
-    voxel_rule: str = typer.Option("fraction", "--voxel-rule", help="p per voxel: 'fraction' of target points (default), 'all' (target only if every point is; the authors' code), or 'intensity' (mean ink intensity: faint ink counts; needs a noise-free colour, e.g. --source sim)."),
-    crop: Optional[str] = typer.Option(None, "--crop", help="Passthrough box xmin,ymin,zmin,xmax,ymax,zmax in metres."),
-    outliers: Optional[str] = typer.Option(None, "--outliers", help="Statistical outlier removal NB,STD, e.g. 20,2.0."),
-    keep_isolated: bool = typer.Option(False, "--keep-isolated", help="Keep stray points (by default a point with fewer than 2 others within 8 median spacings, a flying pixel, is dropped after the voxel grid)."),
-    target: str = typer.Option("red", "--target", help="Target colour: red, green, blue, yellow, orange, magenta, cyan, black, white; hsv:H1-H2,SMIN,VMIN; or 'all' for uniform coverage."),
-    units: str = typer.Option("m", "--units", help="Units of the input coordinates (the cloud or mesh file, or the sim .obj): m or mm."),
-    drop_invalid: bool = typer.Option(False, "--drop-invalid", help="Drop NaN/inf points instead of refusing the cloud."),
-    colour_depth: Optional[int] = typer.Option(None, "--colour-depth", help="Bits per colour channel, 8 or 16, when the file does not say (XYZRGB text, NPZ); default: 0..1 floats or 0..255, and more is refused."),
-    max_points: int = typer.Option(500_000, "--max-points", help="Warn when the basis would need more points than this after filtering (precompute refuses them); a cloud much denser than 3 mm needs only its 3 mm stand-ins."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing capture folder at --out."),
     json_out: bool = typer.Option(False, "--json", help="Print the sidecar as JSON instead of the table."),
     config: Optional[Path] = typer.Option(None, "--config", help="Repeat a capture: its CAP/config.json; options given beside it override it."),
+    **opts,
 ) -> None:
     """Capture a coloured point cloud and segment its target marking.
 
@@ -69,7 +60,8 @@ def capture(
       tergodic capture --config cap/config.json --seed 3 --out cap2/
     """
     from tergodic_cli.atomic import write_png
-    from tergodic_cli.capture import CaptureConfig, capture_cloud, save_capture
+    from tergodic_cli.capture import capture_cloud, save_capture
+    from tergodic_cli.commands._options import renamed, values
     from tergodic_cli.capture.artefact import CAPTURE_CONFIG_KIND, check_out_folder
     from tergodic_cli.capture.textured import BUILTIN_OBJECTS, SimObjectConfig
     from tergodic_cli.config import from_dict, override, read_config
@@ -87,19 +79,19 @@ def capture(
         saved = CaptureConfig.from_dict(sections.get("capture"), f"--config {config}: capture")
     sourced = saved is not None and not given & {"source", "from_file", "synthetic", "sim_object"}
     kind = saved.source if sourced else _resolve_source(source, from_file, synthetic, sim_object)
+    fields = values(CaptureConfig, opts)  # the options that set CaptureConfig fields (parsed)
+    fields["drop_isolated"] = fields["drop_isolated"] if fields["drop_isolated"] is not None else True
+    marking, seed, units = fields["marking"], fields["seed"], fields["units"]  # the sim object's too
     cfg = CaptureConfig(
-        source=kind, marking=marking, seed=seed, noise=noise, voxel=voxel, voxel_rule=voxel_rule, target=target,
+        **fields, source=kind,
         path=str(from_file) if from_file is not None else (sim_object if kind == "sim" and sim_object not in BUILTIN_OBJECTS else None),
         synthetic=(synthetic or "bowl") if kind != "sim" else (sim_object or "bowl"),
-        units=units if kind != "sim" else "m",  # a sim cloud is in metres; --units applies to the .obj
-        crop=parse_floats(crop, 6, "--crop", "-0.2,-0.2,0,0.2,0.2,0.3") if crop else None,
-        outliers=_parse_outliers(outliers) if outliers else None,
-        drop_isolated=not keep_isolated,
-        drop_invalid=drop_invalid, colour_depth=colour_depth, max_points=max_points,
     )
+    if kind == "sim":
+        cfg.units = "m"  # a sim cloud is in metres; --units applies to the .obj
     if saved is not None:  # the saved capture, with the options given on this command line on top
         cfg = override(saved, cfg, given, {"from_file": ("path",), "sim_object": ("path", "synthetic"),
-                                           "keep_isolated": ("drop_isolated",)})
+                                           **renamed(CaptureConfig)})
     check_seed(cfg.seed)  # also the simulated camera's, which runs before the pipeline's checks
     check_out_folder(out, overwrite)  # before any work: a refused --out costs nothing
     if cfg.path is not None and kind == "file":  # an input inside the folder --overwrite replaces would go with it
@@ -191,8 +183,3 @@ def _report(m: dict) -> str:
         f"mean spacing h: {m['spacing_h_m'] * 1e3:.3f} mm    extent: {ext} mm",
     ]
     return "\n".join(lines)
-
-
-def _parse_outliers(text: str) -> tuple[int, float]:
-    nb, std = parse_floats(text, 2, "--outliers", "20,2.0")
-    return int(nb), std

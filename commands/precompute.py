@@ -8,17 +8,20 @@ from typing import Optional
 
 import typer
 
+from tergodic_cli.basis.config import BasisConfig
+from tergodic_cli.commands._options import with_options
 
+
+@with_options(BasisConfig)
 def precompute(
     ctx: typer.Context,
     capture: Path = typer.Argument(..., help="Capture folder written by 'tergodic capture'."),
-    nk: int = typer.Option(200, "--nk", help="Number of eigenpairs nK (paper: 100 is a good trade-off, 200 the best)."),
-    neighbors: int = typer.Option(30, "--neighbors", help="Neighbours for robust_laplacian. 40 bridges scan gaps (the bunny's ear joins the body)."),
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Cache root [default: $TERGODIC_CACHE_DIR or ~/.cache/tergodic]."),
     force: bool = typer.Option(False, "--force", help="Recompute even when the cache holds this basis."),
     max_points: int = typer.Option(500_000, "--max-points", help="Refuse captures whose basis needs more points than this (GBs and minutes of work); a cloud much denser than 3 mm needs only its 3 mm stand-ins."),
     json_out: bool = typer.Option(False, "--json", help="Print the basis metadata as JSON."),
     config: Optional[Path] = typer.Option(None, "--config", help="Repeat a basis: the config.json of its cache entry (nK, neighbours, solver); --nk/--neighbors given beside it override it."),
+    **opts,
 ) -> None:
     """Compute (or load from cache) the spectral basis of a capture.
 
@@ -31,21 +34,22 @@ def precompute(
 
       tergodic precompute cap2/ --config ~/.cache/tergodic/basis/KEY/config.json
     """
-    from tergodic_cli.basis import BasisConfig, get_basis
+    from tergodic_cli.basis import get_basis
     from tergodic_cli.basis.cache import BASIS_CONFIG_KIND, validate_basis_config
     from tergodic_cli.capture import load_capture
     from tergodic_cli.capture.filters import basis_size
     from tergodic_cli.capture.pipeline import check_size
     from tergodic_cli.commands._common import given_options
+    from tergodic_cli.commands._options import renamed, values
     from tergodic_cli.config import override, read_config
     from tergodic_cli.progress import echo as echo_err
 
-    bcfg = BasisConfig(nk=nk, neighbors=neighbors)
+    bcfg = BasisConfig(**values(BasisConfig, opts))
     if config is not None:  # the saved config, with --nk / --neighbors given on this command line on top
         d = read_config(config, BASIS_CONFIG_KIND,
                         "give the config.json of a basis cache entry (see 'tergodic precompute --json')", sections=("basis",))
         saved = BasisConfig.from_dict(d.get("basis"), f"--config {config}: basis")
-        bcfg = override(saved, bcfg, given_options(ctx) & {"nk", "neighbors"})
+        bcfg = override(saved, bcfg, given_options(ctx), renamed(BasisConfig))
     validate_basis_config(bcfg)  # before the capture is read
     cap = load_capture(capture)
     h = cap.meta.get("spacing_h_m")

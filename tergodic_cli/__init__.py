@@ -43,8 +43,8 @@ _PUBLIC = {
     "coverage_score": "tergodic_cli.explore.metrics",
     "run_explore": "tergodic_cli.run",
     "make_backend": "tergodic_cli.run",
-    "StartSpec": "tergodic_cli.run",
-    "LogSpec": "tergodic_cli.run",
+    "StartSpec": "tergodic_cli.runspec",
+    "LogSpec": "tergodic_cli.runspec",
 }
 
 __all__ = ["FORMAT_VERSION", "__version__", *_PUBLIC]

@@ -99,6 +99,135 @@ def _coerce(hint, value, where: str):
     return value
 
 
+@dataclasses.dataclass(frozen=True)
+class Option:
+    """How a verb offers a config field on its command line: the field's ``metadata["option"]``
+    (:func:`option`). The verbs build their options from these (``commands/_options.py``), so a
+    field's type, default, help and unit are declared once, here, beside the field.
+
+    Attributes
+    ----------
+    flag : str
+        The option, e.g. ``"--agent-radius"``, or ``"--dry-run/--no-dry-run"`` (a switch with its
+        negation); the verb's parameter is named after it (``agent_radius``).
+    help : str
+        What it sets, without its unit and default (those are appended).
+    unit : str, optional
+        The value's unit ("m", "N", "m/s"), appended to the help.
+    group : str, optional
+        The runs it applies to ("robot", "pybullet", "franka", "closed loop"), shown first as "[group]".
+    default : str, optional
+        The "[default: ...]" text where the field's default does not say it (a None that means
+        something, e.g. "20% of --force").
+    type : type, optional
+        The value's type on the command line where it is not the field's (e.g. ``str`` for a pose
+        typed as "x,y,z"); ``parse`` turns it into the field's value.
+    parse : callable, optional
+        text -> the field's value; with ``sets``, a tuple of the values of those fields.
+    sets : tuple of str, optional
+        The fields the option sets, where it sets more than its own (e.g. ``--workspace``: the box's
+        two corners).
+    short : str, optional
+        A one-letter alias ("-o").
+    metavar : str, optional
+        How the value is shown in the help.
+    """
+
+    flag: str
+    help: str
+    unit: str | None = None
+    group: str | None = None
+    default: str | None = None
+    type: typing.Any = None
+    parse: typing.Callable | None = None
+    sets: tuple[str, ...] | None = None
+    short: str | None = None
+    metavar: str | None = None
+
+    @property
+    def name(self) -> str:
+        """The verb's parameter name (``--agent-radius`` -> ``agent_radius``)."""
+        return self.flag.split("/")[0].lstrip("-").replace("-", "_")
+
+    def help_text(self, shown_default=None) -> str:
+        """The help line: "[group] help, unit [default: ...].".
+
+        Parameters
+        ----------
+        shown_default : str, optional
+            The default to show when :attr:`default` is None and the command line does not show it itself.
+
+        Returns
+        -------
+        str
+        """
+        text = (f"[{self.group}] " if self.group else "") + self.help.rstrip(".")
+        if self.unit:
+            text += f", {self.unit}"
+        default = self.default if self.default is not None else shown_default
+        return text + (f" [default: {default}]" if default is not None else "") + "."
+
+
+def option(flag: str, help: str, **kw) -> dict:
+    """A field's metadata that offers it as a verb option: ``field(default=..., metadata=option(...))``.
+
+    Parameters
+    ----------
+    flag, help : str
+        See :class:`Option`.
+    **kw
+        The other :class:`Option` attributes.
+
+    Returns
+    -------
+    dict
+        ``{"option": Option(...)}``.
+    """
+    return {"option": Option(flag, help, **kw)}
+
+
+def options_of(cls) -> list[tuple[str, Option]]:
+    """The (field name, :class:`Option`) pairs of a config dataclass, in field order.
+
+    Parameters
+    ----------
+    cls : dataclass type
+
+    Returns
+    -------
+    list of (str, Option)
+    """
+    return [(f.name, f.metadata["option"]) for f in dataclasses.fields(cls) if "option" in f.metadata]
+
+
+def parse_floats(text: str | None, n: int | None, option: str, example: str) -> tuple[float, ...] | None:
+    """Parse ``"a,b,c"`` into ``n`` floats (any count when ``n`` is None: the stage checks it), None into None,
+    or raise a one-line error naming ``option``.
+
+    Parameters
+    ----------
+    text : str or None
+    n : int or None
+        How many numbers it must hold.
+    option, example : str
+        The option's name and an example value, for the error.
+
+    Returns
+    -------
+    tuple of float, or None
+    """
+    if text is None:
+        return None
+    try:
+        values = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        count = f"{n} " if n is not None else ""
+        raise TergodicError(f"{option} '{text}' is not {count}comma-separated numbers", f"e.g. {option} {example}") from None
+    if n is not None and len(values) != n:
+        raise TergodicError(f"{option} needs {n} numbers, got {len(values)}", f"e.g. {option} {example}")
+    return values
+
+
 class Config:
     """Mixin for config dataclasses: ``to_dict`` / ``from_dict`` round-trip through JSON."""
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 from contextlib import nullcontext, suppress
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -20,6 +20,10 @@ from tergodic_cli.resources import free_disk, free_memory
 from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_config
 from tergodic_cli.explore.explorer import Explorer
 from tergodic_cli.explore.summary import summarize_run
+from tergodic_cli.config import options_of
+from tergodic_cli.runspec import ClosedLoopSpec, HardwareSpec, LogSpec, StartSpec
+
+__all__ = ["ClosedLoopSpec", "HardwareSpec", "LogSpec", "StartSpec", "apply_saved", "make_backend", "run_explore"]
 
 ROBOTS = ("kinematic", "pybullet", "franka")
 #: What a run folder may hold: explore's files and replay's default outputs (--overwrite replaces only these).
@@ -27,41 +31,69 @@ RUN_FILES = frozenset({"run.mcap", "summary.json", "config.json", "trajectory.np
                        "run.rrd", "report.html"})
 
 
-@dataclass
-class StartSpec:
-    """Where the agents start: ``start`` is "random", a point index, or "x,y,z" (metres);
-    or ``starts_file`` (see :func:`read_starts`: (m, 3) metres) from ``start_index`` on."""
-
-    start: str | None = None
-    starts_file: str | None = None
-    start_index: int | None = None
-
-
 #: ``config.json``: what repeats a run (``tergodic explore CAPTURE --config RUN/config.json``).
 RUN_CONFIG_KIND = "tergodic.run_config"
 #: Its sections (:func:`_run_config`).
-RUN_CONFIG_SECTIONS = ("capture", "explore", "starts", "robot", "robot_options", "log_cloud_every")
+RUN_CONFIG_SECTIONS = ("capture", "explore", "starts", "robot", "robot_options", "log_cloud_every", "closed_loop",
+                       "hardware")
 
 
-def _run_config(run: _Run, log_cloud_every: int) -> dict:
+def _run_config(capture_dir, user_cfg: ExploreConfig, backend, starts: StartSpec | None, log_cloud_every: int,
+                dry_run: bool = False) -> dict:
     """The sections of a run's ``config.json``: the config as given (before a robot's time scaling),
-    the starts (the seed in ``cfg`` makes a random start the same), the robot's config without the GUI."""
-    spec, backend = run.starts or StartSpec(), run.backend
+    the starts (the seed in ``cfg`` makes a random start the same), the robot's config without the GUI,
+    the closed loop (a simulated robot) and the real robot's connection (a hardware run, and whether
+    it was a dry run): everything :func:`apply_saved` needs to repeat the run."""
+    spec = starts or StartSpec()
     rc = backend.robot_cfg
-    return {"capture": str(Path(run.capture_dir).resolve()), "explore": run.user_cfg.to_dict(),
+    loop = getattr(backend, "loop", None)
+    hardware = getattr(backend, "hardware", None)
+    return {"capture": str(Path(capture_dir).resolve()), "explore": user_cfg.to_dict(),
             "starts": {"start": spec.start, "start_index": spec.start_index,
                        "starts_file": str(Path(spec.starts_file).resolve()) if spec.starts_file else None},
             "robot": backend.name,
             "robot_options": replace(rc, gui=False, realtime=False).to_dict() if rc is not None else {},
-            "log_cloud_every": int(log_cloud_every)}
+            "log_cloud_every": int(log_cloud_every),
+            "closed_loop": loop.to_dict() if loop is not None else None,
+            "hardware": replace(hardware, dry_run=dry_run).to_dict() if hardware is not None else None}
 
 
-#: The ExploreConfig field each ``tergodic explore`` option sets, where they differ.
-RENAMED = {"agents": ("n_agents",), "fit_neighbors": ("n_neighbors",), "neighbors": ("basis_neighbors",)}
+def save_dry_run(out_dir, capture_dir, cfg: ExploreConfig, backend, starts: StartSpec | None, log_cloud_every: int,
+                 overwrite: bool = False) -> Path:
+    """Write the ``config.json`` of a hardware dry run into ``out_dir`` (nothing else): ``--config`` repeats the
+    dry run, and with ``--no-dry-run`` makes the run it planned.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        The run folder: created; one that holds files is refused unless ``overwrite``.
+    capture_dir, cfg, backend, starts, log_cloud_every
+        As for :func:`run_explore`.
+    overwrite : bool
+        Replace the folder's ``config.json``.
+
+    Returns
+    -------
+    Path
+        The file written.
+    """
+    from tergodic_cli.config import CONFIG_FILE, write_config
+
+    out = Path(out_dir)
+    require(overwrite or not out.exists() or not any(out.iterdir()), f"--out {out} exists and is not empty",
+            "choose another --out, or add --overwrite")
+    out.mkdir(parents=True, exist_ok=True)
+    write_config(out / CONFIG_FILE, RUN_CONFIG_KIND, **_run_config(capture_dir, cfg, backend, starts, log_cloud_every,
+                                                                   dry_run=True))
+    return out / CONFIG_FILE
+
+
+#: The ExploreConfig field each ``tergodic explore`` option sets, where they differ (from the fields' options).
+RENAMED = {o.name: (f,) for f, o in options_of(ExploreConfig) if o.name != f}
 
 
 def apply_saved(path, fields: dict, given: set, starts: StartSpec, robot: str, robot_options: dict,
-                log_cloud_every: int) -> tuple:
+                log_cloud_every: int, loop: ClosedLoopSpec | None = None, hardware: HardwareSpec | None = None) -> tuple:
     """A saved run's ``config.json`` with the options given on the command line on top.
 
     Parameters
@@ -75,11 +107,13 @@ def apply_saved(path, fields: dict, given: set, starts: StartSpec, robot: str, r
         The verb's option names given on the command line (they win over the saved ones).
     starts, robot, robot_options, log_cloud_every
         The command line's starts, backend name, robot options (None: not given) and cloud interval.
+    loop, hardware : ClosedLoopSpec, HardwareSpec, optional
+        The command line's closed loop and robot connection (their options in ``given`` win).
 
     Returns
     -------
     tuple
-        (ExploreConfig, StartSpec, robot, robot_options, log_cloud_every).
+        (ExploreConfig, StartSpec, robot, robot_options, log_cloud_every, ClosedLoopSpec, HardwareSpec).
     """
     from tergodic_cli.config import from_dict, override, read_config
 
@@ -96,9 +130,14 @@ def apply_saved(path, fields: dict, given: set, starts: StartSpec, robot: str, r
             options["safety"] = {**(options.get("safety") or {}), **{k: v for k, v in (value or {}).items() if v is not None}}
         elif value is not None:
             options[key] = value
+    # the closed loop and the connection: as saved (a run without them: none), the options given on top
+    loop = override(from_dict(ClosedLoopSpec, d.get("closed_loop") or {}, f"{where}: closed_loop"),
+                    loop or ClosedLoopSpec(), given)
+    hardware = override(from_dict(HardwareSpec, d.get("hardware") or {}, f"{where}: hardware"),
+                        hardware or HardwareSpec(), given)
     return (cfg, starts if given & {"start", "starts", "start_index"} else saved_starts,
             robot if "robot" in given else d.get("robot", "kinematic"), options,
-            log_cloud_every if "log_cloud_every" in given else d.get("log_cloud_every", 50))
+            log_cloud_every if "log_cloud_every" in given else d.get("log_cloud_every", 50), loop, hardware)
 
 
 #: The keys a starts file may hold its (n, 3) start positions under, in order of preference (x0_arr: the
@@ -205,17 +244,6 @@ def find_basis(points: np.ndarray, nk: int, neighbors: int, cache_dir=None,
             basis, hit = get_basis(points, bcfg, cache_dir, on_event=on_event)
             return (basis.truncated(nk) if basis.nk > nk else basis), hit
     return get_basis(points, BasisConfig(nk=nk, neighbors=neighbors), cache_dir, on_event=on_event)
-
-
-@dataclass
-class LogSpec:
-    """The run log: the per-point cloud every ``cloud_every`` steps (and at the end); ``live``
-    ("HOST:PORT") also streams the log to Foxglove over WebSocket while the run goes on."""
-
-    cloud_every: int = 50
-    live: str | None = None
-    #: with ``live``: start once a viewer has connected; keep serving the final state until Ctrl-C
-    live_wait: bool = False
 
 
 #: Bytes a run holds in memory per explorer step and agent (positions, velocities, normals,
@@ -498,7 +526,8 @@ def _write_run(out: Path, run: _Run) -> dict:
         from tergodic_cli.config import CONFIG_FILE, write_config
 
         write_json(out / "summary.json", summary)
-        write_config(out / CONFIG_FILE, RUN_CONFIG_KIND, **_run_config(run, spec.cloud_every))
+        write_config(out / CONFIG_FILE, RUN_CONFIG_KIND,
+                     **_run_config(run.capture_dir, run.user_cfg, run.backend, run.starts, spec.cloud_every))
         if runlog is not None:
             hold = (lambda: runlog.live.hold(say)) if spec.live_wait and runlog.live is not None else None
             runlog.close(summary, status="interrupted" if summary.get("interrupted") else "ok",  # robot made safe
@@ -513,12 +542,9 @@ def make_robot_config(robot_config_cls, options: dict | None):
     if isinstance(options.get("safety"), dict):
         options["safety"] = {k: v for k, v in options["safety"].items() if v is not None}
     if isinstance(options.get("gains"), str):  # --gains tuned | paper
-        from tergodic_cli.robot.controller import PAPER_GAINS
+        from tergodic_cli.robot.controller import gains_preset
 
-        name = options.pop("gains")
-        require(name in ("tuned", "paper"), f"unknown --gains {name!r}", "use --gains tuned or --gains paper")
-        if name == "paper":
-            options["gains"] = PAPER_GAINS.to_dict()
+        options["gains"] = gains_preset(options["gains"])
     return robot_config_cls.from_dict(options, "robot_options")
 
 
@@ -569,6 +595,11 @@ class PyBullet(Kinematic):
         self.robot_cfg = robot_cfg
         self.recapture_every, self.until_clean, self.max_steps = recapture_every, until_clean, max_steps
 
+    @property
+    def loop(self) -> ClosedLoopSpec:
+        """The closed loop as the run's ``config.json`` saves it (``recapture_every`` None: no loop)."""
+        return ClosedLoopSpec(self.recapture_every, self.until_clean, self.max_steps)
+
     def check(self, capture, start_xyz) -> None:
         guard = _check_robot(self.robot_cfg)
         from tergodic_cli.robot.run import object_pose
@@ -617,6 +648,9 @@ class Franka(PyBullet):
         from tergodic_cli.backends.factory import make_hardware
 
         self.robot_cfg = robot_cfg
+        #: The connection, as the run's ``config.json`` saves it.
+        self.hardware = HardwareSpec(**(hardware or {}))
+        self.recapture_every, self.until_clean, self.max_steps = None, ClosedLoopSpec.until_clean, None  # no loop
         self.arm, self.sensor = make_hardware(robot="franka", **(hardware or {}))
 
     def check(self, capture, start_xyz) -> None:

@@ -190,6 +190,9 @@ def test_the_gain_sums_the_agents_sheet_only(planes):
     prm[K.PR_GAIN_EPS2] = (2 / 0.015) ** 2  # a 15 mm kernel: the wall is well within it
     t1, t2 = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
     ball = np.empty(n + 1, np.int64)
+    sf = K.Surface(P, nrm, index.tree, index.tree, index.tree, np.arange(n), np.zeros((n, 1)))
+    st = K.State(pf, pb, np.zeros((K.N_PI, n), np.int64), np.zeros((K.N_SP, 1)), np.zeros(1), np.zeros(1, np.int64), fs,
+                 np.zeros(K.N_IS, np.int64), np.zeros((1, K.N_AG)), np.zeros((1, 20), np.int64), np.zeros(0))
     x = np.array([0.1, 0.1, 0.0])
     lower = int(np.argmin(np.linalg.norm(P - x, axis=1)))  # the agent's nearest point: on the lower plane
     above = int(np.argmin(np.linalg.norm(P - (x + [0, 0, WALL]), axis=1)))
@@ -198,7 +201,7 @@ def test_the_gain_sums_the_agents_sheet_only(planes):
     want = np.sum(np.exp(-prm[K.PR_GAIN_EPS2] * d2)[d2 <= (K.GAIN_REACH * 0.015) ** 2])
     assert want > 0.05
     for anchor, g in ((lower, gap), (above, gap), (lower, np.inf)):
-        grad, G = K.gain_gradient(P, nrm, *index.tree, pf, pb, fs, prm, x, t1, t2, ball, anchor, g)
+        grad, G = K.gain_gradient(sf, st, prm, x, t1, t2, ball, anchor, g, False)
         if anchor == lower and g < np.inf:
             assert G == 0.0 and not np.any(grad)  # the target lies through the wall: nothing a deposit here removes
         else:  # on the target's sheet (or with no sheets): every target point counts

@@ -71,8 +71,7 @@ class FullRecompute:
 def _heat_at(ex: Explorer, idx) -> np.ndarray:
     """The heat at cloud points ``idx`` exactly as the agents' gradient fits see it."""
     idx = ex._rank[ex._field.rep[np.asarray(idx, dtype=np.int64).ravel()]]
-    return np.array([K.heat_at(ex._phi, ex._pf, ex._sp, ex._fs, j, ex._mode, ex._u_full)
-                     for j in idx])
+    return np.array([K.heat_at(ex._phi, ex._pf, ex._sp, ex._fs, j, ex._mode, ex._u_full) for j in idx])
 
 
 def _eq48(ex: Explorer) -> float:

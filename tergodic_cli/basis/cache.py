@@ -26,7 +26,7 @@ import shutil
 import tempfile
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +36,7 @@ from tergodic_cli import FORMAT_VERSION
 from tergodic_cli.atomic import check_parent_writable
 from tergodic_cli.basis.core import Basis, compute_basis
 from tergodic_cli.capture.artefact import SIDECAR_SHA, sidecar_checksum
-from tergodic_cli.config import CONFIG_FILE, Config, write_config
+from tergodic_cli.config import CONFIG_FILE, write_config
 from tergodic_cli.errors import os_error, require
 from tergodic_cli.progress import Spinner
 
@@ -54,21 +54,7 @@ BASIS_CONFIG_KIND = "tergodic.basis_config"
 _BITS = 21  # per axis in the packed sort key: 2**21 µm = 2.1 m of extent
 
 
-@dataclass(frozen=True)
-class BasisConfig(Config):
-    """Parameters of a basis; all of them are part of the cache key. Saved as the entry's ``config.json``.
-
-    nk : number of eigenpairs. neighbors : neighbours of the robust Laplacian.
-    solver : the eigensolver (:func:`~tergodic_cli.basis.eigensolvers.smallest_eigenpairs`).
-    """
-
-    nk: int = 200
-    neighbors: int = 30
-    solver: str = "lanczos-interior-shift"
-
-
-#: The eigensolvers a basis can name (the one :func:`~tergodic_cli.basis.eigensolvers.smallest_eigenpairs` runs).
-SOLVERS = ("lanczos-interior-shift",)
+from tergodic_cli.basis.config import SOLVERS, BasisConfig  # noqa: E402  (their home; re-exported here)
 
 
 def validate_basis_config(cfg: BasisConfig) -> None:

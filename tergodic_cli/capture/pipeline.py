@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from tergodic_cli.capture.artefact import Capture
+from tergodic_cli.capture.config import MAX_POINTS, CaptureConfig  # noqa: F401  (their home; re-exported here)
 from tergodic_cli.capture.filters import (ISOLATED_MIN, VOXEL_RULES, basis_size, count_duplicates, isolated_points, mean_spacing,
                                           remove_statistical_outliers, voxel_downsample)
 from tergodic_cli.capture.readers import read_cloud
@@ -30,9 +31,6 @@ MIN_EXTENT_M = 0.005
 #: Spans beyond these are not a units mistake (x1000 would not make them an object): a corrupt body.
 CORRUPT_EXTENT_M = MAX_EXTENT_M * 1e3
 DEGENERATE_EXTENT_M = MIN_EXTENT_M * 1e-3
-#: Above this many points after filtering, precompute needs GBs and minutes (issue 16, item 6); on a
-#: dense cloud the limit is on its 3 mm stand-ins, which carry the basis (issue 27, item 5).
-MAX_POINTS = 500_000
 #: The basis' default nK and neighbours, for the capture's size warning (precompute's defaults).
 BASIS_NK, BASIS_NEIGHBORS = 200, 30
 #: Rough cost of precompute per point (nK = 200), measured at 120k points: 1.6 GB peak, 27 s on 2 cores.
@@ -45,27 +43,6 @@ BYTES_PER_DENSE_POINT = 300
 SECONDS_PER_DENSE_POINT = 1.2e-5
 
 
-@dataclass
-class CaptureConfig(Config):
-    """Everything that determines a capture; saved in ``capture.json`` and ``config.json``."""
-
-    source: str = "synthetic"  # "file" | "synthetic" | "sim" | "realsense" (the last two pass raw arrays)
-    path: str | None = None  # a cloud, or a triangle mesh (.obj, .stl, .glb, .off, a .ply with faces) to sample
-    synthetic: str = "bowl"
-    marking: str = "X"
-    seed: int = 0  # synthetic clouds, and the Poisson-disk sampling of a mesh
-    noise: float = 0.0  # synthetic only: σ (m) of Gaussian noise along the surface normal
-    units: str = "m"  # units of the input coordinates: "m" or "mm"
-    voxel: float = 0.003  # metres; 0 disables the voxel grid
-    voxel_rule: str = "fraction"  # "fraction" | "all" | "intensity" (faint ink weighs in too; the closed loop's)
-    crop: tuple[float, float, float, float, float, float] | None = None  # xmin,ymin,zmin,xmax,ymax,zmax (m)
-    outliers: tuple[int, float] | None = None  # (nb_neighbors, std_ratio)
-    drop_isolated: bool = True  # stray points (filters.isolated_points), after the voxel grid
-    target: str = "red"
-    drop_invalid: bool = False
-    colour_depth: int | None = None  # 8 or 16 bits per channel when the file does not say; None: by the values
-    max_points: int = MAX_POINTS  # more points after filtering get a size warning
-    allow_empty_target: bool = False  # re-captures of a cleaned object may have no marking left
 
 
 def capture_cloud(cfg: CaptureConfig, raw: tuple[np.ndarray, np.ndarray | None] | None = None,

@@ -8,7 +8,18 @@ run (capture, basis, starts, a backend, the log) is :func:`tergodic_cli.run.run_
 """
 
 from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_config
-from tergodic_cli.explore.explorer import Explorer
-from tergodic_cli.explore.summary import summarize_run
+
+
+def __getattr__(name):  # the explorer pulls in numba: load it on first use (the CLI reads the config at start-up)
+    if name == "Explorer":
+        from tergodic_cli.explore.explorer import Explorer
+
+        return Explorer
+    if name == "summarize_run":
+        from tergodic_cli.explore.summary import summarize_run
+
+        return summarize_run
+    raise AttributeError(name)
+
 
 __all__ = ["ExploreConfig", "Explorer", "parse_alpha", "summarize_run", "validate_config"]

@@ -23,6 +23,7 @@ from tergodic_cli.errors import require
 from tergodic_cli.explore import kernels as K
 from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_config
 from tergodic_cli.explore.diffusion import ImplicitDiffusion, time_step
+from tergodic_cli.explore.footprint import footprint, residual, source
 from tergodic_cli.explore.index import cached, cloud_index, sheet_normals
 from tergodic_cli.explore.metrics import CoverageScore, source_term
 from tergodic_cli.explore.transit import (ARRIVE_RA, BAN_RA, STALL_FALL, STALL_WINDOW, Transit, choose_goal, path_to, paths_from,
@@ -196,8 +197,7 @@ class Explorer:
                     f"start {np.array2string(x0, precision=4)} is {d0 * 1e3:.1f} mm from the cloud "
                     f"(limit {cfg.max_start_distance * 1e3:.0f} mm)",
                     "give a start on the object (x,y,z in metres, a point index, or 'random')")
-            K.place_agent(self._P, self._nrm, *self._tree, self._full.tree, self._ag, self._nbrs, i, x0, hint, self._k,
-                          self._prm[K.PR_REACH], self._prm[K.PR_SHEET_GAP])
+            K.place_agent(self._surface, self._st, i, x0, hint, self._prm[K.PR_REACH], self._prm[K.PR_SHEET_GAP])
             if d0 > self.h:
                 self.on_event(f"warning: start {np.array2string(x0, precision=4)} is {d0 * 1e3:.1f} mm off the cloud; "
                           f"projected onto the surface at {np.array2string(self.positions[i], precision=4)}")
@@ -223,8 +223,8 @@ class Explorer:
         reachable = np.flatnonzero(np.isin(parts, np.unique(parts[self.p > 0])))
         x = self.positions[i].copy()
         j = reachable[np.argmin(np.linalg.norm(self.points[reachable] - x, axis=1))]
-        K.place_agent(self._P, self._nrm, *self._tree, self._full.tree, self._ag, self._nbrs, i, self.points[j].copy(),
-                      hint, self._k, self._prm[K.PR_REACH], self._prm[K.PR_SHEET_GAP])
+        K.place_agent(self._surface, self._st, i, self.points[j].copy(), hint, self._prm[K.PR_REACH],
+                      self._prm[K.PR_SHEET_GAP])
         self.on_event(f"warning: start {np.array2string(x, precision=4)} is on a part of the cloud the target is not on "
                   f"(a gap wider than {2 * K.SURFACE_REACH * self.h * 1e3:.1f} mm); starting at the nearest point "
                   f"of the target's part, {np.linalg.norm(self.points[j] - x) * 1e3:.1f} mm away")
@@ -286,7 +286,7 @@ class Explorer:
         self._pb[:] = 0
         self._pb[K.PB_TARGET, T] = 1
         self._pi[K.PI_TARGET, : len(T)] = T
-        self._tgt = (*K.tree_build(np.ascontiguousarray(self._P[T])), T.astype(np.int64))  # the broad gain's
+        tgt = K.Tree(*K.tree_build(np.ascontiguousarray(self._P[T])))  # the broad gain's
         # The source's c̄ = c̃/Z: Z over the target (cfg.coverage_norm "target") or the cloud (eq. 2).
         self._prm[K.PR_ZTARGET] = 1.0 if self.cfg.coverage_norm == "target" and len(T) < n else 0.0
         self._heap_keys, self._heap_idx = np.zeros(len(T)), np.zeros(len(T), dtype=np.int64)
@@ -295,8 +295,12 @@ class Explorer:
         self._is[K.IS_NTARGET] = len(T)
         self._is[K.IS_TOUCHED] = int(np.count_nonzero(self._cov[T] > 0))
         self._fs[np.arange(K.N_FS) != K.FS_DRIFT] = 0.0
-        K.resync(self._phi, self._pf, self._pb, self._pi, self._sp, self._heap_keys, self._heap_idx, self._fs,
-                 self._is, self._prm[K.PR_ZTARGET])
+        # the step kernel's arguments, bound once per target (the target's tree and the heap change with it)
+        self._surface = K.Surface(self._P, self._nrm, self._tree, self._full.tree, tgt, T.astype(np.int64), self._phi)
+        self._st = K.State(self._pf, self._pb, self._pi, self._sp, self._heap_keys, self._heap_idx, self._fs, self._is,
+                           self._ag, self._nbrs, self._u_full)
+        self._state = (K.plain(self._surface), K.plain(self._st), self._prm)
+        K.resync(self._phi, self._st, self._prm[K.PR_ZTARGET])
         self._ref_norm2 = 1.0
         # Φᵀ M p̄: the spectral part of u₀ = p̄ (eq. 5) and of the reference heat p̂.
         pbar_coef = K.project_rows(self._phi, self._pf[K.PF_MASS] * pbar)
@@ -314,10 +318,6 @@ class Explorer:
         self._gain_of_target = None  # the gain's kernel over T, built at the first stall check
         self._banned = np.zeros(len(T), dtype=bool)  # target points a transit could not reach
         self._s_then, self._next_check = math.inf, STALL_WINDOW
-        # the step kernel's state arguments, bound once per target (the heap arrays change with it)
-        self._state = (self._P, self._nrm, *self._tree, self._full.tree, self._tgt, self._phi, self._pf,
-                       self._pb, self._pi, self._sp, self._heap_keys, self._heap_idx, self._fs,
-                       self._is, self._prm, self._ag, self._nbrs, self._k)
 
     def _set_metrics(self, residual_ref: float) -> None:
         sc = self._score.metrics()
@@ -367,7 +367,7 @@ class Explorer:
     def _s_target(self, Z: float) -> np.ndarray:
         """s = max(p̄ - c̃/Z, 0)² on the target's points ``self._T`` (internal order)."""
         T = self._T
-        return np.maximum(self._pf[K.PF_PBAR, T] - (self._cov[T] / Z if Z > 0 else 0.0), 0.0) ** 2
+        return source(self._pf[K.PF_PBAR, T], self._cov[T] / Z if Z > 0 else 0.0)
 
     def _sbar(self, Z: float | None = None) -> np.ndarray:
         """(m,) the injected source s/∫s in internal order: as the step used it (running Z and ∫s), or
@@ -465,8 +465,7 @@ class Explorer:
             status[:] = 0
         if self._moving:
             self._steer()
-        args = (*self._state, deposits, n_dep, self._resets, status, self._mode, self._resync,
-                self._u_full)
+        args = (*self._state, deposits, n_dep, self._resets, status, self._mode, self._resync)
         if self._spectral:
             K.step_kernel(*args, 0)
         else:  # coverage and source, the full field's diffusion, the agents
@@ -527,9 +526,9 @@ class Explorer:
         s_then, self._s_then = self._s_then, s_now
         if not s_now > (1.0 - STALL_FALL) * s_then:
             return  # progress (or the first window): no further work
-        T, P = self._T, self._P
+        T = self._T
         zc = float(self._fs[K.FS_ZC])
-        e = np.maximum(self._pf[K.PF_PBAR, T] - (self._cov[T] / zc if zc > 0 else 0.0), 0.0)
+        e = residual(self._pf[K.PF_PBAR, T], self._cov[T] / zc if zc > 0 else 0.0)
         w = self._pf[K.PF_MASS, T] * e
         gain = self._target_kernel() @ w  # G at every target point: what a deposit there would remove
         separate = self.cfg.sheets == "separate"  # then along the explorer's own oriented sheet normals
@@ -545,9 +544,9 @@ class Explorer:
             best = float(np.max(gain[ok]))
             # G where the agent stands, over its own sheet (kernels.sheet_of): residual seen through a
             # wall is nothing a deposit here would remove, so an agent parked under it is stalled
-            here = K.gain_gradient(P, self._nrm, *self._tree, self._pf, self._pb, self._fs, self._prm,
-                                   self.positions[i], self._ag[i, K.AG_T1:K.AG_T1 + 3],
-                                   self._ag[i, K.AG_T2:K.AG_T2 + 3], self._ball, src, self._prm[K.PR_SHEET_GAP])[1]
+            here = K.gain_gradient(self._surface, self._st, self._prm, self.positions[i],
+                                   self._ag[i, K.AG_T1:K.AG_T1 + 3], self._ag[i, K.AG_T2:K.AG_T2 + 3], self._ball, src,
+                                   self._prm[K.PR_SHEET_GAP], False)[1]
             if stalled(s_then, s_now, here, best) and (worst is None or here / best < worst[0]):
                 worst = (here / best, i, src, dist, pred, gain)
         if worst is not None:
@@ -566,7 +565,7 @@ class Explorer:
             eps2 = self._prm[K.PR_GAIN_EPS2]
             pts = self._P[T]
             pairs = cKDTree(pts).query_pairs(K.GAIN_REACH / math.sqrt(eps2), output_type="ndarray")
-            k = np.exp(-eps2 * np.sum((pts[pairs[:, 0]] - pts[pairs[:, 1]]) ** 2, axis=1))
+            k = footprint(eps2, np.sum((pts[pairs[:, 0]] - pts[pairs[:, 1]]) ** 2, axis=1))
             m = len(T)
             i = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(m)])
             j = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(m)])

@@ -37,7 +37,8 @@ def cached(kind: str, owner, build):
     if hit is not None and hit[0]() is owner:
         return hit[1]
     value = build()
-    _STORE[key] = (weakref.ref(owner, lambda _ref, key=key: _STORE.pop(key, None)), value)
+    # (the store bound now: at interpreter exit the module's globals may already be None)
+    _STORE[key] = (weakref.ref(owner, lambda _ref, key=key, store=_STORE: store.pop(key, None)), value)
     return value
 
 
@@ -47,8 +48,8 @@ class CloudIndex:
     The explorer keeps every per-point array, and the rows of Φ, in the tree's leaf order
     (``order``: internal i is cloud point order[i]; ``rank`` is the inverse), so that the
     points under a footprint, and their rows of Φ, are close in memory: on a 100k-point cloud
-    this halves the step (cache and TLB misses). ``tree`` is the kernels' (perm, nodes, boxes,
-    points) in internal indices, ``points`` the cloud in internal order.
+    this halves the step (cache and TLB misses). ``tree`` is the kernels' :class:`~kernels.Tree` (perm, nodes,
+    boxes, points) in internal indices, ``points`` the cloud in internal order.
     """
 
     def __init__(self, points: np.ndarray):
@@ -56,7 +57,7 @@ class CloudIndex:
         self.order = perm
         self.rank = np.argsort(perm)  # the inverse permutation
         self.points = tpts
-        self.tree = (np.arange(len(perm)), nodes, boxes, tpts)
+        self.tree = K.Tree(np.arange(len(perm)), nodes, boxes, tpts)
 
 
 def cloud_index(points: np.ndarray) -> CloudIndex:

@@ -11,12 +11,15 @@ full :func:`resync` every K steps) is derived in docs/speed.md.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
 from llvmlite import ir
 from numba.core import cgutils, types
 from numba.extending import intrinsic
+
+from tergodic_cli.explore.footprint import footprint, residual, source
 
 
 def njit(fn):
@@ -101,6 +104,68 @@ PR_SHEET_GAP = 12
 N_PR = 13
 # Heat modes of :func:`step_kernel`: spectral carry-over, spectral current source, a full field.
 HEAT_CARRY, HEAT_SOURCE, HEAT_FULL = 0, 1, 2
+
+
+
+class Tree(NamedTuple):
+    """A static KD-tree (:func:`tree_build`) over m points: ``perm`` (m,) the points' order in its
+    leaves, ``nodes`` (nodes, 4) int64 (first, count, left, right), ``boxes`` (nodes, 6) bounds, m,
+    ``tpts`` (m, 3) the points in leaf order, metres."""
+
+    perm: np.ndarray
+    nodes: np.ndarray
+    boxes: np.ndarray
+    tpts: np.ndarray
+
+
+class Surface(NamedTuple):
+    """What a step reads and never writes (internal, KD-tree leaf order).
+
+    ``P`` (m, 3) the field's points, metres; ``Nrm`` (m, 3) their normal lines
+    (:func:`sheet_normals`); ``tree`` the :class:`Tree` over P; ``full`` the whole cloud's tree, which
+    decides what lies on the data; ``tgt`` the tree over the target's field points and ``tmap``
+    (|T|,) their indices into P (the broad gain's); ``Phi`` (m, nK) the eigenvectors' rows.
+    """
+
+    P: np.ndarray
+    Nrm: np.ndarray
+    tree: Tree
+    full: Tree
+    tgt: Tree
+    tmap: np.ndarray
+    Phi: np.ndarray
+
+
+class State(NamedTuple):
+    """What a step updates, in place.
+
+    ``pf`` (N_PF, m) float rows per point (PF_*: mass, p̄, p̂, c̃, ...); ``pb`` (N_PB, m) int8 flags
+    (PB_*: target, active, in the heap, ...); ``pi`` (N_PI, m) int64 lists (PI_*); ``sp`` (N_SP, nK)
+    the spectral rows (SP_*: decay, heat coefficients, accumulators F); ``heap_key``, ``heap_idx``
+    (|T|,) the thresholds' min-heap; ``fs`` (N_FS,) float and ``is_`` (N_IS,) int64 scalars (FS_*,
+    IS_*: Z, ∫s, counters); ``ag`` (N, N_AG) the agents (AG_* columns: position, velocity, normal,
+    frame, transit); ``nbrs`` (N, n_N) each agent's neighbours; ``u_full`` (m,) the full heat field
+    of the implicit integrator (empty otherwise).
+    """
+
+    pf: np.ndarray
+    pb: np.ndarray
+    pi: np.ndarray
+    sp: np.ndarray
+    heap_key: np.ndarray
+    heap_idx: np.ndarray
+    fs: np.ndarray
+    is_: np.ndarray
+    ag: np.ndarray
+    nbrs: np.ndarray
+    u_full: np.ndarray
+
+
+def plain(t):
+    """``t`` with every named tuple in it made a plain tuple: what :func:`step_kernel` takes from
+    Python (numba unboxes plain tuples of arrays on its fast path; named ones cost ~0.2 µs an array)."""
+    return tuple(plain(v) for v in t) if isinstance(t, tuple) else t
+
 
 #: A sphere fit larger than this many rms patch radii is its tangent plane (as geometry.py).
 PLANE_RADIUS_RATIO = 1e4
@@ -881,13 +946,14 @@ def _is_active(c, pbar, Z):
 
 
 @njit
-def resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, ztarget):
+def resync(Phi, st, ztarget):
     """Full recompute of Z (the target's when ``ztarget``, PR_ZTARGET), the cloud's Z, the active
-    set, the heap and the accumulators F, G (O(|T| nK)).
+    set, the heap and the accumulators F, G (O(|T| nK)) of the :class:`State` ``st``.
 
     Records in fs[FS_DRIFT] the largest relative change of ∫s and of Φᵀ M s that it made
     (the round-off the incremental updates had accumulated).
     """
+    pf, pb, pi, sp, hk, hi, fs, is_ = st.pf, st.pb, st.pi, st.sp, st.heap_key, st.heap_idx, st.fs, st.is_
     n = pf.shape[1]
     mass, pbar, cov = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV]
     active, inheap = pb[PB_ACTIVE], pb[PB_INHEAP]
@@ -964,7 +1030,8 @@ def _take_row(pf, pi, fs, is_, j, n, w0, w1, w2):
 @njit
 def _enter_or_wait(Phi, pf, pb, pi, hk, hi, fs, is_, j, n, size):
     """A point off the active set: it enters (its row queued) when Z has passed its threshold
-    c̃/p̄, else its threshold goes onto the heap. Returns (rows queued, heap size)."""
+    c̃/p̄, else its threshold goes onto the heap. Returns (rows queued, heap size). (The arrays one
+    by one, not the :class:`State`: it runs per re-entering point, docs/speed.md.)"""
     c, p, m, Z = pf[PF_COV, j], pf[PF_PBAR, j], pf[PF_MASS, j], fs[FS_Z]
     if _is_active(c, p, Z):
         n = _take_row(pf, pi, fs, is_, j, n, m * p * p, m * p * c, m * c * c)
@@ -977,9 +1044,11 @@ def _enter_or_wait(Phi, pf, pb, pi, hk, hi, fs, is_, j, n, size):
 
 
 @njit
-def update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_):
-    """Bring the accumulators up to date after this step's deposits (points in the changed
-    list) and the growth of Z (points whose threshold c̃/p̄ it passed enter the active set)."""
+def update_source(Phi, st):
+    """Bring the accumulators of the :class:`State` ``st`` up to date after this step's deposits
+    (points in the changed list) and the growth of Z (points whose threshold c̃/p̄ it passed enter
+    the active set)."""
+    pf, pb, pi, sp, hk, hi, fs, is_ = st.pf, st.pb, st.pi, st.sp, st.heap_key, st.heap_idx, st.fs, st.is_
     mass, pbar, cov, oldc = pf[PF_MASS], pf[PF_PBAR], pf[PF_COV], pf[PF_OLDC]
     active, inheap, mark, pending = pb[PB_ACTIVE], pb[PB_INHEAP], pb[PB_MARK], pb[PB_PEND]
     chg = pi[PI_CHG]
@@ -1065,8 +1134,8 @@ def sbar_at(pf, fs, j):
     p = pf[PF_PBAR, j]
     if not (ms > 0.0) or p == 0.0:
         return 0.0
-    e = p - pf[PF_COV, j] / Z if Z > 0.0 else p
-    return e * e / ms if e > 0.0 else 0.0
+    e = residual(p, pf[PF_COV, j] / Z if Z > 0.0 else 0.0)
+    return e * e / ms
 
 
 @njit
@@ -1111,7 +1180,8 @@ def expand_rows(Phi, c):
 
 @njit
 def heat_at(Phi, pf, sp, fs, j, mode, u_full):
-    """u at point ``j`` as the agents see it: Φ_j · a (+ s̄_j for carry-over), or u_full[j]."""
+    """u at point ``j`` as the agents see it: Φ_j · a (+ s̄_j for carry-over), or u_full[j]. (The
+    arrays one by one, not the :class:`State`: it runs per neighbour.)"""
     if mode == HEAT_FULL:
         return u_full[j]
     u = row_dot(Phi[j], sp[SP_A])
@@ -1122,13 +1192,15 @@ def heat_at(Phi, pf, sp, fs, j, mode, u_full):
 
 # ---------------------------------------------------------------------------------- coverage
 @njit
-def deposit(P, Nrm, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, x, n):
-    """Add the footprint φ(r) = exp(-ε² r²) (eq. 30), r the tangent-plane distance to ``x``
-    with normal ``n`` (eq. 31), to every point within r_a of ``x`` on the sheet of the one nearest
-    x (:func:`sheet_of`, when PR_SHEET_GAP is finite: a wall's other side gets nothing); note
-    changed target points."""
+def deposit(sf, st, prm, x, n):
+    """Add the footprint φ(r) = exp(-ε² r²) (eq. 30, :func:`~tergodic_cli.explore.footprint.footprint`),
+    r the tangent-plane distance to ``x`` with normal ``n`` (eq. 31), to every point within r_a of
+    ``x`` on the sheet of the one nearest x (:func:`sheet_of`, when PR_SHEET_GAP is finite: a wall's
+    other side gets nothing); note changed target points. ``sf`` :class:`Surface`, ``st`` :class:`State`."""
+    P, Nrm, Phi = sf.P, sf.Nrm, sf.Phi
+    pf, pb, pi, fs, is_ = st.pf, st.pb, st.pi, st.fs, st.is_
     ball = pi[PI_BALL]
-    visited = tree_ball(perm, nodes, boxes, tpts, x, prm[PR_RA], ball)
+    visited = tree_ball(sf.tree.perm, sf.tree.nodes, sf.tree.boxes, sf.tree.tpts, x, prm[PR_RA], ball)
     cnt = sheet_of(P, Nrm, ball, visited, x, -1, prm[PR_SHEET_GAP])
     mass, cov, oldc, phat = pf[PF_MASS], pf[PF_COV], pf[PF_OLDC], pf[PF_PHAT]
     target, mark = pb[PB_TARGET], pb[PB_MARK]
@@ -1143,7 +1215,7 @@ def deposit(P, Nrm, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, x, 
         d0, d1, d2 = P[j, 0] - x[0], P[j, 1] - x[1], P[j, 2] - x[2]
         off = d0 * n[0] + d1 * n[1] + d2 * n[2]
         r2 = max(d0 * d0 + d1 * d1 + d2 * d2 - off * off, 0.0)
-        phi = math.exp(-eps2 * r2)
+        phi = footprint(eps2, r2)
         c = cov[j]
         if target[j] == 1 and mark[j] == 0:
             mark[j] = 1
@@ -1173,13 +1245,15 @@ def deposit(P, Nrm, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, x, 
 
 # ---------------------------------------------------------------------------------- agents
 @njit
-def locate(P, Nrm, perm, nodes, boxes, tpts, x, ref, k, gap, out_xp, out_n, out_nb, d2buf):
-    """Project ``x`` onto the surface fitted to those of its ``k`` nearest points that lie on the
-    nearest one's sheet (:func:`sheet_select`, ``Nrm`` the points' normal lines, ``gap`` metres);
+def locate(sf, x, ref, k, gap, out_xp, out_n, out_nb, d2buf):
+    """Project ``x`` onto the surface fitted to those of its ``k`` nearest points (of the
+    :class:`Surface` ``sf``) that lie on the nearest one's sheet (:func:`sheet_select`, ``sf.Nrm``
+    the points' normal lines, ``gap`` metres);
     writes the point, its normal (oriented like ``ref``) and the neighbours (those on the sheet
     first, each group by distance to ``x``); returns how many are on the sheet. When the point
     lands nearest a neighbour off the sheet, the fit is made once more from there."""
-    tree_knn(perm, nodes, boxes, tpts, x, k, out_nb, d2buf)
+    P, Nrm = sf.P, sf.Nrm
+    tree_knn(sf.tree.perm, sf.tree.nodes, sf.tree.boxes, sf.tree.tpts, x, k, out_nb, d2buf)
     m = sheet_select(P, Nrm, out_nb, k, gap, d2buf)
     fit_project(P, out_nb, m, x, ref, out_xp, out_n)
     if m < k:
@@ -1192,16 +1266,18 @@ def locate(P, Nrm, perm, nodes, boxes, tpts, x, ref, k, gap, out_xp, out_n, out_
                 best, near = dd, t
         if near >= m:
             xq = out_xp.copy()
-            tree_knn(perm, nodes, boxes, tpts, xq, k, out_nb, d2buf)
+            tree_knn(sf.tree.perm, sf.tree.nodes, sf.tree.boxes, sf.tree.tpts, xq, k, out_nb, d2buf)
             m = sheet_select(P, Nrm, out_nb, k, gap, d2buf)
             fit_project(P, out_nb, m, xq, ref, out_xp, out_n)
     return m
 
 
 @njit
-def place_agent(P, Nrm, perm, nodes, boxes, tpts, full, ag, nbrs, i, x0, ref, k, prm_reach, gap):
+def place_agent(sf, st, i, x0, ref, prm_reach, gap):
     """Project a start or reset position onto the surface (fit, project, re-query up to
     START_ITERATIONS times) and set agent ``i``'s position, normal, frame, tangent velocity."""
+    P, ag, nbrs = sf.P, st.ag, st.nbrs
+    k = nbrs.shape[1]
     x = x0.copy()
     r = ref.copy()
     xp = np.empty(3)
@@ -1210,14 +1286,14 @@ def place_agent(P, Nrm, perm, nodes, boxes, tpts, full, ag, nbrs, i, x0, ref, k,
     d2 = np.empty(k)
     m = k
     for _ in range(START_ITERATIONS):
-        m = locate(P, Nrm, perm, nodes, boxes, tpts, x, r, k, gap, xp, nn, nb, d2)
+        m = locate(sf, x, r, k, gap, xp, nn, nb, d2)
         moved = math.sqrt(_dist2(xp, x))
         x[:] = xp
         r[:] = nn
         if moved < 1e-9:
             break
     # projected into a hole or past an edge
-    if nearest_distance(full[0], full[1], full[2], full[3], x) > prm_reach:
+    if nearest_distance(sf.full.perm, sf.full.nodes, sf.full.boxes, sf.full.tpts, x) > prm_reach:
         x[:] = P[nb[0]]
     ag[i, AG_POS:AG_POS + 3] = x
     ag[i, AG_NRM:AG_NRM + 3] = r
@@ -1228,9 +1304,12 @@ def place_agent(P, Nrm, perm, nodes, boxes, tpts, full, ag, nbrs, i, x0, ref, k,
 
 
 @njit
-def agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full):
+def agent_gradient(sf, st, i, prm, mode):
     """∇u (3,) at agent i's projected position in its tangent plane (eqs. 32-33), fitted to its
-    neighbours on its sheet (the first ag[i, AG_NKEEP] of its row of ``nbrs``)."""
+    neighbours on its sheet (the first ag[i, AG_NKEEP] of its row of ``nbrs``), each weighted by
+    the footprint at its distance."""
+    P, Phi, ag, nbrs = sf.P, sf.Phi, st.ag, st.nbrs
+    pf, sp, fs, u_full = st.pf, st.sp, st.fs, st.u_full
     k = int(ag[i, AG_NKEEP])
     uv = np.empty((k, 2))
     vals = np.empty(k)
@@ -1246,7 +1325,7 @@ def agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full):
         uv[t, 0], uv[t, 1] = u, v
         r2 = u * u + v * v
         r2min = min(r2min, r2)
-        w[t] = math.exp(-eps2 * r2)
+        w[t] = footprint(eps2, r2)
         vals[t] = heat_at(Phi, pf, sp, fs, j, mode, u_full)
     # Off the sampled surface the neighbours lie on one side: a plane, not an extrapolated cubic.
     # (too few on the sheet for the cubic's 10 unknowns: a plane too)
@@ -1256,20 +1335,28 @@ def agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full):
 
 
 @njit
-def gain_gradient(P, Nrm, perm, nodes, boxes, tpts, pf, pb, fs, prm, x, t1, t2, ball, anchor=-1, gap=np.inf,
-                  width=1.0, reach=GAIN_REACH, tmap=None):
+def gain_gradient(sf, st, prm, x, t1, t2, ball, anchor, gap, broad):
     """∇G (3,) in the tangent plane (t1, t2) at ``x``, and G itself, where G(x) = Σ_j M_j e_j φ(|x - x_j|)
     is the footprint-weighted residual e = max(p̄ - c̃/Z_Ω, 0) a deposit at x would reduce: the
     descent direction of the coverage error ε (eq. 48) for the next deposit. Exact, over the points
     within GAIN_REACH r_a (φ < 1e-7 beyond, at the default ε = 2/r_a) that lie on the sheet of the
-    point ``anchor`` (:func:`sheet_of`; with ``gap`` inf, or ``anchor`` -1 and ``tmap`` given, all):
-    a deposit on one side of a wall removes nothing on the other. ``tmap`` maps the tree's points
-    (``ball``'s indices) to P's; ``ball`` (n + 1,) is scratch (left holding the indices summed)."""
-    eps2 = prm[PR_GAIN_EPS2] / (width * width)
-    cnt = tree_ball(perm, nodes, boxes, tpts, x, reach * 2.0 / math.sqrt(eps2), ball)
-    mapped = tmap is None
-    if gap < np.inf and (anchor >= 0 or tmap is None):  # (no extra pass over the ball otherwise)
-        if tmap is not None:
+    point ``anchor`` (:func:`sheet_of`; with ``gap`` inf, or ``anchor`` -1 and ``broad``, all):
+    a deposit on one side of a wall removes nothing on the other. ``broad``: the broad gain, over
+    the target's tree (``sf.tgt``, its points mapped to P's by ``sf.tmap``) with a kernel BROAD_WIDTH
+    times as wide, summed within BROAD_REACH widths; else over ``sf.tree`` within GAIN_REACH.
+    ``ball`` (n + 1,) is scratch (left holding the indices summed)."""
+    P, Nrm, pf, pb, fs, tmap = sf.P, sf.Nrm, st.pf, st.pb, st.fs, sf.tmap
+    if broad:
+        eps2 = prm[PR_GAIN_EPS2] / (BROAD_WIDTH * BROAD_WIDTH)
+        t = sf.tgt
+        cnt = tree_ball(t.perm, t.nodes, t.boxes, t.tpts, x, BROAD_REACH * 2.0 / math.sqrt(eps2), ball)
+    else:
+        eps2 = prm[PR_GAIN_EPS2] / (1.0 * 1.0)
+        t = sf.tree
+        cnt = tree_ball(t.perm, t.nodes, t.boxes, t.tpts, x, GAIN_REACH * 2.0 / math.sqrt(eps2), ball)
+    mapped = not broad
+    if gap < np.inf and (anchor >= 0 or not broad):  # (no extra pass over the ball otherwise)
+        if broad:
             for t in range(cnt):
                 ball[t] = tmap[ball[t]]
             mapped = True
@@ -1282,11 +1369,11 @@ def gain_gradient(P, Nrm, perm, nodes, boxes, tpts, pf, pb, fs, prm, x, t1, t2, 
         j = ball[t] if mapped else tmap[ball[t]]
         if target[j] == 0:
             continue
-        e = pbar[j] - cov[j] * inv
-        if e <= 0.0:
+        e = residual(pbar[j], cov[j] * inv)
+        if e == 0.0:
             continue
         d0, d1, d2 = P[j, 0] - x[0], P[j, 1] - x[1], P[j, 2] - x[2]
-        w = mass[j] * e * math.exp(-eps2 * (d0 * d0 + d1 * d1 + d2 * d2))
+        w = mass[j] * e * footprint(eps2, d0 * d0 + d1 * d1 + d2 * d2)
         G += w
         g0 += w * d0
         g1 += w * d1
@@ -1304,7 +1391,7 @@ def _dist2(a, b):
 
 
 @njit
-def try_move(P, Nrm, perm, nodes, boxes, tpts, full, x, disp, ref, k, prm, out_xp, out_n, out_nb, d2buf):
+def try_move(sf, x, disp, ref, k, prm, out_xp, out_n, out_nb, d2buf):
     """Move from ``x`` by ``disp`` (3,) and project onto the surface fitted there (eqs. 23-27),
     shrinking the step until the projected displacement is at most v_max dt (the projection can
     lengthen it). Returns True when the result lies on the data: its nearest point of the whole
@@ -1318,7 +1405,7 @@ def try_move(P, Nrm, perm, nodes, boxes, tpts, full, x, disp, ref, k, prm, out_x
     for _ in range(STEP_ITERATIONS):
         for d in range(3):
             xt[d] = x[d] + scale * disp[d]
-        m = locate(P, Nrm, perm, nodes, boxes, tpts, xt, ref, k, prm[PR_SHEET_GAP], out_xp, out_n, out_nb, d2buf)
+        m = locate(sf, xt, ref, k, prm[PR_SHEET_GAP], out_xp, out_n, out_nb, d2buf)
         moved = math.sqrt(_dist2(out_xp, x))
         if moved <= limit:
             break
@@ -1328,32 +1415,31 @@ def try_move(P, Nrm, perm, nodes, boxes, tpts, full, x, disp, ref, k, prm, out_x
         f = limit / moved
         for d in range(3):
             out_xp[d] = x[d] + (out_xp[d] - x[d]) * f
-    return nearest_distance(full[0], full[1], full[2], full[3], out_xp) <= prm[PR_REACH], m
+    return nearest_distance(sf.full.perm, sf.full.nodes, sf.full.boxes, sf.full.tpts, out_xp) <= prm[PR_REACH], m
 
 
 @njit
-def move_agent(P, Nrm, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, is_, ag, nbrs, i, k, prm, mode,
-               u_full):
+def move_agent(sf, st, i, prm, mode):
     """Gradient step of agent i (eq. 6, saturated), semi-implicit Euler within v_max, then the
     move onto the surface (:func:`try_move`). A move that would leave the data (an edge, a hole,
     a gap) is not made: the velocity is reflected off the boundary (its outward normal estimated
     from where the agent's neighbours lie) and the reflected move tried, then the reversed one;
     when neither stays on the data the agent waits with zero velocity."""
-    g = agent_gradient(P, Phi, pf, sp, fs, ag, nbrs, i, k, prm, mode, u_full)
+    ag, nbrs, is_ = st.ag, st.nbrs, st.is_
+    k = nbrs.shape[1]
+    g = agent_gradient(sf, st, i, prm, mode)
     if prm[PR_GAIN] > 0.0:
         # taken where the agent's momentum carries it next (x + v dt): it cannot turn at once
         ahead = ag[i, AG_POS:AG_POS + 3] + ag[i, AG_VEL:AG_VEL + 3] * prm[PR_DT]
         # over the agent's sheet (its nearest point's): a deposit there removes nothing through a wall
-        gl = gain_gradient(P, Nrm, perm, nodes, boxes, tpts, pf, pb, fs, prm, ahead,
-                           ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3], pi[PI_BALL], nbrs[i, 0],
-                           prm[PR_SHEET_GAP])[0]
+        gl = gain_gradient(sf, st, prm, ahead, ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3], st.pi[PI_BALL],
+                           nbrs[i, 0], prm[PR_SHEET_GAP], False)[0]
         # plus the same gain seen wider, over the target's points only: it pulls towards residual
         # a few footprints away that the local gain cannot see (the plate's separate shapes); on the
         # agent's sheet too (summed in 3-D it held the agent under a marking on a wall's other side:
         # median ε .741 against .706 on the mug and the shape sorter, docs/explore.md)
-        gb = gain_gradient(P, Nrm, tgt[0], tgt[1], tgt[2], tgt[3], pf, pb, fs, prm, ahead,
-                           ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3], pi[PI_BALL], nbrs[i, 0], prm[PR_SHEET_GAP],
-                           BROAD_WIDTH, BROAD_REACH, tgt[4])[0]
+        gb = gain_gradient(sf, st, prm, ahead, ag[i, AG_T1:AG_T1 + 3], ag[i, AG_T2:AG_T2 + 3], st.pi[PI_BALL],
+                           nbrs[i, 0], prm[PR_SHEET_GAP], True)[0]
         for d in range(3):
             g[d] = prm[PR_HEAT] * g[d] + prm[PR_GAIN] * (gl[d] + BROAD_WEIGHT * gb[d])
     gn = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
@@ -1380,7 +1466,7 @@ def move_agent(P, Nrm, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp,
     nb = np.empty(k, np.int64)
     d2 = np.empty(k)
     disp = v * dt
-    ok, m = try_move(P, Nrm, perm, nodes, boxes, tpts, full, x, disp, nrm, k, prm, xp, nn, nb, d2)
+    ok, m = try_move(sf, x, disp, nrm, k, prm, xp, nn, nb, d2)
     if not ok:
         # The move leaves the data (an edge, a hole, a gap). Slide instead: of the tangent
         # directions turned by ±30°, ±60°, ... from the intended one, take the nearest that stays
@@ -1403,7 +1489,7 @@ def move_agent(P, Nrm, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp,
                 for d in range(3):
                     v[d] = vs * (ca * t1[d] + sa * t2[d])
                     disp[d] = length * v[d] * dt
-                ok, m = try_move(P, Nrm, perm, nodes, boxes, tpts, full, x, disp, nrm, k, prm, xp, nn, nb, d2)
+                ok, m = try_move(sf, x, disp, nrm, k, prm, xp, nn, nb, d2)
                 if ok:
                     break
             if ok:
@@ -1426,28 +1512,30 @@ def move_agent(P, Nrm, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp,
 
 # ---------------------------------------------------------------------------------- the step
 @njit
-def step_kernel(P, Nrm, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, hk, hi, fs, is_, prm, ag, nbrs, k,
-                deposits, n_deposits, resets, reset_status, mode, resync_every, u_full, phase):
+def step_kernel(surface, state, prm, deposits, n_deposits, resets, reset_status, mode, resync_every, phase):
     """One explorer step (see explorer.py), or part of it.
 
-    ``P`` and the tree (perm, nodes, boxes, tpts) are the field's points (the cloud, or its
-    thinned field set), ``Nrm`` their normal lines (:func:`sheet_normals`); ``full`` is the whole
-    cloud's tree, which decides what lies on the data;
-    ``tgt`` the tree over the target's field points (perm, nodes, boxes, tpts, their indices).
+    ``surface`` and ``state`` are a :class:`Surface` and a :class:`State` as plain tuples
+    (:func:`plain`); ``prm`` (N_PR,) the float parameters (PR_*).
     ``n_deposits`` < 0: deposit at the agents (kinematic); otherwise at the first ``n_deposits``
     rows of ``deposits`` (contact points; each projected onto the surface, skipped when farther
     than r_a from the cloud). ``resets`` (N, 3) with ``reset_status`` (N,): when
     reset_status[i] >= 0 the agent is put at resets[i] before its gradient step (eq. 22);
     a reset farther than the start limit is refused (reset_status[i] = -2, its distance in
-    resets[i, 0]). ``phase`` 0: the whole step; 1: coverage and source only (the caller then
-    diffuses a full field); 2: resets and agent moves only (with ``u_full`` for HEAT_FULL).
+    resets[i, 0]). ``mode`` HEAT_*; ``resync_every`` K of :func:`resync` (0: never). ``phase`` 0:
+    the whole step; 1: coverage and source only (the caller then diffuses a full field into
+    ``u_full``); 2: resets and agent moves only.
     """
+    sf = Surface(surface[0], surface[1], Tree(*surface[2]), Tree(*surface[3]), Tree(*surface[4]), surface[5],
+                 surface[6])
+    st = State(*state)
+    Phi, ag = sf.Phi, st.ag
+    k = st.nbrs.shape[1]
     N = ag.shape[0]
     if phase != 2:
         if n_deposits < 0:
             for i in range(N):
-                deposit(P, Nrm, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, ag[i, AG_POS:AG_POS + 3],
-                        ag[i, AG_NRM:AG_NRM + 3])
+                deposit(sf, st, prm, ag[i, AG_POS:AG_POS + 3], ag[i, AG_NRM:AG_NRM + 3])
         else:
             xp = np.empty(3)
             nn = np.empty(3)
@@ -1456,29 +1544,27 @@ def step_kernel(P, Nrm, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp
             ref = ag[0, AG_NRM:AG_NRM + 3].copy()
             for t in range(n_deposits):
                 q = deposits[t]
-                if nearest_distance(perm, nodes, boxes, tpts, q) > prm[PR_RA]:
+                if nearest_distance(sf.tree.perm, sf.tree.nodes, sf.tree.boxes, sf.tree.tpts, q) > prm[PR_RA]:
                     continue  # a contact off the cloud covers no cloud point
-                locate(P, Nrm, perm, nodes, boxes, tpts, q, ref, k, prm[PR_SHEET_GAP], xp, nn, nb, d2)
-                deposit(P, Nrm, perm, nodes, boxes, tpts, Phi, pf, pb, pi, fs, is_, prm, xp, nn)
-        update_source(Phi, pf, pb, pi, sp, hk, hi, fs, is_)
-        is_[IS_SINCE_RESYNC] += 1
-        if resync_every > 0 and is_[IS_SINCE_RESYNC] >= resync_every:
-            resync(Phi, pf, pb, pi, sp, hk, hi, fs, is_, prm[PR_ZTARGET])
+                locate(sf, q, ref, k, prm[PR_SHEET_GAP], xp, nn, nb, d2)
+                deposit(sf, st, prm, xp, nn)
+        update_source(Phi, st)
+        st.is_[IS_SINCE_RESYNC] += 1
+        if resync_every > 0 and st.is_[IS_SINCE_RESYNC] >= resync_every:
+            resync(Phi, st, prm[PR_ZTARGET])
         if phase == 1:
             return
-        diffuse(sp, fs, mode == HEAT_CARRY)
+        diffuse(st.sp, st.fs, mode == HEAT_CARRY)
     for i in range(N):
         if reset_status[i] >= 0:
-            d0 = nearest_distance(perm, nodes, boxes, tpts, resets[i])
+            d0 = nearest_distance(sf.tree.perm, sf.tree.nodes, sf.tree.boxes, sf.tree.tpts, resets[i])
             if d0 > prm[PR_MAXSTART]:
                 reset_status[i] = -2
                 resets[i, 0] = d0
             else:
-                place_agent(P, Nrm, perm, nodes, boxes, tpts, full, ag, nbrs, i, resets[i],
-                            ag[i, AG_NRM:AG_NRM + 3].copy(), k, prm[PR_REACH], prm[PR_SHEET_GAP])
+                place_agent(sf, st, i, resets[i], ag[i, AG_NRM:AG_NRM + 3].copy(), prm[PR_REACH], prm[PR_SHEET_GAP])
     for i in range(N):
-        move_agent(P, Nrm, perm, nodes, boxes, tpts, full, tgt, Phi, pf, pb, pi, sp, fs, is_, ag, nbrs, i, k, prm, mode,
-                   u_full)
+        move_agent(sf, st, i, prm, mode)
 
 
 # ---------------------------------------------------------------------------------- coverage score
@@ -1495,15 +1581,30 @@ SC_GAP, SC_OFFSHEET = 4, 5
 N_SC = 6
 
 
+class Score(NamedTuple):
+    """The score's arrays (:func:`score_position`), over the n points in the tree's order: ``cov``
+    (n,) Σ_t φ, ``touched`` (n,) int8, ``target`` (n,) int8 (p > 0), ``ss`` (5,) the SS_* sums,
+    and scratch: ``ball`` (n,), ``nb`` (k,) int64, ``nd2`` (k,)."""
+
+    cov: np.ndarray
+    touched: np.ndarray
+    target: np.ndarray
+    ss: np.ndarray
+    ball: np.ndarray
+    nb: np.ndarray
+    nd2: np.ndarray
+
+
 @njit
-def sheet_distance(tpts, Nrm, x, perm, nodes, boxes, gap, nb, d2):
+def sheet_distance(tree, Nrm, x, gap, nb, d2):
     """Distance (metres) from ``x`` (3,) to the surface (:func:`fit_project`) fitted to its
     ``len(nb)`` nearest points that lie on the nearest one's sheet (:func:`sheet_select`):
     how far x is off the one sheet it is nearest to; between a wall's two sides, about half
     the wall. 0 when all of them are on that sheet (nothing else is near: how far x is from the
-    data is the 2h test's). ``nb``, ``d2`` are scratch."""
+    data is the 2h test's). ``tree`` the points' :class:`Tree`; ``nb``, ``d2`` are scratch."""
+    tpts = tree.tpts
     k = nb.shape[0]
-    tree_knn(perm, nodes, boxes, tpts, x, k, nb, d2)
+    tree_knn(tree.perm, tree.nodes, tree.boxes, tree.tpts, x, k, nb, d2)
     m = sheet_select(tpts, Nrm, nb, k, gap, d2)
     if m == k:
         return 0.0
@@ -1514,12 +1615,15 @@ def sheet_distance(tpts, Nrm, x, perm, nodes, boxes, gap, nb, d2):
 
 
 @njit
-def score_position(perm, nodes, boxes, tpts, Nrm, x, prev, has_prev, cov, touched, target, ss, sp_, ball, nb, nd2):
-    """Add position ``x`` (3,) to the score: its footprint on every point within SC_CUT, the
-    target points it touches (within r_a), whether it is off the surface (farther than SC_OFFDIST
-    from every point, or than SC_OFFSHEET from its nearest sheet's local surface,
-    :func:`sheet_distance`; ``Nrm`` the points' normal lines), its step from ``prev``."""
-    cnt = tree_ball(perm, nodes, boxes, tpts, x, sp_[SC_CUT], ball)
+def score_position(tree, Nrm, sc, sp_, x, prev, has_prev):
+    """Add position ``x`` (3,) to the :class:`Score` ``sc``: its footprint on every point within
+    SC_CUT, the target points it touches (within r_a), whether it is off the surface (farther than
+    SC_OFFDIST from every point, or than SC_OFFSHEET from its nearest sheet's local surface,
+    :func:`sheet_distance`; ``Nrm`` the points' normal lines, ``tree`` their :class:`Tree`), its
+    step from ``prev``; ``sp_`` (N_SC,) the SC_* parameters."""
+    tpts = tree.tpts
+    cov, touched, target, ss, ball = sc.cov, sc.touched, sc.target, sc.ss, sc.ball
+    cnt = tree_ball(tree.perm, tree.nodes, tree.boxes, tree.tpts, x, sp_[SC_CUT], ball)
     eps2, ra2 = sp_[SC_EPS2], sp_[SC_RA] * sp_[SC_RA]
     near, add = np.inf, 0.0
     for t in range(cnt):
@@ -1527,7 +1631,7 @@ def score_position(perm, nodes, boxes, tpts, Nrm, x, prev, has_prev, cov, touche
         d0, d1, d2 = tpts[j, 0] - x[0], tpts[j, 1] - x[1], tpts[j, 2] - x[2]
         dd = d0 * d0 + d1 * d1 + d2 * d2
         near = min(near, dd)
-        phi = math.exp(-eps2 * dd)
+        phi = footprint(eps2, dd)
         cov[j] += phi
         add += phi
         if dd <= ra2 and target[j] != 0 and touched[j] == 0:
@@ -1536,14 +1640,26 @@ def score_position(perm, nodes, boxes, tpts, Nrm, x, prev, has_prev, cov, touche
     ss[SS_C] += add
     off = False
     if near > sp_[SC_OFFDIST] * sp_[SC_OFFDIST]:  # (the ball reaches past SC_OFFDIST: else ask the tree)
-        off = nearest_distance(perm, nodes, boxes, tpts, x) > sp_[SC_OFFDIST]
+        off = nearest_distance(tree.perm, tree.nodes, tree.boxes, tree.tpts, x) > sp_[SC_OFFDIST]
     if not off:
-        off = sheet_distance(tpts, Nrm, x, perm, nodes, boxes, sp_[SC_GAP], nb, nd2) > sp_[SC_OFFSHEET]
+        off = sheet_distance(tree, Nrm, x, sp_[SC_GAP], sc.nb, sc.nd2) > sp_[SC_OFFSHEET]
     if off:
         ss[SS_OFF] += 1.0
     if has_prev:
         ss[SS_STEPMAX] = max(ss[SS_STEPMAX], math.sqrt(_dist2(x, prev)))
     ss[SS_N] += 1.0
+
+
+@njit
+def score_step(tree, Nrm, score, sp_, X, prev):
+    """:func:`score_position` for each agent's position X[i] (N, 3), then prev[i] = X[i]: one step of
+    the score. ``tree`` and ``score`` are a :class:`Tree` and a :class:`Score` as plain tuples
+    (:func:`plain`: one call a step, on numba's fast path)."""
+    tr, sc = Tree(*tree), Score(*score)
+    has_prev = sc.ss[SS_N] > 0
+    for i in range(X.shape[0]):
+        score_position(tr, Nrm, sc, sp_, X[i], prev[i], has_prev)
+        prev[i, :] = X[i]
 
 
 @njit
@@ -1556,7 +1672,5 @@ def score_epsilon(cov, tlist, pplain, ss):
         j = tlist[t]
         p = pplain[j]
         den += p * p
-        e = p - cov[j] * inv
-        if e > 0.0:
-            num += e * e
+        num += source(p, cov[j] * inv)
     return math.sqrt(num / den) if den > 0.0 else 0.0

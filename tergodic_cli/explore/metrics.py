@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from tergodic_cli.explore import kernels as K
+from tergodic_cli.explore.config import footprint_epsilon
+from tergodic_cli.explore.footprint import source
 from tergodic_cli.explore.index import cloud_index, sheet_normals
 
 
@@ -45,7 +47,7 @@ def source_term(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray, norm: str
     counted = np.where(np.asarray(p) > 0, coverage, 0.0) if norm == "target" else coverage
     total = float(mass @ counted)
     cbar = coverage / total if total > 0 else np.zeros_like(coverage, dtype=float)
-    return np.maximum(pbar - cbar, 0.0) ** 2
+    return source(np.asarray(pbar, dtype=np.float64), np.asarray(cbar, dtype=np.float64))
 
 
 def ergodicity(p: np.ndarray, coverage: np.ndarray, mass: np.ndarray) -> float:
@@ -147,13 +149,16 @@ class CoverageScore:
         self._nrm, gap = sheet_normals(index, h)
         self._cov = np.zeros(n)
         self._touched = np.zeros(n, dtype=np.int8)
-        self._ball = np.zeros(n, dtype=np.int64)
-        self._nb = np.zeros(min(K.NORMAL_NEIGHBOURS, n), dtype=np.int64)
-        self._d2 = np.zeros(len(self._nb))
         self._ss = np.zeros(5)
+        nb = min(K.NORMAL_NEIGHBOURS, n)
+        self._target = np.zeros(n, dtype=np.int8)
+        self._sc = K.Score(self._cov, self._touched, self._target, self._ss, np.zeros(n, dtype=np.int64),
+                           np.zeros(nb, dtype=np.int64), np.zeros(nb))
+        self._args = (K.plain(self._tree), K.plain(self._sc))
         self._prm = np.zeros(K.N_SC)
-        self._prm[[K.SC_EPS2, K.SC_CUT, K.SC_RA, K.SC_OFFDIST]] = ((2.0 / agent_radius) ** 2, SCORE_CUT * agent_radius,
-                                                                 agent_radius, OFF_SURFACE_H * h)
+        # the paper's footprint at ε = 2/r_a, whatever ε the explorer ran with: a neutral score
+        self._prm[[K.SC_EPS2, K.SC_CUT, K.SC_RA, K.SC_OFFDIST]] = (footprint_epsilon(agent_radius) ** 2,
+                                                                 SCORE_CUT * agent_radius, agent_radius, OFF_SURFACE_H * h)
         self._prm[K.SC_GAP] = gap
         self._prm[K.SC_OFFSHEET] = max(OFF_SHEET_H * h, gap)
         self._prev = np.zeros((n_agents, 3))
@@ -171,7 +176,7 @@ class CoverageScore:
         """
         p = np.asarray(target, dtype=np.float64)[index.order]
         self._tlist = np.flatnonzero(p > 0)
-        self._target = (p > 0).astype(np.int8)
+        self._target[:] = p > 0
         self._pplain = p / p.sum()
         self._ss[K.SS_TOUCHED] = float(np.count_nonzero(self._touched[self._tlist]))
 
@@ -183,12 +188,8 @@ class CoverageScore:
         positions : (N, 3) float
             The agents' positions, metres.
         """
-        ss = self._ss
-        has_prev = ss[K.SS_N] > 0
-        for i, x in enumerate(positions):
-            K.score_position(*self._tree, self._nrm, x, self._prev[i], has_prev, self._cov, self._touched,
-                             self._target, ss, self._prm, self._ball, self._nb, self._d2)
-            self._prev[i] = x
+        K.score_step(self._args[0], self._nrm, self._args[1], self._prm,
+                     np.ascontiguousarray(positions, dtype=np.float64), self._prev)
 
     def metrics(self) -> dict:
         """The score so far.

@@ -9,19 +9,22 @@ The backends implement :class:`Arm` and :class:`WrenchSensor` (Protocols) in
 Franka through franky with a Bota or Net F/T sensor).
 """
 
-from tergodic_cli.robot.config import RobotConfig, validate_robot_config
-from tergodic_cli.robot.controller import PAPER_GAINS, ControllerGains, LineForceController
-from tergodic_cli.robot.interfaces import Arm, ArmState, LineTarget, Observation, ToolLoad, WrenchReading, WrenchSensor
-from tergodic_cli.robot.safety import Fault, SafetyConfig, SafetyGuard
-from tergodic_cli.robot.summary import summarize_robot
+from tergodic_cli.robot.config import PAPER_GAINS, ControllerGains, RobotConfig, SafetyConfig, validate_robot_config
+
+#: name -> the module that defines it, loaded on first use (numpy, scipy: the CLI reads only the config at start-up)
+_LAZY = {"LineForceController": "controller", "Arm": "interfaces", "ArmState": "interfaces", "LineTarget": "interfaces",
+         "Observation": "interfaces", "ToolLoad": "interfaces", "WrenchReading": "interfaces",
+         "WrenchSensor": "interfaces", "Fault": "safety", "SafetyGuard": "safety", "summarize_robot": "summary",
+         "ContactRun": "run", "robot_explore_config": "run"}
 
 
-def __getattr__(name):  # the run pulls in scipy; load on first use
-    if name in ("ContactRun", "robot_explore_config"):
-        from tergodic_cli.robot import run
+def __getattr__(name):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(name)
+    import importlib
 
-        return getattr(run, name)
-    raise AttributeError(name)
+    return getattr(importlib.import_module(f"tergodic_cli.robot.{module}"), name)
 
 
 __all__ = [

@@ -5,12 +5,117 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from tergodic_cli.config import Config
+from tergodic_cli.config import Config, option, parse_floats
 from tergodic_cli.errors import require
-from tergodic_cli.robot.controller import ControllerGains
-from tergodic_cli.robot.safety import SafetyConfig
 
 BACKENDS = ("pybullet",)
+
+
+@dataclass
+class ControllerGains(Config):
+    """Gains of eq. 47 and the wrench PID (eq. 40), SI units; see :data:`PAPER_GAINS`.
+
+    k_trans, k_rot : K_L on the translational (N/m) and rotational (N m/rad) error, ee axes x, y, z.
+    d_trans, d_rot : D_V on the ee velocity (N s/m) and angular velocity (N m s/rad).
+    kp, ki, kd : wrench PID on the force along the tool axis (N/N, 1/s, s).
+    force_filter_hz : cut-off of the first-order filter on the measured force.
+    integral_max : the PID integral term is kept in [0, integral_max × F_d].
+    spin_stiffness : N m/rad holding the rotation about the tool axis (free for a line).
+    nullspace_stiffness, nullspace_damping : posture spring (N m/rad, N m s/rad) in the null space.
+    limit_stiffness : N m/rad pushing joints out of the last LIMIT_ZONE rad before a limit (null space).
+    guard_speed, guard_damping : while pressing ("track"), a tool moving into the surface faster than
+        guard_speed (m/s) gets guard_damping (N s/m) more damping on the excess: when contact is lost
+        the force PID's push no longer flies it into the surface (issue 15: 38 N at F_d = 1 N).
+    pid_wrench : the PID acts on the full wrench (eqs. 40-41, W_d = (0, 0, F_d, 0, 0, 0), zero desired
+        torque): kp and kd on all six components, ki on the axial force (across the line the integral
+        winds up against the friction until the tool sticks); False: on the axial force only.
+    derivative_filter_hz : cut-off of a second first-order filter (after force_filter_hz) on the
+        wrench the derivative term differentiates (0: none).
+    """
+
+    k_trans: tuple[float, float, float] = (3000.0, 3000.0, 300.0)
+    k_rot: tuple[float, float, float] = (30.0, 30.0, 30.0)
+    d_trans: tuple[float, float, float] = (80.0, 80.0, 50.0)
+    d_rot: tuple[float, float, float] = (2.0, 2.0, 2.0)
+    kp: float = 2.0
+    ki: float = 60.0
+    kd: float = 0.0
+    force_filter_hz: float = 30.0
+    integral_max: float = 3.0
+    spin_stiffness: float = 5.0
+    nullspace_stiffness: float = 10.0
+    nullspace_damping: float = 3.0
+    limit_stiffness: float = 30.0
+    guard_speed: float = 0.005
+    guard_damping: float = 1000.0
+    pid_wrench: bool = False
+    derivative_filter_hz: float = 0.0
+
+
+#: The paper's gains (V-A3), for comparison runs.
+PAPER_GAINS = ControllerGains(k_trans=(750.0, 750.0, 300.0), k_rot=(30.0, 30.0, 30.0), d_trans=(150.0, 150.0, 50.0),
+                              d_rot=(10.0, 10.0, 10.0), kp=0.5, ki=5.0, kd=0.5, pid_wrench=True,
+                              derivative_filter_hz=5.0)
+
+
+def gains_preset(name: str) -> dict:
+    """The gains a ``--gains`` name stands for, as a config dict: "tuned" (:class:`ControllerGains`' defaults)
+    or "paper" (:data:`PAPER_GAINS`).
+
+    Parameters
+    ----------
+    name : str
+
+    Returns
+    -------
+    dict
+        :class:`ControllerGains` fields.
+    """
+    require(name in ("tuned", "paper"), f"unknown --gains {name!r}", "use --gains tuned or --gains paper")
+    return (PAPER_GAINS if name == "paper" else ControllerGains()).to_dict()
+
+
+@dataclass
+class SafetyConfig(Config):
+    """Limits, SI units.
+
+    force_limit : N: the contact force |F|, low-passed at force_filter_hz, over this is an overload
+        (retreat); None = force_limit_factor × F_d, at least F_d + force_limit_margin. The filter
+        passes a sustained overload and not the contact's single-tick spikes (1 kHz peaks of
+        1.9-3.2 × F_d in normal runs stopped them on a raw 3 × F_d limit; docs/robot.md, "Force limits").
+    force_filter_hz : cut-off of the first-order low-pass the force limit applies to, Hz (0: none).
+    force_limit_margin : N: the low-passed limit's floor above F_d (a light press jitters as many
+        newtons as a firm one: 3 × 2 N = 6 N stopped 2 N runs).
+    force_impact_limit : N: one tick's |F| over this is an impact (retreat at once, no filter);
+        None = force_impact_factor × F_d, at least force_impact_min and the force limit.
+    joint_margin : rad kept inside the joint position limits.
+    velocity_factor : share of the joint velocity limits allowed.
+    tcp_speed_max : m/s allowed at the TCP.
+    workspace_min, workspace_max : corners of the box (base frame, m) the TCP and every target must stay in.
+    sensor_timeout : s without a new F/T sample before holding.
+    explorer_timeout : s (robot clock) without a fresh explorer target before holding.
+    """
+
+    force_limit: float | None = field(default=None, metadata=option(
+        "--force-limit", "Contact force, low-passed at 10 Hz, that makes the robot retreat and stop (one tick over "
+        "5 x --force, at least 30 N, is an impact and stops at once)", unit="N", group="robot",
+        default="3 x --force, at least --force + 5"))
+    force_limit_factor: float = 3.0
+    force_limit_margin: float = 5.0
+    force_filter_hz: float = 10.0
+    force_impact_limit: float | None = None
+    force_impact_factor: float = 5.0
+    force_impact_min: float = 30.0
+    joint_margin: float = 0.02
+    velocity_factor: float = 0.9
+    tcp_speed_max: float = 0.5
+    workspace_min: tuple[float, float, float] = field(default=(0.15, -0.6, -0.01), metadata=option(
+        "--workspace", "Workspace box xmin,ymin,zmin,xmax,ymax,zmax in the base frame", unit="m", group="robot",
+        type=str, sets=("workspace_min", "workspace_max"),
+        parse=lambda text: (lambda b: (b[:3], b[3:]))(parse_floats(text, 6, "--workspace", "0.15,-0.6,0,0.85,0.6,0.9"))))
+    workspace_max: tuple[float, float, float] = (0.85, 0.6, 0.9)
+    sensor_timeout: float = 0.02
+    explorer_timeout: float = 0.5
 
 
 @dataclass
@@ -73,20 +178,37 @@ class RobotConfig(Config):
     """
 
     backend: str = "pybullet"
-    arm: str = "panda"
-    force: float = 5.0
-    gui: bool = False
-    realtime: bool = False
-    object_pose: tuple[float, ...] | None = None
-    explore_dt: float = 0.2
+    arm: str = field(default="panda", metadata=option(
+        "--arm", "The simulated arm: panda, xarm6 (UFactory xArm 6, 6 DoF) or iiwa (KUKA LBR iiwa).", group="pybullet"))
+    force: float = field(default=5.0, metadata=option(
+        "--force", "Desired contact force along the tool axis", unit="N", group="robot"))
+    gui: bool = field(default=False, metadata=option(
+        "--gui", "Open the PyBullet GUI (needs a display).", group="pybullet"))
+    realtime: bool = field(default=False, metadata=option(
+        "--realtime", "Pace the simulation to wall-clock time (with --gui).", group="pybullet"))
+    object_pose: tuple[float, ...] | None = field(default=None, metadata=option(
+        "--object-pose", "Capture frame in the robot base frame: x,y,z[,roll,pitch,yaw] (m, deg) or x,y,z,qx,qy,qz,qw",
+        group="robot", type=str, parse=lambda text: parse_floats(text, None, "--object-pose", "0.5,0,0.2"),
+        default="the identity for a capture taken in the base frame (--source sim, or a calibrated --camera-pose); "
+                "otherwise, pybullet only, the cloud's footprint centre 0.5 m in front of the base with its lowest "
+                "point on a 0.2 m stand, turned 0, 90, -90 or 180 deg about the vertical, then the same at 0.4 m: the "
+                "first pose where the arm reaches the whole target, else the one reaching most of it (the pose is "
+                "printed and saved in summary.json); franka refuses to guess"))
+    explore_dt: float = field(default=0.2, metadata=option(
+        "--explore-dt", "Simulated seconds per explorer step (agent limits are rescaled so a step moves the same "
+        "path)", group="robot"))
     physics_dt: float = 0.001
     hover_height: float = 0.04
     approach_speed: float = 0.02
     contact_speed: float = 0.002
     retreat_speed: float = 0.05
     retreat_distance: float = 0.05
-    contact_force: float | None = None
-    normal_side: str = "auto"
+    contact_force: float | None = field(default=None, metadata=option(
+        "--contact-force", "Force that counts as touching (coverage is deposited above it)", unit="N", group="robot",
+        default="20% of --force"))
+    normal_side: str = field(default="auto", metadata=option(
+        "--normal-side", "Side of the sheet the tool works on: auto (= outward: consistent over the sheet, facing the "
+        "side the cloud is seen from), outward, up or out.", group="robot"))
     mesh_edge: float = 0.01
     move_speed: float = 0.8
     solver_iterations: int = 10
@@ -97,7 +219,9 @@ class RobotConfig(Config):
     inertial_compensation: bool = True
     picture_q: tuple[float, ...] | None = None
     sponge: SpongeSpec = field(default_factory=SpongeSpec)
-    gains: ControllerGains = field(default_factory=ControllerGains)
+    gains: ControllerGains = field(default_factory=ControllerGains, metadata=option(
+        "--gains", "Controller gains: tuned or paper (the paper's K, D and wrench PID on the full wrench, V-A3).",
+        group="pybullet", type=str, parse=gains_preset, default="tuned"))
     safety: SafetyConfig = field(default_factory=SafetyConfig)
 
     @property

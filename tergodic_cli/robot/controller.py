@@ -18,62 +18,15 @@ about the tool axis free), a null-space posture spring and a low-pass filter on 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
-from tergodic_cli.config import Config
+# the gains' config lives with the robot's (numpy-free: the CLI builds its options at start-up)
+from tergodic_cli.robot.config import PAPER_GAINS, ControllerGains, gains_preset  # noqa: F401
 
 #: Radians before a joint limit where the null-space repulsion starts.
 LIMIT_ZONE = 0.3
-
-
-@dataclass
-class ControllerGains(Config):
-    """Gains of eq. 47 and the wrench PID (eq. 40), SI units; see :data:`PAPER_GAINS`.
-
-    k_trans, k_rot : K_L on the translational (N/m) and rotational (N m/rad) error, ee axes x, y, z.
-    d_trans, d_rot : D_V on the ee velocity (N s/m) and angular velocity (N m s/rad).
-    kp, ki, kd : wrench PID on the force along the tool axis (N/N, 1/s, s).
-    force_filter_hz : cut-off of the first-order filter on the measured force.
-    integral_max : the PID integral term is kept in [0, integral_max × F_d].
-    spin_stiffness : N m/rad holding the rotation about the tool axis (free for a line).
-    nullspace_stiffness, nullspace_damping : posture spring (N m/rad, N m s/rad) in the null space.
-    limit_stiffness : N m/rad pushing joints out of the last LIMIT_ZONE rad before a limit (null space).
-    guard_speed, guard_damping : while pressing ("track"), a tool moving into the surface faster than
-        guard_speed (m/s) gets guard_damping (N s/m) more damping on the excess: when contact is lost
-        the force PID's push no longer flies it into the surface (issue 15: 38 N at F_d = 1 N).
-    pid_wrench : the PID acts on the full wrench (eqs. 40-41, W_d = (0, 0, F_d, 0, 0, 0), zero desired
-        torque): kp and kd on all six components, ki on the axial force (across the line the integral
-        winds up against the friction until the tool sticks); False: on the axial force only.
-    derivative_filter_hz : cut-off of a second first-order filter (after force_filter_hz) on the
-        wrench the derivative term differentiates (0: none).
-    """
-
-    k_trans: tuple[float, float, float] = (3000.0, 3000.0, 300.0)
-    k_rot: tuple[float, float, float] = (30.0, 30.0, 30.0)
-    d_trans: tuple[float, float, float] = (80.0, 80.0, 50.0)
-    d_rot: tuple[float, float, float] = (2.0, 2.0, 2.0)
-    kp: float = 2.0
-    ki: float = 60.0
-    kd: float = 0.0
-    force_filter_hz: float = 30.0
-    integral_max: float = 3.0
-    spin_stiffness: float = 5.0
-    nullspace_stiffness: float = 10.0
-    nullspace_damping: float = 3.0
-    limit_stiffness: float = 30.0
-    guard_speed: float = 0.005
-    guard_damping: float = 1000.0
-    pid_wrench: bool = False
-    derivative_filter_hz: float = 0.0
-
-
-#: The paper's gains (V-A3), for comparison runs.
-PAPER_GAINS = ControllerGains(k_trans=(750.0, 750.0, 300.0), k_rot=(30.0, 30.0, 30.0), d_trans=(150.0, 150.0, 50.0),
-                              d_rot=(10.0, 10.0, 10.0), kp=0.5, ki=5.0, kd=0.5, pid_wrench=True,
-                              derivative_filter_hz=5.0)
 
 
 class ControlOutput(NamedTuple):

@@ -150,6 +150,12 @@ class ContactRun:
     through the backends' ``explore_with_*``.
     """
 
+    @property
+    def F_d(self) -> float:
+        """The desired force F_d, N: the robot config's ``force``, its one home (the arm is given it by
+        ``bind``, the wrench PID by each press target)."""
+        return float(self.cfg.force)
+
     def __init__(self, capture, explorer, cfg, arm, T_obj: np.ndarray, on_event: Callable[[int, str], None] | None = None,
                  on_log: Callable[[str, int, dict], None] | None = None, normals: np.ndarray | None = None):
         self.cfg = cfg
@@ -158,7 +164,6 @@ class ContactRun:
         self.explorer = explorer
         self.arm = arm
         self.on_event = on_event or (lambda step, msg: None)
-        self.F_d = float(cfg.force)
         self.threshold = cfg.contact_threshold
         self.dt = float(arm.dt)
         ratio = cfg.explore_dt / self.dt

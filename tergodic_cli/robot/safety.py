@@ -21,45 +21,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tergodic_cli.config import Config
 from tergodic_cli.errors import require
-
-
-@dataclass
-class SafetyConfig(Config):
-    """Limits, SI units.
-
-    force_limit : N: the contact force |F|, low-passed at force_filter_hz, over this is an overload
-        (retreat); None = force_limit_factor × F_d, at least F_d + force_limit_margin. The filter
-        passes a sustained overload and not the contact's single-tick spikes (1 kHz peaks of
-        1.9-3.2 × F_d in normal runs stopped them on a raw 3 × F_d limit; docs/robot.md, "Force limits").
-    force_filter_hz : cut-off of the first-order low-pass the force limit applies to, Hz (0: none).
-    force_limit_margin : N: the low-passed limit's floor above F_d (a light press jitters as many
-        newtons as a firm one: 3 × 2 N = 6 N stopped 2 N runs).
-    force_impact_limit : N: one tick's |F| over this is an impact (retreat at once, no filter);
-        None = force_impact_factor × F_d, at least force_impact_min and the force limit.
-    joint_margin : rad kept inside the joint position limits.
-    velocity_factor : share of the joint velocity limits allowed.
-    tcp_speed_max : m/s allowed at the TCP.
-    workspace_min, workspace_max : corners of the box (base frame, m) the TCP and every target must stay in.
-    sensor_timeout : s without a new F/T sample before holding.
-    explorer_timeout : s (robot clock) without a fresh explorer target before holding.
-    """
-
-    force_limit: float | None = None
-    force_limit_factor: float = 3.0
-    force_limit_margin: float = 5.0
-    force_filter_hz: float = 10.0
-    force_impact_limit: float | None = None
-    force_impact_factor: float = 5.0
-    force_impact_min: float = 30.0
-    joint_margin: float = 0.02
-    velocity_factor: float = 0.9
-    tcp_speed_max: float = 0.5
-    workspace_min: tuple[float, float, float] = (0.15, -0.6, -0.01)
-    workspace_max: tuple[float, float, float] = (0.85, 0.6, 0.9)
-    sensor_timeout: float = 0.02
-    explorer_timeout: float = 0.5
+# the limits' config lives with the robot's (numpy-free: the CLI builds its options at start-up)
+from tergodic_cli.robot.config import SafetyConfig  # noqa: F401
 
 
 @dataclass

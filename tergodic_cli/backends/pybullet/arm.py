@@ -151,7 +151,8 @@ class SimArm:
         self._inject: tuple | None = None
         #: () -> the explorer steps done (the run sets it), for the first contact's record.
         self.step_of: Callable[[], int] = lambda: -1
-        self.F_d, self.threshold = float(cfg.force), float(cfg.contact_threshold)
+        #: F_d and the contact threshold, N: given by the run (:meth:`bind`), from its config's one home.
+        self.F_d = self.threshold = None
 
     # ------------------------------------------------------------------ the Arm interface
     @property
