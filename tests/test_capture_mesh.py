@@ -202,3 +202,20 @@ def test_load_capture_refuses_a_tampered_or_missing_mesh(tmp_path):
     assert_one_line_error(res, "mesh.npz", "checksum")
     (folder / "mesh.npz").unlink()
     assert_one_line_error(run_cli("precompute", folder), "no mesh.npz")
+
+
+def test_a_marking_the_mesh_does_not_have_is_refused_before_sampling(tmp_path, monkeypatch):
+    """pybullet_data's duck as shipped (1.65 m across, yellow): '--target red' is refused from a quick
+    look at its texture, before the Poisson-disk sampling of ~0.5 M points (8 min here) starts."""
+    import pybullet_data
+
+    import tergodic_cli.capture.mesh as mesh_mod
+
+    def never(*a, **k):
+        raise AssertionError("the mesh was sampled before its marking was checked")
+
+    monkeypatch.setattr(mesh_mod, "sample_mesh", never)
+    res = run_cli("capture", "--from", Path(pybullet_data.getDataPath()) / "duck.obj", "--target", "red",
+                  "--out", tmp_path / "cap")
+    assert res.code == 2 and "no points match the target colour 'red'" in res.err, res.err
+    assert len(res.err.strip().splitlines()) == 1 and not (tmp_path / "cap").exists()

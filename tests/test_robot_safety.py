@@ -197,3 +197,34 @@ def test_summarize_robot_restarts_settling_after_lost_contact():
     assert out["force_rms_error_rel"] == pytest.approx(0.0)
     assert summarize_robot([], stop_reason="x")["stop_reason"] == "x"
     assert summarize_robot(samples + [dict(_sample(3.0, 5.0), stop_reason="boom")])["stop_reason"] == "boom"
+
+
+def test_the_spin_reference_keeps_the_wrist_inside_its_range():
+    """The sponge is round, so its spin is free: a spin reference that would turn the last joint past
+    WRIST_MARGIN from its limit is turned back about the tool axis (the corpus bunny's joint 7 hit its
+    limit at step 10 otherwise); one inside the range is kept as it is."""
+    import math
+    from types import SimpleNamespace
+
+    from tergodic_cli.robot.run import WRIST_MARGIN, ContactRun
+
+    R = np.eye(3)  # tool axis z, tool x = base x
+    J = np.zeros((6, 7))
+    J[3:6, -1] = [0.0, 0.0, 1.0]  # the last joint turns the tool about its axis, + sense
+    hi = 2.877
+    q = np.zeros(7)
+    q[-1] = hi - 0.1  # already inside the margin
+    obs = SimpleNamespace(state=SimpleNamespace(ee_pose=np.eye(4), jacobian=J, q=q))
+    run = SimpleNamespace(guard=SimpleNamespace(q_lo=-hi * np.ones(7), q_hi=hi * np.ones(7)))
+
+    def spin_of(x):
+        return math.atan2(x[1], x[0])
+
+    want = np.array([math.cos(0.5), math.sin(0.5), 0.0])  # asks +0.5 rad more: past the limit
+    got = ContactRun._spin_in_wrist(run, want, obs)
+    assert spin_of(got) == pytest.approx((hi - WRIST_MARGIN) - q[-1], abs=1e-9)  # turned back to hi - margin
+    assert np.linalg.norm(got) == pytest.approx(1.0) and abs(got @ R[:, 2]) < 1e-12
+    back = np.array([math.cos(-0.5), math.sin(-0.5), 0.0])  # towards mid-range: kept
+    np.testing.assert_array_equal(ContactRun._spin_in_wrist(run, back, obs), back)
+    J[3:6, -1] = [0.0, 0.0, -1.0]  # a joint turning the other way: the same reference is now inside
+    np.testing.assert_array_equal(ContactRun._spin_in_wrist(run, want, obs), want)

@@ -66,6 +66,12 @@ TRANSIT_M = 0.012
 #: Radians from a joint's limit (inside the guard's margin), and the share of its speed limit, at
 #: which the tool's place counts as out of reach after all.
 JOINT_NEAR, SPEED_NEAR = 0.1, 0.4
+#: Radians the last joint (the wrist, about the tool axis) keeps from its limits when the spin
+#: reference is chosen: the ball sponge is round, so its spin is free, and the rule of
+#: :func:`tool_rotation` alone drove the Panda's joint 7 into its limit at step 10 (corpus bunny, 2 N, seed 2).
+WRIST_MARGIN = 0.3
+#: Cosine between the last joint's axis and the tool axis above which the wrist turns the tool about it.
+WRIST_ALIGNED = 0.9
 #: Cosine of the normals' spread beyond which the ball's contact is taken to be at an edge.
 EDGE_COS = math.cos(math.radians(10.0))
 #: Degrees the agent's line turns over one step above which it crossed a sharp edge: the tool lifts
@@ -381,6 +387,32 @@ class ContactRun:
                 return obs, a, d, fault
         return obs, a, d, None
 
+    def _spin_in_wrist(self, x_ref: np.ndarray, obs) -> np.ndarray:
+        """The spin reference ``x_ref`` (3,), turned about the tool axis as far as needed for the last joint
+        to stay WRIST_MARGIN inside its limits (the sponge is round: its spin is free). Unchanged where the
+        last joint does not turn the tool about its axis."""
+        st = obs.state
+        R = st.ee_pose[:3, :3]
+        z, x = R[:, 2], R[:, 0]
+        along = float(np.asarray(st.jacobian)[3:6, -1] @ z)  # the last joint's rate about the tool axis
+        if abs(along) < WRIST_ALIGNED:
+            return x_ref
+        x_t = x_ref - (x_ref @ z) * z
+        if float(np.linalg.norm(x_t)) < 1e-6:
+            return x_ref
+        x_t /= np.linalg.norm(x_t)
+        phi = math.atan2(float(np.cross(x, x_t) @ z), float(x @ x_t))  # the turn the spin spring asks for
+        q, lo, hi = float(st.q[-1]), float(self.guard.q_lo[-1]) + WRIST_MARGIN, float(self.guard.q_hi[-1]) - WRIST_MARGIN
+        if lo >= hi:
+            return x_ref
+        want = q + phi / along
+        ok = min(max(want, lo), hi)
+        if ok == want:
+            return x_ref
+        turn = (ok - q) * along
+        c, s_ = math.cos(turn), math.sin(turn)
+        return c * x + s_ * np.cross(z, x) + (1.0 - c) * float(z @ x) * z
+
     # ------------------------------------------------------------------ faults and stops
     def _stop(self, fault: Fault, step: int) -> None:
         """Make the robot safe after ``fault`` and end the run (raises :class:`_Stop`).
@@ -661,8 +693,8 @@ class ContactRun:
                     self.on_event(step, f"robot: the agent entered the unreachable part at {fmt_xyz(a_new)} m; the tool "
                                         "waits on the last reachable point")
                 self.guard.feed_target(self.t)
-                # The spin is a continuous function of the tool axis (no flips, the wrist mid-range).
-                self.arm.spin_ref = tool_rotation(d_next, self._x_down)[:, 0]
+                # The spin is a continuous function of the tool axis (no flips), held inside the wrist's range.
+                self.arm.spin_ref = self._spin_in_wrist(tool_rotation(d_next, self._x_down)[:, 0], obs)
             # The line target glides from the previous agent line to the new one over the interval.
             A = a_cur + s * (a_next - a_cur)
             Dd = d_cur + s * (d_next - d_cur)
