@@ -21,7 +21,7 @@ from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_con
 from tergodic_cli.explore.explorer import Explorer
 from tergodic_cli.explore.summary import summarize_run
 
-ROBOTS = ("kinematic", "pybullet", "franka")
+ROBOTS = ("kinematic", "pybullet", "franka", "franka-torque")
 #: What a run folder may hold: explore's files and replay's default outputs (--overwrite replaces only these).
 RUN_FILES = frozenset({"run.mcap", "summary.json", "config.json", "trajectory.npz", "series.npz", "series.csv", "plots",
                        "run.rrd", "report.html"})
@@ -608,16 +608,18 @@ class PyBullet(Kinematic):
 
 
 class Franka(PyBullet):
-    """A Franka arm through franky with a force source (``--robot franka``); ``hardware`` holds the
-    :func:`~tergodic_cli.backends.factory.make_hardware` arguments, whose SDKs are imported now."""
+    """A Franka arm with a force source: through franky (``--robot franka``, streamed impedance) or
+    pylibfranka (``--robot franka-torque``, the paper's controller in a 1 kHz torque loop); ``hardware``
+    holds the :func:`~tergodic_cli.backends.factory.make_hardware` arguments, whose SDKs are imported
+    now; ``dry_run``: the devices connect read-only (no real-time kernel needed)."""
 
     name = "franka"
 
-    def __init__(self, robot_cfg, hardware: dict | None = None):
+    def __init__(self, robot_cfg, hardware: dict | None = None, robot: str = "franka", dry_run: bool = False):
         from tergodic_cli.backends.factory import make_hardware
 
-        self.robot_cfg = robot_cfg
-        self.arm, self.sensor = make_hardware(robot="franka", **(hardware or {}))
+        self.robot_cfg, self.name = robot_cfg, robot
+        self.arm, self.sensor = make_hardware(robot=robot, read_only=dry_run, **(hardware or {}))
 
     def check(self, capture, start_xyz) -> None:
         _check_robot(self.robot_cfg)  # the hardware plans its own reach
@@ -661,16 +663,16 @@ def make_backend(robot: str = "kinematic", robot_options: dict | None = None, ha
     require(recapture_every is None or robot == "pybullet", "--recapture-every needs the simulated robot",
             "add --robot pybullet (with a 'tergodic capture --source sim' capture)")
     require(0.0 <= until_clean < 1.0, f"--until-clean must be in [0, 1), got {until_clean}", "e.g. 0.05 (5% of the marking left)")
-    require(not dry_run or robot == "franka", "--dry-run needs a real robot", "use it with --robot franka")
+    require(not dry_run or robot.startswith("franka"), "--dry-run needs a real robot", "use it with --robot franka")
     if robot == "kinematic":
         return Kinematic()
     from tergodic_cli.robot import RobotConfig
 
     robot_cfg = make_robot_config(RobotConfig, robot_options)
-    if robot == "franka":
+    if robot.startswith("franka"):
         require(robot_cfg.arm == "panda", f"--arm {robot_cfg.arm} is a simulated arm; the real robot is a Franka",
-                "leave --arm out with --robot franka, or use --robot pybullet")
-        return Franka(robot_cfg, hardware)
+                f"leave --arm out with --robot {robot}, or use --robot pybullet")
+        return Franka(robot_cfg, hardware, robot, dry_run)
     from tergodic_cli.backends.pybullet.arms import get_arm
 
     get_arm(robot_cfg.arm)  # an unknown arm: one line naming the choices, before anything runs
