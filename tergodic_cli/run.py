@@ -21,7 +21,9 @@ from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_con
 from tergodic_cli.explore.explorer import Explorer
 from tergodic_cli.explore.summary import summarize_run
 
-ROBOTS = ("kinematic", "pybullet", "franka", "franka-torque")
+ROBOTS = ("kinematic", "pybullet", "franka", "franka-torque", "ur")
+#: The real robots (backends/factory.make_hardware).
+HARDWARE = ("franka", "franka-torque", "ur")
 #: What a run folder may hold: explore's files and replay's default outputs (--overwrite replaces only these).
 RUN_FILES = frozenset({"run.mcap", "summary.json", "config.json", "trajectory.npz", "series.npz", "series.csv", "plots",
                        "run.rrd", "report.html"})
@@ -663,14 +665,14 @@ def make_backend(robot: str = "kinematic", robot_options: dict | None = None, ha
     require(recapture_every is None or robot == "pybullet", "--recapture-every needs the simulated robot",
             "add --robot pybullet (with a 'tergodic capture --source sim' capture)")
     require(0.0 <= until_clean < 1.0, f"--until-clean must be in [0, 1), got {until_clean}", "e.g. 0.05 (5% of the marking left)")
-    require(not dry_run or robot.startswith("franka"), "--dry-run needs a real robot", "use it with --robot franka")
+    require(not dry_run or robot in HARDWARE, "--dry-run needs a real robot", f"use it with --robot {'|'.join(HARDWARE)}")
     if robot == "kinematic":
         return Kinematic()
     from tergodic_cli.robot import RobotConfig
 
     robot_cfg = make_robot_config(RobotConfig, robot_options)
-    if robot.startswith("franka"):
-        require(robot_cfg.arm == "panda", f"--arm {robot_cfg.arm} is a simulated arm; the real robot is a Franka",
+    if robot in HARDWARE:
+        require(robot_cfg.arm == "panda", f"--arm {robot_cfg.arm} is a simulated arm, not --robot {robot}",
                 f"leave --arm out with --robot {robot}, or use --robot pybullet")
         return Franka(robot_cfg, hardware, robot, dry_run)
     from tergodic_cli.backends.pybullet.arms import get_arm

@@ -237,7 +237,7 @@ class StreamedArm(_PlanArm):
     def summary(self) -> dict:
         out = {"stream_hz": 1.0 / self.dt, "hardware_config": self.hw.to_dict()}
         if self.lines:
-            out["controller"] = "line impedance + wrench PID, 1 kHz torque loop"
+            out["controller"] = self.dev.controller
         return out
 
     def disconnect(self) -> None:

@@ -491,6 +491,8 @@ class TorqueArm:
     sensor_frame : (4, 4) the F/T sensor in the TCP frame. isolate : see :class:`LoopHandle`.
     """
 
+    controller = "line impedance + wrench PID, 1 kHz torque loop"
+
     def __init__(self, spec: LoopSpec, name: str, joint_names, home, dq_max, sensor_frame=None,
                  stream_hz: float = 100.0, isolate: str = "process", reason: Callable[[str], str] | None = None):
         self.spec, self.name, self.joint_names = spec, name, list(joint_names)
