@@ -20,10 +20,11 @@ from tergodic_cli.resources import free_disk, free_memory
 from tergodic_cli.explore.config import ExploreConfig, parse_alpha, validate_config
 from tergodic_cli.explore.explorer import Explorer
 from tergodic_cli.explore.summary import summarize_run
+from tergodic_cli.backends import registry
 
-ROBOTS = ("kinematic", "pybullet", "franka", "franka-torque", "ur")
-#: The real robots (backends/factory.make_hardware).
-HARDWARE = ("franka", "franka-torque", "ur")
+#: The robots a run drives (``--robot``) and the real ones among them: the backend registry's.
+ROBOTS = registry.names("robot")
+HARDWARE = registry.names("robot", hardware=True)
 #: What a run folder may hold: explore's files and replay's default outputs (--overwrite replaces only these).
 RUN_FILES = frozenset({"run.mcap", "summary.json", "config.json", "trajectory.npz", "series.npz", "series.csv", "plots",
                        "run.rrd", "report.html"})

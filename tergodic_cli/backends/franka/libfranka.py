@@ -160,3 +160,8 @@ def make_libfranka_arm(cfg: LibfrankaConfig, sensor, gains=None, sensor_frame=No
     if read_only:
         arm.reader = lambda: LibfrankaDevice(cfg, read_only=True)
     return arm
+
+
+def make_arm(cfg: LibfrankaConfig, sensor, gains=None, read_only: bool = False):
+    """The registry's factory (backends/registry.py): see :func:`make_libfranka_arm`."""
+    return make_libfranka_arm(cfg, sensor, gains=gains, read_only=read_only)

@@ -293,3 +293,14 @@ class URForceSensor(WrenchSensor):
 
     def disconnect(self) -> None:
         """The arm owns the connection."""
+
+
+def make_arm(cfg: URConfig, sensor=None, gains=None, read_only: bool = False) -> URArm:
+    """The registry's factory (backends/registry.py): a UR, not yet connected (``sensor``: unused, the
+    run reads it)."""
+    return URArm(cfg, gains=gains, read_only=read_only)
+
+
+def make_sensor(cfg, arm: URArm) -> URForceSensor:
+    """The registry's factory for ``--ft ur``: the UR's own flange F/T sensor."""
+    return URForceSensor(arm)
