@@ -26,7 +26,7 @@ def make_hardware(robot: str = "franka", robot_ip: str | None = None, ft: str | 
         robot_ip : the robot's address.
     ft : a sensor of :data:`FT_SENSORS`: "bota" (``ft_address`` = the sensor's JSON configuration, or
         "dummy"), "netft" (``ft_address`` = host[:port]), or an arm's own estimate ("franka", "ur");
-        None: the robot's default (its own estimate; bota for franka-torque).
+        None: the robot's own estimate (franka-torque has none: it needs a wrist sensor).
     sensor_in_ee : (4, 4) pose of the F/T sensor frame in the TCP frame (identity by default).
     read_only : a dry run's devices (no real-time kernel needed: nothing is commanded).
     gains : ControllerGains of the arms that run the line controller (None: each arm's default).
@@ -38,6 +38,8 @@ def make_hardware(robot: str = "franka", robot_ip: str | None = None, ft: str | 
     """
     spec = registry.get("robot", robot, "--robot")
     require(spec.hardware, f"--robot {robot} is not a real robot", f"use one of {', '.join(ROBOTS)}")
+    require(ft is not None or spec.default_ft is not None, f"--robot {robot} needs a wrist F/T sensor for its 1 kHz wrench PID",
+            "add --ft bota or --ft netft with --ft-address")
     fspec = registry.get("ft", ft or spec.default_ft, "--ft")
     ft = fspec.name
     require(not (spec.wrist_ft and fspec.arms is not None), f"--robot {robot} needs a wrist F/T sensor for its 1 kHz wrench PID",

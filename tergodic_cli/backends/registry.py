@@ -92,7 +92,7 @@ BACKENDS: tuple[Backend, ...] = (
             "Franka through franky: streamed Cartesian impedance", sdks=("franky",), default_ft="franka"),
     Backend("robot", "franka-torque", _B + "franka.libfranka:LibfrankaConfig", _B + "franka.libfranka:make_arm",
             "Franka through pylibfranka: the line impedance and wrench PID in a 1 kHz torque loop",
-            sdks=("pylibfranka",), default_ft="bota", wrist_ft=True),
+            sdks=("pylibfranka",), wrist_ft=True),
     Backend("robot", "ur", _B + "ur.rtde:URConfig", _B + "ur.rtde:make_arm",
             "Universal Robots e-Series through ur_rtde: the wrench in force mode",
             sdks=("rtde_receive", "rtde_control"), default_ft="ur"),
