@@ -54,7 +54,7 @@ def explore(
     arm: Optional[str] = typer.Option(None, "--arm", help="[pybullet] The simulated arm: panda, xarm6 (UFactory xArm 6, 6 DoF) or iiwa (KUKA LBR iiwa) [default: panda]."),
     gui: bool = typer.Option(False, "--gui", help="[pybullet] Open the PyBullet GUI (needs a display)."),
     realtime: bool = typer.Option(False, "--realtime", help="[pybullet] Pace the simulation to wall-clock time (with --gui)."),
-    robot_ip: Optional[str] = typer.Option(None, "--robot-ip", help="[franka] IP address of the Franka controller."),
+    robot_ip: Optional[str] = typer.Option(None, "--robot-ip", help="[franka, franka-torque, ur] IP address of the robot controller."),
     ft: Optional[str] = typer.Option(None, "--ft", help="[franka] Force source: franka (the arm's own estimate, default with --robot franka), ur (the UR's own, default with --robot ur), bota or netft (franka-torque needs one of these two)."),
     ft_address: Optional[str] = typer.Option(None, "--ft-address", help="[franka] Bota config JSON or Net F/T address."),
     dry_run: bool = typer.Option(False, "--dry-run", help="[franka] Connect read-only (no real-time kernel needed), read the sensors and print the plan without moving."),

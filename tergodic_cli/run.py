@@ -281,7 +281,7 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     out_dir : str or Path
         The run folder: built in a temporary sibling and renamed into place when complete; an
         existing one holding files is refused up front unless ``overwrite`` (then replaced whole).
-    backend : Kinematic, PyBullet or Franka, optional
+    backend : Kinematic, PyBullet or Hardware, optional
         What moves (:func:`make_backend`); default :class:`Kinematic`.
     starts : StartSpec, optional
         Where the agents start (default: random, with ``cfg.seed``).
@@ -395,7 +395,7 @@ def _faulted(summary: dict) -> bool:
 
 
 def dry_run_report(capture_dir: str | Path, cfg: ExploreConfig, backend, starts: StartSpec | None = None) -> str:
-    """What a run on the hardware ``backend`` (:class:`Franka`) would do: the devices are connected
+    """What a run on the hardware ``backend`` (:class:`Hardware`) would do: the devices are connected
     and read, nothing moves and nothing is written. Returns the report (several lines)."""
     check_backend_options(cfg, backend)
     capture, start_xyz = load_for_run(capture_dir, cfg, starts)
@@ -409,7 +409,7 @@ def check_backend_options(cfg: ExploreConfig, backend) -> None:
     Parameters
     ----------
     cfg : ExploreConfig
-    backend : Kinematic, PyBullet or Franka
+    backend : Kinematic, PyBullet or Hardware
     """
     require(backend.robot_cfg is None or cfg.n_agents == 1,
             f"--agents {cfg.n_agents} with --robot {backend.name}: the arm follows one agent",
@@ -610,11 +610,11 @@ class PyBullet(Kinematic):
                                   max_steps=self.max_steps or steps)
 
 
-class Franka(PyBullet):
-    """A Franka arm with a force source: through franky (``--robot franka``, streamed impedance) or
-    pylibfranka (``--robot franka-torque``, the paper's controller in a 1 kHz torque loop); ``hardware``
-    holds the :func:`~tergodic_cli.backends.factory.make_hardware` arguments, whose SDKs are imported
-    now; ``dry_run``: the devices connect read-only (no real-time kernel needed)."""
+class Hardware(PyBullet):
+    """A real arm with a force source (``--robot`` one of :data:`HARDWARE`: franky's streamed impedance,
+    pylibfranka's 1 kHz torque loop, a UR's force mode); ``hardware`` holds the
+    :func:`~tergodic_cli.backends.factory.make_hardware` arguments, whose SDKs are imported now;
+    ``dry_run``: the devices connect read-only (no real-time kernel needed)."""
 
     name = "franka"
 
@@ -640,6 +640,10 @@ class Franka(PyBullet):
         return dry_run(self.arm, self.sensor, None, DryRunPlan(capture, self.robot_cfg, start=tuple(start_xyz)))
 
 
+#: The former name of :class:`Hardware` (a Franka was the only real robot).
+Franka = Hardware
+
+
 def make_backend(robot: str = "kinematic", robot_options: dict | None = None, hardware: dict | None = None,
                  recapture_every: int | None = None, until_clean: float = 0.05, max_steps: int | None = None,
                  dry_run: bool = False):
@@ -660,7 +664,7 @@ def make_backend(robot: str = "kinematic", robot_options: dict | None = None, ha
 
     Returns
     -------
-    Kinematic, PyBullet or Franka
+    Kinematic, PyBullet or Hardware
     """
     require(robot in ROBOTS, f"--robot '{robot}' is unknown", f"use one of {', '.join(ROBOTS)}")
     require(recapture_every is None or robot == "pybullet", "--recapture-every needs the simulated robot",
@@ -675,7 +679,7 @@ def make_backend(robot: str = "kinematic", robot_options: dict | None = None, ha
     if robot in HARDWARE:
         require(robot_cfg.arm == "panda", f"--arm {robot_cfg.arm} is a simulated arm, not --robot {robot}",
                 f"leave --arm out with --robot {robot}, or use --robot pybullet")
-        return Franka(robot_cfg, hardware, robot, dry_run)
+        return Hardware(robot_cfg, hardware, robot, dry_run)
     from tergodic_cli.backends.pybullet.arms import get_arm
 
     get_arm(robot_cfg.arm)  # an unknown arm: one line naming the choices, before anything runs
