@@ -232,6 +232,11 @@ class JointImpedance:
 APPROACH_K = 2000.0
 #: N s/m added to the approach's axial damping (the controller's D_z, 50) on the speed error.
 APPROACH_D = 100.0
+#: N the retreat's servo may pull the tool back with while it lags its set-point (the same servo as
+#: the approach, backwards): a pure velocity servo pulls only D_z x 0.05 m/s = 2.5 N, which a steady
+#: posture or gravity-model torque held at 0 of 45 mm for 3 s (corpus soccer ball, stand, 2 N,
+#: seed 2, step 762), and the tool stayed touching after its fault.
+RETREAT_PULL = 20.0
 
 
 class LineTargetLaw:
@@ -239,13 +244,13 @@ class LineTargetLaw:
     :class:`LineForceController`: the one home of how "press" and "move" become the controller's modes
     (the simulated arm and the hardware torque loop both tick it).
 
-    "press" tracks the target's force (bumpless from the approach's push at first contact); "move"
-    with a positive speed is the approach: a position servo along the axis whose set-point advances at
-    the commanded speed (while the tool is blocked the set-point runs ahead and the push grows,
-    APPROACH_K × overshoot, until the force registers, capped at twice the contact threshold); a
-    negative speed is the retreat.
+    "press" tracks the target's force (bumpless from the approach's push at first contact); "move" is a
+    position servo along the axis whose set-point moves at the commanded speed. Approach (speed > 0):
+    while the tool is blocked the set-point runs ahead and the push grows (APPROACH_K × overshoot) until
+    the force registers, capped at twice the contact threshold. Retreat (speed < 0): the same servo
+    backwards, its pull capped at RETREAT_PULL.
 
-    Attributes: ``mode`` ("press", "approach", "move" or None: the next tick starts afresh),
+    Attributes: ``mode`` ("press", "approach", "retreat" or None: the next tick starts afresh),
     ``s_set`` (m, the approach's set-point along d), ``speed`` (m/s, the approach's last push speed).
     """
 
@@ -258,23 +263,25 @@ class LineTargetLaw:
         """One tick: ``st`` the ArmState, ``w`` (6,) the contact wrench (ee frame), ``target`` the
         LineTarget, ``threshold`` N the contact threshold. Returns the controller's output."""
         approach = target.mode == "move" and target.speed > 0
+        mode = "approach" if approach else "retreat" if target.mode == "move" else target.mode
         if target.mode == "press":
             if self.mode == "approach":  # first contact: the PID continues from the push it replaces
                 ctrl.start_tracking(target.force, ctrl.D[2] * self.speed)
             out = ctrl.step(st, target.a, target.d, w, "track", target.force, 0.0, target.v_line)
-        elif approach:
+        else:
             d = target.d
             p_along = float(st.ee_pose[:3, 3] @ d)
-            if self.mode != "approach":
+            if self.mode != mode:
                 ctrl.reset()
                 self.s_set = p_along
-            self.s_set = min(self.s_set + target.speed * ctrl.dt, p_along + 2.0 * threshold / APPROACH_K)
+            if approach:
+                self.s_set = min(self.s_set + target.speed * ctrl.dt, p_along + 2.0 * threshold / APPROACH_K)
+            else:
+                self.s_set = max(self.s_set + target.speed * ctrl.dt, p_along - RETREAT_PULL / APPROACH_K)
             push = APPROACH_K * (self.s_set - p_along) + APPROACH_D * (target.speed - float(d @ (st.jacobian[:3] @ st.dq)))
             self.speed = target.speed + push / ctrl.D[2]
             out = ctrl.step(st, target.a, d, w, "approach", target.force, self.speed)
-        else:
-            out = ctrl.step(st, target.a, target.d, w, "retreat", target.force, -target.speed)
-        self.mode = "approach" if approach else target.mode
+        self.mode = mode
         return out
 
 
