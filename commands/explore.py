@@ -20,7 +20,7 @@ def explore(
     ctx: typer.Context,
     capture: Path = typer.Argument(..., help="Capture folder written by 'tergodic capture'."),
     out: Path = typer.Option(..., "--out", "-o", help="Run folder: trajectory.npz, summary.json, run.mcap."),
-    robot: str = typer.Option("kinematic", "--robot", help="'kinematic' (virtual agent only), 'pybullet' (a simulated arm, --arm, 1 kHz torque control) or 'franka' (real arm through franky)."),
+    robot: str = typer.Option("kinematic", "--robot", help="'kinematic' (virtual agent only), 'pybullet' (a simulated arm, --arm, 1 kHz torque control), 'franka' (real arm through franky, streamed impedance), 'franka-torque' (real arm through pylibfranka: the simulation's line impedance and wrench PID in a 1 kHz torque loop; needs --ft bota|netft) or 'ur' (a UR e-Series through ur_rtde: the same wrench in its force mode)."),
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Basis cache root [default: $TERGODIC_CACHE_DIR or ~/.cache/tergodic]."),
     no_log: bool = typer.Option(False, "--no-log", help="Do not write the per-step MCAP log (for timing)."),
     config: Optional[Path] = typer.Option(None, "--config", help="Repeat a run: its RUN/config.json (explore config, start, seed, robot, closed loop, robot connection); options given beside it override it."),

@@ -22,10 +22,13 @@ from tergodic_cli.explore.explorer import Explorer
 from tergodic_cli.explore.summary import summarize_run
 from tergodic_cli.config import options_of
 from tergodic_cli.runspec import ClosedLoopSpec, HardwareSpec, LogSpec, StartSpec
+from tergodic_cli.backends import registry
 
 __all__ = ["ClosedLoopSpec", "HardwareSpec", "LogSpec", "StartSpec", "apply_saved", "make_backend", "run_explore"]
 
-ROBOTS = ("kinematic", "pybullet", "franka")
+#: The robots a run drives (``--robot``) and the real ones among them: the backend registry's.
+ROBOTS = registry.names("robot")
+HARDWARE = registry.names("robot", hardware=True)
 #: What a run folder may hold: explore's files and replay's default outputs (--overwrite replaces only these).
 RUN_FILES = frozenset({"run.mcap", "summary.json", "config.json", "trajectory.npz", "series.npz", "series.csv", "plots",
                        "run.rrd", "report.html"})
@@ -306,7 +309,7 @@ def run_explore(capture_dir: str | Path, cfg: ExploreConfig, out_dir: str | Path
     out_dir : str or Path
         The run folder: built in a temporary sibling and renamed into place when complete; an
         existing one holding files is refused up front unless ``overwrite`` (then replaced whole).
-    backend : Kinematic, PyBullet or Franka, optional
+    backend : Kinematic, PyBullet or Hardware, optional
         What moves (:func:`make_backend`); default :class:`Kinematic`.
     starts : StartSpec, optional
         Where the agents start (default: random, with ``cfg.seed``).
@@ -420,7 +423,7 @@ def _faulted(summary: dict) -> bool:
 
 
 def dry_run_report(capture_dir: str | Path, cfg: ExploreConfig, backend, starts: StartSpec | None = None) -> str:
-    """What a run on the hardware ``backend`` (:class:`Franka`) would do: the devices are connected
+    """What a run on the hardware ``backend`` (:class:`Hardware`) would do: the devices are connected
     and read, nothing moves and nothing is written. Returns the report (several lines)."""
     check_backend_options(cfg, backend)
     capture, start_xyz = load_for_run(capture_dir, cfg, starts)
@@ -434,7 +437,7 @@ def check_backend_options(cfg: ExploreConfig, backend) -> None:
     Parameters
     ----------
     cfg : ExploreConfig
-    backend : Kinematic, PyBullet or Franka
+    backend : Kinematic, PyBullet or Hardware
     """
     require(backend.robot_cfg is None or cfg.n_agents == 1,
             f"--agents {cfg.n_agents} with --robot {backend.name}: the arm follows one agent",
@@ -638,20 +641,22 @@ class PyBullet(Kinematic):
                                   max_steps=self.max_steps or steps)
 
 
-class Franka(PyBullet):
-    """A Franka arm through franky with a force source (``--robot franka``); ``hardware`` holds the
-    :func:`~tergodic_cli.backends.factory.make_hardware` arguments, whose SDKs are imported now."""
+class Hardware(PyBullet):
+    """A real arm with a force source (``--robot`` one of :data:`HARDWARE`: franky's streamed impedance,
+    pylibfranka's 1 kHz torque loop, a UR's force mode); ``hardware`` holds the
+    :func:`~tergodic_cli.backends.factory.make_hardware` arguments, whose SDKs are imported now;
+    ``dry_run``: the devices connect read-only (no real-time kernel needed)."""
 
     name = "franka"
 
-    def __init__(self, robot_cfg, hardware: dict | None = None):
+    def __init__(self, robot_cfg, hardware: dict | None = None, robot: str = "franka", dry_run: bool = False):
         from tergodic_cli.backends.factory import make_hardware
 
-        self.robot_cfg = robot_cfg
+        self.robot_cfg, self.name = robot_cfg, robot
         #: The connection, as the run's ``config.json`` saves it.
         self.hardware = HardwareSpec(**(hardware or {}))
         self.recapture_every, self.until_clean, self.max_steps = None, ClosedLoopSpec.until_clean, None  # no loop
-        self.arm, self.sensor = make_hardware(robot="franka", **(hardware or {}))
+        self.arm, self.sensor = make_hardware(robot=robot, read_only=dry_run, **(hardware or {}))
 
     def check(self, capture, start_xyz) -> None:
         _check_robot(self.robot_cfg)  # the hardware plans its own reach
@@ -667,6 +672,10 @@ class Franka(PyBullet):
         from tergodic_cli.backends.streamed import DryRunPlan, dry_run
 
         return dry_run(self.arm, self.sensor, None, DryRunPlan(capture, self.robot_cfg, start=tuple(start_xyz)))
+
+
+#: The former name of :class:`Hardware` (a Franka was the only real robot).
+Franka = Hardware
 
 
 def make_backend(robot: str = "kinematic", robot_options: dict | None = None, hardware: dict | None = None,
@@ -689,22 +698,22 @@ def make_backend(robot: str = "kinematic", robot_options: dict | None = None, ha
 
     Returns
     -------
-    Kinematic, PyBullet or Franka
+    Kinematic, PyBullet or Hardware
     """
     require(robot in ROBOTS, f"--robot '{robot}' is unknown", f"use one of {', '.join(ROBOTS)}")
     require(recapture_every is None or robot == "pybullet", "--recapture-every needs the simulated robot",
             "add --robot pybullet (with a 'tergodic capture --source sim' capture)")
     require(0.0 <= until_clean < 1.0, f"--until-clean must be in [0, 1), got {until_clean}", "e.g. 0.05 (5% of the marking left)")
-    require(not dry_run or robot == "franka", "--dry-run needs a real robot", "use it with --robot franka")
+    require(not dry_run or robot in HARDWARE, "--dry-run needs a real robot", f"use it with --robot {'|'.join(HARDWARE)}")
     if robot == "kinematic":
         return Kinematic()
     from tergodic_cli.robot import RobotConfig
 
     robot_cfg = make_robot_config(RobotConfig, robot_options)
-    if robot == "franka":
-        require(robot_cfg.arm == "panda", f"--arm {robot_cfg.arm} is a simulated arm; the real robot is a Franka",
-                "leave --arm out with --robot franka, or use --robot pybullet")
-        return Franka(robot_cfg, hardware)
+    if robot in HARDWARE:
+        require(robot_cfg.arm == "panda", f"--arm {robot_cfg.arm} is a simulated arm, not --robot {robot}",
+                f"leave --arm out with --robot {robot}, or use --robot pybullet")
+        return Hardware(robot_cfg, hardware, robot, dry_run)
     from tergodic_cli.backends.pybullet.arms import get_arm
 
     get_arm(robot_cfg.arm)  # an unknown arm: one line naming the choices, before anything runs

@@ -61,19 +61,20 @@ class ClosedLoopSpec(Config):
 
 @dataclass
 class HardwareSpec(Config):
-    """A real robot's connection (``--robot franka``): the controller's address and the force source
+    """A real robot's connection (``--robot franka``, ``franka-torque`` or ``ur``): the controller's address and the force source
     (:func:`~tergodic_cli.backends.factory.make_hardware`), and whether the run only plans (``dry_run``:
     connect, read, report; nothing moves and only ``config.json`` is written, which repeats the dry run)."""
 
     robot_ip: str | None = field(default=None, metadata=option(
-        "--robot-ip", "IP address of the Franka controller.", group="franka"))
+        "--robot-ip", "IP address of the robot controller.", group="franka, franka-torque, ur"))
     ft: str | None = field(default=None, metadata=option(
-        "--ft", "Force source: franka (the arm's own estimate, default), bota or netft.", group="franka"))
+        "--ft", "Force source: franka (the arm's own estimate, default with --robot franka), ur (the UR's own, "
+        "default with --robot ur), bota or netft (franka-torque needs one of these two).", group="franka, franka-torque, ur"))
     ft_address: str | None = field(default=None, metadata=option(
-        "--ft-address", "Bota config JSON or Net F/T address.", group="franka"))
+        "--ft-address", "Bota config JSON or Net F/T address.", group="franka, franka-torque, ur"))
     dry_run: bool = field(default=False, metadata=option(
-        "--dry-run/--no-dry-run", "Connect, read the sensors and print the plan without moving; OUT/config.json "
-        "records it, and --config repeats it as a dry run unless --no-dry-run is given.", group="franka"))
+        "--dry-run/--no-dry-run", "Connect read-only (no real-time kernel needed), read the sensors and print the plan without moving; OUT/config.json "
+        "records it, and --config repeats it as a dry run unless --no-dry-run is given.", group="franka, franka-torque, ur"))
 
     def connection(self) -> dict:
         """The :func:`~tergodic_cli.backends.factory.make_hardware` arguments (robot_ip, ft, ft_address)."""

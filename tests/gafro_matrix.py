@@ -29,7 +29,7 @@ def twist_from_gafro(c: np.ndarray) -> np.ndarray:
 
 
 def jacobian_spatial(model, q: np.ndarray) -> np.ndarray:
-    """(6, 7) geometric Jacobian J_G (eqs. 15-16) of a :class:`~tergodic_cli.robot.kinematics.FrankaModel`:
+    """(6, 7) geometric Jacobian J_G (eqs. 15-16) of a :class:`~tergodic_cli.backends.franka.gafro.FrankaModel`:
     columns are the joint screws B'_i as base-frame twists (v at the base origin, ω)."""
     cols = model.robot.getEEGeometricJacobian(np.asarray(q, dtype=float))
     return np.column_stack([twist_from_gafro(np.asarray(c.vector())) for c in cols])

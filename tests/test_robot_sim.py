@@ -17,7 +17,7 @@ from tergodic_cli.explore import ExploreConfig, Explorer  # noqa: E402
 from tergodic_cli.backends.pybullet import RobotRun, explore_with_robot  # noqa: E402
 from tergodic_cli.robot import RobotConfig, robot_explore_config  # noqa: E402
 from tergodic_cli.robot.interfaces import LineTarget  # noqa: E402
-from tergodic_cli.robot.kinematics import FrankaModel, tool_offset  # noqa: E402
+from tergodic_cli.backends.franka.gafro import FrankaModel, tool_offset  # noqa: E402
 from gafro_matrix import jacobian_base, jacobian_ee  # noqa: E402
 from tergodic_cli.backends.pybullet import PyBulletArm, PyBulletScene  # noqa: E402
 from tergodic_cli.robot.surface import oriented_normals, reconstruct_mesh  # noqa: E402

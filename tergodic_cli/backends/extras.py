@@ -15,6 +15,9 @@ from tergodic_cli.errors import TergodicError
 #: module name -> (extra, pip distribution, what it is)
 SDKS: dict[str, tuple[str, str, str]] = {
     "franky": ("franka", "franky-control", "the Franka SDK"),
+    "pylibfranka": ("libfranka", "pylibfranka", "Franka's official libfranka bindings"),
+    "rtde_control": ("ur", "ur_rtde", "SDU's RTDE interface to Universal Robots"),
+    "rtde_receive": ("ur", "ur_rtde", "SDU's RTDE interface to Universal Robots"),
     "bota_driver": ("bota", "bota-driver", "Bota Systems' F/T sensor driver"),
     "pyrealsense2": ("realsense", "pyrealsense2", "the Intel RealSense SDK"),
 }

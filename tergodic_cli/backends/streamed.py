@@ -94,8 +94,13 @@ class StreamedArm(_PlanArm):
         self.force_loop = ForceLoop(self.hw.gains, float(robot_cfg.force))
         self.spin_ref = np.array([1.0, 0.0, 0.0])
         self.threshold = float(robot_cfg.contact_threshold)
-        self.ts = self._obs = self._mode = None
+        self.ts = self._obs = self._mode = self._guard = None
         self._axial = 0.0
+        #: The device runs the paper's line controller itself (a torque loop, :mod:`~tergodic_cli.backends.torque`):
+        #: it takes the line targets as they are, not impedance references.
+        self.lines = hasattr(arm, "command_line")
+        if self.lines:
+            arm.bind(self.contact_wrench, None)
 
     @property
     def tau(self) -> np.ndarray:
@@ -103,8 +108,10 @@ class StreamedArm(_PlanArm):
         return getattr(self.dev, "measured_tau", getattr(self.dev, "last_tau", np.zeros(7)))
 
     def bind(self, guard, tick_stats, force_desired: float, threshold: float) -> None:
-        self.ts, self.threshold = tick_stats, float(threshold)
+        self.ts, self.threshold, self._guard = tick_stats, float(threshold), guard
         self.force_loop.F_d = float(force_desired)
+        if self.lines:
+            self.dev.bind(self.contact_wrench, guard)
 
     def get_observation(self, sensor: bool = True) -> Observation:
         st = self.dev.read_state()
@@ -123,6 +130,12 @@ class StreamedArm(_PlanArm):
 
     def send_action(self, target: LineTarget) -> None:
         """Stream the impedance reference of ``target`` for one period."""
+        if self.lines:  # the device's 1 kHz loop runs the line controller and its wrench PID
+            self.dev.command_line(target, self.spin_ref, self.threshold,
+                                  wrench=self._obs.wrench if self._obs is not None else None)
+            self._mode = target.mode
+            self._pace(self.dt)
+            return
         obs = self._obs
         st = obs.state
         a, d = np.asarray(target.a, dtype=float), np.asarray(target.d, dtype=float)
@@ -202,6 +215,8 @@ class StreamedArm(_PlanArm):
         self.sensor.tare()
         self.contact_wrench.tare_at(self.dev.read_state().ee_pose[:3, :3])
         self.force = 0.0
+        if self.lines:  # the loop computes the contact wrench too
+            self.dev.bind(self.contact_wrench, self._guard)
 
     def contact(self, obs) -> tuple[np.ndarray | None, float, float]:
         """The TCP when the filtered axial force is at or above the contact threshold, that force, and
@@ -220,7 +235,10 @@ class StreamedArm(_PlanArm):
         self._mode = None
 
     def summary(self) -> dict:
-        return {"stream_hz": 1.0 / self.dt, "hardware_config": self.hw.to_dict()}
+        out = {"stream_hz": 1.0 / self.dt, "hardware_config": self.hw.to_dict()}
+        if self.lines:
+            out["controller"] = self.dev.controller
+        return out
 
     def disconnect(self) -> None:
         _disconnect(self.dev, self.sensor)

@@ -179,6 +179,65 @@ class JointImpedance:
         return self.K * (q_d - q) + self.D * (dq_d - dq)
 
 
+#: N/m of the approach's axial position servo: its set-point advances at the guarded speed, so a
+#: steady push on the tool (gravity-model error, posture torques) cannot make it touch faster (a
+#: pure velocity servo, D_z = 50 N s/m, let 0.17 N push it in at 5.5 mm/s against 2 commanded).
+APPROACH_K = 2000.0
+#: N s/m added to the approach's axial damping (the controller's D_z, 50) on the speed error.
+APPROACH_D = 100.0
+#: N the retreat's servo may pull the tool back with while it lags its set-point (the same servo as
+#: the approach, backwards): a pure velocity servo pulls only D_z x 0.05 m/s = 2.5 N, which a steady
+#: posture or gravity-model torque held at 0 of 45 mm for 3 s (corpus soccer ball, stand, 2 N,
+#: seed 2, step 762), and the tool stayed touching after its fault.
+RETREAT_PULL = 20.0
+
+
+class LineTargetLaw:
+    """The torque of one control tick towards a :class:`~tergodic_cli.robot.interfaces.LineTarget`, on a
+    :class:`LineForceController`: the one home of how "press" and "move" become the controller's modes
+    (the simulated arm and the hardware torque loop both tick it).
+
+    "press" tracks the target's force (bumpless from the approach's push at first contact); "move" is a
+    position servo along the axis whose set-point moves at the commanded speed. Approach (speed > 0):
+    while the tool is blocked the set-point runs ahead and the push grows (APPROACH_K × overshoot) until
+    the force registers, capped at twice the contact threshold. Retreat (speed < 0): the same servo
+    backwards, its pull capped at RETREAT_PULL.
+
+    Attributes: ``mode`` ("press", "approach", "retreat" or None: the next tick starts afresh),
+    ``s_set`` (m, the approach's set-point along d), ``speed`` (m/s, the approach's last push speed).
+    """
+
+    def __init__(self):
+        self.mode: str | None = None
+        self.s_set = 0.0
+        self.speed = 0.0
+
+    def step(self, ctrl: LineForceController, st, w, target, threshold: float) -> ControlOutput:
+        """One tick: ``st`` the ArmState, ``w`` (6,) the contact wrench (ee frame), ``target`` the
+        LineTarget, ``threshold`` N the contact threshold. Returns the controller's output."""
+        approach = target.mode == "move" and target.speed > 0
+        mode = "approach" if approach else "retreat" if target.mode == "move" else target.mode
+        if target.mode == "press":
+            if self.mode == "approach":  # first contact: the PID continues from the push it replaces
+                ctrl.start_tracking(target.force, ctrl.D[2] * self.speed)
+            out = ctrl.step(st, target.a, target.d, w, "track", target.force, 0.0, target.v_line)
+        else:
+            d = target.d
+            p_along = float(st.ee_pose[:3, 3] @ d)
+            if self.mode != mode:
+                ctrl.reset()
+                self.s_set = p_along
+            if approach:
+                self.s_set = min(self.s_set + target.speed * ctrl.dt, p_along + 2.0 * threshold / APPROACH_K)
+            else:
+                self.s_set = max(self.s_set + target.speed * ctrl.dt, p_along - RETREAT_PULL / APPROACH_K)
+            push = APPROACH_K * (self.s_set - p_along) + APPROACH_D * (target.speed - float(d @ (st.jacobian[:3] @ st.dq)))
+            self.speed = target.speed + push / ctrl.D[2]
+            out = ctrl.step(st, target.a, d, w, "approach", target.force, self.speed)
+        self.mode = mode
+        return out
+
+
 #: The approach slows down to reach the expected surface in about this many seconds from where it is.
 APPROACH_TAU_S = 0.25
 #: Desired force (N) at and above which the tool touches at the full ``contact_speed``; below it the

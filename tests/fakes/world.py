@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 from gafro_matrix import jacobian_spatial, skew
 
 from tergodic_cli.robot.ga import matrix_to_rotvec
-from tergodic_cli.robot.kinematics import FrankaModel
+from tergodic_cli.backends.franka.gafro import FrankaModel
 
 G = 9.81
 

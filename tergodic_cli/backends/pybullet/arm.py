@@ -25,7 +25,7 @@ from tergodic_cli.backends.pybullet.scene import PyBulletScene
 from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.robot import kernels as Kn
 from tergodic_cli.robot.config import RobotConfig, validate_robot_config
-from tergodic_cli.robot.controller import JointImpedance, LineForceController, min_jerk
+from tergodic_cli.robot.controller import JointImpedance, LineForceController, LineTargetLaw, min_jerk
 from tergodic_cli.robot.interfaces import ArmState, ContactWrench, LineTarget, Observation
 from tergodic_cli.robot.reach import plan_reach, posture, tool_rotation
 from tergodic_cli.robot.run import SETTLE_S, ContactRun, object_pose
@@ -34,17 +34,6 @@ from tergodic_cli.robot.surface import (SurfaceMesh, check_reachable, check_surf
                                          oriented_normals, rebuild_surface, resolve_side, sim_object_mesh, source_mesh,
                                          surface_figures, transform_points)
 
-#: N/m of the approach's axial position servo: its set-point advances at the guarded speed, so a
-#: steady push on the tool (gravity-model error, posture torques) cannot make it touch faster (a
-#: pure velocity servo, D_z = 50 N s/m, let 0.17 N push it in at 5.5 mm/s against 2 commanded).
-APPROACH_K = 2000.0
-#: N s/m added to the approach's axial damping (the controller's D_z, 50) on the speed error.
-APPROACH_D = 100.0
-#: N the retreat's servo may pull the tool back with while it lags its set-point (the same servo as
-#: the approach, backwards): a pure velocity servo pulls only D_z x 0.05 m/s = 2.5 N, which a steady
-#: posture or gravity-model torque held at 0 of 45 mm for 3 s (corpus soccer ball, stand, 2 N,
-#: seed 2, step 762), and the tool stayed touching after its fault.
-RETREAT_PULL = 20.0
 #: Metres the hand, its fingers and the sponge keep from the object, table and stand, with the tool on the
 #: normal, for a point to count as reachable (the tilt's 95th percentile, ~3 deg, moves the hand ~7 mm).
 HAND_CLEAR = 0.01
@@ -141,8 +130,9 @@ class SimArm:
         self.hook_every = 20
         self._hook_age = 0
         self.wall0 = time.perf_counter()  # realtime pacing: wall clock at simulated time 0 (the run resets it)
-        self._obs = self._mode = self._s_set = self._meas = None
-        self._speed = 0.0
+        self._obs = self._meas = None
+        #: How a line target becomes the controller's mode each tick (press, approach servo, retreat).
+        self.law = LineTargetLaw()
         self._ik: dict = {}
         self.guard = self.ts = None
         #: The first arm contact not yet handed over (:meth:`fault`); ``collision_faults`` False only counts them.
@@ -194,31 +184,9 @@ class SimArm:
     def send_action(self, target: LineTarget) -> None:
         """The torque law for one tick towards ``target``, then one physics step."""
         st, w = self._obs.state, self._obs.wrench
-        ctrl = self.ctrl
-        approach = target.mode == "move" and target.speed > 0
-        mode = "approach" if approach else "retreat" if target.mode == "move" else target.mode
-        if target.mode == "press":
-            if self._mode == "approach":  # first contact: the PID continues from the push it replaces
-                ctrl.start_tracking(target.force, ctrl.D[2] * self._speed)
-            out = ctrl.step(st, target.a, target.d, w, "track", target.force, 0.0, target.v_line)
-        else:
-            # A position servo along the axis whose set-point moves at the commanded speed. Approach:
-            # while the tool is blocked the set-point runs ahead and the push grows (APPROACH_K × v)
-            # until the force registers, capped at twice the contact threshold. Retreat: the pull is
-            # capped at RETREAT_PULL.
-            d = target.d
-            p_along = float(st.ee_pose[:3, 3] @ d)
-            if self._mode != mode:
-                ctrl.reset()
-                self._s_set = p_along
-            if approach:
-                self._s_set = min(self._s_set + target.speed * self.dt, p_along + 2.0 * self.threshold / APPROACH_K)
-            else:
-                self._s_set = max(self._s_set + target.speed * self.dt, p_along - RETREAT_PULL / APPROACH_K)
-            push = APPROACH_K * (self._s_set - p_along) + APPROACH_D * (target.speed - float(d @ (st.jacobian[:3] @ st.dq)))
-            self._speed = target.speed + push / ctrl.D[2]
-            out = ctrl.step(st, target.a, d, w, "approach", self.F_d, self._speed)
-        self._mode = mode
+        if target.mode != "press":  # the approach and retreat push with the run's F_d in their mode
+            target = target._replace(force=self.F_d)
+        out = self.law.step(self.ctrl, st, w, target, self.threshold)
         self.dev.command(out.tau)
         self._physics()
 
@@ -345,7 +313,7 @@ class SimArm:
         self.plans.append(("hover", plan))
         self.ctrl = LineForceController(self.gains, self.cfg.physics_dt, q_rest=q_h, x_ref=self.ctrl.x_ref.copy(),
                                         q_min=self.q_min, q_max=self.q_max)
-        self._mode = None
+        self.law.mode = None
         return self._move_path(plan.path, check)
 
     def to_picture(self, check):
@@ -456,7 +424,7 @@ class SimArm:
         (:func:`~tergodic_cli.robot.kernels.pybullet_tick`): the same checks in the same order,
         the same arithmetic as get_observation / check / send_action."""
         A, D = np.ascontiguousarray(A, dtype=float), np.ascontiguousarray(D, dtype=float)
-        self._mode = "press"
+        self.law.mode = "press"
         i, t, io, rd, fault = self._compiled(A, D, np.zeros(0), v_line)
         if i < 0:
             return self.get_observation(), None, None, None

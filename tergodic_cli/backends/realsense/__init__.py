@@ -2,4 +2,11 @@
 
 from tergodic_cli.backends.realsense.camera import RealSenseCamera, RealSenseConfig
 
-__all__ = ["RealSenseCamera", "RealSenseConfig"]
+
+
+def make_camera(cfg: RealSenseConfig) -> RealSenseCamera:
+    """The registry's factory (backends/registry.py): a RealSense camera, not yet connected."""
+    return RealSenseCamera(cfg)
+
+
+__all__ = ["RealSenseCamera", "RealSenseConfig", "make_camera"]

@@ -1,5 +1,5 @@
-"""Franka kinematics with pygafro: motor forward kinematics (eq. 14); its geometric and ee-frame
-Jacobians (eqs. 15-16, 42-45) are formed by the tests only (tests/gafro_matrix.py): the loop computes
+"""The Franka Panda's kinematics with pygafro (the Panda's own, so in its folder): motor forward
+kinematics (eq. 14); its geometric and ee-frame Jacobians (eqs. 15-16, 42-45) are formed by the tests only (tests/gafro_matrix.py): the loop computes
 them compiled (``kernels.fk_jacobian``); inverse kinematics is :func:`~tergodic_cli.robot.reach.ik`.
 
 pygafro's ``FrankaEmikaRobot`` ends at the Franka hand's TCP (flange + 0.1034 m, rotated -45°

@@ -18,7 +18,7 @@ API used (franky-control 2.0, checked against its type stubs ``franky/_franky.py
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -27,7 +27,7 @@ from tergodic_cli.errors import TergodicError, require
 from tergodic_cli.backends.extras import import_sdk, one_line
 from tergodic_cli.backends.impedance import ImpedanceTarget
 from tergodic_cli.robot.interfaces import ArmState, WrenchSensor
-from tergodic_cli.backends.pybullet.arms.panda import DQ_MAX, HOME, Q_MAX, Q_MIN
+from tergodic_cli.backends.pybullet.arms.panda import DQ_MAX, HOME, JOINTS, Q_MAX, Q_MIN
 
 #: Joint limits (rad, rad/s) from Franka's datasheets.
 LIMITS = {
@@ -93,7 +93,7 @@ class FrankyArm:
     def __init__(self, cfg: FrankaConfig):
         cfg.validate()
         self.cfg = cfg
-        self.joint_names = [f"panda_joint{i}" for i in range(1, 8)]
+        self.joint_names = list(JOINTS)
         self.q_min, self.q_max, self.dq_max = (x.copy() for x in LIMITS[cfg.model])
         #: The picture posture (the Panda's "ready" pose) when the run gives none.
         self.home = np.array(HOME)
@@ -265,3 +265,14 @@ def _connect_fix(exc: BaseException) -> str:
         return "install the franky wheels built for your robot's libfranka version (franky's README lists them)"
     return "check the cable and the address, unlock the joints and activate FCI in Desk"
 
+
+
+def make_arm(cfg: FrankaConfig, sensor=None, gains=None, read_only: bool = False) -> FrankyArm:
+    """The registry's factory (backends/registry.py): franky's arm, not yet connected; ``read_only`` (the
+    dry run) needs no real-time kernel. ``sensor`` and ``gains`` are not used (franky runs its own loop)."""
+    return FrankyArm(replace(cfg, realtime="ignore") if read_only else cfg)
+
+
+def make_sensor(cfg, arm: FrankyArm) -> FrankaWrenchEstimate:
+    """The registry's factory for ``--ft franka``: the arm's own external-wrench estimate."""
+    return FrankaWrenchEstimate(arm)
