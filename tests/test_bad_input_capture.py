@@ -28,7 +28,7 @@ EXE = Path(sys.executable).with_name("tergodic")
 # ------------------------------------------------------------------------------------ helpers
 
 def run(*args, env=None):
-    proc = subprocess.run([str(EXE), *map(str, args)], capture_output=True, text=True, timeout=300,
+    proc = subprocess.run([str(EXE), *map(str, args)], capture_output=True, text=True, timeout=600,
                           env={**os.environ, "TERGODIC_NO_PROGRESS": "1", **(env or {})})
     return proc.returncode, proc.stdout, proc.stderr
 
@@ -454,7 +454,7 @@ def test_overwrite_replaces_the_whole_folder(tmp_path, good):
 def test_out_that_is_the_current_folder(good):
     before = snapshot(good)
     proc = subprocess.run([str(EXE), "capture", "--synthetic", "bowl", "--out", ".", "--overwrite"], cwd=good,
-                          capture_output=True, text=True, timeout=300, env={**os.environ, "TERGODIC_NO_PROGRESS": "1"})
+                          capture_output=True, text=True, timeout=600, env={**os.environ, "TERGODIC_NO_PROGRESS": "1"})
     one_line_error(proc.returncode, proc.stdout, proc.stderr, "--out .", "current folder")
     assert snapshot(good) == before
 

@@ -60,7 +60,7 @@ def test_ctrl_c_is_answered_while_the_laplacian_child_works(tmp_path):
     proc = subprocess.Popen([sys.executable, "-c", PARENT], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=env, preexec_fn=default_signals)
     assert proc.stdout.readline().strip() == "ready"
-    deadline, child = time.monotonic() + 120, None
+    deadline, child = time.monotonic() + 600, None  # event-based: ends when the child appears
     while time.monotonic() < deadline and proc.poll() is None and child is None:
         kids = _children(proc.pid)
         child = kids[0] if kids else None
@@ -68,7 +68,7 @@ def test_ctrl_c_is_answered_while_the_laplacian_child_works(tmp_path):
     assert child is not None, "no Laplacian child was started"
     os.kill(child, signal.SIGSTOP)
     proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=60)
+    out, err = proc.communicate(timeout=300)  # a hang guard, not a timing assertion
     assert proc.returncode == 130, (proc.returncode, out, err)
     assert "interrupted" in out and "finished" not in out
     time.sleep(0.2)
