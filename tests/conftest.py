@@ -52,7 +52,7 @@ def run_cli(*args: str) -> CliResult:
     return CliResult(code, out.getvalue(), err.getvalue())
 
 
-def run_cli_subprocess(*args: str, timeout: float = 120) -> CliResult:
+def run_cli_subprocess(*args: str, timeout: float = 600) -> CliResult:
     """Run the installed ``tergodic`` console script in a real subprocess."""
     exe = Path(sys.executable).with_name("tergodic")
     proc = subprocess.run([str(exe), *map(str, args)], capture_output=True, text=True, timeout=timeout,

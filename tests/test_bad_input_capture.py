@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import struct
 import subprocess
 import sys
@@ -28,7 +29,7 @@ EXE = Path(sys.executable).with_name("tergodic")
 # ------------------------------------------------------------------------------------ helpers
 
 def run(*args, env=None):
-    proc = subprocess.run([str(EXE), *map(str, args)], capture_output=True, text=True, timeout=300,
+    proc = subprocess.run([str(EXE), *map(str, args)], capture_output=True, text=True, timeout=600,
                           env={**os.environ, "TERGODIC_NO_PROGRESS": "1", **(env or {})})
     return proc.returncode, proc.stdout, proc.stderr
 
@@ -69,10 +70,16 @@ def _bowl_capture(out: Path, voxel: str) -> Path:
     return out
 
 
+@pytest.fixture(scope="module")
+def good_template(tmp_path_factory) -> Path:
+    """The good capture, made once a module (a process of its own: each copy below is byte-identical to a fresh one)."""
+    return _bowl_capture(tmp_path_factory.mktemp("good") / "good", "0.006")
+
+
 @pytest.fixture
-def good(tmp_path):
-    """A good capture folder; each test checks it is byte-identical after the bad run."""
-    return _bowl_capture(tmp_path / "good", "0.006")
+def good(tmp_path, good_template):
+    """A good capture folder (a copy, modes kept); each test checks it is byte-identical after the bad run."""
+    return Path(shutil.copytree(good_template, tmp_path / "good"))
 
 
 def bad_capture(good: Path, *args, needles=(), absent=()):
@@ -454,7 +461,7 @@ def test_overwrite_replaces_the_whole_folder(tmp_path, good):
 def test_out_that_is_the_current_folder(good):
     before = snapshot(good)
     proc = subprocess.run([str(EXE), "capture", "--synthetic", "bowl", "--out", ".", "--overwrite"], cwd=good,
-                          capture_output=True, text=True, timeout=300, env={**os.environ, "TERGODIC_NO_PROGRESS": "1"})
+                          capture_output=True, text=True, timeout=600, env={**os.environ, "TERGODIC_NO_PROGRESS": "1"})
     one_line_error(proc.returncode, proc.stdout, proc.stderr, "--out .", "current folder")
     assert snapshot(good) == before
 
@@ -553,10 +560,15 @@ def test_out_on_a_full_disk_leaves_nothing_new(tmp_path, mount):
 
 # ------------------------------------------------------------------------- --cache-dir faults
 
+@pytest.fixture(scope="module")
+def small_template(tmp_path_factory) -> Path:
+    return _bowl_capture(tmp_path_factory.mktemp("small") / "small", "0.008")
+
+
 @pytest.fixture
-def small(tmp_path):
-    """A small capture (a few hundred points) for precompute."""
-    return _bowl_capture(tmp_path / "small", "0.008")
+def small(tmp_path, small_template):
+    """A small capture (a few hundred points) for precompute: a copy of one made once a module."""
+    return Path(shutil.copytree(small_template, tmp_path / "small"))
 
 
 def test_cache_dir_is_a_file(tmp_path, small):

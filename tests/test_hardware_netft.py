@@ -23,8 +23,9 @@ from tergodic_cli.robot.safety import SafetyConfig, SafetyGuard
 W = np.array([1.5, -2.25, 10.0, 0.1, -0.2, 0.05])
 
 
-def _eventually(cond, seconds: float = 2.0) -> bool:
-    """Poll a condition on the server thread's state (UDP is asynchronous), bounded in time."""
+def _eventually(cond, seconds: float = 60.0) -> bool:
+    """Poll a condition on the server thread's state (UDP is asynchronous), bounded in time (generously:
+    it returns as soon as the condition holds, and a loaded machine delays the server's thread)."""
     end = time.monotonic() + seconds
     while time.monotonic() < end:
         if cond():
@@ -49,7 +50,7 @@ def test_wire_format_round_trips():
 
 
 def test_reads_the_stream_in_newtons():
-    with NetFTServer(lambda: W, max_seconds=10) as srv:
+    with NetFTServer(lambda: W, max_seconds=300) as srv:
         s = _sensor(srv.port)
         s.connect()
         try:
@@ -67,7 +68,7 @@ def test_reads_the_stream_in_newtons():
 
 def test_box_units_are_converted_to_si():
     lbf = np.array([1.0, -2.0, 3.0, 4.0, 5.0, -6.0])  # the box is set to lbf and lbf-in
-    with NetFTServer(lambda: lbf, counts_per_force=1000, counts_per_torque=1000, max_seconds=10) as srv:
+    with NetFTServer(lambda: lbf, counts_per_force=1000, counts_per_torque=1000, max_seconds=300) as srv:
         s = _sensor(srv.port, counts_per_force=1000, counts_per_torque=1000, force_unit="lbf", torque_unit="lbf-in")
         s.connect()
         try:
@@ -95,7 +96,7 @@ def test_calibration_from_the_web_page():
     th = threading.Thread(target=http.serve_forever, daemon=True)
     th.start()
     try:
-        with NetFTServer(lambda: W, counts_per_force=1000, counts_per_torque=10, max_seconds=10) as srv:
+        with NetFTServer(lambda: W, counts_per_force=1000, counts_per_torque=10, max_seconds=300) as srv:
             # the box's torque unit is N·mm: the source's W[3:] are N·mm values on the wire
             s = NetFTSensor(NetFTConfig(address=f"127.0.0.1:{srv.port}", http_port=http.server_address[1]))
             s.connect()
@@ -113,7 +114,7 @@ def test_calibration_from_the_web_page():
 
 def test_bad_status_reads_nan_and_a_stalled_stream_trips_the_guard():
     status = {"v": 0}
-    with NetFTServer(lambda: W, status=lambda: status["v"], max_seconds=10) as srv:
+    with NetFTServer(lambda: W, status=lambda: status["v"], max_seconds=300) as srv:
         s = _sensor(srv.port, fresh_timeout=0.02)
         s.connect()
         try:
@@ -140,7 +141,7 @@ def test_bad_status_reads_nan_and_a_stalled_stream_trips_the_guard():
 
 
 def test_no_box_is_a_one_line_error():
-    with NetFTServer(lambda: W, max_seconds=5) as srv:
+    with NetFTServer(lambda: W, max_seconds=300) as srv:
         port = srv.port  # a port that existed: closed again below
     s = _sensor(port, connect_timeout=0.3)
     with pytest.raises(TergodicError) as e:

@@ -331,7 +331,7 @@ def test_the_pages_script_plays_the_time_plots_with_the_slider(bowl_run, tmp_pat
     console.log(JSON.stringify(calls));
     """
     (tmp_path / "h.js").write_text(harness)
-    out = subprocess.run([node, str(tmp_path / "h.js")], capture_output=True, text=True, timeout=60)
+    out = subprocess.run([node, str(tmp_path / "h.js")], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout) == [["tergodic-series", ["1"], "immediate"], ["tergodic-series", ["2"], "immediate"]]
 

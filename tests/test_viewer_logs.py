@@ -84,7 +84,7 @@ def test_every_cloud_has_a_full_pose_and_log_times_are_wall_clock(runs, robot):
 
 
 def _rerun(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "rerun", *args], capture_output=True, text=True, timeout=180)
+    return subprocess.run([sys.executable, "-m", "rerun", *args], capture_output=True, text=True, timeout=600)
 
 
 @pytest.mark.parametrize("robot", ["kinematic", "pybullet"])

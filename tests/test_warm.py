@@ -40,7 +40,7 @@ def test_cached_follows_numbas_index(tmp_path):
         assert not explore_warm._cached(_import_fresh(tmp_path, "warm_probe").double)
         run = [sys.executable, "-c", "import sys; sys.path.insert(0, sys.argv[1]); import warm_probe; warm_probe.double(1.0)",
                str(tmp_path)]
-        subprocess.run(run, check=True, timeout=120)
+        subprocess.run(run, check=True, timeout=600)
         assert explore_warm._cached(_import_fresh(tmp_path, "warm_probe").double)
         src.write_text(KERNEL.format(body="3 * x"))  # a new source stamp: numba's index is stale
         assert not explore_warm._cached(_import_fresh(tmp_path, "warm_probe").double)
@@ -84,7 +84,7 @@ def test_no_compile_inside_a_timed_step(tmp_path):
                     cache_dir={str(tmp_path / 'cache')!r})
         print(json.dumps({{"seen": seen, "after": len(kernels.step_kernel.signatures)}}))
     """)
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600,
                          env={**__import__("os").environ, "TERGODIC_NO_PROGRESS": "1"})
     assert out.returncode == 0, out.stderr
     import json

@@ -15,6 +15,12 @@ import numpy as np
 
 
 def main(folder: str) -> int:
+    import signal
+
+    from tergodic_cli.basis.core import HELD_SIGNALS
+
+    if hasattr(signal, "pthread_sigmask"):  # the parent held Ctrl-C and SIGTERM over the start: take them again
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, HELD_SIGNALS)
     d = Path(folder)
     import robust_laplacian
     import scipy.sparse as sp

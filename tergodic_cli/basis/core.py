@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import time
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -108,6 +109,8 @@ def check_geometry(points: np.ndarray) -> None:
 #: killed on Ctrl-C or SIGTERM, lets the run answer within a second. Below it the ~0.5 s start of a
 #: child would cost more than it saves.
 CHILD_POINTS = 20_000
+#: Signals held (blocked) while the Laplacian's child is started: the child unblocks them.
+HELD_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 def _laplacian_in_child(points: np.ndarray, n_neighbors: int, fix: str) -> tuple[sp.csr_matrix, np.ndarray]:
@@ -122,9 +125,20 @@ def _laplacian_in_child(points: np.ndarray, n_neighbors: int, fix: str) -> tuple
         d = Path(tmp)
         np.save(d / "points.npy", np.ascontiguousarray(points, dtype=np.float64))
         np.save(d / "k.npy", np.int64(n_neighbors))
-        proc = subprocess.Popen([sys.executable, "-m", "tergodic_cli.basis._laplacian_child", tmp],
-                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        # Ctrl-C/SIGTERM held over the fork and exec: arriving inside Popen, they would end this process
+        # before the code below that kills the child (the child unblocks them itself)
+        hold = getattr(signal, "pthread_sigmask", None)
+        held = hold(signal.SIG_BLOCK, HELD_SIGNALS) if hold else None
         try:
+            proc = subprocess.Popen([sys.executable, "-m", "tergodic_cli.basis._laplacian_child", tmp],
+                                    stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        except BaseException:
+            if hold:
+                hold(signal.SIG_SETMASK, held)
+            raise
+        try:
+            if hold:
+                hold(signal.SIG_SETMASK, held)  # a signal that came meanwhile is handled here, inside the try
             while True:  # short waits: the signal handlers run between them
                 try:
                     _, err = proc.communicate(timeout=0.1)

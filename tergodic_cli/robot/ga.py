@@ -39,8 +39,8 @@ def rotvec_to_matrix(phi: np.ndarray) -> np.ndarray:
 
 
 def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
-    """Rotation vector (3,) of the rotation matrix ``R`` (3, 3); angle in [0, π]."""
-    R = np.asarray(R, dtype=float)
+    """Rotation vector (3,) of the rotation matrix ``R`` (3, 3); angle in [0, π]. (Also compiled: kernels.matrix_to_rotvec.)"""
+    R = np.asarray(R, dtype=np.float64)  # np.float64, not float: numba compiles this function too
     c = max(-1.0, min(1.0, 0.5 * (float(np.trace(R)) - 1.0)))
     theta = math.acos(c)
     w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])

@@ -123,6 +123,46 @@ def fk_jacobian(q, F, axis, qidx, tcp_off, T, J):
         J[3, i], J[4, i], J[5, i] = zx, zy, zz
 
 
+matrix_to_rotvec = njit(ga.matrix_to_rotvec)
+
+
+@njit
+def ik_dls(T, q, lo, hi, q_rest, F, axis, qidx, tcp_off, iters):
+    """Damped least squares inverse kinematics of the TCP pose ``T`` (4, 4) on the chain (F, axis,
+    qidx, tcp_off) of :func:`fk_jacobian`, from ``q`` (n,) rad, inside [``lo``, ``hi``] (n,).
+
+    Each iteration: the pose error e (6,) = (position m, rotation vector rad) of T against the TCP;
+    dq = J⁺ e + (I - J⁺ J) 0.2 (q_rest - q) with J⁺ = Jᵀ (J Jᵀ + 10⁻⁴ I)⁻¹, scaled to at most 0.2 rad a
+    joint, then clipped to the bounds. Stops below 10 µm and 0.1 mrad or after ``iters`` iterations.
+    Returns (q (n,), position error m, orientation error rad). (:func:`~tergodic_cli.robot.reach.ik`
+    is its Python face.)
+    """
+    n = q.shape[0]
+    Tq, J = np.empty((4, 4)), np.empty((6, n))
+    e = np.empty(6)
+    damp, eye_n = 1e-4 * np.eye(6), np.eye(n)
+    R = np.ascontiguousarray(T[:3, :3])
+    pe = oe = np.inf
+    for _ in range(iters):
+        fk_jacobian(q, F, axis, qidx, tcp_off, Tq, J)
+        phi = matrix_to_rotvec(R @ np.ascontiguousarray(Tq[:3, :3].T))
+        for k in range(3):
+            e[k] = T[k, 3] - Tq[k, 3]
+            e[3 + k] = phi[k]
+        pe = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+        oe = math.sqrt(e[3] * e[3] + e[4] * e[4] + e[5] * e[5])
+        if pe < 1e-5 and oe < 1e-4:
+            break
+        Jt = np.ascontiguousarray(J.T)
+        Jp = Jt @ np.linalg.inv(J @ Jt + damp)
+        dq = Jp @ e + (eye_n - Jp @ J) @ (0.2 * (q_rest - q))
+        big = np.max(np.abs(dq))
+        if big > 0.2:
+            dq *= 0.2 / big
+        q = np.minimum(np.maximum(q + dq, lo), hi)
+    return q, pe, oe
+
+
 # ----------------------------------------------------------------------------- the contact wrench
 @njit
 def rot(R, x0, x1, x2):

@@ -35,22 +35,25 @@ def tool_rotation(d: np.ndarray, x_down: np.ndarray) -> np.ndarray:
     """(3, 3) tool orientation with z along the unit axis ``d`` (3,), spin from ``x_down``.
 
     ``x_down`` (3,) is the tool's x-axis when it points straight down; it is carried to ``d`` by the
-    shortest rotation from -z to ``d`` (continuous in ``d`` except at +z).
+    shortest rotation from -z to ``d`` (continuous in ``d`` except at +z). One row of :func:`tool_rotations`.
     """
+    return tool_rotations(np.asarray(d, dtype=float)[None], x_down)[0]
+
+
+def tool_rotations(d: np.ndarray, x_down: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) tool orientations of :func:`tool_rotation` for the axes ``d`` (n, 3), in one pass."""
     d = np.asarray(d, dtype=float)
-    d = d / np.linalg.norm(d)
-    down = np.array([0.0, 0.0, -1.0])
-    axis = np.cross(down, d)
-    s, c = float(np.linalg.norm(axis)), float(down @ d)
-    x = np.asarray(x_down, dtype=float)
-    if s > 1e-9:
-        k = axis / s
-        x = x * c + np.cross(k, x) * s + k * (k @ x) * (1.0 - c)
-    elif c < 0:  # pointing straight up: any spin (the one discontinuity)
-        x = np.array([1.0, 0.0, 0.0])
-    x = x - (x @ d) * d
-    x /= np.linalg.norm(x)
-    return np.column_stack([x, np.cross(d, x), d])
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    axis = np.cross([0.0, 0.0, -1.0], d)
+    s, c = np.linalg.norm(axis, axis=1), -d[:, 2]
+    x = np.tile(np.asarray(x_down, dtype=float), (len(d), 1))
+    turn = s > 1e-9
+    k, st, ct, xt = axis[turn] / s[turn, None], s[turn, None], c[turn, None], x[turn]
+    x[turn] = xt * ct + np.cross(k, xt) * st + k * np.sum(k * xt, axis=1, keepdims=True) * (1.0 - ct)
+    x[~turn & (c < 0)] = (1.0, 0.0, 0.0)  # pointing straight up: any spin (the one discontinuity)
+    x = x - np.sum(x * d, axis=1, keepdims=True) * d
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    return np.stack([x, np.cross(d, x), d], axis=2)
 
 
 def ik(chain, T: np.ndarray, q0: np.ndarray, q_min: np.ndarray, q_max: np.ndarray, q_rest: np.ndarray | None = None,
@@ -60,29 +63,15 @@ def ik(chain, T: np.ndarray, q0: np.ndarray, q_min: np.ndarray, q_max: np.ndarra
     Returns (q (n,), position error m, orientation error rad); the posture ``q_rest`` is favoured
     in the null space, the joints are kept ``margin`` rad inside their limits.
     """
-    from tergodic_cli.robot.ga import matrix_to_rotvec
-    from tergodic_cli.robot.kernels import fk_jacobian
+    from tergodic_cli.robot.kernels import ik_dls
 
     F, axis, qidx, off = chain
     lo, hi = q_min + margin, q_max - margin
     q = np.clip(np.asarray(q0, dtype=float), lo, hi)
     q_rest = q.copy() if q_rest is None else np.asarray(q_rest, dtype=float)
-    n = len(q)
-    Tq, J = np.empty((4, 4)), np.empty((6, n))
-    pe = oe = math.inf
-    for _ in range(iters):
-        fk_jacobian(q, F, axis, qidx, off, Tq, J)
-        e = np.concatenate([T[:3, 3] - Tq[:3, 3], matrix_to_rotvec(T[:3, :3] @ Tq[:3, :3].T)])
-        pe, oe = float(np.linalg.norm(e[:3])), float(np.linalg.norm(e[3:]))
-        if pe < 1e-5 and oe < 1e-4:
-            break
-        Jp = J.T @ np.linalg.inv(J @ J.T + 1e-4 * np.eye(6))
-        dq = Jp @ e + (np.eye(n) - Jp @ J) @ (0.2 * (q_rest - q))
-        big = float(np.max(np.abs(dq)))
-        if big > 0.2:
-            dq *= 0.2 / big
-        q = np.clip(q + dq, lo, hi)
-    return q, pe, oe
+    # compiled (numba): the reach map solves a few hundred of these per robot run
+    q, pe, oe = ik_dls(np.ascontiguousarray(T, dtype=float), q, lo, hi, q_rest, F, axis, qidx, off, int(iters))
+    return q, float(pe), float(oe)
 
 
 def posture(chain, T: np.ndarray, q_ref: np.ndarray, q_min: np.ndarray, q_max: np.ndarray,

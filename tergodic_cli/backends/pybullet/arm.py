@@ -27,7 +27,7 @@ from tergodic_cli.robot import kernels as Kn
 from tergodic_cli.robot.config import RobotConfig, validate_robot_config
 from tergodic_cli.robot.controller import JointImpedance, LineForceController, LineTargetLaw, min_jerk
 from tergodic_cli.robot.interfaces import ArmState, ContactWrench, LineTarget, Observation
-from tergodic_cli.robot.reach import plan_reach, posture, tool_rotation
+from tergodic_cli.robot.reach import plan_reach, posture, tool_rotations
 from tergodic_cli.robot.run import SETTLE_S, ContactRun, object_pose
 from tergodic_cli.robot.safety import Fault, fmt_xyz
 from tergodic_cli.robot.surface import (SurfaceMesh, check_reachable, check_surface, curved_edge, near_border,
@@ -599,7 +599,7 @@ class RobotRun(ContactRun):
         # through a bowl's rim (82 % of the bowl's wall). Where the hand, its fingers or the sponge would come
         # within HAND_CLEAR of the object, the table or the stand with the tool on the normal, the tool
         # cannot press: dropped like any unreachable part (the run's checks fault whatever still touches).
-        R = np.array([tool_rotation(-n, self._x_down) for n in self.normals @ self.T_obj[:3, :3].T])
+        R = tool_rotations(-(self.normals @ self.T_obj[:3, :3].T), self._x_down)
         T_tcp = np.zeros((len(R), 4, 4))
         T_tcp[:, :3, :3], T_tcp[:, :3, 3], T_tcp[:, 3, 3] = R, self.points_base, 1.0
         clear = self.scene.collision.tool_clearance(T_tcp, HAND_CLEAR)
