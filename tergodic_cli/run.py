@@ -606,11 +606,12 @@ class PyBullet(Kinematic):
     def check(self, capture, start_xyz) -> None:
         guard = _check_robot(self.robot_cfg)
         from tergodic_cli.robot.run import object_pose
+        from tergodic_cli.backends.pybullet.arms import get_arm
         from tergodic_cli.robot.surface import check_reachable, transform_points
 
         # the same placement as the run, so an unreachable pose is refused before the run folder
         T_obj = object_pose(capture, self.robot_cfg)
-        check_reachable(transform_points(T_obj, capture.points))
+        check_reachable(transform_points(T_obj, capture.points), get_arm(self.robot_cfg.arm).reach)
         for a in transform_points(T_obj, np.atleast_2d(start_xyz)):
             require(guard.inside(a), f"the start point ({', '.join(f'{v:.3f}' for v in a)}) m is outside the workspace box",
                     "move the object with --object-pose, widen --workspace, or choose another start")

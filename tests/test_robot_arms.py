@@ -82,6 +82,13 @@ def test_arm_model_matches_its_urdf(name):
         # The TCP: the sponge's tip on the flange's z-axis, tool pointing down at the home posture.
         sc.set_arm(m.home)
         assert sc.tcp_pose()[:3, 2] @ [0, 0, -1.0] > 0.99
+        # The reach check's shoulder (datasheet) is the second joint's origin in the URDF, within 1 cm.
+        shoulder, reach = get_arm(name).reach
+        j2 = p.getLinkState(sc.robot, sc.arm_joints[1], physicsClientId=sc.cid)[4]
+        assert np.linalg.norm(np.subtract(j2, shoulder)) < 0.01, (j2, shoulder)
+        # ... and its working distance is no more than the farthest the TCP gets from it.
+        far = max(np.linalg.norm(m.fk(rng.uniform(m.q_min, m.q_max))[:3, 3] - shoulder) for _ in range(300))
+        assert reach < far, (reach, far)
     finally:
         sc.close()
 

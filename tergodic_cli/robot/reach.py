@@ -169,7 +169,7 @@ PLACEMENTS = ((0.5, 0.0), (0.5, 90.0), (0.5, -90.0), (0.5, 180.0), (0.4, 0.0), (
 
 def plan_reach(chain, points: np.ndarray, normals: np.ndarray, target: np.ndarray, x_down: np.ndarray, q0: np.ndarray,
                q_min: np.ndarray, q_max: np.ndarray, T_obj: np.ndarray | None, hover: float = 0.04,
-               seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+               seed: int = 0, reach: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The object pose and the reachable mask of its cloud.
 
     Parameters
@@ -177,6 +177,9 @@ def plan_reach(chain, points: np.ndarray, normals: np.ndarray, target: np.ndarra
     points, normals : (n, 3) cloud and oriented unit normals, capture frame. target : (n,) p >= 0.
     T_obj : (4, 4) the capture frame in the base frame when it is given (calibrated camera,
         ``--object-pose``); None: try :data:`PLACEMENTS` (stand of :func:`default_object_pose`).
+    reach : ((3,) m, m) or None
+        The arm's shoulder and working distance (:func:`~tergodic_cli.robot.surface.check_reachable`),
+        which a placement after the first must pass.
 
     Returns
     -------
@@ -197,7 +200,7 @@ def plan_reach(chain, points: np.ndarray, normals: np.ndarray, target: np.ndarra
         T = default_object_pose(points, reach, yaw)
         if best is not None:  # the first (the usual stand) is checked by the caller; others must fit too
             try:
-                check_reachable(transform_points(T, points))
+                check_reachable(transform_points(T, points), reach)
             except TergodicError:
                 continue
         m = mask_at(T, REACH_SAMPLES // 2)

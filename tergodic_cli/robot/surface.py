@@ -710,9 +710,20 @@ def transform_points(T: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.asarray(x, dtype=float) @ T[:3, :3].T + T[:3, 3]
 
 
-def check_reachable(points_base: np.ndarray, reach: float = 0.8) -> None:
-    """Refuse objects the Panda cannot reach from its base (distance from the shoulder)."""
-    shoulder = np.array([0.0, 0.0, 0.333])
+def check_reachable(points_base: np.ndarray, reach: tuple | None) -> None:
+    """Refuse objects the arm cannot reach from its base: a rough check before the reach map.
+
+    Parameters
+    ----------
+    points_base : (n, 3) float
+        The cloud in the robot base frame, m.
+    reach : ((3,) float, float) or None
+        The arm's shoulder (the point its reach is measured from, base frame, m) and the distance
+        from it the tool can work at, m (``ArmSpec.reach``); None: no check.
+    """
+    if reach is None:
+        return
+    shoulder, reach = np.asarray(reach[0], dtype=float), float(reach[1])
     d = np.linalg.norm(points_base - shoulder, axis=1)
     far = float(d.max())
     if far > reach:

@@ -18,6 +18,7 @@ from typing import Callable
 
 import numpy as np
 
+from tergodic_cli.backends.pybullet.arms import get_arm
 from tergodic_cli.backends.pybullet.devices import PyBulletArm, PyBulletWrenchSensor
 from tergodic_cli.backends.pybullet.plan import (END_FLOOR, PLAN_SLACK, SPONGE_MARGIN, CollisionWorld, Plan, plan_path,
                                                  retreat_clear)
@@ -526,7 +527,7 @@ class RobotRun(ContactRun):
         meta = getattr(capture, "meta", {}) or {}
         pose_given = cfg.object_pose is not None or meta.get("frame") == "robot_base"
         T_obj = object_pose(capture, cfg)
-        check_reachable(transform_points(T_obj, points))
+        check_reachable(transform_points(T_obj, points), get_arm(cfg.arm).reach)
         sim = meta.get("sim")
         source = getattr(capture, "mesh", None)
         h = float(meta.get("spacing_h_m") or mean_spacing(points))
@@ -573,7 +574,8 @@ class RobotRun(ContactRun):
         target = self.target()
         T, self.reachable = plan_reach(arm.dev._chain, self.points, self.normals, target, self._x_down,
                                        arm.picture_q, arm.q_min, arm.q_max,
-                                       self.T_obj if pose_given else None, self.cfg.hover_height)
+                                       self.T_obj if pose_given else None, self.cfg.hover_height,
+                                       reach=get_arm(self.cfg.arm).reach)
         # The ball hangs over an open sheet's border (a partial scan's free edge) and rolls off it.
         border = near_border(SurfaceMesh(transform_points(self._T_mesh_obj, self.mesh.vertices), self.mesh.triangles),
                              self.points, self.cfg.sponge.radius)

@@ -52,6 +52,7 @@ class ArmSpec:
         task 2 N m s/rad) then exceeds the explicit step's stability bound (I > D dt / 2).
     tool_link, sensor_joint : the link carrying the sponge ball (the F/T sensor reports in its inertial
         frame) and the fixed joint flange -> tool that is the sensor.
+    reach : ((3,) m, m) the shoulder and the distance from it the tool works at (datasheet); None: not checked.
     parts : (pybullet_data folder) -> [(part name, link name or None for the base, mesh file, pos (3,),
         rpy (3,))]: the convex pieces the whole-arm checks watch, the base's first (the table's hole is
         its footprint); None: every collision mesh of the URDF.
@@ -71,6 +72,9 @@ class ArmSpec:
     tool_link: str = TOOL_LINK
     sensor_joint: str = SENSOR_JOINT
     parts: Callable | None = None
+    #: ((3,) shoulder in the base frame, m; distance from it the tool works at, m), from the datasheet:
+    #: the rough check that refuses an object out of reach before the reach map (surface.check_reachable).
+    reach: tuple | None = None
 
     def urdf_text(self, data: str, sponge, arm_collision: bool = False) -> str:
         """The arm's URDF with the sponge tool (collision shapes on the arm's links with ``arm_collision``)."""

@@ -22,4 +22,7 @@ ARM = ArmSpec(
     # Reflected rotor inertias (ArmSpec.armature): the Panda's 0.1 kg m² per link, which the gains assume.
     armature=(0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1),
     reach_bound=(1.2, 1.2, 0.9, 0.9, 0.45, 0.45, 0.2),
+    # pybullet_data's model has the LBR iiwa 14 R820's geometry (datasheet: A2 0.36 m up, 0.82 m reach
+    # to the flange); 0.8 m with the tool on a normal
+    reach=((0.0, 0.0, 0.36), 0.8),
 )

@@ -101,4 +101,6 @@ def collision_parts(data: str) -> list[tuple]:
 ARM = ArmSpec(name="panda", urdf="franka_panda/panda.urdf", joints=JOINTS, flange="panda_link7", home=HOME,
               joint_gains=(JOINT_K, JOINT_D),
               reach_bound=REACH_BOUND, limits={"q_min": Q_MIN, "q_max": Q_MAX, "dq_max": DQ_MAX, "tau_max": TAU_MAX},
-              build=panda_sponge_urdf, tool_link="panda_hand", sensor_joint="panda_hand_joint", parts=collision_parts)
+              build=panda_sponge_urdf, tool_link="panda_hand", sensor_joint="panda_hand_joint", parts=collision_parts,
+              # the shoulder (joint 2) 0.333 m up; 0.855 m reach to the flange, 0.8 m with the tool on a normal
+              reach=((0.0, 0.0, 0.333), 0.8))

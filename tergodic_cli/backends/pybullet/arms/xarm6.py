@@ -19,4 +19,6 @@ ARM = ArmSpec(
     # Reflected rotor inertias (ArmSpec.armature): the Panda's 0.1 kg m² per link, which the gains assume.
     armature=(0.1, 0.1, 0.1, 0.1, 0.1, 0.1),
     reach_bound=(1.0, 1.0, 0.7, 0.4, 0.35, 0.2),
+    # datasheet: the shoulder (joint 2) 0.267 m up, 0.7 m reach
+    reach=((0.0, 0.0, 0.267), 0.7),
 )
