@@ -821,6 +821,8 @@ def _provenance(run: _Run, robot_extra: dict, logged: bool) -> dict:
                      "diffusion": cfg.diffusion, "integrator": cfg.integrator},
         # the neutral score's surface checks (issue 13): positions > 2h off the cloud, longest step
         "off_surface_fraction": score["off_surface_fraction"], "step_max_m": score["step_max_m"],
+        # a cloud much denser than 3 mm: ε above scores its target at the fields' 3 mm; this, per point
+        **({"ergodicity_point_target": score["ergodicity_point_target"]} if "ergodicity_point_target" in score else {}),
         "starts": {"start": starts.start, "starts_file": starts.starts_file, "start_index": starts.start_index,
                    "xyz": np.asarray(run.start_xyz).tolist()},
         "files": ["trajectory.npz", "summary.json", "config.json"] + (["run.mcap"] if logged else []),

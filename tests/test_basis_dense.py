@@ -141,3 +141,33 @@ def test_stray_points_and_duplicates_by_their_definitions():
     np.testing.assert_array_equal(isolated_points(pts), expected)
     dup = np.vstack([pts, pts[[5, 9, 9]]])
     assert count_duplicates(dup) == len(dup) - len(np.unique(dup, axis=0)) == 3
+
+
+def test_a_dense_clouds_score_uses_its_target_at_the_fields_resolution(sphere):
+    """On stand-ins the explorer seeks each voxel's mean p (a 3 mm capture's own rule); its ε scores that
+    target, and the captured per-point p is scored too: both against metrics.coverage_score of the path."""
+    from tergodic_cli.explore.metrics import coverage_score
+
+    cloud, basis = sphere
+    target = cloud.mask.astype(float)
+    cfg = ExploreConfig(steps=40, nk=NK, seed=0)
+    start = cloud.points[np.argmax(cloud.points[:, 2])][None, :]
+    ex = Explorer(basis, target, cfg, start)
+    path = [ex.positions.copy()]
+    for _ in range(cfg.steps):
+        ex.step()
+        path.append(ex.positions.copy())
+    X = np.array(path)[1:]
+    # the voxel means, group by group (the basis' map; the points' lumped masses as weights)
+    w = basis.point_mass
+    p_field = np.empty_like(target)
+    for g in np.unique(basis.rep):
+        members = basis.rep == g
+        p_field[members] = (w[members] @ target[members]) / w[members].sum()
+    assert np.any((p_field > 0) & (p_field < 1))  # the marking's edges are soft at 3 mm
+    score = ex.score()
+    want = coverage_score(cloud.points, p_field, X, cfg.agent_radius, basis.h)["ergodicity"]
+    raw = coverage_score(cloud.points, target, X, cfg.agent_radius, basis.h)["ergodicity"]
+    assert score["ergodicity"] == pytest.approx(want, rel=1e-9)
+    assert score["ergodicity_point_target"] == pytest.approx(raw, rel=1e-9)
+    assert abs(want - raw) > 1e-3  # the two targets do differ

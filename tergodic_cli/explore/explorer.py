@@ -310,10 +310,17 @@ class Explorer:
         if not self._spectral:
             self._u_full[:] = pbar
             self._u_orig[:] = pbar[self._rank]
+        # The score's target: p itself, or, on a field set thinned to 3 mm stand-ins (a cloud much denser
+        # than a 3 mm capture), each point's stand-in mean, which the explorer seeks (p̄ above): the 3 mm
+        # capture's own rule, so a 1M-point scan and its 3 mm capture score alike (issue 27; the per-point
+        # p is scored too, score()["ergodicity_point_target"]).
+        self._p_score = p
+        if fset.thinned:
+            self._p_score = np.divide(held, fset.mass, out=np.zeros(n), where=fset.mass > 0)[fset.rep]
         if self._score is None:
-            self._score = CoverageScore(self._full, p, self.r_a, self.h, self.cfg.n_agents)
+            self._score = CoverageScore(self._full, self._p_score, self.r_a, self.h, self.cfg.n_agents)
         else:
-            self._score.set_target(p, self._full)
+            self._score.set_target(self._p_score, self._full)
         self._set_metrics(float("nan"))
         self._gain_of_target = None  # the gain's kernel over T, built at the first stall check
         self._banned = np.zeros(len(T), dtype=bool)  # target points a transit could not reach
@@ -415,9 +422,14 @@ class Explorer:
         Returns
         -------
         dict
-            ``ergodicity``, ``touched_fraction``, ``off_surface_fraction`` and ``step_max_m`` (metres).
+            ``ergodicity``, ``touched_fraction``, ``off_surface_fraction`` and ``step_max_m`` (metres); on
+            a field set thinned to 3 mm stand-ins, whose ε scores the target at that resolution, also
+            ``ergodicity_point_target``: ε of the same coverage against the captured per-point p.
         """
-        return self._score.metrics()
+        out = self._score.metrics()
+        if self._field.thinned:
+            out["ergodicity_point_target"] = self._score.epsilon_for(self.p, self._full)
+        return out
 
     @property
     def alpha(self) -> float:

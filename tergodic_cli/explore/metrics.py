@@ -191,6 +191,13 @@ class CoverageScore:
         K.score_step(self._args[0], self._nrm, self._args[1], self._prm,
                      np.ascontiguousarray(positions, dtype=np.float64), self._prev)
 
+    def epsilon_for(self, target: np.ndarray, index) -> float:
+        """ε of the coverage so far against another target p (n,) (cloud order), e.g. the captured
+        per-point p of a cloud whose score uses its target at the field resolution."""
+        p = np.asarray(target, dtype=np.float64)[index.order]
+        ss = self._ss
+        return float(K.score_epsilon(self._cov, np.flatnonzero(p > 0), p / p.sum(), ss)) if ss[K.SS_N] else 1.0
+
     def metrics(self) -> dict:
         """The score so far.
 
