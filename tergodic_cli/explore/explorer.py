@@ -432,6 +432,12 @@ class Explorer:
         return out
 
     @property
+    def score_target(self) -> np.ndarray:
+        """(n,) the target p the score's ε is measured against, cloud order: :attr:`p`, or on a field
+        set thinned to 3 mm stand-ins each point's stand-in mean of p."""
+        return self._p_score
+
+    @property
     def alpha(self) -> float:
         """α in effect for the next step."""
         return [a for s, a in self._schedule if s <= self.step_index][-1]

@@ -821,7 +821,8 @@ class ContactRun:
         ex = self.explorer
         if not (hasattr(ex, "r_a") and hasattr(ex, "h")):
             return {}
-        p = self.target()
+        p = getattr(ex, "score_target", None)  # what the explorer's own ε scores (a dense cloud: at 3 mm)
+        p = self.target() if p is None else np.asarray(p, dtype=float)
         if self._contacts is None:
             from tergodic_cli.explore.index import cloud_index
             from tergodic_cli.explore.metrics import CoverageScore
