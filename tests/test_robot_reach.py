@@ -315,3 +315,20 @@ def test_an_agent_left_waiting_restarts_at_the_hottest_reachable_point(mug, monk
     assert chosen, "the waiting agent never restarted"
     x, expect, k = chosen[0]
     assert np.allclose(x, expect) and k >= R.WAIT_STEPS
+
+
+def test_every_placement_tried_is_checked_against_the_arms_reach(monkeypatch):
+    """plan_reach tries the next default placement while the arm reaches less than the whole target,
+    and checks each against the arm's own shoulder and working distance (a loop variable once hid it)."""
+    import tergodic_cli.robot.reach as R
+    import tergodic_cli.robot.surface as S
+
+    pts = np.random.default_rng(0).uniform(-0.05, 0.05, (50, 3))
+    half = np.arange(50) % 2 == 0
+    monkeypatch.setattr(R, "reach_map", lambda *a, **k: half.copy())  # half of the target at every pose
+    seen = []
+    monkeypatch.setattr(S, "check_reachable", lambda points, reach: seen.append(reach))
+    arm_reach = ((0.0, 0.0, 0.3), 0.75)
+    R.plan_reach(None, pts, np.tile([0.0, 0.0, 1.0], (50, 1)), np.ones(50), np.array([1.0, 0, 0]), None, None, None,
+                 None, reach=arm_reach)
+    assert len(seen) == len(R.PLACEMENTS) - 1 and all(r == arm_reach for r in seen)

@@ -196,8 +196,8 @@ def plan_reach(chain, points: np.ndarray, normals: np.ndarray, target: np.ndarra
         return T_obj, mask_at(T_obj)
     p = np.asarray(target, dtype=float)
     best = None
-    for reach, yaw in PLACEMENTS:
-        T = default_object_pose(points, reach, yaw)
+    for distance, yaw in PLACEMENTS:
+        T = default_object_pose(points, distance, yaw)
         if best is not None:  # the first (the usual stand) is checked by the caller; others must fit too
             try:
                 check_reachable(transform_points(T, points), reach)
