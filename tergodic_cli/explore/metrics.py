@@ -192,8 +192,21 @@ class CoverageScore:
                      np.ascontiguousarray(positions, dtype=np.float64), self._prev)
 
     def epsilon_for(self, target: np.ndarray, index) -> float:
-        """ε of the coverage so far against another target p (n,) (cloud order), e.g. the captured
-        per-point p of a cloud whose score uses its target at the field resolution."""
+        """ε of the coverage so far against another target, e.g. the captured per-point p of a cloud
+        whose score uses its target at the fields' resolution.
+
+        Parameters
+        ----------
+        target : (n,) float
+            p >= 0, cloud order.
+        index : CloudIndex
+            The cloud's index (:func:`~tergodic_cli.explore.index.cloud_index`).
+
+        Returns
+        -------
+        float
+            ε (dimensionless; 1 before any step).
+        """
         p = np.asarray(target, dtype=np.float64)[index.order]
         ss = self._ss
         return float(K.score_epsilon(self._cov, np.flatnonzero(p > 0), p / p.sum(), ss)) if ss[K.SS_N] else 1.0
