@@ -53,10 +53,15 @@ class TriangleMesh:
     material: np.ndarray | None = None
 
     @property
+    def triangle_areas(self) -> np.ndarray:
+        """(k,) each triangle's area, square metres (of the vertices' units)."""
+        v = self.vertices[self.triangles]
+        return 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+
+    @property
     def area(self) -> float:
         """Total surface area, square metres (of the vertices' units)."""
-        v = self.vertices[self.triangles]
-        return 0.5 * float(np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1).sum())
+        return float(self.triangle_areas.sum())
 
     @property
     def has_colour(self) -> bool:
@@ -375,6 +380,30 @@ def surface_colors(mesh: TriangleMesh, triangle: np.ndarray, barycentric: np.nda
     if mesh.vertex_colors is not None:
         return np.clip(np.einsum("mc,mcd->md", barycentric, mesh.vertex_colors[mesh.triangles[triangle]]), 0.0, 1.0)
     return None
+
+
+def uniform_colors(mesh: TriangleMesh, n: int, seed: int = 0) -> np.ndarray | None:
+    """The surface colour at ``n`` points drawn uniformly over the mesh's area: a quick look at its
+    colours (its marking) before :func:`sample_mesh`'s slower Poisson-disk sampling.
+
+    Parameters
+    ----------
+    mesh : TriangleMesh
+    n : int
+        Number of points.
+    seed : int
+        Seeds the draw.
+
+    Returns
+    -------
+    (n, 3) float64 in [0, 1], or None when the mesh has no colour (or no area).
+    """
+    area = mesh.triangle_areas
+    if not area.sum() > 0:
+        return None
+    rng = np.random.default_rng(seed)
+    tri = rng.choice(len(area), size=n, p=area / area.sum())
+    return surface_colors(mesh, tri, rng.dirichlet(np.ones(3), size=n))
 
 
 def sample_mesh(mesh: TriangleMesh, spacing: float, seed: int = 0) -> MeshSample:

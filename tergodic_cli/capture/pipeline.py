@@ -216,7 +216,7 @@ def _require_target(n_target: int, cfg: CaptureConfig) -> None:
 
 def _sample_mesh_file(cfg: CaptureConfig, target_range=None):
     """A mesh file sampled into a cloud: points (n, 3) m, colours or None, (vertices m, triangles), provenance."""
-    from tergodic_cli.capture.mesh import read_mesh, sample_mesh, surface_colors
+    from tergodic_cli.capture.mesh import read_mesh, sample_mesh, uniform_colors
     from tergodic_cli.progress import Spinner
 
     mesh = read_mesh(cfg.path, "--from")
@@ -226,18 +226,15 @@ def _sample_mesh_file(cfg: CaptureConfig, target_range=None):
     _check_extent(mesh.vertices, cfg.units, f"{Path(cfg.path).name}: ")
     # ... and the marking, on a quick uniform sample: the Poisson-disk sampling of a large mesh takes
     # minutes, and a wrong --target found after it wasted them (the 1.65 m duck of pybullet_data: 8 min)
-    rng = np.random.default_rng(cfg.seed)
-    V, T = mesh.vertices, mesh.triangles
-    area = 0.5 * np.linalg.norm(np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]]), axis=1)
-    if area.sum() > 0:
-        tri = rng.choice(len(T), size=PRECHECK_SAMPLES, p=area / area.sum())
-        bary = rng.dirichlet(np.ones(3), size=PRECHECK_SAMPLES)
-        _require_target(int((target_weight(surface_colors(mesh, tri, bary), target_range, PRECHECK_SAMPLES) > 0).sum()), cfg)
+    area = mesh.area
+    if area > 0:
+        colors = uniform_colors(mesh, PRECHECK_SAMPLES, cfg.seed)
+        _require_target(int((target_weight(colors, target_range, PRECHECK_SAMPLES) > 0).sum()), cfg)
     spacing = float(cfg.voxel) if cfg.voxel > 0 else MESH_SPACING
-    with Spinner(f"sampling the {mesh.area:.3g} m² mesh at {spacing * 1e3:.3g} mm"):
+    with Spinner(f"sampling the {area:.3g} m² mesh at {spacing * 1e3:.3g} mm"):
         sample = sample_mesh(mesh, spacing, seed=cfg.seed)
     colour = "texture" if mesh.textures and mesh.corner_uvs is not None else ("vertex" if mesh.vertex_colors is not None else "none")
-    info = {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles), "area_m2": mesh.area,
+    info = {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles), "area_m2": area,
             "sample_spacing_m": spacing, "samples": len(sample.points), "colour": colour, "seed": cfg.seed}
     return sample.points, sample.colors, (mesh.vertices, mesh.triangles.astype(np.int64)), info
 
